@@ -1,0 +1,4 @@
+"""neumip.client: the query contract, in-process and HTTP evaluators, the CLI and the Mitsuba plugin.
+
+Importing this package never imports torch or mitsuba.
+"""

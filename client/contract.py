@@ -1,0 +1,159 @@
+"""The query contract: the one definition of a NeuMIP shading query, shared by every part.
+
+Training, export, the data generator, the server and the renderer all import this module; nothing
+else restates the layout. A query is 7 float32 values::
+
+    u, v, sigma, wi_x, wi_y, wo_x, wo_y
+
+- ``u, v``: position on the material in tile units; the material repeats with period 1.
+  Any finite magnitude is accepted; the model reads ``u - floor(u)``.
+- ``sigma``: standard deviation of the Gaussian pixel footprint, in tile units. With a finest level of
+  ``R x R`` texels (``R = 2**k``) the level of detail is ``clamp(log2(sigma * R), 0, k)``
+  (:func:`level_of_detail`): one finest texel or less reads the finest level, a whole tile or more
+  reads the 1 x 1 level. ``sigma <= 0`` therefore means "finest"; huge sigma means "coarsest".
+- ``wi`` (towards the light) and ``wo`` (towards the viewer): unit vectors in the local frame
+  (z = normal, x along +u, y along +v), given by x and y; ``z = sqrt(1 - x^2 - y^2)``.
+  ``x^2 + y^2`` up to ``1 + DIRECTION_TOLERANCE`` is accepted (a grazing direction, z = 0);
+  beyond that the query is rejected.
+
+The answer is RGB float32 >= 0: the multi-resolution BTF under unit irradiance on the reference
+plane, used like a BRDF (a flat Lambertian plane of albedo ``a`` answers ``a / pi``).
+
+Every value must be finite: NaN or Inf anywhere is an error, never a silent NaN answer.
+"""
+
+from __future__ import annotations
+
+import math
+from typing import Protocol
+
+import numpy as np
+
+CONTRACT_VERSION = "1"
+"""Version of the query layout; travels in every model's metadata."""
+
+QUERY_FIELDS = ("u", "v", "sigma", "wi_x", "wi_y", "wo_x", "wo_y")
+"""Column order of a query row."""
+
+RGB_FIELDS = ("r", "g", "b")
+"""Column order of an answer row."""
+
+QUERY_DIM = len(QUERY_FIELDS)
+RGB_DIM = len(RGB_FIELDS)
+DTYPE = np.dtype("<f4")
+"""Little-endian float32: the wire and in-memory type of queries and answers."""
+
+U, V, SIGMA, WI_X, WI_Y, WO_X, WO_Y = range(QUERY_DIM)
+
+DIRECTION_TOLERANCE = 1e-3
+"""How far ``x^2 + y^2`` of a direction may exceed 1 (rounding) before the query is rejected."""
+
+# Names of the ONNX graph's tensors and metadata keys (the exported format's half of the contract).
+ONNX_INPUT = "queries"
+ONNX_OUTPUT = "rgb"
+META_CONTRACT = "neumip.contract_version"
+META_CONFIG = "neumip.config"
+META_DESCRIPTION = "neumip.description"
+META_VALIDATION = "neumip.validation"
+
+
+class QueryError(ValueError):
+    """A query buffer that breaks the contract (shape, dtype or values)."""
+
+
+def level_of_detail(sigma: np.ndarray, resolution: int) -> np.ndarray:
+    """Continuous level of detail for footprint ``sigma`` on a pyramid whose finest level is ``resolution``.
+
+    (N,) float -> (N,) float in ``[0, log2(resolution)]``; 0 is the finest level.
+    """
+    levels = int(math.log2(resolution))
+    with np.errstate(divide="ignore", invalid="ignore"):
+        lod = np.log2(np.maximum(sigma, 0) * resolution)
+    return np.clip(np.nan_to_num(lod, nan=0.0, neginf=0.0), 0, levels)
+
+
+def sigma_for_level(level: float, resolution: int) -> float:
+    """Inverse of :func:`level_of_detail`: the footprint whose level is exactly ``level``."""
+    return 2.0**level / resolution
+
+
+def as_queries(data: object, *, copy: bool = False) -> np.ndarray:
+    """Check a buffer against the contract and return it as a C-contiguous (N, 7) float32 array.
+
+    Raises :class:`QueryError` saying what is wrong: not 2-D, wrong column count, non-numeric,
+    non-finite values, or directions outside the unit disk. N = 0 is valid and gives an empty array.
+    """
+    arr = np.asarray(data)
+    if arr.dtype.kind not in "fiu":
+        raise QueryError(f"queries must be numeric, got dtype {arr.dtype}")
+    if arr.ndim != 2 or arr.shape[1] != QUERY_DIM:
+        raise QueryError(
+            f"queries must have shape (N, {QUERY_DIM}) ({', '.join(QUERY_FIELDS)}), got {arr.shape}"
+        )
+    arr = np.ascontiguousarray(arr, dtype=DTYPE)
+    if copy:
+        arr = arr.copy()
+    check_values(arr)
+    return arr
+
+
+def check_values(queries: np.ndarray) -> None:
+    """Raise :class:`QueryError` if (N, 7) float32 ``queries`` hold non-finite values or bad directions."""
+    if queries.size == 0:
+        return
+    finite = np.isfinite(queries)
+    if not finite.all():
+        row, col = np.argwhere(~finite)[0]
+        raise QueryError(
+            f"queries must be finite: row {row} column {QUERY_FIELDS[col]} is {queries[row, col]}"
+        )
+    for name, (cx, cy) in (("wi", (WI_X, WI_Y)), ("wo", (WO_X, WO_Y))):
+        r2 = queries[:, cx] ** 2 + queries[:, cy] ** 2
+        bad = r2 > 1.0 + DIRECTION_TOLERANCE
+        if bad.any():
+            row = int(np.argmax(bad))
+            raise QueryError(
+                f"{name} must be the (x, y) of a unit vector (x^2 + y^2 <= 1): row {row} has "
+                f"x^2 + y^2 = {r2[row]:.6g}"
+            )
+
+
+def pack_queries(
+    u: np.ndarray,
+    v: np.ndarray,
+    sigma: np.ndarray,
+    wi: np.ndarray,
+    wo: np.ndarray,
+) -> np.ndarray:
+    """Assemble (N, 7) float32 queries from u, v, sigma (each (N,)) and wi, wo ((N, 2) or (N, 3))."""
+    wi, wo = np.asarray(wi), np.asarray(wo)
+    cols = [u, v, sigma, wi[:, 0], wi[:, 1], wo[:, 0], wo[:, 1]]
+    return np.ascontiguousarray(np.stack([np.asarray(c, dtype=DTYPE) for c in cols], axis=1))
+
+
+def direction_z(x: np.ndarray, y: np.ndarray) -> np.ndarray:
+    """z of the unit vector with components x, y (0 for grazing or slightly-outside directions)."""
+    return np.sqrt(np.maximum(1.0 - x * x - y * y, 0.0))
+
+
+def as_rgb(data: object, rows: int) -> np.ndarray:
+    """Check an answer buffer: (rows, 3) float32, finite. Raises :class:`QueryError` otherwise."""
+    arr = np.asarray(data)
+    if arr.shape != (rows, RGB_DIM):
+        raise QueryError(f"answer must have shape ({rows}, {RGB_DIM}), got {arr.shape}")
+    arr = np.ascontiguousarray(arr, dtype=DTYPE)
+    if not np.isfinite(arr).all():
+        raise QueryError("answer holds non-finite values")
+    return arr
+
+
+class Evaluator(Protocol):
+    """Anything that answers queries for named materials: in-process or over HTTP."""
+
+    def materials(self) -> list[str]:
+        """Names of the materials this evaluator can answer for."""
+        ...
+
+    def evaluate(self, material: str, queries: np.ndarray) -> np.ndarray:
+        """(N, 7) float32 queries -> (N, 3) float32 RGB for ``material``."""
+        ...

@@ -1,0 +1,1 @@
+"""neumip.server: the FastAPI + ONNX Runtime batch-inference service."""

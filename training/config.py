@@ -1,0 +1,79 @@
+"""Model configuration: the architecture of one neural material, shared by training and export.
+
+Kept free of torch so that export, the server and tests can read it anywhere.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+from dataclasses import asdict, dataclass, fields
+
+
+@dataclass(frozen=True)
+class MaterialConfig:
+    """Architecture of a NeuMIP material (paper Sec. 3; defaults follow the paper)."""
+
+    resolution: int = 256
+    """Texels per side of the finest pyramid level (a power of two); coarser levels halve down to 1 x 1."""
+    channels: int = 7
+    """Feature channels per texel of the neural texture pyramid."""
+    hidden: int = 25
+    """Width of the hidden layers of both MLPs."""
+    layers: int = 4
+    """Linear layers per MLP (the paper: 4, i.e. three hidden layers)."""
+    offset: bool = True
+    """Use the neural offset module (learned parallax)."""
+    offset_channels: int = 7
+    """Channels of the neural offset texture (single level at the finest resolution)."""
+    offset_scale: float = 0.1
+    """Ray depth r = offset_scale * MLP output (author code: 0.1)."""
+    offset_min_cos: float = 0.6
+    """wo_z is clamped to at least this in offset = r * wo_xy / wo_z (grazing-angle stability)."""
+
+    def __post_init__(self) -> None:
+        if self.resolution < 1 or self.resolution & (self.resolution - 1):
+            raise ValueError(f"resolution must be a power of two, got {self.resolution}")
+        for name in ("channels", "hidden", "offset_channels"):
+            if getattr(self, name) < 1:
+                raise ValueError(f"{name} must be >= 1, got {getattr(self, name)}")
+        if self.layers < 1:
+            raise ValueError(f"layers must be >= 1, got {self.layers}")
+        if not 0 < self.offset_min_cos <= 1:
+            raise ValueError(f"offset_min_cos must be in (0, 1], got {self.offset_min_cos}")
+
+    @property
+    def levels(self) -> int:
+        """Index of the coarsest (1 x 1) level: log2(resolution)."""
+        return int(math.log2(self.resolution))
+
+    def level_sizes(self) -> list[int]:
+        """Texels per side of each level, finest (level 0) first."""
+        return [self.resolution >> level for level in range(self.levels + 1)]
+
+    def level_starts(self) -> list[int]:
+        """Row of each level's first texel in the flat texture atlas (levels stacked finest first)."""
+        starts, total = [], 0
+        for size in self.level_sizes():
+            starts.append(total)
+            total += size * size
+        return starts
+
+    def atlas_rows(self) -> int:
+        """Texels in all levels together."""
+        return sum(s * s for s in self.level_sizes())
+
+    def to_json(self) -> str:
+        return json.dumps(asdict(self), sort_keys=True)
+
+    @classmethod
+    def from_dict(cls, data: dict) -> "MaterialConfig":
+        known = {f.name for f in fields(cls)}
+        unknown = set(data) - known
+        if unknown:
+            raise ValueError(f"unknown MaterialConfig fields: {sorted(unknown)}")
+        return cls(**data)
+
+    @classmethod
+    def from_json(cls, text: str) -> "MaterialConfig":
+        return cls.from_dict(json.loads(text))
