@@ -147,6 +147,63 @@ def as_rgb(data: object, rows: int) -> np.ndarray:
     return arr
 
 
+# --- the msgpack wire format (server fast path and MaterialClient) -------------------------------
+# Request body:  msgpack map {"n": N, "queries": <N*7*4 bytes, little-endian float32, row-major>}
+# Response body: msgpack map {"n": N, "rgb": <N*3*4 bytes, little-endian float32, row-major>}
+MSGPACK_MEDIA_TYPE = "application/msgpack"
+EVALUATE_PATH = "/v1/materials/{name}/evaluate"
+"""POST here (msgpack or JSON) to evaluate queries on material `name`."""
+MATERIALS_PATH = "/v1/materials"
+"""GET here to list the served materials with their metadata."""
+
+
+def _unpack_rows(body: bytes, key: str, width: int) -> np.ndarray:
+    import msgpack
+
+    try:
+        msg = msgpack.unpackb(body, raw=False)
+    except Exception as exc:  # msgpack raises several types for malformed input
+        raise QueryError(f"body is not valid msgpack: {exc}") from None
+    if not isinstance(msg, dict) or key not in msg or "n" not in msg:
+        raise QueryError(f"msgpack body must be a map with keys 'n' and '{key}'")
+    n, raw = msg["n"], msg[key]
+    if not isinstance(n, int) or isinstance(n, bool) or n < 0:
+        raise QueryError(f"'n' must be a non-negative integer, got {n!r}")
+    if not isinstance(raw, (bytes, bytearray)):
+        raise QueryError(f"'{key}' must be binary (raw little-endian float32 bytes)")
+    if len(raw) != n * width * DTYPE.itemsize:
+        raise QueryError(
+            f"'{key}' holds {len(raw)} bytes; n={n} rows of {width} float32 need {n * width * 4}"
+        )
+    return np.frombuffer(raw, dtype=DTYPE).reshape(n, width)
+
+
+def encode_request(queries: np.ndarray) -> bytes:
+    """(N, 7) queries -> msgpack request body."""
+    import msgpack
+
+    q = np.ascontiguousarray(queries, dtype=DTYPE)
+    return msgpack.packb({"n": int(q.shape[0]), "queries": q.tobytes()})
+
+
+def decode_request(body: bytes) -> np.ndarray:
+    """msgpack request body -> validated (N, 7) float32 queries (read-only view). Raises QueryError."""
+    return as_queries(_unpack_rows(body, "queries", QUERY_DIM))
+
+
+def encode_response(rgb: np.ndarray) -> bytes:
+    """(N, 3) RGB -> msgpack response body."""
+    import msgpack
+
+    out = np.ascontiguousarray(rgb, dtype=DTYPE)
+    return msgpack.packb({"n": int(out.shape[0]), "rgb": out.tobytes()})
+
+
+def decode_response(body: bytes) -> np.ndarray:
+    """msgpack response body -> (N, 3) float32 RGB. Raises QueryError."""
+    return _unpack_rows(body, "rgb", RGB_DIM)
+
+
 class Evaluator(Protocol):
     """Anything that answers queries for named materials: in-process or over HTTP."""
 

@@ -211,3 +211,37 @@ def export_checkpoint(
     model = build_onnx(material.config, weights_from_state(material.state_dict(), material.config),
                        description or extra.get("description", ""), meta)
     return save_onnx(model, out)
+
+
+# --- weight factories (no torch): known-answer and random materials for tests and benchmarks ------
+
+
+def _shapes(config: MaterialConfig) -> dict[str, tuple[int, ...]]:
+    shapes: dict[str, tuple[int, ...]] = {"pyramid": (config.atlas_rows(), config.channels)}
+    mlps = {"decoder": (config.channels + 4, C.RGB_DIM)}
+    if config.offset:
+        mlps["offset_mlp"] = (config.offset_channels + 2, 1)
+        shapes["offset_texture"] = (config.resolution**2, config.offset_channels)
+    for prefix, (n_in, n_out) in mlps.items():
+        widths = [n_in] + [config.hidden] * (config.layers - 1) + [n_out]
+        for i in range(config.layers):
+            shapes[f"{prefix}.{i}.weight"] = (widths[i + 1], widths[i])
+            shapes[f"{prefix}.{i}.bias"] = (widths[i + 1],)
+    return shapes
+
+
+def random_weights(config: MaterialConfig, seed: int = 0, scale: float = 0.5) -> dict[str, np.ndarray]:
+    """Random weights of the right shapes (a material with texture and direction variation)."""
+    rng = np.random.default_rng(seed)
+    out = {}
+    for name, shape in _shapes(config).items():
+        fan_in = shape[1] if name.endswith("weight") else 1
+        out[name] = (rng.normal(size=shape) * scale / np.sqrt(fan_in)).astype(np.float32)
+    return out
+
+
+def constant_weights(config: MaterialConfig, rgb) -> dict[str, np.ndarray]:
+    """Weights of a material that answers `rgb` for every query (e.g. albedo / pi: a Lambertian)."""
+    out = {name: np.zeros(shape, np.float32) for name, shape in _shapes(config).items()}
+    out[f"decoder.{config.layers - 1}.bias"] = np.asarray(rgb, np.float32).reshape(C.RGB_DIM)
+    return out

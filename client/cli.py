@@ -1,0 +1,53 @@
+"""The `neumip` command line. Each area registers its own subcommands; heavy imports stay lazy."""
+
+from __future__ import annotations
+
+import argparse
+import importlib
+import logging
+import sys
+
+AREAS = (
+    "neumip.client.commands",
+    "neumip.client.mitsuba.commands",
+    "neumip.training.commands",
+    "neumip.training.microgeometry.commands",
+    "neumip.server.commands",
+)
+"""Modules with a `register(subparsers)` function adding that area's subcommands."""
+
+
+class CommandError(Exception):
+    """An error a command reports to the user as one line, exit status 2."""
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(prog="neumip", description="Multi-resolution neural materials.")
+    parser.add_argument("-v", "--verbose", action="store_true", help="log debug messages")
+    sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
+    for area in AREAS:
+        importlib.import_module(area).register(sub)
+    return parser
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = build_parser().parse_args(argv)
+    logging.basicConfig(
+        level=logging.DEBUG if args.verbose else logging.INFO,
+        format="%(levelname)s %(name)s: %(message)s",
+    )
+    from .contract import QueryError
+    from .local import ModelError, UnknownMaterial
+
+    try:
+        return int(args.func(args) or 0)
+    except (CommandError, QueryError, ModelError, UnknownMaterial, FileNotFoundError) as exc:
+        print(f"neumip {args.command}: error: {exc}", file=sys.stderr)
+        return 2
+    except KeyboardInterrupt:
+        print(f"neumip {args.command}: interrupted", file=sys.stderr)
+        return 130
+
+
+if __name__ == "__main__":  # pragma: no cover
+    sys.exit(main())

@@ -1,0 +1,142 @@
+"""In-process evaluation of exported materials with ONNX Runtime (no torch).
+
+`LocalMaterials` loads every ``*.onnx`` in a folder (material name = file stem), checks each file's
+contract version, and evaluates (N, 7) query buffers in cache-sized chunks.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import re
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from . import contract as C
+
+log = logging.getLogger(__name__)
+
+DEFAULT_CHUNK = 16384
+"""Rows per ONNX Runtime call: big enough to amortise the call, small enough to stay in cache."""
+
+NAME_PATTERN = re.compile(r"^[A-Za-z0-9][A-Za-z0-9_.-]{0,127}$")
+"""What a material name may look like (also guards paths built from names)."""
+
+
+class ModelError(RuntimeError):
+    """A model file that cannot be used: unreadable, corrupt, or of another contract."""
+
+
+class UnknownMaterial(KeyError):
+    """A material name that is not loaded."""
+
+    def __str__(self) -> str:
+        return str(self.args[0])
+
+
+def _onnxruntime():
+    try:
+        import onnxruntime
+    except ImportError as exc:  # pragma: no cover - base dependency
+        raise ImportError("onnxruntime is missing: pip install neumip") from exc
+    return onnxruntime
+
+
+@dataclass
+class Material:
+    """One loaded material: its ONNX Runtime session and the metadata that travelled with it."""
+
+    name: str
+    path: Path
+    session: object
+    metadata: dict[str, str]
+
+    @property
+    def config(self) -> dict:
+        return json.loads(self.metadata.get(C.META_CONFIG, "{}"))
+
+    def info(self) -> dict:
+        """What a listing shows of this material."""
+        validation = self.metadata.get(C.META_VALIDATION)
+        return {
+            "name": self.name,
+            "contract_version": self.metadata.get(C.META_CONTRACT),
+            "description": self.metadata.get(C.META_DESCRIPTION, ""),
+            "config": self.config,
+            "validation": json.loads(validation) if validation else None,
+            "bytes": self.path.stat().st_size,
+        }
+
+
+def load_material(path: str | Path, threads: int = 0) -> Material:
+    """Open one ``.onnx`` material; raises ModelError if unreadable or of another contract version."""
+    ort = _onnxruntime()
+    path = Path(path)
+    opts = ort.SessionOptions()
+    opts.intra_op_num_threads = threads
+    opts.inter_op_num_threads = 1
+    opts.log_severity_level = 3
+    try:
+        session = ort.InferenceSession(str(path), opts, providers=["CPUExecutionProvider"])
+    except Exception as exc:  # onnxruntime raises its own exception types for corrupt files
+        raise ModelError(f"{path.name}: cannot load ONNX model: {exc}") from exc
+    meta = dict(session.get_modelmeta().custom_metadata_map)
+    version = meta.get(C.META_CONTRACT)
+    if version != C.CONTRACT_VERSION:
+        raise ModelError(
+            f"{path.name}: query contract version {version!r}, this build speaks {C.CONTRACT_VERSION!r}"
+        )
+    inputs, outputs = session.get_inputs(), session.get_outputs()
+    if [i.name for i in inputs] != [C.ONNX_INPUT] or [o.name for o in outputs] != [C.ONNX_OUTPUT]:
+        raise ModelError(f"{path.name}: graph must map '{C.ONNX_INPUT}' to '{C.ONNX_OUTPUT}'")
+    return Material(path.stem, path, session, meta)
+
+
+def run_chunked(session, queries: np.ndarray, chunk: int = DEFAULT_CHUNK) -> np.ndarray:
+    """Evaluate validated (N, 7) float32 queries in chunks of `chunk` rows -> (N, 3) float32."""
+    n = queries.shape[0]
+    out = np.empty((n, C.RGB_DIM), dtype=C.DTYPE)
+    for lo in range(0, n, chunk):
+        hi = min(lo + chunk, n)
+        out[lo:hi] = session.run([C.ONNX_OUTPUT], {C.ONNX_INPUT: queries[lo:hi]})[0]
+    return out
+
+
+class LocalMaterials:
+    """Evaluate exported materials in this process.
+
+    ``LocalMaterials("models/")`` loads every ``.onnx`` file there; files that fail to load are
+    logged and listed in :attr:`errors`, the others still serve.
+    """
+
+    def __init__(self, folder: str | Path, threads: int = 0, chunk: int = DEFAULT_CHUNK) -> None:
+        self.folder = Path(folder)
+        if not self.folder.is_dir():
+            raise FileNotFoundError(f"model folder {self.folder} does not exist")
+        self.chunk = chunk
+        self.threads = threads
+        self._materials: dict[str, Material] = {}
+        self.errors: dict[str, str] = {}
+        for path in sorted(self.folder.glob("*.onnx")):
+            try:
+                self._materials[path.stem] = load_material(path, threads)
+            except ModelError as exc:
+                log.error("skipping %s", exc)
+                self.errors[path.stem] = str(exc)
+
+    def materials(self) -> list[str]:
+        return sorted(self._materials)
+
+    def get(self, name: str) -> Material:
+        try:
+            return self._materials[name]
+        except KeyError:
+            known = ", ".join(self.materials()) or "none"
+            raise UnknownMaterial(f"unknown material {name!r} (loaded: {known})") from None
+
+    def evaluate(self, material: str, queries: np.ndarray) -> np.ndarray:
+        """(N, 7) queries -> (N, 3) float32 RGB. Raises QueryError for a bad buffer."""
+        mat = self.get(material)
+        return run_chunked(mat.session, C.as_queries(queries), self.chunk)

@@ -1,0 +1,153 @@
+"""MBTF query data sets on disk: chunked, resumable writing and memory-mapped reading.
+
+A data set is a folder::
+
+    DATA/
+      queries.npy     (N, 7) float32, the contract's query layout
+      rgb.npy         (N, 3) float32, the MBTF value of each query
+      meta.json       {"format", "n", "complete", "material", "generator", ...}
+      progress.json   only while being written: chunks done so far
+
+Why this format: ``.npy`` files are memory-mapped by numpy with no extra dependency (training draws
+random batches straight from the page cache), readable by any tool, and can be pre-allocated at full
+size and filled chunk by chunk in place. ``meta.json`` says ``"complete": true`` only after every
+chunk is flushed, and it is written atomically, so an interrupted run is never mistaken for a whole
+data set; re-running the same command resumes at the first unfinished chunk.
+
+External data (e.g. converted measured BTFs) enters through :func:`write_dataset`: any (N, 7)
+queries in the contract's layout with their (N, 3) RGB.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from neumip.client import contract as C
+
+FORMAT = "neumip-mbtf-1"
+
+
+class DatasetError(RuntimeError):
+    """A data set folder that is missing, incomplete or inconsistent."""
+
+
+def _write_json(path: Path, data: dict) -> None:
+    tmp = path.with_name(path.name + ".tmp")
+    tmp.write_text(json.dumps(data, indent=2, sort_keys=True))
+    os.replace(tmp, path)
+
+
+@dataclass
+class Dataset:
+    """A complete data set, memory-mapped."""
+
+    path: Path
+    queries: np.ndarray  # (N, 7) float32, read-only memmap
+    rgb: np.ndarray  # (N, 3) float32, read-only memmap
+    meta: dict[str, Any]
+
+    def __len__(self) -> int:
+        return self.queries.shape[0]
+
+
+def open_dataset(path: str | Path) -> Dataset:
+    """Open a complete data set read-only. Raises DatasetError if it is incomplete or inconsistent."""
+    path = Path(path)
+    meta_path = path / "meta.json"
+    if not meta_path.exists():
+        raise DatasetError(f"{path} is not a data set (no meta.json)")
+    meta = json.loads(meta_path.read_text())
+    if meta.get("format") != FORMAT:
+        raise DatasetError(f"{path}: format {meta.get('format')!r}, expected {FORMAT!r}")
+    if not meta.get("complete"):
+        raise DatasetError(f"{path} is incomplete (interrupted run?): re-run the generator to resume")
+    queries = np.load(path / "queries.npy", mmap_mode="r")
+    rgb = np.load(path / "rgb.npy", mmap_mode="r")
+    n = meta["n"]
+    if queries.shape != (n, C.QUERY_DIM) or rgb.shape != (n, C.RGB_DIM):
+        raise DatasetError(f"{path}: arrays {queries.shape}, {rgb.shape} do not match n={n}")
+    if queries.dtype != C.DTYPE or rgb.dtype != C.DTYPE:
+        raise DatasetError(f"{path}: arrays must be little-endian float32")
+    return Dataset(path, queries, rgb, meta)
+
+
+class DatasetWriter:
+    """Fill a data set of `n` rows chunk by chunk; resumable.
+
+    ``meta`` must identify what is generated (material, settings, seed): resuming with different
+    ``meta`` is refused rather than mixing two data sets.
+    """
+
+    def __init__(self, path: str | Path, n: int, chunk: int, meta: dict[str, Any]) -> None:
+        self.path = Path(path)
+        self.n, self.chunk = n, chunk
+        self.meta = {"format": FORMAT, "n": n, "chunk": chunk, **meta}
+        self.path.mkdir(parents=True, exist_ok=True)
+        self._progress = self.path / "progress.json"
+        meta_path = self.path / "meta.json"
+        if meta_path.exists() and json.loads(meta_path.read_text()).get("complete"):
+            raise DatasetError(f"{self.path} already holds a complete data set")
+        if self._progress.exists():
+            state = json.loads(self._progress.read_text())
+            if state["meta"] != json.loads(json.dumps(self.meta)):
+                raise DatasetError(
+                    f"{self.path} holds a partial data set made with other settings; "
+                    "remove it or use the same settings to resume"
+                )
+            self.done = int(state["done"])
+            mode = "r+"
+        else:
+            self.done = 0
+            mode = "w+"
+        open_mm = np.lib.format.open_memmap
+        kw = {} if mode == "r+" else {"dtype": C.DTYPE}
+        self.queries = open_mm(self.path / "queries.npy", mode=mode, shape=None if mode == "r+" else (n, C.QUERY_DIM), **kw)
+        self.rgb = open_mm(self.path / "rgb.npy", mode=mode, shape=None if mode == "r+" else (n, C.RGB_DIM), **kw)
+        if mode == "w+":
+            self._save_progress()
+
+    @property
+    def chunks(self) -> int:
+        return -(-self.n // self.chunk)
+
+    def chunk_range(self, index: int) -> tuple[int, int]:
+        return index * self.chunk, min((index + 1) * self.chunk, self.n)
+
+    def write_chunk(self, index: int, queries: np.ndarray, rgb: np.ndarray) -> None:
+        """Store chunk `index` (must be the next one) and record it as done once flushed."""
+        if index != self.done:
+            raise DatasetError(f"chunk {index} written out of order (next is {self.done})")
+        lo, hi = self.chunk_range(index)
+        self.queries[lo:hi] = C.as_queries(queries)
+        self.rgb[lo:hi] = C.as_rgb(rgb, hi - lo)
+        self.queries.flush()
+        self.rgb.flush()
+        self.done = index + 1
+        self._save_progress()
+
+    def finalize(self) -> Dataset:
+        """Mark the data set complete (every chunk must be written) and reopen it read-only."""
+        if self.done != self.chunks:
+            raise DatasetError(f"{self.done} of {self.chunks} chunks written; cannot finalize")
+        del self.queries, self.rgb
+        _write_json(self.path / "meta.json", {**self.meta, "complete": True})
+        self._progress.unlink(missing_ok=True)
+        return open_dataset(self.path)
+
+    def _save_progress(self) -> None:
+        _write_json(self._progress, {"done": self.done, "meta": self.meta})
+
+
+def write_dataset(path: str | Path, queries: np.ndarray, rgb: np.ndarray, meta: dict[str, Any]) -> Dataset:
+    """Write a whole data set at once (e.g. converted external/measured data)."""
+    q = C.as_queries(queries)
+    writer = DatasetWriter(path, q.shape[0], max(q.shape[0], 1), meta)
+    if q.shape[0]:
+        writer.write_chunk(0, q, C.as_rgb(rgb, q.shape[0]))
+    return writer.finalize()
