@@ -1,0 +1,77 @@
+"""The query contract: validation, level of detail, wire format."""
+
+import msgpack
+import numpy as np
+import pytest
+
+from neumip.client import contract as C
+
+
+def good(n=4):
+    q = np.zeros((n, 7), np.float32)
+    q[:, C.SIGMA] = 0.01
+    return q
+
+
+@pytest.mark.parametrize(
+    "data, message",
+    [
+        (np.zeros((3, 6), np.float32), r"shape \(N, 7\)"),
+        (np.zeros((7,), np.float32), r"shape \(N, 7\)"),
+        (np.zeros((2, 7), dtype="U3"), "numeric"),
+    ],
+)
+def test_shape_and_dtype_errors(data, message):
+    with pytest.raises(C.QueryError, match=message):
+        C.as_queries(data)
+
+
+@pytest.mark.parametrize("value", [np.nan, np.inf, -np.inf])
+@pytest.mark.parametrize("column", range(7))
+def test_non_finite_values_are_rejected_with_position(value, column):
+    q = good()
+    q[2, column] = value
+    with pytest.raises(C.QueryError, match=f"row 2 column {C.QUERY_FIELDS[column]}"):
+        C.as_queries(q)
+
+
+def test_directions_outside_unit_disk_are_rejected_but_rounding_is_tolerated():
+    q = good()
+    q[1, C.WO_X] = 1.0 + C.DIRECTION_TOLERANCE / 4  # rounding: accepted (grazing)
+    C.as_queries(q)
+    q[3, C.WI_X], q[3, C.WI_Y] = 0.8, 0.8
+    with pytest.raises(C.QueryError, match="wi must be .* row 3"):
+        C.as_queries(q)
+
+
+def test_float64_and_int_are_converted_and_empty_is_fine():
+    assert C.as_queries(np.zeros((2, 7))).dtype == np.float32
+    assert C.as_queries(np.zeros((0, 7))).shape == (0, 7)
+
+
+def test_level_of_detail_convention():
+    lod = C.level_of_detail(np.array([0.0, -5, 1 / 512, 1 / 256, 4 / 256, 1.0, 1e20]), 256)
+    np.testing.assert_allclose(lod, [0, 0, 0, 0, 2, 8, 8])
+    assert C.sigma_for_level(3, 256) == 8 / 256
+
+
+def test_wire_roundtrip_is_bit_exact():
+    q = np.random.default_rng(0).uniform(-0.5, 0.5, (1000, 7)).astype(np.float32)
+    np.testing.assert_array_equal(C.decode_request(C.encode_request(q)), q)
+    rgb = np.random.default_rng(1).uniform(0, 1, (1000, 3)).astype(np.float32)
+    np.testing.assert_array_equal(C.decode_response(C.encode_response(rgb)), rgb)
+
+
+@pytest.mark.parametrize(
+    "body, message",
+    [
+        (b"\xc1garbage", "not valid msgpack"),
+        (msgpack.packb([1, 2]), "must be a map"),
+        (msgpack.packb({"n": 2, "queries": b"\0" * 55}), "holds 55 bytes"),
+        (msgpack.packb({"n": -1, "queries": b""}), "non-negative"),
+        (msgpack.packb({"n": 1, "queries": "text"}), "must be binary"),
+    ],
+)
+def test_malformed_wire_bodies(body, message):
+    with pytest.raises(C.QueryError, match=message):
+        C.decode_request(body)

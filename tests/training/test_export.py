@@ -1,0 +1,124 @@
+"""ONNX export: graph structure, metadata, and torch vs ONNX Runtime parity on random and edge queries."""
+
+import json
+
+import numpy as np
+import onnx
+import onnxruntime as ort
+import pytest
+import torch
+
+from neumip.client import contract as C
+from neumip.training import checkpoint
+from neumip.training.config import MaterialConfig
+from neumip.training.export import build_onnx, constant_weights, export_checkpoint, weights_from_state
+from neumip.training.material import NeuMIPMaterial
+from tests.conftest import random_queries
+
+ATOL, RTOL = 1e-5, 1e-4
+
+
+def edge_queries(resolution: int) -> np.ndarray:
+    """Queries at the contract's edges: sigma out of range and on level boundaries, huge |u|,
+    directions at 89.9 degrees, tile seams."""
+    rng = np.random.default_rng(7)
+    levels = int(np.log2(resolution))
+    sigmas = [0.0, -1.0, 1e-12, 0.1 / resolution, 1e3, 1e30]
+    sigmas += [2.0**j / resolution for j in range(levels + 1)]  # exactly on level boundaries
+    positions = [0.0, 1.0, -1.0, 0.5 / resolution, 1 - 1e-7, -1e-7, -1000.25, 1000.75, -1234.5]
+    s89 = np.sin(np.radians(89.9))
+    dirs = [(0.0, 0.0), (s89, 0.0), (0.0, -s89), (s89 / np.sqrt(2), s89 / np.sqrt(2)), (1.0, 0.0)]
+    rows = []
+    for s in sigmas:
+        for p in positions:
+            wi, wo = dirs[rng.integers(len(dirs))], dirs[rng.integers(len(dirs))]
+            rows.append([p, positions[rng.integers(len(positions))], s, *wi, *wo])
+    for (wi, wo) in [(a, b) for a in dirs for b in dirs]:
+        rows.append([0.3, 0.7, 1.5 / resolution, *wi, *wo])
+    return np.asarray(rows, np.float32)
+
+
+def torch_eval(material: NeuMIPMaterial, q: np.ndarray) -> np.ndarray:
+    with torch.no_grad():
+        return material(torch.from_numpy(q)).numpy()
+
+
+@pytest.fixture(scope="module", params=[True, False], ids=["offset", "no-offset"])
+def pair(request):
+    torch.manual_seed(3)
+    cfg = MaterialConfig(resolution=32, offset=request.param)
+    material = NeuMIPMaterial(cfg, init_std=0.5)
+    # make the offset large enough to matter (random init gives tiny depths)
+    if cfg.offset:
+        with torch.no_grad():
+            material.offset_mlp[-1].bias.fill_(0.5)
+    model = build_onnx(cfg, weights_from_state(material.state_dict(), cfg), "test")
+    session = ort.InferenceSession(model.SerializeToString(), providers=["CPUExecutionProvider"])
+    return material, model, session
+
+
+def test_parity_random_queries(pair):
+    material, _, session = pair
+    q = random_queries(20000, seed=11)
+    want = torch_eval(material, q)
+    got = session.run(None, {C.ONNX_INPUT: q})[0]
+    assert got.shape == (20000, 3) and got.dtype == np.float32
+    assert want.std() > 1e-3, "test material must not be constant"
+    np.testing.assert_allclose(got, want, atol=ATOL, rtol=RTOL)
+
+
+def test_parity_edge_queries(pair):
+    material, _, session = pair
+    q = edge_queries(material.config.resolution)
+    want = torch_eval(material, q)
+    got = session.run(None, {C.ONNX_INPUT: q})[0]
+    assert np.isfinite(got).all() and (got >= 0).all()
+    np.testing.assert_allclose(got, want, atol=ATOL, rtol=RTOL)
+
+
+def test_graph_stores_textures_as_initializers_and_metadata(pair):
+    material, model, _ = pair
+    onnx.checker.check_model(model, full_check=True)
+    assert [i.name for i in model.graph.input] == [C.ONNX_INPUT]
+    assert [o.name for o in model.graph.output] == [C.ONNX_OUTPUT]
+    inits = {i.name: i for i in model.graph.initializer}
+    assert tuple(inits["pyramid"].dims) == (material.config.atlas_rows(), material.config.channels)
+    meta = {p.key: p.value for p in model.metadata_props}
+    assert meta[C.META_CONTRACT] == C.CONTRACT_VERSION
+    assert MaterialConfig.from_json(meta[C.META_CONFIG]) == material.config
+
+
+def test_dynamic_batch_sizes(pair):
+    _, _, session = pair
+    for n in (0, 1, 7, 1025):
+        assert session.run(None, {C.ONNX_INPUT: random_queries(n)})[0].shape == (n, 3)
+
+
+def test_export_checkpoint_roundtrip(tmp_path):
+    cfg = MaterialConfig(resolution=8)
+    material = NeuMIPMaterial(cfg, init_std=0.5)
+    ckpt = checkpoint.save(tmp_path / "m.pt", material, {"validation": {"mse": [1.0]}})
+    out = export_checkpoint(ckpt, tmp_path / "m.onnx", "roundtrip")
+    session = ort.InferenceSession(str(out), providers=["CPUExecutionProvider"])
+    q = random_queries(500, seed=5)
+    np.testing.assert_allclose(session.run(None, {C.ONNX_INPUT: q})[0], torch_eval(material, q),
+                               atol=ATOL, rtol=RTOL)
+    meta = session.get_modelmeta().custom_metadata_map
+    assert meta[C.META_DESCRIPTION] == "roundtrip"
+    assert json.loads(meta[C.META_VALIDATION]) == {"mse": [1.0]}
+
+
+def test_corrupt_checkpoint_is_a_clear_error(tmp_path):
+    bad = tmp_path / "bad.pt"
+    bad.write_bytes(b"not a checkpoint")
+    with pytest.raises(checkpoint.CheckpointError, match="not a readable checkpoint"):
+        export_checkpoint(bad, tmp_path / "x.onnx")
+    assert not (tmp_path / "x.onnx").exists()
+
+
+def test_constant_material_answers_constant():
+    cfg = MaterialConfig(resolution=4)
+    model = build_onnx(cfg, constant_weights(cfg, [0.1, 0.2, 0.3]))
+    session = ort.InferenceSession(model.SerializeToString(), providers=["CPUExecutionProvider"])
+    out = session.run(None, {C.ONNX_INPUT: random_queries(100)})[0]
+    np.testing.assert_allclose(out, np.tile([0.1, 0.2, 0.3], (100, 1)), rtol=1e-6)
