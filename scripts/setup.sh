@@ -1,0 +1,20 @@
+#!/usr/bin/env bash
+# Set up a development environment in .venv: system LLVM for Mitsuba, CPU torch, neumip with all extras.
+# Idempotent: re-running on a set-up machine takes seconds.
+set -euo pipefail
+cd "$(dirname "$0")/.."
+PY=${PYTHON:-python3}
+
+# Mitsuba's llvm variants need a shared libLLVM >= 16; with only an older one the process aborts.
+if ! ls /usr/lib/*/libLLVM*.so* 2>/dev/null | grep -qE 'libLLVM(-|\.so\.)(1[6-9]|[2-9][0-9])'; then
+  echo "setup: installing libllvm19 (Mitsuba needs libLLVM >= 16)"
+  SUDO=""; [ "$(id -u)" -ne 0 ] && SUDO="sudo"
+  $SUDO apt-get install -y -q libllvm19 >/dev/null 2>&1 || { $SUDO apt-get update -q >/dev/null && $SUDO apt-get install -y -q libllvm19 >/dev/null; }
+fi
+
+[ -x .venv/bin/python ] || "$PY" -m venv .venv
+.venv/bin/python -m pip install -q --upgrade pip
+# The pinned CPU wheel first: an unpinned torch would pull several GB of CUDA packages.
+.venv/bin/python -c "import torch" 2>/dev/null || .venv/bin/pip install -q torch==2.13.0
+.venv/bin/pip install -q -e '.[all,test]'
+echo "setup: ready (.venv)"
