@@ -1,0 +1,200 @@
+"""The `neumip_path` integrator: a wavefront path tracer with buffered neural-material queries.
+
+Each bounce of the Python loop below is one wavefront over every lane of the image (`mi.render`
+calls `sample()` once with all rays). Per bounce, every shading query that lands on a `neumip`
+surface - two per shading point, as in the paper: the next-event light direction and the
+cosine-sampled direction - is collected into one buffer and evaluated in one call per material
+(`shading.NeuralShading`). Stock Mitsuba BSDFs on other shapes are called as the stock `path`
+integrator calls them; next-event estimation goes to all of Mitsuba's emitters with MIS (power
+heuristic) against BSDF sampling.
+
+Footprint (sigma) of a query:
+- first hit: the pixel footprint from ray differentials, ``max(|duv/dx|, |duv/dy|)`` in shape uv
+  units (the isotropic, larger-axis choice of trilinear mip-mapping), scaled back by sqrt(spp)
+  because `mi.render` shrinks differentials by 1/sqrt(spp);
+- later hits (no differentials exist): a ray cone (Akenine-Moller et al. 2019). The cone leaves the
+  camera with the pixel's angular size; its width grows by ``spread * distance`` along each segment,
+  and every non-specular bounce adds ``footprint_spread`` radians to the spread (a specular bounce
+  keeps it). The width at a hit, divided by the world length of one uv unit
+  ``sqrt(|dp/du x dp/dv|)``, is sigma. Indirect light is smooth, so erring coarse is cheap.
+"""
+
+from __future__ import annotations
+
+import logging
+from dataclasses import dataclass
+
+from .bsdf import dr, mi
+from .shading import NeuralShading
+
+from mitsuba.ad.integrators.common import mis_weight  # noqa: E402,I001 (needs a variant set first)
+
+log = logging.getLogger(__name__)
+
+PLUGIN_NAME = "neumip_path"
+
+
+@dataclass
+class PathConfig:
+    """Light transport settings of `neumip_path` (scene properties of the same names)."""
+
+    max_depth: int = 6
+    """Longest path in vertices (1 = direct emission only); -1 means unbounded."""
+    rr_depth: int = 4
+    """Depth from which Russian roulette may end paths."""
+    hide_emitters: bool = False
+    """Hide directly visible emitters (as the stock `path` integrator's option)."""
+    footprint_spread: float = 0.1
+    """Radians the footprint cone widens per non-specular bounce (see the module docstring)."""
+
+    @classmethod
+    def from_properties(cls, props: mi.Properties) -> "PathConfig":
+        cfg = cls(
+            max_depth=int(props.get("max_depth", cls.max_depth)),
+            rr_depth=int(props.get("rr_depth", cls.rr_depth)),
+            hide_emitters=bool(props.get("hide_emitters", cls.hide_emitters)),
+            footprint_spread=float(props.get("footprint_spread", cls.footprint_spread)),
+        )
+        if cfg.max_depth < -1 or cfg.max_depth == 0:
+            raise ValueError(f"neumip_path: max_depth must be -1 or >= 1, got {cfg.max_depth}")
+        if cfg.rr_depth < 1:
+            raise ValueError(f"neumip_path: rr_depth must be >= 1, got {cfg.rr_depth}")
+        if cfg.footprint_spread < 0:
+            raise ValueError(f"neumip_path: footprint_spread must be >= 0, got {cfg.footprint_spread}")
+        return cfg
+
+
+class EvaluatorNotBound(RuntimeError):
+    """`neumip_path` was asked to render before an evaluator was bound to it."""
+
+
+class NeuMIPPathIntegrator(mi.SamplingIntegrator):
+    """Path tracer whose neural-surface shading is evaluated in one buffer per bounce."""
+
+    def __init__(self, props: mi.Properties) -> None:
+        mi.SamplingIntegrator.__init__(self, props)
+        self.config = PathConfig.from_properties(props)
+        self.shading: NeuralShading | None = None
+
+    def bind(self, scene: mi.Scene, evaluator) -> NeuralShading:
+        """Use ``evaluator`` (a `contract.Evaluator`) for the neural materials of ``scene``."""
+        self.shading = NeuralShading(scene, evaluator)
+        return self.shading
+
+    def sample(self, scene, sampler, ray, medium=None, active=True):
+        if self.shading is None:
+            raise EvaluatorNotBound(
+                "neumip_path has no evaluator: call integrator.bind(scene, evaluator) or render with "
+                "neumip.client.mitsuba.render.render_scene"
+            )
+        cfg, shading = self.config, self.shading
+        width = dr.width(ray.d)
+        max_depth = cfg.max_depth if cfg.max_depth > 0 else 2**31 - 1
+        ctx = mi.BSDFContext()
+        spp_scale = dr.sqrt(mi.Float(sampler.sample_count()))
+
+        # --- per-lane state --------------------------------------------------------------------
+        active = mi.Bool(active) | dr.zeros(mi.Bool, width)
+        L = dr.zeros(mi.Spectrum, width)
+        beta = dr.full(mi.Spectrum, 1.0, width)
+        eta = dr.full(mi.Float, 1.0, width)
+        valid_ray = dr.zeros(mi.Bool, width)
+        prev_si = dr.zeros(mi.SurfaceInteraction3f, width)
+        prev_bsdf_pdf = dr.full(mi.Float, 1.0, width)
+        prev_bsdf_delta = dr.full(mi.Bool, True, width)
+        # Footprint cone: world width at the current ray's origin and angular spread (radians).
+        cone_width = dr.zeros(mi.Float, width)
+        cone_spread = dr.norm(ray.d_x - ray.d) * spp_scale if ray.has_differentials else dr.zeros(mi.Float, width)
+        first_ray = ray
+        ray = mi.Ray3f(ray)
+
+        for depth in range(max_depth):
+            # --- intersect ---------------------------------------------------------------------
+            si = scene.ray_intersect(ray, ray_flags=mi.RayFlags.All, coherent=depth == 0, active=active)
+
+            # --- emission hit by the previous BSDF sample (MIS against NEE) ----------------------
+            if not (cfg.hide_emitters and depth == 0):
+                ds = mi.DirectionSample3f(scene, si=si, ref=prev_si)
+                em_pdf = scene.pdf_emitter_direction(prev_si, ds, active & ~prev_bsdf_delta)
+                em_pdf = dr.select(prev_bsdf_delta, 0.0, em_pdf)
+                mis_bsdf = mis_weight(prev_bsdf_pdf, em_pdf)
+                emitted = ds.emitter.eval(si, active & (prev_bsdf_pdf > 0))
+                L = dr.select(active, L + beta * mis_bsdf * emitted, L)
+
+            active_next = active & si.is_valid() & (depth + 1 < max_depth)
+
+            # --- footprint of this hit -----------------------------------------------------------
+            cone_width = cone_width + cone_spread * si.t
+            if depth == 0 and first_ray.has_differentials:
+                si.compute_uv_partials(first_ray)
+                sigma_uv = dr.maximum(dr.norm(si.duv_dx), dr.norm(si.duv_dy)) * spp_scale
+            else:
+                uv_length = dr.sqrt(dr.norm(dr.cross(si.dp_du, si.dp_dv)))
+                sigma_uv = cone_width / uv_length
+
+            # --- stock BSDFs: emitter sample, BSDF eval + sample ---------------------------------
+            bsdf = si.bsdf()
+            active_em = active_next & mi.has_flag(bsdf.flags(), mi.BSDFFlags.Smooth)
+            ds, em_weight = scene.sample_emitter_direction(si, sampler.next_2d(), True, active_em)
+            active_em &= ds.pdf != 0.0
+            wo_light = si.to_local(ds.d)
+            sample1, sample2 = sampler.next_1d(), sampler.next_2d()
+            bsdf_val, bsdf_pdf, bs, bsdf_weight = bsdf.eval_pdf_sample(
+                ctx, si, wo_light, sample1, sample2, active_next
+            )
+
+            # --- neural surfaces: one buffered evaluation for this bounce ------------------------
+            hits = shading.classify(si, active_next)
+            if dr.any(hits.any):
+                front = mi.Frame3f.cos_theta(si.wi) > 0
+                light_ok = active_em & front & (mi.Frame3f.cos_theta(wo_light) > 0)
+                sample_ok = front & (mi.Frame3f.cos_theta(bs.wo) > 0) & (bs.pdf > 0)
+                rho_light, rho_sample = shading.evaluate(
+                    hits, si.uv, sigma_uv, si.wi, [(wo_light, light_ok), (bs.wo, sample_ok)]
+                )
+                # BTF under unit irradiance is used like a BRDF: f * cos for NEE, pi * f for a
+                # cosine-sampled direction (pdf cos / pi); back-side hits are black.
+                bsdf_val = dr.select(
+                    hits.any, rho_light * dr.maximum(mi.Frame3f.cos_theta(wo_light), 0.0), bsdf_val
+                )
+                bsdf_weight = dr.select(hits.any, rho_sample * dr.pi, bsdf_weight)
+
+            # --- next-event estimation -----------------------------------------------------------
+            mis_em = dr.select(ds.delta, 1.0, mis_weight(ds.pdf, bsdf_pdf))
+            L = dr.select(active_em, L + beta * bsdf_val * em_weight * mis_em, L)
+
+            # --- continue along the sampled direction -------------------------------------------
+            ray = si.spawn_ray(si.to_world(bs.wo))
+            beta = beta * bsdf_weight
+            eta = eta * bs.eta
+            valid_ray |= active & si.is_valid() & ~mi.has_flag(bs.sampled_type, mi.BSDFFlags.Null)
+            prev_si = si
+            prev_bsdf_pdf = bs.pdf
+            prev_bsdf_delta = mi.has_flag(bs.sampled_type, mi.BSDFFlags.Delta)
+            cone_spread = dr.select(prev_bsdf_delta, cone_spread, cone_spread + cfg.footprint_spread)
+
+            # --- Russian roulette ----------------------------------------------------------------
+            beta_max = dr.max(beta * dr.square(eta))
+            rr_active = mi.Bool(depth >= cfg.rr_depth)
+            rr_prob = dr.minimum(beta_max, 0.95)
+            beta = dr.select(rr_active & active_next, beta * dr.rcp(rr_prob), beta)
+            rr_continue = sampler.next_1d() < rr_prob
+            active = active_next & (~rr_active | rr_continue) & (beta_max != 0.0)
+
+            dr.eval(L, beta, eta, active, valid_ray, ray, prev_si, prev_bsdf_pdf, prev_bsdf_delta,
+                    cone_width, cone_spread)
+            sampler.schedule_state()
+            if not dr.any(active):
+                break
+
+        return L, valid_ray, []
+
+
+def register() -> None:
+    """Register the integrator under ``neumip_path`` (vectorized variants only; idempotent)."""
+    if not dr.is_jit_v(mi.Float):
+        raise RuntimeError(f"neumip_path needs a vectorized (llvm/cuda) variant, not {mi.variant()}")
+    mi.register_integrator(PLUGIN_NAME, lambda props: NeuMIPPathIntegrator(props))
+
+
+register()

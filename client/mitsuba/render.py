@@ -1,0 +1,160 @@
+"""Render a scene with neural materials: load, bind an evaluator, render in passes, write atomically.
+
+Memory of a wavefront grows with its lane count (about 680 MiB per million lanes), so an image of
+``W x H`` pixels at ``spp`` samples is rendered as several `mi.render` passes of at most
+``RenderConfig.max_lanes`` lanes each (different seeds), averaged. The image file is written only
+after every pass succeeded, through a temporary file and an atomic rename: a failed render leaves
+no file behind (and never a partial one under the requested name).
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import os
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from .bsdf import dr, mi
+from .integrator import NeuMIPPathIntegrator
+from .shading import ShadingStats, neural_bsdfs
+
+log = logging.getLogger(__name__)
+
+IMAGE_SUFFIXES = (".png", ".exr")
+
+
+class RenderError(RuntimeError):
+    """A render that could not complete; the message says why (no image was written)."""
+
+
+@dataclass
+class RenderConfig:
+    """How an image is rendered."""
+
+    spp: int | None = None
+    """Samples per pixel; None uses the scene sensor's sampler count."""
+    max_lanes: int = 2**21
+    """Most lanes (pixels x samples) in one pass; bounds memory (~680 MiB per million lanes)."""
+    seed: int = 0
+    """Seed of the first pass; pass i uses seed + i."""
+    threads: int = 0
+    """Mitsuba worker threads (0: leave drjit's default)."""
+
+
+@dataclass
+class RenderResult:
+    """An image and what producing it cost."""
+
+    image: np.ndarray
+    """(H, W, C) float32, linear radiance (C = 3 for RGB films, more with alpha/AOVs)."""
+    seconds: float
+    """Wall time of all passes."""
+    passes: int
+    """Number of `mi.render` passes."""
+    spp: int
+    """Samples per pixel rendered."""
+    stats: ShadingStats = field(default_factory=ShadingStats)
+    """Neural evaluation cost (queries, calls, seconds)."""
+
+
+def load_scene(path: str | os.PathLike) -> mi.Scene:
+    """Load a Mitsuba XML scene; raises FileNotFoundError or RenderError with Mitsuba's reason."""
+    path = Path(path)
+    if not path.is_file():
+        raise FileNotFoundError(f"scene {path} does not exist")
+    try:
+        return mi.load_file(str(path))
+    except Exception as exc:  # mitsuba raises plain Exception/RuntimeError with its parser message
+        raise RenderError(f"cannot load scene {path}: {exc}") from exc
+
+
+def pass_plan(pixels: int, spp: int, max_lanes: int) -> list[int]:
+    """Samples per pass so that ``pixels * samples <= max_lanes`` (at least 1 sample a pass)."""
+    if spp < 1:
+        raise ValueError(f"spp must be >= 1, got {spp}")
+    per_pass = max(1, min(spp, max_lanes // max(pixels, 1)))
+    count = math.ceil(spp / per_pass)
+    base, extra = divmod(spp, count)  # balanced: passes differ by at most one sample
+    return [base + (i < extra) for i in range(count)]
+
+
+def render_scene(
+    scene: mi.Scene,
+    evaluator,
+    config: RenderConfig | None = None,
+    integrator: mi.Integrator | None = None,
+    on_pass: Callable[[int, int], None] | None = None,
+) -> RenderResult:
+    """Render ``scene`` with its `neumip_path` integrator (or ``integrator``) and ``evaluator``.
+
+    ``on_pass(done, total)`` is called after each pass. Raises RenderError (with the evaluator's or
+    Mitsuba's real error as the cause) if any pass fails.
+    """
+    config = config or RenderConfig()
+    integrator = integrator or scene.integrator()
+    if not isinstance(integrator, NeuMIPPathIntegrator):
+        if neural_bsdfs(scene):
+            raise RenderError(
+                f"the scene has neumip materials but its integrator is {type(integrator).__name__}; "
+                "use <integrator type=\"neumip_path\"/>"
+            )
+    else:
+        integrator.bind(scene, evaluator)
+    if config.threads:
+        dr.set_thread_count(config.threads)
+    sensor = scene.sensors()[0]
+    spp = config.spp or sensor.sampler().sample_count()
+    w, h = sensor.film().crop_size()
+    plan = pass_plan(w * h, spp, config.max_lanes)
+    log.info("rendering %dx%d at %d spp in %d pass(es)", w, h, spp, len(plan))
+    start = time.perf_counter()
+    total = None
+    for i, k in enumerate(plan):
+        image = _render_pass(scene, integrator, k, config.seed + i)
+        total = image * k if total is None else total + image * k
+        if on_pass:
+            on_pass(i + 1, len(plan))
+    stats = integrator.shading.stats if isinstance(integrator, NeuMIPPathIntegrator) else ShadingStats()
+    return RenderResult(total / spp, time.perf_counter() - start, len(plan), spp, stats)
+
+
+def _render_pass(scene, integrator, spp: int, seed: int) -> np.ndarray:
+    """One `mi.render` pass -> (H, W, C) float32; unwraps errors raised inside `sample()`."""
+    try:
+        image = mi.render(scene, integrator=integrator, spp=spp, seed=seed)
+        return np.array(image, dtype=np.float32)
+    except Exception as exc:
+        cause = _root_cause(exc)
+        raise RenderError(f"render pass (seed {seed}) failed: {cause}") from cause
+
+
+def _root_cause(exc: BaseException) -> BaseException:
+    """drjit wraps exceptions raised in Python plugins; the real one is the innermost cause."""
+    while exc.__cause__ is not None:
+        exc = exc.__cause__
+    return exc
+
+
+def write_image(image: np.ndarray, path: str | os.PathLike) -> Path:
+    """Write (H, W, C) linear radiance to ``.png`` (sRGB, 8 bit) or ``.exr`` (float), atomically."""
+    path = Path(path)
+    suffix = path.suffix.lower()
+    if suffix not in IMAGE_SUFFIXES:
+        raise ValueError(f"output must end in {' or '.join(IMAGE_SUFFIXES)}, got {path.name}")
+    path.parent.mkdir(parents=True, exist_ok=True)
+    rgb = np.ascontiguousarray(image[..., :3], dtype=np.float32)
+    bitmap = mi.Bitmap(rgb, pixel_format=mi.Bitmap.PixelFormat.RGB)
+    if suffix == ".png":
+        bitmap = bitmap.convert(mi.Bitmap.PixelFormat.RGB, mi.Struct.Type.UInt8, srgb_gamma=True)
+    tmp = path.with_name(f".{path.stem}.partial{os.getpid()}{suffix}")
+    try:
+        bitmap.write(str(tmp))
+        os.replace(tmp, path)
+    finally:
+        tmp.unlink(missing_ok=True)
+    return path

@@ -1,0 +1,157 @@
+"""Buffered neural shading: one evaluation call per material per bounce for a whole wavefront.
+
+`NeuralShading` finds the scene's `neumip` surfaces and, per bounce, collects every shading query
+that lands on them (all lanes of the wavefront), evaluates them through the bound evaluator
+(`contract.Evaluator`: in-process `LocalMaterials` or the HTTP `MaterialClient`), and scatters the
+RGB answers back into per-lane drjit arrays. Query fields leave drjit one component at a time
+(`Float.numpy()` is zero-copy; converting a whole vector type would bake the lane count into a
+kernel and recompile on every call).
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from neumip.client import contract as C
+
+from .bsdf import NeuMIPBSDF, dr, mi
+
+log = logging.getLogger(__name__)
+
+MAX_SIGMA = 1.0e3
+"""Footprints (tile units) are clamped here; a non-finite footprint reads the coarsest level."""
+
+
+@dataclass
+class ShadingStats:
+    """What the neural evaluation cost over a render."""
+
+    queries: int = 0
+    """Query rows sent to the evaluator."""
+    calls: int = 0
+    """Evaluator calls made (one per material per bounce with neural hits)."""
+    seconds: float = 0.0
+    """Wall time inside the evaluator, including (for HTTP) encoding and transfer."""
+    per_material: dict[str, int] = field(default_factory=dict)
+    """Query rows per material name."""
+
+    def add(self, material: str, rows: int, seconds: float) -> None:
+        self.queries += rows
+        self.calls += 1
+        self.seconds += seconds
+        self.per_material[material] = self.per_material.get(material, 0) + rows
+
+
+def neural_bsdfs(scene: mi.Scene) -> list[NeuMIPBSDF]:
+    """Every distinct `neumip` BSDF attached to a shape of ``scene`` (in shape order)."""
+    found: dict[int, NeuMIPBSDF] = {}
+    for shape in scene.shapes():
+        bsdf = shape.bsdf()
+        if isinstance(bsdf, NeuMIPBSDF):
+            found.setdefault(id(bsdf), bsdf)
+    return list(found.values())
+
+
+def scene_materials(scene: mi.Scene) -> list[str]:
+    """Names of the neural materials ``scene`` uses."""
+    return sorted({b.material for b in neural_bsdfs(scene)})
+
+
+@dataclass
+class NeuralHits:
+    """Per-lane facts about the neural surfaces of one bounce (all arrays of the wavefront width)."""
+
+    mask: dict[str, mi.Bool]
+    """Material name -> lanes whose hit is a front-facing neural surface of that material."""
+    any: mi.Bool
+    """Lanes that hit any neural surface (either side)."""
+    uv_scale: mi.Float
+    """Material tiles per uv unit of the hit's BSDF (0 elsewhere)."""
+
+
+class NeuralShading:
+    """Buffered evaluation of the neural materials of one scene through one evaluator."""
+
+    def __init__(self, scene: mi.Scene, evaluator: C.Evaluator) -> None:
+        self.bsdfs = neural_bsdfs(scene)
+        self.evaluator = evaluator
+        self.stats = ShadingStats()
+        missing = sorted({b.material for b in self.bsdfs} - set(evaluator.materials()))
+        if missing:
+            known = ", ".join(evaluator.materials()) or "none"
+            raise LookupError(
+                f"the scene uses neural material(s) {', '.join(missing)} that the evaluator does not "
+                f"serve (it has: {known})"
+            )
+
+    @property
+    def materials(self) -> list[str]:
+        return sorted({b.material for b in self.bsdfs})
+
+    def classify(self, si: mi.SurfaceInteraction3f, active: mi.Bool) -> NeuralHits:
+        """Which lanes of ``si`` hit which neural material."""
+        ptr = si.bsdf()
+        front = mi.Frame3f.cos_theta(si.wi) > 0
+        any_hit = dr.zeros(mi.Bool, dr.width(active))
+        scale = dr.zeros(mi.Float, dr.width(active))
+        masks: dict[str, mi.Bool] = {}
+        for bsdf in self.bsdfs:
+            hit = active & (ptr == mi.BSDFPtr(bsdf))
+            any_hit |= hit
+            scale = dr.select(hit, dr.opaque(mi.Float, bsdf.uv_scale), scale)
+            prev = masks.get(bsdf.material)
+            masks[bsdf.material] = (hit & front) if prev is None else (prev | (hit & front))
+        return NeuralHits(masks, any_hit, scale)
+
+    def evaluate(
+        self,
+        hits: NeuralHits,
+        uv: mi.Point2f,
+        sigma: mi.Float,
+        wo: mi.Vector3f,
+        lights: list[tuple[mi.Vector3f, mi.Bool]],
+    ) -> list[mi.Color3f]:
+        """Evaluate the BTF for each (wi, valid) in ``lights`` at every neural lane, in one buffer.
+
+        ``uv`` (shape uv), ``sigma`` (footprint in shape uv units), ``wo`` (local, towards the viewer)
+        and each ``wi`` (local, towards the light) are per-lane; returns one Color3f per entry of
+        ``lights``, zero on lanes that are not neural or whose ``valid`` is false. One evaluator call
+        per material covers all entries.
+        """
+        width = dr.width(hits.any)
+        u, v = uv.x * hits.uv_scale, uv.y * hits.uv_scale
+        sigma = sigma * hits.uv_scale
+        sigma = dr.select(dr.isfinite(sigma), dr.clip(sigma, 0.0, MAX_SIGMA), MAX_SIGMA)
+        columns = [u, v, sigma, wo.x, wo.y] + [c for wi, _ in lights for c in (wi.x, wi.y)]
+        dr.eval(columns, [ok for _, ok in lights], *hits.mask.values())
+        out = [[dr.zeros(mi.Float, width) for _ in range(C.RGB_DIM)] for _ in lights]
+        for material, mask in hits.mask.items():
+            idx = [dr.compress(mask & ok) for _, ok in lights]
+            counts = [dr.width(i) for i in idx]
+            if sum(counts) == 0:
+                continue
+            queries = np.concatenate(
+                [self._rows(idx[k], u, v, sigma, wi, wo) for k, (wi, _) in enumerate(lights) if counts[k]]
+            )
+            start = time.perf_counter()
+            rgb = C.as_rgb(self.evaluator.evaluate(material, queries), queries.shape[0])
+            self.stats.add(material, queries.shape[0], time.perf_counter() - start)
+            lo = 0
+            for k, n in enumerate(counts):
+                if n:
+                    for ch in range(C.RGB_DIM):
+                        dr.scatter(out[k][ch], mi.Float(rgb[lo : lo + n, ch]), idx[k])
+                    lo += n
+        return [mi.Color3f(*chans) for chans in out]
+
+    @staticmethod
+    def _rows(idx, u, v, sigma, wi, wo) -> np.ndarray:
+        """(n, 7) float32 queries for lanes ``idx`` (contract order: u, v, sigma, wi.xy, wo.xy)."""
+        cols = [u, v, sigma, wi.x, wi.y, wo.x, wo.y]
+        gathered = [dr.gather(mi.Float, c, idx) for c in cols]
+        dr.eval(gathered)
+        return np.stack([g.numpy() for g in gathered], axis=1).astype(C.DTYPE, copy=False)
