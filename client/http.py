@@ -1,0 +1,177 @@
+"""`MaterialClient`: evaluate materials on a `neumip serve` server over its msgpack endpoint.
+
+The same interface as the in-process `LocalMaterials` (`materials()`, `evaluate(name, queries)`), so
+a renderer takes either. One `httpx.Client` is kept for the client's life (connection reuse);
+requests have timeouts; 503 (queue full, honouring ``Retry-After``) and connection failures are
+retried a bounded number of times with exponential backoff; anything else fails at once with an
+error that says what the server answered. Large buffers are sent as several requests of at most
+``ClientConfig.max_rows`` rows.
+
+Tests inject a transport (``httpx.MockTransport``: this client is synchronous, so the async-only
+``ASGITransport`` does not apply) and also run against a real server process.
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+from dataclasses import dataclass
+
+import numpy as np
+
+from . import contract as C
+
+log = logging.getLogger(__name__)
+
+
+def _httpx():
+    try:
+        import httpx
+    except ImportError as exc:
+        raise ImportError("MaterialClient needs httpx: pip install 'neumip[client]'") from exc
+    return httpx
+
+
+class ServerError(RuntimeError):
+    """The server answered with an error, or could not be reached after the allowed retries."""
+
+    def __init__(self, message: str, status: int | None = None) -> None:
+        super().__init__(message)
+        self.status = status
+
+
+class ServerUnavailable(ServerError):
+    """No answer from the server (connection refused/reset, timeout, or 503 past the retries)."""
+
+
+@dataclass
+class ClientConfig:
+    """How `MaterialClient` talks to a server."""
+
+    timeout_s: float = 60.0
+    """Seconds allowed for connecting, sending, and each read of one request."""
+    connect_timeout_s: float = 5.0
+    """Seconds allowed to open a connection."""
+    retries: int = 3
+    """Extra attempts after a 503 or a connection failure (0: fail at the first)."""
+    backoff_s: float = 0.2
+    """Wait before the first retry; doubles each retry (a 503's Retry-After wins if longer)."""
+    max_backoff_s: float = 5.0
+    """Longest wait between two attempts."""
+    max_rows: int = 1_000_000
+    """Most query rows per request; larger buffers are split (server default limit: 2M rows)."""
+
+
+class MaterialClient:
+    """Evaluate named materials on a remote server: ``MaterialClient("http://127.0.0.1:8000")``."""
+
+    def __init__(self, url: str, config: ClientConfig | None = None, transport=None) -> None:
+        httpx = _httpx()
+        self.url = url.rstrip("/")
+        if not self.url.startswith(("http://", "https://")):
+            raise ValueError(f"server URL must start with http:// or https://, got {url!r}")
+        self.config = config or ClientConfig()
+        if self.config.max_rows < 1 or self.config.retries < 0:
+            raise ValueError("ClientConfig: max_rows must be >= 1 and retries >= 0")
+        timeout = httpx.Timeout(self.config.timeout_s, connect=self.config.connect_timeout_s)
+        self._http = httpx.Client(base_url=self.url, timeout=timeout, transport=transport)
+        self._names: list[str] | None = None
+
+    # --- the Evaluator interface ----------------------------------------------------------------
+    def materials(self) -> list[str]:
+        """Names the server serves (asked once, then cached; `refresh()` asks again)."""
+        if self._names is None:
+            listing = self._request("GET", C.MATERIALS_PATH, what="list materials").json()
+            entries = listing.get("materials", []) if isinstance(listing, dict) else listing
+            self._names = sorted(e["name"] if isinstance(e, dict) else str(e) for e in entries)
+        return list(self._names)
+
+    def evaluate(self, material: str, queries: np.ndarray) -> np.ndarray:
+        """(N, 7) float32 queries -> (N, 3) float32 RGB, in requests of at most `max_rows` rows."""
+        queries = C.as_queries(queries)
+        n = queries.shape[0]
+        out = np.empty((n, C.RGB_DIM), dtype=C.DTYPE)
+        path = C.EVALUATE_PATH.format(name=material)
+        for lo in range(0, n, self.config.max_rows):
+            hi = min(lo + self.config.max_rows, n)
+            response = self._request(
+                "POST",
+                path,
+                what=f"evaluate {hi - lo} queries on {material!r}",
+                content=C.encode_request(queries[lo:hi]),
+                headers={"Content-Type": C.MSGPACK_MEDIA_TYPE, "Accept": C.MSGPACK_MEDIA_TYPE},
+            )
+            out[lo:hi] = C.as_rgb(C.decode_response(response.content), hi - lo)
+        return out
+
+    # --- plumbing -------------------------------------------------------------------------------
+    def refresh(self) -> None:
+        """Forget the cached material list."""
+        self._names = None
+
+    def close(self) -> None:
+        self._http.close()
+
+    def __enter__(self) -> "MaterialClient":
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
+
+    def _request(self, method: str, path: str, what: str, **kwargs):
+        """One HTTP exchange with bounded retries on 503 / connection errors; raises ServerError."""
+        httpx = _httpx()
+        cfg = self.config
+        delay = cfg.backoff_s
+        for attempt in range(cfg.retries + 1):
+            last = attempt == cfg.retries
+            try:
+                response = self._http.request(method, path, **kwargs)
+            except httpx.TransportError as exc:
+                problem = f"{type(exc).__name__}: {exc}" if str(exc) else type(exc).__name__
+                if last:
+                    raise ServerUnavailable(
+                        f"cannot {what}: server {self.url} unreachable after {attempt + 1} attempt(s) "
+                        f"({problem})"
+                    ) from exc
+                log.warning("%s: %s; retrying in %.2f s", what, problem, delay)
+            else:
+                if response.status_code == 200:
+                    return response
+                message = _error_message(response)
+                if response.status_code != 503:
+                    raise ServerError(
+                        f"cannot {what}: server answered {response.status_code}: {message}",
+                        response.status_code,
+                    )
+                if last:
+                    raise ServerUnavailable(
+                        f"cannot {what}: server {self.url} busy (503) after {attempt + 1} attempt(s): "
+                        f"{message}",
+                        503,
+                    )
+                delay = max(delay, _retry_after(response))
+                log.warning("%s: server busy (503: %s); retrying in %.2f s", what, message, delay)
+            time.sleep(min(delay, cfg.max_backoff_s))
+            delay = min(delay * 2, cfg.max_backoff_s)
+        raise AssertionError("unreachable")  # pragma: no cover
+
+
+def _error_message(response) -> str:
+    """The server's ``{"error": ...}`` message, else the start of the body."""
+    try:
+        body = response.json()
+        if isinstance(body, dict) and "error" in body:
+            return str(body["error"])
+    except ValueError:
+        pass
+    text = response.text[:200].strip()
+    return text or response.reason_phrase or "no message"
+
+
+def _retry_after(response) -> float:
+    """Seconds from a Retry-After header (0 if absent or not a number)."""
+    try:
+        return max(float(response.headers.get("Retry-After", 0)), 0.0)
+    except ValueError:
+        return 0.0
