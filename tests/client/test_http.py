@@ -1,0 +1,130 @@
+"""MaterialClient against an in-process stand-in of the server (httpx.MockTransport)."""
+
+from __future__ import annotations
+
+import httpx
+import numpy as np
+import pytest
+
+from neumip.client import contract as C
+from neumip.client.http import ClientConfig, MaterialClient, ServerError, ServerUnavailable
+from neumip.client.local import LocalMaterials, UnknownMaterial
+
+from ..conftest import random_queries
+
+FAST = dict(backoff_s=0.001, max_backoff_s=0.01)
+
+
+class FakeServer:
+    """Answers the msgpack protocol from a LocalMaterials; `failures` lists statuses/exceptions to
+    produce first, one per request."""
+
+    def __init__(self, folder, failures=()):
+        self.local = LocalMaterials(folder)
+        self.failures = list(failures)
+        self.requests: list[httpx.Request] = []
+
+    def __call__(self, request: httpx.Request) -> httpx.Response:
+        self.requests.append(request)
+        if self.failures:
+            failure = self.failures.pop(0)
+            if isinstance(failure, Exception):
+                raise failure
+            return httpx.Response(failure, json={"error": f"injected {failure}"}, headers={"Retry-After": "0"})
+        if request.method == "GET" and request.url.path == C.MATERIALS_PATH:
+            return httpx.Response(200, json={"materials": [{"name": n} for n in self.local.materials()]})
+        name = request.url.path.split("/")[-2]
+        try:
+            rgb = self.local.evaluate(name, C.decode_request(request.content))
+        except UnknownMaterial as exc:
+            return httpx.Response(404, json={"error": str(exc)})
+        return httpx.Response(200, content=C.encode_response(rgb))
+
+
+def client_for(server, **config) -> MaterialClient:
+    return MaterialClient("http://neumip.test", ClientConfig(**{**FAST, **config}), httpx.MockTransport(server))
+
+
+def test_evaluate_matches_in_process_and_splits_large_buffers(model_dir):
+    server = FakeServer(model_dir)
+    queries = random_queries(2500, seed=3)
+    with client_for(server, max_rows=1000) as client:
+        rgb = client.evaluate("rand16", queries)
+    np.testing.assert_array_equal(rgb, server.local.evaluate("rand16", queries))
+    posts = [r for r in server.requests if r.method == "POST"]
+    assert [C.decode_request(r.content).shape[0] for r in posts] == [1000, 1000, 500]
+    assert posts[0].headers["content-type"] == C.MSGPACK_MEDIA_TYPE
+
+
+def test_materials_lists_the_server(model_dir):
+    client = client_for(FakeServer(model_dir))
+    assert client.materials() == ["flat16", "lambert", "rand16"]
+
+
+def test_empty_buffer_sends_nothing(model_dir):
+    server = FakeServer(model_dir)
+    assert client_for(server).evaluate("lambert", np.zeros((0, 7), np.float32)).shape == (0, 3)
+    assert server.requests == []
+
+
+def test_retries_503_then_succeeds(model_dir):
+    server = FakeServer(model_dir, failures=[503, 503])
+    rgb = client_for(server, retries=2).evaluate("lambert", random_queries(10))
+    np.testing.assert_allclose(rgb, 0.5 / np.pi, rtol=1e-6)
+    assert len(server.requests) == 3
+
+
+def test_503_past_the_retries_is_unavailable(model_dir):
+    server = FakeServer(model_dir, failures=[503] * 10)
+    with pytest.raises(ServerUnavailable, match=r"busy \(503\) after 3 attempt\(s\): injected 503"):
+        client_for(server, retries=2).evaluate("lambert", random_queries(10))
+    assert len(server.requests) == 3
+
+
+def test_connection_errors_are_retried_then_reported(model_dir):
+    server = FakeServer(model_dir, failures=[httpx.ConnectError("refused")])
+    assert client_for(server, retries=1).evaluate("lambert", random_queries(4)).shape == (4, 3)
+    server = FakeServer(model_dir, failures=[httpx.ConnectError("refused")] * 5)
+    with pytest.raises(ServerUnavailable, match=r"http://neumip.test unreachable after 2 attempt\(s\).*refused"):
+        client_for(server, retries=1).evaluate("lambert", random_queries(4))
+
+
+def test_client_errors_fail_at_once_with_the_server_message(model_dir):
+    server = FakeServer(model_dir)
+    with pytest.raises(ServerError, match="answered 404: unknown material 'nope'") as info:
+        client_for(server).evaluate("nope", random_queries(4))
+    assert info.value.status == 404 and len(server.requests) == 1
+
+
+def test_bad_answer_size_is_an_error():
+    def short(request):
+        return httpx.Response(200, content=C.encode_response(np.zeros((3, 3), np.float32)))
+
+    client = MaterialClient("http://x", ClientConfig(**FAST), httpx.MockTransport(short))
+    with pytest.raises(C.QueryError, match=r"answer must have shape \(4, 3\)"):
+        client.evaluate("m", random_queries(4))
+
+
+def test_bad_queries_are_rejected_before_sending(model_dir):
+    server = FakeServer(model_dir)
+    with pytest.raises(C.QueryError):
+        client_for(server).evaluate("lambert", np.full((2, 7), np.nan, np.float32))
+    assert server.requests == []
+
+
+def test_bad_url_and_config():
+    with pytest.raises(ValueError, match="http://"):
+        MaterialClient("localhost:8000")
+    with pytest.raises(ValueError, match="max_rows"):
+        MaterialClient("http://x", ClientConfig(max_rows=0))
+
+
+def test_unreachable_real_port_is_unavailable():
+    import socket
+
+    with socket.socket() as s:  # a port nobody listens on
+        s.bind(("127.0.0.1", 0))
+        port = s.getsockname()[1]
+    client = MaterialClient(f"http://127.0.0.1:{port}", ClientConfig(retries=1, **FAST))
+    with pytest.raises(ServerUnavailable, match="unreachable after 2 attempt"):
+        client.materials()
