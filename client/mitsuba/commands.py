@@ -1,9 +1,79 @@
-"""Subcommands of this area (registered by neumip.client.cli)."""
+"""Subcommands of this area (registered by neumip.client.cli): `render`."""
 
 from __future__ import annotations
 
 import argparse
+from pathlib import Path
+
+DEFAULT_MODELS = "models"
 
 
 def register(sub: argparse._SubParsersAction) -> None:
-    """Nothing registered yet."""
+    p = sub.add_parser(
+        "render",
+        help="render a Mitsuba scene with neural materials (in-process, or through a server)",
+        description="Render SCENE (Mitsuba 3 XML using <bsdf type=\"neumip\"> and the neumip_path "
+        "integrator) to OUT (.png or .exr). Neural materials are evaluated in this process from "
+        "--models unless --server is given.",
+    )
+    p.add_argument("scene", type=Path, help="Mitsuba 3 XML scene")
+    p.add_argument("-o", "--output", type=Path, required=True, help="image to write (.png or .exr)")
+    p.add_argument("--spp", type=int, default=None, help="samples per pixel (default: the scene's)")
+    p.add_argument("--server", default=None, help="evaluate on this server (e.g. http://127.0.0.1:8000)")
+    p.add_argument("--models", type=Path, default=Path(DEFAULT_MODELS), help="model folder (in-process)")
+    p.add_argument("--max-lanes", type=int, default=None, help="most pixels x samples per pass (memory bound)")
+    p.add_argument("--seed", type=int, default=0, help="seed of the first pass")
+    p.add_argument("--threads", type=int, default=0, help="evaluation threads in-process (0: all cores)")
+    p.set_defaults(func=_render)
+
+
+def _render(args: argparse.Namespace) -> int:
+    from tqdm import tqdm
+
+    from neumip.client.cli import CommandError
+
+    from .runtime import MitsubaUnavailable
+
+    if args.output.suffix.lower() not in (".png", ".exr"):
+        raise CommandError(f"output must end in .png or .exr, got {args.output.name}")
+    if args.spp is not None and args.spp < 1:
+        raise CommandError(f"--spp must be >= 1, got {args.spp}")
+    try:
+        from . import render as R
+    except MitsubaUnavailable as exc:
+        raise CommandError(str(exc)) from exc
+
+    evaluator = _evaluator(args)
+    config = R.RenderConfig(spp=args.spp, seed=args.seed)
+    if args.max_lanes:
+        config.max_lanes = args.max_lanes
+    scene = R.load_scene(args.scene)
+    with tqdm(desc="render passes", unit="pass", total=None) as bar:
+
+        def on_pass(done: int, total: int) -> None:
+            bar.total = total
+            bar.update(1)
+
+        try:
+            result = R.render_scene(scene, evaluator, config, on_pass=on_pass)
+        except (R.RenderError, LookupError) as exc:
+            raise CommandError(f"{exc} (no image written)") from exc
+    path = R.write_image(result.image, args.output)
+    s = result.stats
+    print(f"wrote {path.resolve()}")
+    print(
+        f"{result.image.shape[1]}x{result.image.shape[0]} at {result.spp} spp in {result.passes} pass(es): "
+        f"{result.seconds:.1f} s total, {s.seconds:.1f} s neural evaluation, {s.queries:,} queries"
+    )
+    return 0
+
+
+def _evaluator(args: argparse.Namespace):
+    """The in-process evaluator over --models, or a MaterialClient for --server."""
+    if args.server:
+        from neumip.client.http import MaterialClient
+
+        return MaterialClient(args.server)
+    from neumip.client.local import LocalMaterials
+
+    return LocalMaterials(args.models, threads=args.threads)
