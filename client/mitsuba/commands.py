@@ -22,6 +22,10 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--server", default=None, help="evaluate on this server (e.g. http://127.0.0.1:8000)")
     p.add_argument("--models", type=Path, default=Path(DEFAULT_MODELS), help="model folder (in-process)")
     p.add_argument("--max-lanes", type=int, default=None, help="most pixels x samples per pass (memory bound)")
+    p.add_argument(
+        "-D", dest="params", action="append", default=[], metavar="NAME=VALUE",
+        help="set a scene parameter ($NAME in the XML), e.g. -D resx=256; repeatable",
+    )
     p.add_argument("--seed", type=int, default=0, help="seed of the first pass")
     p.add_argument("--threads", type=int, default=0, help="evaluation threads in-process (0: all cores)")
     p.set_defaults(func=_render)
@@ -31,6 +35,7 @@ def _render(args: argparse.Namespace) -> int:
     from tqdm import tqdm
 
     from neumip.client.cli import CommandError
+    from neumip.client.http import ServerError
 
     from .runtime import MitsubaUnavailable
 
@@ -43,11 +48,17 @@ def _render(args: argparse.Namespace) -> int:
     except MitsubaUnavailable as exc:
         raise CommandError(str(exc)) from exc
 
+    params = {}
+    for item in args.params:
+        name, sep, value = item.partition("=")
+        if not sep or not name:
+            raise CommandError(f"-D takes NAME=VALUE, got {item!r}")
+        params[name] = value
     evaluator = _evaluator(args)
     config = R.RenderConfig(spp=args.spp, seed=args.seed)
     if args.max_lanes:
         config.max_lanes = args.max_lanes
-    scene = R.load_scene(args.scene)
+    scene = R.load_scene(args.scene, **params)
     with tqdm(desc="render passes", unit="pass", total=None) as bar:
 
         def on_pass(done: int, total: int) -> None:
@@ -56,7 +67,7 @@ def _render(args: argparse.Namespace) -> int:
 
         try:
             result = R.render_scene(scene, evaluator, config, on_pass=on_pass)
-        except (R.RenderError, LookupError) as exc:
+        except (R.RenderError, LookupError, ServerError) as exc:
             raise CommandError(f"{exc} (no image written)") from exc
     path = R.write_image(result.image, args.output)
     s = result.stats

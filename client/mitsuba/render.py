@@ -62,13 +62,16 @@ class RenderResult:
     """Neural evaluation cost (queries, calls, seconds)."""
 
 
-def load_scene(path: str | os.PathLike) -> mi.Scene:
-    """Load a Mitsuba XML scene; raises FileNotFoundError or RenderError with Mitsuba's reason."""
+def load_scene(path: str | os.PathLike, **params: str) -> mi.Scene:
+    """Load a Mitsuba XML scene (``params`` fill its ``$name`` defaults, as Mitsuba's ``-D``).
+
+    Raises FileNotFoundError, or RenderError with Mitsuba's reason.
+    """
     path = Path(path)
     if not path.is_file():
         raise FileNotFoundError(f"scene {path} does not exist")
     try:
-        return mi.load_file(str(path))
+        return mi.load_file(str(path), **params)
     except Exception as exc:  # mitsuba raises plain Exception/RuntimeError with its parser message
         raise RenderError(f"cannot load scene {path}: {exc}") from exc
 
