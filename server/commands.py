@@ -1,4 +1,4 @@
-"""Server subcommands (`serve` arrives with the server)."""
+"""Server subcommands: `neumip serve`."""
 
 from __future__ import annotations
 
@@ -6,4 +6,20 @@ import argparse
 
 
 def register(sub: argparse._SubParsersAction) -> None:
-    """No server subcommands yet."""
+    p = sub.add_parser(
+        "serve",
+        help="serve every material of a model folder over HTTP (msgpack /v1 and Open Inference Protocol /v2)",
+        description="Serve the *.onnx materials of a folder with uvicorn. Every setting is also an "
+        "environment variable NEUMIP_<NAME> (see neumip.server.settings.Settings); options given here win.",
+    )
+    p.add_argument("--host", help="address to bind (NEUMIP_HOST, default 127.0.0.1)")
+    p.add_argument("--port", type=int, help="TCP port (NEUMIP_PORT, default 8000)")
+    p.add_argument("--model-dir", help="folder of .onnx materials (NEUMIP_MODEL_DIR, default models)")
+    p.set_defaults(func=serve)
+
+
+def serve(args: argparse.Namespace) -> int:
+    from .uvicorn_run import run
+
+    overrides = {"host": args.host, "port": args.port, "model_dir": args.model_dir}
+    return run({k: v for k, v in overrides.items() if v is not None})

@@ -1,0 +1,69 @@
+"""The FastAPI application: lifespan (load, warm up, batch), routes, errors and metrics.
+
+``create_app(settings)`` builds an app; uvicorn serves it (`neumip serve`, or
+``uvicorn --factory neumip.server.app:create_app``). Models load and warm up in the lifespan, before
+uvicorn accepts connections; ``/v2/health/ready`` says yes only after that and until shutdown begins.
+OpenAPI docs: ``/docs`` and ``/openapi.json``.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import logging
+from contextlib import asynccontextmanager
+
+from fastapi import Depends, FastAPI, Response
+
+from .batching import Batcher
+from .errors import install_error_handlers
+from .metrics import Metrics, MetricsMiddleware
+from .registry import Registry
+from .settings import Settings
+from .state import ServerState, get_state
+from . import v1, v2
+
+log = logging.getLogger(__name__)
+
+
+@asynccontextmanager
+async def lifespan(app: FastAPI):
+    """Load and warm up every material, start the batcher; on shutdown, drain and stop it."""
+    state: ServerState = app.state.neumip
+    settings = state.settings
+    registry = await asyncio.to_thread(
+        Registry.load, settings.model_dir, settings.ort_threads, settings.warmup_rows
+    )
+    batcher = Batcher(registry.materials, settings, state.metrics)
+    batcher.start()
+    state.registry, state.batcher, state.started = registry, batcher, True
+    if not registry.materials:
+        log.warning("no material could be loaded from %s: the server will not report ready", settings.model_dir)
+    try:
+        yield
+    finally:
+        state.started = False
+        await batcher.close()
+        log.info("batcher stopped")
+
+
+def create_app(settings: Settings | None = None) -> FastAPI:
+    """A new server app; `settings` default to the ``NEUMIP_*`` environment."""
+    settings = settings or Settings()
+    metrics = Metrics()
+    app = FastAPI(
+        title="neumip inference server",
+        summary="NeuMIP neural materials: (N, 7) shading queries -> (N, 3) RGB",
+        lifespan=lifespan,
+    )
+    app.state.neumip = ServerState(settings, metrics)
+    install_error_handlers(app)
+    app.add_middleware(MetricsMiddleware, metrics=metrics)
+    app.include_router(v1.router)
+    app.include_router(v2.router)
+
+    @app.get("/metrics", summary="Prometheus metrics", tags=["operations"])
+    async def prometheus(state: ServerState = Depends(get_state)) -> Response:
+        content, media = state.metrics.render()
+        return Response(content, media_type=media)
+
+    return app

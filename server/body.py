@@ -1,0 +1,66 @@
+"""Reading request bodies safely: size limit, content type, and the 4xx errors for each mistake.
+
+uvicorn puts no bound on a body by itself: `read_body` refuses a declared ``Content-Length`` above the
+limit before reading anything, and stops a chunked upload as soon as it passes the limit.
+"""
+
+from __future__ import annotations
+
+import json
+
+from fastapi import Request
+
+from .errors import ApiError
+
+MSGPACK_TYPES = ("application/msgpack", "application/x-msgpack", "application/vnd.msgpack")
+"""Content types taken as msgpack (the first is `contract.MSGPACK_MEDIA_TYPE`)."""
+JSON_TYPE = "application/json"
+
+
+def media_type(request: Request) -> str | None:
+    """The request's Content-Type without parameters, lower case; None if absent."""
+    value = request.headers.get("content-type")
+    if value is None:
+        return None
+    return value.split(";", 1)[0].strip().lower() or None
+
+
+def check_encoding(request: Request) -> None:
+    """Refuse compressed bodies (415): the server reads raw bytes only."""
+    encoding = request.headers.get("content-encoding", "identity").strip().lower()
+    if encoding not in ("", "identity"):
+        raise ApiError(415, f"Content-Encoding {encoding!r} is not supported; send the body uncompressed")
+
+
+async def read_body(request: Request, limit: int) -> bytes:
+    """The whole request body; 413 if it is (or declares to be) longer than `limit` bytes."""
+    check_encoding(request)
+    declared = request.headers.get("content-length")
+    if declared is not None:
+        if not declared.strip().isdigit():
+            raise ApiError(400, f"Content-Length must be a non-negative integer, got {declared[:40]!r}")
+        if int(declared) > limit:
+            raise ApiError(413, f"body of {int(declared)} bytes is larger than the limit of {limit} bytes")
+    chunks, size = [], 0
+    async for chunk in request.stream():
+        size += len(chunk)
+        if size > limit:
+            raise ApiError(413, f"body is larger than the limit of {limit} bytes")
+        chunks.append(chunk)
+    return b"".join(chunks)
+
+
+def parse_json(raw: bytes | memoryview, what: str = "body") -> object:
+    """JSON text -> Python value; 400 saying where the JSON is broken."""
+    try:
+        return json.loads(bytes(raw))
+    except (UnicodeDecodeError, ValueError) as exc:
+        raise ApiError(400, f"{what} is not valid JSON: {exc}") from None
+
+
+def check_rows(n: int, limit: int) -> None:
+    """400 for an empty request, 413 for one over the row limit."""
+    if n == 0:
+        raise ApiError(400, "no queries: a request must carry at least one query row")
+    if n > limit:
+        raise ApiError(413, f"{n} query rows is more than the limit of {limit} rows per request")

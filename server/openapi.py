@@ -1,0 +1,106 @@
+"""OpenAPI descriptions of the raw-body endpoints (their handlers read bytes, so FastAPI cannot infer them).
+
+These schemas are documentation and the input of the schemathesis fuzz test; the handlers validate
+every body themselves.
+"""
+
+from __future__ import annotations
+
+from neumip.client import contract as C
+
+ERROR_SCHEMA = {
+    "type": "object",
+    "required": ["error"],
+    "properties": {"error": {"type": "string", "description": "What was wrong"}},
+}
+ERROR_RESPONSES = {
+    status: {"description": text, "content": {"application/json": {"schema": ERROR_SCHEMA}}}
+    for status, text in (
+        (400, "Malformed request (bad body, shape, values, header or name)"),
+        (404, "Unknown material or endpoint"),
+        (413, "Body or row count over the limit"),
+        (415, "Unsupported Content-Type or Content-Encoding"),
+        (503, "Queue full (see Retry-After) or server starting"),
+    )
+}
+
+_ROW = {
+    "type": "array",
+    "items": {"type": "number"},
+    "minItems": C.QUERY_DIM,
+    "maxItems": C.QUERY_DIM,
+    "description": ", ".join(C.QUERY_FIELDS),
+}
+_BINARY = {"type": "string", "format": "binary"}
+
+EVALUATE_BODY = {
+    "required": True,
+    "content": {
+        "application/json": {
+            "schema": {
+                "type": "object",
+                "required": ["queries"],
+                "properties": {"queries": {"type": "array", "items": _ROW}, "n": {"type": "integer"}},
+            }
+        },
+        C.MSGPACK_MEDIA_TYPE: {
+            "schema": _BINARY,
+            "description": 'msgpack map {"n": N, "queries": N*7 little-endian float32 bytes}',
+        },
+    },
+}
+EVALUATE_RESPONSE = {
+    "description": "RGB per query, in the request's format",
+    "content": {
+        "application/json": {
+            "schema": {
+                "type": "object",
+                "properties": {
+                    "n": {"type": "integer"},
+                    "rgb": {"type": "array", "items": {"type": "array", "items": {"type": "number"}}},
+                },
+            }
+        },
+        C.MSGPACK_MEDIA_TYPE: {"schema": _BINARY},
+    },
+}
+
+_TENSOR = {
+    "type": "object",
+    "required": ["name", "shape", "datatype"],
+    "properties": {
+        "name": {"type": "string"},
+        "shape": {"type": "array", "items": {"type": "integer"}},
+        "datatype": {"type": "string"},
+        "parameters": {"type": "object"},
+        "data": {"type": "array"},
+    },
+}
+INFER_BODY = {
+    "required": True,
+    "content": {
+        "application/json": {
+            "schema": {
+                "type": "object",
+                "required": ["inputs"],
+                "properties": {
+                    "id": {"type": "string"},
+                    "parameters": {"type": "object"},
+                    "inputs": {"type": "array", "items": _TENSOR},
+                    "outputs": {
+                        "type": "array",
+                        "items": {
+                            "type": "object",
+                            "required": ["name"],
+                            "properties": {"name": {"type": "string"}, "parameters": {"type": "object"}},
+                        },
+                    },
+                },
+            }
+        },
+        "application/octet-stream": {
+            "schema": _BINARY,
+            "description": "JSON header (length in Inference-Header-Content-Length) then raw tensor bytes",
+        },
+    },
+}

@@ -1,0 +1,71 @@
+"""Server settings: read once from ``NEUMIP_*`` environment variables (pydantic-settings).
+
+Every field below is an environment variable with the ``NEUMIP_`` prefix, e.g.
+``NEUMIP_MODEL_DIR=models NEUMIP_MAX_WAIT_MS=2 neumip serve``. The field docstrings are the
+documentation (``neumip serve --help`` prints them too).
+"""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+from pydantic import Field, model_validator
+from pydantic_settings import BaseSettings, SettingsConfigDict
+
+
+def available_cores() -> int:
+    """CPU cores this process may run on (affinity-aware where the OS tells)."""
+    try:
+        return len(os.sched_getaffinity(0))
+    except AttributeError:  # pragma: no cover - not on Linux
+        return os.cpu_count() or 1
+
+
+class Settings(BaseSettings):
+    """Configuration of the inference server (environment variables with the ``NEUMIP_`` prefix)."""
+
+    model_config = SettingsConfigDict(env_prefix="NEUMIP_", frozen=True)
+
+    model_dir: Path = Path("models")
+    """Folder whose ``*.onnx`` files are served; material name = file stem."""
+    host: str = "127.0.0.1"
+    """Address `neumip serve` binds to (loopback by default)."""
+    port: int = Field(8000, ge=0, le=65535)
+    """TCP port `neumip serve` listens on."""
+    log_level: str = "info"
+    """Log level of the server and uvicorn (debug, info, warning, error)."""
+
+    ort_workers: int = Field(0, ge=0)
+    """Concurrent ONNX Runtime calls (threads of the dedicated executor); 0 = one per core."""
+    ort_threads: int = Field(1, ge=0)
+    """Intra-op threads of each ONNX Runtime call; 0 = ONNX Runtime's default (all cores)."""
+    chunk_rows: int = Field(16384, ge=1)
+    """Most rows in one ONNX Runtime call: large requests are split, small ones merged up to this."""
+    max_wait_ms: float = Field(2.0, ge=0)
+    """How long a batch that is not yet full waits for more concurrent requests to merge with."""
+    max_rows: int = Field(2_000_000, ge=1)
+    """Most query rows one request may carry (more is rejected with 413)."""
+    max_queue_rows: int = Field(8_000_000, ge=1)
+    """Most rows admitted and not yet answered; beyond it requests get 503 with Retry-After."""
+    max_body_bytes: int = Field(128 * 1024 * 1024, ge=1024)
+    """Largest request body accepted, in bytes (more is rejected with 413)."""
+    retry_after_s: int = Field(1, ge=0)
+    """Seconds a 503 (queue full) tells the client to wait, in its Retry-After header."""
+    warmup_rows: int = Field(1024, ge=0)
+    """Rows each material evaluates at start-up, before the server reports ready."""
+    graceful_shutdown_s: float = Field(10.0, ge=0)
+    """Seconds uvicorn lets running requests finish after SIGTERM."""
+
+    @model_validator(mode="after")
+    def _queue_holds_a_request(self) -> "Settings":
+        if self.max_queue_rows < self.max_rows:
+            raise ValueError(
+                f"max_queue_rows ({self.max_queue_rows}) must be >= max_rows ({self.max_rows}):"
+                " otherwise the largest allowed request could never be admitted"
+            )
+        return self
+
+    def workers(self) -> int:
+        """Threads of the ONNX Runtime executor."""
+        return self.ort_workers or available_cores()

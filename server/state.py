@@ -1,0 +1,50 @@
+"""What the request handlers share: settings, metrics, and (after start-up) the registry and batcher.
+
+One `ServerState` lives in ``app.state.neumip``; handlers get it through the `get_state` dependency.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+from fastapi import Request
+
+from .batching import Batcher
+from .errors import ApiError
+from .metrics import Metrics
+from .registry import Registry
+from .settings import Settings
+
+
+@dataclass
+class ServerState:
+    """The server's shared state, filled in by the app's lifespan."""
+
+    settings: Settings
+    """Settings read once at start-up."""
+    metrics: Metrics
+    """Prometheus collectors of this app."""
+    registry: Registry | None = None
+    """Loaded materials; None until start-up has loaded them."""
+    batcher: Batcher | None = None
+    """The batching queue in front of ONNX Runtime; None until start-up."""
+    started: bool = False
+    """Start-up (load and warm-up) finished and shutdown has not begun."""
+
+    @property
+    def ready(self) -> bool:
+        """Ready to answer: started and serving at least one material."""
+        return self.started and self.registry is not None and bool(self.registry.materials)
+
+
+def get_state(request: Request) -> ServerState:
+    """FastAPI dependency: the shared state."""
+    return request.app.state.neumip
+
+
+def serving(request: Request) -> ServerState:
+    """FastAPI dependency: the shared state once models are loaded (503 before that)."""
+    state: ServerState = request.app.state.neumip
+    if not state.started:
+        raise ApiError(503, "server is starting or shutting down: models are not loaded")
+    return state

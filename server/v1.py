@@ -1,0 +1,96 @@
+"""The renderer fast path (``/v1``): msgpack in, msgpack out; JSON for people trying it with curl.
+
+``POST /v1/materials/{name}/evaluate`` with ``Content-Type: application/msgpack`` takes the
+`contract.encode_request` body and answers `contract.encode_response`; with ``application/json`` it
+takes ``{"queries": [[u, v, sigma, wi_x, wi_y, wo_x, wo_y], ...]}`` and answers
+``{"n": N, "rgb": [[r, g, b], ...]}``. ``GET /v1/materials`` lists the materials with their metadata.
+"""
+
+from __future__ import annotations
+
+import asyncio
+
+import numpy as np
+from fastapi import APIRouter, Depends, Request, Response
+from fastapi.responses import JSONResponse
+
+from neumip.client import contract as C
+
+from .body import JSON_TYPE, MSGPACK_TYPES, check_rows, media_type, parse_json, read_body
+from .errors import ApiError
+from .openapi import ERROR_RESPONSES, EVALUATE_BODY, EVALUATE_RESPONSE
+from .state import ServerState, serving
+
+router = APIRouter(tags=["v1 (renderer fast path)"])
+
+OFFLOAD_BYTES = 1 << 20
+"""Bodies larger than this are decoded and encoded in a thread, keeping the event loop free."""
+
+
+def decode_json(body: bytes) -> np.ndarray:
+    """``{"queries": [[7 numbers], ...]}`` -> validated (N, 7) float32. Raises ApiError/QueryError."""
+    msg = parse_json(body)
+    if not isinstance(msg, dict) or not isinstance(msg.get("queries"), list):
+        raise ApiError(400, 'JSON body must be an object {"queries": [[u, v, sigma, wi_x, wi_y, wo_x, wo_y], ...]}')
+    rows = msg["queries"]
+    if any(not isinstance(row, list) or len(row) != C.QUERY_DIM for row in rows):
+        raise ApiError(400, f"every entry of 'queries' must be a list of {C.QUERY_DIM} numbers ({', '.join(C.QUERY_FIELDS)})")
+    if any(isinstance(x, bool) or not isinstance(x, (int, float)) for row in rows for x in row):
+        raise ApiError(400, "'queries' must hold only numbers")
+    if "n" in msg and msg["n"] != len(rows):
+        raise ApiError(400, f"'n' is {msg['n']!r} but 'queries' holds {len(rows)} rows")
+    with np.errstate(over="ignore"):  # out-of-range values become Inf and are rejected as such
+        arr = np.array(rows, dtype=np.float64).reshape(len(rows), C.QUERY_DIM).astype(C.DTYPE)
+    return C.as_queries(arr)
+
+
+async def decode(body: bytes, kind: str) -> np.ndarray:
+    """Body -> validated (N, 7) float32 queries, in a thread when the body is large."""
+    fn = C.decode_request if kind == "msgpack" else decode_json
+    if len(body) > OFFLOAD_BYTES:
+        return await asyncio.to_thread(fn, body)
+    return fn(body)
+
+
+def body_kind(request: Request) -> str:
+    """'msgpack' or 'json' from the Content-Type; 415 for anything else."""
+    ctype = media_type(request)
+    if ctype in MSGPACK_TYPES:
+        return "msgpack"
+    if ctype == JSON_TYPE:
+        return "json"
+    got = f"got {ctype!r}" if ctype else "it is missing"
+    raise ApiError(415, f"Content-Type must be {C.MSGPACK_MEDIA_TYPE} or {JSON_TYPE}; {got}")
+
+
+@router.get(C.MATERIALS_PATH, summary="List the served materials with their metadata")
+async def list_materials(state: ServerState = Depends(serving)) -> dict:
+    return state.registry.listing()
+
+
+@router.get(C.MATERIALS_PATH + "/{name}", summary="Metadata of one material", responses=ERROR_RESPONSES)
+async def material_info(name: str, state: ServerState = Depends(serving)) -> dict:
+    return state.registry.get(name).info()
+
+
+@router.post(
+    C.EVALUATE_PATH,
+    summary="Evaluate (N, 7) queries -> (N, 3) RGB (msgpack or JSON)",
+    openapi_extra={"requestBody": EVALUATE_BODY},
+    responses={200: EVALUATE_RESPONSE, **ERROR_RESPONSES},
+    response_class=Response,
+)
+async def evaluate(name: str, request: Request, state: ServerState = Depends(serving)) -> Response:
+    state.registry.get(name)
+    kind = body_kind(request)
+    body = await read_body(request, state.settings.max_body_bytes)
+    queries = await decode(body, kind)  # (N, 7) float32
+    check_rows(queries.shape[0], state.settings.max_rows)
+    rgb = await state.batcher.evaluate(name, queries)  # (N, 3) float32
+    if kind == "json":
+        return JSONResponse({"n": int(rgb.shape[0]), "rgb": rgb.tolist()})
+    if rgb.nbytes > OFFLOAD_BYTES:
+        content = await asyncio.to_thread(C.encode_response, rgb)
+    else:
+        content = C.encode_response(rgb)
+    return Response(content, media_type=C.MSGPACK_MEDIA_TYPE)

@@ -1,0 +1,240 @@
+"""The Open Inference Protocol v2 (KServe / Triton REST) with Triton's binary tensor extension.
+
+Each material is a model with one version, ``"1"``, one input ``queries`` FP32 [-1, 7] and one output
+``rgb`` FP32 [-1, 3]. Infer bodies are read raw (tritonclient sends no Content-Type) and split by the
+``Inference-Header-Content-Length`` header into the JSON header and the binary tensor bytes.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import json
+from dataclasses import dataclass
+
+import numpy as np
+from fastapi import APIRouter, Depends, Request, Response
+from fastapi.responses import JSONResponse
+
+from neumip.client import contract as C
+
+from .body import JSON_TYPE, check_rows, media_type, parse_json, read_body
+from .errors import ApiError
+from .openapi import ERROR_RESPONSES, INFER_BODY
+from .registry import MODEL_VERSION
+from .state import ServerState, get_state, serving
+from .v1 import OFFLOAD_BYTES
+
+router = APIRouter(prefix="/v2", tags=["v2 (Open Inference Protocol)"])
+
+HEADER_LENGTH = "Inference-Header-Content-Length"
+DATATYPE = "FP32"
+PLATFORM = "onnxruntime_onnx"
+INFER_TYPES = (None, JSON_TYPE, "application/octet-stream")
+"""Content types an infer request may carry (tritonclient sends none)."""
+
+
+@dataclass
+class InferRequest:
+    """A parsed infer request: queries and how to send the output back."""
+
+    id: str | None
+    queries: np.ndarray  # (N, 7) float32, validated
+    binary_output: bool
+
+
+def model_metadata(name: str) -> dict:
+    return {
+        "name": name,
+        "versions": [MODEL_VERSION],
+        "platform": PLATFORM,
+        "inputs": [{"name": C.ONNX_INPUT, "datatype": DATATYPE, "shape": [-1, C.QUERY_DIM]}],
+        "outputs": [{"name": C.ONNX_OUTPUT, "datatype": DATATYPE, "shape": [-1, C.RGB_DIM]}],
+    }
+
+
+def check_version(version: str | None) -> None:
+    if version is not None and version != MODEL_VERSION:
+        raise ApiError(404, f"unknown model version {version[:40]!r}: only version {MODEL_VERSION!r} exists")
+
+
+# --- decode -----------------------------------------------------------------------------------
+def split_body(body: bytes, header_length: str | None) -> tuple[object, memoryview]:
+    """Body -> (JSON header, binary tail) using the Inference-Header-Content-Length header."""
+    if header_length is None:
+        return parse_json(body), memoryview(b"")
+    if not header_length.strip().isdigit():
+        raise ApiError(400, f"{HEADER_LENGTH} must be a non-negative integer, got {header_length[:40]!r}")
+    length = int(header_length)
+    if length == 0 or length > len(body):
+        raise ApiError(400, f"{HEADER_LENGTH} is {length} but the body holds {len(body)} bytes")
+    view = memoryview(body)
+    return parse_json(view[:length], f"JSON header (first {HEADER_LENGTH} bytes)"), view[length:]
+
+
+def _parameters(obj: dict, where: str) -> dict:
+    params = obj.get("parameters", {})
+    if not isinstance(params, dict):
+        raise ApiError(400, f"{where}'parameters' must be an object")
+    return params
+
+
+def _input_tensor(inputs: object, binary: memoryview) -> np.ndarray:
+    """The one input tensor -> (N, 7) float32 (unvalidated values). Raises ApiError."""
+    if not isinstance(inputs, list) or len(inputs) != 1 or not isinstance(inputs[0], dict):
+        raise ApiError(400, f"'inputs' must be a list holding exactly one tensor, '{C.ONNX_INPUT}'")
+    tensor = inputs[0]
+    if tensor.get("name") != C.ONNX_INPUT:
+        raise ApiError(400, f"unknown input {str(tensor.get('name'))[:40]!r}: the model's input is '{C.ONNX_INPUT}'")
+    if tensor.get("datatype") != DATATYPE:
+        raise ApiError(400, f"input '{C.ONNX_INPUT}' must have datatype {DATATYPE}, got {str(tensor.get('datatype'))[:20]!r}")
+    shape = tensor.get("shape")
+    if (
+        not isinstance(shape, list)
+        or len(shape) != 2
+        or not all(isinstance(d, int) and not isinstance(d, bool) and d >= 0 for d in shape)
+        or shape[1] != C.QUERY_DIM
+    ):
+        raise ApiError(400, f"input '{C.ONNX_INPUT}' must have shape [N, {C.QUERY_DIM}], got {str(shape)[:60]}")
+    n = shape[0]
+    size = _parameters(tensor, "input ").get("binary_data_size")
+    if size is not None:
+        expected = n * C.QUERY_DIM * C.DTYPE.itemsize
+        if not isinstance(size, int) or size != expected:
+            raise ApiError(400, f"binary_data_size is {size!r} but shape {shape} of FP32 needs {expected} bytes")
+        if len(binary) != size:
+            raise ApiError(400, f"binary part holds {len(binary)} bytes, binary_data_size says {size}")
+        return np.frombuffer(binary, dtype=C.DTYPE).reshape(n, C.QUERY_DIM)
+    if len(binary):
+        raise ApiError(400, f"{len(binary)} bytes follow the JSON header but no input has binary_data_size")
+    return _json_data(tensor.get("data"), n)
+
+
+def _json_data(data: object, n: int) -> np.ndarray:
+    if not isinstance(data, list):
+        raise ApiError(400, f"input '{C.ONNX_INPUT}' needs 'data' (a list of numbers) or binary_data_size")
+    try:
+        arr = np.asarray(data)
+    except (TypeError, ValueError):  # ragged nesting
+        raise ApiError(400, f"input '{C.ONNX_INPUT}' data must be a flat or evenly nested list of numbers") from None
+    if arr.size and arr.dtype.kind not in "fiu":
+        raise ApiError(400, f"input '{C.ONNX_INPUT}' data must hold only numbers (FP32), got {arr.dtype.kind!r} values")
+    if arr.size != n * C.QUERY_DIM:
+        raise ApiError(
+            400,
+            f"input '{C.ONNX_INPUT}' data holds {arr.size} values, shape [{n}, {C.QUERY_DIM}] needs {n * C.QUERY_DIM}",
+        )
+    with np.errstate(over="ignore"):  # out-of-range values become Inf and are rejected as such
+        return arr.astype(C.DTYPE).reshape(n, C.QUERY_DIM)
+
+
+def _binary_output(msg: dict) -> bool:
+    """Whether 'rgb' goes back as binary; 400 for unknown requested outputs."""
+    binary = bool(_parameters(msg, "").get("binary_data_output", False))
+    outputs = msg.get("outputs")
+    if outputs is None:
+        return binary
+    if not isinstance(outputs, list) or not all(isinstance(o, dict) for o in outputs):
+        raise ApiError(400, "'outputs' must be a list of objects")
+    for out in outputs:
+        if out.get("name") != C.ONNX_OUTPUT:
+            raise ApiError(400, f"unknown output {str(out.get('name'))[:40]!r}: the model's output is '{C.ONNX_OUTPUT}'")
+        binary = bool(_parameters(out, "output ").get("binary_data", binary))
+    return binary
+
+
+def parse_infer(body: bytes, header_length: str | None) -> InferRequest:
+    """Infer body -> InferRequest with validated queries. Raises ApiError/QueryError."""
+    msg, binary = split_body(body, header_length)
+    if not isinstance(msg, dict):
+        raise ApiError(400, "infer request must be a JSON object with 'inputs'")
+    request_id = msg.get("id")
+    if request_id is not None and not isinstance(request_id, str):
+        raise ApiError(400, "'id' must be a string")
+    raw = _input_tensor(msg.get("inputs"), binary)
+    return InferRequest(request_id, C.as_queries(raw), _binary_output(msg))
+
+
+# --- encode -----------------------------------------------------------------------------------
+def infer_response(name: str, request: InferRequest, rgb: np.ndarray) -> Response:
+    """(N, 3) RGB -> the infer response, JSON or JSON + binary tail."""
+    output = {"name": C.ONNX_OUTPUT, "datatype": DATATYPE, "shape": list(rgb.shape)}
+    head = {"model_name": name, "model_version": MODEL_VERSION, "outputs": [output]}
+    if request.id is not None:
+        head["id"] = request.id
+    if not request.binary_output:
+        output["data"] = rgb.reshape(-1).tolist()
+        return JSONResponse(head)
+    output["parameters"] = {"binary_data_size": rgb.nbytes}
+    header = json.dumps(head, separators=(",", ":")).encode()
+    return Response(
+        header + np.ascontiguousarray(rgb, dtype=C.DTYPE).tobytes(),
+        media_type="application/octet-stream",
+        headers={HEADER_LENGTH: str(len(header))},
+    )
+
+
+# --- routes -----------------------------------------------------------------------------------
+@router.get("", summary="Server metadata")
+async def server_metadata() -> dict:
+    from importlib.metadata import PackageNotFoundError, version
+
+    try:
+        ours = version("neumip")
+    except PackageNotFoundError:  # pragma: no cover - running from a source tree
+        ours = "0"
+    return {"name": "neumip", "version": ours, "extensions": ["binary_tensor_data"]}
+
+
+@router.get("/health/live", summary="Liveness (200, empty body)")
+async def live() -> Response:
+    return Response(status_code=200)
+
+
+@router.get("/health/ready", summary="Readiness (200 once models are loaded and warm, else 400)")
+async def ready(state: ServerState = Depends(get_state)) -> Response:
+    return Response(status_code=200 if state.ready else 400)
+
+
+@router.get("/models/{name}", summary="Model metadata", responses=ERROR_RESPONSES)
+@router.get("/models/{name}/versions/{version}", include_in_schema=False)
+async def metadata(name: str, version: str | None = None, state: ServerState = Depends(serving)) -> dict:
+    check_version(version)
+    state.registry.get(name)
+    return model_metadata(name)
+
+
+@router.get("/models/{name}/ready", summary="Model readiness (200, else 400; 404 if unknown)")
+@router.get("/models/{name}/versions/{version}/ready", include_in_schema=False)
+async def model_ready(name: str, version: str | None = None, state: ServerState = Depends(serving)) -> Response:
+    check_version(version)
+    try:
+        state.registry.get(name)
+    except ApiError as exc:
+        if exc.status == 400 and name in state.registry.failed:
+            return Response(status_code=400)
+        raise
+    return Response(status_code=200)
+
+
+@router.post(
+    "/models/{name}/infer",
+    summary="Inference (JSON, or JSON + binary tensors)",
+    openapi_extra={"requestBody": INFER_BODY},
+    responses=ERROR_RESPONSES,
+    response_class=Response,
+)
+@router.post("/models/{name}/versions/{version}/infer", include_in_schema=False)
+async def infer(name: str, request: Request, version: str | None = None, state: ServerState = Depends(serving)) -> Response:
+    check_version(version)
+    state.registry.get(name)
+    if media_type(request) not in INFER_TYPES:
+        raise ApiError(415, f"infer takes {JSON_TYPE}, application/octet-stream or no Content-Type; got {media_type(request)!r}")
+    body = await read_body(request, state.settings.max_body_bytes)
+    header_length = request.headers.get(HEADER_LENGTH)
+    if len(body) > OFFLOAD_BYTES:
+        parsed = await asyncio.to_thread(parse_infer, body, header_length)
+    else:
+        parsed = parse_infer(body, header_length)
+    check_rows(parsed.queries.shape[0], state.settings.max_rows)
+    rgb = await state.batcher.evaluate(name, parsed.queries)  # (N, 3) float32
+    return infer_response(name, parsed, rgb)
