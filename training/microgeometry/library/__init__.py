@@ -1,0 +1,1 @@
+"""Shipped material descriptions (``<name>.toml``); load them by name with `find_description`."""

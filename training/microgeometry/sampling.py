@@ -1,0 +1,71 @@
+"""The distribution of training queries (u, sigma, wi, wo) over one tile, all levels and the hemisphere.
+
+Defaults follow the NeuMIP authors' code:
+
+- ``u, v`` uniform over the tile ``[0, 1)^2``;
+- ``wi`` and ``wo`` independent, uniform on the projected disk up to ``max_zenith_deg``
+  (``r = sin(theta_max) sqrt(U)``; the default 84.26 degrees is their ``r = sqrt(0.99 U)``);
+- ``sigma`` a mixture over levels of detail, in finest texels ``t = 1 / resolution``:
+  ``level_fraction`` log-uniform over all levels (``sigma = 2^L t``, ``L ~ U(0, log2 R)``),
+  ``heavy_fraction`` heavy-tailed ``sigma = t / sqrt(U)`` (most mass near the finest level),
+  and the rest ``sigma = 0`` (the unfiltered BTF).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+from neumip.client import contract as C
+
+
+@dataclass
+class QuerySampling:
+    """Distribution of the generated queries."""
+
+    max_zenith_deg: float = math.degrees(math.asin(math.sqrt(0.99)))
+    """Largest zenith angle of wi and wo (degrees); directions are uniform on the projected disk."""
+    level_fraction: float = 0.3
+    """Share of queries with sigma log-uniform over all levels of detail."""
+    heavy_fraction: float = 0.6
+    """Share of queries with heavy-tailed sigma = texel / sqrt(U); the rest get sigma = 0."""
+    queries_per_texel: float = 256.0
+    """Default number of queries per finest texel (the paper used 200-400)."""
+
+    def __post_init__(self) -> None:
+        if not 0 < self.max_zenith_deg < 90:
+            raise ValueError(f"max_zenith_deg must be in (0, 90), got {self.max_zenith_deg}")
+        if self.level_fraction < 0 or self.heavy_fraction < 0 or self.level_fraction + self.heavy_fraction > 1:
+            raise ValueError("level_fraction and heavy_fraction must be >= 0 and sum to at most 1")
+        if self.queries_per_texel <= 0:
+            raise ValueError("queries_per_texel must be positive")
+
+
+def sample_directions(n: int, rng: np.random.Generator, max_zenith_deg: float) -> np.ndarray:
+    """(n, 2) x, y of directions uniform on the projected disk up to `max_zenith_deg`."""
+    r = math.sin(math.radians(max_zenith_deg)) * np.sqrt(rng.random(n))
+    phi = 2 * math.pi * rng.random(n)
+    return np.stack([r * np.cos(phi), r * np.sin(phi)], axis=1)
+
+
+def sample_sigma(n: int, rng: np.random.Generator, resolution: int, config: QuerySampling) -> np.ndarray:
+    """(n,) footprints in tile units drawn from the level mixture of `config`."""
+    texel = 1.0 / resolution
+    levels = math.log2(resolution)
+    kind = rng.random(n)
+    log_uniform = texel * 2.0 ** (levels * rng.random(n))
+    heavy = texel / np.sqrt(1.0 - rng.random(n))  # 1 - U in (0, 1]: no division by zero
+    sigma = np.where(kind < config.level_fraction, log_uniform, 0.0)
+    heavy_kind = (kind >= config.level_fraction) & (kind < config.level_fraction + config.heavy_fraction)
+    return np.where(heavy_kind, heavy, sigma)
+
+
+def sample_queries(n: int, rng: np.random.Generator, resolution: int, config: QuerySampling) -> np.ndarray:
+    """(n, 7) float32 queries in the contract's layout, drawn from `config` for a material of `resolution`."""
+    uv = rng.random((n, 2))
+    sigma = sample_sigma(n, rng, resolution, config)
+    wi = sample_directions(n, rng, config.max_zenith_deg)
+    wo = sample_directions(n, rng, config.max_zenith_deg)
+    return C.pack_queries(uv[:, 0], uv[:, 1], sigma, wi, wo)
