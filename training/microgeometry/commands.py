@@ -1,9 +1,129 @@
-"""Subcommands of this area (registered by neumip.client.cli)."""
+"""Ground-truth subcommands: `generate` (path-traced MBTF queries) and `import-queries` (external data).
+
+Mitsuba, the tracer and tqdm are imported inside the command functions.
+"""
 
 from __future__ import annotations
 
 import argparse
+import sys
 
 
 def register(sub: argparse._SubParsersAction) -> None:
-    """Nothing registered yet."""
+    p = sub.add_parser(
+        "generate",
+        help="path-trace an MBTF training set for a material (shipped name or .toml description)",
+        description="Path-trace MBTF queries through tiled microgeometry (Mitsuba 3) into a data set "
+        "folder. Interrupted runs resume when the same command is run again.",
+    )
+    p.add_argument("material", nargs="?", help="shipped material name (see --list) or a .toml description")
+    p.add_argument("-o", "--output", help="data set folder to write (or resume)")
+    p.add_argument("--queries", type=int, help="number of queries (default: --queries-per-texel per finest texel)")
+    p.add_argument("--queries-per-texel", type=float, default=256.0, help="default 256 (the paper used 200-400)")
+    p.add_argument("--spp", type=int, default=16, help="path samples per query (default 16)")
+    p.add_argument("--seed", type=int, default=0, help="data set seed (same seed, same data)")
+    p.add_argument("--max-depth", type=int, default=4, help="surface interactions per path (default 4)")
+    p.add_argument("--max-zenith", type=float, help="largest zenith angle of wi, wo in degrees (default 84.26)")
+    p.add_argument("--resolution", type=int, help="finest texels per tile side for sigma (default: the material's)")
+    p.add_argument("--chunk", type=int, default=1 << 16, help="queries per chunk, the unit of resumption")
+    p.add_argument("--lanes", type=int, default=1 << 20, help="samples per wavefront pass (memory ~0.3 GB/M)")
+    p.add_argument("--variant", default="llvm_ad_rgb", help="Mitsuba variant (cuda_ad_rgb on a GPU)")
+    p.add_argument("--list", action="store_true", help="list the shipped materials and exit")
+    p.set_defaults(func=_generate)
+
+    p = sub.add_parser(
+        "import-queries",
+        help="turn external MBTF queries (e.g. converted measured BTFs) into a data set",
+        description="Write a data set from (N, 7) float queries in the contract's layout "
+        "(u, v, sigma, wi_x, wi_y, wo_x, wo_y) and their (N, 3) RGB values, given as two .npy files "
+        "or one .npz with arrays 'queries' and 'rgb'.",
+    )
+    p.add_argument("inputs", nargs="+", help="QUERIES.npy RGB.npy, or DATA.npz")
+    p.add_argument("-o", "--output", required=True, help="data set folder to write")
+    p.add_argument("--name", required=True, help="material name stored in the metadata")
+    p.add_argument("--source", default="", help="where the data come from (stored in the metadata)")
+    p.set_defaults(func=_import_queries)
+
+
+def _generate(args: argparse.Namespace) -> int:
+    from neumip.client.cli import CommandError
+    from neumip.client.mitsuba.runtime import MitsubaUnavailable
+    from neumip.training.dataset import DatasetError
+
+    from .description import DescriptionError, find_description, library_names
+
+    if args.list:
+        for name in library_names():
+            print(f"{name:10s} {find_description(name).summary}")
+        return 0
+    if not args.material or not args.output:
+        raise CommandError("give a MATERIAL and -o DATA (or --list)")
+    try:
+        desc = find_description(args.material)
+        settings = _settings(args)
+        return _run_generate(desc, args.output, settings)
+    except (DescriptionError, DatasetError, MitsubaUnavailable, ValueError) as exc:
+        raise CommandError(str(exc)) from None
+
+
+def _settings(args: argparse.Namespace):
+    from .generate import GenerateSettings
+    from .sampling import QuerySampling
+    from .tracer import TracerConfig
+
+    sampling = QuerySampling(queries_per_texel=args.queries_per_texel)
+    if args.max_zenith is not None:
+        sampling.max_zenith_deg = args.max_zenith
+        sampling.__post_init__()
+    return GenerateSettings(
+        queries=args.queries, spp=args.spp, seed=args.seed, chunk=args.chunk, resolution=args.resolution,
+        sampling=sampling, tracer=TracerConfig(max_depth=args.max_depth, lanes=args.lanes, variant=args.variant),
+    )
+
+
+def _run_generate(desc, output: str, settings) -> int:
+    from tqdm import tqdm
+
+    from .generate import generate
+
+    bars = []
+
+    def on_chunk(done: int, total: int) -> None:
+        if not bars:  # created at the first report so a resumed run starts part-way
+            bars.append(tqdm(total=total, initial=done, unit="query", unit_scale=True,
+                             dynamic_ncols=True, desc=desc.name, file=sys.stderr))
+        else:
+            bars[0].update(done - bars[0].n)
+
+    try:
+        data = generate(desc, output, settings, on_chunk)
+    finally:
+        for bar in bars:
+            bar.close()
+    print(f"wrote {len(data)} queries of {desc.name} ({settings.spp} spp) to {data.path}")
+    return 0
+
+
+def _import_queries(args: argparse.Namespace) -> int:
+    import numpy as np
+
+    from neumip.client.cli import CommandError
+    from neumip.training.dataset import DatasetError, write_dataset
+
+    try:
+        if len(args.inputs) == 1:
+            with np.load(args.inputs[0], allow_pickle=False) as npz:
+                queries, rgb = npz["queries"], npz["rgb"]
+        elif len(args.inputs) == 2:
+            queries, rgb = (np.load(path, allow_pickle=False) for path in args.inputs)
+        else:
+            raise CommandError("give QUERIES.npy RGB.npy, or one DATA.npz")
+        meta = {
+            "material": {"name": args.name, "summary": args.source},
+            "generator": {"name": "external", "source": args.source, "inputs": list(args.inputs)},
+        }
+        data = write_dataset(args.output, queries, rgb, meta)
+    except (KeyError, ValueError, DatasetError) as exc:
+        raise CommandError(f"cannot import: {exc}") from None
+    print(f"wrote {len(data)} external queries of {args.name} to {data.path}")
+    return 0
