@@ -137,8 +137,9 @@ def _render_pass(scene, integrator, spp: int, seed: int) -> np.ndarray:
 
 
 def _root_cause(exc: BaseException) -> BaseException:
-    """drjit wraps exceptions raised in Python plugins; the real one is the innermost cause."""
-    while exc.__cause__ is not None:
+    """drjit wraps exceptions raised in Python plugins (``drjit.custom(...): error while ...``);
+    the real one is the cause of those wrappers (its own causes are kept as they are)."""
+    while exc.__cause__ is not None and str(exc).startswith("drjit."):
         exc = exc.__cause__
     return exc
 

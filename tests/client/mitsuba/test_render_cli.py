@@ -1,0 +1,93 @@
+"""`neumip render`: writes PNG/EXR, several materials in one scene, clear errors, no partial files."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from neumip.client import cli
+from neumip.client.local import LocalMaterials
+from neumip.client.mitsuba.bsdf import mi
+from neumip.client.mitsuba.render import RenderConfig, RenderError, load_scene, pass_plan, render_scene
+
+from .scenes import write_xml
+
+
+def test_pass_plan_bounds_lanes_and_sums_to_spp():
+    assert pass_plan(100, 64, 10_000) == [64]
+    plan = pass_plan(512 * 512, 64, 2**21)
+    assert sum(plan) == 64 and max(plan) * 512 * 512 <= 2**21 and len(plan) == 8
+    assert pass_plan(10**9, 3, 10) == [1, 1, 1]
+    with pytest.raises(ValueError):
+        pass_plan(10, 0, 10)
+
+
+@pytest.mark.parametrize("suffix", [".png", ".exr"])
+def test_cli_renders_two_materials_in_passes(model_dir, tmp_path, capsys, suffix):
+    out = tmp_path / f"out{suffix}"
+    rc = cli.main(["render", write_xml(tmp_path), "-o", str(out), "--models", str(model_dir),
+                   "--spp", "8", "--max-lanes", str(32 * 32 * 4)])
+    assert rc == 0
+    printed = capsys.readouterr().out
+    assert f"wrote {out.resolve()}" in printed and "2 pass(es)" in printed and "queries" in printed
+    image = np.array(mi.Bitmap(str(out)))
+    assert image.shape[:2] == (32, 32) and image.mean() > 0
+
+
+def test_each_material_gets_one_call_per_bounce(model_dir, tmp_path):
+    scene = load_scene(write_xml(tmp_path), spp="4")
+    result = render_scene(scene, LocalMaterials(model_dir), RenderConfig(spp=4))
+    stats = result.stats
+    assert set(stats.per_material) == {"lambert", "rand16"}
+    assert stats.calls <= 2 * 5  # two materials, at most one call each per bounce (max_depth 6)
+    assert stats.queries == sum(stats.per_material.values()) > 32 * 32
+
+
+def test_unknown_material_is_a_clear_error(model_dir, tmp_path, capsys):
+    out = tmp_path / "out.png"
+    rc = cli.main(["render", write_xml(tmp_path, b="velvet"), "-o", str(out), "--models", str(model_dir)])
+    assert rc == 2
+    assert "velvet" in capsys.readouterr().err and not out.exists()
+
+
+def test_unreachable_server_is_a_clear_error(tmp_path, capsys, monkeypatch):
+    from tests.client.mitsuba.server_process import free_port
+
+    out = tmp_path / "out.png"
+    rc = cli.main(["render", write_xml(tmp_path), "-o", str(out), "--server", f"http://127.0.0.1:{free_port()}"])
+    assert rc == 2
+    assert "unreachable" in capsys.readouterr().err
+    assert list(tmp_path.iterdir()) == [tmp_path / "scene.xml"]
+
+
+def test_evaluator_failure_mid_render_writes_nothing(model_dir, tmp_path):
+    class Failing(LocalMaterials):
+        calls = 0
+
+        def evaluate(self, material, queries):
+            Failing.calls += 1
+            if Failing.calls == 3:
+                raise RuntimeError("evaluator died")
+            return super().evaluate(material, queries)
+
+    with pytest.raises(RenderError, match="evaluator died") as info:
+        render_scene(load_scene(write_xml(tmp_path)), Failing(model_dir), RenderConfig(spp=4))
+    assert isinstance(info.value.__cause__, RuntimeError)
+
+
+def test_neural_scene_needs_neumip_path(model_dir, tmp_path):
+    scene = load_scene(write_xml(tmp_path))
+    with pytest.raises(RenderError, match="neumip_path"):
+        render_scene(scene, LocalMaterials(model_dir), integrator=mi.load_dict({"type": "path"}))
+
+
+def test_bad_output_suffix(tmp_path, capsys):
+    assert cli.main(["render", "x.xml", "-o", str(tmp_path / "a.jpg")]) == 2
+    assert ".png or .exr" in capsys.readouterr().err
+
+
+def test_bsdf_validates_properties():
+    with pytest.raises(Exception, match="'material' property"):
+        mi.load_dict({"type": "neumip"})
+    with pytest.raises(Exception, match="uv_scale must be > 0"):
+        mi.load_dict({"type": "neumip", "material": "m", "uv_scale": -1.0})

@@ -1,0 +1,56 @@
+"""Rendering through a real `neumip serve` process: same image as in-process; a server that stops
+mid-render is a clear error and no image is written."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from neumip.client import cli
+from neumip.client.http import ClientConfig, MaterialClient
+from neumip.client.local import LocalMaterials
+from neumip.client.mitsuba.render import RenderConfig, load_scene, render_scene
+
+from .scenes import write_xml
+from .server_process import ServerProcess, needs_server
+
+
+@pytest.fixture
+def server(model_dir):
+    proc = ServerProcess(model_dir)
+    yield proc
+    proc.stop()
+
+
+@needs_server
+def test_server_render_equals_in_process(model_dir, server, tmp_path):
+    path = write_xml(tmp_path)
+    config = RenderConfig(spp=16, seed=5, max_lanes=32 * 32 * 8)  # two passes
+    local = render_scene(load_scene(path), LocalMaterials(model_dir), config)
+    with MaterialClient(server.url) as client:
+        remote = render_scene(load_scene(path), client, config)
+    assert remote.stats.queries == local.stats.queries > 0
+    assert local.image.mean() > 0.01
+    np.testing.assert_allclose(remote.image, local.image, rtol=1e-4, atol=1e-5)
+
+
+@needs_server
+def test_server_stopped_mid_render_is_an_error_and_writes_nothing(model_dir, server, tmp_path, monkeypatch, capsys):
+    calls = {"n": 0}
+    evaluate = MaterialClient.evaluate
+
+    def stop_after_first_call(self, material, queries):
+        calls["n"] += 1
+        if calls["n"] == 2:
+            server.stop()
+        return evaluate(self, material, queries)
+
+    monkeypatch.setattr(MaterialClient, "evaluate", stop_after_first_call)
+    monkeypatch.setattr("neumip.client.http.ClientConfig", lambda: ClientConfig(retries=1, backoff_s=0.01))
+    out = tmp_path / "out.png"
+    rc = cli.main(["render", write_xml(tmp_path), "-o", str(out), "--server", server.url])
+    assert rc == 2
+    err = capsys.readouterr().err
+    assert "unreachable" in err and "no image written" in err, err
+    assert calls["n"] >= 2
+    assert not out.exists() and not list(tmp_path.glob("*.png"))
