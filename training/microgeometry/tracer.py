@@ -104,8 +104,10 @@ class QueryTracer:
         def column(index: int):
             return mi.Float(np.repeat(queries[:, index], spp))
 
-        stream = np.arange(first_lane, first_lane + lanes, dtype=np.uint64)
-        rng = mi.PCG32(lanes, dr.opaque(mi.UInt64, np.uint64(seed & (2**64 - 1))), mi.UInt64(stream))
+        # PCG32 adds arange(lanes) to both arguments: lane l of the query set gets state seed + l and
+        # stream l whatever the pass it falls in
+        state = dr.opaque(mi.UInt64, (seed + first_lane) % 2**64)
+        rng = mi.PCG32(lanes, state, dr.opaque(mi.UInt64, first_lane))
         wi = _unit(mi, dr, column(C.WI_X), column(C.WI_Y))
         wo = _unit(mi, dr, column(C.WO_X), column(C.WO_Y))
         light = dr.rcp(dr.maximum(wi.z, dr.opaque(mi.Float, self.config.min_cos_light)))

@@ -1,0 +1,56 @@
+"""Query sampling: the contract's layout, the tile, the hemisphere cap, the level mixture, seeding."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from neumip.client import contract as C
+from neumip.training.microgeometry.sampling import QuerySampling, sample_queries
+
+N, RES = 200_000, 256
+
+
+@pytest.fixture(scope="module")
+def queries():
+    return sample_queries(N, np.random.default_rng(0), RES, QuerySampling())
+
+
+def test_queries_follow_the_contract(queries):
+    assert C.as_queries(queries) is not None and queries.shape == (N, 7)
+    assert queries[:, [C.U, C.V]].min() >= 0 and queries[:, [C.U, C.V]].max() <= 1
+
+
+def test_directions_fill_the_projected_disk_up_to_the_cap(queries):
+    cap = math.sin(math.radians(QuerySampling().max_zenith_deg))
+    for x, y in ((C.WI_X, C.WI_Y), (C.WO_X, C.WO_Y)):
+        r2 = queries[:, x] ** 2 + queries[:, y] ** 2
+        assert r2.max() <= cap**2 + 1e-6 and r2.max() > 0.98 * cap**2
+        # uniform on the disk: r^2 / cap^2 is uniform, mean 1/2
+        assert (r2 / cap**2).mean() == pytest.approx(0.5, abs=0.01)
+        assert abs(queries[:, x].mean()) < 0.01 and abs(queries[:, y].mean()) < 0.01
+
+
+def test_sigma_mixture(queries):
+    sigma = queries[:, C.SIGMA].astype(np.float64)
+    cfg = QuerySampling()
+    assert (sigma == 0).mean() == pytest.approx(1 - cfg.level_fraction - cfg.heavy_fraction, abs=0.01)
+    lod = C.level_of_detail(sigma[sigma > 0], RES)
+    assert lod.max() > 7.5  # every level is reached, up to the whole tile
+    # mass near the finest level: the heavy tail puts P(sigma > 2 texels) = 1/4 of its share
+    finest = (sigma > 0) & (sigma < 2.0 / RES)
+    assert finest.mean() > cfg.heavy_fraction * 0.7
+
+
+def test_seeded(queries):
+    again = sample_queries(N, np.random.default_rng(0), RES, QuerySampling())
+    np.testing.assert_array_equal(queries, again)
+
+
+def test_bad_settings_are_rejected():
+    with pytest.raises(ValueError, match="max_zenith"):
+        QuerySampling(max_zenith_deg=90)
+    with pytest.raises(ValueError, match="sum"):
+        QuerySampling(level_fraction=0.7, heavy_fraction=0.6)
