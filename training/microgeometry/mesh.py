@@ -102,7 +102,7 @@ def grid_arrays(geo: Microgeometry, xs: np.ndarray, ys: np.ndarray) -> dict[str,
 
 def tiled_coords(resolution: int, margin: float) -> np.ndarray:
     """Texel-centre coordinates covering ``[-margin, 1 + margin]`` (at least one texel beyond the tile)."""
-    extra = max(math.ceil(margin * resolution), 1)
+    extra = math.ceil(margin * resolution) + 1
     return (np.arange(-extra, resolution + extra + 1) + 0.5) / resolution
 
 
