@@ -1,0 +1,61 @@
+#!/usr/bin/env bash
+# Docker smoke test: build the image with `docker compose`, start it, wait for its healthcheck, send
+# real queries (msgpack and Open Inference Protocol, compared bit for bit with in-process ONNX
+# Runtime), check it runs as non-root without torch/mitsuba, then stop it and check the shutdown
+# was graceful (exit status 0 after SIGTERM).
+#
+#   docker/smoke.sh
+#
+# Environment: NEUMIP_BASE_IMAGE (default neumip-base:bookworm, made by make_base_image.sh when
+# missing), PYTHON (host Python with neumip[train,client,test]; default .venv/bin/python),
+# NEUMIP_HOST_PORT (default: a free port). Exit status 3: no Docker engine.
+set -euo pipefail
+ROOT="$(cd "$(dirname "$0")/.." && pwd)"
+cd "$ROOT"
+PY="${PYTHON:-$ROOT/.venv/bin/python}"
+export NEUMIP_BASE_IMAGE="${NEUMIP_BASE_IMAGE:-neumip-base:bookworm}"
+export NEUMIP_HOST_PORT="${NEUMIP_HOST_PORT:-$("$PY" -c 'import socket; s = socket.socket(); s.bind(("127.0.0.1", 0)); print(s.getsockname()[1])')}"
+PROJECT="neumip-smoke-$$"
+
+if ! docker info >/dev/null 2>&1; then
+    echo "smoke: no Docker engine answers (start one: dockerd --iptables=false --bridge=none &)" >&2
+    exit 3
+fi
+docker image inspect "$NEUMIP_BASE_IMAGE" >/dev/null 2>&1 || docker/make_base_image.sh "$NEUMIP_BASE_IMAGE"
+docker/wheelhouse.sh "$PY"
+
+WORK="$(mktemp -d /tmp/neumip-smoke.XXXXXX)"
+COMPOSE=(docker compose -p "$PROJECT" -f compose.yaml)
+cleanup() {
+    "${COMPOSE[@]}" down --timeout 20 >/dev/null 2>&1 || true
+    rm -rf "$WORK"
+}
+trap cleanup EXIT
+
+# Shipped models when models/ has some; otherwise two small exported ones mounted over /app/models.
+MODELS="$ROOT/models"
+if ! ls models/*.onnx >/dev/null 2>&1; then
+    MODELS="$WORK/models"
+    "$PY" docker/smoke_check.py make-models "$MODELS"
+    printf 'services:\n  server:\n    volumes:\n      - "%s:/app/models:ro"\n' "$MODELS" > "$WORK/models.yaml"
+    COMPOSE+=(-f "$WORK/models.yaml")
+fi
+
+echo "smoke: docker compose up (base image $NEUMIP_BASE_IMAGE, port 127.0.0.1:$NEUMIP_HOST_PORT)"
+"${COMPOSE[@]}" up --build --detach --wait --wait-timeout 120
+CID="$("${COMPOSE[@]}" ps -q server)"
+echo "smoke: container $CID is $(docker inspect -f '{{.State.Health.Status}}' "$CID")"
+
+uid="$(docker exec "$CID" id -u)"
+[ "$uid" != 0 ] || { echo "smoke: the server runs as root" >&2; exit 1; }
+docker exec "$CID" python3 -c "import importlib.util as u, sys; bad = [m for m in ('torch', 'mitsuba') if u.find_spec(m)]; sys.exit(f'image carries {bad}' if bad else 0)"
+published="$(docker port "$CID" 8000/tcp)"
+case "$published" in 127.0.0.1:*) ;; *) echo "smoke: port published on $published, not loopback" >&2; exit 1;; esac
+
+"$PY" docker/smoke_check.py check "http://127.0.0.1:$NEUMIP_HOST_PORT" "$MODELS"
+
+"${COMPOSE[@]}" stop --timeout 20 server
+code="$(docker inspect -f '{{.State.ExitCode}}' "$CID")"
+docker logs "$CID" 2>&1 | grep -q "Application shutdown complete" || { echo "smoke: no graceful shutdown in the logs" >&2; exit 1; }
+[ "$code" = 0 ] || { echo "smoke: server exited with status $code after SIGTERM" >&2; exit 1; }
+echo "smoke: OK (uid $uid, published on $published, graceful exit 0)"

@@ -1,0 +1,78 @@
+"""Helpers of docker/smoke.sh, run with the host's Python (needs neumip[train] for `make-models`).
+
+    python docker/smoke_check.py make-models DIR     # two small exported materials
+    python docker/smoke_check.py check URL DIR       # real queries over HTTP vs in-process answers
+"""
+
+from __future__ import annotations
+
+import sys
+from pathlib import Path
+
+import numpy as np
+
+
+def make_models(folder: Path) -> None:
+    from neumip.training.config import MaterialConfig
+    from neumip.training.export import build_onnx, random_weights, save_onnx
+
+    folder.mkdir(parents=True, exist_ok=True)
+    for name, cfg in (("smoke64", MaterialConfig(resolution=64)), ("smoke16", MaterialConfig(resolution=16, offset=False))):
+        save_onnx(build_onnx(cfg, random_weights(cfg, seed=7), f"docker smoke test {name}"), folder / f"{name}.onnx")
+        (folder / f"{name}.onnx").chmod(0o644)
+    folder.chmod(0o755)
+
+
+def queries(n: int, seed: int) -> np.ndarray:
+    """(n, 7) float32 valid queries."""
+    from neumip.client import contract as C
+
+    rng = np.random.default_rng(seed)
+    r = 0.9 * np.sqrt(rng.uniform(0, 1, (n, 2)))
+    phi = rng.uniform(0, 2 * np.pi, (n, 2))
+    wi = np.stack([r[:, 0] * np.cos(phi[:, 0]), r[:, 0] * np.sin(phi[:, 0])], 1)
+    wo = np.stack([r[:, 1] * np.cos(phi[:, 1]), r[:, 1] * np.sin(phi[:, 1])], 1)
+    return C.pack_queries(rng.uniform(-1, 2, n), rng.uniform(-1, 2, n), 2.0 ** rng.uniform(-10, 1, n), wi, wo)
+
+
+def check(url: str, folder: Path) -> None:
+    """Every served material answers msgpack and v2 binary queries bit-identically to ONNX Runtime here."""
+    import httpx
+    import tritonclient.http as triton
+
+    from neumip.client import contract as C
+    from neumip.client.local import LocalMaterials
+
+    local = LocalMaterials(folder)
+    with httpx.Client(base_url=url, timeout=60) as http:
+        listed = [m["name"] for m in http.get(C.MATERIALS_PATH).raise_for_status().json()["materials"]]
+        assert listed == local.materials(), f"server lists {listed}, folder holds {local.materials()}"
+        for i, name in enumerate(listed):
+            q = queries(50_000, seed=i)
+            ref = local.evaluate(name, q)
+            resp = http.post(
+                C.EVALUATE_PATH.format(name=name),
+                content=C.encode_request(q),
+                headers={"content-type": C.MSGPACK_MEDIA_TYPE},
+            ).raise_for_status()
+            assert np.array_equal(C.decode_response(resp.content), ref), f"{name}: msgpack answer differs"
+            client = triton.InferenceServerClient(url.split("://", 1)[1])
+            tensor = triton.InferInput(C.ONNX_INPUT, list(q.shape), "FP32")
+            tensor.set_data_from_numpy(q, binary_data=True)
+            out = client.infer(name, [tensor]).as_numpy(C.ONNX_OUTPUT)
+            assert np.array_equal(out, ref), f"{name}: v2 binary answer differs"
+            print(f"smoke: {name}: 50000 queries, msgpack and v2 answers bit-identical to in-process")
+        bad = http.post(C.EVALUATE_PATH.format(name=listed[0]), content=b"\x00garbage",
+                        headers={"content-type": C.MSGPACK_MEDIA_TYPE})
+        assert bad.status_code == 400 and "error" in bad.json(), bad.text
+        assert http.get("/v2/health/live").status_code == 200
+        assert "neumip_query_rows_total" in http.get("/metrics").text
+
+
+if __name__ == "__main__":
+    if len(sys.argv) == 3 and sys.argv[1] == "make-models":
+        make_models(Path(sys.argv[2]))
+    elif len(sys.argv) == 4 and sys.argv[1] == "check":
+        check(sys.argv[2], Path(sys.argv[3]))
+    else:
+        sys.exit(__doc__)
