@@ -1,0 +1,77 @@
+"""The `neumip generate` and `neumip import-queries` commands, and the LLVM check before Mitsuba loads."""
+
+from __future__ import annotations
+
+import math
+import os
+import subprocess
+import sys
+
+import numpy as np
+
+from neumip.client.cli import main
+from neumip.training.dataset import open_dataset
+from tests.conftest import random_queries
+
+
+def test_generate_writes_a_data_set_with_progress(tmp_path, capsys):
+    out = tmp_path / "flat"
+    assert main(["generate", "flat", "-o", str(out), "--queries", "300", "--spp", "2", "--seed", "1"]) == 0
+    captured = capsys.readouterr()
+    assert "wrote 300 queries of flat" in captured.out
+    assert "300/300" in captured.err and "query/s" in captured.err  # tqdm bar with rate
+    data = open_dataset(out)
+    np.testing.assert_allclose(data.rgb, 0.5 / math.pi, rtol=2e-4)
+    assert data.meta["generator"]["seed"] == 1
+
+
+def test_generate_from_a_description_file(tmp_path, capsys):
+    (tmp_path / "plate.toml").write_text(
+        'summary = "glossy plate"\nresolution = 1\n[bsdf]\ntype = "roughconductor"\nalpha = 0.3\n'
+    )
+    out = tmp_path / "plate"
+    assert main(["generate", str(tmp_path / "plate.toml"), "-o", str(out), "--queries", "100", "--spp", "1"]) == 0
+    assert open_dataset(out).meta["material"]["name"] == "plate"
+
+
+def test_generate_lists_and_reports_errors(tmp_path, capsys):
+    assert main(["generate", "--list"]) == 0
+    listing = capsys.readouterr().out
+    assert all(name in listing for name in ("yarn", "rock", "turtle", "foam", "flat"))
+    assert main(["generate", "marble", "-o", str(tmp_path / "x")]) == 2
+    assert "neither a description file nor a shipped material" in capsys.readouterr().err
+    assert main(["generate", "flat", "-o", str(tmp_path / "y"), "--spp", "0"]) == 2
+    assert "spp" in capsys.readouterr().err
+
+
+def test_generate_refuses_a_complete_data_set(tmp_path, capsys):
+    args = ["generate", "flat", "-o", str(tmp_path / "d"), "--queries", "10", "--spp", "1"]
+    assert main(args) == 0
+    assert main(args) == 2
+    assert "already holds a complete data set" in capsys.readouterr().err
+
+
+def test_old_llvm_fails_with_a_clear_message_before_mitsuba_loads(tmp_path):
+    """With only LLVM 15, drjit would abort the process; the command must say what to do instead."""
+    fake = tmp_path / "libLLVM-15.so"
+    fake.write_bytes(b"")
+    env = {**os.environ, "DRJIT_LIBLLVM_PATH": str(fake)}
+    code = "from neumip.client.cli import main; raise SystemExit(main(['generate', 'flat', '-o', 'x']))"
+    proc = subprocess.run([sys.executable, "-c", code], env=env, cwd=tmp_path, capture_output=True, text=True, timeout=120)
+    assert proc.returncode == 2, proc.stderr
+    assert "LLVM 15" in proc.stderr and "libllvm19" in proc.stderr
+
+
+def test_import_queries_from_npz_and_npy(tmp_path, capsys):
+    queries = random_queries(50, seed=3)
+    rgb = np.random.default_rng(0).random((50, 3)).astype(np.float32)
+    np.savez(tmp_path / "btf.npz", queries=queries, rgb=rgb)
+    assert main(["import-queries", str(tmp_path / "btf.npz"), "-o", str(tmp_path / "a"), "--name", "wool"]) == 0
+    data = open_dataset(tmp_path / "a")
+    np.testing.assert_array_equal(data.queries, queries)
+    assert data.meta["generator"]["name"] == "external" and data.meta["material"]["name"] == "wool"
+    np.save(tmp_path / "q.npy", queries)
+    np.save(tmp_path / "c.npy", rgb[:40])
+    assert main(["import-queries", str(tmp_path / "q.npy"), str(tmp_path / "c.npy"), "-o", str(tmp_path / "b"),
+                 "--name", "wool"]) == 2
+    assert "cannot import" in capsys.readouterr().err
