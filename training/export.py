@@ -1,8 +1,12 @@
 """ONNX export: the material as one graph, textures stored as initializers.
 
 The graph takes ``queries`` (N, 7) float32 and returns ``rgb`` (N, 3) float32, N dynamic, and
-computes exactly what `material.NeuMIPMaterial.forward` computes: the neural offset, a trilinear
-lookup that gathers 8 texels per query from a flat atlas of all pyramid levels, then the decoder MLP.
+computes what `material.NeuMIPMaterial.forward` computes: the neural offset, a trilinear lookup of
+the two nearest pyramid levels, then the decoder MLP. The file stores the textures once, in the layout
+`weights_from_state` gives (flat atlas "pyramid" (T, C), "offset_texture" (R * R, C)); the default
+graph expands them into wrap-padded tap tables in a constant subgraph that ONNX Runtime folds at
+session load (see `texture_tables.py`), so each query reads one table row per level footprint with
+float row arithmetic and no modulo. `GraphOptions` selects the variants the benchmark compares.
 The model config, contract version and a description travel in the ONNX metadata.
 
 `build_onnx` needs only numpy and onnx (weights as numpy arrays); `export_checkpoint` reads a torch
@@ -11,20 +15,54 @@ checkpoint.
 
 from __future__ import annotations
 
-import math
 import os
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 import onnx
-from onnx import TensorProto, helper, numpy_helper
+from onnx import helper
 
 from neumip.client import contract as C
 
 from .config import MaterialConfig
+from .export_lookup import pyramid_texels, texture_texels
+from .export_modulo import modulo_graph
+from .onnx_graph import INDEX_TYPES, GraphWriter
+from .texture_tables import TAPS_PER_ROW
 
 OPSET = 18
 IR_VERSION = 9  # onnxruntime 1.31 reads IR <= 13; onnx 1.23 would write 14 by default.
+
+LOOKUPS = ("taps", "modulo")
+"""Lookup graphs `GraphOptions.lookup` may name."""
+BLENDS = ("gemm", "reduce", "premultiplied")
+"""Ways `GraphOptions.blend` may join the taps to an MLP's first layer."""
+
+
+@dataclass(frozen=True)
+class GraphOptions:
+    """How `build_onnx` writes the material's graph; every choice computes the same function."""
+
+    lookup: str = "taps"
+    """"taps": wrap-padded tap tables read with float row arithmetic (`export_lookup.py`); "modulo":
+    the first export's graph, int64 Mod index arithmetic on the flat atlas (`export_modulo.py`)."""
+    taps_per_row: int = 4
+    """lookup="taps": bilinear taps per Gather row, 1, 2 or 4 (4: one row per level footprint)."""
+    blend: str = "gemm"
+    """lookup="taps": how the taps meet each MLP's first layer. "gemm": the weighted taps feed one
+    Gemm whose weights repeat per tap; "reduce": ReduceSum over the taps, then the Gemm;
+    "premultiplied": the first layer's texture weights are folded into the textures (hidden-wide
+    taps, ReduceSum)."""
+    index_type: str = "int64"
+    """lookup="taps": integer type of the Gather rows, "int64" or "int32"."""
+
+    def __post_init__(self) -> None:
+        choices = {"lookup": LOOKUPS, "taps_per_row": TAPS_PER_ROW, "blend": BLENDS,
+                   "index_type": tuple(INDEX_TYPES)}
+        for name, allowed in choices.items():
+            if getattr(self, name) not in allowed:
+                raise ValueError(f"GraphOptions.{name} must be one of {allowed}, got {getattr(self, name)!r}")
 
 
 def weights_from_state(state: dict, config: MaterialConfig) -> dict[str, np.ndarray]:
@@ -45,74 +83,72 @@ def weights_from_state(state: dict, config: MaterialConfig) -> dict[str, np.ndar
     return weights
 
 
-class _Graph:
-    """Tiny helper that names nodes and constants while a graph is written."""
-
-    def __init__(self) -> None:
-        self.nodes: list[onnx.NodeProto] = []
-        self.inits: list[onnx.TensorProto] = []
-        self._n = 0
-
-    def _name(self, hint: str) -> str:
-        self._n += 1
-        return f"{hint}_{self._n}"
-
-    def const(self, value, dtype=np.float32, name: str | None = None) -> str:
-        name = name or self._name("c")
-        self.inits.append(numpy_helper.from_array(np.asarray(value, dtype=dtype), name))
-        return name
-
-    def op(self, op_type: str, *inputs: str, outputs: int = 1, **attrs):
-        names = [self._name(op_type.lower()) for _ in range(outputs)]
-        self.nodes.append(helper.make_node(op_type, list(inputs), names, **attrs))
-        return names[0] if outputs == 1 else names
-
-    def mlp(self, x: str, weights: dict, prefix: str, layers: int) -> str:
-        """Gemm + Relu chain; no Relu after the last layer."""
-        for i in range(layers):
-            w = self.const(weights[f"{prefix}.{i}.weight"], name=f"{prefix}.{i}.weight")
-            b = self.const(weights[f"{prefix}.{i}.bias"], name=f"{prefix}.{i}.bias")
-            x = self.op("Gemm", x, w, b, transB=1)
-            if i < layers - 1:
-                x = self.op("Relu", x)
-        return x
-
-    def bilinear(self, u: str, v: str, size: str, start: str) -> tuple[str, str]:
-        """u, v (N, 1) in [0, 1]; size, start (N, L) or (1, 1) int64 -> rows, weights (N, L, 4)."""
-        sizef = self.op("Cast", size, to=TensorProto.FLOAT)
-        half = self.const(0.5)
-        one = self.const(1.0)
-        x = self.op("Sub", self.op("Mul", u, sizef), half)
-        y = self.op("Sub", self.op("Mul", v, sizef), half)
-        x0f, y0f = self.op("Floor", x), self.op("Floor", y)
-        fx, fy = self.op("Sub", x, x0f), self.op("Sub", y, y0f)
-        x0 = self.op("Mod", self.op("Cast", x0f, to=TensorProto.INT64), size)
-        y0 = self.op("Mod", self.op("Cast", y0f, to=TensorProto.INT64), size)
-        one_i = self.const(1, np.int64)
-        x1 = self.op("Mod", self.op("Add", x0, one_i), size)
-        y1 = self.op("Mod", self.op("Add", y0, one_i), size)
-        row0 = self.op("Add", start, self.op("Mul", y0, size))
-        row1 = self.op("Add", start, self.op("Mul", y1, size))
-        axis = self.const([-1], np.int64)
-        taps = [self.op("Add", r, c) for r, c in ((row0, x0), (row0, x1), (row1, x0), (row1, x1))]
-        rows = self.op("Concat", *[self.op("Unsqueeze", t, axis) for t in taps], axis=-1)
-        gx, gy = self.op("Sub", one, fx), self.op("Sub", one, fy)
-        ws = [self.op("Mul", a, b) for a, b in ((gx, gy), (fx, gy), (gx, fy), (fx, fy))]
-        weights = self.op("Concat", *[self.op("Unsqueeze", w, axis) for w in ws], axis=-1)
-        return rows, weights
-
-    def gather_blend(self, table: str, rows: str, weights: str, taps: int) -> str:
-        """Gather `taps` rows per query of (T, C) `table` and blend with `weights` -> (N, C)."""
-        flat = self.const([-1, taps], np.int64)
-        rows = self.op("Reshape", rows, flat)
-        weights = self.op("Reshape", weights, flat)
-        texels = self.op("Gather", table, rows, axis=0)  # (N, K, C)
-        weighted = self.op("Mul", texels, self.op("Unsqueeze", weights, self.const([-1], np.int64)))
-        return self.op("ReduceSum", weighted, self.const([1], np.int64), keepdims=0)
+def _texture_source(g: GraphWriter, weights: dict, name: str, prefix: str, blend: str) -> tuple[str, int]:
+    """The table texels are read from: (T, C) texture, or (T, hidden) texture @ W1[:, :C].T when
+    blend="premultiplied" (a constant subgraph, folded at load). Returns (name, width)."""
+    texture = g.const(weights[name], name=name)
+    if blend != "premultiplied":
+        return texture, weights[name].shape[1]
+    w1 = weights[f"{prefix}.0.weight"][:, : weights[name].shape[1]]  # (hidden, C)
+    return g.op("MatMul", texture, g.const(np.ascontiguousarray(w1.T))), w1.shape[0]
 
 
-def _wrap(g: _Graph, u: str) -> str:
-    return g.op("Sub", u, g.op("Floor", u))
+def _first_layer(g: GraphWriter, texels: str, tap_w: str, other: str, other_dim: int, weights: dict,
+                 prefix: str, layers: int, blend: str) -> str:
+    """texels (N, K W), tap weights (N, K), other inputs (N, D) -> first layer's output (N, hidden).
+
+    W is the texture's channels C, or the hidden width for blend="premultiplied"; K taps.
+    """
+    w = weights[f"{prefix}.0.weight"]  # (hidden, C + D): texture part, then the other inputs
+    w_tex, w_other = w[:, :-other_dim], w[:, -other_dim:]
+    width = w.shape[0] if blend == "premultiplied" else w_tex.shape[1]
+    taps = 8 if prefix == "decoder" else 4
+    spread = np.kron(np.eye(taps, dtype=np.float32), np.ones((1, width), np.float32))  # (K, K W)
+    weighted = g.op("Mul", texels, g.op("MatMul", tap_w, g.const(spread)))  # (N, K W)
+    bias = g.const(weights[f"{prefix}.0.bias"], name=f"{prefix}.0.bias")
+    if blend == "gemm":  # the weighted taps meet the texture weights repeated per tap: one Gemm
+        x = g.op("Concat", weighted, other, axis=1)
+        w = np.concatenate([np.tile(w_tex, (1, taps)), w_other], axis=1)
+        x = g.op("Gemm", x, g.const(w, name=f"{prefix}.0.weight"), bias, transB=1)
+    else:
+        summed = g.op("ReduceSum", g.shape(weighted, [-1, taps, width]), g.const([1], np.int64),
+                      keepdims=0)  # (N, W)
+        if blend == "premultiplied":
+            x = g.op("Add", summed, g.op("Gemm", other, g.const(w_other), bias, transB=1))
+        else:
+            x = g.op("Concat", summed, other, axis=1)
+            x = g.op("Gemm", x, g.const(w, name=f"{prefix}.0.weight"), bias, transB=1)
+    return g.op("Relu", x) if layers > 1 else x
+
+
+def _taps_graph(g: GraphWriter, config: MaterialConfig, weights: dict, opts: GraphOptions) -> str:
+    """Queries (N, 7) (graph input) -> decoder output (N, 3) before the final Relu."""
+    q = C.ONNX_INPUT
+    uv = g.columns(q, C.U, C.V + 1)  # (N, 2)
+    sigma = g.columns(q, C.SIGMA, C.SIGMA + 1)  # (N, 1)
+    wo = g.columns(q, C.WO_X, C.WO_Y + 1)  # (N, 2)
+    dirs = g.columns(q, C.WI_X, C.WO_Y + 1)  # (N, 4)
+    taps, index, blend = opts.taps_per_row, opts.index_type, opts.blend
+
+    # --- neural offset: uv += r * wo_xy / max(wo_z, min_cos) -----------------------------------
+    if config.offset:
+        texture, width = _texture_source(g, weights, "offset_texture", "offset_mlp", blend)
+        uvw = g.wrap(uv)
+        texels, tap_w = texture_texels(g, texture, config.resolution, width, uvw, taps, index)
+        hidden = _first_layer(g, texels, tap_w, wo, 2, weights, "offset_mlp", config.layers, blend)
+        depth = g.mlp(hidden, weights, "offset_mlp", config.layers, first=1)  # (N, 1)
+        depth = g.op("Mul", depth, g.const(config.offset_scale))
+        r2 = g.op("ReduceSumSquare", wo, g.const([1], np.int64), keepdims=1)
+        wo_z = g.op("Sqrt", g.op("Max", g.op("Sub", g.const(1.0), r2), g.const(0.0)))
+        scale = g.op("Div", depth, g.op("Max", wo_z, g.const(config.offset_min_cos)))
+        uv = g.op("Add", uv, g.op("Mul", scale, wo))
+
+    # --- trilinear pyramid lookup, then the decoder ----------------------------------------------
+    atlas, width = _texture_source(g, weights, "pyramid", "decoder", blend)
+    uvw = g.wrap(uv)
+    texels, tap_w = pyramid_texels(g, config, atlas, width, uvw, sigma, taps, index)
+    hidden = _first_layer(g, texels, tap_w, dirs, 4, weights, "decoder", config.layers, blend)
+    return g.mlp(hidden, weights, "decoder", config.layers, first=1)
 
 
 def build_onnx(
@@ -120,61 +156,17 @@ def build_onnx(
     weights: dict[str, np.ndarray],
     description: str = "",
     extra_metadata: dict[str, str] | None = None,
+    options: GraphOptions | None = None,
 ) -> onnx.ModelProto:
     """The material's inference graph: (N, 7) float32 queries -> (N, 3) float32 RGB."""
-    g = _Graph()
-    cols = g.op("Split", C.ONNX_INPUT, axis=1, num_outputs=C.QUERY_DIM, outputs=C.QUERY_DIM)
-    u, v, sigma, wi_x, wi_y, wo_x, wo_y = cols
-
-    # --- neural offset: u += r * wo_xy / max(wo_z, min_cos) ------------------------------------
-    if config.offset:
-        res = g.const([[config.resolution]], np.int64)
-        rows, w = g.bilinear(_wrap(g, u), _wrap(g, v), res, g.const([[0]], np.int64))
-        otex = g.const(weights["offset_texture"], name="offset_texture")
-        feat = g.gather_blend(otex, rows, w, 4)
-        depth = g.mlp(g.op("Concat", feat, wo_x, wo_y, axis=1), weights, "offset_mlp", config.layers)
-        depth = g.op("Mul", depth, g.const(config.offset_scale))
-        one = g.const(1.0)
-        r2 = g.op("Add", g.op("Mul", wo_x, wo_x), g.op("Mul", wo_y, wo_y))
-        wo_z = g.op("Sqrt", g.op("Max", g.op("Sub", one, r2), g.const(0.0)))
-        scale = g.op("Div", depth, g.op("Max", wo_z, g.const(config.offset_min_cos)))
-        u = g.op("Add", u, g.op("Mul", scale, wo_x))
-        v = g.op("Add", v, g.op("Mul", scale, wo_y))
-
-    # --- trilinear pyramid lookup ----------------------------------------------------------------
-    tiny = np.finfo(np.float32).tiny
-    scaled = g.op("Mul", g.op("Max", sigma, g.const(tiny)), g.const(float(config.resolution)))
-    lod = g.op("Div", g.op("Log", scaled), g.const(math.log(2.0)))
-    lod = g.op("Clip", lod, g.const(0.0), g.const(float(config.levels)))
-    lo = g.op("Floor", lod)
-    t = g.op("Sub", lod, lo)
-    lo_i = g.op("Cast", lo, to=TensorProto.INT64)
-    hi_i = g.op("Min", g.op("Add", lo_i, g.const(1, np.int64)), g.const(config.levels, np.int64))
-    levels = g.op("Concat", lo_i, hi_i, axis=1)  # (N, 2)
-    size = g.op("Gather", g.const(config.level_sizes(), np.int64), levels, axis=0)
-    start = g.op("Gather", g.const(config.level_starts(), np.int64), levels, axis=0)
-    rows, w = g.bilinear(_wrap(g, u), _wrap(g, v), size, start)  # (N, 2, 4)
-    level_w = g.op("Concat", g.op("Sub", g.const(1.0), t), t, axis=1)
-    w = g.op("Mul", w, g.op("Unsqueeze", level_w, g.const([-1], np.int64)))
-    atlas = g.const(weights["pyramid"], name="pyramid")
-    features = g.gather_blend(atlas, rows, w, 8)
-
-    # --- decoder ---------------------------------------------------------------------------------
-    x = g.op("Concat", features, wi_x, wi_y, wo_x, wo_y, axis=1)
-    rgb = g.mlp(x, weights, "decoder", config.layers)
+    options = options or GraphOptions()
+    g = GraphWriter()
+    if options.lookup == "modulo":
+        rgb = modulo_graph(g, config, weights)
+    else:
+        rgb = _taps_graph(g, config, weights, options)
     g.nodes.append(helper.make_node("Relu", [rgb], [C.ONNX_OUTPUT]))
-
-    graph = helper.make_graph(
-        g.nodes,
-        "neumip_material",
-        [helper.make_tensor_value_info(C.ONNX_INPUT, TensorProto.FLOAT, ["N", C.QUERY_DIM])],
-        [helper.make_tensor_value_info(C.ONNX_OUTPUT, TensorProto.FLOAT, ["N", C.RGB_DIM])],
-        initializer=g.inits,
-    )
-    model = helper.make_model(
-        graph, opset_imports=[helper.make_opsetid("", OPSET)], producer_name="neumip"
-    )
-    model.ir_version = IR_VERSION
+    model = g.model(C.ONNX_INPUT, C.QUERY_DIM, C.ONNX_OUTPUT, C.RGB_DIM, OPSET, IR_VERSION)
     meta = {
         C.META_CONTRACT: C.CONTRACT_VERSION,
         C.META_CONFIG: config.to_json(),

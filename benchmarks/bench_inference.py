@@ -1,0 +1,274 @@
+"""In-process inference speed of an exported material: ONNX Runtime graph variants vs torch eager.
+
+    .venv/bin/python benchmarks/bench_inference.py                 # everything (a few minutes)
+    .venv/bin/python benchmarks/bench_inference.py --sections graphs --batches 10,14,20
+
+The material is 256^2 with the neural offset and random weights (speed does not depend on training).
+Other jobs share this machine's cores, so every table interleaves its variants round by round and
+reports the median of the rounds; compare ratios within one table, and read the load averages printed
+with it. Sections:
+
+- graphs:  queries/s per batch size (one ``session.run`` per batch) for each export variant
+           (`GraphOptions`) and torch eager, plus `LocalMaterials.evaluate` (validation + chunks).
+- session: the default graph under ONNX Runtime session options (threads, spinning, arena, level).
+- chunk:   `run_chunked` on 2^20 queries for several chunk sizes.
+- load:    seconds to open a session: each variant, and the default from a cached optimized model.
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import statistics
+import tempfile
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+import onnxruntime as ort
+import torch
+
+from neumip.client import contract as C
+from neumip.client.local import LocalMaterials, run_chunked
+from neumip.training.config import MaterialConfig
+from neumip.training.export import GraphOptions, build_onnx, save_onnx, weights_from_state
+from neumip.training.material import NeuMIPMaterial
+
+GRAPHS = {
+    "modulo (first export)": GraphOptions(lookup="modulo"),
+    "taps4 gemm (default)": GraphOptions(),
+    "taps4 gemm int32": GraphOptions(index_type="int32"),
+    "taps2 gemm": GraphOptions(taps_per_row=2),
+    "taps1 gemm": GraphOptions(taps_per_row=1),
+    "taps4 reduce": GraphOptions(blend="reduce"),
+    "taps4 premultiplied": GraphOptions(blend="premultiplied"),
+}
+"""Export variants the graphs section compares (name -> options)."""
+
+
+@dataclass
+class Session:
+    """What a session section varies: ONNX Runtime options for one session."""
+
+    threads: int = 2
+    """intra_op_num_threads (0: ONNX Runtime's default, one per physical core)."""
+    spinning: bool = True
+    """session.intra_op.allow_spinning: idle pool threads spin instead of sleeping."""
+    arena: bool = True
+    """enable_cpu_mem_arena."""
+    level: str = "all"
+    """Graph optimization level: basic, extended, all."""
+    config: dict = field(default_factory=dict)
+    """Extra session config entries."""
+
+    def options(self) -> ort.SessionOptions:
+        opts = ort.SessionOptions()
+        opts.intra_op_num_threads = self.threads
+        opts.inter_op_num_threads = 1
+        opts.enable_cpu_mem_arena = self.arena
+        opts.graph_optimization_level = {
+            "disabled": ort.GraphOptimizationLevel.ORT_DISABLE_ALL,
+            "basic": ort.GraphOptimizationLevel.ORT_ENABLE_BASIC,
+            "extended": ort.GraphOptimizationLevel.ORT_ENABLE_EXTENDED,
+            "all": ort.GraphOptimizationLevel.ORT_ENABLE_ALL,
+        }[self.level]
+        opts.add_session_config_entry("session.intra_op.allow_spinning", "1" if self.spinning else "0")
+        for key, value in self.config.items():
+            opts.add_session_config_entry(key, value)
+        return opts
+
+
+def open_session(model: bytes | str, session: Session) -> ort.InferenceSession:
+    return ort.InferenceSession(model, session.options(), providers=["CPUExecutionProvider"])
+
+
+def random_queries(n: int, seed: int) -> np.ndarray:
+    """(n, 7) queries: u, v in [-2, 3), sigma log-uniform over all levels, directions up to 85 deg."""
+    rng = np.random.default_rng(seed)
+    sigma = 2.0 ** rng.uniform(-11, 1, n)
+    r = np.sin(np.radians(85.0)) * np.sqrt(rng.uniform(0, 1, (n, 2)))
+    phi = rng.uniform(0, 2 * np.pi, (n, 2))
+    dirs = np.stack([r * np.cos(phi), r * np.sin(phi)], axis=2)  # (n, 2 directions, xy)
+    return C.pack_queries(rng.uniform(-2, 3, n), rng.uniform(-2, 3, n), sigma, dirs[:, 0], dirs[:, 1])
+
+
+def throughput(fn, rows: int, seconds: float) -> tuple[float, float]:
+    """`fn()` evaluates `rows` queries; repeated for at least `seconds` (one call at least).
+
+    Returns (queries per wall-clock second, queries per CPU second of this process, all threads).
+    The second figure is what a query costs in CPU, whatever other jobs take of the machine (but it
+    also counts the time ONNX Runtime's pool threads spin while they wait).
+    """
+    fn()  # warm-up: first-call allocations
+    calls, start, cpu = 0, time.perf_counter(), time.process_time()
+    while True:
+        fn()
+        calls += 1
+        elapsed = time.perf_counter() - start
+        if elapsed >= seconds:
+            return calls * rows / elapsed, calls * rows / max(time.process_time() - cpu, 1e-9)
+
+
+def interleaved(fns: dict, rows: int, seconds: float, rounds: int) -> dict[str, tuple[float, float]]:
+    """Median (wall, CPU) queries/s of each of `fns` over `rounds` rounds, variants alternating."""
+    results: dict[str, list[tuple[float, float]]] = {name: [] for name in fns}
+    for _ in range(rounds):
+        for name, fn in fns.items():
+            results[name].append(throughput(fn, rows, seconds))
+    return {
+        name: (statistics.median(v[0] for v in values), statistics.median(v[1] for v in values))
+        for name, values in results.items()
+    }
+
+
+def load_text() -> str:
+    one, five, _ = os.getloadavg()
+    return f"load average {one:.2f} (1 min), {five:.2f} (5 min) on {os.cpu_count()} cores"
+
+
+def print_table(title: str, columns: list[str], rows: dict[str, list[tuple[float, float]]]) -> None:
+    """Two tables of M queries/s, one row per variant: per wall-clock second, per CPU second."""
+    name_width = max(len(n) for n in rows) + 2
+    for i, unit in enumerate(("M queries / wall-clock s", "M queries / CPU s of this process")):
+        print(f"\n## {title}: {unit}   [{load_text()}]")
+        print("".ljust(name_width) + "".join(c.rjust(9) for c in columns))
+        for name, values in rows.items():
+            print(name.ljust(name_width) + "".join(f"{v[i] / 1e6:9.3f}" for v in values))
+
+
+def material(resolution: int, seed: int) -> NeuMIPMaterial:
+    """A random 256^2 material with a visible offset (the parity test's recipe)."""
+    torch.manual_seed(seed)
+    mat = NeuMIPMaterial(MaterialConfig(resolution=resolution), init_std=0.5).eval()
+    with torch.no_grad():
+        mat.offset_mlp[-1].bias.fill_(0.5)
+    return mat
+
+
+def graphs_section(mat, models: dict[str, bytes], args) -> None:
+    sessions = {name: open_session(model, Session(threads=args.threads)) for name, model in models.items()}
+    check = random_queries(4096, seed=1)
+    with torch.inference_mode():
+        want = mat(torch.from_numpy(check)).numpy()
+    print("\nmax |ONNX Runtime - torch| on 4096 random queries (parity contract: 1e-5 abs or 1e-4 rel):")
+    for name, sess in sessions.items():
+        got = sess.run(None, {C.ONNX_INPUT: check})[0]
+        print(f"  {name:28s} {np.abs(got - want).max():.2e}")
+
+    with tempfile.TemporaryDirectory() as folder:
+        save_onnx_bytes(models["taps4 gemm (default)"], Path(folder) / "m.onnx")
+        local = LocalMaterials(folder, threads=args.threads)
+        columns, table = [], {name: [] for name in [*sessions, "LocalMaterials.evaluate (default)", "torch eager"]}
+        for log2 in args.batches:
+            q = random_queries(1 << log2, seed=log2)
+            tq = torch.from_numpy(q)
+            fns = {name: (lambda s=s: s.run(None, {C.ONNX_INPUT: q})) for name, s in sessions.items()}
+            fns["LocalMaterials.evaluate (default)"] = lambda: local.evaluate("m", q)
+            fns["torch eager"] = lambda: torch_eval(mat, tq)
+            for name, value in interleaved(fns, len(q), args.seconds, args.rounds).items():
+                table[name].append(value)
+            columns.append(f"2^{log2}")
+        print_table(f"graph variants, {args.threads} threads, one run() per batch", columns, table)
+
+
+def save_onnx_bytes(model: bytes, path: Path) -> None:
+    path.write_bytes(model)
+
+
+def torch_eval(mat, queries: torch.Tensor) -> torch.Tensor:
+    with torch.inference_mode():
+        return mat(queries)
+
+
+def session_section(model: bytes, args) -> None:
+    variants = {
+        "2 threads, spinning (default)": Session(threads=2),
+        "2 threads, no spinning": Session(threads=2, spinning=False),
+        "1 thread": Session(threads=1),
+        "2 threads, no arena": Session(threads=2, arena=False),
+        "2 threads, level extended": Session(threads=2, level="extended"),
+        "2 threads, level basic": Session(threads=2, level="basic"),
+    }
+    sessions = {name: open_session(model, s) for name, s in variants.items()}
+    columns, table = [], {name: [] for name in sessions}
+    for log2 in args.session_batches:
+        q = random_queries(1 << log2, seed=log2)
+        fns = {name: (lambda s=s: s.run(None, {C.ONNX_INPUT: q})) for name, s in sessions.items()}
+        for name, value in interleaved(fns, len(q), args.seconds, args.rounds).items():
+            table[name].append(value)
+        columns.append(f"2^{log2}")
+    print_table("session options, default graph", columns, table)
+
+
+def chunk_section(model: bytes, args) -> None:
+    sess = open_session(model, Session(threads=args.threads))
+    q = random_queries(1 << 20, seed=20)
+    chunks = [1 << k for k in args.chunks]
+    fns = {f"chunk 2^{k}": (lambda c=c: run_chunked(sess, q, c)) for k, c in zip(args.chunks, chunks)}
+    fns["one run() of 2^20"] = lambda: sess.run(None, {C.ONNX_INPUT: q})
+    result = interleaved(fns, len(q), args.seconds, args.rounds)
+    print_table("run_chunked on 2^20 queries, default graph", ["2^20"], {n: [v] for n, v in result.items()})
+
+
+def load_section(models: dict[str, bytes], args) -> None:
+    print(f"\n## seconds to open a session (median of {args.rounds})   [{load_text()}]")
+    with tempfile.TemporaryDirectory() as folder:
+        cached = Path(folder) / "default.optimized.onnx"
+        opts = Session(threads=args.threads).options()
+        opts.optimized_model_filepath = str(cached)
+        ort.InferenceSession(models["taps4 gemm (default)"], opts, providers=["CPUExecutionProvider"])
+        sources = dict(models)
+        sources["default, cached optimized model"] = str(cached)
+        for name, source in sources.items():
+            level = "disabled" if name.endswith("cached optimized model") else "all"
+            times = []
+            for _ in range(args.rounds):
+                start = time.perf_counter()
+                open_session(source, Session(threads=args.threads, level=level))
+                times.append(time.perf_counter() - start)
+            size = len(source) if isinstance(source, bytes) else cached.stat().st_size
+            print(f"  {name:34s} {statistics.median(times):6.3f} s   file {size / 1e6:5.1f} MB")
+
+
+def log2_list(text: str) -> list[int]:
+    if "-" in text:
+        lo, hi = (int(x) for x in text.split("-"))
+        return list(range(lo, hi + 1))
+    return [int(x) for x in text.split(",")]
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    parser.add_argument("--sections", default="graphs,session,chunk,load")
+    parser.add_argument("--resolution", type=int, default=256)
+    parser.add_argument("--batches", type=log2_list, default=log2_list("10-20"), help="log2 batch sizes")
+    parser.add_argument("--session-batches", type=log2_list, default=log2_list("12,14,16"))
+    parser.add_argument("--chunks", type=log2_list, default=log2_list("11-17"), help="log2 chunk sizes")
+    parser.add_argument("--threads", type=int, default=2)
+    parser.add_argument("--seconds", type=float, default=0.3, help="minimum time per measurement")
+    parser.add_argument("--rounds", type=int, default=3)
+    parser.add_argument("--graphs", default="", help="comma-separated subset of the graph variant names")
+    args = parser.parse_args()
+    torch.set_num_threads(args.threads)
+
+    mat = material(args.resolution, seed=0)
+    weights = weights_from_state(mat.state_dict(), mat.config)
+    names = [n for n in GRAPHS if not args.graphs or any(s in n for s in args.graphs.split(","))]
+    names = names if "taps4 gemm (default)" in names else ["taps4 gemm (default)", *names]
+    models = {n: build_onnx(mat.config, weights, options=GRAPHS[n]).SerializeToString() for n in names}
+    print(f"# {args.resolution}^2 material with offset; onnxruntime {ort.__version__}, torch {torch.__version__}, "
+          f"{args.threads} threads; {load_text()}")
+    sections = args.sections.split(",")
+    if "graphs" in sections:
+        graphs_section(mat, models, args)
+    if "session" in sections:
+        session_section(models["taps4 gemm (default)"], args)
+    if "chunk" in sections:
+        chunk_section(models["taps4 gemm (default)"], args)
+    if "load" in sections:
+        load_section(models, args)
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,93 @@
+"""The first export's graph (lookup="modulo"): kept as the baseline the benchmark compares against.
+
+It gathers 8 single texels per query from the flat atlas (+4 from the offset texture) and does the
+wrap-around index arithmetic in int64 with Mod, as `pyramid.py` writes it op for op.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+from onnx import TensorProto
+
+from neumip.client import contract as C
+
+from .config import MaterialConfig
+from .onnx_graph import GraphWriter
+
+
+def _bilinear(g: GraphWriter, u: str, v: str, size: str, start: str) -> tuple[str, str]:
+    """u, v (N, 1) in [0, 1]; size, start (N, L) or (1, 1) int64 -> rows, weights (N, L, 4)."""
+    sizef = g.op("Cast", size, to=TensorProto.FLOAT)
+    half, one = g.const(0.5), g.const(1.0)
+    x = g.op("Sub", g.op("Mul", u, sizef), half)
+    y = g.op("Sub", g.op("Mul", v, sizef), half)
+    x0f, y0f = g.op("Floor", x), g.op("Floor", y)
+    fx, fy = g.op("Sub", x, x0f), g.op("Sub", y, y0f)
+    x0 = g.op("Mod", g.op("Cast", x0f, to=TensorProto.INT64), size)
+    y0 = g.op("Mod", g.op("Cast", y0f, to=TensorProto.INT64), size)
+    one_i = g.const(1, np.int64)
+    x1 = g.op("Mod", g.op("Add", x0, one_i), size)
+    y1 = g.op("Mod", g.op("Add", y0, one_i), size)
+    row0 = g.op("Add", start, g.op("Mul", y0, size))
+    row1 = g.op("Add", start, g.op("Mul", y1, size))
+    axis = g.const([-1], np.int64)
+    taps = [g.op("Add", r, c) for r, c in ((row0, x0), (row0, x1), (row1, x0), (row1, x1))]
+    rows = g.op("Concat", *[g.op("Unsqueeze", t, axis) for t in taps], axis=-1)
+    gx, gy = g.op("Sub", one, fx), g.op("Sub", one, fy)
+    ws = [g.op("Mul", a, b) for a, b in ((gx, gy), (fx, gy), (gx, fy), (fx, fy))]
+    weights = g.op("Concat", *[g.op("Unsqueeze", w, axis) for w in ws], axis=-1)
+    return rows, weights
+
+
+def _gather_blend(g: GraphWriter, table: str, rows: str, weights: str, taps: int) -> str:
+    """Gather `taps` rows per query of (T, C) `table` and blend with `weights` -> (N, C)."""
+    flat = g.const([-1, taps], np.int64)
+    texels = g.op("Gather", table, g.op("Reshape", rows, flat), axis=0)  # (N, K, C)
+    weights = g.op("Unsqueeze", g.op("Reshape", weights, flat), g.const([-1], np.int64))
+    weighted = g.op("Mul", texels, weights)
+    return g.op("ReduceSum", weighted, g.const([1], np.int64), keepdims=0)
+
+
+def modulo_graph(g: GraphWriter, config: MaterialConfig, weights: dict[str, np.ndarray]) -> str:
+    """Queries (N, 7) (graph input) -> decoder output (N, 3) before the final Relu."""
+    cols = g.op("Split", C.ONNX_INPUT, axis=1, num_outputs=C.QUERY_DIM, outputs=C.QUERY_DIM)
+    u, v, sigma, wi_x, wi_y, wo_x, wo_y = cols
+
+    # --- neural offset: u += r * wo_xy / max(wo_z, min_cos) ------------------------------------
+    if config.offset:
+        res = g.const([[config.resolution]], np.int64)
+        rows, w = _bilinear(g, g.wrap(u), g.wrap(v), res, g.const([[0]], np.int64))
+        otex = g.const(weights["offset_texture"], name="offset_texture")
+        feat = _gather_blend(g, otex, rows, w, 4)
+        depth = g.mlp(g.op("Concat", feat, wo_x, wo_y, axis=1), weights, "offset_mlp", config.layers)
+        depth = g.op("Mul", depth, g.const(config.offset_scale))
+        one = g.const(1.0)
+        r2 = g.op("Add", g.op("Mul", wo_x, wo_x), g.op("Mul", wo_y, wo_y))
+        wo_z = g.op("Sqrt", g.op("Max", g.op("Sub", one, r2), g.const(0.0)))
+        scale = g.op("Div", depth, g.op("Max", wo_z, g.const(config.offset_min_cos)))
+        u = g.op("Add", u, g.op("Mul", scale, wo_x))
+        v = g.op("Add", v, g.op("Mul", scale, wo_y))
+
+    # --- trilinear pyramid lookup ----------------------------------------------------------------
+    tiny = np.finfo(np.float32).tiny
+    scaled = g.op("Mul", g.op("Max", sigma, g.const(tiny)), g.const(float(config.resolution)))
+    lod = g.op("Div", g.op("Log", scaled), g.const(math.log(2.0)))
+    lod = g.op("Clip", lod, g.const(0.0), g.const(float(config.levels)))
+    lo = g.op("Floor", lod)
+    t = g.op("Sub", lod, lo)
+    lo_i = g.op("Cast", lo, to=TensorProto.INT64)
+    hi_i = g.op("Min", g.op("Add", lo_i, g.const(1, np.int64)), g.const(config.levels, np.int64))
+    levels = g.op("Concat", lo_i, hi_i, axis=1)  # (N, 2)
+    size = g.op("Gather", g.const(config.level_sizes(), np.int64), levels, axis=0)
+    start = g.op("Gather", g.const(config.level_starts(), np.int64), levels, axis=0)
+    rows, w = _bilinear(g, g.wrap(u), g.wrap(v), size, start)  # (N, 2, 4)
+    level_w = g.op("Concat", g.op("Sub", g.const(1.0), t), t, axis=1)
+    w = g.op("Mul", w, g.op("Unsqueeze", level_w, g.const([-1], np.int64)))
+    atlas = g.const(weights["pyramid"], name="pyramid")
+    features = _gather_blend(g, atlas, rows, w, 8)
+
+    # --- decoder ---------------------------------------------------------------------------------
+    x = g.op("Concat", features, wi_x, wi_y, wo_x, wo_y, axis=1)
+    return g.mlp(x, weights, "decoder", config.layers)

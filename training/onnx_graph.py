@@ -1,0 +1,76 @@
+"""A small writer of ONNX graphs: names nodes and constants while the export builds a graph.
+
+Only numpy and onnx; the material's stages (`export_lookup.py`, `export.py`) are written with it.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import onnx
+from onnx import TensorProto, helper, numpy_helper
+
+INDEX_TYPES = {"int64": (np.int64, TensorProto.INT64), "int32": (np.int32, TensorProto.INT32)}
+"""Integer types a Gather index may be cast to, by name."""
+
+
+class GraphWriter:
+    """Collects nodes and initializers; every op returns the name of its (first) output."""
+
+    def __init__(self) -> None:
+        self.nodes: list[onnx.NodeProto] = []
+        self.inits: list[onnx.TensorProto] = []
+        self._n = 0
+
+    def _name(self, hint: str) -> str:
+        self._n += 1
+        return f"{hint}_{self._n}"
+
+    def const(self, value, dtype=np.float32, name: str | None = None) -> str:
+        name = name or self._name("c")
+        self.inits.append(numpy_helper.from_array(np.asarray(value, dtype=dtype), name))
+        return name
+
+    def op(self, op_type: str, *inputs: str, outputs: int = 1, **attrs):
+        names = [self._name(op_type.lower()) for _ in range(outputs)]
+        self.nodes.append(helper.make_node(op_type, list(inputs), names, **attrs))
+        return names[0] if outputs == 1 else names
+
+    def shape(self, x: str, dims) -> str:
+        """Reshape `x` to `dims` (0 copies a dimension, -1 infers one)."""
+        return self.op("Reshape", x, self.const(list(dims), np.int64))
+
+    def columns(self, x: str, start: int, stop: int, axis: int = -1) -> str:
+        """x[..., start:stop] along `axis`."""
+        i64 = np.int64
+        return self.op("Slice", x, self.const([start], i64), self.const([stop], i64), self.const([axis], i64))
+
+    def wrap(self, u: str) -> str:
+        """Position -> position in [0, 1]: u - floor(u)."""
+        return self.op("Sub", u, self.op("Floor", u))
+
+    def linear(self, x: str, weights: dict, prefix: str, layer: int, relu: bool) -> str:
+        """One Gemm (+ Relu) with weights[f"{prefix}.{layer}.weight"] (out, in) and its bias."""
+        w = self.const(weights[f"{prefix}.{layer}.weight"], name=f"{prefix}.{layer}.weight")
+        b = self.const(weights[f"{prefix}.{layer}.bias"], name=f"{prefix}.{layer}.bias")
+        x = self.op("Gemm", x, w, b, transB=1)
+        return self.op("Relu", x) if relu else x
+
+    def mlp(self, x: str, weights: dict, prefix: str, layers: int, first: int = 0) -> str:
+        """Gemm + Relu chain over layers first..layers-1; no Relu after the last layer."""
+        for i in range(first, layers):
+            x = self.linear(x, weights, prefix, i, relu=i < layers - 1)
+        return x
+
+    def model(self, input_name: str, input_dim: int, output_name: str, output_dim: int, opset: int,
+              ir_version: int) -> onnx.ModelProto:
+        """The finished model: one float32 (N, input_dim) input, one (N, output_dim) output."""
+        graph = helper.make_graph(
+            self.nodes,
+            "neumip_material",
+            [helper.make_tensor_value_info(input_name, TensorProto.FLOAT, ["N", input_dim])],
+            [helper.make_tensor_value_info(output_name, TensorProto.FLOAT, ["N", output_dim])],
+            initializer=self.inits,
+        )
+        model = helper.make_model(graph, opset_imports=[helper.make_opsetid("", opset)], producer_name="neumip")
+        model.ir_version = ir_version
+        return model
