@@ -7,6 +7,13 @@ pieces first-in first-out and merges consecutive small ones into one call of up 
 rows, waiting at most ``max_wait_ms`` for more to arrive. Calls run in a dedicated thread pool with
 one thread per ONNX Runtime worker; `predict` is the only function that touches ONNX Runtime.
 
+Merging keeps answers bit-identical to evaluating each request on its own: some ONNX Runtime CPU
+kernels (``Log``, used for the level of detail) compute vector-sized blocks and the last few elements
+of a call differently, so a row's bits depend on its position modulo the vector width. Every body
+piece is a multiple of `ALIGN_ROWS` rows, so it starts aligned in a merged call, and a request's last
+``N % ALIGN_ROWS`` rows (its tail) only ever go at the end of a call, exactly where they sit when the
+request is evaluated alone.
+
 Admission is bounded in rows: a request that would take the rows admitted and not yet answered above
 ``max_queue_rows`` is refused at once with `QueueFull` (503 + Retry-After), never queued to time out.
 """
@@ -31,6 +38,9 @@ from .settings import Settings
 
 log = logging.getLogger(__name__)
 
+ALIGN_ROWS = 16
+"""Rows per alignment block: a multiple of every CPU vector width in floats (SSE 4, AVX 8, AVX-512 16)."""
+
 
 def predict(session, queries: np.ndarray) -> np.ndarray:
     """One ONNX Runtime call: (n, 7) float32 contiguous queries -> (n, 3) float32 RGB."""
@@ -53,6 +63,7 @@ class _Piece:
     job: _Job
     queries: np.ndarray  # (n, 7) float32 view into the request's queries
     out: np.ndarray  # (n, 3) float32 view into the job's answer buffer
+    tail: bool = False  # the request's last N % ALIGN_ROWS rows: must end an ONNX Runtime call
 
     @property
     def rows(self) -> int:
@@ -64,16 +75,25 @@ class _MaterialQueue:
     """Pieces waiting for one material, and the event that wakes its collector."""
 
     material: Material
-    pieces: deque = field(default_factory=deque)
+    bodies: deque = field(default_factory=deque)  # pieces of a multiple of ALIGN_ROWS rows
+    tails: deque = field(default_factory=deque)  # pieces of fewer than ALIGN_ROWS rows
     arrived: asyncio.Event = field(default_factory=asyncio.Event)
     rows: int = 0
     task: asyncio.Task | None = None
 
 
 def split(queries: np.ndarray, out: np.ndarray, chunk: int, job: _Job) -> list[_Piece]:
-    """Cut (N, 7) queries and their (N, 3) answer buffer into pieces of at most `chunk` rows."""
+    """Cut (N, 7) queries and their (N, 3) answer buffer into body pieces of at most `chunk` rows
+    (a multiple of ALIGN_ROWS) and, if N is not a multiple of ALIGN_ROWS, one tail piece."""
     n = queries.shape[0]
-    return [_Piece(job, queries[lo : lo + chunk], out[lo : lo + chunk]) for lo in range(0, n, chunk)]
+    body = n - n % ALIGN_ROWS
+    pieces = [
+        _Piece(job, queries[lo : min(lo + chunk, body)], out[lo : min(lo + chunk, body)])
+        for lo in range(0, body, chunk)
+    ]
+    if body < n:
+        pieces.append(_Piece(job, queries[body:], out[body:], tail=True))
+    return pieces
 
 
 def run_batch(session, pieces: list[_Piece]) -> int:
@@ -157,7 +177,8 @@ class Batcher:
         job.pieces_left = len(pieces)
         self._admit(n, +1)
         try:
-            queue.pieces.extend(pieces)
+            for piece in pieces:
+                (queue.tails if piece.tail else queue.bodies).append(piece)
             queue.rows += n
             queue.arrived.set()
             self.metrics.request_rows.observe(n)
@@ -178,7 +199,7 @@ class Batcher:
         """Forever: wait for pieces and a free worker, merge what is waiting, launch one call."""
         chunk, wait_s = self.settings.chunk_rows, self.settings.max_wait_ms / 1000.0
         while True:
-            while not queue.pieces:
+            while not (queue.bodies or queue.tails):
                 queue.arrived.clear()
                 await queue.arrived.wait()
             await self._slots.acquire()
@@ -196,13 +217,15 @@ class Batcher:
 
     @staticmethod
     def _take(queue: _MaterialQueue, chunk: int) -> list[_Piece]:
-        """Pop the first piece and the next ones while the batch stays within `chunk` rows."""
-        batch = [queue.pieces.popleft()]
-        rows = batch[0].rows
-        while queue.pieces and rows + queue.pieces[0].rows <= chunk:
-            piece = queue.pieces.popleft()
-            batch.append(piece)
-            rows += piece.rows
+        """Body pieces first-in first-out while they fit in `chunk` rows, then the oldest tail if it
+        fits (a tail must end the call). A batch holds at least one piece."""
+        batch, rows = [], 0
+        while queue.bodies and (not batch or rows + queue.bodies[0].rows <= chunk):
+            batch.append(queue.bodies.popleft())
+            rows += batch[-1].rows
+        if queue.tails and (not batch or rows + queue.tails[0].rows <= chunk):
+            batch.append(queue.tails.popleft())
+            rows += batch[-1].rows
         queue.rows -= rows
         return batch
 

@@ -58,7 +58,9 @@ class Settings(BaseSettings):
     """Seconds uvicorn lets running requests finish after SIGTERM."""
 
     @model_validator(mode="after")
-    def _queue_holds_a_request(self) -> "Settings":
+    def _consistent(self) -> "Settings":
+        if self.chunk_rows % 16:
+            raise ValueError(f"chunk_rows ({self.chunk_rows}) must be a multiple of 16 (batch alignment)")
         if self.max_queue_rows < self.max_rows:
             raise ValueError(
                 f"max_queue_rows ({self.max_queue_rows}) must be >= max_rows ({self.max_rows}):"
