@@ -99,7 +99,7 @@ class NeuMIPPathIntegrator(mi.SamplingIntegrator):
         beta = dr.full(mi.Spectrum, 1.0, width)
         eta = dr.full(mi.Float, 1.0, width)
         valid_ray = dr.zeros(mi.Bool, width)
-        prev_si = dr.zeros(mi.SurfaceInteraction3f, width)
+        prev_si = dr.zeros(mi.Interaction3f, width)  # only what emitter pdfs need, not a full si
         prev_bsdf_pdf = dr.full(mi.Float, 1.0, width)
         prev_bsdf_delta = dr.full(mi.Bool, True, width)
         # Footprint cone: world width at the current ray's origin and angular spread (radians).
@@ -168,7 +168,7 @@ class NeuMIPPathIntegrator(mi.SamplingIntegrator):
             beta = beta * bsdf_weight
             eta = eta * bs.eta
             valid_ray |= active & si.is_valid() & ~mi.has_flag(bs.sampled_type, mi.BSDFFlags.Null)
-            prev_si = si
+            prev_si = mi.Interaction3f(si.t, si.time, si.wavelengths, si.p, si.n)
             prev_bsdf_pdf = bs.pdf
             prev_bsdf_delta = mi.has_flag(bs.sampled_type, mi.BSDFFlags.Delta)
             cone_spread = dr.select(prev_bsdf_delta, cone_spread, cone_spread + cfg.footprint_spread)
