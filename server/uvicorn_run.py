@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import logging
+import signal
 
 from neumip.client.cli import CommandError
 
@@ -36,5 +37,11 @@ def run(overrides: dict) -> int:
         access_log=False,
     )
     server = uvicorn.Server(config)
-    server.run()
+    # uvicorn drains on SIGTERM, then re-raises the signal under the handler that was in place
+    # before it started: make that one a no-op so a graceful stop exits with status 0.
+    previous = signal.signal(signal.SIGTERM, lambda signum, frame: log.info("stopped by SIGTERM"))
+    try:
+        server.run()
+    finally:
+        signal.signal(signal.SIGTERM, previous)
     return 0 if server.started else 1
