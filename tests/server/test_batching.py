@@ -1,0 +1,93 @@
+"""The batcher: split large requests, merge small concurrent ones, keep bits, bound the queue."""
+
+from __future__ import annotations
+
+import asyncio
+
+import numpy as np
+import pytest
+
+from neumip.client.local import load_material
+from neumip.server.batching import ALIGN_ROWS, Batcher, split
+from neumip.server.errors import QueueFull
+from neumip.server.metrics import Metrics
+from neumip.server.settings import Settings
+from tests.conftest import random_queries
+
+
+def make_batcher(model_dir, **settings) -> tuple[Batcher, Metrics]:
+    config = Settings(model_dir=model_dir, **settings)
+    metrics = Metrics()
+    materials = {name: load_material(model_dir / f"{name}.onnx", config.ort_threads) for name in ("rand16", "flat16")}
+    return Batcher(materials, config, metrics), metrics
+
+
+def sample(metrics: Metrics, name: str) -> float:
+    return metrics.registry.get_sample_value(name) or 0.0
+
+
+async def run_all(batcher: Batcher, requests: list[tuple[str, np.ndarray]]) -> list:
+    batcher.start()
+    try:
+        return await asyncio.gather(*(batcher.evaluate(n, q) for n, q in requests), return_exceptions=True)
+    finally:
+        await batcher.close()
+
+
+def test_split_makes_aligned_bodies_and_one_tail():
+    q = np.zeros((1000, 7), np.float32)
+    out = np.zeros((1000, 3), np.float32)
+    pieces = split(q, out, 256, job=None)
+    assert [p.rows for p in pieces] == [256, 256, 256, 224, 8]
+    assert [p.tail for p in pieces] == [False] * 4 + [True]
+    assert all(p.rows % ALIGN_ROWS == 0 for p in pieces[:-1])
+    assert split(q[:16], out[:16], 256, job=None)[0].tail is False
+
+
+def test_large_request_is_split_into_chunks(model_dir, reference):
+    batcher, metrics = make_batcher(model_dir, chunk_rows=1024, max_wait_ms=0)
+    q = random_queries(5000, seed=1)
+    [rgb] = asyncio.run(run_all(batcher, [("rand16", q)]))
+    np.testing.assert_array_equal(rgb, reference.evaluate("rand16", q))
+    assert sample(metrics, "neumip_batch_rows_count") == 5  # 4 x 1024 + 896 + tail of 8, tail merged last
+    assert sample(metrics, "neumip_batch_rows_sum") == 5000
+
+
+def test_small_concurrent_requests_are_merged_and_keep_their_bits(model_dir, reference):
+    batcher, metrics = make_batcher(model_dir, ort_workers=1, chunk_rows=4096, max_wait_ms=200)
+    sizes = [64, 100, 7, 256, 33, 512, 1, 48, 300, 16] * 2
+    requests = [("rand16" if i % 3 else "flat16", random_queries(n, seed=i)) for i, n in enumerate(sizes)]
+    answers = asyncio.run(run_all(batcher, requests))
+    for (name, q), rgb in zip(requests, answers):
+        np.testing.assert_array_equal(rgb, reference.evaluate(name, q))
+    calls = sample(metrics, "neumip_batch_rows_count")
+    assert calls < len(requests), f"{calls} ONNX Runtime calls for {len(requests)} requests: nothing merged"
+    assert sample(metrics, "neumip_batch_rows_sum") == sum(sizes)
+
+
+def test_queue_bound_refuses_with_queue_full(model_dir):
+    batcher, metrics = make_batcher(model_dir, ort_workers=1, max_rows=3000, max_queue_rows=3000, chunk_rows=1024)
+    requests = [("rand16", random_queries(2000, seed=i)) for i in range(4)]
+    answers = asyncio.run(run_all(batcher, requests))
+    full = [a for a in answers if isinstance(a, QueueFull)]
+    assert isinstance(answers[0], np.ndarray) and len(full) == 3
+    assert full[0].status == 503 and full[0].headers["Retry-After"] == "1"
+    assert "retry" in full[0].message
+    assert sample(metrics, "neumip_queue_rejected_total") == 3
+    assert batcher.admitted_rows == 0
+
+
+def test_model_failure_fails_the_batch_not_the_batcher(model_dir):
+    batcher, _ = make_batcher(model_dir, max_wait_ms=0)
+    bad = np.zeros((4, 5), np.float32)  # bypasses validation: ONNX Runtime rejects the shape
+
+    async def scenario():
+        batcher.start()
+        try:
+            with pytest.raises(Exception, match="failed"):
+                await batcher.evaluate("rand16", bad)
+            return await batcher.evaluate("rand16", random_queries(10))
+        finally:
+            await batcher.close()
+
+    assert asyncio.run(scenario()).shape == (10, 3)

@@ -1,0 +1,68 @@
+"""Model loading: corrupt and incompatible files are reported and the others still serve."""
+
+from __future__ import annotations
+
+import shutil
+
+import onnx
+import pytest
+from fastapi.testclient import TestClient
+
+from neumip.client import contract as C
+from neumip.server.app import create_app
+from neumip.server.registry import Registry
+from neumip.server.settings import Settings
+from tests.conftest import random_queries
+
+
+@pytest.fixture(scope="module")
+def mixed_dir(model_dir, tmp_path_factory):
+    """rand16 (good), corrupt.onnx (random bytes), future.onnx (contract version 99), .hidden.onnx."""
+    folder = tmp_path_factory.mktemp("mixed")
+    shutil.copy(model_dir / "rand16.onnx", folder / "rand16.onnx")
+    (folder / "corrupt.onnx").write_bytes(b"\x08\x07not an onnx file" * 100)
+    model = onnx.load(model_dir / "flat16.onnx")
+    for prop in model.metadata_props:
+        if prop.key == C.META_CONTRACT:
+            prop.value = "99"
+    onnx.save(model, folder / "future.onnx")
+    shutil.copy(model_dir / "rand16.onnx", folder / ".hidden.onnx")
+    (folder / "notes.txt").write_text("not a model")
+    return folder
+
+
+def test_registry_reports_failures_and_keeps_the_rest(mixed_dir):
+    registry = Registry.load(mixed_dir, threads=1, warmup_rows=32)
+    assert registry.names() == ["rand16"]
+    assert set(registry.failed) == {"corrupt", "future", ".hidden"}
+    assert "contract version '99'" in registry.failed["future"]
+    assert "cannot load" in registry.failed["corrupt"]
+
+
+def test_missing_folder_is_a_clear_error(tmp_path):
+    with pytest.raises(FileNotFoundError, match="does not exist"):
+        Registry.load(tmp_path / "nope", threads=1, warmup_rows=0)
+
+
+def test_server_with_a_bad_model_serves_the_others(mixed_dir):
+    with TestClient(create_app(Settings(model_dir=mixed_dir, warmup_rows=16))) as client:
+        assert client.get("/v2/health/ready").status_code == 200
+        assert client.get("/v2/models/rand16/ready").status_code == 200
+        not_ready = client.get("/v2/models/future/ready")
+        assert not_ready.status_code == 400 and not_ready.content == b""
+        listing = client.get(C.MATERIALS_PATH).json()
+        assert [m["name"] for m in listing["materials"]] == ["rand16"]
+        assert {f["name"] for f in listing["failed"]} == {"corrupt", "future", ".hidden"}
+        resp = client.post(C.EVALUATE_PATH.format(name="corrupt"), content=C.encode_request(random_queries(4)),
+                           headers={"content-type": C.MSGPACK_MEDIA_TYPE})
+        assert resp.status_code == 400 and "failed to load" in resp.json()["error"]
+        ok = client.post(C.EVALUATE_PATH.format(name="rand16"), content=C.encode_request(random_queries(4)),
+                         headers={"content-type": C.MSGPACK_MEDIA_TYPE})
+        assert ok.status_code == 200
+
+
+def test_server_without_models_is_live_but_not_ready(tmp_path):
+    with TestClient(create_app(Settings(model_dir=tmp_path))) as client:
+        assert client.get("/v2/health/live").status_code == 200
+        assert client.get("/v2/health/ready").status_code == 400
+        assert client.get(C.MATERIALS_PATH).json()["materials"] == []
