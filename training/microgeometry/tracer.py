@@ -125,7 +125,7 @@ class QueryTracer:
         throughput = mi.Color3f(1.0)
         active = mi.Bool(True)
         ctx = mi.BSDFContext()
-        for _depth in range(self.config.max_depth):
+        for depth in range(self.config.max_depth):
             si = self.scene.ray_intersect(ray, active)
             active &= si.is_valid()
             bsdf = si.bsdf(ray)
@@ -137,6 +137,8 @@ class QueryTracer:
             visible = active & ~self.scene.ray_test(shadow, active)
             f = bsdf.eval(ctx, si, si.to_local(wi), visible)  # BSDF * cos at the hit
             result += dr.select(visible, throughput * f * light, 0.0)
+            if depth == self.config.max_depth - 1:
+                break  # the last vertex: no further bounce to sample
 
             # --- BSDF sampling: the next bounce ----------------------------------------------------
             bs, weight = bsdf.sample(
@@ -149,6 +151,7 @@ class QueryTracer:
             dr.eval(result, throughput, active, ray, rng)
             if not dr.any(active):
                 break
+        dr.eval(result)
         return np.stack([result.x.numpy(), result.y.numpy(), result.z.numpy()], axis=1)
 
 
