@@ -1,0 +1,79 @@
+"""Query geometry: first-hit sigma is the pixel footprint (independent of spp) times uv_scale, and
+query directions follow the contract (wo towards the viewer)."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from neumip.client.local import LocalMaterials
+from neumip.client.mitsuba.bsdf import mi
+from neumip.client.mitsuba.render import RenderConfig, render_scene
+
+WIDTH, DISTANCE, FOV = 32, 3.0, 30.0
+
+
+class Recording(LocalMaterials):
+    """LocalMaterials that keeps every query buffer it evaluates."""
+
+    def __init__(self, folder):
+        super().__init__(folder)
+        self.calls: list[np.ndarray] = []
+
+    def evaluate(self, material, queries):
+        self.calls.append(np.array(queries))
+        return super().evaluate(material, queries)
+
+
+def facing_plane(uv_scale: float) -> dict:
+    """A 2 x 2 rectangle (uv 0..1) seen head-on from DISTANCE, filling the view."""
+    return {
+        "type": "scene",
+        "integrator": {"type": "neumip_path", "max_depth": 2},
+        "sensor": {
+            "type": "perspective", "fov": FOV,
+            "to_world": mi.ScalarTransform4f().look_at(origin=[0, 0, DISTANCE], target=[0, 0, 0], up=[0, 1, 0]),
+            "film": {"type": "hdrfilm", "width": WIDTH, "height": WIDTH},
+        },
+        "sky": {"type": "constant"},
+        "plane": {"type": "rectangle", "bsdf": {"type": "neumip", "material": "lambert", "uv_scale": uv_scale}},
+    }
+
+
+@pytest.mark.parametrize(("spp", "uv_scale"), [(1, 1.0), (16, 1.0), (16, 4.0)])
+def test_first_hit_sigma_is_the_pixel_footprint(model_dir, spp, uv_scale):
+    evaluator = Recording(model_dir)
+    render_scene(mi.load_dict(facing_plane(uv_scale)), evaluator, RenderConfig(spp=spp))
+    first = evaluator.calls[0]  # bounce 0: all camera hits, light and sampled queries
+    footprint_world = 2 * DISTANCE * math.tan(math.radians(FOV / 2)) / WIDTH
+    expected = uv_scale * footprint_world / 2  # the rectangle spans 2 world units per uv unit
+    np.testing.assert_allclose(np.median(first[:, 2]), expected, rtol=0.02)
+    assert first[:, 2].std() < 0.05 * expected  # a fronto-parallel plane: the same everywhere
+    # the view covers the middle 80 % of the rectangle (2 * 3 * tan 15 deg = 1.6 of 2 units), in tiles
+    visible = DISTANCE * math.tan(math.radians(FOV / 2)) / 2  # half-width in uv: 0.40
+    for col in (0, 1):
+        np.testing.assert_allclose(first[:, col].min(), uv_scale * (0.5 - visible), atol=0.02 * uv_scale)
+        np.testing.assert_allclose(first[:, col].max(), uv_scale * (0.5 + visible), atol=0.02 * uv_scale)
+    # wo (towards the viewer) stays within the camera's half-angle of the normal
+    half_angle = math.sin(math.radians(FOV / 2) * math.sqrt(2))
+    assert np.all(np.hypot(first[:, 5], first[:, 6]) <= half_angle + 1e-3)
+    # ... and points back at the camera: right of centre (u > 0.5, local x = +u) it leans to -x
+    assert np.corrcoef(first[:, 0], first[:, 5])[0, 1] < -0.95
+    assert np.corrcoef(first[:, 1], first[:, 6])[0, 1] < -0.95
+
+
+def test_secondary_hits_read_coarser_footprints(model_dir):
+    """After a bounce the ray-cone estimate grows: a facing wall (same tiles per world unit) reads
+    much larger sigmas than the camera hits."""
+    scene = facing_plane(1.0)
+    scene["integrator"]["max_depth"] = 4
+    scene["back"] = {
+        "type": "rectangle", "bsdf": {"type": "neumip", "material": "lambert", "uv_scale": 10.0},
+        "to_world": mi.ScalarTransform4f().translate([0, 0, 2 * DISTANCE]).rotate([1, 0, 0], 180).scale(10),
+    }
+    evaluator = Recording(model_dir)
+    render_scene(mi.load_dict(scene), evaluator, RenderConfig(spp=4))
+    assert len(evaluator.calls) >= 2
+    assert np.median(evaluator.calls[1][:, 2]) > 10 * np.median(evaluator.calls[0][:, 2])
