@@ -24,6 +24,9 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--seed", type=int, default=0, help="data set seed (same seed, same data)")
     p.add_argument("--max-depth", type=int, default=4, help="surface interactions per path (default 4)")
     p.add_argument("--max-zenith", type=float, help="largest zenith angle of wi, wo in degrees (default 84.26)")
+    p.add_argument("--level-fraction", type=float, default=0.3, help="share of sigma log-uniform over levels")
+    p.add_argument("--heavy-fraction", type=float, default=0.6,
+                   help="share of sigma = texel / sqrt(U); the rest is sigma = 0 (default 0.6)")
     p.add_argument("--resolution", type=int, help="finest texels per tile side for sigma (default: the material's)")
     p.add_argument("--chunk", type=int, default=1 << 16, help="queries per chunk, the unit of resumption")
     p.add_argument("--lanes", type=int, default=1 << 20, help="samples per wavefront pass (memory ~0.3 GB/M)")
@@ -71,10 +74,12 @@ def _settings(args: argparse.Namespace):
     from .sampling import QuerySampling
     from .tracer import TracerConfig
 
-    sampling = QuerySampling(queries_per_texel=args.queries_per_texel)
-    if args.max_zenith is not None:
-        sampling.max_zenith_deg = args.max_zenith
-        sampling.__post_init__()
+    sampling = QuerySampling(
+        queries_per_texel=args.queries_per_texel,
+        level_fraction=args.level_fraction,
+        heavy_fraction=args.heavy_fraction,
+        **({} if args.max_zenith is None else {"max_zenith_deg": args.max_zenith}),
+    )
     return GenerateSettings(
         queries=args.queries, spp=args.spp, seed=args.seed, chunk=args.chunk, resolution=args.resolution,
         sampling=sampling, tracer=TracerConfig(max_depth=args.max_depth, lanes=args.lanes, variant=args.variant),

@@ -34,6 +34,10 @@ log = logging.getLogger(__name__)
 PRIMARY_OFFSET = 1e-3
 """Height (tile units) above the reference plane where primary rays start."""
 
+SIGMA_UNIFORM = 2.0
+"""Footprint (tile units) from which the wrapped Gaussian is uniform: its first Fourier coefficient
+is exp(-2 pi^2 sigma^2) < 1e-30."""
+
 
 @dataclass
 class TracerConfig:
@@ -114,7 +118,9 @@ class QueryTracer:
 
         # --- primary ray: Gaussian-jittered aim point, wrapped into the central tile ------------------
         jitter = mi.warp.square_to_std_normal(mi.Point2f(rng.next_float32(), rng.next_float32()))
-        sigma = column(C.SIGMA)
+        # sigma <= 0 is the unfiltered BTF; beyond SIGMA_UNIFORM the wrapped Gaussian is uniform over
+        # the tile to float precision, and clamping keeps u + sigma * jitter accurate in float32
+        sigma = dr.clip(column(C.SIGMA), 0.0, SIGMA_UNIFORM)
         aim_u = column(C.U) + sigma * jitter.x
         aim_v = column(C.V) + sigma * jitter.y
         aim = mi.Point3f(aim_u - dr.floor(aim_u), aim_v - dr.floor(aim_v), 0.0)

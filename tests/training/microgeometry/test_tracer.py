@@ -158,3 +158,15 @@ def test_bad_queries_are_rejected(yarn_tracer):
         yarn_tracer.estimate(np.zeros((3, 6), np.float32), spp=1, seed=0)
     with pytest.raises(ValueError, match="spp"):
         yarn_tracer.estimate(tile_queries(2, 0), spp=0, seed=0)
+
+
+def test_huge_sigma_is_the_tile_average_and_negative_sigma_the_btf(wall_tracer):
+    xs = (np.arange(256) + 0.5) / 256
+    tile_mean = wall_tracer.estimate(wall_queries(xs, 0.0, +1.0), spp=32, seed=4)[:, 0].mean()
+    samples = wall_tracer.samples(wall_queries(np.array([0.3, 12345.6]), 1e6, +1.0), spp=4096, seed=5)[:, :, 0]
+    stderr = samples.std(axis=1) / math.sqrt(samples.shape[1])
+    assert (np.abs(samples.mean(axis=1) - tile_mean) < 4 * stderr + 0.002).all()
+    at = np.array([0.3, 0.7])
+    np.testing.assert_array_equal(
+        wall_tracer.estimate(wall_queries(at, -1.0, 1.0), 8, 6), wall_tracer.estimate(wall_queries(at, 0.0, 1.0), 8, 6)
+    )
