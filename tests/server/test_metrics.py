@@ -1,0 +1,41 @@
+"""/metrics exposes requests, rows, batch sizes, latencies and queue depth; OpenAPI docs are served."""
+
+from __future__ import annotations
+
+from neumip.client import contract as C
+from tests.conftest import random_queries
+
+
+def value(text: str, prefix: str) -> float:
+    return sum(float(line.rsplit(" ", 1)[1]) for line in text.splitlines() if line.startswith(prefix))
+
+
+def test_metrics_count_requests_rows_and_batches(client):
+    before = client.get("/metrics").text
+    q = random_queries(300, seed=3)
+    client.post(C.EVALUATE_PATH.format(name="flat16"), content=C.encode_request(q), headers={"content-type": C.MSGPACK_MEDIA_TYPE})
+    client.post(C.EVALUATE_PATH.format(name="flat16"), content=b"junk", headers={"content-type": C.MSGPACK_MEDIA_TYPE})
+    text = client.get("/metrics").text
+    route = 'route="/v1/materials/{name}/evaluate"'
+    assert value(text, f'neumip_http_requests_total{{method="POST",{route},status="200"}}') >= 1
+    assert value(text, f'neumip_http_requests_total{{method="POST",{route},status="400"}}') >= 1
+    assert value(text, 'neumip_query_rows_total{material="flat16"}') - value(before, 'neumip_query_rows_total{material="flat16"}') == 300
+    for name in ("neumip_batch_rows_bucket", "neumip_http_request_seconds_bucket", "neumip_predict_seconds_bucket",
+                 "neumip_request_rows_bucket", "neumip_queue_rows", "neumip_queue_requests"):
+        assert name in text, name
+    assert value(text, "neumip_queue_rows ") == 0
+
+
+def test_odd_paths_do_not_grow_the_label_set(client):
+    for i in range(5):
+        client.get(f"/some/odd/path/{i}")
+    text = client.get("/metrics").text
+    assert "/some/odd" not in text and 'route="unmatched"' in text
+
+
+def test_openapi_and_docs(client):
+    spec = client.get("/openapi.json").json()
+    evaluate = spec["paths"][C.EVALUATE_PATH]["post"]
+    assert set(evaluate["requestBody"]["content"]) == {"application/json", C.MSGPACK_MEDIA_TYPE}
+    assert "/v2/models/{name}/infer" in spec["paths"]
+    assert client.get("/docs").status_code == 200
