@@ -132,18 +132,21 @@ def test_wide_sigma_is_the_gaussian_average_of_the_btf(wall_tracer):
 # --- tracer properties -----------------------------------------------------------------------------
 
 
-@pytest.fixture(scope="module")
-def yarn_tracer():
+def small_yarn():
     desc = find_description("yarn")
     desc.resolution = 32
-    return QueryTracer(resolve(desc), TracerConfig(lanes=5000))
+    return resolve(desc)
+
+
+@pytest.fixture(scope="module")
+def yarn_tracer():
+    return QueryTracer(small_yarn(), TracerConfig(lanes=5000))
 
 
 def test_same_seed_same_answers_independent_of_pass_size(yarn_tracer):
     queries = tile_queries(3000, 5)
-    a = yarn_tracer.estimate(queries, spp=4, seed=9)
-    wide = QueryTracer.__new__(QueryTracer)
-    wide.__dict__.update(yarn_tracer.__dict__, config=TracerConfig(lanes=1 << 20))
+    a = yarn_tracer.estimate(queries, spp=4, seed=9)  # 1250 queries per pass
+    wide = QueryTracer(small_yarn(), TracerConfig(lanes=1 << 20))  # one pass
     np.testing.assert_array_equal(a, wide.estimate(queries, spp=4, seed=9))
     assert np.abs(a - yarn_tracer.estimate(queries, spp=4, seed=10)).max() > 1e-3
 
