@@ -41,8 +41,10 @@ GRAPHS = {
     "taps4 gemm int32": GraphOptions(index_type="int32"),
     "taps2 gemm": GraphOptions(taps_per_row=2),
     "taps1 gemm": GraphOptions(taps_per_row=1),
+    "taps4 sum": GraphOptions(blend="sum"),
     "taps4 reduce": GraphOptions(blend="reduce"),
     "taps4 premultiplied": GraphOptions(blend="premultiplied"),
+    "gridsample": GraphOptions(lookup="gridsample"),
 }
 """Export variants the graphs section compares (name -> options)."""
 

@@ -1,16 +1,104 @@
-"""Training-side subcommands: `export` (later: `generate`, `train`). Torch is imported lazily."""
+"""Training-side subcommands: `train` and `export`. Torch is imported lazily."""
 
 from __future__ import annotations
 
 import argparse
+from pathlib import Path
+
+PRESET_NAMES = ("paper", "ship", "quick", "test")
+"""Kept in step with `train_config.PRESETS` (not imported here: the CLI must start without torch)."""
 
 
 def register(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser("train", help="fit a neural material to an MBTF data set and export it to ONNX")
+    p.add_argument("data", help="data set folder (written by `neumip generate` or `write_dataset`)")
+    p.add_argument("-o", "--output", required=True, help="output .onnx path (e.g. models/NAME.onnx)")
+    p.add_argument("--preset", choices=PRESET_NAMES, default="ship", help="training schedule preset")
+    p.add_argument("--config", help="JSON file of TrainConfig fields (applied over the preset)")
+    p.add_argument("--checkpoint", help="checkpoint path (default runs/NAME/checkpoint.pt); resumes if it exists")
+    p.add_argument("--resolution", type=int, default=128, help="finest pyramid level, texels per side")
+    p.add_argument("--no-offset", action="store_true", help="train without the neural offset")
+    p.add_argument("--description", default="", help="short description stored in the model metadata")
+    for name, kind in (("steps", int), ("batch", int), ("lr", float), ("seed", int), ("blur-half-life", float)):
+        p.add_argument(f"--{name}", type=kind, help=f"override TrainConfig.{name.replace('-', '_')}")
+    p.add_argument("--loss", choices=("comb2", "mse"), help="override TrainConfig.loss")
+    p.add_argument("--device", choices=("auto", "cpu", "cuda"), help="override TrainConfig.device")
+    p.add_argument("--threads", type=int, help="torch CPU threads (default: torch's choice)")
+    p.set_defaults(func=_train)
+
     p = sub.add_parser("export", help="export a training checkpoint to an ONNX material")
     p.add_argument("checkpoint", help="checkpoint file written by `neumip train`")
     p.add_argument("-o", "--output", required=True, help="output .onnx path (e.g. models/NAME.onnx)")
     p.add_argument("--description", default="", help="short description stored in the metadata")
     p.set_defaults(func=_export)
+
+
+def _train_config(args: argparse.Namespace):
+    import json
+    from dataclasses import replace
+
+    from .train_config import PRESETS, TrainConfig
+
+    config = PRESETS[args.preset]
+    if args.config:
+        config = TrainConfig.from_dict({**config.to_dict(), **json.loads(Path(args.config).read_text())})
+    overrides = {
+        k: getattr(args, k)
+        for k in ("steps", "batch", "lr", "seed", "blur_half_life", "loss", "device")
+        if getattr(args, k) is not None
+    }
+    return replace(config, **overrides)
+
+
+def _train(args: argparse.Namespace) -> int:
+    import torch
+    from tqdm import tqdm
+
+    from neumip.client.cli import CommandError
+
+    from .config import MaterialConfig
+    from .dataset import DatasetError
+    from .outputs import write_outputs
+    from .train import Trainer, TrainingDiverged, TrainingError
+    from .validation import format_table
+
+    if args.threads:
+        torch.set_num_threads(args.threads)
+    output = Path(args.output)
+    if output.suffix != ".onnx":
+        raise CommandError(f"--output must end in .onnx, got {output}")
+    checkpoint = Path(args.checkpoint or Path("runs") / output.stem / "checkpoint.pt")
+    try:
+        config = _train_config(args)
+        material = MaterialConfig(resolution=args.resolution, offset=not args.no_offset)
+        trainer = Trainer(args.data, checkpoint, material, config, args.description)
+    except (ValueError, DatasetError) as exc:
+        raise CommandError(str(exc)) from exc
+
+    bar = tqdm(total=config.steps, initial=trainer.state.step, unit="step", dynamic_ncols=True)
+
+    def progress(step: int, loss: float) -> None:
+        bar.update(1)
+        if step % 10 == 0:
+            rate = bar.format_dict["rate"] or 0.0
+            bar.set_postfix(loss=f"{loss:.4g}", queries_per_s=f"{rate * config.batch / 1e6:.2f}M")
+
+    try:
+        table = trainer.run(progress)
+    except (TrainingDiverged, TrainingError) as exc:
+        raise CommandError(str(exc)) from exc
+    except KeyboardInterrupt:
+        bar.close()
+        print(f"interrupted: re-run the same command to resume from {checkpoint}")
+        raise
+    finally:
+        bar.close()
+    paths = write_outputs(trainer, table, output)
+    print(format_table(table))
+    size = paths["onnx"].stat().st_size / 1e6
+    print(f"wrote {paths['onnx']} ({size:.2f} MB), {paths['json']}, {paths['png']}")
+    print(f"trained {trainer.state.step} steps in {trainer.state.seconds / 60:.1f} min; checkpoint {checkpoint}")
+    return 0
 
 
 def _export(args: argparse.Namespace) -> int:

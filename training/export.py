@@ -26,6 +26,7 @@ from onnx import helper
 from neumip.client import contract as C
 
 from .config import MaterialConfig
+from .export_gridsample import pyramid_features, texture_features
 from .export_lookup import pyramid_texels, texture_texels
 from .export_modulo import modulo_graph
 from .onnx_graph import INDEX_TYPES, GraphWriter
@@ -34,9 +35,9 @@ from .texture_tables import TAPS_PER_ROW
 OPSET = 18
 IR_VERSION = 9  # onnxruntime 1.31 reads IR <= 13; onnx 1.23 would write 14 by default.
 
-LOOKUPS = ("taps", "modulo")
+LOOKUPS = ("taps", "modulo", "gridsample")
 """Lookup graphs `GraphOptions.lookup` may name."""
-BLENDS = ("gemm", "reduce", "premultiplied")
+BLENDS = ("gemm", "sum", "reduce", "premultiplied")
 """Ways `GraphOptions.blend` may join the taps to an MLP's first layer."""
 
 
@@ -46,12 +47,15 @@ class GraphOptions:
 
     lookup: str = "taps"
     """"taps": wrap-padded tap tables read with float row arithmetic (`export_lookup.py`); "modulo":
-    the first export's graph, int64 Mod index arithmetic on the flat atlas (`export_modulo.py`)."""
+    the first export's graph, int64 Mod index arithmetic on the flat atlas (`export_modulo.py`);
+    "gridsample": GridSample on wrap-padded images (`export_gridsample.py`; misses the parity
+    contract by its normalised coordinates, about 1e-5 of a texel step)."""
     taps_per_row: int = 4
     """lookup="taps": bilinear taps per Gather row, 1, 2 or 4 (4: one row per level footprint)."""
     blend: str = "gemm"
     """lookup="taps": how the taps meet each MLP's first layer. "gemm": the weighted taps feed one
-    Gemm whose weights repeat per tap; "reduce": ReduceSum over the taps, then the Gemm;
+    Gemm whose weights repeat per tap; "sum": a 0/1 MatMul sums the taps, then the Gemm; "reduce":
+    ReduceSum over the taps, then the Gemm;
     "premultiplied": the first layer's texture weights are folded into the textures (hidden-wide
     taps, ReduceSum)."""
     index_type: str = "int64"
@@ -93,62 +97,113 @@ def _texture_source(g: GraphWriter, weights: dict, name: str, prefix: str, blend
     return g.op("MatMul", texture, g.const(np.ascontiguousarray(w1.T))), w1.shape[0]
 
 
-def _first_layer(g: GraphWriter, texels: str, tap_w: str, other: str, other_dim: int, weights: dict,
-                 prefix: str, layers: int, blend: str) -> str:
-    """texels (N, K W), tap weights (N, K), other inputs (N, D) -> first layer's output (N, hidden).
+def _query_part(g: GraphWriter, weights: dict, prefix: str, columns: list[int]) -> str:
+    """First layer's weights on the query's own columns, plus its bias: (N, 7) queries -> (N, hidden).
 
-    W is the texture's channels C, or the hidden width for blend="premultiplied"; K taps.
+    The layer's last inputs are the query `columns`; their weights sit in a (7, hidden) matrix with
+    zero rows elsewhere, so no Slice/Concat of the query is needed.
     """
-    w = weights[f"{prefix}.0.weight"]  # (hidden, C + D): texture part, then the other inputs
-    w_tex, w_other = w[:, :-other_dim], w[:, -other_dim:]
+    w = weights[f"{prefix}.0.weight"]  # (hidden, C + len(columns))
+    rows = np.zeros((C.QUERY_DIM, w.shape[0]), np.float32)
+    rows[columns] = w[:, -len(columns):].T
+    bias = g.const(weights[f"{prefix}.0.bias"], name=f"{prefix}.0.bias")
+    return g.op("Gemm", C.ONNX_INPUT, g.const(rows), bias)
+
+
+def _first_layer(g: GraphWriter, texels: str, tap_w: str, columns: list[int], weights: dict,
+                 prefix: str, layers: int, blend: str) -> str:
+    """texels (N, K W), tap weights (N, K) -> first layer's output (N, hidden), the query `columns`
+    being the layer's other inputs. W is the texture's channels C, or hidden for "premultiplied"."""
+    w = weights[f"{prefix}.0.weight"]  # (hidden, C + D): texture part, then the query columns
+    w_tex = w[:, : -len(columns)]
     width = w.shape[0] if blend == "premultiplied" else w_tex.shape[1]
     taps = 8 if prefix == "decoder" else 4
     spread = np.kron(np.eye(taps, dtype=np.float32), np.ones((1, width), np.float32))  # (K, K W)
     weighted = g.op("Mul", texels, g.op("MatMul", tap_w, g.const(spread)))  # (N, K W)
-    bias = g.const(weights[f"{prefix}.0.bias"], name=f"{prefix}.0.bias")
-    if blend == "gemm":  # the weighted taps meet the texture weights repeated per tap: one Gemm
-        x = g.op("Concat", weighted, other, axis=1)
-        w = np.concatenate([np.tile(w_tex, (1, taps)), w_other], axis=1)
-        x = g.op("Gemm", x, g.const(w, name=f"{prefix}.0.weight"), bias, transB=1)
+    rest = _query_part(g, weights, prefix, columns)  # (N, hidden)
+    if blend == "gemm":  # the weighted taps meet the texture weights repeated per tap
+        x = g.op("Gemm", weighted, g.const(np.tile(w_tex, (1, taps)).T), rest)
+    elif blend == "sum":  # a 0/1 MatMul sums the taps, then the texture weights
+        summed = g.op("MatMul", weighted, g.const(np.tile(np.eye(width, dtype=np.float32), (taps, 1))))
+        x = g.op("Gemm", summed, g.const(np.ascontiguousarray(w_tex.T)), rest)
     else:
         summed = g.op("ReduceSum", g.shape(weighted, [-1, taps, width]), g.const([1], np.int64),
                       keepdims=0)  # (N, W)
         if blend == "premultiplied":
-            x = g.op("Add", summed, g.op("Gemm", other, g.const(w_other), bias, transB=1))
+            x = g.op("Add", summed, rest)
         else:
-            x = g.op("Concat", summed, other, axis=1)
-            x = g.op("Gemm", x, g.const(w, name=f"{prefix}.0.weight"), bias, transB=1)
+            x = g.op("Gemm", summed, g.const(np.ascontiguousarray(w_tex.T)), rest)
     return g.op("Relu", x) if layers > 1 else x
+
+
+def _depth_weights(weights: dict, config: MaterialConfig) -> dict:
+    """Offset MLP with offset_scale folded into its last layer, whose one output is repeated twice
+    (the depth beside each of wo_x, wo_y)."""
+    last = config.layers - 1
+    out = dict(weights)
+    out[f"offset_mlp.{last}.weight"] = np.repeat(weights[f"offset_mlp.{last}.weight"], 2, 0) * config.offset_scale
+    out[f"offset_mlp.{last}.bias"] = np.repeat(weights[f"offset_mlp.{last}.bias"], 2, 0) * config.offset_scale
+    return out
+
+
+def _parallax(g: GraphWriter, depth: str, wo: str, min_cos: float) -> str:
+    """depth (N, 2) (r twice), wo (N, 2) -> shift (N, 2) = r * wo_xy / max(wo_z, min_cos).
+
+    max(sqrt(max(1 - r2, 0)), m) is computed as sqrt(max(1 - r2, m^2)): equal for a correctly
+    rounded sqrt, one op less; every op is on (N, 2) tensors (r2 summed by a 0/1 MatMul).
+    """
+    r2 = g.op("MatMul", g.op("Mul", wo, wo), g.const(np.ones((2, 2), np.float32)))  # (N, 2) x^2 + y^2
+    floor = np.float32(min_cos) * np.float32(min_cos)
+    wo_z = g.op("Sqrt", g.op("Max", g.op("Sub", g.scalar(1.0), r2), g.scalar(floor)))
+    return g.op("Mul", g.op("Div", depth, wo_z), wo)
 
 
 def _taps_graph(g: GraphWriter, config: MaterialConfig, weights: dict, opts: GraphOptions) -> str:
     """Queries (N, 7) (graph input) -> decoder output (N, 3) before the final Relu."""
-    q = C.ONNX_INPUT
-    uv = g.columns(q, C.U, C.V + 1)  # (N, 2)
-    sigma = g.columns(q, C.SIGMA, C.SIGMA + 1)  # (N, 1)
-    wo = g.columns(q, C.WO_X, C.WO_Y + 1)  # (N, 2)
-    dirs = g.columns(q, C.WI_X, C.WO_Y + 1)  # (N, 4)
+    uv, sigma, _, wo = g.op("Split", C.ONNX_INPUT, g.const([2, 1, 2, 2], np.int64), axis=1, outputs=4)
     taps, index, blend = opts.taps_per_row, opts.index_type, opts.blend
 
     # --- neural offset: uv += r * wo_xy / max(wo_z, min_cos) -----------------------------------
     if config.offset:
         texture, width = _texture_source(g, weights, "offset_texture", "offset_mlp", blend)
-        uvw = g.wrap(uv)
-        texels, tap_w = texture_texels(g, texture, config.resolution, width, uvw, taps, index)
-        hidden = _first_layer(g, texels, tap_w, wo, 2, weights, "offset_mlp", config.layers, blend)
-        depth = g.mlp(hidden, weights, "offset_mlp", config.layers, first=1)  # (N, 1)
-        depth = g.op("Mul", depth, g.const(config.offset_scale))
-        r2 = g.op("ReduceSumSquare", wo, g.const([1], np.int64), keepdims=1)
-        wo_z = g.op("Sqrt", g.op("Max", g.op("Sub", g.const(1.0), r2), g.const(0.0)))
-        scale = g.op("Div", depth, g.op("Max", wo_z, g.const(config.offset_min_cos)))
-        uv = g.op("Add", uv, g.op("Mul", scale, wo))
+        texels, tap_w = texture_texels(g, texture, config.resolution, width, g.wrap(uv), taps, index)
+        mlp = _depth_weights(weights, config)
+        hidden = _first_layer(g, texels, tap_w, [C.WO_X, C.WO_Y], mlp, "offset_mlp", config.layers, blend)
+        depth = g.mlp(hidden, mlp, "offset_mlp", config.layers, first=1)  # (N, 2)
+        uv = g.op("Add", uv, _parallax(g, depth, wo, config.offset_min_cos))
 
     # --- trilinear pyramid lookup, then the decoder ----------------------------------------------
     atlas, width = _texture_source(g, weights, "pyramid", "decoder", blend)
-    uvw = g.wrap(uv)
-    texels, tap_w = pyramid_texels(g, config, atlas, width, uvw, sigma, taps, index)
-    hidden = _first_layer(g, texels, tap_w, dirs, 4, weights, "decoder", config.layers, blend)
+    texels, tap_w = pyramid_texels(g, config, atlas, width, g.wrap(uv), sigma, taps, index)
+    dirs = [C.WI_X, C.WI_Y, C.WO_X, C.WO_Y]
+    hidden = _first_layer(g, texels, tap_w, dirs, weights, "decoder", config.layers, blend)
     return g.mlp(hidden, weights, "decoder", config.layers, first=1)
+
+
+def _gridsample_graph(g: GraphWriter, config: MaterialConfig, weights: dict) -> str:
+    """Queries (N, 7) -> decoder output (N, 3) before the final Relu, lookups by GridSample."""
+    uv, sigma, _, wo = g.op("Split", C.ONNX_INPUT, g.const([2, 1, 2, 2], np.int64), axis=1, outputs=4)
+    if config.offset:
+        texture = g.const(weights["offset_texture"], name="offset_texture")
+        feat = texture_features(g, texture, config.resolution, config.offset_channels, g.wrap(uv))
+        mlp = _depth_weights(weights, config)
+        hidden = _channel_major_layer(g, feat, [C.WO_X, C.WO_Y], mlp, "offset_mlp", config.layers)
+        depth = g.mlp(hidden, mlp, "offset_mlp", config.layers, first=1)  # (N, 2)
+        uv = g.op("Add", uv, _parallax(g, depth, wo, config.offset_min_cos))
+    atlas = g.const(weights["pyramid"], name="pyramid")
+    feat = pyramid_features(g, config, atlas, g.wrap(uv), sigma)
+    dirs = [C.WI_X, C.WI_Y, C.WO_X, C.WO_Y]
+    hidden = _channel_major_layer(g, feat, dirs, weights, "decoder", config.layers)
+    return g.mlp(hidden, weights, "decoder", config.layers, first=1)
+
+
+def _channel_major_layer(g: GraphWriter, features: str, columns: list[int], weights: dict, prefix: str,
+                         layers: int) -> str:
+    """features (C, N), the query `columns` as the other inputs -> first layer's output (N, hidden)."""
+    w_tex = weights[f"{prefix}.0.weight"][:, : -len(columns)]  # (hidden, C)
+    rest = _query_part(g, weights, prefix, columns)
+    x = g.op("Gemm", features, g.const(np.ascontiguousarray(w_tex.T)), rest, transA=1)
+    return g.op("Relu", x) if layers > 1 else x
 
 
 def build_onnx(
@@ -163,6 +218,8 @@ def build_onnx(
     g = GraphWriter()
     if options.lookup == "modulo":
         rgb = modulo_graph(g, config, weights)
+    elif options.lookup == "gridsample":
+        rgb = _gridsample_graph(g, config, weights)
     else:
         rgb = _taps_graph(g, config, weights, options)
     g.nodes.append(helper.make_node("Relu", [rgb], [C.ONNX_OUTPUT]))

@@ -48,7 +48,7 @@ def tap_weights(g: GraphWriter, frac: str, levels: int, level_w: str | None) -> 
 
     Each weight is (x factor * y factor) * level weight, the reference's order of products.
     """
-    both = g.op("Concat", g.op("Sub", g.const(1.0), frac), frac, axis=1)  # (N, 4L)
+    both = g.op("Concat", g.op("Sub", g.scalar(1.0), frac), frac, axis=1)  # (N, 4L)
     sel_x, sel_y = _tap_selection(levels)
     weights = g.op("Mul", g.op("MatMul", both, g.const(sel_x)), g.op("MatMul", both, g.const(sel_y)))
     if level_w is None:
@@ -67,12 +67,12 @@ def _gather(g: GraphWriter, table: str, line: str, bases: str, levels: int, widt
 def level_of_detail(g: GraphWriter, sigma: str, config: MaterialConfig) -> tuple[str, str]:
     """sigma (N, 1) -> lower level lo (N,) float and level weights (N, 2) = (1 - t, t)."""
     tiny = np.finfo(np.float32).tiny
-    scaled = g.op("Mul", g.op("Max", sigma, g.const(tiny)), g.const(float(config.resolution)))
-    lod = g.op("Div", g.op("Log", scaled), g.const(math.log(2.0)))
+    scaled = g.op("Mul", g.op("Max", sigma, g.scalar(tiny)), g.scalar(config.resolution))
+    lod = g.op("Div", g.op("Log", scaled), g.scalar(math.log(2.0)))
     lod = g.op("Clip", lod, g.const(0.0), g.const(float(config.levels)))
     lo = g.op("Floor", lod)
     t = g.op("Sub", lod, lo)
-    return g.shape(lo, [-1]), g.op("Concat", g.op("Sub", g.const(1.0), t), t, axis=1)
+    return g.shape(lo, [-1]), g.op("Concat", g.op("Sub", g.scalar(1.0), t), t, axis=1)
 
 
 def level_pair_params(config: MaterialConfig, level_params: np.ndarray) -> np.ndarray:
@@ -101,7 +101,7 @@ def pyramid_texels(g: GraphWriter, config: MaterialConfig, atlas: str, width: in
     params = g.op("Gather", pairs, g.op("Cast", lo, to=INDEX_TYPES["int64"][1]), axis=0)  # (N, 8 + 2K)
     size, coef, bases = g.op("Split", params, g.const([4, 4, 2 * k], np.int64), axis=1, outputs=3)
     both = g.op("MatMul", uvw, g.const(np.tile(np.eye(2, dtype=np.float32), (1, 2))))  # (N, 4) u v u v
-    x = g.op("Sub", g.op("Mul", both, size), g.const(0.5))  # (N, 4) texel coordinates per level
+    x = g.op("Sub", g.op("Mul", both, size), g.scalar(0.5))  # (N, 4) texel coordinates per level
     x0 = g.op("Floor", x)
     spread = np.kron(np.eye(2, dtype=np.float32), np.ones((2, k), np.float32))  # (4, 2K): x0 + W y0
     line = g.op("MatMul", g.op("Mul", x0, coef), g.const(spread))  # (N, 2K)
@@ -116,7 +116,7 @@ def texture_texels(g: GraphWriter, texture: str, size: int, width: int, uvw: str
     (N, 4 width), weights (N, 4)."""
     tables = tap_atlas([size], taps)
     _, _, w, *bases = tables.level_params[0]
-    x = g.op("Sub", g.op("Mul", uvw, g.const(float(size))), g.const(0.5))  # (N, 2)
+    x = g.op("Sub", g.op("Mul", uvw, g.scalar(size)), g.scalar(0.5))  # (N, 2)
     x0 = g.op("Floor", x)
     line = g.op("MatMul", x0, g.const(np.tile([[1.0], [w]], (1, len(bases)))))  # (N, K): x0 + W y0
     table = expand_table(g, texture, tables.rows, width)

@@ -30,6 +30,14 @@ class GraphWriter:
         self.inits.append(numpy_helper.from_array(np.asarray(value, dtype=dtype), name))
         return name
 
+    def scalar(self, value: float) -> str:
+        """A float32 constant of shape (1, 1) for elementwise ops on 2-D tensors.
+
+        ONNX Runtime 1.31 runs (N, 1) <op> () and (N, 1) <op> (1,) through a slow broadcasting path
+        (about 80x slower than (N, 1) <op> (1, 1); benchmarks/bench_inference.py --sections ops).
+        """
+        return self.const(np.full((1, 1), value, np.float32))
+
     def op(self, op_type: str, *inputs: str, outputs: int = 1, **attrs):
         names = [self._name(op_type.lower()) for _ in range(outputs)]
         self.nodes.append(helper.make_node(op_type, list(inputs), names, **attrs))
