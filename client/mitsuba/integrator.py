@@ -98,7 +98,8 @@ class NeuMIPPathIntegrator(mi.SamplingIntegrator):
         L = dr.zeros(mi.Spectrum, width)
         beta = dr.full(mi.Spectrum, 1.0, width)
         eta = dr.full(mi.Float, 1.0, width)
-        valid_ray = dr.zeros(mi.Bool, width)
+        # As the stock `path`: an environment makes every camera ray valid (alpha = 1).
+        valid_ray = dr.full(mi.Bool, (not cfg.hide_emitters) and scene.environment() is not None, width)
         prev_si = dr.zeros(mi.Interaction3f, width)  # only what emitter pdfs need, not a full si
         prev_bsdf_pdf = dr.full(mi.Float, 1.0, width)
         prev_bsdf_delta = dr.full(mi.Bool, True, width)
