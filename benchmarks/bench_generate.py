@@ -2,7 +2,8 @@
 of a complete training set (default: 256^2 material, 200 queries per finest texel, 16 spp, 4 bounces).
 
 Runs the real generator (query sampling, tracing, chunked writing) on a few chunks per material; the
-first chunk (kernel compilation) is reported separately and left out of the rate.
+first chunk (kernel compilation) is reported separately and left out of the rate. "cores used" is
+the CPU time of all threads over wall time: on a shared machine it shows how much CPU the run got.
 
     .venv/bin/python benchmarks/bench_generate.py                      # yarn rock turtle foam
     .venv/bin/python benchmarks/bench_generate.py --materials yarn --chunks 4
@@ -52,9 +53,10 @@ def bench(name: str, args: argparse.Namespace, folder: Path) -> dict:
         queries=args.chunk * args.chunks, spp=args.spp, seed=0, chunk=args.chunk,
         tracer=TracerConfig(max_depth=args.max_depth, lanes=args.lanes),
     )
-    stamps: list[tuple[int, float]] = []
-    generate(desc, folder / name, settings, lambda done, total: stamps.append((done, time.perf_counter())))
-    (first_done, t0), (warm_done, t1), (last_done, t2) = stamps[0], stamps[1], stamps[-1]
+    stamps: list[tuple[int, float, float]] = []  # (queries done, wall clock, CPU time of all threads)
+    generate(desc, folder / name, settings,
+             lambda done, total: stamps.append((done, time.perf_counter(), time.process_time())))
+    (_, t0, _), (warm_done, t1, c1), (last_done, t2, c2) = stamps[0], stamps[1], stamps[-1]
     queries_per_s = (last_done - warm_done) / (t2 - t1)
     total = args.queries_per_texel * args.resolution**2
     return {
@@ -65,6 +67,8 @@ def bench(name: str, args: argparse.Namespace, folder: Path) -> dict:
         "first_chunk_s": t1 - t0,
         "queries_per_s": queries_per_s,
         "samples_per_s": queries_per_s * args.spp,
+        "cores_used": (c2 - c1) / (t2 - t1),
+        "samples_per_cpu_s": (last_done - warm_done) * args.spp / (c2 - c1),
         "projected_min": (build + total / queries_per_s) / 60,
     }
 
@@ -83,7 +87,7 @@ def main() -> None:
         f"queries x {args.spp} spp = {total * args.spp / 1e6:.0f} M path samples, up to {args.max_depth} bounces"
     )
     header = f"{'material':10s} {'triangles':>10s} {'margin':>7s} {'build s':>8s} {'1st chunk s':>11s} " \
-             f"{'M samples/s':>11s} {'k queries/s':>11s} {'full set min':>12s}"
+             f"{'M samples/s':>11s} {'k queries/s':>11s} {'full set min':>12s} {'cores used':>10s} {'M samples/cpu-s':>15s}"
     print(header)
     with tempfile.TemporaryDirectory() as tmp:
         for name in args.materials:
@@ -91,7 +95,7 @@ def main() -> None:
             print(
                 f"{r['name']:10s} {r['triangles']:10d} {r['margin']:7.2f} {r['build_s']:8.2f} "
                 f"{r['first_chunk_s']:11.2f} {r['samples_per_s'] / 1e6:11.3f} {r['queries_per_s'] / 1e3:11.1f} "
-                f"{r['projected_min']:12.1f}"
+                f"{r['projected_min']:12.1f} {r['cores_used']:10.2f} {r['samples_per_cpu_s'] / 1e6:15.3f}"
             )
 
 
