@@ -212,7 +212,7 @@ def library_names() -> list[str]:
 def find_description(name_or_path: str | Path) -> MaterialDescription:
     """A description from a file path, or a shipped material by name (``yarn``, ``rock``, ...)."""
     path = Path(name_or_path)
-    if path.suffix == ".toml" or path.exists():
+    if path.suffix == ".toml" or path.is_file():
         return load_description(path)
     resource = resources.files(LIBRARY) / f"{name_or_path}.toml"
     if not resource.is_file():
