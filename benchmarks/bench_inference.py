@@ -22,6 +22,7 @@ import os
 import statistics
 import tempfile
 import time
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -30,7 +31,7 @@ import onnxruntime as ort
 import torch
 
 from neumip.client import contract as C
-from neumip.client.local import LocalMaterials, run_chunked
+from neumip.client.local import LocalMaterials, run_chunked, split_chunk
 from neumip.training.config import MaterialConfig
 from neumip.training.export import GraphOptions, build_onnx, save_onnx, weights_from_state
 from neumip.training.material import NeuMIPMaterial
@@ -184,23 +185,30 @@ def torch_eval(mat, queries: torch.Tensor) -> torch.Tensor:
 
 
 def session_section(model: bytes, args) -> None:
+    """Two cores used three ways: ONNX Runtime's intra-op pool (spinning or not), or one-thread
+    sessions running chunks of the batch on a 2-thread pool (what `LocalMaterials` does)."""
     variants = {
-        "2 threads, spinning (default)": Session(threads=2),
-        "2 threads, no spinning": Session(threads=2, spinning=False),
-        "1 thread": Session(threads=1),
-        "2 threads, no arena": Session(threads=2, arena=False),
-        "2 threads, level extended": Session(threads=2, level="extended"),
-        "2 threads, level basic": Session(threads=2, level="basic"),
+        "2 intra-op threads, spinning": Session(threads=2),
+        "2 intra-op threads, no spinning": Session(threads=2, spinning=False),
+        "1 thread": Session(threads=1, spinning=False),
+        "2 threads no spin, no arena": Session(threads=2, spinning=False, arena=False),
+        "2 threads no spin, level extended": Session(threads=2, spinning=False, level="extended"),
+        "2 threads no spin, level basic": Session(threads=2, spinning=False, level="basic"),
     }
     sessions = {name: open_session(model, s) for name, s in variants.items()}
-    columns, table = [], {name: [] for name in sessions}
+    pool = ThreadPoolExecutor(2)
+    single = sessions["1 thread"]
+    columns, table = [], {name: [] for name in [*sessions, "1-thread session, 2 chunk workers"]}
     for log2 in args.session_batches:
         q = random_queries(1 << log2, seed=log2)
         fns = {name: (lambda s=s: s.run(None, {C.ONNX_INPUT: q})) for name, s in sessions.items()}
+        chunk = split_chunk(len(q), 2)
+        fns["1-thread session, 2 chunk workers"] = lambda: run_chunked(single, q, chunk, pool)
         for name, value in interleaved(fns, len(q), args.seconds, args.rounds).items():
             table[name].append(value)
         columns.append(f"2^{log2}")
-    print_table("session options, default graph", columns, table)
+    pool.shutdown()
+    print_table("session options, default graph, one batch", columns, table)
 
 
 def chunk_section(model: bytes, args) -> None:
@@ -245,7 +253,7 @@ def main() -> None:
     parser.add_argument("--sections", default="graphs,session,chunk,load")
     parser.add_argument("--resolution", type=int, default=256)
     parser.add_argument("--batches", type=log2_list, default=log2_list("10-20"), help="log2 batch sizes")
-    parser.add_argument("--session-batches", type=log2_list, default=log2_list("12,14,16"))
+    parser.add_argument("--session-batches", type=log2_list, default=log2_list("12,14,16,18"))
     parser.add_argument("--chunks", type=log2_list, default=log2_list("11-17"), help="log2 chunk sizes")
     parser.add_argument("--threads", type=int, default=2)
     parser.add_argument("--seconds", type=float, default=0.3, help="minimum time per measurement")

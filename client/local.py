@@ -1,14 +1,18 @@
 """In-process evaluation of exported materials with ONNX Runtime (no torch).
 
 `LocalMaterials` loads every ``*.onnx`` in a folder (material name = file stem), checks each file's
-contract version, and evaluates (N, 7) query buffers in cache-sized chunks.
+contract version, and evaluates (N, 7) query buffers in chunks that run concurrently on a small
+thread pool (``InferenceSession.run`` releases the GIL), each chunk on one ONNX Runtime thread.
+Measured in ``benchmarks/bench_inference.py`` (sections session and chunk).
 """
 
 from __future__ import annotations
 
 import json
 import logging
+import os
 import re
+from concurrent.futures import Executor, ThreadPoolExecutor
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -20,6 +24,14 @@ log = logging.getLogger(__name__)
 
 DEFAULT_CHUNK = 16384
 """Rows per ONNX Runtime call: big enough to amortise the call, small enough to stay in cache."""
+
+MIN_SPLIT = 2048
+"""Batches below twice this many rows run as one call (splitting them costs more than it saves)."""
+
+SESSION_CONFIG = {"session.intra_op.allow_spinning": "0"}
+"""Session config entries: pool threads sleep instead of spinning between ops. On a machine shared
+with other jobs spinning threads take cores the other threads need (2 intra-op threads ran at about
+half the speed with spinning on under load)."""
 
 NAME_PATTERN = re.compile(r"^[A-Za-z0-9][A-Za-z0-9_.-]{0,127}$")
 """What a material name may look like (also guards paths built from names)."""
@@ -78,6 +90,8 @@ def load_material(path: str | Path, threads: int = 0) -> Material:
     opts.intra_op_num_threads = threads
     opts.inter_op_num_threads = 1
     opts.log_severity_level = 3
+    for key, value in SESSION_CONFIG.items():
+        opts.add_session_config_entry(key, value)
     try:
         session = ort.InferenceSession(str(path), opts, providers=["CPUExecutionProvider"])
     except Exception as exc:  # onnxruntime raises its own exception types for corrupt files
@@ -94,21 +108,43 @@ def load_material(path: str | Path, threads: int = 0) -> Material:
     return Material(path.stem, path, session, meta)
 
 
-def run_chunked(session, queries: np.ndarray, chunk: int = DEFAULT_CHUNK) -> np.ndarray:
-    """Evaluate validated (N, 7) float32 queries in chunks of `chunk` rows -> (N, 3) float32."""
+def run_chunked(
+    session, queries: np.ndarray, chunk: int = DEFAULT_CHUNK, executor: Executor | None = None
+) -> np.ndarray:
+    """Evaluate validated (N, 7) float32 queries in chunks of `chunk` rows -> (N, 3) float32.
+
+    With an `executor` the chunks run concurrently on its threads.
+    """
     n = queries.shape[0]
     out = np.empty((n, C.RGB_DIM), dtype=C.DTYPE)
-    for lo in range(0, n, chunk):
+
+    def run(lo: int) -> None:
         hi = min(lo + chunk, n)
         out[lo:hi] = session.run([C.ONNX_OUTPUT], {C.ONNX_INPUT: queries[lo:hi]})[0]
+
+    starts = range(0, n, chunk)
+    if executor is None or len(starts) < 2:
+        for lo in starts:
+            run(lo)
+    else:
+        for future in [executor.submit(run, lo) for lo in starts]:
+            future.result()
     return out
+
+
+def split_chunk(rows: int, workers: int, chunk: int = DEFAULT_CHUNK) -> int:
+    """Chunk size that keeps `workers` threads busy on `rows` rows: at most `chunk`, at least
+    MIN_SPLIT, and small enough that every worker gets a share."""
+    share = -(-rows // max(workers, 1))
+    return max(min(chunk, share), MIN_SPLIT)
 
 
 class LocalMaterials:
     """Evaluate exported materials in this process.
 
     ``LocalMaterials("models/")`` loads every ``.onnx`` file there; files that fail to load are
-    logged and listed in :attr:`errors`, the others still serve.
+    logged and listed in :attr:`errors`, the others still serve. `threads` (0: one per CPU) chunks
+    of a batch run at once, each on a single-threaded session.
     """
 
     def __init__(self, folder: str | Path, threads: int = 0, chunk: int = DEFAULT_CHUNK) -> None:
@@ -116,12 +152,13 @@ class LocalMaterials:
         if not self.folder.is_dir():
             raise FileNotFoundError(f"model folder {self.folder} does not exist")
         self.chunk = chunk
-        self.threads = threads
+        self.threads = threads or os.cpu_count() or 1
+        self._executor = ThreadPoolExecutor(self.threads, "neumip-ort") if self.threads > 1 else None
         self._materials: dict[str, Material] = {}
         self.errors: dict[str, str] = {}
         for path in sorted(self.folder.glob("*.onnx")):
             try:
-                self._materials[path.stem] = load_material(path, threads)
+                self._materials[path.stem] = load_material(path, threads=1)
             except ModelError as exc:
                 log.error("skipping %s", exc)
                 self.errors[path.stem] = str(exc)
@@ -139,4 +176,6 @@ class LocalMaterials:
     def evaluate(self, material: str, queries: np.ndarray) -> np.ndarray:
         """(N, 7) queries -> (N, 3) float32 RGB. Raises QueryError for a bad buffer."""
         mat = self.get(material)
-        return run_chunked(mat.session, C.as_queries(queries), self.chunk)
+        queries = C.as_queries(queries)
+        chunk = split_chunk(queries.shape[0], self.threads, self.chunk)
+        return run_chunked(mat.session, queries, chunk, self._executor)
