@@ -1,16 +1,20 @@
 """In-process inference speed of an exported material: ONNX Runtime graph variants vs torch eager.
 
-    .venv/bin/python benchmarks/bench_inference.py                 # everything (a few minutes)
-    .venv/bin/python benchmarks/bench_inference.py --sections graphs --batches 10,14,20
+    .venv/bin/python benchmarks/bench_inference.py                 # everything (about 10 minutes)
+    .venv/bin/python benchmarks/bench_inference.py --sections graphs --batches 10,14,20 --threads 1
 
-The material is 256^2 with the neural offset and random weights (speed does not depend on training).
-Other jobs share this machine's cores, so every table interleaves its variants round by round and
-reports the median of the rounds; compare ratios within one table, and read the load averages printed
-with it. Sections:
+The material is 256^2 with the neural offset and random weights (speed does not depend on training);
+queries are uniformly random (u, v, sigma over all levels, directions): the worst case for the texel
+caches, a renderer's queries are more coherent. Consecutive calls read different queries from a pool
+of 2^20. Other jobs share this machine's cores, so every table interleaves its variants round by
+round and reports the median of the rounds, twice: queries per wall-clock second, and queries per
+CPU second of this process (what a query costs, whatever the other jobs take). Compare ratios within
+one table, and read the load average printed with it. Sections:
 
-- graphs:  queries/s per batch size (one ``session.run`` per batch) for each export variant
-           (`GraphOptions`) and torch eager, plus `LocalMaterials.evaluate` (validation + chunks).
-- session: the default graph under ONNX Runtime session options (threads, spinning, arena, level).
+- graphs:  each export variant (`GraphOptions`), `LocalMaterials.evaluate` and torch eager, one
+           call per batch of 2^10 ... 2^20 queries.
+- session: the default graph on 2 cores: ONNX Runtime's intra-op pool (spinning or not, arena,
+           optimization level) against one-thread sessions running chunks on 2 threads.
 - chunk:   `run_chunked` on 2^20 queries for several chunk sizes.
 - load:    seconds to open a session: each variant, and the default from a cached optimized model.
 """
@@ -149,8 +153,22 @@ def material(resolution: int, seed: int) -> NeuMIPMaterial:
     return mat
 
 
+class Batches:
+    """Consecutive batches of `rows` queries from a pool of 2^20, so that repeated calls do not
+    re-read the texels the previous call left in cache."""
+
+    def __init__(self, pool: np.ndarray, rows: int) -> None:
+        self.slices = [pool[i : i + rows] for i in range(0, len(pool) - rows + 1, rows)]
+        self.i = 0
+
+    def next(self) -> np.ndarray:
+        self.i = (self.i + 1) % len(self.slices)
+        return self.slices[self.i]
+
+
 def graphs_section(mat, models: dict[str, bytes], args) -> None:
-    sessions = {name: open_session(model, Session(threads=args.threads)) for name, model in models.items()}
+    sessions = {name: open_session(model, Session(threads=args.threads, spinning=False))
+                for name, model in models.items()}
     check = random_queries(4096, seed=1)
     with torch.inference_mode():
         want = mat(torch.from_numpy(check)).numpy()
@@ -159,20 +177,23 @@ def graphs_section(mat, models: dict[str, bytes], args) -> None:
         got = sess.run(None, {C.ONNX_INPUT: check})[0]
         print(f"  {name:28s} {np.abs(got - want).max():.2e}")
 
+    pool = random_queries(1 << 20, seed=20)
+    tpool = torch.from_numpy(pool)
     with tempfile.TemporaryDirectory() as folder:
         save_onnx_bytes(models["taps4 gemm (default)"], Path(folder) / "m.onnx")
         local = LocalMaterials(folder, threads=args.threads)
-        columns, table = [], {name: [] for name in [*sessions, "LocalMaterials.evaluate (default)", "torch eager"]}
+        names = [*sessions, f"LocalMaterials.evaluate, {args.threads} workers", "torch eager"]
+        columns, table = [], {name: [] for name in names}
         for log2 in args.batches:
-            q = random_queries(1 << log2, seed=log2)
-            tq = torch.from_numpy(q)
-            fns = {name: (lambda s=s: s.run(None, {C.ONNX_INPUT: q})) for name, s in sessions.items()}
-            fns["LocalMaterials.evaluate (default)"] = lambda: local.evaluate("m", q)
-            fns["torch eager"] = lambda: torch_eval(mat, tq)
-            for name, value in interleaved(fns, len(q), args.seconds, args.rounds).items():
+            q, tq = Batches(pool, 1 << log2), Batches(tpool, 1 << log2)
+            fns = {name: (lambda s=s: s.run(None, {C.ONNX_INPUT: q.next()})) for name, s in sessions.items()}
+            fns[names[-2]] = lambda: local.evaluate("m", q.next())
+            fns["torch eager"] = lambda: torch_eval(mat, tq.next())
+            for name, value in interleaved(fns, 1 << log2, args.seconds, args.rounds).items():
                 table[name].append(value)
             columns.append(f"2^{log2}")
-        print_table(f"graph variants, {args.threads} threads, one run() per batch", columns, table)
+        print_table(f"graph variants, sessions of {args.threads} intra-op threads (no spinning), one run() "
+                    "per batch", columns, table)
 
 
 def save_onnx_bytes(model: bytes, path: Path) -> None:
@@ -199,12 +220,13 @@ def session_section(model: bytes, args) -> None:
     pool = ThreadPoolExecutor(2)
     single = sessions["1 thread"]
     columns, table = [], {name: [] for name in [*sessions, "1-thread session, 2 chunk workers"]}
+    queries = random_queries(1 << 20, seed=20)
     for log2 in args.session_batches:
-        q = random_queries(1 << log2, seed=log2)
-        fns = {name: (lambda s=s: s.run(None, {C.ONNX_INPUT: q})) for name, s in sessions.items()}
-        chunk = split_chunk(len(q), 2)
-        fns["1-thread session, 2 chunk workers"] = lambda: run_chunked(single, q, chunk, pool)
-        for name, value in interleaved(fns, len(q), args.seconds, args.rounds).items():
+        q = Batches(queries, 1 << log2)
+        fns = {name: (lambda s=s: s.run(None, {C.ONNX_INPUT: q.next()})) for name, s in sessions.items()}
+        chunk = split_chunk(1 << log2, 2)
+        fns["1-thread session, 2 chunk workers"] = lambda: run_chunked(single, q.next(), chunk, pool)
+        for name, value in interleaved(fns, 1 << log2, args.seconds, args.rounds).items():
             table[name].append(value)
         columns.append(f"2^{log2}")
     pool.shutdown()
@@ -212,12 +234,18 @@ def session_section(model: bytes, args) -> None:
 
 
 def chunk_section(model: bytes, args) -> None:
-    sess = open_session(model, Session(threads=args.threads))
+    """2^20 queries through `run_chunked`: one-thread session with 2 chunk workers, and one
+    thread alone, for several chunk sizes."""
+    single = open_session(model, Session(threads=1, spinning=False))
+    pool = ThreadPoolExecutor(2)
     q = random_queries(1 << 20, seed=20)
-    chunks = [1 << k for k in args.chunks]
-    fns = {f"chunk 2^{k}": (lambda c=c: run_chunked(sess, q, c)) for k, c in zip(args.chunks, chunks)}
-    fns["one run() of 2^20"] = lambda: sess.run(None, {C.ONNX_INPUT: q})
+    fns = {}
+    for k in args.chunks:
+        fns[f"chunk 2^{k}, 2 workers"] = lambda c=1 << k: run_chunked(single, q, c, pool)
+        fns[f"chunk 2^{k}, 1 thread"] = lambda c=1 << k: run_chunked(single, q, c)
+    fns["one run() of 2^20, 1 thread"] = lambda: single.run(None, {C.ONNX_INPUT: q})
     result = interleaved(fns, len(q), args.seconds, args.rounds)
+    pool.shutdown()
     print_table("run_chunked on 2^20 queries, default graph", ["2^20"], {n: [v] for n, v in result.items()})
 
 
@@ -254,7 +282,7 @@ def main() -> None:
     parser.add_argument("--resolution", type=int, default=256)
     parser.add_argument("--batches", type=log2_list, default=log2_list("10-20"), help="log2 batch sizes")
     parser.add_argument("--session-batches", type=log2_list, default=log2_list("12,14,16,18"))
-    parser.add_argument("--chunks", type=log2_list, default=log2_list("11-17"), help="log2 chunk sizes")
+    parser.add_argument("--chunks", type=log2_list, default=log2_list("11-16"), help="log2 chunk sizes")
     parser.add_argument("--threads", type=int, default=2)
     parser.add_argument("--seconds", type=float, default=0.3, help="minimum time per measurement")
     parser.add_argument("--rounds", type=int, default=3)

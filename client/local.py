@@ -22,8 +22,9 @@ from . import contract as C
 
 log = logging.getLogger(__name__)
 
-DEFAULT_CHUNK = 16384
-"""Rows per ONNX Runtime call: big enough to amortise the call, small enough to stay in cache."""
+DEFAULT_CHUNK = 8192
+"""Rows per ONNX Runtime call. Throughput per CPU second is flat within about 5 % from 2^11 to
+2^16 rows with the default export graph; 2^13 was the best and splits a 2^14 batch over 2 workers."""
 
 MIN_SPLIT = 2048
 """Batches below twice this many rows run as one call (splitting them costs more than it saves)."""

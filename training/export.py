@@ -158,9 +158,16 @@ def _parallax(g: GraphWriter, depth: str, wo: str, min_cos: float) -> str:
     return g.op("Mul", g.op("Div", depth, wo_z), wo)
 
 
+def _query_columns(g: GraphWriter) -> tuple[str, str, str]:
+    """The query's uv (N, 2), sigma (N, 1) and wo (N, 2)."""
+    q = C.ONNX_INPUT
+    return (g.pick(q, C.QUERY_DIM, [C.U, C.V]), g.pick(q, C.QUERY_DIM, [C.SIGMA]),
+            g.pick(q, C.QUERY_DIM, [C.WO_X, C.WO_Y]))
+
+
 def _taps_graph(g: GraphWriter, config: MaterialConfig, weights: dict, opts: GraphOptions) -> str:
     """Queries (N, 7) (graph input) -> decoder output (N, 3) before the final Relu."""
-    uv, sigma, _, wo = g.op("Split", C.ONNX_INPUT, g.const([2, 1, 2, 2], np.int64), axis=1, outputs=4)
+    uv, sigma, wo = _query_columns(g)
     taps, index, blend = opts.taps_per_row, opts.index_type, opts.blend
 
     # --- neural offset: uv += r * wo_xy / max(wo_z, min_cos) -----------------------------------
@@ -182,7 +189,7 @@ def _taps_graph(g: GraphWriter, config: MaterialConfig, weights: dict, opts: Gra
 
 def _gridsample_graph(g: GraphWriter, config: MaterialConfig, weights: dict) -> str:
     """Queries (N, 7) -> decoder output (N, 3) before the final Relu, lookups by GridSample."""
-    uv, sigma, _, wo = g.op("Split", C.ONNX_INPUT, g.const([2, 1, 2, 2], np.int64), axis=1, outputs=4)
+    uv, sigma, wo = _query_columns(g)
     if config.offset:
         texture = g.const(weights["offset_texture"], name="offset_texture")
         feat = texture_features(g, texture, config.resolution, config.offset_channels, g.wrap(uv))

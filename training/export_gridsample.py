@@ -11,7 +11,7 @@ from __future__ import annotations
 import numpy as np
 
 from .config import MaterialConfig
-from .export_lookup import level_of_detail
+from .export_lookup import level_of_detail, level_weights
 from .onnx_graph import INDEX_TYPES, GraphWriter
 from .texture_tables import wrap_pad
 
@@ -64,7 +64,7 @@ def pyramid_features(g: GraphWriter, config: MaterialConfig, atlas: str, uvw: st
     c = config.channels
     index, tops = stacked_levels(config.level_sizes())
     image = _image(g, atlas, c, index)
-    lo, level_w = level_of_detail(g, sigma, config)
+    lo, t = level_of_detail(g, sigma, config)
     sizes = np.asarray(config.level_sizes(), np.float32)
     hi = np.minimum(np.arange(config.levels + 1) + 1, config.levels)
     lo_ = np.arange(config.levels + 1)
@@ -80,5 +80,5 @@ def pyramid_features(g: GraphWriter, config: MaterialConfig, atlas: str, uvw: st
     norm = np.asarray([[2.0 / (w - 1), 2.0 / (h - 1)] * 2], np.float32)
     grid = g.op("Sub", g.op("Mul", pixel, g.const(norm)), g.scalar(1.0))  # (N, 4)
     samples = _sample(g, image, grid, 2)  # (1, C, N, 2)
-    weighted = g.op("Mul", samples, g.shape(level_w, [1, 1, -1, 2]))
+    weighted = g.op("Mul", samples, g.shape(level_weights(g, t, 1), [1, 1, -1, 2]))
     return g.shape(g.op("ReduceSum", weighted, g.const([3], np.int64), keepdims=0), [c, -1])

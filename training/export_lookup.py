@@ -28,33 +28,35 @@ def expand_table(g: GraphWriter, texels: str, index_rows: np.ndarray, width: int
     return g.shape(table, [-1, taps * width])
 
 
-def _tap_selection(levels: int) -> tuple[np.ndarray, np.ndarray]:
-    """0/1 matrices (4L, 4L) picking, from (1 - f, f) of (fx, fy) per level, each tap's x and y factor.
-
-    Input columns: [1 - fx_0, 1 - fy_0, ..., 1 - fx_{L-1}, 1 - fy_{L-1}, fx_0, fy_0, ...]; output
-    columns: the 4 taps of each level in tap order (x0 y0, x1 y0, x0 y1, x1 y1).
-    """
-    sel_x, sel_y = np.zeros((2, 4 * levels, 4 * levels), np.float32)
+def _tap_factors(levels: int, axis: int) -> tuple[np.ndarray, np.ndarray]:
+    """Affine map (2L, 4L), (4L,) from (fx, fy) per level to each tap's factor along `axis` (0: x):
+    f for the far tap (x1 or y1), 1 - f for the near one; taps in order (x0 y0, x1 y0, x0 y1, x1 y1)."""
+    a = np.zeros((2 * levels, 4 * levels), np.float32)
+    b = np.zeros(4 * levels, np.float32)
     for level in range(levels):
         for tap in range(4):
-            right, down = tap % 2, tap // 2
-            sel_x[2 * levels * right + 2 * level, 4 * level + tap] = 1
-            sel_y[2 * levels * down + 2 * level + 1, 4 * level + tap] = 1
-    return sel_x, sel_y
+            far = (tap % 2, tap // 2)[axis]
+            a[2 * level + axis, 4 * level + tap] = 1.0 if far else -1.0
+            b[4 * level + tap] = 0.0 if far else 1.0
+    return a, b
 
 
-def tap_weights(g: GraphWriter, frac: str, levels: int, level_w: str | None) -> str:
-    """frac (N, 2L) = (fx, fy) of each level, level weights (N, L) or None -> (N, 4L) tap weights.
+def level_weights(g: GraphWriter, t: str, repeat: int) -> str:
+    """t (N, 1) -> (N, 2 repeat): 1 - t repeated, then t repeated (one Gemm, exact)."""
+    a = np.asarray([[-1.0] * repeat + [1.0] * repeat], np.float32)
+    b = np.asarray([1.0] * repeat + [0.0] * repeat, np.float32)
+    return g.op("Gemm", t, g.const(a), g.const(b))
 
-    Each weight is (x factor * y factor) * level weight, the reference's order of products.
+
+def tap_weights(g: GraphWriter, frac: str, levels: int, t: str | None) -> str:
+    """frac (N, 2L) = (fx, fy) of each level, level fraction t (N, 1) or None -> (N, 4L) tap weights.
+
+    Each weight is (x factor * y factor) * level weight, the reference's order of products; the
+    factors 1 - f and f come from one Gemm each (f * -1 + 1 rounds as 1 - f does).
     """
-    both = g.op("Concat", g.op("Sub", g.scalar(1.0), frac), frac, axis=1)  # (N, 4L)
-    sel_x, sel_y = _tap_selection(levels)
-    weights = g.op("Mul", g.op("MatMul", both, g.const(sel_x)), g.op("MatMul", both, g.const(sel_y)))
-    if level_w is None:
-        return weights
-    spread = np.kron(np.eye(levels, dtype=np.float32), np.ones((1, 4), np.float32))  # (L, 4L)
-    return g.op("Mul", weights, g.op("MatMul", level_w, g.const(spread)))
+    wx, wy = (g.op("Gemm", frac, *(g.const(m) for m in _tap_factors(levels, axis))) for axis in (0, 1))
+    weights = g.op("Mul", wx, wy)
+    return weights if t is None else g.op("Mul", weights, level_weights(g, t, 4))
 
 
 def _gather(g: GraphWriter, table: str, line: str, bases: str, levels: int, width: int,
@@ -65,14 +67,13 @@ def _gather(g: GraphWriter, table: str, line: str, bases: str, levels: int, widt
 
 
 def level_of_detail(g: GraphWriter, sigma: str, config: MaterialConfig) -> tuple[str, str]:
-    """sigma (N, 1) -> lower level lo (N,) float and level weights (N, 2) = (1 - t, t)."""
+    """sigma (N, 1) -> lower level lo (N,) float and the fraction t (N, 1) towards the next level."""
     tiny = np.finfo(np.float32).tiny
     scaled = g.op("Mul", g.op("Max", sigma, g.scalar(tiny)), g.scalar(config.resolution))
     lod = g.op("Div", g.op("Log", scaled), g.scalar(math.log(2.0)))
     lod = g.op("Clip", lod, g.const(0.0), g.const(float(config.levels)))
     lo = g.op("Floor", lod)
-    t = g.op("Sub", lod, lo)
-    return g.shape(lo, [-1]), g.op("Concat", g.op("Sub", g.scalar(1.0), t), t, axis=1)
+    return g.shape(lo, [-1]), g.op("Sub", lod, lo)
 
 
 def level_pair_params(config: MaterialConfig, level_params: np.ndarray) -> np.ndarray:
@@ -96,10 +97,11 @@ def pyramid_texels(g: GraphWriter, config: MaterialConfig, atlas: str, width: in
     """
     k = 4 // taps
     tables = tap_atlas(config.level_sizes(), taps)
-    lo, level_w = level_of_detail(g, sigma, config)
+    lo, t = level_of_detail(g, sigma, config)
     pairs = g.const(level_pair_params(config, tables.level_params))
     params = g.op("Gather", pairs, g.op("Cast", lo, to=INDEX_TYPES["int64"][1]), axis=0)  # (N, 8 + 2K)
-    size, coef, bases = g.op("Split", params, g.const([4, 4, 2 * k], np.int64), axis=1, outputs=3)
+    p = 8 + 2 * k
+    size, coef, bases = (g.pick(params, p, list(c)) for c in (range(4), range(4, 8), range(8, p)))
     both = g.op("MatMul", uvw, g.const(np.tile(np.eye(2, dtype=np.float32), (1, 2))))  # (N, 4) u v u v
     x = g.op("Sub", g.op("Mul", both, size), g.scalar(0.5))  # (N, 4) texel coordinates per level
     x0 = g.op("Floor", x)
@@ -107,7 +109,7 @@ def pyramid_texels(g: GraphWriter, config: MaterialConfig, atlas: str, width: in
     line = g.op("MatMul", g.op("Mul", x0, coef), g.const(spread))  # (N, 2K)
     table = expand_table(g, atlas, tables.rows, width)
     texels = _gather(g, table, line, bases, 2, width, index_type)
-    return texels, tap_weights(g, g.op("Sub", x, x0), 2, level_w)
+    return texels, tap_weights(g, g.op("Sub", x, x0), 2, t)
 
 
 def texture_texels(g: GraphWriter, texture: str, size: int, width: int, uvw: str, taps: int,
