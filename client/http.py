@@ -175,3 +175,38 @@ def _retry_after(response) -> float:
         return max(float(response.headers.get("Retry-After", 0)), 0.0)
     except ValueError:
         return 0.0
+
+
+class FallbackEvaluator:
+    """`primary` (a `MaterialClient`) until it becomes unavailable, then `fallback` for good.
+
+    The configured fallback of a render: when the server cannot be reached (after the client's
+    retries), the switch is logged as a warning and every later call, including the one that failed,
+    goes to ``fallback`` (e.g. `LocalMaterials` over the same model files, which answers the same).
+    Errors other than unavailability (bad request, unknown material) are not hidden.
+    """
+
+    def __init__(self, primary, fallback) -> None:
+        self.primary = primary
+        self.fallback = fallback
+        self.switched: str | None = None
+        """Why the fallback took over (None while the primary serves)."""
+
+    @property
+    def current(self):
+        return self.fallback if self.switched else self.primary
+
+    def materials(self) -> list[str]:
+        return self._call(lambda ev: ev.materials())
+
+    def evaluate(self, material: str, queries: np.ndarray) -> np.ndarray:
+        return self._call(lambda ev: ev.evaluate(material, queries))
+
+    def _call(self, fn):
+        if not self.switched:
+            try:
+                return fn(self.primary)
+            except ServerUnavailable as exc:
+                self.switched = str(exc)
+                log.warning("%s; falling back to %s", exc, type(self.fallback).__name__)
+        return fn(self.fallback)

@@ -21,6 +21,10 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--spp", type=int, default=None, help="samples per pixel (default: the scene's)")
     p.add_argument("--server", default=None, help="evaluate on this server (e.g. http://127.0.0.1:8000)")
     p.add_argument("--models", type=Path, default=Path(DEFAULT_MODELS), help="model folder (in-process)")
+    p.add_argument(
+        "--fallback", action="store_true",
+        help="with --server: if the server becomes unreachable, continue in-process from --models",
+    )
     p.add_argument("--max-lanes", type=int, default=None, help="most pixels x samples per pass (memory bound)")
     p.add_argument(
         "-D", dest="params", action="append", default=[], metavar="NAME=VALUE",
@@ -41,6 +45,8 @@ def _render(args: argparse.Namespace) -> int:
 
     if args.output.suffix.lower() not in (".png", ".exr"):
         raise CommandError(f"output must end in .png or .exr, got {args.output.name}")
+    if args.fallback and not args.server:
+        raise CommandError("--fallback needs --server (it names what to fall back from)")
     if args.spp is not None and args.spp < 1:
         raise CommandError(f"--spp must be >= 1, got {args.spp}")
     try:
@@ -71,6 +77,8 @@ def _render(args: argparse.Namespace) -> int:
             raise CommandError(f"{exc} (no image written)") from exc
     path = R.write_image(result.image, args.output)
     s = result.stats
+    if getattr(evaluator, "switched", None):
+        print(f"warning: the server became unavailable; the rest was evaluated in-process ({evaluator.switched})")
     print(f"wrote {path.resolve()}")
     print(
         f"{result.image.shape[1]}x{result.image.shape[0]} at {result.spp} spp in {result.passes} pass(es): "
@@ -81,10 +89,13 @@ def _render(args: argparse.Namespace) -> int:
 
 def _evaluator(args: argparse.Namespace):
     """The in-process evaluator over --models, or a MaterialClient for --server."""
-    if args.server:
-        from neumip.client.http import MaterialClient
-
-        return MaterialClient(args.server)
     from neumip.client.local import LocalMaterials
 
-    return LocalMaterials(args.models, threads=args.threads)
+    if not args.server:
+        return LocalMaterials(args.models, threads=args.threads)
+    from neumip.client.http import FallbackEvaluator, MaterialClient
+
+    client = MaterialClient(args.server)
+    if args.fallback:
+        return FallbackEvaluator(client, LocalMaterials(args.models, threads=args.threads))
+    return client

@@ -128,3 +128,29 @@ def test_unreachable_real_port_is_unavailable():
     client = MaterialClient(f"http://127.0.0.1:{port}", ClientConfig(retries=1, **FAST))
     with pytest.raises(ServerUnavailable, match="unreachable after 2 attempt"):
         client.materials()
+
+
+def test_fallback_takes_over_when_the_server_goes_away(model_dir, caplog):
+    from neumip.client.http import FallbackEvaluator
+
+    server = FakeServer(model_dir)
+    evaluator = FallbackEvaluator(client_for(server, retries=0), LocalMaterials(model_dir))
+    queries = random_queries(50, seed=9)
+    expected = server.local.evaluate("rand16", queries)
+    np.testing.assert_array_equal(evaluator.evaluate("rand16", queries), expected)
+    assert evaluator.switched is None
+    server.failures = [httpx.ConnectError("refused")] * 10
+    np.testing.assert_array_equal(evaluator.evaluate("rand16", queries), expected)
+    assert "unreachable" in evaluator.switched and "falling back to LocalMaterials" in caplog.text
+    seen = len(server.requests)
+    evaluator.evaluate("rand16", queries)
+    assert len(server.requests) == seen  # stays on the fallback
+
+
+def test_fallback_does_not_hide_client_errors(model_dir):
+    from neumip.client.http import FallbackEvaluator
+
+    evaluator = FallbackEvaluator(client_for(FakeServer(model_dir)), LocalMaterials(model_dir))
+    with pytest.raises(ServerError, match="404"):
+        evaluator.evaluate("nope", random_queries(3))
+    assert evaluator.switched is None

@@ -54,3 +54,27 @@ def test_server_stopped_mid_render_is_an_error_and_writes_nothing(model_dir, ser
     assert "unreachable" in err and "no image written" in err, err
     assert calls["n"] >= 2
     assert not out.exists() and not list(tmp_path.glob("*.png"))
+
+
+@needs_server
+def test_fallback_finishes_in_process_when_the_server_stops(model_dir, server, tmp_path, monkeypatch, capsys):
+    calls = {"n": 0}
+    evaluate = MaterialClient.evaluate
+
+    def stop_after_first_call(self, material, queries):
+        calls["n"] += 1
+        if calls["n"] == 2:
+            server.stop()
+        return evaluate(self, material, queries)
+
+    monkeypatch.setattr(MaterialClient, "evaluate", stop_after_first_call)
+    monkeypatch.setattr("neumip.client.http.ClientConfig", lambda: ClientConfig(retries=0))
+    scene = write_xml(tmp_path)
+    out, reference = tmp_path / "out.exr", tmp_path / "reference.exr"
+    rc = cli.main(["render", scene, "-o", str(out), "--server", server.url, "--fallback", "--models", str(model_dir)])
+    assert rc == 0
+    assert "evaluated in-process" in capsys.readouterr().out
+    assert cli.main(["render", scene, "-o", str(reference), "--models", str(model_dir)]) == 0
+    from neumip.client.mitsuba.bsdf import mi
+
+    np.testing.assert_allclose(np.array(mi.Bitmap(str(out))), np.array(mi.Bitmap(str(reference))), rtol=1e-4, atol=1e-5)
