@@ -30,15 +30,19 @@ from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 from pathlib import Path
 
-import numpy as np
-import onnxruntime as ort
-import torch
+# torch's OpenMP threads busy-wait between ops by default; on a machine shared with other jobs that
+# made 2-thread torch eager ~50x slower. ONNX Runtime's pool threads do not spin here either.
+os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
 
-from neumip.client import contract as C
-from neumip.client.local import LocalMaterials, run_chunked, split_chunk
-from neumip.training.config import MaterialConfig
-from neumip.training.export import GraphOptions, build_onnx, save_onnx, weights_from_state
-from neumip.training.material import NeuMIPMaterial
+import numpy as np  # noqa: E402
+import onnxruntime as ort  # noqa: E402
+import torch  # noqa: E402
+
+from neumip.client import contract as C  # noqa: E402
+from neumip.client.local import LocalMaterials, run_chunked, split_chunk  # noqa: E402
+from neumip.training.config import MaterialConfig  # noqa: E402
+from neumip.training.export import GraphOptions, build_onnx, weights_from_state  # noqa: E402
+from neumip.training.material import NeuMIPMaterial  # noqa: E402
 
 GRAPHS = {
     "modulo (first export)": GraphOptions(lookup="modulo"),
@@ -180,7 +184,7 @@ def graphs_section(mat, models: dict[str, bytes], args) -> None:
     pool = random_queries(1 << 20, seed=20)
     tpool = torch.from_numpy(pool)
     with tempfile.TemporaryDirectory() as folder:
-        save_onnx_bytes(models["taps4 gemm (default)"], Path(folder) / "m.onnx")
+        (Path(folder) / "m.onnx").write_bytes(models["taps4 gemm (default)"])
         local = LocalMaterials(folder, threads=args.threads)
         names = [*sessions, f"LocalMaterials.evaluate, {args.threads} workers", "torch eager"]
         columns, table = [], {name: [] for name in names}
@@ -194,10 +198,6 @@ def graphs_section(mat, models: dict[str, bytes], args) -> None:
             columns.append(f"2^{log2}")
         print_table(f"graph variants, sessions of {args.threads} intra-op threads (no spinning), one run() "
                     "per batch", columns, table)
-
-
-def save_onnx_bytes(model: bytes, path: Path) -> None:
-    path.write_bytes(model)
 
 
 def torch_eval(mat, queries: torch.Tensor) -> torch.Tensor:

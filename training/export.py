@@ -48,16 +48,14 @@ class GraphOptions:
     lookup: str = "taps"
     """"taps": wrap-padded tap tables read with float row arithmetic (`export_lookup.py`); "modulo":
     the first export's graph, int64 Mod index arithmetic on the flat atlas (`export_modulo.py`);
-    "gridsample": GridSample on wrap-padded images (`export_gridsample.py`; misses the parity
-    contract by its normalised coordinates, about 1e-5 of a texel step)."""
+    "gridsample": GridSample on wrap-padded images (`export_gridsample.py`; about half as fast)."""
     taps_per_row: int = 4
     """lookup="taps": bilinear taps per Gather row, 1, 2 or 4 (4: one row per level footprint)."""
     blend: str = "gemm"
     """lookup="taps": how the taps meet each MLP's first layer. "gemm": the weighted taps feed one
     Gemm whose weights repeat per tap; "sum": a 0/1 MatMul sums the taps, then the Gemm; "reduce":
-    ReduceSum over the taps, then the Gemm;
-    "premultiplied": the first layer's texture weights are folded into the textures (hidden-wide
-    taps, ReduceSum)."""
+    ReduceSum over the taps, then the Gemm; "premultiplied": the first layer's texture weights are
+    folded into the textures (hidden-wide taps, ReduceSum)."""
     index_type: str = "int64"
     """lookup="taps": integer type of the Gather rows, "int64" or "int32"."""
 
@@ -110,14 +108,13 @@ def _query_part(g: GraphWriter, weights: dict, prefix: str, columns: list[int]) 
     return g.op("Gemm", C.ONNX_INPUT, g.const(rows), bias)
 
 
-def _first_layer(g: GraphWriter, texels: str, tap_w: str, columns: list[int], weights: dict,
+def _first_layer(g: GraphWriter, texels: str, tap_w: str, taps: int, columns: list[int], weights: dict,
                  prefix: str, layers: int, blend: str) -> str:
-    """texels (N, K W), tap weights (N, K) -> first layer's output (N, hidden), the query `columns`
-    being the layer's other inputs. W is the texture's channels C, or hidden for "premultiplied"."""
+    """texels (N, K W), tap weights (N, K), K = taps -> first layer's output (N, hidden), the query
+    `columns` being the layer's other inputs. W: the texture's channels C, or hidden ("premultiplied")."""
     w = weights[f"{prefix}.0.weight"]  # (hidden, C + D): texture part, then the query columns
     w_tex = w[:, : -len(columns)]
     width = w.shape[0] if blend == "premultiplied" else w_tex.shape[1]
-    taps = 8 if prefix == "decoder" else 4
     spread = np.kron(np.eye(taps, dtype=np.float32), np.ones((1, width), np.float32))  # (K, K W)
     weighted = g.op("Mul", texels, g.op("MatMul", tap_w, g.const(spread)))  # (N, K W)
     rest = _query_part(g, weights, prefix, columns)  # (N, hidden)
@@ -175,7 +172,7 @@ def _taps_graph(g: GraphWriter, config: MaterialConfig, weights: dict, opts: Gra
         texture, width = _texture_source(g, weights, "offset_texture", "offset_mlp", blend)
         texels, tap_w = texture_texels(g, texture, config.resolution, width, g.wrap(uv), taps, index)
         mlp = _depth_weights(weights, config)
-        hidden = _first_layer(g, texels, tap_w, [C.WO_X, C.WO_Y], mlp, "offset_mlp", config.layers, blend)
+        hidden = _first_layer(g, texels, tap_w, 4, [C.WO_X, C.WO_Y], mlp, "offset_mlp", config.layers, blend)
         depth = g.mlp(hidden, mlp, "offset_mlp", config.layers, first=1)  # (N, 2)
         uv = g.op("Add", uv, _parallax(g, depth, wo, config.offset_min_cos))
 
@@ -183,7 +180,7 @@ def _taps_graph(g: GraphWriter, config: MaterialConfig, weights: dict, opts: Gra
     atlas, width = _texture_source(g, weights, "pyramid", "decoder", blend)
     texels, tap_w = pyramid_texels(g, config, atlas, width, g.wrap(uv), sigma, taps, index)
     dirs = [C.WI_X, C.WI_Y, C.WO_X, C.WO_Y]
-    hidden = _first_layer(g, texels, tap_w, dirs, weights, "decoder", config.layers, blend)
+    hidden = _first_layer(g, texels, tap_w, 8, dirs, weights, "decoder", config.layers, blend)
     return g.mlp(hidden, weights, "decoder", config.layers, first=1)
 
 

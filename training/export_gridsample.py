@@ -2,8 +2,9 @@
 
 GridSample has no wrap-around mode, so each texture is wrap-padded by one texel (`texture_tables`) and
 the pyramid levels are stacked into one 2-D image; a query samples it at two points, one per level.
-The normalised coordinates GridSample takes cost precision: its answers differ from the reference by
-up to about 1e-5 of a texel step, more than the parity contract allows, so this is not the default.
+The normalised coordinates GridSample takes cost some precision (3e-6 from torch at most on a 256^2
+material, inside the parity contract), and ONNX Runtime's GridSample kernel made this graph about
+half as fast as the tap tables (benchmarks/bench_inference.py), so it is not the default.
 """
 
 from __future__ import annotations

@@ -57,11 +57,10 @@ def test_modulo_graph_still_matches(material32):
     np.testing.assert_allclose(got, want, atol=ATOL, rtol=RTOL)
 
 
-def test_gridsample_variant_is_close_but_not_exact(material32):
-    """GridSample's normalised coordinates cost precision: close to torch, not held to 1e-5."""
+def test_gridsample_variant_matches(material32):
     q = np.concatenate([random_queries(3000, seed=22), edge_queries(32)])
     got, want = _run(material32, GraphOptions(lookup="gridsample"), q)
-    np.testing.assert_allclose(got, want, atol=1e-3, rtol=1e-3)
+    np.testing.assert_allclose(got, want, atol=ATOL, rtol=RTOL)
 
 
 @pytest.mark.parametrize(
