@@ -40,7 +40,7 @@ class Settings(BaseSettings):
     """Concurrent ONNX Runtime calls (threads of the dedicated executor); 0 = one per core."""
     ort_threads: int = Field(1, ge=0)
     """Intra-op threads of each ONNX Runtime call; 0 = ONNX Runtime's default (all cores)."""
-    chunk_rows: int = Field(16384, ge=1)
+    chunk_rows: int = Field(8192, ge=16)
     """Most rows in one ONNX Runtime call: large requests are split, small ones merged up to this."""
     max_wait_ms: float = Field(2.0, ge=0)
     """How long a batch that is not yet full waits for more concurrent requests to merge with."""

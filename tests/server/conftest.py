@@ -100,9 +100,10 @@ def client(model_dir):
 def reference(model_dir):
     """In-process evaluation to compare server answers with, bit for bit.
 
-    Single-threaded like each of the server's ONNX Runtime calls: with several intra-op threads
-    ONNX Runtime shards element-wise kernels (Log) at boundaries that depend on the call size, which
-    changes the last bit of rare rows (about 1 in 10^5 here) between thread counts.
+    One worker, so a batch runs in chunks from row 0 whose sizes are multiples of 16, as the
+    server's calls are. With several workers `LocalMaterials` splits a batch at ceil(N / workers);
+    ONNX Runtime's Log kernel computes the last elements of a call apart from its vector blocks, so
+    that split point changes the last bit of rare rows (see `neumip.server.batching`).
     """
     from neumip.client.local import LocalMaterials
 
