@@ -73,7 +73,10 @@ def _render(args: argparse.Namespace) -> int:
 
         try:
             result = R.render_scene(scene, evaluator, config, on_pass=on_pass)
-        except (R.RenderError, LookupError, ServerError) as exc:
+        except LookupError as exc:
+            where = f"the server {args.server}" if args.server else f"{args.models}/ as <name>.onnx"
+            raise CommandError(f"{exc}; put the trained materials in {where} (no image written)") from exc
+        except (R.RenderError, ServerError) as exc:
             raise CommandError(f"{exc} (no image written)") from exc
     path = R.write_image(result.image, args.output)
     s = result.stats
