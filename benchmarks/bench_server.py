@@ -1,0 +1,229 @@
+"""Inference server speed over loopback: msgpack (/v1) and Open Inference Protocol binary (/v2)
+throughput against in-process ONNX Runtime, latency under 1/4/16 concurrent clients, a 10^6-query
+request, and the server's resident memory before and after the load.
+
+    .venv/bin/python benchmarks/bench_server.py                    # about 2 minutes
+    .venv/bin/python benchmarks/bench_server.py --model models/foo.onnx --rows 65536 --rounds 9
+
+Starts a real `neumip serve` process on 127.0.0.1 (default settings unless NEUMIP_* variables say
+otherwise) and talks to it from this process, so client-side encoding and decoding are part of every
+end-to-end figure. The default model is the first `models/*.onnx`, else a 256^2 material with the
+neural offset and random weights (speed does not depend on training). In-process = `LocalMaterials`
+with its defaults (a worker per core). Other jobs share this machine's cores: the throughput table
+interleaves in-process, msgpack and v2 round by round and reports medians and the median per-round
+ratio; read the load average printed with it.
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import signal
+import socket
+import statistics
+import subprocess
+import sys
+import tempfile
+import threading
+import time
+from pathlib import Path
+
+import httpx
+import numpy as np
+
+from neumip.client import contract as C
+from neumip.client.local import LocalMaterials
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def parse_args() -> argparse.Namespace:
+    p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("--model", type=Path, help="an exported .onnx material (default: see above)")
+    p.add_argument("--rows", type=int, default=1 << 16, help="queries per throughput request")
+    p.add_argument("--rounds", type=int, default=7, help="interleaved throughput rounds")
+    p.add_argument("--latency-rows", type=int, default=4096, help="queries per request in the latency runs")
+    p.add_argument("--latency-seconds", type=float, default=6.0, help="duration of each latency run")
+    p.add_argument("--clients", default="1,4,16", help="concurrent clients of the latency runs")
+    p.add_argument("--big", type=int, default=1_000_000, help="queries of the single large request")
+    return p.parse_args()
+
+
+def query_pool(n: int, seed: int = 0) -> np.ndarray:
+    """(n, 7) float32 uniformly random valid queries (u, v, sigma over all levels, directions)."""
+    rng = np.random.default_rng(seed)
+    r = np.sin(np.radians(85)) * np.sqrt(rng.uniform(0, 1, (n, 2)))
+    phi = rng.uniform(0, 2 * np.pi, (n, 2))
+    wi = np.stack([r[:, 0] * np.cos(phi[:, 0]), r[:, 0] * np.sin(phi[:, 0])], 1)
+    wo = np.stack([r[:, 1] * np.cos(phi[:, 1]), r[:, 1] * np.sin(phi[:, 1])], 1)
+    return C.pack_queries(rng.uniform(-2, 3, n), rng.uniform(-2, 3, n), 2.0 ** rng.uniform(-11, 1, n), wi, wo)
+
+
+def model_folder(args: argparse.Namespace, scratch: Path) -> tuple[Path, str]:
+    """A folder holding just the benchmark model, and the model's name."""
+    if args.model is None:
+        shipped = sorted((ROOT / "models").glob("*.onnx"))
+        if shipped:
+            args.model = shipped[0]
+    folder = scratch / "models"
+    folder.mkdir()
+    if args.model is not None:
+        (folder / args.model.name).symlink_to(args.model.resolve())
+        return folder, args.model.stem
+    from neumip.training.config import MaterialConfig
+    from neumip.training.export import build_onnx, random_weights, save_onnx
+
+    config = MaterialConfig()
+    save_onnx(build_onnx(config, random_weights(config, seed=0), "benchmark: 256^2, random weights"), folder / "bench256.onnx")
+    return folder, "bench256"
+
+
+class Server:
+    """A `neumip serve` process on a free loopback port."""
+
+    def __init__(self, folder: Path, log: Path) -> None:
+        with socket.socket() as s:
+            s.bind(("127.0.0.1", 0))
+            port = s.getsockname()[1]
+        self.url = f"http://127.0.0.1:{port}"
+        cmd = [sys.executable, "-m", "neumip.client.cli", "serve", "--port", str(port), "--model-dir", str(folder)]
+        self.process = subprocess.Popen(cmd, stdout=log.open("w"), stderr=subprocess.STDOUT)
+        deadline = time.monotonic() + 120
+        while time.monotonic() < deadline:
+            if self.process.poll() is not None:
+                sys.exit(f"server exited:\n{log.read_text()}")
+            try:
+                if httpx.get(self.url + "/v2/health/ready", timeout=1).status_code == 200:
+                    return
+            except httpx.TransportError:
+                time.sleep(0.2)
+        sys.exit("server not ready within 120 s")
+
+    def rss_mib(self) -> float:
+        for line in Path(f"/proc/{self.process.pid}/status").read_text().splitlines():
+            if line.startswith("VmRSS:"):
+                return int(line.split()[1]) / 1024
+        return float("nan")
+
+    def stop(self) -> int:
+        self.process.send_signal(signal.SIGTERM)
+        return self.process.wait(timeout=60)
+
+
+def msgpack_call(http: httpx.Client, name: str, q: np.ndarray) -> np.ndarray:
+    resp = http.post(C.EVALUATE_PATH.format(name=name), content=C.encode_request(q),
+                     headers={"content-type": C.MSGPACK_MEDIA_TYPE})
+    resp.raise_for_status()
+    return C.decode_response(resp.content)
+
+
+def v2_call(triton_client, name: str, q: np.ndarray) -> np.ndarray:
+    import tritonclient.http as triton
+
+    tensor = triton.InferInput(C.ONNX_INPUT, list(q.shape), "FP32")
+    tensor.set_data_from_numpy(q, binary_data=True)
+    out = triton.InferRequestedOutput(C.ONNX_OUTPUT, binary_data=True)
+    return triton_client.infer(name, [tensor], outputs=[out]).as_numpy(C.ONNX_OUTPUT)
+
+
+def throughput(args, name, local, http, triton_client, pool) -> None:
+    n = args.rows
+    batches = [pool[i * n : (i + 1) * n] for i in range(len(pool) // n)]
+    kinds = {
+        "in-process (LocalMaterials)": lambda q: local.evaluate(name, q),
+        "msgpack /v1 over loopback": lambda q: msgpack_call(http, name, q),
+        "v2 binary (tritonclient)": lambda q: v2_call(triton_client, name, q),
+    }
+    for fn in kinds.values():  # warm-up
+        fn(batches[0])
+    times = {k: [] for k in kinds}
+    for r in range(args.rounds):
+        for kind, fn in kinds.items():
+            q = batches[(r + 1) % len(batches)]
+            start = time.perf_counter()
+            fn(q)
+            times[kind].append(time.perf_counter() - start)
+    base = times["in-process (LocalMaterials)"]
+    print(f"\n## Throughput, {n} queries per request ({args.rounds} interleaved rounds; load avg {os.getloadavg()[0]:.2f})")
+    print(f"{'path':32s} {'median ms':>10s} {'Mq/s':>7s} {'vs in-process':>14s}")
+    for kind, ts in times.items():
+        ratio = statistics.median(b / t for b, t in zip(base, ts))
+        print(f"{kind:32s} {statistics.median(ts) * 1e3:10.1f} {n / statistics.median(ts) / 1e6:7.3f} {ratio:13.0%}")
+
+
+def latency(args, name, server, pool) -> None:
+    n = args.latency_rows
+    print(f"\n## Latency, {n} queries per msgpack request, each client back to back for {args.latency_seconds:.0f} s")
+    print(f"{'clients':>7s} {'requests':>9s} {'p50 ms':>8s} {'p99 ms':>8s} {'Mq/s':>7s} {'errors':>7s}")
+    for clients in (int(c) for c in args.clients.split(",")):
+        samples: list[list[float]] = [[] for _ in range(clients)]
+        errors = [0] * clients
+
+        def client(i: int) -> None:
+            rng = np.random.default_rng(i)
+            deadline = time.monotonic() + args.latency_seconds
+            with httpx.Client(base_url=server.url, timeout=60) as http:
+                while time.monotonic() < deadline:
+                    lo = int(rng.integers(0, len(pool) - n))
+                    start = time.perf_counter()
+                    try:
+                        msgpack_call(http, name, pool[lo : lo + n])
+                    except httpx.HTTPError:
+                        errors[i] += 1
+                        continue
+                    samples[i].append(time.perf_counter() - start)
+
+        start = time.perf_counter()
+        threads = [threading.Thread(target=client, args=(i,)) for i in range(clients)]
+        for t in threads:
+            t.start()
+        for t in threads:
+            t.join()
+        wall = time.perf_counter() - start
+        lat = np.array([s for per in samples for s in per]) * 1e3
+        print(f"{clients:7d} {lat.size:9d} {np.percentile(lat, 50):8.1f} {np.percentile(lat, 99):8.1f} "
+              f"{lat.size * n / wall / 1e6:7.3f} {sum(errors):7d}")
+
+
+def big_request(args, name, local, http, triton_client) -> None:
+    q = query_pool(args.big, seed=7)
+    expected = LocalMaterials(local.folder, threads=1).evaluate(name, q)
+    print(f"\n## One request of {args.big} queries ({q.nbytes / 1e6:.0f} MB in, {expected.nbytes / 1e6:.0f} MB out)")
+    start = time.perf_counter()
+    local.evaluate(name, q)
+    print(f"in-process          {time.perf_counter() - start:6.2f} s")
+    for kind, fn in (("msgpack /v1", lambda: msgpack_call(http, name, q)), ("v2 binary", lambda: v2_call(triton_client, name, q))):
+        start = time.perf_counter()
+        rgb = fn()
+        print(f"{kind:19s} {time.perf_counter() - start:6.2f} s   bit-identical to in-process (1 worker): {np.array_equal(rgb, expected)}")
+
+
+def main() -> None:
+    args = parse_args()
+    import tritonclient.http as triton
+
+    with tempfile.TemporaryDirectory() as scratch:
+        folder, name = model_folder(args, Path(scratch))
+        print(f"model {name} ({folder / (name + '.onnx')}), {os.cpu_count()} CPUs")
+        server = Server(folder, Path(scratch) / "server.log")
+        try:
+            local = LocalMaterials(folder)
+            pool = query_pool(max(args.rows * 4, 1 << 18))
+            rss_start = server.rss_mib()
+            with httpx.Client(base_url=server.url, timeout=120) as http:
+                triton_client = triton.InferenceServerClient(server.url.split("://")[1], network_timeout=120)
+                throughput(args, name, local, http, triton_client, pool)
+                rss_before_load = server.rss_mib()
+                latency(args, name, server, pool)
+                rss_after_load = server.rss_mib()
+                big_request(args, name, local, http, triton_client)
+            print(f"\n## Server resident memory: {rss_start:.0f} MiB after start-up, {rss_before_load:.0f} MiB "
+                  f"before the latency runs, {rss_after_load:.0f} MiB after them "
+                  f"(growth under load {rss_after_load - rss_before_load:+.1f} MiB), {server.rss_mib():.0f} MiB at the end")
+        finally:
+            code = server.stop()
+            print(f"server stopped with SIGTERM, exit status {code}")
+
+
+if __name__ == "__main__":
+    main()
