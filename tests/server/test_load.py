@@ -105,3 +105,27 @@ def test_queue_overflow_gives_503_not_timeouts(model_dir, work, tmp_path):
         assert httpx.get(server.url + "/v2/health/ready").status_code == 200
     finally:
         assert server.stop() == 0, server.log.read_text()
+
+
+def test_sigterm_finishes_requests_in_flight(model_dir, work, tmp_path):
+    server = start_server(model_dir, tmp_path / "server.log", ort_workers=1, chunk_rows=1024)
+    q = random_queries(400_000, seed=8)
+    answer = {}
+
+    def request() -> None:
+        with httpx.Client(timeout=60) as http:
+            answer["resp"] = http.post(server.url + C.EVALUATE_PATH.format(name="flat16"), content=C.encode_request(q),
+                                       headers={"content-type": C.MSGPACK_MEDIA_TYPE})
+
+    thread = threading.Thread(target=request)
+    thread.start()
+    deadline, admitted = time.monotonic() + 10, False
+    while time.monotonic() < deadline and not admitted:
+        admitted = "neumip_queue_rows 0.0" not in httpx.get(server.url + "/metrics").text
+        time.sleep(0.005)
+    assert admitted, "the request was not seen in flight"
+    assert server.stop() == 0, server.log.read_text()
+    thread.join(timeout=60)
+    assert answer["resp"].status_code == 200
+    assert C.decode_response(answer["resp"].content).shape == (400_000, 3)
+    assert "Application shutdown complete" in server.log.read_text()
