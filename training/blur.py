@@ -1,0 +1,84 @@
+"""Progressive Gaussian blur of the neural textures (paper Sec. 4: training in a coarse-to-fine way).
+
+Pure torch. The blur is separable and wraps around (the textures tile), with a kernel of radius
+ceil(3 sigma) normalised to sum 1. Each of the two 1-D passes is either a circular convolution
+(kernel narrower than the texture) or, when the kernel wraps more than once, a multiplication by
+the S x S circulant matrix of the folded kernel; both compute the same wrapped blur.
+"""
+
+from __future__ import annotations
+
+import math
+
+import torch
+import torch.nn.functional as F
+
+from .train_config import TrainConfig
+
+
+def blur_sigma(step: int, config: TrainConfig) -> float:
+    """Blur sigma (finest-level texels) at `step`: blur_start halving every blur_half_life; 0 once
+    it is below blur_min (the schedule has ended)."""
+    sigma = config.blur_start * 0.5 ** (step / config.blur_half_life)
+    return sigma if sigma >= config.blur_min else 0.0
+
+
+def schedule_end(config: TrainConfig) -> int:
+    """First step at which `blur_sigma` is 0."""
+    if config.blur_start < config.blur_min:
+        return 0
+    step = math.ceil(config.blur_half_life * math.log2(config.blur_start / config.blur_min))
+    while blur_sigma(step, config) > 0:  # guard the float rounding of the closed form
+        step += 1
+    while step > 0 and blur_sigma(step - 1, config) == 0:
+        step -= 1
+    return step
+
+
+def gaussian_kernel(sigma: float, dtype: torch.dtype, device: torch.device) -> torch.Tensor:
+    """(2r + 1,) normalised Gaussian weights, r = ceil(3 sigma)."""
+    radius = max(1, math.ceil(3.0 * sigma))
+    x = torch.arange(-radius, radius + 1, dtype=dtype, device=device)
+    k = torch.exp(-0.5 * (x / sigma) ** 2)
+    return k / k.sum()
+
+
+def circulant(size: int, kernel: torch.Tensor) -> torch.Tensor:
+    """(S, S) matrix B with (B @ x)[i] = sum_d kernel[d] x[(i + d - r) mod S]: the wrapped blur."""
+    radius = (kernel.shape[0] - 1) // 2
+    offsets = torch.arange(-radius, radius + 1, device=kernel.device)
+    cols = (torch.arange(size, device=kernel.device)[:, None] + offsets[None, :]) % size  # (S, 2r+1)
+    matrix = torch.zeros(size, size, dtype=kernel.dtype, device=kernel.device)
+    return matrix.scatter_add_(1, cols, kernel.expand(size, -1).contiguous())
+
+
+def _blur_rows(x: torch.Tensor, kernel: torch.Tensor) -> torch.Tensor:
+    """Wrapped 1-D blur along the last axis of (B, S) rows."""
+    size, radius = x.shape[-1], (kernel.shape[0] - 1) // 2
+    if radius < size:
+        padded = F.pad(x.unsqueeze(1), (radius, radius), mode="circular")  # (B, 1, S + 2r)
+        return F.conv1d(padded, kernel.view(1, 1, -1)).squeeze(1)
+    return x @ circulant(size, kernel).T
+
+
+def blur_texture(texture: torch.Tensor, sigma: float) -> torch.Tensor:
+    """(S, S, C) texture -> (S, S, C) texture blurred by a wrapped Gaussian of std `sigma` texels."""
+    size, _, channels = texture.shape
+    kernel = gaussian_kernel(sigma, texture.dtype, texture.device)
+    # pass along x: rows are (y, c) pairs
+    x = texture.permute(0, 2, 1).reshape(size * channels, size)
+    x = _blur_rows(x, kernel).reshape(size, channels, size)  # (y, c, x)
+    # pass along y: rows are (c, x) pairs
+    y = x.permute(1, 2, 0).reshape(channels * size, size)
+    y = _blur_rows(y, kernel).reshape(channels, size, size)  # (c, x, y)
+    return y.permute(2, 1, 0)
+
+
+def blur_pyramid(levels: list[torch.Tensor], sigma: float, sigma_min: float) -> list[torch.Tensor]:
+    """Blur level l of a pyramid (finest first, each (S, S, C)) by sigma / 2^l; levels whose sigma
+    falls below `sigma_min` are returned unchanged."""
+    out = []
+    for level, texture in enumerate(levels):
+        s = sigma / 2.0**level
+        out.append(blur_texture(texture, s) if s >= sigma_min and texture.shape[0] > 1 else texture)
+    return out

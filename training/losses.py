@@ -1,0 +1,39 @@
+"""Training losses for high-dynamic-range MBTF values. Pure torch.
+
+`comb2` (author code) compares log1p(max(x, -0.1)) of prediction and target: a specular highlight
+100x brighter than its surroundings then weighs like a few-times-brighter one, instead of taking
+over the whole batch as it does under plain MSE.
+"""
+
+from __future__ import annotations
+
+import torch
+
+from .train_config import TrainConfig
+
+LOG_FLOOR = -0.1
+"""Values are clamped to at least this before log1p (keeps log1p finite for slightly negative outputs)."""
+
+
+def log_space(x: torch.Tensor) -> torch.Tensor:
+    """(N, 3) linear RGB -> (N, 3) log1p(max(x, -0.1))."""
+    return torch.log1p(torch.clamp(x, min=LOG_FLOOR))
+
+
+def comb2(pred: torch.Tensor, target: torch.Tensor, l1_weight: float = 0.1) -> torch.Tensor:
+    """(N, 3), (N, 3) -> scalar: MSE + l1_weight * L1, both of the log-space difference."""
+    diff = log_space(pred) - log_space(target)
+    return (diff * diff).mean() + l1_weight * diff.abs().mean()
+
+
+def mse(pred: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
+    """(N, 3), (N, 3) -> scalar mean squared error in linear RGB."""
+    diff = pred - target
+    return (diff * diff).mean()
+
+
+def training_loss(pred: torch.Tensor, target: torch.Tensor, config: TrainConfig) -> torch.Tensor:
+    """The loss `config.loss` names, (N, 3), (N, 3) -> scalar."""
+    if config.loss == "comb2":
+        return comb2(pred, target, config.l1_weight)
+    return mse(pred, target)

@@ -1,0 +1,292 @@
+"""Fit a NeuMIP material to MBTF queries: Adam on random batches with progressive texture blur.
+
+One run reads a data set folder (`dataset.open_dataset`, memory-mapped), holds out a seeded random
+split for validation, and trains with the schedule of a `TrainConfig`. Checkpoints carry the
+optimiser state, step, loss history and the sampler's RNG state, so an interrupted run resumed
+from its checkpoint continues exactly as if it had not stopped. A non-finite loss or weight stops
+the run with `TrainingDiverged`; checkpoints are only ever written from finite weights.
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Callable
+
+import numpy as np
+import torch
+
+from neumip.client import contract as C
+
+from . import checkpoint
+from .blur import blur_pyramid, blur_sigma, blur_texture, schedule_end
+from .config import MaterialConfig
+from .dataset import Dataset, open_dataset
+from .losses import training_loss
+from .material import NeuMIPMaterial
+from .train_config import TrainConfig
+from .validation import predict, validation_table
+
+log = logging.getLogger(__name__)
+
+Callback = Callable[[int, float], None]
+"""Called after every optimiser step with (steps done, loss of that step)."""
+
+
+class TrainingDiverged(RuntimeError):
+    """The loss or the weights became NaN/Inf; the last good checkpoint is kept."""
+
+
+class TrainingError(ValueError):
+    """A run that cannot start: wrong data, or a checkpoint from a different run."""
+
+
+@dataclass
+class TrainState:
+    """Everything of a run that a checkpoint must carry besides the weights."""
+
+    step: int = 0
+    """Optimiser steps done."""
+    history: list = field(default_factory=list)
+    """[step, loss] records every `log_every` steps."""
+    seconds: float = 0.0
+    """Wall time spent training so far, over all resumed parts."""
+    offset_frozen: bool = False
+    """The offset texture has been baked with its blur floor and no longer trains."""
+
+
+def resolve_device(name: str) -> torch.device:
+    """'auto' -> CUDA when available, else CPU; 'cuda' without a GPU is an error."""
+    if name == "auto":
+        return torch.device("cuda" if torch.cuda.is_available() else "cpu")
+    if name == "cuda" and not torch.cuda.is_available():
+        raise TrainingError("device 'cuda' requested but torch sees no CUDA device")
+    return torch.device(name)
+
+
+def split_indices(n: int, config: TrainConfig) -> tuple[np.ndarray, np.ndarray]:
+    """(train, held-out) row indices of an n-row data set, seeded by config.seed; both sorted."""
+    held = min(max(1, int(n * config.holdout)), config.max_holdout)
+    if n - held < 1:
+        raise TrainingError(f"data set has {n} queries: too few to hold out {held} and train")
+    rng = np.random.default_rng(config.seed)
+    perm = rng.permutation(n)
+    return np.sort(perm[held:]), np.sort(perm[:held])
+
+
+def effective_textures(
+    material: NeuMIPMaterial, sigma: float, config: TrainConfig, offset_frozen: bool
+) -> tuple[list[torch.Tensor], torch.Tensor | None]:
+    """The (blurred) textures the material is evaluated with at blur `sigma`."""
+    levels, otex = material.textures()
+    if sigma > 0:
+        levels = blur_pyramid(levels, sigma, config.blur_min)
+    if otex is not None and not offset_frozen:
+        otex = blur_texture(otex, max(sigma, config.offset_blur_floor))
+    return levels, otex
+
+
+@torch.no_grad()
+def bake(material: NeuMIPMaterial, levels: list[torch.Tensor], otex: torch.Tensor | None) -> None:
+    """Store the given effective textures as the material's own (export then matches training)."""
+    for param, value in zip(material.pyramid, levels):
+        if value is not param:
+            param.copy_(value)
+    if otex is not None and otex is not material.offset_texture:
+        material.offset_texture.copy_(otex)
+
+
+class BatchSampler:
+    """Uniform random batches of the training split, drawn from the memory-mapped data."""
+
+    def __init__(self, data: Dataset, train_idx: np.ndarray, batch: int, seed: int) -> None:
+        self.data, self.batch = data, batch
+        self.train_idx = torch.from_numpy(train_idx)
+        self.generator = torch.Generator().manual_seed(seed)
+
+    def draw(self, device: torch.device) -> tuple[torch.Tensor, torch.Tensor]:
+        """-> queries (B, 7), rgb (B, 3) float32 on `device`; rows read in file order (page locality)."""
+        pick = torch.randint(len(self.train_idx), (self.batch,), generator=self.generator)
+        rows = np.sort(self.train_idx[pick].numpy())
+        q = torch.from_numpy(self.data.queries[rows])
+        rgb = torch.from_numpy(self.data.rgb[rows])
+        return q.to(device, non_blocking=True), rgb.to(device, non_blocking=True)
+
+
+@torch.no_grad()
+def init_output(material: NeuMIPMaterial, rgb_sample: np.ndarray) -> None:
+    """Start the decoder's output at the data's mean colour ((n, 3) sample), with small slopes.
+
+    The decoder ends in a ReLU: a channel whose output starts negative for every query gets no
+    gradient and never recovers (seen on a flat plane with default init).
+    """
+    last = material.decoder[-1]
+    mean = np.maximum(np.asarray(rgb_sample, np.float64).mean(axis=0), 1e-3)
+    last.bias.copy_(torch.as_tensor(mean, dtype=last.bias.dtype))
+    last.weight.mul_(0.1)
+
+
+def _make_optimizer(material: NeuMIPMaterial, config: TrainConfig) -> torch.optim.Adam:
+    return torch.optim.Adam(material.parameters(), lr=config.lr, foreach=True)
+
+
+def _finite(material: NeuMIPMaterial) -> bool:
+    return all(bool(torch.isfinite(p).all()) for p in material.parameters())
+
+
+class Trainer:
+    """One training run of one material; `run()` trains to `config.steps` and validates."""
+
+    def __init__(
+        self,
+        data_path: str | Path,
+        checkpoint_path: str | Path,
+        material_config: MaterialConfig,
+        config: TrainConfig,
+        description: str = "",
+    ) -> None:
+        self.data = open_dataset(data_path)
+        self.checkpoint_path = Path(checkpoint_path)
+        self.config, self.description = config, description
+        self.device = resolve_device(config.device)
+        self.train_idx, self.val_idx = split_indices(len(self.data), config)
+        self.sampler = BatchSampler(self.data, self.train_idx, config.batch, config.seed)
+        self.state = TrainState()
+        if self.checkpoint_path.exists():
+            self.material = self._resume(material_config)
+        else:
+            torch.manual_seed(config.seed)
+            self.material = NeuMIPMaterial(material_config)
+            init_output(self.material, self.data.rgb[self.train_idx[:: max(1, len(self.train_idx) // 4096)]])
+            self.material.to(self.device)
+            self.optimizer = _make_optimizer(self.material, config)
+        self._end = schedule_end(config)
+
+    # --- checkpoints -----------------------------------------------------------------------------
+
+    def _data_identity(self) -> dict:
+        return {"n": len(self.data), "material": str(self.data.meta.get("material", ""))}
+
+    def _resume(self, material_config: MaterialConfig) -> NeuMIPMaterial:
+        material, extra = checkpoint.load(self.checkpoint_path)
+        if material.config != material_config:
+            raise TrainingError(
+                f"{self.checkpoint_path} holds a different material config ({material.config}); "
+                "use the same settings to resume, or another --checkpoint"
+            )
+        saved = extra.get("train_config", {})
+        if {k: v for k, v in saved.items() if k != "steps"} != {
+            k: v for k, v in self.config.to_dict().items() if k != "steps"
+        }:
+            raise TrainingError(f"{self.checkpoint_path} was written with other training settings: {saved}")
+        if extra.get("data") != self._data_identity():
+            raise TrainingError(f"{self.checkpoint_path} was trained on other data: {extra.get('data')}")
+        material.to(self.device)
+        self.state = TrainState(**extra["state"])
+        if self.state.offset_frozen:
+            material.offset_texture.requires_grad_(False)
+        self.optimizer = _make_optimizer(material, self.config)
+        self.optimizer.load_state_dict(extra["optimizer"])
+        self.sampler.generator.set_state(extra["rng"])
+        log.info("resuming %s at step %d of %d", self.checkpoint_path, self.state.step, self.config.steps)
+        return material
+
+    def save_checkpoint(self, validation: dict | None = None) -> Path:
+        """Write the checkpoint (refuses non-finite weights: the last good one stays)."""
+        if not _finite(self.material):
+            raise TrainingDiverged(self._diverged_message("weights"))
+        extra = {
+            "state": vars(self.state),
+            "optimizer": self.optimizer.state_dict(),
+            "rng": self.sampler.generator.get_state(),
+            "train_config": self.config.to_dict(),
+            "data": self._data_identity(),
+            "description": self.description,
+        }
+        if validation is not None:
+            extra["validation"] = validation
+        return checkpoint.save(self.checkpoint_path, self.material, extra)
+
+    def _diverged_message(self, what: str) -> str:
+        kept = (
+            f"the last good checkpoint ({self.checkpoint_path}) is kept"
+            if self.checkpoint_path.exists()
+            else "no checkpoint had been written yet"
+        )
+        return (
+            f"training diverged: the {what} became NaN/Inf at step {self.state.step + 1}; {kept}. "
+            "Try a lower learning rate (--lr) or check the data for NaN/Inf values."
+        )
+
+    # --- training --------------------------------------------------------------------------------
+
+    def _freeze_offset(self) -> None:
+        """End of the blur schedule: bake the offset texture's floor blur and stop training it."""
+        with torch.no_grad():
+            otex = self.material.offset_texture
+            otex.copy_(blur_texture(otex, self.config.offset_blur_floor))
+        otex.requires_grad_(False)
+        otex.grad = None
+        self.state.offset_frozen = True
+        log.info("step %d: blur schedule ended, offset texture frozen", self.state.step)
+
+    def step(self) -> float:
+        """One optimiser step; returns its loss. Raises TrainingDiverged on a non-finite loss."""
+        cfg, state = self.config, self.state
+        if self.material.config.offset and not state.offset_frozen and state.step >= self._end:
+            self._freeze_offset()
+        levels, otex = effective_textures(self.material, blur_sigma(state.step, cfg), cfg, state.offset_frozen)
+        queries, target = self.sampler.draw(self.device)
+        loss = training_loss(self.material(queries, levels, otex), target, cfg)
+        value = float(loss.detach())
+        if not np.isfinite(value):
+            raise TrainingDiverged(self._diverged_message("loss"))
+        self.optimizer.zero_grad(set_to_none=True)
+        loss.backward()
+        self.optimizer.step()
+        state.step += 1
+        if state.step % cfg.log_every == 0 or state.step == cfg.steps:
+            state.history.append([state.step, value])
+        return value
+
+    def run(self, callback: Callback | None = None) -> dict:
+        """Train up to config.steps (from wherever the checkpoint left off), then validate.
+
+        Returns the validation table (also stored in the final checkpoint's extra["validation"]).
+        """
+        cfg, state = self.config, self.state
+        self.material.train()
+        log.info(
+            "training %s: %d queries (%d held out), %d steps of %d on %s",
+            self.data.path, len(self.data), len(self.val_idx), cfg.steps, cfg.batch, self.device,
+        )
+        started = time.perf_counter()
+        done_before = state.seconds
+        while state.step < cfg.steps:
+            loss = self.step()
+            state.seconds = done_before + time.perf_counter() - started
+            if state.step % cfg.checkpoint_every == 0:
+                self.save_checkpoint()
+            if callback is not None:
+                callback(state.step, loss)
+        sigma = blur_sigma(state.step, cfg)
+        if sigma > 0 or (self.material.config.offset and not state.offset_frozen):
+            log.warning("run ended inside the blur schedule (sigma %.3g): baking the blurred textures", sigma)
+            bake(self.material, *effective_textures(self.material, sigma, cfg, state.offset_frozen))
+        table = self.validate()
+        table["train_seconds"] = round(state.seconds, 1)
+        table["steps"] = state.step
+        table["batch"] = cfg.batch
+        self.save_checkpoint(table)
+        return table
+
+    def validate(self) -> dict:
+        """Validation table of the material (as stored) on the held-out split."""
+        self.material.eval()
+        queries = np.asarray(self.data.queries[self.val_idx])
+        target = np.asarray(self.data.rgb[self.val_idx])
+        pred = predict(self.material, queries)
+        self.material.train()
+        return validation_table(pred, target, queries[:, C.SIGMA], self.material.config.resolution)
