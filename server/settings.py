@@ -25,7 +25,7 @@ def available_cores() -> int:
 class Settings(BaseSettings):
     """Configuration of the inference server (environment variables with the ``NEUMIP_`` prefix)."""
 
-    model_config = SettingsConfigDict(env_prefix="NEUMIP_", frozen=True)
+    model_config = SettingsConfigDict(env_prefix="NEUMIP_", frozen=True, use_attribute_docstrings=True)
 
     model_dir: Path = Path("models")
     """Folder whose ``*.onnx`` files are served; material name = file stem."""
@@ -39,9 +39,9 @@ class Settings(BaseSettings):
     ort_workers: int = Field(0, ge=0)
     """Concurrent ONNX Runtime calls (threads of the dedicated executor); 0 = one per core."""
     ort_threads: int = Field(1, ge=0)
-    """Intra-op threads of each ONNX Runtime call; 0 = ONNX Runtime's default (all cores)."""
+    """Intra-op threads of each ONNX Runtime call (keep workers x threads <= cores); 0 = all cores."""
     chunk_rows: int = Field(8192, ge=16)
-    """Most rows in one ONNX Runtime call: large requests are split, small ones merged up to this."""
+    """Most rows in one ONNX Runtime call (a multiple of 16): large requests are split, small ones merged."""
     max_wait_ms: float = Field(2.0, ge=0)
     """How long a batch that is not yet full waits for more concurrent requests to merge with."""
     max_rows: int = Field(2_000_000, ge=1)
@@ -67,6 +67,14 @@ class Settings(BaseSettings):
                 " otherwise the largest allowed request could never be admitted"
             )
         return self
+
+    @classmethod
+    def describe(cls) -> str:
+        """One line per setting: environment variable, default, and what it does."""
+        lines = []
+        for name, field in cls.model_fields.items():
+            lines.append(f"NEUMIP_{name.upper():22s} {str(field.default):12s} {field.description}")
+        return "\n".join(lines)
 
     def workers(self) -> int:
         """Threads of the ONNX Runtime executor."""

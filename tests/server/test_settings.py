@@ -43,3 +43,11 @@ def test_serve_command_options_and_errors(tmp_path, capsys, monkeypatch):
     monkeypatch.setenv("NEUMIP_CHUNK_ROWS", "17")
     assert main(["serve", "--model-dir", str(tmp_path)]) == 2
     assert "multiple of 16" in capsys.readouterr().err
+
+
+def test_list_settings_documents_every_variable(capsys):
+    assert main(["serve", "--list-settings"]) == 0
+    out = capsys.readouterr().out
+    for name in Settings.model_fields:
+        assert f"NEUMIP_{name.upper()}" in out
+    assert all(len(line.split(None, 2)) == 3 for line in out.strip().splitlines()), "a setting lacks its description"
