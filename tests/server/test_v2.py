@@ -94,6 +94,7 @@ BAD_INFER = [
     ("data ragged", _bad(data=[[0.0] * 7, [0.0]]), {}, 400, "nested"),
     ("data NaN", b'{"inputs": [{"name": "queries", "datatype": "FP32", "shape": [1, 7], "data": [NaN, 0, 0, 0, 0, 0, 0]}]}', {}, 400, "finite"),
     ("N = 0", _bad(shape=[0, 7], data=[]), {}, 400, "at least one"),
+    ("N above limit", *infer_body(random_queries(50_001), True, True), 413, "limit"),
     ("unknown input", _bad(name="x"), {}, 400, "unknown input"),
     ("two inputs", json.dumps({"inputs": [json.loads(_bad())["inputs"][0]] * 2}).encode(), {}, 400, "exactly one"),
     ("no inputs", b'{"outputs": []}', {}, 400, "inputs"),
