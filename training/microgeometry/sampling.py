@@ -64,7 +64,7 @@ def sample_sigma(n: int, rng: np.random.Generator, resolution: int, config: Quer
 
 def sample_queries(n: int, rng: np.random.Generator, resolution: int, config: QuerySampling) -> np.ndarray:
     """(n, 7) float32 queries in the contract's layout, drawn from `config` for a material of `resolution`."""
-    uv = rng.random((n, 2))
+    uv = rng.random((n, 2), dtype=np.float32)  # float32 draws stay below 1
     sigma = sample_sigma(n, rng, resolution, config)
     wi = sample_directions(n, rng, config.max_zenith_deg)
     wo = sample_directions(n, rng, config.max_zenith_deg)

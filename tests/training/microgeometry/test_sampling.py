@@ -20,7 +20,7 @@ def queries():
 
 def test_queries_follow_the_contract(queries):
     assert C.as_queries(queries) is not None and queries.shape == (N, 7)
-    assert queries[:, [C.U, C.V]].min() >= 0 and queries[:, [C.U, C.V]].max() <= 1
+    assert queries[:, [C.U, C.V]].min() >= 0 and queries[:, [C.U, C.V]].max() < 1
 
 
 def test_directions_fill_the_projected_disk_up_to_the_cap(queries):
