@@ -75,3 +75,32 @@ def test_import_queries_from_npz_and_npy(tmp_path, capsys):
     assert main(["import-queries", str(tmp_path / "q.npy"), str(tmp_path / "c.npy"), "-o", str(tmp_path / "b"),
                  "--name", "wool"]) == 2
     assert "cannot import" in capsys.readouterr().err
+
+
+def test_interrupted_process_resumes_to_the_same_data(tmp_path):
+    """A real `neumip generate` process stopped by Ctrl-C mid-run, then the same command again."""
+    import json
+    import signal
+    import time
+
+    (tmp_path / "plates.toml").write_text('resolution = 16\nheight_scale = 0.05\n[procedural]\ngenerator = "turtle"\n')
+    command = [sys.executable, "-m", "neumip.client.cli", "generate", str(tmp_path / "plates.toml"),
+               "--queries", "40000", "--chunk", "1000", "--spp", "4", "--seed", "5", "-o"]
+    proc = subprocess.Popen(command + [str(tmp_path / "a")], stdout=subprocess.PIPE, stderr=subprocess.PIPE)
+    progress = tmp_path / "a" / "progress.json"
+    deadline = time.monotonic() + 120
+    while time.monotonic() < deadline and proc.poll() is None:
+        if progress.exists() and json.loads(progress.read_text())["done"] >= 2:
+            break
+        time.sleep(0.05)
+    proc.send_signal(signal.SIGINT)
+    assert proc.wait(timeout=60) == 130, proc.stderr.read()
+    assert not (tmp_path / "a" / "meta.json").exists()
+    done = json.loads(progress.read_text())["done"]
+    assert 2 <= done < 40
+    resumed = subprocess.run(command + [str(tmp_path / "a")], capture_output=True, text=True, timeout=300)
+    assert resumed.returncode == 0, resumed.stderr
+    assert subprocess.run(command + [str(tmp_path / "b")], capture_output=True, timeout=300).returncode == 0
+    a, b = open_dataset(tmp_path / "a"), open_dataset(tmp_path / "b")
+    np.testing.assert_array_equal(a.queries, b.queries)
+    np.testing.assert_array_equal(a.rgb, b.rgb)
