@@ -61,6 +61,8 @@ def open_dataset(path: str | Path) -> Dataset:
     path = Path(path)
     meta_path = path / "meta.json"
     if not meta_path.exists():
+        if (path / "progress.json").exists():
+            raise DatasetError(f"{path} is incomplete (interrupted run?): re-run the generator to resume")
         raise DatasetError(f"{path} is not a data set (no meta.json)")
     meta = json.loads(meta_path.read_text())
     if meta.get("format") != FORMAT:
