@@ -25,8 +25,12 @@ def level_of_detail(sigma: torch.Tensor, resolution: int) -> torch.Tensor:
 
 
 def wrap(u: torch.Tensor) -> torch.Tensor:
-    """(N,) position -> (N,) position in [0, 1] (period 1)."""
-    return u - torch.floor(u)
+    """(N,) position -> (N,) position in [0, 1] (period 1).
+
+    floor() has zero gradient: it is taken of the detached value so autograd does not build (and
+    fill) zero gradients for it, which was a large share of a CPU training step.
+    """
+    return u - torch.floor(u.detach())
 
 
 def bilinear_taps(
@@ -41,7 +45,7 @@ def bilinear_taps(
     sizef = size.to(u.dtype)
     x = u * sizef - 0.5
     y = v * sizef - 0.5
-    x0f, y0f = torch.floor(x), torch.floor(y)
+    x0f, y0f = torch.floor(x.detach()), torch.floor(y.detach())  # zero gradient: see wrap()
     fx, fy = x - x0f, y - y0f
     x0 = torch.remainder(x0f.long(), size)
     y0 = torch.remainder(y0f.long(), size)
@@ -54,10 +58,38 @@ def bilinear_taps(
     return rows, weights
 
 
+class _GatherBlend(torch.autograd.Function):
+    """out[n] = sum_k weights[n, k] * atlas[rows[n, k]], with a scatter-add backward.
+
+    Autograd's own backward of `atlas[rows]` goes through a sorting index_put; index_add_ of the
+    (N*K, C) weighted output gradients is several times faster on CPU.
+    """
+
+    @staticmethod
+    def forward(ctx, atlas: torch.Tensor, rows: torch.Tensor, weights: torch.Tensor) -> torch.Tensor:
+        n, k = rows.shape
+        flat = rows.reshape(-1)
+        texels = atlas.index_select(0, flat).view(n, k, -1)  # (N, K, C)
+        ctx.save_for_backward(flat, weights, texels)
+        ctx.atlas_shape = atlas.shape
+        return (weights.unsqueeze(2) * texels).sum(1)  # (N, C); faster than a bmm of (1, K) x (K, C)
+
+    @staticmethod
+    def backward(ctx, grad: torch.Tensor):
+        flat, weights, texels = ctx.saved_tensors
+        grad_atlas = grad_weights = None
+        if ctx.needs_input_grad[0]:
+            contrib = (weights.unsqueeze(2) * grad.unsqueeze(1)).reshape(flat.shape[0], -1)  # (N*K, C)
+            grad_atlas = torch.zeros(ctx.atlas_shape, dtype=grad.dtype, device=grad.device)
+            grad_atlas.index_add_(0, flat, contrib)
+        if ctx.needs_input_grad[2]:
+            grad_weights = (texels * grad.unsqueeze(1)).sum(2)  # (N, K)
+        return grad_atlas, None, grad_weights
+
+
 def gather_blend(atlas: torch.Tensor, rows: torch.Tensor, weights: torch.Tensor) -> torch.Tensor:
     """(T, C) atlas, (N, K) rows, (N, K) weights -> (N, C) weighted sum of the gathered texels."""
-    texels = atlas[rows]  # (N, K, C)
-    return torch.einsum("nk,nkc->nc", weights, texels)
+    return _GatherBlend.apply(atlas, rows, weights)
 
 
 def pyramid_lookup(

@@ -163,6 +163,13 @@ class Trainer:
             self.material.to(self.device)
             self.optimizer = _make_optimizer(self.material, config)
         self._end = schedule_end(config)
+        self._loss = torch.compile(self._batch_loss, dynamic=False) if config.compile else self._batch_loss
+
+    def _batch_loss(
+        self, queries: torch.Tensor, target: torch.Tensor, levels: list[torch.Tensor], otex: torch.Tensor | None
+    ) -> torch.Tensor:
+        """(B, 7) queries, (B, 3) target, effective textures -> scalar training loss."""
+        return training_loss(self.material(queries, levels, otex), target, self.config)
 
     # --- checkpoints -----------------------------------------------------------------------------
 
@@ -239,7 +246,7 @@ class Trainer:
             self._freeze_offset()
         levels, otex = effective_textures(self.material, blur_sigma(state.step, cfg), cfg, state.offset_frozen)
         queries, target = self.sampler.draw(self.device)
-        loss = training_loss(self.material(queries, levels, otex), target, cfg)
+        loss = self._loss(queries, target, levels, otex)
         value = float(loss.detach())
         if not np.isfinite(value):
             raise TrainingDiverged(self._diverged_message("loss"))

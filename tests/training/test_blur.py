@@ -35,12 +35,17 @@ def test_blur_keeps_constant_and_mean_and_wraps():
 
 
 @pytest.mark.parametrize("sigma", [0.5, 2.0])
-def test_convolution_path_equals_circulant(sigma):
+def test_convolution_path_equals_circulant(sigma, monkeypatch):
     torch.manual_seed(1)
     rows = torch.randn(5, 32)
     k = gaussian_kernel(sigma, torch.float32, torch.device("cpu"))
     want = rows @ circulant(32, k).T
     got = _blur_rows(rows, k)  # radius < 32: the circular-convolution path
+    torch.testing.assert_close(got, want, atol=1e-5, rtol=1e-5)
+    tex = torch.randn(32, 32, 3)
+    by_matrix = blur_texture(tex, sigma)
+    monkeypatch.setattr("neumip.training.blur.MATRIX_MAX_SIZE", 16)
+    torch.testing.assert_close(blur_texture(tex, sigma), by_matrix, atol=1e-5, rtol=1e-5)
     torch.testing.assert_close(got, want, atol=1e-5, rtol=1e-5)
 
 

@@ -1,0 +1,147 @@
+"""Training throughput: queries per second of one full training step, and what a 256^2 run costs.
+
+A step is what `Trainer.step` does: blur the textures, draw a batch from a memory-mapped data
+set, forward, comb2 loss, backward, Adam. Three implementations are timed in the same run:
+
+- reference: the straightforward autograd version (the lookup as first written: `atlas[rows]`
+  gather with autograd's index_put backward, wrap's floor() inside the graph, convolution blur),
+- eager: the shipped implementation (index_add gather backward, floors outside the graph,
+  circulant-matrix blur),
+- compiled: the same through torch.compile (`TrainConfig.compile`).
+
+Wall-clock figures on a shared machine are noisy, so CPU seconds per step are printed too
+(queries per CPU-second, with the process's CPU time; the ratio between implementations is what
+to compare). Run: .venv/bin/python benchmarks/bench_train.py [--resolution 128] [--batch 65536]
+"""
+
+from __future__ import annotations
+
+import argparse
+import contextlib
+import os
+import tempfile
+import time
+from dataclasses import replace
+
+import numpy as np
+import torch
+
+import neumip.training.blur as blur_mod
+import neumip.training.pyramid as pyramid_mod
+from neumip.client import contract as C
+from neumip.training.config import MaterialConfig
+from neumip.training.dataset import write_dataset
+from neumip.training.train import Trainer
+from neumip.training.train_config import SHIP
+
+
+def reference_gather_blend(atlas, rows, weights):
+    """The straightforward lookup: fancy-index gather (autograd backward via index_put)."""
+    return torch.einsum("nk,nkc->nc", weights, atlas[rows])
+
+
+def reference_wrap(u):
+    return u - torch.floor(u)
+
+
+def reference_blur_texture(texture, sigma):
+    """Two circular 1-D convolutions (the first version of blur_texture)."""
+    size, _, channels = texture.shape
+    kernel = blur_mod.gaussian_kernel(sigma, texture.dtype, texture.device)
+    if (kernel.shape[0] - 1) // 2 >= size:
+        return blur_mod.blur_texture(texture, sigma)
+    x = blur_mod._blur_rows(texture.permute(0, 2, 1).reshape(size * channels, size), kernel)
+    y = blur_mod._blur_rows(x.reshape(size, channels, size).permute(1, 2, 0).reshape(channels * size, size), kernel)
+    return y.reshape(channels, size, size).permute(2, 1, 0)
+
+
+@contextlib.contextmanager
+def reference_implementation():
+    """Swap the straightforward lookup and blur in (module attributes, restored afterwards)."""
+    saved = (pyramid_mod.gather_blend, pyramid_mod.wrap, blur_mod.blur_texture)
+    pyramid_mod.gather_blend = reference_gather_blend
+    pyramid_mod.wrap = reference_wrap
+    blur_mod.blur_texture = reference_blur_texture
+    import neumip.training.train as train_mod
+
+    train_saved = train_mod.blur_texture
+    train_mod.blur_texture = reference_blur_texture
+    try:
+        yield
+    finally:
+        pyramid_mod.gather_blend, pyramid_mod.wrap, blur_mod.blur_texture = saved
+        train_mod.blur_texture = train_saved
+
+
+def synthetic_data(path: str, n: int) -> str:
+    """n random queries with a smooth RGB answer (training speed does not depend on the values)."""
+    rng = np.random.default_rng(0)
+    q = np.empty((n, C.QUERY_DIM), np.float32)
+    q[:, :2] = rng.uniform(0, 1, (n, 2))
+    q[:, 2] = 2.0 ** rng.uniform(-8, 0, n)
+    r = 0.99 * np.sqrt(rng.uniform(0, 1, (n, 2)))
+    phi = rng.uniform(0, 2 * np.pi, (n, 2))
+    q[:, 3], q[:, 4] = r[:, 0] * np.cos(phi[:, 0]), r[:, 0] * np.sin(phi[:, 0])
+    q[:, 5], q[:, 6] = r[:, 1] * np.cos(phi[:, 1]), r[:, 1] * np.sin(phi[:, 1])
+    rgb = (0.2 + 0.1 * np.sin(6.28 * q[:, :3])).astype(np.float32)
+    write_dataset(path, q, rgb, {"material": "bench-synthetic", "generator": "bench_train"})
+    return path
+
+
+def time_steps(trainer: Trainer, warmup: int, steps: int) -> tuple[float, float, float]:
+    """-> (first-step seconds, wall seconds per step, CPU seconds per step)."""
+    t0 = time.perf_counter()
+    trainer.step()
+    first = time.perf_counter() - t0
+    for _ in range(warmup):
+        trainer.step()
+    w0, c0 = time.perf_counter(), time.process_time()
+    for _ in range(steps):
+        trainer.step()
+    return first, (time.perf_counter() - w0) / steps, (time.process_time() - c0) / steps
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    parser.add_argument("--resolution", type=int, default=128)
+    parser.add_argument("--batch", type=int, default=1 << 16)
+    parser.add_argument("--steps", type=int, default=5, help="timed steps per implementation")
+    parser.add_argument("--modes", default="reference,eager,compiled")
+    parser.add_argument("--no-offset", action="store_true")
+    args = parser.parse_args()
+
+    torch.manual_seed(0)
+    print(f"torch {torch.__version__}, {torch.get_num_threads()} threads, load average {os.getloadavg()}")
+    material = MaterialConfig(resolution=args.resolution, offset=not args.no_offset)
+    results = {}
+    with tempfile.TemporaryDirectory() as tmp:
+        data = synthetic_data(os.path.join(tmp, "data"), max(4 * args.batch, 200_000))
+        for mode in args.modes.split(","):
+            config = replace(SHIP, batch=args.batch, compile=mode == "compiled", device="cpu")
+            ctx = reference_implementation() if mode == "reference" else contextlib.nullcontext()
+            with ctx:
+                trainer = Trainer(data, os.path.join(tmp, f"{mode}.pt"), material, config)
+                trainer.state.step = 500  # inside the blur schedule: the blur is part of the cost
+                first, wall, cpu = time_steps(trainer, warmup=2, steps=args.steps)
+            results[mode] = (wall, cpu)
+            print(
+                f"{mode:>9}: {args.batch / wall / 1e6:6.3f} M queries/s wall ({wall * 1e3:7.1f} ms/step), "
+                f"{args.batch / cpu / 1e6:6.3f} M queries per CPU-s; first step {first:5.1f} s"
+            )
+    if "reference" in results:
+        for mode, (wall, cpu) in results.items():
+            print(f"speed-up of {mode} over reference: wall {results['reference'][0] / wall:4.2f}x, "
+                  f"CPU {results['reference'][1] / cpu:4.2f}x")
+    best = min(results, key=lambda m: results[m][0])
+    wall = results[best][0]
+    q256 = SHIP.steps * SHIP.batch
+    print(
+        f"projection ({best}, this resolution's per-query cost): a 256^2 run of the ship preset "
+        f"({SHIP.steps} steps x {SHIP.batch} = {q256 / 1e6:.0f} M queries) takes "
+        f"{q256 * wall / args.batch / 60:.0f} min wall at this rate; "
+        f"the paper preset ({30_000 * (1 << 20) / 1e9:.1f} G queries) {30_000 * (1 << 20) * wall / args.batch / 3600:.1f} h"
+    )
+
+
+if __name__ == "__main__":
+    main()
