@@ -5,7 +5,7 @@
 
 The material is 256^2 with the neural offset and random weights (speed does not depend on training);
 queries are uniformly random (u, v, sigma over all levels, directions): the worst case for the texel
-caches, a renderer's queries are more coherent. Consecutive calls read different queries from a pool
+caches; one row of the graphs table reads coherent, renderer-like queries instead. Consecutive calls read different queries from a pool
 of 2^20. Other jobs share this machine's cores, so every table interleaves its variants round by
 round and reports the median of the rounds, twice: queries per wall-clock second, and queries per
 CPU second of this process (what a query costs, whatever the other jobs take). Compare ratios within
@@ -104,6 +104,20 @@ def random_queries(n: int, seed: int) -> np.ndarray:
     return C.pack_queries(rng.uniform(-2, 3, n), rng.uniform(-2, 3, n), sigma, dirs[:, 0], dirs[:, 1])
 
 
+def coherent_queries(n: int, resolution: int) -> np.ndarray:
+    """(n, 7) queries in the order a renderer issues them: scanlines of an image of a plane tiled 8
+    times across, one pixel a little over one finest texel wide (sigma = 1.3 texels), a fixed light
+    and a view direction that turns slowly across the image."""
+    side = int(np.ceil(np.sqrt(n)))
+    y, x = np.divmod(np.arange(n), side)
+    u, v = 8.0 * x / side, 8.0 * y / side
+    sigma = np.full(n, 1.3 / resolution)
+    wi = np.tile([0.3, -0.2], (n, 1))
+    angle = np.pi * x / side
+    wo = 0.5 * np.stack([np.cos(angle), np.sin(angle)], axis=1) * (y / side)[:, None]
+    return C.pack_queries(u, v, sigma, wi, wo)
+
+
 def throughput(fn, rows: int, seconds: float) -> tuple[float, float]:
     """`fn()` evaluates `rows` queries; repeated for at least `seconds` (one call at least).
 
@@ -183,14 +197,19 @@ def graphs_section(mat, models: dict[str, bytes], args) -> None:
 
     pool = random_queries(1 << 20, seed=20)
     tpool = torch.from_numpy(pool)
+    coherent = coherent_queries(1 << 20, args.resolution)
+    default = sessions["taps4 gemm (default)"]
     with tempfile.TemporaryDirectory() as folder:
         (Path(folder) / "m.onnx").write_bytes(models["taps4 gemm (default)"])
         local = LocalMaterials(folder, threads=args.threads)
-        names = [*sessions, f"LocalMaterials.evaluate, {args.threads} workers", "torch eager"]
+        names = [*sessions, "default, coherent queries", f"LocalMaterials.evaluate, {args.threads} workers",
+                 "torch eager"]
         columns, table = [], {name: [] for name in names}
         for log2 in args.batches:
             q, tq = Batches(pool, 1 << log2), Batches(tpool, 1 << log2)
+            cq = Batches(coherent, 1 << log2)
             fns = {name: (lambda s=s: s.run(None, {C.ONNX_INPUT: q.next()})) for name, s in sessions.items()}
+            fns["default, coherent queries"] = lambda: default.run(None, {C.ONNX_INPUT: cq.next()})
             fns[names[-2]] = lambda: local.evaluate("m", q.next())
             fns["torch eager"] = lambda: torch_eval(mat, tq.next())
             for name, value in interleaved(fns, 1 << log2, args.seconds, args.rounds).items():
