@@ -17,6 +17,7 @@ one table, and read the load average printed with it. Sections:
            optimization level) against one-thread sessions running chunks on 2 threads.
 - chunk:   `run_chunked` on 2^20 queries for several chunk sizes.
 - load:    seconds to open a session: each variant, and the default from a cached optimized model.
+- ops:     one elementwise op on (N, 1) vs (N, 1) <op> (1, 1) shapes (ONNX Runtime's slow broadcast).
 """
 
 from __future__ import annotations
@@ -288,6 +289,32 @@ def load_section(models: dict[str, bytes], args) -> None:
             print(f"  {name:34s} {statistics.median(times):6.3f} s   file {size / 1e6:5.1f} MB")
 
 
+def ops_section(args) -> None:
+    """Why the export writes scalars as (1, 1): one Mul of a (2^14, k) tensor by a constant, per
+    shape pair, 1 thread, optimizations off (so ONNX Runtime keeps the 20 chained Muls)."""
+    from onnx import TensorProto, helper, numpy_helper
+
+    print(f"\n## microseconds per Mul of (2^14, k) by a constant, 1 thread   [{load_text()}]")
+    n = 1 << 14
+    cases = [((n, 1), ()), ((n, 1), (1,)), ((n, 1), (1, 1)), ((n,), ()), ((n, 2), ()), ((n, 2), (n, 2))]
+    for shape, const_shape in cases:
+        nodes, inits, x = [], [], "x"
+        for i in range(20):
+            inits.append(numpy_helper.from_array(np.full(const_shape, 1.0001, np.float32), f"c{i}"))
+            nodes.append(helper.make_node("Mul", [x, f"c{i}"], [f"y{i}"]))
+            x = f"y{i}"
+        dims = ["N", *shape[1:]]
+        graph = helper.make_graph(nodes, "ops", [helper.make_tensor_value_info("x", TensorProto.FLOAT, dims)],
+                                  [helper.make_tensor_value_info(x, TensorProto.FLOAT, dims)], initializer=inits)
+        model = helper.make_model(graph, opset_imports=[helper.make_opsetid("", 18)])
+        model.ir_version = 9
+        sess = open_session(model.SerializeToString(), Session(threads=1, spinning=False, level="disabled"))
+        data = {"x": np.ones(shape, np.float32)}
+        _, per_cpu_s = throughput(lambda: sess.run(None, data), 1, args.seconds)
+        print(f"  ({', '.join(str(d) for d in shape)}) * const of shape {const_shape}: "
+              f"{1e6 / per_cpu_s / 20:8.1f} us")
+
+
 def log2_list(text: str) -> list[int]:
     if "-" in text:
         lo, hi = (int(x) for x in text.split("-"))
@@ -297,7 +324,7 @@ def log2_list(text: str) -> list[int]:
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    parser.add_argument("--sections", default="graphs,session,chunk,load")
+    parser.add_argument("--sections", default="graphs,session,chunk,load,ops")
     parser.add_argument("--resolution", type=int, default=256)
     parser.add_argument("--batches", type=log2_list, default=log2_list("10-20"), help="log2 batch sizes")
     parser.add_argument("--session-batches", type=log2_list, default=log2_list("12,14,16,18"))
@@ -325,6 +352,8 @@ def main() -> None:
         chunk_section(models["taps4 gemm (default)"], args)
     if "load" in sections:
         load_section(models, args)
+    if "ops" in sections:
+        ops_section(args)
 
 
 if __name__ == "__main__":

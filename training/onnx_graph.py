@@ -34,7 +34,7 @@ class GraphWriter:
         """A float32 constant of shape (1, 1) for elementwise ops on 2-D tensors.
 
         ONNX Runtime 1.31 runs (N, 1) <op> () and (N, 1) <op> (1,) through a slow broadcasting path
-        (about 80x slower than (N, 1) <op> (1, 1); benchmarks/bench_inference.py --sections ops).
+        (tens of times slower than (N, 1) <op> (1, 1); benchmarks/bench_inference.py --sections ops).
         """
         return self.const(np.full((1, 1), value, np.float32))
 
