@@ -6,6 +6,7 @@ import shutil
 from pathlib import Path
 
 import numpy as np
+import pytest
 
 from neumip.client import cli
 from neumip.client.local import LocalMaterials
@@ -52,3 +53,17 @@ def test_demo_command_line(model_dir, tmp_path, capsys):
     assert rc == 0
     assert "s total" in capsys.readouterr().out
     assert np.array(mi.Bitmap(str(out))).shape[:2] == (32, 48)
+
+
+SHIPPED = DEMO.parents[1] / "models"
+
+
+@pytest.mark.skipif(
+    not all((SHIPPED / f"{n}.onnx").exists() for n in NAMES),
+    reason=f"the trained materials {', '.join(NAMES)} are not in models/ (bash models/make_models.sh)",
+)
+def test_demo_renders_with_the_shipped_materials():
+    scene = load_scene(DEMO, resx="64", resy="64")
+    result = render_scene(scene, LocalMaterials(SHIPPED), RenderConfig(spp=4))
+    assert sorted(result.stats.per_material) == NAMES
+    assert np.isfinite(result.image).all() and result.image.mean() > 0.05
