@@ -55,6 +55,8 @@ class TrainState:
     """Wall time spent training so far, over all resumed parts."""
     offset_frozen: bool = False
     """The offset texture has been baked with its blur floor and no longer trains."""
+    baked: bool = False
+    """The run ended inside the blur schedule and its blurred textures were stored as the weights."""
 
 
 def resolve_device(name: str) -> torch.device:
@@ -271,6 +273,9 @@ class Trainer:
         )
         started = time.perf_counter()
         done_before = state.seconds
+        if state.baked and state.step < cfg.steps:
+            log.warning("continuing a run whose final blurred textures were baked: they are blurred again")
+            state.baked = False
         while state.step < cfg.steps:
             loss = self.step()
             state.seconds = done_before + time.perf_counter() - started
@@ -279,9 +284,10 @@ class Trainer:
             if callback is not None:
                 callback(state.step, loss)
         sigma = blur_sigma(state.step, cfg)
-        if sigma > 0 or (self.material.config.offset and not state.offset_frozen):
+        if not state.baked and (sigma > 0 or (self.material.config.offset and not state.offset_frozen)):
             log.warning("run ended inside the blur schedule (sigma %.3g): baking the blurred textures", sigma)
             bake(self.material, *effective_textures(self.material, sigma, cfg, state.offset_frozen))
+            state.baked = True
         table = self.validate()
         table["train_seconds"] = round(state.seconds, 1)
         table["steps"] = state.step
