@@ -46,7 +46,10 @@ def test_malformed_http_never_hangs_or_kills_the_server(live_server, payload):
     reply = send_raw(live_server.host_port, payload)
     if reply:
         status = int(reply.split(b" ", 2)[1])
-        assert 400 <= status < 500, reply[:300]
+        if payload is RAW["oversized header"]:  # a valid GET: h11 refuses the header, httptools serves it
+            assert status in (200, 400, 431), reply[:300]
+        else:
+            assert 400 <= status < 500, reply[:300]
     assert httpx.get(live_server.url + "/v2/health/live", timeout=5).status_code == 200
     assert live_server.process.poll() is None
 
