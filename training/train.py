@@ -31,6 +31,9 @@ from .validation import predict, validation_table
 
 log = logging.getLogger(__name__)
 
+MAY_CHANGE_ON_RESUME = {"steps", "device", "compile", "preload_mb", "checkpoint_every"}
+"""TrainConfig fields a resumed run may set differently (they do not change what is learned)."""
+
 Callback = Callable[[int, float], None]
 """Called after every optimiser step with (steps done, loss of that step)."""
 
@@ -101,10 +104,13 @@ def bake(material: NeuMIPMaterial, levels: list[torch.Tensor], otex: torch.Tenso
 
 
 class BatchSampler:
-    """Uniform random batches of the training split, drawn from the memory-mapped data."""
+    """Uniform random batches of the training split, drawn from the (memory-mapped) data."""
 
-    def __init__(self, data: Dataset, train_idx: np.ndarray, batch: int, seed: int) -> None:
-        self.data, self.batch = data, batch
+    def __init__(self, data: Dataset, train_idx: np.ndarray, batch: int, seed: int, preload_mb: int) -> None:
+        self.batch = batch
+        self.queries, self.rgb = data.queries, data.rgb
+        if (data.queries.nbytes + data.rgb.nbytes) / 2**20 <= preload_mb:
+            self.queries, self.rgb = np.array(data.queries), np.array(data.rgb)
         self.train_idx = torch.from_numpy(train_idx)
         self.generator = torch.Generator().manual_seed(seed)
 
@@ -112,8 +118,8 @@ class BatchSampler:
         """-> queries (B, 7), rgb (B, 3) float32 on `device`; rows read in file order (page locality)."""
         pick = torch.randint(len(self.train_idx), (self.batch,), generator=self.generator)
         rows = np.sort(self.train_idx[pick].numpy())
-        q = torch.from_numpy(self.data.queries[rows])
-        rgb = torch.from_numpy(self.data.rgb[rows])
+        q = torch.from_numpy(self.queries[rows])
+        rgb = torch.from_numpy(self.rgb[rows])
         return q.to(device, non_blocking=True), rgb.to(device, non_blocking=True)
 
 
@@ -154,7 +160,7 @@ class Trainer:
         self.config, self.description = config, description
         self.device = resolve_device(config.device)
         self.train_idx, self.val_idx = split_indices(len(self.data), config)
-        self.sampler = BatchSampler(self.data, self.train_idx, config.batch, config.seed)
+        self.sampler = BatchSampler(self.data, self.train_idx, config.batch, config.seed, config.preload_mb)
         self.state = TrainState()
         if self.checkpoint_path.exists():
             self.material = self._resume(material_config)
@@ -186,8 +192,8 @@ class Trainer:
                 "use the same settings to resume, or another --checkpoint"
             )
         saved = extra.get("train_config", {})
-        if {k: v for k, v in saved.items() if k != "steps"} != {
-            k: v for k, v in self.config.to_dict().items() if k != "steps"
+        if {k: v for k, v in saved.items() if k not in MAY_CHANGE_ON_RESUME} != {
+            k: v for k, v in self.config.to_dict().items() if k not in MAY_CHANGE_ON_RESUME
         }:
             raise TrainingError(f"{self.checkpoint_path} was written with other training settings: {saved}")
         if extra.get("data") != self._data_identity():

@@ -44,6 +44,9 @@ class TrainConfig:
     """Seeds the initial weights, the split and the batch sampling (a run is reproducible)."""
     device: str = "auto"
     """'auto' (CUDA when available, else CPU), 'cpu' or 'cuda'."""
+    preload_mb: int = 2048
+    """Data sets up to this size are copied into memory (page cache can be evicted under memory
+    pressure, and random batches then read from disk); larger ones stay memory-mapped."""
     compile: bool = False
     """Run the forward pass and loss through torch.compile (about a minute of compiling first)."""
 
