@@ -53,7 +53,7 @@ class TrainState:
     step: int = 0
     """Optimiser steps done."""
     history: list = field(default_factory=list)
-    """[step, loss] records every `log_every` steps."""
+    """[step, mean loss of the steps since the previous record] every `log_every` steps."""
     seconds: float = 0.0
     """Wall time spent training so far, over all resumed parts."""
     offset_frozen: bool = False
@@ -171,6 +171,7 @@ class Trainer:
             self.material.to(self.device)
             self.optimizer = _make_optimizer(self.material, config)
         self._end = schedule_end(config)
+        self._window: list[float] = []  # losses since the last history record
         self._loss = torch.compile(self._batch_loss, dynamic=False) if config.compile else self._batch_loss
 
     def _batch_loss(
@@ -262,8 +263,10 @@ class Trainer:
         loss.backward()
         self.optimizer.step()
         state.step += 1
+        self._window.append(value)
         if state.step % cfg.log_every == 0 or state.step == cfg.steps:
-            state.history.append([state.step, value])
+            state.history.append([state.step, float(np.mean(self._window))])
+            self._window = []
         return value
 
     def run(self, callback: Callback | None = None) -> dict:
