@@ -2,10 +2,13 @@
 
 Handlers decode and validate a request, then `Batcher.evaluate` cuts its (N, 7) queries into pieces of
 at most ``chunk_rows`` rows (large requests are split: one ONNX Runtime call on 10^6 rows is several
-times slower than the same rows in cache-sized chunks). Each material has a collector task that takes
-pieces first-in first-out and merges consecutive small ones into one call of up to ``chunk_rows``
-rows, waiting at most ``max_wait_ms`` for more to arrive. Calls run in a dedicated thread pool with
-one thread per ONNX Runtime worker; `predict` is the only function that touches ONNX Runtime.
+times slower than the same rows in cache-sized chunks) and queues them. A pool of worker threads, one
+per ONNX Runtime worker (default: one per core), is the executor: each worker takes the oldest queued
+pieces of one material, merging consecutive small ones into one call of up to ``chunk_rows`` rows and
+waiting at most ``max_wait_ms`` (counted from the oldest piece's arrival) for a call to fill, runs the
+call, and copies each piece's rows back. Workers pull work themselves, so consecutive chunks of a large
+request run back to back without a round trip through the event loop; the loop hears back once per
+request. `predict` is the only function that touches ONNX Runtime.
 
 Merging keeps answers bit-identical to evaluating each request on its own: some ONNX Runtime CPU
 kernels (``Log``, used for the level of detail) compute vector-sized blocks and the last few elements
@@ -21,10 +24,11 @@ Admission is bounded in rows: a request that would take the rows admitted and no
 from __future__ import annotations
 
 import asyncio
+import itertools
 import logging
+import threading
 import time
 from collections import deque
-from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -54,6 +58,7 @@ class _Job:
     future: asyncio.Future
     out: np.ndarray  # (N, 3) float32, filled piece by piece
     pieces_left: int
+    error: ApiError | None = None
 
 
 @dataclass
@@ -64,6 +69,8 @@ class _Piece:
     queries: np.ndarray  # (n, 7) float32 view into the request's queries
     out: np.ndarray  # (n, 3) float32 view into the job's answer buffer
     tail: bool = False  # the request's last N % ALIGN_ROWS rows: must end an ONNX Runtime call
+    arrived: float = 0.0  # time.monotonic() when queued
+    order: int = 0  # global arrival order (first in, first out across materials)
 
     @property
     def rows(self) -> int:
@@ -72,14 +79,16 @@ class _Piece:
 
 @dataclass
 class _MaterialQueue:
-    """Pieces waiting for one material, and the event that wakes its collector."""
+    """Pieces waiting for one material."""
 
     material: Material
     bodies: deque = field(default_factory=deque)  # pieces of a multiple of ALIGN_ROWS rows
     tails: deque = field(default_factory=deque)  # pieces of fewer than ALIGN_ROWS rows
-    arrived: asyncio.Event = field(default_factory=asyncio.Event)
     rows: int = 0
-    task: asyncio.Task | None = None
+
+    def oldest(self) -> _Piece | None:
+        heads = [q[0] for q in (self.bodies, self.tails) if q]
+        return min(heads, key=lambda p: p.order) if heads else None
 
 
 def split(queries: np.ndarray, out: np.ndarray, chunk: int, job: _Job) -> list[_Piece]:
@@ -96,10 +105,24 @@ def split(queries: np.ndarray, out: np.ndarray, chunk: int, job: _Job) -> list[_
     return pieces
 
 
+def take(queue: _MaterialQueue, chunk: int) -> list[_Piece]:
+    """Body pieces first-in first-out while they fit in `chunk` rows, then the oldest tail if it
+    fits (a tail must end the call). A batch holds at least one piece."""
+    batch, rows = [], 0
+    while queue.bodies and (not batch or rows + queue.bodies[0].rows <= chunk):
+        batch.append(queue.bodies.popleft())
+        rows += batch[-1].rows
+    if queue.tails and (not batch or rows + queue.tails[0].rows <= chunk):
+        batch.append(queue.tails.popleft())
+        rows += batch[-1].rows
+    queue.rows -= rows
+    return batch
+
+
 def run_batch(session, pieces: list[_Piece]) -> int:
     """Merge pieces, predict once, and copy each piece's rows of the answer back (unbatch).
 
-    Runs in an executor thread; returns the rows evaluated.
+    Runs in a worker thread; returns the rows evaluated.
     """
     if len(pieces) == 1:
         queries = pieces[0].queries  # (n, 7): a row slice of a C-contiguous buffer, no copy
@@ -120,43 +143,43 @@ class Batcher:
         self.settings = settings
         self.metrics = metrics
         self.workers = settings.workers()
-        self.executor = ThreadPoolExecutor(self.workers, thread_name_prefix="onnxruntime")
-        self._materials = materials
-        self._queues: dict[str, _MaterialQueue] = {}
-        self._slots: asyncio.Semaphore | None = None
-        self._admitted_rows = 0
+        self._queues = {name: _MaterialQueue(material) for name, material in materials.items()}
+        self._cond = threading.Condition()
+        self._order = itertools.count()
+        self._closing = False
+        self._threads: list[threading.Thread] = []
+        self._loop: asyncio.AbstractEventLoop | None = None
+        self._admitted_rows = 0  # touched on the event loop only
         self._admitted_requests = 0
-        self._running: set[asyncio.Task] = set()
 
     # --- life cycle -------------------------------------------------------------------------
     def start(self) -> None:
-        """Start one collector per material (call inside the running event loop)."""
-        self._slots = asyncio.Semaphore(self.workers)
-        for name, material in self._materials.items():
-            queue = _MaterialQueue(material)
-            queue.task = asyncio.create_task(self._collect(queue), name=f"collect-{name}")
-            self._queues[name] = queue
+        """Start the worker threads (call inside the running event loop that awaits answers)."""
+        self._loop = asyncio.get_running_loop()
+        self._threads = [
+            threading.Thread(target=self._work, name=f"onnxruntime-{i}", daemon=True) for i in range(self.workers)
+        ]
+        for thread in self._threads:
+            thread.start()
         log.info(
             "batcher: %d ONNX Runtime worker(s), chunks of %d rows, merge wait %.1f ms",
             self.workers, self.settings.chunk_rows, self.settings.max_wait_ms,
         )
 
     async def close(self) -> None:
-        """Finish the calls under way, stop the collectors and the executor."""
-        if self._running:
-            await asyncio.gather(*self._running, return_exceptions=True)
-        for queue in self._queues.values():
-            if queue.task is not None:
-                queue.task.cancel()
-        await asyncio.gather(*(q.task for q in self._queues.values() if q.task), return_exceptions=True)
-        self.executor.shutdown(wait=True)
+        """Let the workers finish what is queued, then stop them."""
+        with self._cond:
+            self._closing = True
+            self._cond.notify_all()
+        for thread in self._threads:
+            await asyncio.to_thread(thread.join)
 
     @property
     def admitted_rows(self) -> int:
         """Rows admitted and not yet answered."""
         return self._admitted_rows
 
-    # --- batch ------------------------------------------------------------------------------
+    # --- batch (event loop side) --------------------------------------------------------------
     async def evaluate(self, name: str, queries: np.ndarray) -> np.ndarray:
         """Validated (N, 7) float32 queries for material `name` -> (N, 3) float32 RGB.
 
@@ -172,22 +195,25 @@ class Batcher:
             )
         queue = self._queues[name]
         out = np.empty((n, C.RGB_DIM), dtype=C.DTYPE)
-        job = _Job(asyncio.get_running_loop().create_future(), out, 0)
+        job = _Job(self._loop.create_future(), out, 0)
         pieces = split(queries, out, self.settings.chunk_rows, job)
         job.pieces_left = len(pieces)
         self._admit(n, +1)
-        try:
+        self.metrics.request_rows.observe(n)
+        now = time.monotonic()
+        with self._cond:
             for piece in pieces:
+                piece.arrived, piece.order = now, next(self._order)
                 (queue.tails if piece.tail else queue.bodies).append(piece)
             queue.rows += n
-            queue.arrived.set()
-            self.metrics.request_rows.observe(n)
+            self._cond.notify(len(pieces))
+        try:
             return await asyncio.shield(job.future)
         finally:
-            if not job.future.done():  # the handler was cancelled: the pieces still run
-                job.future.add_done_callback(lambda _: self._admit(n, -1))
-            else:
+            if job.future.done():
                 self._admit(n, -1)
+            else:  # the handler was cancelled: the pieces still run, the rows count until then
+                job.future.add_done_callback(lambda _: self._admit(n, -1))
 
     def _admit(self, rows: int, sign: int) -> None:
         self._admitted_rows += sign * rows
@@ -195,62 +221,60 @@ class Batcher:
         self.metrics.queue_rows.set(self._admitted_rows)
         self.metrics.queue_requests.set(self._admitted_requests)
 
-    async def _collect(self, queue: _MaterialQueue) -> None:
-        """Forever: wait for pieces and a free worker, merge what is waiting, launch one call."""
+    @staticmethod
+    def _finish(job: _Job) -> None:
+        """On the event loop: hand the finished job's answer (or error) to its handler."""
+        if job.future.done():
+            return
+        if job.error is not None:
+            job.future.set_exception(job.error)
+        else:
+            job.future.set_result(job.out)
+
+    # --- predict and unbatch (worker threads) --------------------------------------------------
+    def _next_batch(self) -> tuple[Material, list[_Piece]] | None:
+        """Under the lock: wait for work, then the batch to run; None once closing and drained."""
         chunk, wait_s = self.settings.chunk_rows, self.settings.max_wait_ms / 1000.0
         while True:
-            while not (queue.bodies or queue.tails):
-                queue.arrived.clear()
-                await queue.arrived.wait()
-            await self._slots.acquire()
-            deadline = time.perf_counter() + wait_s
-            while queue.rows < chunk and (remaining := deadline - time.perf_counter()) > 0:
-                queue.arrived.clear()
-                try:
-                    await asyncio.wait_for(queue.arrived.wait(), remaining)
-                except asyncio.TimeoutError:
-                    break
-            batch = self._take(queue, chunk)
-            task = asyncio.create_task(self._run(queue.material, batch))
-            self._running.add(task)
-            task.add_done_callback(self._running.discard)
+            ready = [(q.oldest(), q) for q in self._queues.values() if q.rows]
+            if not ready:
+                if self._closing:
+                    return None
+                self._cond.wait()
+                continue
+            first, queue = min(ready, key=lambda pq: pq[0].order)
+            remaining = first.arrived + wait_s - time.monotonic()
+            if queue.rows >= chunk or remaining <= 0 or self._closing:
+                return queue.material, take(queue, chunk)
+            self._cond.wait(remaining)  # more pieces may arrive to fill the call
 
-    @staticmethod
-    def _take(queue: _MaterialQueue, chunk: int) -> list[_Piece]:
-        """Body pieces first-in first-out while they fit in `chunk` rows, then the oldest tail if it
-        fits (a tail must end the call). A batch holds at least one piece."""
-        batch, rows = [], 0
-        while queue.bodies and (not batch or rows + queue.bodies[0].rows <= chunk):
-            batch.append(queue.bodies.popleft())
-            rows += batch[-1].rows
-        if queue.tails and (not batch or rows + queue.tails[0].rows <= chunk):
-            batch.append(queue.tails.popleft())
-            rows += batch[-1].rows
-        queue.rows -= rows
-        return batch
-
-    # --- predict and unbatch ----------------------------------------------------------------
-    async def _run(self, material: Material, batch: list[_Piece]) -> None:
-        loop = asyncio.get_running_loop()
-        start = time.perf_counter()
-        try:
-            rows = await loop.run_in_executor(self.executor, run_batch, material.session, batch)
-        except Exception as exc:  # a model fault: every request in the batch fails with it
-            log.exception("ONNX Runtime failed on material %s", material.name)
-            for piece in batch:
-                if not piece.job.future.done():
-                    piece.job.future.set_exception(
-                        ApiError(500, f"evaluating material {material.name!r} failed: {exc}")
-                    )
-            return
-        finally:
-            self._slots.release()
-        self.metrics.predict_seconds.observe(time.perf_counter() - start)
-        self.metrics.batch_rows.observe(rows)
-        self.metrics.batch_requests.observe(len(batch))
-        self.metrics.rows.labels(material.name).inc(rows)
-        for piece in batch:
-            job = piece.job
-            job.pieces_left -= 1
-            if job.pieces_left == 0 and not job.future.done():
-                job.future.set_result(job.out)
+    def _work(self) -> None:
+        """A worker thread: take a batch, run it, report finished jobs to the event loop."""
+        while True:
+            with self._cond:
+                work = self._next_batch()
+            if work is None:
+                return
+            material, batch = work
+            start = time.perf_counter()
+            error = None
+            try:
+                rows = run_batch(material.session, batch)
+            except Exception as exc:  # a model fault: every request in the batch fails with it
+                log.exception("ONNX Runtime failed on material %s", material.name)
+                error = ApiError(500, f"evaluating material {material.name!r} failed: {exc}")
+            else:
+                self.metrics.predict_seconds.observe(time.perf_counter() - start)
+                self.metrics.batch_rows.observe(rows)
+                self.metrics.batch_requests.observe(len(batch))
+                self.metrics.rows.labels(material.name).inc(rows)
+            finished = []
+            with self._cond:
+                for piece in batch:
+                    job = piece.job
+                    job.error = job.error or error
+                    job.pieces_left -= 1
+                    if job.pieces_left == 0:
+                        finished.append(job)
+            for job in finished:
+                self._loop.call_soon_threadsafe(self._finish, job)
