@@ -9,6 +9,7 @@ the same criterion (so the check can fail).
 from __future__ import annotations
 
 import itertools
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -68,3 +69,19 @@ def test_same_seed_follows_the_stock_sample_sequence(model_dir):
     ours = neural(simple, LocalMaterials(model_dir), seed=7)
     reference = stock(simple, DIFFUSE, seed=7)
     assert np.abs(ours - reference).mean() < 1e-3 * reference.mean()
+
+
+SHIPPED_FLAT = Path(__file__).resolve().parents[3] / "models" / "flat.onnx"
+
+
+@pytest.mark.skipif(not SHIPPED_FLAT.exists(), reason="models/flat.onnx (trained flat Lambertian) not shipped yet")
+def test_trained_flat_material_renders_like_diffuse(tmp_path):
+    """The whole pipeline: a material trained on path-traced data of a flat albedo-0.5 plane renders
+    like Mitsuba's diffuse 0.5, up to the model's fitting error (a few percent)."""
+    (tmp_path / "lambert.onnx").symlink_to(SHIPPED_FLAT)  # LAMBERT names the material 'lambert'
+    ours = neural(simple, LocalMaterials(tmp_path), seed=4)
+    reference = stock(simple, DIFFUSE, seed=1)
+    assert abs(ours[..., :3].mean() / reference[..., :3].mean() - 1) < 0.05
+    assert block_error(ours, reference) < 0.05 * reference[..., :3].mean() + 2 * block_error(
+        stock(simple, DIFFUSE, seed=2), reference
+    )
