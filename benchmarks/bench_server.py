@@ -7,8 +7,9 @@ request, and the server's resident memory before and after the load.
 
 Starts a real `neumip serve` process on 127.0.0.1 (default settings unless NEUMIP_* variables say
 otherwise) and talks to it from this process, so client-side encoding and decoding are part of every
-end-to-end figure. The default model is the first `models/*.onnx`, else a 256^2 material with the
-neural offset and random weights (speed does not depend on training). In-process = `LocalMaterials`
+end-to-end figure. The default model is the default `MaterialConfig` (256^2, neural offset) with
+random weights, as in bench_inference.py (speed does not depend on training); `--model` takes an
+exported file, e.g. one of `models/`. In-process = `LocalMaterials`
 with its defaults (a worker per core). Other jobs share this machine's cores: the throughput table
 interleaves in-process, msgpack and v2 round by round and reports medians and the median per-round
 ratio; read the load average printed with it.
@@ -34,12 +35,9 @@ import numpy as np
 from neumip.client import contract as C
 from neumip.client.local import LocalMaterials
 
-ROOT = Path(__file__).resolve().parents[1]
-
-
 def parse_args() -> argparse.Namespace:
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    p.add_argument("--model", type=Path, help="an exported .onnx material (default: see above)")
+    p.add_argument("--model", type=Path, help="an exported .onnx material (default: 256^2 random, see above)")
     p.add_argument("--rows", type=int, default=1 << 16, help="queries per throughput request")
     p.add_argument("--rounds", type=int, default=7, help="interleaved throughput rounds")
     p.add_argument("--latency-rows", type=int, default=4096, help="queries per request in the latency runs")
@@ -62,10 +60,6 @@ def query_pool(n: int, seed: int = 0) -> np.ndarray:
 
 def model_folder(args: argparse.Namespace, scratch: Path) -> tuple[Path, str]:
     """A folder holding just the benchmark model, and the model's name."""
-    if args.model is None:
-        shipped = sorted((ROOT / "models").glob("*.onnx"))
-        if shipped:
-            args.model = shipped[0]
     folder = scratch / "models"
     folder.mkdir()
     if args.model is not None:
