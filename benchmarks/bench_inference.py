@@ -47,11 +47,11 @@ from neumip.training.material import NeuMIPMaterial  # noqa: E402
 
 GRAPHS = {
     "modulo (first export)": GraphOptions(lookup="modulo"),
-    "taps4 gemm (default)": GraphOptions(),
-    "taps4 gemm int32": GraphOptions(index_type="int32"),
-    "taps2 gemm": GraphOptions(taps_per_row=2),
-    "taps1 gemm": GraphOptions(taps_per_row=1),
-    "taps4 sum": GraphOptions(blend="sum"),
+    "taps4 sum (default)": GraphOptions(),
+    "taps4 sum int32": GraphOptions(index_type="int32"),
+    "taps2 sum": GraphOptions(taps_per_row=2),
+    "taps1 sum": GraphOptions(taps_per_row=1),
+    "taps4 gemm": GraphOptions(blend="gemm"),
     "taps4 reduce": GraphOptions(blend="reduce"),
     "taps4 premultiplied": GraphOptions(blend="premultiplied"),
     "gridsample": GraphOptions(lookup="gridsample"),
@@ -199,9 +199,9 @@ def graphs_section(mat, models: dict[str, bytes], args) -> None:
     pool = random_queries(1 << 20, seed=20)
     tpool = torch.from_numpy(pool)
     coherent = coherent_queries(1 << 20, args.resolution)
-    default = sessions["taps4 gemm (default)"]
+    default = sessions["taps4 sum (default)"]
     with tempfile.TemporaryDirectory() as folder:
-        (Path(folder) / "m.onnx").write_bytes(models["taps4 gemm (default)"])
+        (Path(folder) / "m.onnx").write_bytes(models["taps4 sum (default)"])
         local = LocalMaterials(folder, threads=args.threads)
         names = [*sessions, "default, coherent queries", f"LocalMaterials.evaluate, {args.threads} workers",
                  "torch eager"]
@@ -275,7 +275,7 @@ def load_section(models: dict[str, bytes], args) -> None:
         cached = Path(folder) / "default.optimized.onnx"
         opts = Session(threads=args.threads).options()
         opts.optimized_model_filepath = str(cached)
-        ort.InferenceSession(models["taps4 gemm (default)"], opts, providers=["CPUExecutionProvider"])
+        ort.InferenceSession(models["taps4 sum (default)"], opts, providers=["CPUExecutionProvider"])
         sources = dict(models)
         sources["default, cached optimized model"] = str(cached)
         for name, source in sources.items():
@@ -339,7 +339,7 @@ def main() -> None:
     mat = material(args.resolution, seed=0)
     weights = weights_from_state(mat.state_dict(), mat.config)
     names = [n for n in GRAPHS if not args.graphs or any(s in n for s in args.graphs.split(","))]
-    names = names if "taps4 gemm (default)" in names else ["taps4 gemm (default)", *names]
+    names = names if "taps4 sum (default)" in names else ["taps4 sum (default)", *names]
     models = {n: build_onnx(mat.config, weights, options=GRAPHS[n]).SerializeToString() for n in names}
     print(f"# {args.resolution}^2 material with offset; onnxruntime {ort.__version__}, torch {torch.__version__}, "
           f"{args.threads} threads; {load_text()}")
@@ -347,9 +347,9 @@ def main() -> None:
     if "graphs" in sections:
         graphs_section(mat, models, args)
     if "session" in sections:
-        session_section(models["taps4 gemm (default)"], args)
+        session_section(models["taps4 sum (default)"], args)
     if "chunk" in sections:
-        chunk_section(models["taps4 gemm (default)"], args)
+        chunk_section(models["taps4 sum (default)"], args)
     if "load" in sections:
         load_section(models, args)
     if "ops" in sections:
