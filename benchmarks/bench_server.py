@@ -105,10 +105,14 @@ class Server:
         return self.process.wait(timeout=60)
 
 
-def msgpack_call(http: httpx.Client, name: str, q: np.ndarray) -> np.ndarray:
+def msgpack_call(http: httpx.Client, name: str, q: np.ndarray, stages: dict | None = None) -> np.ndarray:
     resp = http.post(C.EVALUATE_PATH.format(name=name), content=C.encode_request(q),
                      headers={"content-type": C.MSGPACK_MEDIA_TYPE})
     resp.raise_for_status()
+    if stages is not None:  # the server's own stage durations (Server-Timing header, ms)
+        for part in resp.headers.get("server-timing", "").split(", "):
+            stage, _, ms = part.partition(";dur=")
+            stages.setdefault(stage, []).append(float(ms))
     return C.decode_response(resp.content)
 
 
@@ -124,9 +128,10 @@ def v2_call(triton_client, name: str, q: np.ndarray) -> np.ndarray:
 def throughput(args, name, local, http, triton_client, pool) -> None:
     n = args.rows
     batches = [pool[i * n : (i + 1) * n] for i in range(len(pool) // n)]
+    stages: dict[str, list[float]] = {}
     kinds = {
         "in-process (LocalMaterials)": lambda q: local.evaluate(name, q),
-        "msgpack /v1 over loopback": lambda q: msgpack_call(http, name, q),
+        "msgpack /v1 over loopback": lambda q: msgpack_call(http, name, q, stages),
         "v2 binary (tritonclient)": lambda q: v2_call(triton_client, name, q),
     }
     for fn in kinds.values():  # warm-up
@@ -144,6 +149,8 @@ def throughput(args, name, local, http, triton_client, pool) -> None:
     for kind, ts in times.items():
         ratio = statistics.median(b / t for b, t in zip(base, ts))
         print(f"{kind:32s} {statistics.median(ts) * 1e3:10.1f} {n / statistics.median(ts) / 1e6:7.3f} {ratio:13.0%}")
+    parts = ", ".join(f"{stage} {statistics.median(ms):.1f}" for stage, ms in stages.items())
+    print(f"msgpack server-side stages, median ms (Server-Timing): {parts}; the rest is HTTP and the client")
 
 
 def latency(args, name, server, pool) -> None:

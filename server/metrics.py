@@ -88,3 +88,20 @@ class MetricsMiddleware:
             template = getattr(route, "path", None) or "unmatched"
             self.metrics.requests.labels(template, scope["method"], str(status["code"])).inc()
             self.metrics.latency.labels(template).observe(time.perf_counter() - start)
+
+
+class StageTimer:
+    """Durations of a request's stages, sent back in a ``Server-Timing`` header (milliseconds)."""
+
+    def __init__(self) -> None:
+        self._last = time.perf_counter()
+        self._stages: list[tuple[str, float]] = []
+
+    def mark(self, stage: str) -> None:
+        """Close the stage that ends now."""
+        now = time.perf_counter()
+        self._stages.append((stage, now - self._last))
+        self._last = now
+
+    def header(self) -> dict[str, str]:
+        return {"Server-Timing": ", ".join(f"{name};dur={sec * 1e3:.2f}" for name, sec in self._stages)}

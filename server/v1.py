@@ -18,6 +18,7 @@ from neumip.client import contract as C
 
 from .body import JSON_TYPE, MSGPACK_TYPES, check_rows, media_type, parse_json, read_body
 from .errors import ApiError
+from .metrics import StageTimer
 from .openapi import ERROR_RESPONSES, EVALUATE_BODY, EVALUATE_RESPONSE
 from .state import ServerState, serving
 
@@ -81,16 +82,21 @@ async def material_info(name: str, state: ServerState = Depends(serving)) -> dic
     response_class=Response,
 )
 async def evaluate(name: str, request: Request, state: ServerState = Depends(serving)) -> Response:
+    timer = StageTimer()
     state.registry.get(name)
     kind = body_kind(request)
     body = await read_body(request, state.settings.max_body_bytes)
+    timer.mark("read")
     queries = await decode(body, kind)  # (N, 7) float32
     check_rows(queries.shape[0], state.settings.max_rows)
+    timer.mark("decode")
     rgb = await state.batcher.evaluate(name, queries)  # (N, 3) float32
+    timer.mark("evaluate")
     if kind == "json":
-        return JSONResponse({"n": int(rgb.shape[0]), "rgb": rgb.tolist()})
-    if rgb.nbytes > OFFLOAD_BYTES:
-        content = await asyncio.to_thread(C.encode_response, rgb)
+        content, media = JSONResponse({"n": int(rgb.shape[0]), "rgb": rgb.tolist()}).body, JSON_TYPE
+    elif rgb.nbytes > OFFLOAD_BYTES:
+        content, media = await asyncio.to_thread(C.encode_response, rgb), C.MSGPACK_MEDIA_TYPE
     else:
-        content = C.encode_response(rgb)
-    return Response(content, media_type=C.MSGPACK_MEDIA_TYPE)
+        content, media = C.encode_response(rgb), C.MSGPACK_MEDIA_TYPE
+    timer.mark("encode")
+    return Response(content, media_type=media, headers=timer.header())

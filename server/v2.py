@@ -19,6 +19,7 @@ from neumip.client import contract as C
 
 from .body import JSON_TYPE, check_rows, media_type, parse_json, read_body
 from .errors import ApiError
+from .metrics import StageTimer
 from .openapi import ERROR_RESPONSES, INFER_BODY
 from .registry import MODEL_VERSION
 from .state import ServerState, get_state, serving
@@ -225,16 +226,23 @@ async def model_ready(name: str, version: str | None = None, state: ServerState 
 )
 @router.post("/models/{name}/versions/{version}/infer", include_in_schema=False)
 async def infer(name: str, request: Request, version: str | None = None, state: ServerState = Depends(serving)) -> Response:
+    timer = StageTimer()
     check_version(version)
     state.registry.get(name)
     if media_type(request) not in INFER_TYPES:
         raise ApiError(415, f"infer takes {JSON_TYPE}, application/octet-stream or no Content-Type; got {media_type(request)!r}")
     body = await read_body(request, state.settings.max_body_bytes)
+    timer.mark("read")
     header_length = request.headers.get(HEADER_LENGTH)
     if len(body) > OFFLOAD_BYTES:
         parsed = await asyncio.to_thread(parse_infer, body, header_length)
     else:
         parsed = parse_infer(body, header_length)
     check_rows(parsed.queries.shape[0], state.settings.max_rows)
+    timer.mark("decode")
     rgb = await state.batcher.evaluate(name, parsed.queries)  # (N, 3) float32
-    return infer_response(name, parsed, rgb)
+    timer.mark("evaluate")
+    response = infer_response(name, parsed, rgb)
+    timer.mark("encode")
+    response.headers.update(timer.header())
+    return response

@@ -39,3 +39,11 @@ def test_openapi_and_docs(client):
     assert set(evaluate["requestBody"]["content"]) == {"application/json", C.MSGPACK_MEDIA_TYPE}
     assert "/v2/models/{name}/infer" in spec["paths"]
     assert client.get("/docs").status_code == 200
+
+
+def test_server_timing_header_names_the_stages(client):
+    q = random_queries(100, seed=1)
+    resp = client.post(C.EVALUATE_PATH.format(name="rand16"), content=C.encode_request(q), headers={"content-type": C.MSGPACK_MEDIA_TYPE})
+    stages = [part.split(";dur=")[0] for part in resp.headers["server-timing"].split(", ")]
+    assert stages == ["read", "decode", "evaluate", "encode"]
+    assert all(float(part.split(";dur=")[1]) >= 0 for part in resp.headers["server-timing"].split(", "))
