@@ -108,7 +108,10 @@ def main() -> None:
     parser.add_argument("--steps", type=int, default=5, help="timed steps per implementation")
     parser.add_argument("--modes", default="reference,eager,compiled")
     parser.add_argument("--no-offset", action="store_true")
+    parser.add_argument("--threads", type=int, help="torch CPU threads (default: torch's choice)")
     args = parser.parse_args()
+    if args.threads:
+        torch.set_num_threads(args.threads)
 
     torch.manual_seed(0)
     print(f"torch {torch.__version__}, {torch.get_num_threads()} threads, load average {os.getloadavg()}")
