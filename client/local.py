@@ -22,9 +22,10 @@ from . import contract as C
 
 log = logging.getLogger(__name__)
 
-DEFAULT_CHUNK = 8192
-"""Rows per ONNX Runtime call. Throughput per CPU second is flat within about 5 % from 2^11 to
-2^16 rows with the default export graph; 2^13 was the best and splits a 2^14 batch over 2 workers."""
+DEFAULT_CHUNK = 4096
+"""Rows per ONNX Runtime call. With the default export graph, chunks of 2^11 to 2^12 rows ran about
+10 % more queries per CPU second than chunks of 2^14 to 2^16 (the intermediates stay in cache), and a
+single call on 2^20 rows was slowest (benchmarks/bench_inference.py, section chunk)."""
 
 MIN_SPLIT = 2048
 """Batches below twice this many rows run as one call (splitting them costs more than it saves)."""

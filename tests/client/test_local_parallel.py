@@ -7,7 +7,7 @@ import onnxruntime as ort
 import pytest
 
 from neumip.client import contract as C
-from neumip.client.local import MIN_SPLIT, LocalMaterials, load_material, run_chunked, split_chunk
+from neumip.client.local import DEFAULT_CHUNK, MIN_SPLIT, LocalMaterials, load_material, run_chunked, split_chunk
 from tests.conftest import random_queries
 
 
@@ -28,7 +28,7 @@ def test_run_chunked_with_executor_fills_every_row(model_dir):
 
 
 def test_split_chunk_shares_rows_between_workers():
-    assert split_chunk(100_000, 2, chunk=8192) == 8192
+    assert split_chunk(100_000, 2) == DEFAULT_CHUNK
     assert split_chunk(10_000, 2, chunk=8192) == 5000
     assert split_chunk(1000, 2, chunk=8192) == MIN_SPLIT  # too small to split
     assert split_chunk(10_000, 1, chunk=8192) == 8192
