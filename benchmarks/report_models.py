@@ -7,7 +7,12 @@ Reads models/NAME.onnx and models/NAME.json (written by `neumip train`) and prin
 - the known answer: models/flat.onnx evaluated on random queries against the flat Lambertian's
   exact MBTF 0.5 / pi (relative error), through the in-process ONNX Runtime evaluator.
 
-Run: .venv/bin/python benchmarks/report_models.py [--models models]
+- with --reference MATERIAL=DATA (a data set path-traced with many more samples per query, e.g.
+  `neumip generate rock -o data/rock_ref --queries 40000 --spp 256 --seed 1 --resolution 64`):
+  the ablation pair's MSE per level against that low-noise reference (the held-out split of the
+  16-spp training data carries Monte Carlo noise that both models share, which hides ratios).
+
+Run: .venv/bin/python benchmarks/report_models.py [--models models] [--reference rock=data/rock_ref ...]
 """
 
 from __future__ import annotations
@@ -36,9 +41,31 @@ def known_answer_queries(n: int, seed: int = 0) -> np.ndarray:
     return C.pack_queries(rng.uniform(-3, 3, n), rng.uniform(-3, 3, n), 2.0 ** rng.uniform(-10, 0, n), wi, wo)
 
 
+def report_reference(folder: Path, material: str, data_path: str) -> None:
+    """MSE per level of MATERIAL and MATERIAL_nooffset against a low-noise reference data set."""
+    from neumip.training.dataset import open_dataset
+    from neumip.training.validation import validation_table
+
+    data = open_dataset(data_path)
+    queries, target = np.asarray(data.queries), np.asarray(data.rgb)
+    spp = data.meta.get("generator", {}).get("spp", "?")
+    local = LocalMaterials(folder)
+    tables = {}
+    for name in (material, f"{material}_nooffset"):
+        resolution = json.loads((folder / f"{name}.json").read_text())["material_config"]["resolution"]
+        tables[name] = validation_table(local.evaluate(name, queries), target, queries[:, C.SIGMA], resolution)
+    with_off, without = tables[material], tables[f"{material}_nooffset"]
+    print(f"\n== {material} against {data_path} ({len(queries)} queries, {spp} spp): MSE x1e-3, without / with")
+    for a, b in zip(without["levels"] + [without["overall"]], with_off["levels"] + [with_off["overall"]]):
+        label = a.get("level", "all")
+        print(f"  level {label!s:>3} (n {a['n']:>6}): without {a['mse'] * 1e3:8.4f}  with {b['mse'] * 1e3:8.4f}  "
+              f"ratio {a['mse'] / b['mse']:5.2f}x   rel L1 without {a['rel_l1']:.3f} with {b['rel_l1']:.3f}")
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     parser.add_argument("--models", default="models")
+    parser.add_argument("--reference", nargs="*", default=[], metavar="MATERIAL=DATA")
     args = parser.parse_args()
     folder = Path(args.models)
     records = {p.stem: json.loads(p.read_text()) for p in sorted(folder.glob("*.json"))}
@@ -60,6 +87,10 @@ def main() -> None:
             label = a.get("level", "all")
             print(f"  level {label!s:>3}: without {a['mse'] * 1e3:8.4f}  with {b['mse'] * 1e3:8.4f}  "
                   f"ratio {a['mse'] / b['mse']:5.2f}x")
+
+    for spec in args.reference:
+        material, data_path = spec.split("=", 1)
+        report_reference(folder, material, data_path)
 
     if (folder / "flat.onnx").exists():
         q = known_answer_queries(200_000)

@@ -23,7 +23,8 @@ def register(sub: argparse._SubParsersAction) -> None:
         p.add_argument(f"--{name}", type=kind, help=f"override TrainConfig.{name.replace('-', '_')}")
     p.add_argument("--loss", choices=("comb2", "mse"), help="override TrainConfig.loss")
     p.add_argument("--device", choices=("auto", "cpu", "cuda"), help="override TrainConfig.device")
-    p.add_argument("--threads", type=int, help="torch CPU threads (default: torch's choice)")
+    p.add_argument("--compile", action="store_true", help="torch.compile the step (~1.5x faster on CPU after ~15 s)")
+    p.add_argument("--threads", type=int, help="torch CPU threads (default: torch's choice; 1 is faster on a busy machine)")
     p.set_defaults(func=_train)
 
     p = sub.add_parser("export", help="export a training checkpoint to an ONNX material")
@@ -47,6 +48,8 @@ def _train_config(args: argparse.Namespace):
         for k in ("steps", "batch", "lr", "seed", "blur_half_life", "loss", "device")
         if getattr(args, k) is not None
     }
+    if args.compile:
+        overrides["compile"] = True
     return replace(config, **overrides)
 
 

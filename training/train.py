@@ -255,7 +255,14 @@ class Trainer:
             self._freeze_offset()
         levels, otex = effective_textures(self.material, blur_sigma(state.step, cfg), cfg, state.offset_frozen)
         queries, target = self.sampler.draw(self.device)
-        loss = self._loss(queries, target, levels, otex)
+        try:
+            loss = self._loss(queries, target, levels, otex)
+        except Exception as exc:  # torch.compile needs a working C++ toolchain; eager always works
+            if self._loss == self._batch_loss:
+                raise
+            log.warning("torch.compile failed (%s): training continues uncompiled", exc)
+            self._loss = self._batch_loss
+            loss = self._loss(queries, target, levels, otex)
         value = float(loss.detach())
         if not np.isfinite(value):
             raise TrainingDiverged(self._diverged_message("loss"))
