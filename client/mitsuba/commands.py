@@ -60,7 +60,10 @@ def _render(args: argparse.Namespace) -> int:
         if not sep or not name:
             raise CommandError(f"-D takes NAME=VALUE, got {item!r}")
         params[name] = value
-    evaluator = _evaluator(args)
+    try:
+        evaluator = _evaluator(args)
+    except ValueError as exc:  # a malformed --server URL
+        raise CommandError(str(exc)) from exc
     config = R.RenderConfig(spp=args.spp, seed=args.seed)
     if args.max_lanes:
         config.max_lanes = args.max_lanes

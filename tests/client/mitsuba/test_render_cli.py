@@ -91,3 +91,11 @@ def test_bsdf_validates_properties():
         mi.load_dict({"type": "neumip"})
     with pytest.raises(Exception, match="uv_scale must be > 0"):
         mi.load_dict({"type": "neumip", "material": "m", "uv_scale": -1.0})
+
+
+def test_bad_server_url_and_fallback_without_server(tmp_path, capsys):
+    scene = write_xml(tmp_path)
+    assert cli.main(["render", scene, "-o", str(tmp_path / "a.png"), "--server", "localhost:8000"]) == 2
+    assert "http://" in capsys.readouterr().err
+    assert cli.main(["render", scene, "-o", str(tmp_path / "a.png"), "--fallback"]) == 2
+    assert "--fallback needs --server" in capsys.readouterr().err
