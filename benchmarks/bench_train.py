@@ -88,24 +88,24 @@ def synthetic_data(path: str, n: int) -> str:
     return path
 
 
-def time_steps(trainer: Trainer, warmup: int, steps: int) -> tuple[float, float, float]:
-    """-> (first-step seconds, wall seconds per step, CPU seconds per step)."""
-    t0 = time.perf_counter()
-    trainer.step()
-    first = time.perf_counter() - t0
-    for _ in range(warmup):
-        trainer.step()
+def time_steps(trainer: Trainer, steps: int) -> tuple[float, float]:
+    """-> (wall seconds per step, CPU seconds per step) over `steps` steps."""
     w0, c0 = time.perf_counter(), time.process_time()
     for _ in range(steps):
         trainer.step()
-    return first, (time.perf_counter() - w0) / steps, (time.process_time() - c0) / steps
+    return (time.perf_counter() - w0) / steps, (time.process_time() - c0) / steps
+
+
+def implementation(mode: str):
+    return reference_implementation() if mode == "reference" else contextlib.nullcontext()
 
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     parser.add_argument("--resolution", type=int, default=128)
     parser.add_argument("--batch", type=int, default=1 << 16)
-    parser.add_argument("--steps", type=int, default=5, help="timed steps per implementation")
+    parser.add_argument("--steps", type=int, default=2, help="timed steps per implementation and round")
+    parser.add_argument("--rounds", type=int, default=5, help="rounds (implementations interleaved)")
     parser.add_argument("--modes", default="reference,eager,compiled")
     parser.add_argument("--no-offset", action="store_true")
     parser.add_argument("--threads", type=int, help="torch CPU threads (default: torch's choice)")
@@ -116,23 +116,32 @@ def main() -> None:
     torch.manual_seed(0)
     print(f"torch {torch.__version__}, {torch.get_num_threads()} threads, load average {os.getloadavg()}")
     material = MaterialConfig(resolution=args.resolution, offset=not args.no_offset)
-    results = {}
+    modes = args.modes.split(",")
+    samples: dict[str, list[tuple[float, float]]] = {m: [] for m in modes}
     with tempfile.TemporaryDirectory() as tmp:
         data = synthetic_data(os.path.join(tmp, "data"), max(4 * args.batch, 200_000))
-        for mode in args.modes.split(","):
+        trainers = {}
+        for mode in modes:
             config = replace(SHIP, batch=args.batch, compile=mode == "compiled", device="cpu")
-            ctx = reference_implementation() if mode == "reference" else contextlib.nullcontext()
-            with ctx:
-                trainer = Trainer(data, os.path.join(tmp, f"{mode}.pt"), material, config)
-                trainer.state.step = 500  # inside the blur schedule: the blur is part of the cost
-                first, wall, cpu = time_steps(trainer, warmup=2, steps=args.steps)
-            results[mode] = (wall, cpu)
-            print(
-                f"{mode:>9}: {args.batch / wall / 1e6:6.3f} M queries/s wall ({wall * 1e3:7.1f} ms/step), "
-                f"{args.batch / cpu / 1e6:6.3f} M queries per CPU-s; first step {first:5.1f} s"
-            )
+            trainers[mode] = Trainer(data, os.path.join(tmp, f"{mode}.pt"), material, config)
+            trainers[mode].state.step = 500  # inside the blur schedule: the blur is part of the cost
+            with implementation(mode):
+                t0 = time.perf_counter()
+                trainers[mode].step()  # warm-up (compiles)
+                print(f"{mode:>9}: first step {time.perf_counter() - t0:5.1f} s")
+        # rounds interleave the implementations, so load changes on the shared machine hit all alike
+        for _ in range(args.rounds):
+            for mode in modes:
+                with implementation(mode):
+                    samples[mode].append(time_steps(trainers[mode], args.steps))
+    results = {m: tuple(float(np.median([s[i] for s in samples[m]])) for i in (0, 1)) for m in modes}
+    for mode, (wall, cpu) in results.items():
+        print(
+            f"{mode:>9}: {args.batch / wall / 1e6:6.3f} M queries/s wall ({wall * 1e3:7.1f} ms/step), "
+            f"{args.batch / cpu / 1e6:6.3f} M queries per CPU-s (medians of {args.rounds} rounds)"
+        )
     if "reference" in results:
-        for mode, (wall, cpu) in results.items():
+        for mode, (wall, cpu) in list(results.items())[1:]:
             print(f"speed-up of {mode} over reference: wall {results['reference'][0] / wall:4.2f}x, "
                   f"CPU {results['reference'][1] / cpu:4.2f}x")
     best = min(results, key=lambda m: results[m][0])
