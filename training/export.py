@@ -9,6 +9,12 @@ session load (see `texture_tables.py`), so each query reads one table row per le
 float row arithmetic and no modulo. `GraphOptions` selects the variants the benchmark compares.
 The model config, contract version and a description travel in the ONNX metadata.
 
+Every graph answers a query with the same bits whatever the batch it sits in (its position, the call's
+row count, the thread count): it uses only ops that round per element - Mul, Add, Div, Sqrt, Floor,
+comparisons, Gather, and Gemm/MatMul, whose sums run in one order per row - and no Log (whose
+vectorised tail rounds otherwise; the level of detail is `export_lod.py`) and no ReduceSum (which
+sums a 1-row call in another order). tests/training/test_export_determinism.py checks each variant.
+
 `build_onnx` needs only numpy and onnx (weights as numpy arrays); `export_checkpoint` reads a torch
 checkpoint.
 """
@@ -37,7 +43,7 @@ IR_VERSION = 9  # onnxruntime 1.31 reads IR <= 13; onnx 1.23 would write 14 by d
 
 LOOKUPS = ("taps", "modulo", "gridsample")
 """Lookup graphs `GraphOptions.lookup` may name."""
-BLENDS = ("sum", "gemm", "reduce", "premultiplied")
+BLENDS = ("sum", "gemm", "premultiplied")
 """Ways `GraphOptions.blend` may join the taps to an MLP's first layer."""
 
 
@@ -54,10 +60,10 @@ class GraphOptions:
     blend: str = "sum"
     """lookup="taps": how the taps meet each MLP's first layer. "sum": a 0/1 MatMul sums the weighted
     taps, then the Gemm (fewest multiply-adds; about 5 % ahead of "gemm"); "gemm": the weighted taps
-    feed one Gemm whose weights repeat per tap; "reduce": ReduceSum over the taps, then the Gemm;
-    "premultiplied": the first layer's texture weights are folded into the textures (hidden-wide
-    taps, ReduceSum). ONNX Runtime's ReduceSum over the middle axis is slow: "reduce" and
-    "premultiplied" lose."""
+    feed one Gemm whose weights repeat per tap; "premultiplied": the first layer's texture weights
+    are folded into the textures (hidden-wide taps, summed by a 0/1 MatMul). Taps are never summed
+    by ReduceSum: ONNX Runtime sums a 1-row call in another order than a longer one, so a query's
+    answer would depend on the batch (tests/training/test_export_determinism.py)."""
     index_type: str = "int64"
     """lookup="taps": integer type of the Gather rows, "int64" or "int32"."""
 
@@ -122,12 +128,8 @@ def _first_layer(g: GraphWriter, texels: str, tap_w: str, taps: int, columns: li
     rest = _query_part(g, weights, prefix, columns)  # (N, hidden)
     if blend == "gemm":  # the weighted taps meet the texture weights repeated per tap
         x = g.op("Gemm", weighted, g.const(np.tile(w_tex, (1, taps)).T), rest)
-    elif blend == "sum":  # a 0/1 MatMul sums the taps, then the texture weights
+    else:  # a 0/1 MatMul sums the taps (in a fixed order per row, unlike ReduceSum), then the weights
         summed = g.op("MatMul", weighted, g.const(np.tile(np.eye(width, dtype=np.float32), (taps, 1))))
-        x = g.op("Gemm", summed, g.const(np.ascontiguousarray(w_tex.T)), rest)
-    else:
-        summed = g.op("ReduceSum", g.shape(weighted, [-1, taps, width]), g.const([1], np.int64),
-                      keepdims=0)  # (N, W)
         if blend == "premultiplied":
             x = g.op("Add", summed, rest)
         else:

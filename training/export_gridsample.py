@@ -12,7 +12,8 @@ from __future__ import annotations
 import numpy as np
 
 from .config import MaterialConfig
-from .export_lookup import level_of_detail, level_weights
+from .export_lod import level_of_detail
+from .export_lookup import level_weights
 from .onnx_graph import INDEX_TYPES, GraphWriter
 from .texture_tables import wrap_pad
 
@@ -73,7 +74,7 @@ def pyramid_features(g: GraphWriter, config: MaterialConfig, atlas: str, uvw: st
     params = np.stack([sizes[lo_], sizes[lo_], sizes[hi], sizes[hi],
                        np.full(len(lo_), 0.5), 0.5 + np.asarray(tops)[lo_],
                        np.full(len(lo_), 0.5), 0.5 + np.asarray(tops)[hi]], axis=1).astype(np.float32)
-    rows = g.op("Gather", g.const(params), g.op("Cast", lo, to=INDEX_TYPES["int64"][1]), axis=0)
+    rows = g.op("Gather", g.const(params), lo, axis=0)
     scale, offset = g.op("Split", rows, g.const([4, 4], np.int64), axis=1, outputs=2)  # (N, 4) each
     both = g.op("MatMul", uvw, g.const(np.tile(np.eye(2, dtype=np.float32), (1, 2))))  # u v u v
     pixel = g.op("Add", g.op("Mul", both, scale), offset)
@@ -82,4 +83,5 @@ def pyramid_features(g: GraphWriter, config: MaterialConfig, atlas: str, uvw: st
     grid = g.op("Sub", g.op("Mul", pixel, g.const(norm)), g.scalar(1.0))  # (N, 4)
     samples = _sample(g, image, grid, 2)  # (1, C, N, 2)
     weighted = g.op("Mul", samples, g.shape(level_weights(g, t, 1), [1, 1, -1, 2]))
-    return g.shape(g.op("ReduceSum", weighted, g.const([3], np.int64), keepdims=0), [c, -1])
+    summed = g.op("MatMul", weighted, g.const(np.ones((2, 1), np.float32)))  # (1, C, N, 1), exact order
+    return g.shape(summed, [c, -1])

@@ -9,11 +9,10 @@ the Gather index type; column shuffles are MatMuls with 0/1 matrices (exact for 
 
 from __future__ import annotations
 
-import math
-
 import numpy as np
 
 from .config import MaterialConfig
+from .export_lod import level_of_detail
 from .onnx_graph import INDEX_TYPES, GraphWriter
 from .texture_tables import tap_atlas
 
@@ -66,16 +65,6 @@ def _gather(g: GraphWriter, table: str, line: str, bases: str, levels: int, widt
     return g.shape(g.op("Gather", table, rows, axis=0), [-1, 4 * levels * width])
 
 
-def level_of_detail(g: GraphWriter, sigma: str, config: MaterialConfig) -> tuple[str, str]:
-    """sigma (N, 1) -> lower level lo (N,) float and the fraction t (N, 1) towards the next level."""
-    tiny = np.finfo(np.float32).tiny
-    scaled = g.op("Mul", g.op("Max", sigma, g.scalar(tiny)), g.scalar(config.resolution))
-    lod = g.op("Div", g.op("Log", scaled), g.scalar(math.log(2.0)))
-    lod = g.op("Clip", lod, g.const(0.0), g.const(float(config.levels)))
-    lo = g.op("Floor", lod)
-    return g.shape(lo, [-1]), g.op("Sub", lod, lo)
-
-
 def level_pair_params(config: MaterialConfig, level_params: np.ndarray) -> np.ndarray:
     """Per level (S, 1, W, bases...) -> per lower level lo a row (8 + 2K,) for levels lo, hi:
 
@@ -99,7 +88,7 @@ def pyramid_texels(g: GraphWriter, config: MaterialConfig, atlas: str, width: in
     tables = tap_atlas(config.level_sizes(), taps)
     lo, t = level_of_detail(g, sigma, config)
     pairs = g.const(level_pair_params(config, tables.level_params))
-    params = g.op("Gather", pairs, g.op("Cast", lo, to=INDEX_TYPES["int64"][1]), axis=0)  # (N, 8 + 2K)
+    params = g.op("Gather", pairs, lo, axis=0)  # (N, 8 + 2K)
     p = 8 + 2 * k
     size, coef, bases = (g.pick(params, p, list(c)) for c in (range(4), range(4, 8), range(8, p)))
     both = g.op("MatMul", uvw, g.const(np.tile(np.eye(2, dtype=np.float32), (1, 2))))  # (N, 4) u v u v

@@ -6,14 +6,13 @@ wrap-around index arithmetic in int64 with Mod, as `pyramid.py` writes it op for
 
 from __future__ import annotations
 
-import math
-
 import numpy as np
 from onnx import TensorProto
 
 from neumip.client import contract as C
 
 from .config import MaterialConfig
+from .export_lod import level_of_detail
 from .onnx_graph import GraphWriter
 
 
@@ -41,13 +40,17 @@ def _bilinear(g: GraphWriter, u: str, v: str, size: str, start: str) -> tuple[st
     return rows, weights
 
 
-def _gather_blend(g: GraphWriter, table: str, rows: str, weights: str, taps: int) -> str:
-    """Gather `taps` rows per query of (T, C) `table` and blend with `weights` -> (N, C)."""
+def _gather_blend(g: GraphWriter, table: str, rows: str, weights: str, taps: int, channels: int) -> str:
+    """Gather `taps` rows per query of (T, C) `table` and blend with `weights` -> (N, C).
+
+    The weighted texels are summed by a 0/1 MatMul, which adds them in one order whatever the batch
+    (ReduceSum sums a 1-row call in another order).
+    """
     flat = g.const([-1, taps], np.int64)
     texels = g.op("Gather", table, g.op("Reshape", rows, flat), axis=0)  # (N, K, C)
     weights = g.op("Unsqueeze", g.op("Reshape", weights, flat), g.const([-1], np.int64))
-    weighted = g.op("Mul", texels, weights)
-    return g.op("ReduceSum", weighted, g.const([1], np.int64), keepdims=0)
+    weighted = g.shape(g.op("Mul", texels, weights), [-1, taps * channels])  # (N, K C)
+    return g.op("MatMul", weighted, g.const(np.tile(np.eye(channels, dtype=np.float32), (taps, 1))))
 
 
 def modulo_graph(g: GraphWriter, config: MaterialConfig, weights: dict[str, np.ndarray]) -> str:
@@ -60,7 +63,7 @@ def modulo_graph(g: GraphWriter, config: MaterialConfig, weights: dict[str, np.n
         res = g.const([[config.resolution]], np.int64)
         rows, w = _bilinear(g, g.wrap(u), g.wrap(v), res, g.const([[0]], np.int64))
         otex = g.const(weights["offset_texture"], name="offset_texture")
-        feat = _gather_blend(g, otex, rows, w, 4)
+        feat = _gather_blend(g, otex, rows, w, 4, config.offset_channels)
         depth = g.mlp(g.op("Concat", feat, wo_x, wo_y, axis=1), weights, "offset_mlp", config.layers)
         depth = g.op("Mul", depth, g.const(config.offset_scale))
         one = g.const(1.0)
@@ -71,13 +74,8 @@ def modulo_graph(g: GraphWriter, config: MaterialConfig, weights: dict[str, np.n
         v = g.op("Add", v, g.op("Mul", scale, wo_y))
 
     # --- trilinear pyramid lookup ----------------------------------------------------------------
-    tiny = np.finfo(np.float32).tiny
-    scaled = g.op("Mul", g.op("Max", sigma, g.const(tiny)), g.const(float(config.resolution)))
-    lod = g.op("Div", g.op("Log", scaled), g.const(math.log(2.0)))
-    lod = g.op("Clip", lod, g.const(0.0), g.const(float(config.levels)))
-    lo = g.op("Floor", lod)
-    t = g.op("Sub", lod, lo)
-    lo_i = g.op("Cast", lo, to=TensorProto.INT64)
+    lo, t = level_of_detail(g, sigma, config)  # (N,) int64, (N, 1)
+    lo_i = g.shape(lo, [-1, 1])
     hi_i = g.op("Min", g.op("Add", lo_i, g.const(1, np.int64)), g.const(config.levels, np.int64))
     levels = g.op("Concat", lo_i, hi_i, axis=1)  # (N, 2)
     size = g.op("Gather", g.const(config.level_sizes(), np.int64), levels, axis=0)
@@ -86,7 +84,7 @@ def modulo_graph(g: GraphWriter, config: MaterialConfig, weights: dict[str, np.n
     level_w = g.op("Concat", g.op("Sub", g.const(1.0), t), t, axis=1)
     w = g.op("Mul", w, g.op("Unsqueeze", level_w, g.const([-1], np.int64)))
     atlas = g.const(weights["pyramid"], name="pyramid")
-    features = _gather_blend(g, atlas, rows, w, 8)
+    features = _gather_blend(g, atlas, rows, w, 8, config.channels)
 
     # --- decoder ---------------------------------------------------------------------------------
     x = g.op("Concat", features, wi_x, wi_y, wo_x, wo_y, axis=1)

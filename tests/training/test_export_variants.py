@@ -16,7 +16,7 @@ from tests.training.test_export import ATOL, RTOL, edge_queries
 TAPS_VARIANTS = [
     GraphOptions(taps_per_row=t, blend=b, index_type=i)
     for t in (1, 2, 4)
-    for b in ("sum", "gemm", "reduce", "premultiplied")
+    for b in ("sum", "gemm", "premultiplied")
     for i in ("int64", "int32")
     if (t == 4 or (b == "sum" and i == "int64"))
 ]
@@ -76,7 +76,7 @@ def test_default_graph_on_unusual_configs(cfg):
     np.testing.assert_allclose(got, want, atol=ATOL, rtol=RTOL)
 
 
-@pytest.mark.parametrize("options", [GraphOptions(), GraphOptions(taps_per_row=1, blend="reduce"),
+@pytest.mark.parametrize("options", [GraphOptions(), GraphOptions(taps_per_row=1, blend="premultiplied"),
                                      GraphOptions(lookup="gridsample")], ids=str)
 def test_empty_and_odd_batches(material32, options):
     model = build_onnx(material32.config, weights_from_state(material32.state_dict(), material32.config),
