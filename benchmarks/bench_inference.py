@@ -52,7 +52,6 @@ GRAPHS = {
     "taps2 sum": GraphOptions(taps_per_row=2),
     "taps1 sum": GraphOptions(taps_per_row=1),
     "taps4 gemm": GraphOptions(blend="gemm"),
-    "taps4 reduce": GraphOptions(blend="reduce"),
     "taps4 premultiplied": GraphOptions(blend="premultiplied"),
     "gridsample": GraphOptions(lookup="gridsample"),
 }
