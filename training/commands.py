@@ -59,6 +59,7 @@ def _train(args: argparse.Namespace) -> int:
 
     from neumip.client.cli import CommandError
 
+    from .checkpoint import CheckpointError
     from .config import MaterialConfig
     from .dataset import DatasetError
     from .outputs import write_outputs
@@ -75,7 +76,7 @@ def _train(args: argparse.Namespace) -> int:
         config = _train_config(args)
         material = MaterialConfig(resolution=args.resolution, offset=not args.no_offset)
         trainer = Trainer(args.data, checkpoint, material, config, args.description)
-    except (ValueError, DatasetError) as exc:
+    except (ValueError, DatasetError, CheckpointError) as exc:
         raise CommandError(str(exc)) from exc
 
     bar = tqdm(total=config.steps, initial=trainer.state.step, unit="step", dynamic_ncols=True)

@@ -156,6 +156,9 @@ def test_cli_train_writes_model_table_and_curve(data, tmp_path, capsys):
     assert "MSE x1e-3" in capsys.readouterr().out
     assert main(["train", str(data.path), "-o", str(tmp_path / "x.txt")]) == 2
     assert main(["train", str(tmp_path / "missing"), "-o", str(out)]) == 2
+    (tmp_path / "junk.pt").write_bytes(b"not a checkpoint")
+    assert main(["train", str(data.path), "-o", str(out), "--checkpoint", str(tmp_path / "junk.pt")]) == 2
+    assert "not a readable checkpoint" in capsys.readouterr().err
 
 
 @pytest.mark.slow
