@@ -3,6 +3,8 @@
 `LocalMaterials` loads every ``*.onnx`` in a folder (material name = file stem), checks each file's
 contract version, and evaluates (N, 7) query buffers in chunks that run concurrently on a small
 thread pool (``InferenceSession.run`` releases the GIL), each chunk on one ONNX Runtime thread.
+How a batch is cut does not change the answers: the exported graph answers a query with the same
+bits in any call (`neumip.training.export`), so the thread count and chunk size only set the speed.
 Measured in ``benchmarks/bench_inference.py`` (sections session and chunk).
 """
 
@@ -135,10 +137,10 @@ def run_chunked(
 
 
 def split_chunk(rows: int, workers: int, chunk: int = DEFAULT_CHUNK) -> int:
-    """Chunk size that keeps `workers` threads busy on `rows` rows: at most `chunk`, at least
-    MIN_SPLIT, and small enough that every worker gets a share."""
+    """Rows per call for `rows` rows on `workers` threads: a share per worker, at most `chunk`, and
+    not below MIN_SPLIT unless `chunk` is (splitting small batches costs more than it saves)."""
     share = -(-rows // max(workers, 1))
-    return max(min(chunk, share), MIN_SPLIT)
+    return min(chunk, max(share, MIN_SPLIT))
 
 
 class LocalMaterials:
@@ -153,6 +155,8 @@ class LocalMaterials:
         self.folder = Path(folder)
         if not self.folder.is_dir():
             raise FileNotFoundError(f"model folder {self.folder} does not exist")
+        if chunk < 1:
+            raise ValueError(f"chunk must be at least 1 row, got {chunk}")
         self.chunk = chunk
         self.threads = threads or os.cpu_count() or 1
         self._executor = ThreadPoolExecutor(self.threads, "neumip-ort") if self.threads > 1 else None

@@ -10,12 +10,10 @@ call, and copies each piece's rows back. Workers pull work themselves, so consec
 request run back to back without a round trip through the event loop; the loop hears back once per
 request. `predict` is the only function that touches ONNX Runtime.
 
-Merging keeps answers bit-identical to evaluating each request on its own: some ONNX Runtime CPU
-kernels (``Log``, used for the level of detail) compute vector-sized blocks and the last few elements
-of a call differently, so a row's bits depend on its position modulo the vector width. Every body
-piece is a multiple of `ALIGN_ROWS` rows, so it starts aligned in a merged call, and a request's last
-``N % ALIGN_ROWS`` rows (its tail) only ever go at the end of a call, exactly where they sit when the
-request is evaluated alone.
+Merging and splitting keep answers bit-identical to evaluating each request on its own, in one call or
+in process (`neumip.client.local`): the exported graph answers a row with the same bits wherever it
+sits in a call and however many rows the call has (`neumip.training.export`), so pieces go into
+calls in any cut.
 
 Admission is bounded in rows: a request that would take the rows admitted and not yet answered above
 ``max_queue_rows`` is refused at once with `QueueFull` (503 + Retry-After), never queued to time out.
@@ -42,9 +40,6 @@ from .settings import Settings
 
 log = logging.getLogger(__name__)
 
-ALIGN_ROWS = 16
-"""Rows per alignment block: a multiple of every CPU vector width in floats (SSE 4, AVX 8, AVX-512 16)."""
-
 
 def predict(session, queries: np.ndarray) -> np.ndarray:
     """One ONNX Runtime call: (n, 7) float32 contiguous queries -> (n, 3) float32 RGB."""
@@ -68,7 +63,6 @@ class _Piece:
     job: _Job
     queries: np.ndarray  # (n, 7) float32 view into the request's queries
     out: np.ndarray  # (n, 3) float32 view into the job's answer buffer
-    tail: bool = False  # the request's last N % ALIGN_ROWS rows: must end an ONNX Runtime call
     arrived: float = 0.0  # time.monotonic() when queued
     order: int = 0  # global arrival order (first in, first out across materials)
 
@@ -79,41 +73,24 @@ class _Piece:
 
 @dataclass
 class _MaterialQueue:
-    """Pieces waiting for one material."""
+    """Pieces waiting for one material, oldest first."""
 
     material: Material
-    bodies: deque = field(default_factory=deque)  # pieces of a multiple of ALIGN_ROWS rows
-    tails: deque = field(default_factory=deque)  # pieces of fewer than ALIGN_ROWS rows
+    pieces: deque = field(default_factory=deque)
     rows: int = 0
-
-    def oldest(self) -> _Piece | None:
-        heads = [q[0] for q in (self.bodies, self.tails) if q]
-        return min(heads, key=lambda p: p.order) if heads else None
 
 
 def split(queries: np.ndarray, out: np.ndarray, chunk: int, job: _Job) -> list[_Piece]:
-    """Cut (N, 7) queries and their (N, 3) answer buffer into body pieces of at most `chunk` rows
-    (a multiple of ALIGN_ROWS) and, if N is not a multiple of ALIGN_ROWS, one tail piece."""
+    """Cut (N, 7) queries and their (N, 3) answer buffer into pieces of at most `chunk` rows."""
     n = queries.shape[0]
-    body = n - n % ALIGN_ROWS
-    pieces = [
-        _Piece(job, queries[lo : min(lo + chunk, body)], out[lo : min(lo + chunk, body)])
-        for lo in range(0, body, chunk)
-    ]
-    if body < n:
-        pieces.append(_Piece(job, queries[body:], out[body:], tail=True))
-    return pieces
+    return [_Piece(job, queries[lo : lo + chunk], out[lo : lo + chunk]) for lo in range(0, n, chunk)]
 
 
 def take(queue: _MaterialQueue, chunk: int) -> list[_Piece]:
-    """Body pieces first-in first-out while they fit in `chunk` rows, then the oldest tail if it
-    fits (a tail must end the call). A batch holds at least one piece."""
+    """Pieces first-in first-out while they fit in `chunk` rows; a batch holds at least one piece."""
     batch, rows = [], 0
-    while queue.bodies and (not batch or rows + queue.bodies[0].rows <= chunk):
-        batch.append(queue.bodies.popleft())
-        rows += batch[-1].rows
-    if queue.tails and (not batch or rows + queue.tails[0].rows <= chunk):
-        batch.append(queue.tails.popleft())
+    while queue.pieces and (not batch or rows + queue.pieces[0].rows <= chunk):
+        batch.append(queue.pieces.popleft())
         rows += batch[-1].rows
     queue.rows -= rows
     return batch
@@ -204,7 +181,7 @@ class Batcher:
         with self._cond:
             for piece in pieces:
                 piece.arrived, piece.order = now, next(self._order)
-                (queue.tails if piece.tail else queue.bodies).append(piece)
+                queue.pieces.append(piece)
             queue.rows += n
             self._cond.notify(len(pieces))
         try:
@@ -236,7 +213,7 @@ class Batcher:
         """Under the lock: wait for work, then the batch to run; None once closing and drained."""
         chunk, wait_s = self.settings.chunk_rows, self.settings.max_wait_ms / 1000.0
         while True:
-            ready = [(q.oldest(), q) for q in self._queues.values() if q.rows]
+            ready = [(q.pieces[0], q) for q in self._queues.values() if q.pieces]
             if not ready:
                 if self._closing:
                     return None

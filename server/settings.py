@@ -40,8 +40,8 @@ class Settings(BaseSettings):
     """Concurrent ONNX Runtime calls (threads of the dedicated executor); 0 = one per core."""
     ort_threads: int = Field(1, ge=0)
     """Intra-op threads of each ONNX Runtime call (keep workers x threads <= cores); 0 = all cores."""
-    chunk_rows: int = Field(8192, ge=16)
-    """Most rows in one ONNX Runtime call (a multiple of 16): large requests are split, small ones merged."""
+    chunk_rows: int = Field(8192, ge=1)
+    """Most rows in one ONNX Runtime call: large requests are split, small ones merged."""
     max_wait_ms: float = Field(2.0, ge=0)
     """How long a batch that is not yet full waits for more concurrent requests to merge with."""
     max_rows: int = Field(2_000_000, ge=1)
@@ -59,8 +59,6 @@ class Settings(BaseSettings):
 
     @model_validator(mode="after")
     def _consistent(self) -> "Settings":
-        if self.chunk_rows % 16:
-            raise ValueError(f"chunk_rows ({self.chunk_rows}) must be a multiple of 16 (batch alignment)")
         if self.max_queue_rows < self.max_rows:
             raise ValueError(
                 f"max_queue_rows ({self.max_queue_rows}) must be >= max_rows ({self.max_rows}):"

@@ -288,13 +288,26 @@ def _shapes(config: MaterialConfig) -> dict[str, tuple[int, ...]]:
 
 
 def random_weights(config: MaterialConfig, seed: int = 0, scale: float = 0.5) -> dict[str, np.ndarray]:
-    """Random weights of the right shapes (a material with texture and direction variation)."""
+    """Random weights of the right shapes: a material whose answers are positive and vary with
+    position, footprint and directions in every channel, whatever the seed.
+
+    Textures are N(0, scale^2); every layer's weights N(0, 2 / fan_in) (He: the signal keeps its size
+    through the ReLUs), hidden biases small and positive (units stay alive). The decoder's last layer
+    has positive weights on ReLU outputs (>= 0) and a positive bias, so each channel answers its bias
+    plus a query-dependent non-negative sum (with one layer only the bias is positive).
+    """
     rng = np.random.default_rng(seed)
     out = {}
+    last = f"decoder.{config.layers - 1}"
     for name, shape in _shapes(config).items():
-        fan_in = shape[1] if name.endswith("weight") else 1
-        out[name] = (rng.normal(size=shape) * scale / np.sqrt(fan_in)).astype(np.float32)
-    return out
+        if name.endswith("weight"):
+            w = rng.normal(size=shape) * np.sqrt(2.0 / shape[1])
+            out[name] = np.abs(w) * (scale / shape[1]) ** 0.5 if name == f"{last}.weight" and config.layers > 1 else w
+        elif name.endswith("bias"):
+            out[name] = rng.uniform(0.1, 0.3, shape) if name == f"{last}.bias" else rng.uniform(0.0, 0.1, shape)
+        else:  # a texture
+            out[name] = rng.normal(size=shape) * scale
+    return {name: value.astype(np.float32) for name, value in out.items()}
 
 
 def constant_weights(config: MaterialConfig, rgb) -> dict[str, np.ndarray]:

@@ -16,7 +16,7 @@ def test_concurrent_chunks_match_one_call(model_dir, rows):
     q = random_queries(rows, seed=rows)
     direct = ort.InferenceSession(str(model_dir / "rand16.onnx")).run(None, {C.ONNX_INPUT: q})[0]
     mats = LocalMaterials(model_dir, threads=3, chunk=4096)
-    np.testing.assert_allclose(mats.evaluate("rand16", q), direct, atol=1e-6)
+    np.testing.assert_array_equal(mats.evaluate("rand16", q), direct)
 
 
 def test_run_chunked_with_executor_fills_every_row(model_dir):
@@ -32,6 +32,7 @@ def test_split_chunk_shares_rows_between_workers():
     assert split_chunk(10_000, 2, chunk=8192) == 5000
     assert split_chunk(1000, 2, chunk=8192) == MIN_SPLIT  # too small to split
     assert split_chunk(10_000, 1, chunk=8192) == 8192
+    assert split_chunk(10_000, 2, chunk=100) == 100  # an explicit small chunk is kept
 
 
 def test_sessions_do_not_spin(model_dir):

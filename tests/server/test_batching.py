@@ -7,8 +7,8 @@ import asyncio
 import numpy as np
 import pytest
 
-from neumip.client.local import load_material
-from neumip.server.batching import ALIGN_ROWS, Batcher, split
+from neumip.client.local import LocalMaterials, load_material
+from neumip.server.batching import Batcher, split
 from neumip.server.errors import QueueFull
 from neumip.server.metrics import Metrics
 from neumip.server.settings import Settings
@@ -34,14 +34,14 @@ async def run_all(batcher: Batcher, requests: list[tuple[str, np.ndarray]]) -> l
         await batcher.close()
 
 
-def test_split_makes_aligned_bodies_and_one_tail():
-    q = np.zeros((1000, 7), np.float32)
+def test_split_cuts_pieces_of_at_most_chunk_rows_in_order():
+    q = np.arange(7000, dtype=np.float32).reshape(1000, 7)
     out = np.zeros((1000, 3), np.float32)
     pieces = split(q, out, 256, job=None)
-    assert [p.rows for p in pieces] == [256, 256, 256, 224, 8]
-    assert [p.tail for p in pieces] == [False] * 4 + [True]
-    assert all(p.rows % ALIGN_ROWS == 0 for p in pieces[:-1])
-    assert split(q[:16], out[:16], 256, job=None)[0].tail is False
+    assert [p.rows for p in pieces] == [256, 256, 256, 232]
+    np.testing.assert_array_equal(np.concatenate([p.queries for p in pieces]), q)
+    assert all(np.shares_memory(p.out, out) for p in pieces)
+    assert [p.rows for p in split(q[:17], out[:17], 256, job=None)] == [17]
 
 
 def test_large_request_is_split_into_chunks(model_dir, reference):
@@ -49,7 +49,9 @@ def test_large_request_is_split_into_chunks(model_dir, reference):
     q = random_queries(5000, seed=1)
     [rgb] = asyncio.run(run_all(batcher, [("rand16", q)]))
     np.testing.assert_array_equal(rgb, reference.evaluate("rand16", q))
-    assert sample(metrics, "neumip_batch_rows_count") == 5  # 4 x 1024 + 896 + tail of 8, tail merged last
+    one_thread = LocalMaterials(model_dir, threads=1, chunk=333)  # chunks cut unlike the server's
+    np.testing.assert_array_equal(rgb, one_thread.evaluate("rand16", q))
+    assert sample(metrics, "neumip_batch_rows_count") == 5  # 4 x 1024 + 904
     assert sample(metrics, "neumip_batch_rows_sum") == 5000
 
 
