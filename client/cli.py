@@ -7,6 +7,8 @@ import importlib
 import logging
 import sys
 
+from .errors import NeumipError
+
 AREAS = (
     "neumip.client.commands",
     "neumip.client.mitsuba.commands",
@@ -17,7 +19,7 @@ AREAS = (
 """Modules with a `register(subparsers)` function adding that area's subcommands."""
 
 
-class CommandError(Exception):
+class CommandError(NeumipError):
     """An error a command reports to the user as one line, exit status 2."""
 
 
@@ -36,12 +38,11 @@ def main(argv: list[str] | None = None) -> int:
         level=logging.DEBUG if args.verbose else logging.INFO,
         format="%(levelname)s %(name)s: %(message)s",
     )
-    from .contract import QueryError
     from .local import ModelError, UnknownMaterial
 
     try:
         return int(args.func(args) or 0)
-    except (CommandError, QueryError, ModelError, UnknownMaterial, FileNotFoundError) as exc:
+    except (NeumipError, ModelError, UnknownMaterial, FileNotFoundError) as exc:
         print(f"neumip {args.command}: error: {exc}", file=sys.stderr)
         return 2
     except KeyboardInterrupt:

@@ -29,6 +29,8 @@ from typing import Protocol
 
 import numpy as np
 
+from .errors import NeumipError
+
 CONTRACT_VERSION = "1"
 """Version of the query layout; travels in every model's metadata."""
 
@@ -57,7 +59,7 @@ META_DESCRIPTION = "neumip.description"
 META_VALIDATION = "neumip.validation"
 
 
-class QueryError(ValueError):
+class QueryError(NeumipError, ValueError):
     """A query buffer that breaks the contract (shape, dtype or values)."""
 
 

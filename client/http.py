@@ -20,6 +20,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from . import contract as C
+from .errors import NeumipError
 
 log = logging.getLogger(__name__)
 
@@ -32,7 +33,7 @@ def _httpx():
     return httpx
 
 
-class ServerError(RuntimeError):
+class ServerError(NeumipError, RuntimeError):
     """The server answered with an error, or could not be reached after the allowed retries."""
 
     def __init__(self, message: str, status: int | None = None) -> None:

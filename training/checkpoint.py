@@ -12,13 +12,15 @@ from typing import Any
 
 import torch
 
+from neumip.client.errors import NeumipError
+
 from .config import MaterialConfig
 from .material import NeuMIPMaterial
 
 FORMAT = "neumip-checkpoint-1"
 
 
-class CheckpointError(RuntimeError):
+class CheckpointError(NeumipError, RuntimeError):
     """A checkpoint file that cannot be read as a NeuMIP checkpoint."""
 
 

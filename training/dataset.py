@@ -29,11 +29,12 @@ from typing import Any
 import numpy as np
 
 from neumip.client import contract as C
+from neumip.client.errors import NeumipError
 
 FORMAT = "neumip-mbtf-1"
 
 
-class DatasetError(RuntimeError):
+class DatasetError(NeumipError, RuntimeError):
     """A data set folder that is missing, incomplete or inconsistent."""
 
 

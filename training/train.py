@@ -19,6 +19,7 @@ import numpy as np
 import torch
 
 from neumip.client import contract as C
+from neumip.client.errors import NeumipError
 
 from . import checkpoint
 from .blur import blur_pyramid, blur_sigma, blur_texture, schedule_end
@@ -38,11 +39,11 @@ Callback = Callable[[int, float], None]
 """Called after every optimiser step with (steps done, loss of that step)."""
 
 
-class TrainingDiverged(RuntimeError):
+class TrainingDiverged(NeumipError, RuntimeError):
     """The loss or the weights became NaN/Inf; the last good checkpoint is kept."""
 
 
-class TrainingError(ValueError):
+class TrainingError(NeumipError, ValueError):
     """A run that cannot start: wrong data, or a checkpoint from a different run."""
 
 

@@ -19,6 +19,8 @@ from pathlib import Path
 
 import numpy as np
 
+from neumip.client.errors import NeumipError
+
 from .bsdf import dr, mi
 from .integrator import NeuMIPPathIntegrator
 from .shading import ShadingStats, neural_bsdfs
@@ -28,7 +30,7 @@ log = logging.getLogger(__name__)
 IMAGE_SUFFIXES = (".png", ".exr")
 
 
-class RenderError(RuntimeError):
+class RenderError(NeumipError, RuntimeError):
     """A render that could not complete; the message says why (no image was written)."""
 
 

@@ -13,6 +13,8 @@ import os
 import re
 from pathlib import Path
 
+from neumip.client.errors import NeumipError
+
 log = logging.getLogger(__name__)
 
 MIN_LLVM = 16
@@ -28,7 +30,7 @@ _SEARCH_DIRS = (
 _VERSION = re.compile(r"libLLVM(?:-|\.so\.)(\d+)")
 
 
-class MitsubaUnavailable(ImportError):
+class MitsubaUnavailable(NeumipError, ImportError):
     """Mitsuba or a usable LLVM is missing; the message says how to fix it."""
 
 

@@ -43,6 +43,8 @@ from typing import Any
 
 import numpy as np
 
+from neumip.client.errors import NeumipError
+
 from . import images
 from .procedural import GENERATORS
 
@@ -56,7 +58,7 @@ LIBRARY = "neumip.training.microgeometry.library"
 """Package holding the shipped descriptions (``<name>.toml``)."""
 
 
-class DescriptionError(ValueError):
+class DescriptionError(NeumipError, ValueError):
     """A material description that is malformed or refers to missing data."""
 
 

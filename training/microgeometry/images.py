@@ -11,8 +11,10 @@ from pathlib import Path
 
 import numpy as np
 
+from neumip.client.errors import NeumipError
 
-class ImageError(ValueError):
+
+class ImageError(NeumipError, ValueError):
     """A map file that is missing, unreadable or has the wrong shape."""
 
 
