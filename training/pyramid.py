@@ -51,10 +51,11 @@ def bilinear_taps(
     y0 = torch.remainder(y0f.long(), size)
     x1 = torch.remainder(x0 + 1, size)
     y1 = torch.remainder(y0 + 1, size)
-    row0, row1 = start + y0 * size, start + y1 * size
-    rows = torch.stack([row0 + x0, row0 + x1, row1 + x0, row1 + x1], dim=-1)
-    gx, gy = 1.0 - fx, 1.0 - fy
-    weights = torch.stack([gx * gy, fx * gy, gx * fy, fx * fy], dim=-1)
+    # taps as outer products (y0, y1) x (x0, x1): row-major order x0 y0, x1 y0, x0 y1, x1 y1
+    row_y = (start.unsqueeze(-1) + torch.stack([y0, y1], dim=-1) * size.unsqueeze(-1)).unsqueeze(-1)  # (N, L, 2, 1)
+    rows = (row_y + torch.stack([x0, x1], dim=-1).unsqueeze(-2)).flatten(-2)  # (N, L, 4)
+    wy = torch.stack([1.0 - fy, fy], dim=-1).unsqueeze(-1)  # (N, L, 2, 1)
+    weights = (wy * torch.stack([1.0 - fx, fx], dim=-1).unsqueeze(-2)).flatten(-2)  # (N, L, 4)
     return rows, weights
 
 
@@ -72,7 +73,7 @@ class _GatherBlend(torch.autograd.Function):
         texels = atlas.index_select(0, flat).view(n, k, -1)  # (N, K, C)
         ctx.save_for_backward(flat, weights, texels)
         ctx.atlas_shape = atlas.shape
-        return (weights.unsqueeze(2) * texels).sum(1)  # (N, C); faster than a bmm of (1, K) x (K, C)
+        return torch.bmm(weights.unsqueeze(1), texels).squeeze(1)  # (N, C)
 
     @staticmethod
     def backward(ctx, grad: torch.Tensor):
@@ -83,7 +84,7 @@ class _GatherBlend(torch.autograd.Function):
             grad_atlas = torch.zeros(ctx.atlas_shape, dtype=grad.dtype, device=grad.device)
             grad_atlas.index_add_(0, flat, contrib)
         if ctx.needs_input_grad[2]:
-            grad_weights = (texels * grad.unsqueeze(1)).sum(2)  # (N, K)
+            grad_weights = torch.bmm(texels, grad.unsqueeze(2)).squeeze(2)  # (N, K)
         return grad_atlas, None, grad_weights
 
 
