@@ -40,8 +40,11 @@ def decode_json(body: bytes) -> np.ndarray:
         raise ApiError(400, "'queries' must hold only numbers")
     if "n" in msg and msg["n"] != len(rows):
         raise ApiError(400, f"'n' is {msg['n']!r} but 'queries' holds {len(rows)} rows")
-    with np.errstate(over="ignore"):  # out-of-range values become Inf and are rejected as such
-        arr = np.array(rows, dtype=np.float64).reshape(len(rows), C.QUERY_DIM).astype(C.DTYPE)
+    try:
+        with np.errstate(over="ignore"):  # out-of-range floats become Inf and are rejected as such
+            arr = np.array(rows, dtype=np.float64).reshape(len(rows), C.QUERY_DIM).astype(C.DTYPE)
+    except OverflowError:  # an integer literal beyond float64
+        raise ApiError(400, "'queries' holds a number outside the float range; values must be finite") from None
     return C.as_queries(arr)
 
 

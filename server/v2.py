@@ -130,7 +130,7 @@ def _json_data(data: object, n: int) -> np.ndarray:
 
 def _binary_output(msg: dict) -> bool:
     """Whether 'rgb' goes back as binary; 400 for unknown requested outputs."""
-    binary = bool(_parameters(msg, "").get("binary_data_output", False))
+    binary = _flag(_parameters(msg, ""), "binary_data_output", False)
     outputs = msg.get("outputs")
     if outputs is None:
         return binary
@@ -139,8 +139,16 @@ def _binary_output(msg: dict) -> bool:
     for out in outputs:
         if out.get("name") != C.ONNX_OUTPUT:
             raise ApiError(400, f"unknown output {str(out.get('name'))[:40]!r}: the model's output is '{C.ONNX_OUTPUT}'")
-        binary = bool(_parameters(out, "output ").get("binary_data", binary))
+        binary = _flag(_parameters(out, "output "), "binary_data", binary)
     return binary
+
+
+def _flag(params: dict, key: str, default: bool) -> bool:
+    """A boolean parameter; 400 for anything but true/false (a string "false" must not mean true)."""
+    value = params.get(key, default)
+    if not isinstance(value, bool):
+        raise ApiError(400, f"parameter '{key}' must be true or false, got {str(value)[:40]!r}")
+    return value
 
 
 def parse_infer(body: bytes, header_length: str | None) -> InferRequest:

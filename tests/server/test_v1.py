@@ -94,6 +94,7 @@ BAD_REQUESTS = [
     ("JSON booleans", evaluate_path(), b'{"queries": [[true, 0, 0, 0, 0, 0, 0]]}', {"content-type": "application/json"}, 400, "numbers"),
     ("JSON NaN", evaluate_path(), b'{"queries": [[NaN, 0, 0, 0, 0, 0, 0]]}', {"content-type": "application/json"}, 400, "finite"),
     ("JSON huge value", evaluate_path(), b'{"queries": [[1e300, 0, 0, 0, 0, 0, 0]]}', {"content-type": "application/json"}, 400, "finite"),
+    ("JSON integer beyond float", evaluate_path(), b'{"queries": [[1' + b"0" * 400 + b', 0, 0, 0, 0, 0, 0]]}', {"content-type": "application/json"}, 400, "finite"),
     ("JSON empty", evaluate_path(), b'{"queries": []}', {"content-type": "application/json"}, 400, "at least one"),
     ("JSON n disagrees", evaluate_path(), b'{"n": 2, "queries": [[0, 0, 0, 0, 0, 0, 0]]}', {"content-type": "application/json"}, 400, "'n'"),
     ("bad Content-Length", evaluate_path(), None, {**MSGPACK, "content-length": "abc"}, 400, "content-length"),

@@ -86,6 +86,8 @@ def _bad(**change) -> bytes:
 BINARY, BINARY_HEAD = infer_body(Q, True, True)
 BAD_INFER = [
     ("wrong datatype", _bad(datatype="FP64"), {}, 400, "FP32"),
+    ("binary flag as a string", json.dumps({"inputs": [json.loads(_bad())["inputs"][0]],
+                                            "parameters": {"binary_data_output": "false"}}).encode(), {}, 400, "true or false"),
     ("wrong shape", _bad(shape=[7, 1]), {}, 400, "shape"),
     ("3-d shape", _bad(shape=[1, 1, 7]), {}, 400, "shape"),
     ("negative shape", _bad(shape=[-1, 7]), {}, 400, "shape"),
