@@ -12,7 +12,13 @@ if ! ls /usr/lib/*/libLLVM*.so* 2>/dev/null | grep -qE 'libLLVM(-|\.so\.)(1[6-9]
   $SUDO apt-get install -y -q libllvm19 >/dev/null 2>&1 || { $SUDO apt-get update -q >/dev/null && $SUDO apt-get install -y -q libllvm19 >/dev/null; }
 fi
 
-[ -x .venv/bin/python ] || "$PY" -m venv .venv
+if [ ! -x .venv/bin/python ] && ! "$PY" -m venv .venv; then
+  echo "setup: installing python3-venv"
+  rm -rf .venv
+  SUDO=""; [ "$(id -u)" -ne 0 ] && SUDO="sudo"
+  $SUDO apt-get install -y -q python3-venv >/dev/null
+  "$PY" -m venv .venv
+fi
 .venv/bin/python -m pip install -q --upgrade pip
 # The pinned CPU wheel first: an unpinned torch would pull several GB of CUDA packages.
 .venv/bin/python -c "import torch" 2>/dev/null || .venv/bin/pip install -q torch==2.13.0
