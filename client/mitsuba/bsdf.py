@@ -12,12 +12,26 @@ and replaces the value with the neural answer.
 from __future__ import annotations
 
 import logging
+import sys
 
-from .runtime import import_mitsuba
+from .runtime import DEFAULT_VARIANT, import_mitsuba
 
 log = logging.getLogger(__name__)
 
-mi = import_mitsuba()
+
+def _variant() -> str:
+    """The variant already set if it is a JIT one (llvm_*, cuda_*: a user's choice is kept), else
+    the default llvm variant (the plugins need a vectorized variant)."""
+    mitsuba = sys.modules.get("mitsuba")
+    current = mitsuba.variant() if mitsuba is not None else None
+    if current and current.startswith(("llvm_", "cuda_")):
+        return current
+    if current:
+        log.info("mitsuba variant %s is not vectorized; switching to %s", current, DEFAULT_VARIANT)
+    return DEFAULT_VARIANT
+
+
+mi = import_mitsuba(_variant())
 import drjit as dr  # noqa: E402  (drjit must be imported after the LLVM check in import_mitsuba)
 
 PLUGIN_NAME = "neumip"

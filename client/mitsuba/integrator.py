@@ -8,24 +8,32 @@ cosine-sampled direction - is collected into one buffer and evaluated in one cal
 integrator calls them; next-event estimation goes to all of Mitsuba's emitters with MIS (power
 heuristic) against BSDF sampling.
 
-Footprint (sigma) of a query:
-- first hit: the pixel footprint from ray differentials, ``max(|duv/dx|, |duv/dy|)`` in shape uv
-  units (the isotropic, larger-axis choice of trilinear mip-mapping), scaled back by sqrt(spp)
-  because `mi.render` shrinks differentials by 1/sqrt(spp);
+Footprint (sigma) of a query. The contract's sigma is the standard deviation of a Gaussian
+footprint, so it is set to the std of the pixel's reconstruction footprint: ``filter_std`` pixels
+(`filter_std_px`: 0.5 px for the film's default gaussian filter, 0.29 px for a box), not the full
+pixel spacing. The pixel's samples are spread over its filter and averaged, so the image is already
+the material filtered by the pixel; reading the level whose Gaussian matches that filter removes the
+aliasing of few samples per pixel while blurring the pixel only by a factor sqrt(2) in std (two equal
+Gaussians), where a full pixel spacing (the texel = pixel rule of trilinear mip-mapping, twice the
+default filter's std) would read one level coarser than the pixel resolves.
+- first hit: ``filter_std * max(|duv/dx|, |duv/dy|)``, the derivatives being the pixel spacing in
+  shape uv units (isotropic, larger axis), scaled back by sqrt(spp) because `mi.render` shrinks
+  differentials by 1/sqrt(spp);
 - later hits (no differentials exist): a ray cone (Akenine-Moller et al. 2019). The cone leaves the
-  camera with the pixel's angular size; its width grows by ``spread * distance`` along each segment,
-  and every non-specular bounce adds ``footprint_spread`` radians to the spread (a specular bounce
-  keeps it). The width at a hit, divided by the world length of one uv unit
+  camera with the pixel's angular size times ``filter_std``; its width grows by ``spread * distance``
+  along each segment, and every non-specular bounce adds ``footprint_spread`` radians to the spread
+  (a specular bounce keeps it). The width at a hit, divided by the world length of one uv unit
   ``sqrt(|dp/du x dp/dv|)``, is sigma. Indirect light is smooth, so erring coarse is cheap.
 """
 
 from __future__ import annotations
 
 import logging
+import math
 from dataclasses import dataclass
 
 from .bsdf import dr, mi
-from .shading import NeuralShading
+from .shading import NeuralShading, query_frame, to_query
 
 from mitsuba.ad.integrators.common import mis_weight  # noqa: E402,I001 (needs a variant set first)
 
@@ -64,6 +72,24 @@ class PathConfig:
         return cfg
 
 
+def filter_std_px(rfilter: mi.ReconstructionFilter) -> float:
+    """Standard deviation, in pixels, of a film's reconstruction filter (one axis).
+
+    gaussian: ``radius / 4`` (Mitsuba truncates it at 4 std: 0.5 px by default); box of radius r:
+    uniform on [-r, r], ``r / sqrt(3)``; tent: ``r / sqrt(6)``. Other filters (mitchell,
+    catmullrom, lanczos: negative lobes, main lobe about a pixel wide) use 0.5.
+    """
+    name, radius = rfilter.class_name(), float(rfilter.radius())
+    if name == "GaussianFilter":
+        return radius / 4
+    if name == "BoxFilter":
+        return radius / math.sqrt(3)
+    if name == "TentFilter":
+        return radius / math.sqrt(6)
+    log.debug("reconstruction filter %s: footprint std taken as 0.5 px", name)
+    return 0.5
+
+
 class EvaluatorNotBound(RuntimeError):
     """`neumip_path` was asked to render before an evaluator was bound to it."""
 
@@ -75,10 +101,13 @@ class NeuMIPPathIntegrator(mi.SamplingIntegrator):
         mi.SamplingIntegrator.__init__(self, props)
         self.config = PathConfig.from_properties(props)
         self.shading: NeuralShading | None = None
+        self.filter_std = 0.5
+        """Std (pixels) of the bound scene's reconstruction filter: the footprint of a pixel."""
 
     def bind(self, scene: mi.Scene, evaluator) -> NeuralShading:
         """Use ``evaluator`` (a `contract.Evaluator`) for the neural materials of ``scene``."""
         self.shading = NeuralShading(scene, evaluator)
+        self.filter_std = filter_std_px(scene.sensors()[0].film().rfilter()) if scene.sensors() else 0.5
         return self.shading
 
     def sample(self, scene, sampler, ray, medium=None, active=True):
@@ -105,7 +134,10 @@ class NeuMIPPathIntegrator(mi.SamplingIntegrator):
         prev_bsdf_delta = dr.full(mi.Bool, True, width)
         # Footprint cone: world width at the current ray's origin and angular spread (radians).
         cone_width = dr.zeros(mi.Float, width)
-        cone_spread = dr.norm(ray.d_x - ray.d) * spp_scale if ray.has_differentials else dr.zeros(mi.Float, width)
+        filter_std = self.filter_std
+        cone_spread = (
+            dr.norm(ray.d_x - ray.d) * spp_scale * filter_std if ray.has_differentials else dr.zeros(mi.Float, width)
+        )
         first_ray = ray
         ray = mi.Ray3f(ray)
 
@@ -128,7 +160,7 @@ class NeuMIPPathIntegrator(mi.SamplingIntegrator):
             cone_width = cone_width + cone_spread * si.t
             if depth == 0 and first_ray.has_differentials:
                 si.compute_uv_partials(first_ray)
-                sigma_uv = dr.maximum(dr.norm(si.duv_dx), dr.norm(si.duv_dy)) * spp_scale
+                sigma_uv = dr.maximum(dr.norm(si.duv_dx), dr.norm(si.duv_dy)) * spp_scale * filter_std
             else:
                 uv_length = dr.sqrt(dr.norm(dr.cross(si.dp_du, si.dp_dv)))
                 sigma_uv = cone_width / uv_length
@@ -150,8 +182,11 @@ class NeuMIPPathIntegrator(mi.SamplingIntegrator):
                 front = mi.Frame3f.cos_theta(si.wi) > 0
                 light_ok = active_em & front & (mi.Frame3f.cos_theta(wo_light) > 0)
                 sample_ok = front & (mi.Frame3f.cos_theta(bs.wo) > 0) & (bs.pdf > 0)
+                # Mitsuba's shading frame (y = n x dp_du) -> the contract's (x along +u, y along +v).
+                frame = query_frame(si)
                 rho_light, rho_sample = shading.evaluate(
-                    hits, si.uv, sigma_uv, si.wi, [(wo_light, light_ok), (bs.wo, sample_ok)]
+                    hits, si.uv, sigma_uv, to_query(si, frame, si.wi),
+                    [(to_query(si, frame, wo_light), light_ok), (to_query(si, frame, bs.wo), sample_ok)],
                 )
                 # BTF under unit irradiance is used like a BRDF: f * cos for NEE, pi * f for a
                 # cosine-sampled direction (pdf cos / pi); back-side hits are black.

@@ -23,7 +23,7 @@ from neumip.client.errors import NeumipError
 
 from .bsdf import dr, mi
 from .integrator import NeuMIPPathIntegrator
-from .shading import ShadingStats, neural_bsdfs
+from .shading import NestedNeuralBSDF, ShadingStats, neural_bsdfs
 
 log = logging.getLogger(__name__)
 
@@ -67,15 +67,21 @@ class RenderResult:
 def load_scene(path: str | os.PathLike, **params: str) -> mi.Scene:
     """Load a Mitsuba XML scene (``params`` fill its ``$name`` defaults, as Mitsuba's ``-D``).
 
-    Raises FileNotFoundError, or RenderError with Mitsuba's reason.
+    Raises FileNotFoundError, or RenderError with Mitsuba's reason (or where a `neumip` BSDF is
+    wrapped in another BSDF, e.g. `twosided`: not supported).
     """
     path = Path(path)
     if not path.is_file():
         raise FileNotFoundError(f"scene {path} does not exist")
     try:
-        return mi.load_file(str(path), **params)
+        scene = mi.load_file(str(path), **params)
     except Exception as exc:  # mitsuba raises plain Exception/RuntimeError with its parser message
         raise RenderError(f"cannot load scene {path}: {exc}") from exc
+    try:
+        neural_bsdfs(scene)  # refuses a neumip BSDF wrapped in another BSDF
+    except NestedNeuralBSDF as exc:
+        raise RenderError(f"cannot load scene {path}: {exc}") from exc
+    return scene
 
 
 def pass_plan(pixels: int, spp: int, max_lanes: int) -> list[int]:

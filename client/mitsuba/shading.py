@@ -17,6 +17,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from neumip.client import contract as C
+from neumip.client.errors import NeumipError
 
 from .bsdf import NeuMIPBSDF, dr, mi
 
@@ -46,14 +47,55 @@ class ShadingStats:
         self.per_material[material] = self.per_material.get(material, 0) + rows
 
 
+class NestedNeuralBSDF(NeumipError, ValueError):
+    """A `neumip` BSDF inside another BSDF (twosided, blend, mask...): not supported."""
+
+
 def neural_bsdfs(scene: mi.Scene) -> list[NeuMIPBSDF]:
-    """Every distinct `neumip` BSDF attached to a shape of ``scene`` (in shape order)."""
+    """Every distinct `neumip` BSDF attached to a shape of ``scene`` (in shape order).
+
+    Raises NestedNeuralBSDF where a `neumip` BSDF is wrapped in another BSDF: the integrator only
+    sees a shape's own BSDF, so a wrapped neural material would silently render as its preview.
+    """
     found: dict[int, NeuMIPBSDF] = {}
     for shape in scene.shapes():
         bsdf = shape.bsdf()
         if isinstance(bsdf, NeuMIPBSDF):
             found.setdefault(id(bsdf), bsdf)
+        elif bsdf is not None and NeuMIPBSDF.__name__ in str(bsdf):  # nested: listed in its to_string
+            raise NestedNeuralBSDF(
+                f"shape {shape.id() or shape.class_name()!r}: a neumip BSDF inside "
+                f"{bsdf.class_name()} is not supported; neural materials are one-sided (the back side "
+                "renders black), so attach <bsdf type=\"neumip\"> to the shape directly"
+            )
     return list(found.values())
+
+
+def query_frame(si: mi.SurfaceInteraction3f) -> mi.Frame3f:
+    """The contract's local frame at each lane of ``si``: z the shading normal, x along +u, y along +v.
+
+    x is ``dp_du`` projected onto the tangent plane (the shading frame's own ``s`` where ``dp_du``
+    vanishes, e.g. at a sphere's pole); y is ``n x x``, negated on lanes where it would point
+    towards -v (Mitsuba's ``sh_frame.t`` is ``n x dp_du``, which is -v on spheres and cube faces).
+    Where ``dp_du`` and ``dp_dv`` are not orthogonal, x follows u exactly and y is the unit tangent
+    orthogonal to it on the +v side. ``uv_scale`` scales u and v alike, so it does not change the frame.
+    The frame may be left-handed; only its axes' dot products are used.
+    """
+    n = si.sh_frame.n
+    s = si.dp_du - n * dr.dot(n, si.dp_du)
+    length = dr.norm(s)
+    s = dr.select(length > 1e-6 * dr.norm(si.dp_du), s / length, si.sh_frame.s)
+    t = dr.cross(n, s)
+    t = dr.select(dr.dot(t, si.dp_dv) < 0, -t, t)
+    return mi.Frame3f(s, t, n)
+
+
+def to_query(si: mi.SurfaceInteraction3f, frame: mi.Frame3f, w: mi.Vector3f) -> mi.Vector3f:
+    """A direction ``w`` in ``si``'s shading frame (as ``si.wi`` and BSDF samples are), in ``frame``.
+
+    Both frames share the normal, so ``z`` (the cosine) is unchanged.
+    """
+    return frame.to_local(si.sh_frame.to_world(w))
 
 
 def scene_materials(scene: mi.Scene) -> list[str]:
@@ -117,8 +159,8 @@ class NeuralShading:
     ) -> list[mi.Color3f]:
         """Evaluate the BTF for each (wi, valid) in ``lights`` at every neural lane, in one buffer.
 
-        ``uv`` (shape uv), ``sigma`` (footprint in shape uv units), ``wo`` (local, towards the viewer)
-        and each ``wi`` (local, towards the light) are per-lane; returns one Color3f per entry of
+        ``uv`` (shape uv), ``sigma`` (footprint std in shape uv units), ``wo`` (towards the viewer)
+        and each ``wi`` (towards the light) are per-lane, directions in the `query_frame`; returns one Color3f per entry of
         ``lights``, zero on lanes that are not neural or whose ``valid`` is false. One evaluator call
         per material covers all entries.
         """

@@ -1,5 +1,6 @@
-"""Query geometry: first-hit sigma is the pixel footprint (independent of spp) times uv_scale, and
-query directions follow the contract (wo towards the viewer)."""
+"""Query geometry: first-hit sigma is the std of the pixel footprint (the film's reconstruction filter;
+independent of spp) times uv_scale, and query directions follow the contract (wo towards the viewer,
+x along +u and y along +v on rectangles, spheres and every cube face)."""
 
 from __future__ import annotations
 
@@ -8,26 +9,16 @@ import math
 import numpy as np
 import pytest
 
-from neumip.client.local import LocalMaterials
 from neumip.client.mitsuba.bsdf import mi
+from neumip.client.mitsuba.integrator import filter_std_px
 from neumip.client.mitsuba.render import RenderConfig, render_scene
+
+from .recording import Recording
 
 WIDTH, DISTANCE, FOV = 32, 3.0, 30.0
 
 
-class Recording(LocalMaterials):
-    """LocalMaterials that keeps every query buffer it evaluates."""
-
-    def __init__(self, folder):
-        super().__init__(folder)
-        self.calls: list[np.ndarray] = []
-
-    def evaluate(self, material, queries):
-        self.calls.append(np.array(queries))
-        return super().evaluate(material, queries)
-
-
-def facing_plane(uv_scale: float) -> dict:
+def facing_plane(uv_scale: float, rfilter: str = "gaussian") -> dict:
     """A 2 x 2 rectangle (uv 0..1) seen head-on from DISTANCE, filling the view."""
     return {
         "type": "scene",
@@ -35,20 +26,33 @@ def facing_plane(uv_scale: float) -> dict:
         "sensor": {
             "type": "perspective", "fov": FOV,
             "to_world": mi.ScalarTransform4f().look_at(origin=[0, 0, DISTANCE], target=[0, 0, 0], up=[0, 1, 0]),
-            "film": {"type": "hdrfilm", "width": WIDTH, "height": WIDTH},
+            "film": {"type": "hdrfilm", "width": WIDTH, "height": WIDTH, "rfilter": {"type": rfilter}},
         },
         "sky": {"type": "constant"},
         "plane": {"type": "rectangle", "bsdf": {"type": "neumip", "material": "lambert", "uv_scale": uv_scale}},
     }
 
 
-@pytest.mark.parametrize(("spp", "uv_scale"), [(1, 1.0), (16, 1.0), (16, 4.0)])
-def test_first_hit_sigma_is_the_pixel_footprint(model_dir, spp, uv_scale):
+FILTER_STD = {"gaussian": 0.5, "box": 1 / math.sqrt(12), "tent": 1 / math.sqrt(6)}
+"""Std (pixels) of Mitsuba's reconstruction filters at their default radii."""
+
+
+@pytest.mark.parametrize("rfilter", sorted(FILTER_STD))
+def test_filter_std(rfilter):
+    assert filter_std_px(mi.load_dict({"type": rfilter})) == pytest.approx(FILTER_STD[rfilter])
+
+
+@pytest.mark.parametrize(
+    ("spp", "uv_scale", "rfilter"), [(1, 1.0, "gaussian"), (16, 1.0, "gaussian"), (16, 4.0, "gaussian"), (4, 1.0, "box")]
+)
+def test_first_hit_sigma_is_the_pixel_footprint(model_dir, spp, uv_scale, rfilter):
     evaluator = Recording(model_dir)
-    render_scene(mi.load_dict(facing_plane(uv_scale)), evaluator, RenderConfig(spp=spp))
+    render_scene(mi.load_dict(facing_plane(uv_scale, rfilter)), evaluator, RenderConfig(spp=spp))
     first = evaluator.calls[0]  # bounce 0: all camera hits, light and sampled queries
-    footprint_world = 2 * DISTANCE * math.tan(math.radians(FOV / 2)) / WIDTH
-    expected = uv_scale * footprint_world / 2  # the rectangle spans 2 world units per uv unit
+    pixel_world = 2 * DISTANCE * math.tan(math.radians(FOV / 2)) / WIDTH
+    # sigma is the std of the pixel's reconstruction filter, in tiles (the rectangle spans 2 world
+    # units per uv unit): 0.5 px for the default gaussian filter
+    expected = uv_scale * FILTER_STD[rfilter] * pixel_world / 2
     np.testing.assert_allclose(np.median(first[:, 2]), expected, rtol=0.02)
     assert first[:, 2].std() < 0.05 * expected  # a fronto-parallel plane: the same everywhere
     # the view covers the middle 80 % of the rectangle (2 * 3 * tan 15 deg = 1.6 of 2 units), in tiles
@@ -62,6 +66,41 @@ def test_first_hit_sigma_is_the_pixel_footprint(model_dir, spp, uv_scale):
     # ... and points back at the camera: right of centre (u > 0.5, local x = +u) it leans to -x
     assert np.corrcoef(first[:, 0], first[:, 5])[0, 1] < -0.95
     assert np.corrcoef(first[:, 1], first[:, 6])[0, 1] < -0.95
+
+
+def side_view(shape: dict, camera, up) -> dict:
+    """``shape`` (neural) seen from ``camera`` towards the origin; every visible point faces it."""
+    return {
+        "type": "scene",
+        "integrator": {"type": "neumip_path", "max_depth": 2},
+        "sensor": {
+            "type": "perspective", "fov": FOV,
+            "to_world": mi.ScalarTransform4f().look_at(origin=camera, target=[0, 0, 0], up=up),
+            "film": {"type": "hdrfilm", "width": WIDTH, "height": WIDTH},
+        },
+        "sky": {"type": "constant"},
+        "shape": {**shape, "bsdf": {"type": "neumip", "material": "lambert"}},
+    }
+
+
+VIEWS = {
+    "rectangle": ({"type": "rectangle"}, [0, 0, 4], [0, 1, 0]),
+    "sphere": ({"type": "sphere"}, [0, 4, 0], [0, 0, 1]),  # the equator round phi = 90 deg: no u seam
+    **{f"cube{name}": ({"type": "cube"}, camera, up) for name, camera, up in [
+        ("+z", [0, 0, 5], [0, 1, 0]), ("-z", [0, 0, -5], [0, 1, 0]), ("+x", [5, 0, 0], [0, 1, 0]),
+        ("-x", [-5, 0, 0], [0, 1, 0]), ("+y", [0, 5, 0], [0, 0, 1]), ("-y", [0, -5, 0], [0, 0, 1])]},
+}
+
+
+@pytest.mark.parametrize("view", sorted(VIEWS))
+def test_local_frame_follows_uv(model_dir, view):
+    """wo points back at the camera: where u (v) is larger than at the image centre, wo leans to -x
+    (-y). Mitsuba's own shading frame has y = n x dp_du, which is -v on spheres and cube faces."""
+    evaluator = Recording(model_dir)
+    render_scene(mi.load_dict(side_view(*VIEWS[view])), evaluator, RenderConfig(spp=1))
+    first = evaluator.calls[0]
+    assert np.corrcoef(first[:, 0], first[:, 5])[0, 1] < -0.9
+    assert np.corrcoef(first[:, 1], first[:, 6])[0, 1] < -0.9
 
 
 def test_secondary_hits_read_coarser_footprints(model_dir):
