@@ -5,7 +5,8 @@ a renderer takes either. One `httpx.Client` is kept for the client's life (conne
 requests have timeouts; 503 (queue full, honouring ``Retry-After``) and connection failures are
 retried a bounded number of times with exponential backoff; anything else fails at once with an
 error that says what the server answered. Large buffers are sent as several requests of at most
-``ClientConfig.max_rows`` rows.
+``ClientConfig.max_rows`` rows. A material name goes into the URL path, so a name that is not a
+material name (`neumip.client.local.NAME_PATTERN`) is refused before anything is sent.
 
 Tests inject a transport (``httpx.MockTransport``: this client is synchronous, so the async-only
 ``ASGITransport`` does not apply) and also run against a real server process.
@@ -21,6 +22,7 @@ import numpy as np
 
 from . import contract as C
 from .errors import NeumipError
+from .local import NAME_PATTERN, UnknownMaterial
 
 log = logging.getLogger(__name__)
 
@@ -89,6 +91,11 @@ class MaterialClient:
 
     def evaluate(self, material: str, queries: np.ndarray) -> np.ndarray:
         """(N, 7) float32 queries -> (N, 3) float32 RGB, in requests of at most `max_rows` rows."""
+        if not NAME_PATTERN.match(material):  # it goes into the URL path: only safe names
+            raise UnknownMaterial(
+                f"{material!r} is not a material name (a letter or digit, then letters, digits, '_', "
+                "'.', '-'; at most 128 characters)"
+            )
         queries = C.as_queries(queries)
         n = queries.shape[0]
         out = np.empty((n, C.RGB_DIM), dtype=C.DTYPE)

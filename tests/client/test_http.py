@@ -112,6 +112,15 @@ def test_bad_queries_are_rejected_before_sending(model_dir):
     assert server.requests == []
 
 
+@pytest.mark.parametrize("name", ["../admin", "a/b", "rock?x=1", "rock#", "", "x" * 129, "-rock", "r o"])
+def test_names_that_are_not_material_names_never_reach_the_url(model_dir, name):
+    """A name goes into the URL path: one with '/', '?', '#', spaces... is refused before sending."""
+    server = FakeServer(model_dir)
+    with pytest.raises(UnknownMaterial, match="is not a material name"):
+        client_for(server).evaluate(name, random_queries(4))
+    assert server.requests == []
+
+
 def test_bad_url_and_config():
     with pytest.raises(ValueError, match="http://"):
         MaterialClient("localhost:8000")
