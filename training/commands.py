@@ -16,7 +16,8 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--preset", choices=PRESET_NAMES, default="ship", help="training schedule preset")
     p.add_argument("--config", help="JSON file of TrainConfig fields (applied over the preset)")
     p.add_argument("--checkpoint", help="checkpoint path (default runs/NAME/checkpoint.pt); resumes if it exists")
-    p.add_argument("--resolution", type=int, default=128, help="finest pyramid level, texels per side")
+    p.add_argument("--resolution", type=int,
+                   help="finest pyramid level, texels per side (default: the data's generator resolution, else 128)")
     p.add_argument("--no-offset", action="store_true", help="train without the neural offset")
     p.add_argument("--description", default="", help="short description stored in the model metadata")
     for name, kind in (("steps", int), ("batch", int), ("lr", float), ("seed", int), ("blur-half-life", float)):
@@ -53,6 +54,17 @@ def _train_config(args: argparse.Namespace):
     return replace(config, **overrides)
 
 
+def _data_resolution(data: str, default: int = 128) -> int:
+    """The finest resolution the data set was sampled for (its generator's), else `default`."""
+    import json
+
+    meta = Path(data) / "meta.json"
+    if not meta.exists():
+        return default  # open_dataset reports the real problem
+    generator = json.loads(meta.read_text()).get("generator")
+    return int(generator.get("resolution", default)) if isinstance(generator, dict) else default
+
+
 def _train(args: argparse.Namespace) -> int:
     import torch
     from tqdm import tqdm
@@ -74,7 +86,8 @@ def _train(args: argparse.Namespace) -> int:
     checkpoint = Path(args.checkpoint or Path("runs") / output.stem / "checkpoint.pt")
     try:
         config = _train_config(args)
-        material = MaterialConfig(resolution=args.resolution, offset=not args.no_offset)
+        resolution = args.resolution or _data_resolution(args.data)
+        material = MaterialConfig(resolution=resolution, offset=not args.no_offset)
         trainer = Trainer(args.data, checkpoint, material, config, args.description)
     except (ValueError, DatasetError, CheckpointError) as exc:
         raise CommandError(str(exc)) from exc
@@ -93,7 +106,8 @@ def _train(args: argparse.Namespace) -> int:
         raise CommandError(str(exc)) from exc
     except KeyboardInterrupt:
         bar.close()
-        print(f"interrupted: re-run the same command to resume from {checkpoint}")
+        if checkpoint.exists():
+            print(f"interrupted: re-run the same command to resume from {checkpoint}")
         raise
     finally:
         bar.close()

@@ -21,6 +21,7 @@ checkpoint.
 
 from __future__ import annotations
 
+import logging
 import os
 from dataclasses import dataclass
 from pathlib import Path
@@ -37,6 +38,8 @@ from .export_lookup import pyramid_texels, texture_texels
 from .export_modulo import modulo_graph
 from .onnx_graph import INDEX_TYPES, GraphWriter
 from .texture_tables import TAPS_PER_ROW
+
+log = logging.getLogger(__name__)
 
 OPSET = 18
 IR_VERSION = 9  # onnxruntime 1.31 reads IR <= 13; onnx 1.23 would write 14 by default.
@@ -260,6 +263,13 @@ def export_checkpoint(
     from .checkpoint import load  # torch only here
 
     material, extra = load(checkpoint)
+    from .train import bake_checkpoint_textures
+
+    if bake_checkpoint_textures(material, extra):
+        log.warning(
+            "%s was written mid-run (step %d): exporting with that step's blurred textures",
+            checkpoint, extra["state"]["step"],
+        )
     meta = dict(extra_metadata or {})
     if "validation" in extra and C.META_VALIDATION not in meta:
         import json

@@ -104,6 +104,25 @@ def bake(material: NeuMIPMaterial, levels: list[torch.Tensor], otex: torch.Tenso
         material.offset_texture.copy_(otex)
 
 
+def bake_checkpoint_textures(material: NeuMIPMaterial, extra: dict) -> bool:
+    """Bake the blur a training run applied at the checkpoint's step into `material` (in place).
+
+    A checkpoint written inside the blur schedule stores raw textures, while training evaluated
+    blurred copies; baking makes an export of it compute what training computed. Returns whether
+    anything was baked (False for finished or baked runs and for checkpoints without a run state).
+    """
+    state, saved = extra.get("state"), extra.get("train_config")
+    if not state or not saved or state.get("baked"):
+        return False
+    config = TrainConfig.from_dict(saved)
+    sigma = blur_sigma(state["step"], config)
+    frozen = state.get("offset_frozen", False)
+    if sigma <= 0 and (not material.config.offset or frozen):
+        return False
+    bake(material, *effective_textures(material, sigma, config, frozen))
+    return True
+
+
 class BatchSampler:
     """Uniform random batches of the training split, drawn from the (memory-mapped) data."""
 
@@ -293,13 +312,19 @@ class Trainer:
         if state.baked and state.step < cfg.steps:
             log.warning("continuing a run whose final blurred textures were baked: they are blurred again")
             state.baked = False
-        while state.step < cfg.steps:
-            loss = self.step()
-            state.seconds = done_before + time.perf_counter() - started
-            if state.step % cfg.checkpoint_every == 0:
+        try:
+            while state.step < cfg.steps:
+                loss = self.step()
+                state.seconds = done_before + time.perf_counter() - started
+                if state.step % cfg.checkpoint_every == 0:
+                    self.save_checkpoint()
+                if callback is not None:
+                    callback(state.step, loss)
+        except KeyboardInterrupt:
+            if state.step > 0:  # keep the steps done since the last periodic checkpoint
                 self.save_checkpoint()
-            if callback is not None:
-                callback(state.step, loss)
+                log.info("interrupted at step %d: checkpoint %s written", state.step, self.checkpoint_path)
+            raise
         sigma = blur_sigma(state.step, cfg)
         if not state.baked and (sigma > 0 or (self.material.config.offset and not state.offset_frozen)):
             log.warning("run ended inside the blur schedule (sigma %.3g): baking the blurred textures", sigma)

@@ -113,6 +113,45 @@ def test_interrupted_run_resumes_exactly(data, tmp_path):
     assert [h[0] for h in resumed.state.history] == [10, 20, 30, 40, 50, 60]
 
 
+def test_ctrl_c_writes_a_checkpoint_of_the_steps_done(data, tmp_path):
+    """KeyboardInterrupt at step 27 (periodic checkpoints every 20): the checkpoint holds step 27."""
+
+    def ctrl_c(step, loss):
+        if step == 27:
+            raise KeyboardInterrupt
+
+    trainer = Trainer(data.path, tmp_path / "k.pt", TINY, FAST)
+    with pytest.raises(KeyboardInterrupt):
+        trainer.run(ctrl_c)
+    assert Trainer(data.path, tmp_path / "k.pt", TINY, FAST).state.step == 27
+
+
+def test_export_of_a_mid_run_checkpoint_computes_what_training_computed(data, tmp_path):
+    """A checkpoint inside the blur schedule stores raw textures; its export must use the blurred ones."""
+    from neumip.training.export import export_checkpoint
+
+    trainer = Trainer(data.path, tmp_path / "mid.pt", TINY, FAST)
+
+    def stop(step, loss):
+        if step == 20:
+            raise Interrupt
+
+    with pytest.raises(Interrupt):
+        trainer.run(stop)
+    assert train_mod.blur_sigma(20, FAST) > 0, "the test needs a checkpoint inside the blur schedule"
+    q = random_queries(2000, seed=4)
+    levels, otex = train_mod.effective_textures(
+        trainer.material, train_mod.blur_sigma(20, FAST), FAST, trainer.state.offset_frozen
+    )
+    with torch.no_grad():
+        want = trainer.material(torch.from_numpy(q), levels, otex).numpy()
+        raw = trainer.material(torch.from_numpy(q)).numpy()
+    assert np.abs(want - raw).max() > 1e-4, "blur must matter for this check to mean anything"
+    out = export_checkpoint(tmp_path / "mid.pt", tmp_path / "mid.onnx")
+    got = ort.InferenceSession(str(out)).run(None, {C.ONNX_INPUT: q})[0]
+    np.testing.assert_allclose(got, want, atol=1e-5, rtol=1e-4)
+
+
 def test_resume_refuses_other_settings(data, tmp_path):
     done = Trainer(data.path, tmp_path / "c.pt", TINY, replace(FAST, steps=20))
     done.run()  # ends inside the blur schedule: the blurred textures are baked once
@@ -154,11 +193,21 @@ def test_cli_train_writes_model_table_and_curve(data, tmp_path, capsys):
     assert main(argv) == 0
     assert out.exists() and out.with_suffix(".json").exists() and (out.parent / "plane.loss.png").exists()
     assert "MSE x1e-3" in capsys.readouterr().out
+    assert json.loads(out.with_suffix(".json").read_text())["material_config"]["resolution"] == 8
     assert main(["train", str(data.path), "-o", str(tmp_path / "x.txt")]) == 2
     assert main(["train", str(tmp_path / "missing"), "-o", str(out)]) == 2
     (tmp_path / "junk.pt").write_bytes(b"not a checkpoint")
     assert main(["train", str(data.path), "-o", str(out), "--checkpoint", str(tmp_path / "junk.pt")]) == 2
     assert "not a readable checkpoint" in capsys.readouterr().err
+
+
+def test_cli_default_resolution_is_the_datas(tmp_path):
+    from neumip.training.commands import _data_resolution
+
+    (tmp_path / "meta.json").write_text(json.dumps({"generator": {"resolution": 64}}))
+    assert _data_resolution(str(tmp_path)) == 64
+    (tmp_path / "meta.json").write_text(json.dumps({"generator": "converted measured BTF"}))
+    assert _data_resolution(str(tmp_path)) == 128
 
 
 @pytest.mark.slow
