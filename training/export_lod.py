@@ -3,14 +3,15 @@
 ONNX Runtime's ``Log`` kernel computes the last few elements of a call (the remainder after its
 vector blocks) differently from the others, so a query's answer would depend in its last bits on
 where it sits in a call and on how many rows the call has. This stage uses only ops that IEEE
-arithmetic rounds per element (Mul, Add, Div, Clip, comparisons, Gather), so a query's level of
+arithmetic rounds per element (Mul, Add, Div, Clip, Floor, Gather), so a query's level of
 detail is the same bits in any batch:
 
 - x = clip(sigma * R, 1, 2^L); log2 of it is the clamped level (log2 is monotonic).
-- lo = floor(log2 x) = how many level boundaries 2^j (j = 1..L) x reaches: comparisons, exact.
-- m = x * 2^-lo in [1, 2): a multiplication by a power of two from a table, exact.
-- t = log2(m) = s P(s^2), s = (m - 1) / (m + 1) in [0, 1/3): a degree-5 polynomial (fitted to
-  log2 in float64, 2e-10 from it), evaluated in float32 within 2e-7 of log2 for every float32 m
+- lo = floor(log2 x) and 2^-lo: two tables of 2^L + 1 rows indexed by floor(x), exact (L <= 11 for
+  the default graph, whose tap tables need R <= 2048).
+- m = x * 2^-lo in [1, 2): a multiplication by a power of two, exact.
+- t = log2(m) = s P(s^2), s = (m - 1) / (m + 1) in [0, 1/3): a degree-4 polynomial (fitted to
+  log2 in float64, 6e-9 from it), evaluated in float32 within 2e-7 of log2 for every float32 m
   (tests/training/test_export_determinism.py checks all 2^23), exactly 0 at m = 1: level boundaries
   are exact, and t < 1.
 """
@@ -18,13 +19,12 @@ detail is the same bits in any batch:
 from __future__ import annotations
 
 import numpy as np
-from onnx import TensorProto
 
 from .config import MaterialConfig
 from .onnx_graph import INDEX_TYPES, GraphWriter
 
-LOG2_POLYNOMIAL = (2.885390043258667, 0.9617970585823059, 0.5770507454872131, 0.41306933760643005,
-                   0.3073106110095978, 0.3562144637107849)
+LOG2_POLYNOMIAL = (2.885390043258667, 0.9617878198623657, 0.5775499939918518, 0.40215760469436646,
+                   0.41097143292427063)
 """P(z), lowest power first: log2(m) = s P(s^2) with s = (m - 1) / (m + 1), m in [1, 2). A weighted
 Chebyshev fit of log2(m) / s over s in [0, 1/3] (2 / ln 2 = 2.88539... leads)."""
 
@@ -45,10 +45,9 @@ def level_of_detail(g: GraphWriter, sigma: str, config: MaterialConfig) -> tuple
     level lo + 1; lo + t = clamp(log2(sigma * R), 0, L), sigma <= 0 reading the finest level."""
     levels = config.levels
     x = g.op("Clip", g.op("Mul", sigma, g.scalar(config.resolution)), g.const(1.0), g.const(2.0**levels))
-    # boundaries 2^1..2^L; a 1 x 1 material (L = 0) keeps one boundary that x <= 1 never reaches
-    bounds = 2.0 ** np.arange(1, max(levels, 1) + 1, dtype=np.float64)[None, :]  # (1, max(L, 1))
-    reached = g.op("Cast", g.op("GreaterOrEqual", x, g.const(bounds)), to=TensorProto.FLOAT)  # (N, L) 0/1
-    count = g.op("MatMul", reached, g.const(np.ones((bounds.shape[1], 1))))  # (N, 1), integers <= L
-    lo = g.shape(g.op("Cast", count, to=INDEX_TYPES["int64"][1]), [-1])  # (N,)
-    scale = g.op("Gather", g.const(2.0 ** -np.arange(levels + 1, dtype=np.float64)[:, None]), lo, axis=0)
+    index = g.shape(g.op("Cast", g.op("Floor", x), to=INDEX_TYPES["int64"][1]), [-1])  # (N,) in [1, 2^L]
+    k = np.maximum(np.arange(2**levels + 1), 1)
+    floor_log2 = np.asarray([int(i).bit_length() - 1 for i in k], np.int64)  # row k: floor(log2 k)
+    lo = g.op("Gather", g.const(floor_log2, np.int64), index, axis=0)  # (N,)
+    scale = g.op("Gather", g.const(2.0 ** -floor_log2[:, None].astype(np.float64)), index, axis=0)  # (N, 1)
     return lo, log2_mantissa(g, g.op("Mul", x, scale))  # m = x 2^-lo (N, 1) in [1, 2)
