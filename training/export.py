@@ -10,10 +10,10 @@ float row arithmetic and no modulo. `GraphOptions` selects the variants the benc
 The model config, contract version and a description travel in the ONNX metadata.
 
 Every graph answers a query with the same bits whatever the batch it sits in (its position, the call's
-row count, the thread count): it uses only ops that round per element - Mul, Add, Div, Sqrt, Floor,
-comparisons, Gather, and Gemm/MatMul, whose sums run in one order per row - and no Log (whose
-vectorised tail rounds otherwise; the level of detail is `export_lod.py`) and no ReduceSum (which
-sums a 1-row call in another order). tests/training/test_export_determinism.py checks each variant.
+row count, the thread count): it uses only ops that round per element - Mul, Add, Sub, Div, Sqrt,
+Floor, Max, Clip, Gather, integer Mod, GridSample, and Gemm/MatMul, whose sums run in one order per
+row - and no Log (whose vectorised tail rounds otherwise; the level of detail is `export_lod.py`)
+and no ReduceSum (which sums a 1-row call in another order). tests/training/test_export_determinism.py checks each variant.
 
 `build_onnx` needs only numpy and onnx (weights as numpy arrays); `export_checkpoint` reads a torch
 checkpoint.

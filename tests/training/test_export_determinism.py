@@ -4,6 +4,7 @@ count, for the default graph and every `GraphOptions` variant; the exact level o
 import numpy as np
 import onnxruntime as ort
 import pytest
+from onnx import helper
 
 from neumip.client import contract as C
 from neumip.client.local import LocalMaterials
@@ -15,7 +16,8 @@ from tests.conftest import random_queries
 from tests.training.test_export import edge_queries
 from tests.training.test_export_variants import TAPS_VARIANTS
 
-VARIANTS = [GraphOptions()] + TAPS_VARIANTS[1:] + [GraphOptions(lookup="modulo"), GraphOptions(lookup="gridsample")]
+VARIANTS = TAPS_VARIANTS + [GraphOptions(lookup="modulo"), GraphOptions(lookup="gridsample")]
+"""Every graph `build_onnx` writes; TAPS_VARIANTS holds the default, GraphOptions()."""
 SPLITS = (1, 3, 17, 1000, 4099)
 """Chunk sizes the queries are cut into (cycled, so rows land at every offset of a call)."""
 
@@ -66,6 +68,10 @@ def test_answers_do_not_depend_on_the_batch(config, options):
     _same_bits(_session(model, threads=2).run(None, {C.ONNX_INPUT: q})[0], whole)
 
 
+def test_the_default_graph_is_among_the_variants():
+    assert GraphOptions() in VARIANTS and len(set(VARIANTS)) == len(VARIANTS)
+
+
 def test_local_materials_answer_the_same_bits_for_any_threads_and_chunk(tmp_path):
     cfg = MaterialConfig(resolution=64)
     save_onnx(build_onnx(cfg, random_weights(cfg, seed=9)), tmp_path / "m.onnx")
@@ -79,7 +85,7 @@ def test_local_materials_answer_the_same_bits_for_any_threads_and_chunk(tmp_path
 
 def _log2_session() -> ort.InferenceSession:
     g = GraphWriter()
-    g.nodes.append(__import__("onnx").helper.make_node("Identity", [log2_mantissa(g, "m")], ["y"]))
+    g.nodes.append(helper.make_node("Identity", [log2_mantissa(g, "m")], ["y"]))
     return _session(g.model("m", 1, "y", 1, 18, 9))
 
 
