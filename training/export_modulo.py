@@ -1,7 +1,9 @@
 """The first export's graph (lookup="modulo"): kept as the baseline the benchmark compares against.
 
 It gathers 8 single texels per query from the flat atlas (+4 from the offset texture) and does the
-wrap-around index arithmetic in int64 with Mod, as `pyramid.py` writes it op for op.
+wrap-around index arithmetic in int64 with Mod, as `pyramid.py` writes it. Like every graph it
+reads the level of detail from `export_lod.py` and sums taps with a 0/1 MatMul, so its answers do not
+depend on the batch.
 """
 
 from __future__ import annotations
