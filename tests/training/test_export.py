@@ -11,7 +11,7 @@ import torch
 from neumip.client import contract as C
 from neumip.training import checkpoint
 from neumip.training.config import MaterialConfig
-from neumip.training.export import build_onnx, constant_weights, export_checkpoint, weights_from_state
+from neumip.training.export import build_onnx, constant_weights, export_checkpoint, random_weights, weights_from_state
 from neumip.training.material import NeuMIPMaterial
 from tests.conftest import random_queries
 
@@ -122,3 +122,14 @@ def test_constant_material_answers_constant():
     session = ort.InferenceSession(model.SerializeToString(), providers=["CPUExecutionProvider"])
     out = session.run(None, {C.ONNX_INPUT: random_queries(100)})[0]
     np.testing.assert_allclose(out, np.tile([0.1, 0.2, 0.3], (100, 1)), rtol=1e-6)
+
+
+@pytest.mark.parametrize("cfg", [MaterialConfig(), MaterialConfig(resolution=16, offset=False)], ids=["256", "16-no-offset"])
+def test_random_material_answers_positive_and_varied_in_every_channel(cfg):
+    q = random_queries(2000, seed=3)
+    for seed in range(4):
+        model = build_onnx(cfg, random_weights(cfg, seed=seed))
+        session = ort.InferenceSession(model.SerializeToString(), providers=["CPUExecutionProvider"])
+        rgb = session.run(None, {C.ONNX_INPUT: q})[0]
+        assert (rgb > 0).all(), f"seed {seed}: zero answers"
+        assert rgb.std(axis=0).min() > 0.02, f"seed {seed}: a channel barely varies, std {rgb.std(axis=0)}"
