@@ -159,9 +159,45 @@ MATERIALS_PATH = "/v1/materials"
 """GET here to list the served materials with their metadata."""
 
 
+def _prefix(key: str, n: int) -> bytes:
+    """The bytes `msgpack.packb` writes before the raw rows of ``{"n": n, key: <rows>}``."""
+    import msgpack
+
+    nbytes = n * (QUERY_DIM if key == "queries" else RGB_DIM) * DTYPE.itemsize
+    if nbytes < 1 << 8:
+        bin_header = b"\xc4" + nbytes.to_bytes(1, "big")
+    elif nbytes < 1 << 16:
+        bin_header = b"\xc5" + nbytes.to_bytes(2, "big")
+    else:
+        bin_header = b"\xc6" + nbytes.to_bytes(4, "big")
+    return msgpack.packb({"n": n, key: b""})[:-2] + bin_header  # [:-2]: the empty bin's header
+
+
+def _fast_rows(body, key: str, width: int) -> np.ndarray | None:
+    """The rows of a body laid out exactly as `msgpack.packb` writes it, without copying; else None."""
+    view = memoryview(body)
+    # 0x82: map of 2; 0xa1 'n'; then n as msgpack writes a non-negative int (fixint or uint 8..64)
+    if len(view) < 4 or view[:3] != b"\x82\xa1n":
+        return None
+    tag = view[3]
+    size = {0xCC: 1, 0xCD: 2, 0xCE: 4, 0xCF: 8}.get(tag, 0 if tag < 0x80 else -1)
+    if size < 0 or len(view) < 4 + size:
+        return None
+    n = tag if size == 0 else int.from_bytes(view[4 : 4 + size], "big")
+    if n > len(view):  # cannot be right; leaves the error message to the full decoder
+        return None
+    prefix = _prefix(key, n)
+    if view[: len(prefix)] != prefix or len(view) != len(prefix) + n * width * DTYPE.itemsize:
+        return None
+    return np.frombuffer(body, dtype=DTYPE, offset=len(prefix)).reshape(n, width)
+
+
 def _unpack_rows(body: bytes, key: str, width: int) -> np.ndarray:
     import msgpack
 
+    fast = _fast_rows(body, key, width)  # the layout this module writes: a view, no copy
+    if fast is not None:
+        return fast
     try:
         msg = msgpack.unpackb(body, raw=False)
     except Exception as exc:  # msgpack raises several types for malformed input
@@ -188,8 +224,27 @@ def encode_request(queries: np.ndarray) -> bytes:
     return msgpack.packb({"n": int(q.shape[0]), "queries": q.tobytes()})
 
 
+def encode_request_parts(queries: np.ndarray) -> tuple[bytes, memoryview]:
+    """(N, 7) queries -> the msgpack request body as (header, rows): ``header + rows`` is
+    `encode_request`'s body, for sending the rows without copying them."""
+    q = np.ascontiguousarray(queries, dtype=DTYPE)
+    return _prefix("queries", int(q.shape[0])), memoryview(q.reshape(-1)).cast("B")
+
+
+def response_buffer(rows: int) -> tuple[bytearray, np.ndarray]:
+    """An msgpack response body to fill in place: (body, its (rows, 3) float32 RGB view).
+
+    Once the view holds the answer, ``body`` equals `encode_response` of it.
+    """
+    prefix = _prefix("rgb", rows)
+    body = bytearray(len(prefix) + rows * RGB_DIM * DTYPE.itemsize)
+    body[: len(prefix)] = prefix
+    rgb = np.frombuffer(body, dtype=DTYPE, offset=len(prefix)).reshape(rows, RGB_DIM)  # (rows, 3)
+    return body, rgb
+
+
 def decode_request(body: bytes) -> np.ndarray:
-    """msgpack request body -> validated (N, 7) float32 queries (read-only view). Raises QueryError."""
+    """msgpack request body -> validated (N, 7) float32 queries (a view of `body`). Raises QueryError."""
     return as_queries(_unpack_rows(body, "queries", QUERY_DIM))
 
 
