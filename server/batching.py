@@ -157,10 +157,12 @@ class Batcher:
         return self._admitted_rows
 
     # --- batch (event loop side) --------------------------------------------------------------
-    async def evaluate(self, name: str, queries: np.ndarray) -> np.ndarray:
+    async def evaluate(self, name: str, queries: np.ndarray, out: np.ndarray | None = None) -> np.ndarray:
         """Validated (N, 7) float32 queries for material `name` -> (N, 3) float32 RGB.
 
-        Raises QueueFull when admitting N more rows would pass ``max_queue_rows``.
+        The workers write the answer into `out` ((N, 3) float32, e.g. a view into the response
+        body) when given, else into a new array. Raises QueueFull when admitting N more rows would
+        pass ``max_queue_rows``.
         """
         n = queries.shape[0]
         if self._admitted_rows + n > self.settings.max_queue_rows:
@@ -171,7 +173,10 @@ class Batcher:
                 self.settings.retry_after_s,
             )
         queue = self._queues[name]
-        out = np.empty((n, C.RGB_DIM), dtype=C.DTYPE)
+        if out is None:
+            out = np.empty((n, C.RGB_DIM), dtype=C.DTYPE)
+        elif out.shape != (n, C.RGB_DIM) or out.dtype != C.DTYPE:
+            raise ValueError(f"answer buffer must be ({n}, {C.RGB_DIM}) {C.DTYPE}, got {out.shape} {out.dtype}")
         job = _Job(self._loop.create_future(), out, 0)
         pieces = split(queries, out, self.settings.chunk_rows, job)
         job.pieces_left = len(pieces)

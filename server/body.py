@@ -33,8 +33,12 @@ def check_encoding(request: Request) -> None:
         raise ApiError(415, f"Content-Encoding {encoding!r} is not supported; send the body uncompressed")
 
 
-async def read_body(request: Request, limit: int) -> bytes:
-    """The whole request body; 413 if it is (or declares to be) longer than `limit` bytes."""
+async def read_body(request: Request, limit: int) -> bytes | bytearray:
+    """The whole request body; 413 if it is (or declares to be) longer than `limit` bytes.
+
+    With a ``Content-Length``, the chunks land in one buffer of that size as they arrive (no
+    joining copy at the end); a chunked upload is joined once it ends.
+    """
     check_encoding(request)
     declared = request.headers.get("content-length")
     if declared is not None:
@@ -42,6 +46,7 @@ async def read_body(request: Request, limit: int) -> bytes:
             raise ApiError(400, f"Content-Length must be a non-negative integer, got {declared[:40]!r}")
         if int(declared) > limit:
             raise ApiError(413, f"body of {int(declared)} bytes is larger than the limit of {limit} bytes")
+        return await _read_sized(request, int(declared))
     chunks, size = [], 0
     try:
         async for chunk in request.stream():
@@ -52,6 +57,23 @@ async def read_body(request: Request, limit: int) -> bytes:
     except ClientDisconnect:  # nobody is left to read the answer; a 4xx keeps the books straight
         raise ApiError(400, f"client disconnected after {size} bytes of the body") from None
     return b"".join(chunks)
+
+
+async def _read_sized(request: Request, declared: int) -> bytearray:
+    """A body of `declared` bytes (its Content-Length), read into one pre-sized buffer."""
+    body, size = bytearray(declared), 0
+    try:
+        async for chunk in request.stream():
+            end = size + len(chunk)
+            if end > declared:  # the HTTP parser enforces Content-Length; never write past the buffer
+                raise ApiError(400, f"body is longer than its Content-Length of {declared} bytes")
+            body[size:end] = chunk
+            size = end
+    except ClientDisconnect:  # nobody is left to read the answer; a 4xx keeps the books straight
+        raise ApiError(400, f"client disconnected after {size} bytes of the body") from None
+    if size != declared:
+        raise ApiError(400, f"body has {size} bytes but its Content-Length says {declared}")
+    return body
 
 
 def parse_json(raw: bytes | memoryview, what: str = "body") -> object:

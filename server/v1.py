@@ -48,12 +48,17 @@ def decode_json(body: bytes) -> np.ndarray:
     return C.as_queries(arr)
 
 
-async def decode(body: bytes, kind: str) -> np.ndarray:
-    """Body -> validated (N, 7) float32 queries, in a thread when the body is large."""
-    fn = C.decode_request if kind == "msgpack" else decode_json
+async def decode(body: bytes | bytearray, kind: str) -> np.ndarray:
+    """Body -> validated (N, 7) float32 queries; a large JSON body is parsed in a thread.
+
+    msgpack is decoded on the event loop whatever its size: the rows are a view of the body (no
+    copy), leaving only the value checks (~0.3 ms per 65536 rows), less than a thread hop costs.
+    """
+    if kind == "msgpack":
+        return C.decode_request(body)
     if len(body) > OFFLOAD_BYTES:
-        return await asyncio.to_thread(fn, body)
-    return fn(body)
+        return await asyncio.to_thread(decode_json, body)
+    return decode_json(body)
 
 
 def body_kind(request: Request) -> str:
@@ -93,13 +98,15 @@ async def evaluate(name: str, request: Request, state: ServerState = Depends(ser
     queries = await decode(body, kind)  # (N, 7) float32
     check_rows(queries.shape[0], state.settings.max_rows)
     timer.mark("decode")
-    rgb = await state.batcher.evaluate(name, queries)  # (N, 3) float32
-    timer.mark("evaluate")
-    if kind == "json":
-        content, media = JSONResponse({"n": int(rgb.shape[0]), "rgb": rgb.tolist()}).body, JSON_TYPE
-    elif rgb.nbytes > OFFLOAD_BYTES:
-        content, media = await asyncio.to_thread(C.encode_response, rgb), C.MSGPACK_MEDIA_TYPE
+    if kind == "msgpack":  # the workers write the answer straight into the response body: no encode copy
+        body_out, rgb = C.response_buffer(queries.shape[0])  # rgb: (N, 3) float32 view of body_out
+        content = memoryview(body_out)  # Response takes bytes or memoryview (not bytearray)
+        await state.batcher.evaluate(name, queries, out=rgb)
+        timer.mark("evaluate")
+        media = C.MSGPACK_MEDIA_TYPE
     else:
-        content, media = C.encode_response(rgb), C.MSGPACK_MEDIA_TYPE
+        rgb = await state.batcher.evaluate(name, queries)  # (N, 3) float32
+        timer.mark("evaluate")
+        content, media = JSONResponse({"n": int(rgb.shape[0]), "rgb": rgb.tolist()}).body, JSON_TYPE
     timer.mark("encode")
     return Response(content, media_type=media, headers=timer.header())
