@@ -7,7 +7,8 @@ request, and the server's resident memory before and after the load.
 
 Starts a real `neumip serve` process on 127.0.0.1 (default settings unless NEUMIP_* variables say
 otherwise) and talks to it from this process, so client-side encoding and decoding are part of every
-end-to-end figure. The default model is the default `MaterialConfig` (256^2, neural offset) with
+end-to-end figure. msgpack goes through the product client, `MaterialClient` (the throughput table
+also shows the same request from a plain httpx client); v2 through tritonclient. The default model is the default `MaterialConfig` (256^2, neural offset) with
 random weights, as in bench_inference.py (speed does not depend on training); `--model` takes an
 exported file, e.g. one of `models/`. In-process = `LocalMaterials`
 with its defaults (a worker per core). Other jobs share this machine's cores: the throughput table
@@ -33,6 +34,7 @@ import httpx
 import numpy as np
 
 from neumip.client import contract as C
+from neumip.client.http import ClientConfig, MaterialClient, ServerError
 from neumip.client.local import LocalMaterials
 
 def parse_args() -> argparse.Namespace:
@@ -105,14 +107,20 @@ class Server:
         return self.process.wait(timeout=60)
 
 
-def msgpack_call(http: httpx.Client, name: str, q: np.ndarray, stages: dict | None = None) -> np.ndarray:
+def msgpack_call(client: MaterialClient, name: str, q: np.ndarray, stages: dict | None = None) -> np.ndarray:
+    """One evaluation through the product client (`MaterialClient`: keep-alive http.client)."""
+    rgb = client.evaluate(name, q)
+    if stages is not None:  # the server's own stage durations (Server-Timing header, ms)
+        for stage, ms in client.server_timing.items():
+            stages.setdefault(stage, []).append(ms)
+    return rgb
+
+
+def httpx_call(http: httpx.Client, name: str, q: np.ndarray) -> np.ndarray:
+    """The same request from a plain httpx client (the transport MaterialClient used before)."""
     resp = http.post(C.EVALUATE_PATH.format(name=name), content=C.encode_request(q),
                      headers={"content-type": C.MSGPACK_MEDIA_TYPE})
     resp.raise_for_status()
-    if stages is not None:  # the server's own stage durations (Server-Timing header, ms)
-        for part in resp.headers.get("server-timing", "").split(", "):
-            stage, _, ms = part.partition(";dur=")
-            stages.setdefault(stage, []).append(float(ms))
     return C.decode_response(resp.content)
 
 
@@ -125,13 +133,14 @@ def v2_call(triton_client, name: str, q: np.ndarray) -> np.ndarray:
     return triton_client.infer(name, [tensor], outputs=[out]).as_numpy(C.ONNX_OUTPUT)
 
 
-def throughput(args, name, local, http, triton_client, pool) -> None:
+def throughput(args, name, local, client, http, triton_client, pool) -> None:
     n = args.rows
     batches = [pool[i * n : (i + 1) * n] for i in range(len(pool) // n)]
     stages: dict[str, list[float]] = {}
     kinds = {
         "in-process (LocalMaterials)": lambda q: local.evaluate(name, q),
-        "msgpack /v1 over loopback": lambda q: msgpack_call(http, name, q, stages),
+        "msgpack /v1 (MaterialClient)": lambda q: msgpack_call(client, name, q, stages),
+        "msgpack /v1 (plain httpx)": lambda q: httpx_call(http, name, q),
         "v2 binary (tritonclient)": lambda q: v2_call(triton_client, name, q),
     }
     for fn in kinds.values():  # warm-up
@@ -164,13 +173,13 @@ def latency(args, name, server, pool) -> None:
         def client(i: int) -> None:
             rng = np.random.default_rng(i)
             deadline = time.monotonic() + args.latency_seconds
-            with httpx.Client(base_url=server.url, timeout=60) as http:
+            with MaterialClient(server.url, ClientConfig(timeout_s=60, retries=0)) as http:
                 while time.monotonic() < deadline:
                     lo = int(rng.integers(0, len(pool) - n))
                     start = time.perf_counter()
                     try:
                         msgpack_call(http, name, pool[lo : lo + n])
-                    except httpx.HTTPError:
+                    except ServerError:
                         errors[i] += 1
                         continue
                     samples[i].append(time.perf_counter() - start)
@@ -187,12 +196,12 @@ def latency(args, name, server, pool) -> None:
               f"{lat.size * n / wall / 1e6:7.3f} {sum(errors):7d}")
 
 
-def big_request(args, name, local, http, triton_client) -> None:
+def big_request(args, name, local, client, triton_client) -> None:
     q = query_pool(args.big, seed=7)
     expected = LocalMaterials(local.folder, threads=1).evaluate(name, q)
     kinds = {
         "in-process": lambda: local.evaluate(name, q),
-        "msgpack /v1": lambda: msgpack_call(http, name, q),
+        "msgpack /v1": lambda: msgpack_call(client, name, q),
         "v2 binary": lambda: v2_call(triton_client, name, q),
     }
     times, identical = {k: [] for k in kinds}, {}
@@ -221,13 +230,14 @@ def main() -> None:
             local = LocalMaterials(folder)
             pool = query_pool(max(args.rows * 4, 1 << 18))
             rss_start = server.rss_mib()
-            with httpx.Client(base_url=server.url, timeout=120) as http:
+            with httpx.Client(base_url=server.url, timeout=120) as http, \
+                    MaterialClient(server.url, ClientConfig(timeout_s=120)) as client:
                 triton_client = triton.InferenceServerClient(server.url.split("://")[1], network_timeout=120)
-                throughput(args, name, local, http, triton_client, pool)
+                throughput(args, name, local, client, http, triton_client, pool)
                 rss_before_load = server.rss_mib()
                 latency(args, name, server, pool)
                 rss_after_load = server.rss_mib()
-                big_request(args, name, local, http, triton_client)
+                big_request(args, name, local, client, triton_client)
             print(f"\n## Server resident memory: {rss_start:.0f} MiB after start-up, {rss_before_load:.0f} MiB "
                   f"before the latency runs, {rss_after_load:.0f} MiB after them "
                   f"(growth under load {rss_after_load - rss_before_load:+.1f} MiB), {server.rss_mib():.0f} MiB at the end")

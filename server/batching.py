@@ -5,8 +5,9 @@ at most ``chunk_rows`` rows (large requests are split: one ONNX Runtime call on 
 times slower than the same rows in cache-sized chunks) and queues them. A pool of worker threads, one
 per ONNX Runtime worker (default: one per core), is the executor: each worker takes the oldest queued
 pieces of one material, merging consecutive small ones into one call of up to ``chunk_rows`` rows and
-waiting at most ``max_wait_ms`` (counted from the oldest piece's arrival) for a call to fill, runs the
-call, and copies each piece's rows back. Workers pull work themselves, so consecutive chunks of a large
+waiting at most ``max_wait_ms`` (counted from the oldest piece's arrival) for a call to fill - only
+while other requests are being received (`Batcher.receiving`): a lone request, or the tail of a lone
+large one, runs at once - then runs the call and copies each piece's rows back. Workers pull work themselves, so consecutive chunks of a large
 request run back to back without a round trip through the event loop; the loop hears back once per
 request. `predict` is the only function that touches ONNX Runtime.
 
@@ -27,6 +28,8 @@ import logging
 import threading
 import time
 from collections import deque
+from collections.abc import Iterator
+from contextlib import contextmanager
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -128,6 +131,7 @@ class Batcher:
         self._loop: asyncio.AbstractEventLoop | None = None
         self._admitted_rows = 0  # touched on the event loop only
         self._admitted_requests = 0
+        self._receiving = 0  # requests being read and decoded (changed under the lock)
 
     # --- life cycle -------------------------------------------------------------------------
     def start(self) -> None:
@@ -157,6 +161,20 @@ class Batcher:
         return self._admitted_rows
 
     # --- batch (event loop side) --------------------------------------------------------------
+    @contextmanager
+    def receiving(self) -> Iterator[None]:
+        """Around reading and decoding a request: while any request is on its way, a batch that is
+        not full waits (up to ``max_wait_ms``) for it; with none, a queued request runs at once."""
+        with self._cond:
+            self._receiving += 1
+        try:
+            yield
+        finally:
+            with self._cond:
+                self._receiving -= 1
+                if not self._receiving:  # nothing more is coming: waiting batches go now
+                    self._cond.notify_all()
+
     async def evaluate(self, name: str, queries: np.ndarray, out: np.ndarray | None = None) -> np.ndarray:
         """Validated (N, 7) float32 queries for material `name` -> (N, 3) float32 RGB.
 
@@ -226,7 +244,7 @@ class Batcher:
                 continue
             first, queue = min(ready, key=lambda pq: pq[0].order)
             remaining = first.arrived + wait_s - time.monotonic()
-            if queue.rows >= chunk or remaining <= 0 or self._closing:
+            if queue.rows >= chunk or remaining <= 0 or not self._receiving or self._closing:
                 return queue.material, take(queue, chunk)
             self._cond.wait(remaining)  # more pieces may arrive to fill the call
 

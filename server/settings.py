@@ -43,7 +43,7 @@ class Settings(BaseSettings):
     chunk_rows: int = Field(8192, ge=1)
     """Most rows in one ONNX Runtime call: large requests are split, small ones merged."""
     max_wait_ms: float = Field(2.0, ge=0)
-    """How long a batch that is not yet full waits for more concurrent requests to merge with."""
+    """How long a batch that is not yet full waits for more rows, while other requests are being received."""
     max_rows: int = Field(2_000_000, ge=1)
     """Most query rows one request may carry (more is rejected with 413)."""
     max_queue_rows: int = Field(8_000_000, ge=1)

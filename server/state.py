@@ -37,13 +37,13 @@ class ServerState:
         return self.started and self.registry is not None and bool(self.registry.materials)
 
 
-def get_state(request: Request) -> ServerState:
-    """FastAPI dependency: the shared state."""
+async def get_state(request: Request) -> ServerState:
+    """FastAPI dependency: the shared state (async: a sync dependency costs a thread-pool hop per request)."""
     return request.app.state.neumip
 
 
-def serving(request: Request) -> ServerState:
-    """FastAPI dependency: the shared state once models are loaded (503 before that)."""
+async def serving(request: Request) -> ServerState:
+    """FastAPI dependency: the shared state once models are loaded (503 before that); async, as above."""
     state: ServerState = request.app.state.neumip
     if not state.started:
         raise ApiError(503, "server is starting or shutting down: models are not loaded")

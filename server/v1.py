@@ -93,11 +93,12 @@ async def evaluate(name: str, request: Request, state: ServerState = Depends(ser
     timer = StageTimer()
     state.registry.get(name)
     kind = body_kind(request)
-    body = await read_body(request, state.settings.max_body_bytes)
-    timer.mark("read")
-    queries = await decode(body, kind)  # (N, 7) float32
-    check_rows(queries.shape[0], state.settings.max_rows)
-    timer.mark("decode")
+    with state.batcher.receiving():  # batches not yet full wait for this request's rows
+        body = await read_body(request, state.settings.max_body_bytes)
+        timer.mark("read")
+        queries = await decode(body, kind)  # (N, 7) float32
+        check_rows(queries.shape[0], state.settings.max_rows)
+        timer.mark("decode")
     if kind == "msgpack":  # the workers write the answer straight into the response body: no encode copy
         body_out, rgb = C.response_buffer(queries.shape[0])  # rgb: (N, 3) float32 view of body_out
         content = memoryview(body_out)  # Response takes bytes or memoryview (not bytearray)

@@ -239,15 +239,16 @@ async def infer(name: str, request: Request, version: str | None = None, state: 
     state.registry.get(name)
     if media_type(request) not in INFER_TYPES:
         raise ApiError(415, f"infer takes {JSON_TYPE}, application/octet-stream or no Content-Type; got {media_type(request)!r}")
-    body = await read_body(request, state.settings.max_body_bytes)
-    timer.mark("read")
-    header_length = request.headers.get(HEADER_LENGTH)
-    if len(body) > OFFLOAD_BYTES:
-        parsed = await asyncio.to_thread(parse_infer, body, header_length)
-    else:
-        parsed = parse_infer(body, header_length)
-    check_rows(parsed.queries.shape[0], state.settings.max_rows)
-    timer.mark("decode")
+    with state.batcher.receiving():  # batches not yet full wait for this request's rows
+        body = await read_body(request, state.settings.max_body_bytes)
+        timer.mark("read")
+        header_length = request.headers.get(HEADER_LENGTH)
+        if len(body) > OFFLOAD_BYTES:
+            parsed = await asyncio.to_thread(parse_infer, body, header_length)
+        else:
+            parsed = parse_infer(body, header_length)
+        check_rows(parsed.queries.shape[0], state.settings.max_rows)
+        timer.mark("decode")
     rgb = await state.batcher.evaluate(name, parsed.queries)  # (N, 3) float32
     timer.mark("evaluate")
     response = infer_response(name, parsed, rgb)

@@ -26,10 +26,14 @@ def sample(metrics: Metrics, name: str) -> float:
     return metrics.registry.get_sample_value(name) or 0.0
 
 
-async def run_all(batcher: Batcher, requests: list[tuple[str, np.ndarray]]) -> list:
+async def run_all(batcher: Batcher, requests: list[tuple[str, np.ndarray]], arriving: bool = False) -> list:
+    """Evaluate `requests` concurrently; `arriving`: while another request is being received."""
     batcher.start()
     try:
-        return await asyncio.gather(*(batcher.evaluate(n, q) for n, q in requests), return_exceptions=True)
+        if not arriving:
+            return await asyncio.gather(*(batcher.evaluate(n, q) for n, q in requests), return_exceptions=True)
+        with batcher.receiving():
+            return await asyncio.gather(*(batcher.evaluate(n, q) for n, q in requests), return_exceptions=True)
     finally:
         await batcher.close()
 
@@ -59,12 +63,32 @@ def test_small_concurrent_requests_are_merged_and_keep_their_bits(model_dir, ref
     batcher, metrics = make_batcher(model_dir, ort_workers=1, chunk_rows=4096, max_wait_ms=200)
     sizes = [64, 100, 7, 256, 33, 512, 1, 48, 300, 16] * 2
     requests = [("rand16" if i % 3 else "flat16", random_queries(n, seed=i)) for i, n in enumerate(sizes)]
-    answers = asyncio.run(run_all(batcher, requests))
+    answers = asyncio.run(run_all(batcher, requests, arriving=True))
     for (name, q), rgb in zip(requests, answers):
         np.testing.assert_array_equal(rgb, reference.evaluate(name, q))
     calls = sample(metrics, "neumip_batch_rows_count")
     assert calls < len(requests), f"{calls} ONNX Runtime calls for {len(requests)} requests: nothing merged"
     assert sample(metrics, "neumip_batch_rows_sum") == sum(sizes)
+
+
+def test_lone_requests_do_not_wait_to_be_merged(model_dir, reference):
+    """With nothing else being received, a small request and the tail of a split one run at once,
+    not after max_wait_ms (here a minute: waiting would fail the 30 s bound)."""
+    batcher, metrics = make_batcher(model_dir, chunk_rows=1024, max_wait_ms=60_000)
+
+    async def lone() -> list:
+        batcher.start()
+        try:
+            small = await asyncio.wait_for(batcher.evaluate("rand16", random_queries(10, seed=1)), 30)
+            split_tail = await asyncio.wait_for(batcher.evaluate("rand16", random_queries(2500, seed=2)), 30)
+            return [small, split_tail]
+        finally:
+            await batcher.close()
+
+    small, split_tail = asyncio.run(lone())
+    np.testing.assert_array_equal(small, reference.evaluate("rand16", random_queries(10, seed=1)))
+    np.testing.assert_array_equal(split_tail, reference.evaluate("rand16", random_queries(2500, seed=2)))
+    assert sample(metrics, "neumip_batch_rows_count") == 1 + 3
 
 
 def test_queue_bound_refuses_with_queue_full(model_dir):
