@@ -163,3 +163,108 @@ def test_fallback_does_not_hide_client_errors(model_dir):
     with pytest.raises(ServerError, match="404"):
         evaluator.evaluate("nope", random_queries(3))
     assert evaluator.switched is None
+
+
+def test_wire_parts_are_the_msgpack_bodies():
+    """The zero-copy pieces the client sends and the server fills are exactly `msgpack.packb`'s bodies,
+    across the bin8/bin16/bin32 and fixint/uint8/uint16/uint32 boundaries of the header."""
+    for n in (0, 1, 9, 36, 37, 127, 128, 2340, 2341, 9362, 9363, 65536, 70000):
+        q = random_queries(n, seed=n)
+        header, rows = C.encode_request_parts(q)
+        assert header + bytes(rows) == C.encode_request(q)
+        np.testing.assert_array_equal(C.decode_request(C.encode_request(q)), q)
+        rgb = np.random.default_rng(n).random((n, 3), dtype=np.float32)
+        body, view = C.response_buffer(n)
+        view[...] = rgb
+        assert bytes(body) == C.encode_response(rgb)
+
+
+def test_decode_still_takes_other_msgpack_layouts_and_refuses_broken_ones():
+    import msgpack
+
+    q = random_queries(5, seed=1)
+    swapped = msgpack.packb({"queries": q.tobytes(), "n": 5})  # keys in the other order: msgpack path
+    np.testing.assert_array_equal(C.decode_request(swapped), q)
+    good = C.encode_request(q)
+    for broken in (good + b"\x00", good[:-1], b"\x82\xa1n\xcf" + b"\xff" * 8):
+        with pytest.raises(C.QueryError, match="not valid msgpack"):
+            C.decode_request(broken)
+
+
+class _HandlerLog:
+    connections = 0
+
+
+def _closing_server(model_dir):
+    """A stand-in HTTP/1.1 server (standard library) that answers evaluations and then closes each
+    connection without saying so: the client's kept-alive connection goes stale between requests."""
+    import http.server
+    import threading
+
+    local = LocalMaterials(model_dir)
+    log = _HandlerLog()
+
+    class Handler(http.server.BaseHTTPRequestHandler):
+        protocol_version = "HTTP/1.1"
+
+        def setup(self):
+            log.connections += 1
+            super().setup()
+
+        def do_POST(self):
+            body = self.rfile.read(int(self.headers["Content-Length"]))
+            name = self.path.split("/")[-2]
+            answer = C.encode_response(local.evaluate(name, C.decode_request(body)))
+            self.send_response(200)
+            self.send_header("Content-Length", str(len(answer)))
+            self.end_headers()
+            self.wfile.write(answer)
+            self.close_connection = True  # no "Connection: close" header: the client finds out later
+
+        def log_message(self, *args):
+            pass
+
+    server = http.server.ThreadingHTTPServer(("127.0.0.1", 0), Handler)
+    threading.Thread(target=server.serve_forever, daemon=True).start()
+    return server, log, local
+
+
+def test_stale_kept_alive_connection_is_reopened_without_a_retry(model_dir, caplog):
+    server, log, local = _closing_server(model_dir)
+    try:
+        client = MaterialClient(f"http://127.0.0.1:{server.server_address[1]}", ClientConfig(retries=0))
+        for seed in range(3):
+            queries = random_queries(100, seed=seed)
+            np.testing.assert_array_equal(client.evaluate("rand16", queries), local.evaluate("rand16", queries))
+        client.close()
+    finally:
+        server.shutdown()
+        server.server_close()
+    assert log.connections == 3  # one per request, each reopened by the client
+    assert "retrying" not in caplog.text  # retries=0: a stale connection is not a failed attempt
+
+
+def test_real_server_answers_bit_identical_on_one_kept_alive_connection(model_dir, tmp_path):
+    """MaterialClient's default transport against a real `neumip serve` process."""
+    from tests.server.conftest import start_server
+
+    server = start_server(model_dir, tmp_path / "server.log", max_rows="5000")
+    try:
+        reference = LocalMaterials(model_dir)
+        with MaterialClient(server.url, ClientConfig(max_rows=3000)) as client:
+            assert client.materials() == ["flat16", "lambert", "rand16"]
+            for n, seed in ((1, 0), (7000, 1), (20000, 2)):  # 7000 and 20000: several requests each
+                queries = random_queries(n, seed=seed)
+                np.testing.assert_array_equal(client.evaluate("rand16", queries), reference.evaluate("rand16", queries))
+            assert set(client.server_timing) == {"read", "decode", "evaluate", "encode"}
+            first = client._http._conn
+            client.evaluate("lambert", random_queries(10))
+            assert client._http._conn is first  # kept alive, not reopened
+            with pytest.raises(ServerError, match="answered 404: unknown material 'nope'") as info:
+                client.evaluate("nope", random_queries(4))
+            assert info.value.status == 404
+        with MaterialClient(server.url, ClientConfig(max_rows=6000)) as client:
+            with pytest.raises(ServerError, match="answered 413: 6000 query rows is more than the limit of 5000"):
+                client.evaluate("rand16", random_queries(6000))
+    finally:
+        assert server.stop() == 0
