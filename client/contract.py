@@ -173,9 +173,11 @@ def _prefix(key: str, n: int) -> bytes:
     return msgpack.packb({"n": n, key: b""})[:-2] + bin_header  # [:-2]: the empty bin's header
 
 
-def _fast_rows(body, key: str, width: int) -> np.ndarray | None:
-    """The rows of a body laid out exactly as `msgpack.packb` writes it, without copying; else None."""
-    view = memoryview(body)
+def rows_layout(head, total: int, key: str = "queries") -> tuple[int, int] | None:
+    """(n, offset of the rows) of a body of `total` bytes laid out exactly as `msgpack.packb` writes
+    ``{"n": n, key: <rows>}``, read from its first bytes `head` (the first 32 suffice); None if it is
+    not that layout, so that the full msgpack decoder takes it (and says what is wrong)."""
+    view = memoryview(head)
     # 0x82: map of 2; 0xa1 'n'; then n as msgpack writes a non-negative int (fixint or uint 8..64)
     if len(view) < 4 or view[:3] != b"\x82\xa1n":
         return None
@@ -184,12 +186,22 @@ def _fast_rows(body, key: str, width: int) -> np.ndarray | None:
     if size < 0 or len(view) < 4 + size:
         return None
     n = tag if size == 0 else int.from_bytes(view[4 : 4 + size], "big")
-    if n > len(view):  # cannot be right; leaves the error message to the full decoder
+    if n > total:  # cannot be right
         return None
     prefix = _prefix(key, n)
-    if view[: len(prefix)] != prefix or len(view) != len(prefix) + n * width * DTYPE.itemsize:
+    width = QUERY_DIM if key == "queries" else RGB_DIM
+    if view[: len(prefix)] != prefix or total != len(prefix) + n * width * DTYPE.itemsize:
         return None
-    return np.frombuffer(body, dtype=DTYPE, offset=len(prefix)).reshape(n, width)
+    return n, len(prefix)
+
+
+def _fast_rows(body, key: str, width: int) -> np.ndarray | None:
+    """The rows of a body laid out exactly as `msgpack.packb` writes it, without copying; else None."""
+    layout = rows_layout(body, len(body), key)
+    if layout is None:
+        return None
+    n, offset = layout
+    return np.frombuffer(body, dtype=DTYPE, offset=offset, count=n * width).reshape(n, width)
 
 
 def _unpack_rows(body: bytes, key: str, width: int) -> np.ndarray:
