@@ -51,12 +51,18 @@ def predict(session, queries: np.ndarray) -> np.ndarray:
 
 @dataclass
 class _Job:
-    """One request being evaluated: its answer buffer and how many pieces are still out."""
+    """One request being evaluated: its answer buffer and how many of its rows are not answered yet."""
 
     future: asyncio.Future
     out: np.ndarray  # (N, 3) float32, filled piece by piece
-    pieces_left: int
+    queue: "_MaterialQueue"
+    rows_left: int  # rows not yet answered, queued or not (changed under the batcher's lock)
+    queued: int = 0  # rows queued so far (rows 0..queued of the request)
     error: ApiError | None = None
+
+    @property
+    def rows(self) -> int:
+        return self.out.shape[0]
 
 
 @dataclass
@@ -182,7 +188,16 @@ class Batcher:
         body) when given, else into a new array. Raises QueueFull when admitting N more rows would
         pass ``max_queue_rows``.
         """
-        n = queries.shape[0]
+        job = self.submit(name, queries.shape[0], out)
+        self.queue(job, queries)
+        return await self.result(job)
+
+    def submit(self, name: str, n: int, out: np.ndarray | None = None) -> _Job:
+        """Admit a request of `n` rows for material `name` before its rows are all there; they follow
+        in order with `queue`, then `result` awaits the answer (or `abandon` gives the request up).
+
+        Raises QueueFull when admitting `n` more rows would pass ``max_queue_rows``.
+        """
         if self._admitted_rows + n > self.settings.max_queue_rows:
             self.metrics.rejected.inc()
             raise QueueFull(
@@ -190,30 +205,56 @@ class Batcher:
                 f"{self.settings.max_queue_rows}; retry after {self.settings.retry_after_s} s",
                 self.settings.retry_after_s,
             )
-        queue = self._queues[name]
         if out is None:
             out = np.empty((n, C.RGB_DIM), dtype=C.DTYPE)
         elif out.shape != (n, C.RGB_DIM) or out.dtype != C.DTYPE:
             raise ValueError(f"answer buffer must be ({n}, {C.RGB_DIM}) {C.DTYPE}, got {out.shape} {out.dtype}")
-        job = _Job(self._loop.create_future(), out, 0)
-        pieces = split(queries, out, self.settings.chunk_rows, job)
-        job.pieces_left = len(pieces)
+        job = _Job(self._loop.create_future(), out, self._queues[name], n)
         self._admit(n, +1)
         self.metrics.request_rows.observe(n)
+        if n == 0:
+            job.future.set_result(out)
+        return job
+
+    def queue(self, job: _Job, queries: np.ndarray) -> None:
+        """Queue the job's next validated (m, 7) float32 rows: rows ``queued .. queued + m`` of its request."""
+        lo, m = job.queued, queries.shape[0]
+        if lo + m > job.rows:
+            raise ValueError(f"{lo + m} rows queued for a request of {job.rows}")
+        pieces = split(queries, job.out[lo : lo + m], self.settings.chunk_rows, job)
         now = time.monotonic()
         with self._cond:
+            job.queued += m
             for piece in pieces:
                 piece.arrived, piece.order = now, next(self._order)
-                queue.pieces.append(piece)
-            queue.rows += n
+                job.queue.pieces.append(piece)
+            job.queue.rows += m
             self._cond.notify(len(pieces))
+
+    async def result(self, job: _Job) -> np.ndarray:
+        """The job's (N, 3) answer once its N rows are queued and evaluated."""
         try:
             return await asyncio.shield(job.future)
         finally:
-            if job.future.done():
-                self._admit(n, -1)
-            else:  # the handler was cancelled: the pieces still run, the rows count until then
-                job.future.add_done_callback(lambda _: self._admit(n, -1))
+            self._release(job)
+
+    def abandon(self, job: _Job) -> None:
+        """Give up a job whose remaining rows will never come (its body turned out bad): the rows
+        already queued still run and count as admitted until they are done."""
+        with self._cond:
+            job.rows_left -= job.rows - job.queued
+            job.queued = job.rows
+            done = job.rows_left == 0
+        if done:
+            self._finish(job)
+        self._release(job)
+
+    def _release(self, job: _Job) -> None:
+        """Un-admit the job's rows now if it is done, else when it is (a cancelled handler's pieces still run)."""
+        if job.future.done():
+            self._admit(job.rows, -1)
+        else:
+            job.future.add_done_callback(lambda _: self._admit(job.rows, -1))
 
     def _admit(self, rows: int, sign: int) -> None:
         self._admitted_rows += sign * rows
@@ -273,8 +314,8 @@ class Batcher:
                 for piece in batch:
                     job = piece.job
                     job.error = job.error or error
-                    job.pieces_left -= 1
-                    if job.pieces_left == 0:
+                    job.rows_left -= piece.rows
+                    if job.rows_left == 0:
                         finished.append(job)
             for job in finished:
                 self._loop.call_soon_threadsafe(self._finish, job)

@@ -7,6 +7,7 @@ limit before reading anything, and stops a chunked upload as soon as it passes t
 from __future__ import annotations
 
 import json
+from collections.abc import AsyncIterator
 
 from fastapi import Request
 from starlette.requests import ClientDisconnect
@@ -33,20 +34,32 @@ def check_encoding(request: Request) -> None:
         raise ApiError(415, f"Content-Encoding {encoding!r} is not supported; send the body uncompressed")
 
 
+def declared_length(request: Request, limit: int) -> int | None:
+    """The body's Content-Length (None for a chunked upload): 415 if compressed, 400 if malformed,
+    413 above `limit` bytes - all before anything is read."""
+    check_encoding(request)
+    declared = request.headers.get("content-length")
+    if declared is None:
+        return None
+    if not declared.strip().isdigit():
+        raise ApiError(400, f"Content-Length must be a non-negative integer, got {declared[:40]!r}")
+    if int(declared) > limit:
+        raise ApiError(413, f"body of {int(declared)} bytes is larger than the limit of {limit} bytes")
+    return int(declared)
+
+
 async def read_body(request: Request, limit: int) -> bytes | bytearray:
     """The whole request body; 413 if it is (or declares to be) longer than `limit` bytes.
 
     With a ``Content-Length``, the chunks land in one buffer of that size as they arrive (no
     joining copy at the end); a chunked upload is joined once it ends.
     """
-    check_encoding(request)
-    declared = request.headers.get("content-length")
+    declared = declared_length(request, limit)
     if declared is not None:
-        if not declared.strip().isdigit():
-            raise ApiError(400, f"Content-Length must be a non-negative integer, got {declared[:40]!r}")
-        if int(declared) > limit:
-            raise ApiError(413, f"body of {int(declared)} bytes is larger than the limit of {limit} bytes")
-        return await _read_sized(request, int(declared))
+        body = bytearray(declared)
+        async for _ in fill(request, body):
+            pass
+        return body
     chunks, size = [], 0
     try:
         async for chunk in request.stream():
@@ -59,9 +72,10 @@ async def read_body(request: Request, limit: int) -> bytes | bytearray:
     return b"".join(chunks)
 
 
-async def _read_sized(request: Request, declared: int) -> bytearray:
-    """A body of `declared` bytes (its Content-Length), read into one pre-sized buffer."""
-    body, size = bytearray(declared), 0
+async def fill(request: Request, body: bytearray) -> AsyncIterator[int]:
+    """Read a body of ``len(body)`` bytes (its Content-Length) into `body`, yielding how many bytes
+    are in after each chunk; 400 if the client goes away or the sizes disagree."""
+    declared, size = len(body), 0
     try:
         async for chunk in request.stream():
             end = size + len(chunk)
@@ -69,11 +83,12 @@ async def _read_sized(request: Request, declared: int) -> bytearray:
                 raise ApiError(400, f"body is longer than its Content-Length of {declared} bytes")
             body[size:end] = chunk
             size = end
+            if chunk:
+                yield size
     except ClientDisconnect:  # nobody is left to read the answer; a 4xx keeps the books straight
         raise ApiError(400, f"client disconnected after {size} bytes of the body") from None
     if size != declared:
         raise ApiError(400, f"body has {size} bytes but its Content-Length says {declared}")
-    return body
 
 
 def parse_json(raw: bytes | memoryview, what: str = "body") -> object:

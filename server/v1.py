@@ -16,11 +16,12 @@ from fastapi.responses import JSONResponse
 
 from neumip.client import contract as C
 
-from .body import JSON_TYPE, MSGPACK_TYPES, check_rows, media_type, parse_json, read_body
+from .body import JSON_TYPE, MSGPACK_TYPES, check_rows, declared_length, media_type, parse_json, read_body
 from .errors import ApiError
 from .metrics import StageTimer
 from .openapi import ERROR_RESPONSES, EVALUATE_BODY, EVALUATE_RESPONSE
 from .state import ServerState, serving
+from .stream import read_and_queue, worth_streaming
 
 router = APIRouter(tags=["v1 (renderer fast path)"])
 
@@ -93,21 +94,29 @@ async def evaluate(name: str, request: Request, state: ServerState = Depends(ser
     timer = StageTimer()
     state.registry.get(name)
     kind = body_kind(request)
-    with state.batcher.receiving():  # batches not yet full wait for this request's rows
-        body = await read_body(request, state.settings.max_body_bytes)
+    settings, batcher = state.settings, state.batcher
+    stream = None
+    with batcher.receiving():  # batches not yet full wait for this request's rows
+        declared = declared_length(request, settings.max_body_bytes)
+        if kind == "msgpack" and worth_streaming(declared, settings):  # rows queued as they arrive
+            body, stream = await read_and_queue(name, request, declared, batcher, settings)
+        else:
+            body = await read_body(request, settings.max_body_bytes)
         timer.mark("read")
-        queries = await decode(body, kind)  # (N, 7) float32
-        check_rows(queries.shape[0], state.settings.max_rows)
+        if stream is None or stream.given_up:
+            queries = await decode(body, kind)  # (N, 7) float32
+            check_rows(queries.shape[0], settings.max_rows)
         timer.mark("decode")
-    if kind == "msgpack":  # the workers write the answer straight into the response body: no encode copy
+    if stream is not None and not stream.given_up:
+        await batcher.result(stream.job)
+        content, media = memoryview(stream.response), C.MSGPACK_MEDIA_TYPE
+    elif kind == "msgpack":  # the workers write the answer straight into the response body: no encode copy
         body_out, rgb = C.response_buffer(queries.shape[0])  # rgb: (N, 3) float32 view of body_out
-        content = memoryview(body_out)  # Response takes bytes or memoryview (not bytearray)
-        await state.batcher.evaluate(name, queries, out=rgb)
-        timer.mark("evaluate")
-        media = C.MSGPACK_MEDIA_TYPE
+        await batcher.evaluate(name, queries, out=rgb)
+        content, media = memoryview(body_out), C.MSGPACK_MEDIA_TYPE  # Response takes no bytearray
     else:
-        rgb = await state.batcher.evaluate(name, queries)  # (N, 3) float32
-        timer.mark("evaluate")
+        rgb = await batcher.evaluate(name, queries)  # (N, 3) float32
         content, media = JSONResponse({"n": int(rgb.shape[0]), "rgb": rgb.tolist()}).body, JSON_TYPE
+    timer.mark("evaluate")
     timer.mark("encode")
     return Response(content, media_type=media, headers=timer.header())
