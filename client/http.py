@@ -108,20 +108,29 @@ class MaterialClient:
             )
         queries = C.as_queries(queries)
         n = queries.shape[0]
+        if n == 0:
+            return np.empty((0, C.RGB_DIM), dtype=C.DTYPE)
+        if n <= self.config.max_rows:
+            rgb = self._evaluate_once(material, queries)
+            return rgb if rgb.flags.writeable else rgb.copy()  # (N, 3) view of the answer body
         out = np.empty((n, C.RGB_DIM), dtype=C.DTYPE)
-        path = C.EVALUATE_PATH.format(name=material)
         for lo in range(0, n, self.config.max_rows):
             hi = min(lo + self.config.max_rows, n)
-            response = self._request(
-                "POST",
-                path,
-                what=f"evaluate {hi - lo} queries on {material!r}",
-                body=C.encode_request_parts(queries[lo:hi]),
-                headers={"Content-Type": C.MSGPACK_MEDIA_TYPE, "Accept": C.MSGPACK_MEDIA_TYPE},
-            )
-            out[lo:hi] = C.as_rgb(C.decode_response(response.content), hi - lo)
-            self.server_timing = _server_timing(response.headers.get("Server-Timing", ""))
+            out[lo:hi] = self._evaluate_once(material, queries[lo:hi])
         return out
+
+    def _evaluate_once(self, material: str, queries: np.ndarray) -> np.ndarray:
+        """One request: validated (n, 7) queries -> (n, 3) RGB (a view of the answer's body)."""
+        n = queries.shape[0]
+        response = self._request(
+            "POST",
+            C.EVALUATE_PATH.format(name=material),
+            what=f"evaluate {n} queries on {material!r}",
+            body=C.encode_request_parts(queries),
+            headers={"Content-Type": C.MSGPACK_MEDIA_TYPE, "Accept": C.MSGPACK_MEDIA_TYPE},
+        )
+        self.server_timing = _server_timing(response.headers.get("Server-Timing", ""))
+        return C.as_rgb(C.decode_response(response.content), n)
 
     # --- plumbing -------------------------------------------------------------------------------
     def refresh(self) -> None:
@@ -189,7 +198,7 @@ class _Reply:
     status_code: int
     reason_phrase: str
     headers: http.client.HTTPMessage  # case-insensitive .get()
-    content: bytes
+    content: bytearray
 
     def json(self) -> object:
         return json.loads(self.content)
@@ -233,7 +242,15 @@ class _Connection:
             headers["Content-Length"] = str(sum(memoryview(b).nbytes for b in body))
         conn.request(method, self._prefix + path, body=body or None, headers=headers)
         response = conn.getresponse()
-        content = response.read()
+        length = response.length  # None for a chunked or close-delimited answer
+        if length is None:
+            content = bytearray(response.read())
+        else:  # a writable buffer: the answer's rows are handed out as a view, not copied
+            content = bytearray(length)
+            view, got = memoryview(content), 0
+            while got < length:  # readinto raises IncompleteRead if the connection ends early
+                got += response.readinto(view[got:])
+            view.release()
         if response.will_close:
             self.close()
         return _Reply(response.status, response.reason, response.headers, content)

@@ -50,9 +50,11 @@ def test_evaluate_matches_in_process_and_splits_large_buffers(model_dir):
     queries = random_queries(2500, seed=3)
     with client_for(server, max_rows=1000) as client:
         rgb = client.evaluate("rand16", queries)
+        one = client.evaluate("rand16", queries[:10])  # a single request: the answer body's rows
     np.testing.assert_array_equal(rgb, server.local.evaluate("rand16", queries))
+    assert rgb.flags.writeable and one.flags.writeable
     posts = [r for r in server.requests if r.method == "POST"]
-    assert [C.decode_request(r.content).shape[0] for r in posts] == [1000, 1000, 500]
+    assert [C.decode_request(r.content).shape[0] for r in posts] == [1000, 1000, 500, 10]
     assert posts[0].headers["content-type"] == C.MSGPACK_MEDIA_TYPE
 
 
@@ -255,7 +257,9 @@ def test_real_server_answers_bit_identical_on_one_kept_alive_connection(model_di
             assert client.materials() == ["flat16", "lambert", "rand16"]
             for n, seed in ((1, 0), (7000, 1), (20000, 2)):  # 7000 and 20000: several requests each
                 queries = random_queries(n, seed=seed)
-                np.testing.assert_array_equal(client.evaluate("rand16", queries), reference.evaluate("rand16", queries))
+                rgb = client.evaluate("rand16", queries)
+                np.testing.assert_array_equal(rgb, reference.evaluate("rand16", queries))
+                assert rgb.flags.writeable
             assert set(client.server_timing) == {"read", "decode", "evaluate", "encode"}
             first = client._http._conn
             client.evaluate("lambert", random_queries(10))
