@@ -159,7 +159,8 @@ def throughput(args, name, local, client, http, triton_client, pool) -> None:
         ratio = statistics.median(b / t for b, t in zip(base, ts))
         print(f"{kind:32s} {statistics.median(ts) * 1e3:10.1f} {n / statistics.median(ts) / 1e6:7.3f} {ratio:13.0%}")
     parts = ", ".join(f"{stage} {statistics.median(ms):.1f}" for stage, ms in stages.items())
-    print(f"msgpack server-side stages, median ms (Server-Timing): {parts}; the rest is HTTP and the client")
+    print(f"MaterialClient server-side stages, median ms (Server-Timing): {parts}; the rest is HTTP and the client\n"
+          "(a body of more than one chunk is evaluated while it arrives: its read includes evaluating the first chunks)")
 
 
 def latency(args, name, server, pool) -> None:
