@@ -55,7 +55,7 @@ class _Job:
 
     future: asyncio.Future
     out: np.ndarray  # (N, 3) float32, filled piece by piece
-    queue: "_MaterialQueue"
+    queue: _MaterialQueue
     rows_left: int  # rows not yet answered, queued or not (changed under the batcher's lock)
     queued: int = 0  # rows queued so far (rows 0..queued of the request)
     error: ApiError | None = None

@@ -13,8 +13,6 @@ in, which answers it, or refuses it with the same error it always would.
 
 from __future__ import annotations
 
-import logging
-
 import numpy as np
 from fastapi import Request
 
@@ -24,8 +22,6 @@ from .batching import Batcher, _Job
 from .body import fill
 from .errors import ApiError
 from .settings import Settings
-
-log = logging.getLogger(__name__)
 
 ROW_BYTES = C.QUERY_DIM * C.DTYPE.itemsize
 """Bytes of one query row on the wire."""
