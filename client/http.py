@@ -3,9 +3,9 @@
 The same interface as the in-process `LocalMaterials` (`materials()`, `evaluate(name, queries)`), so
 a renderer takes either. One keep-alive HTTP/1.1 connection is kept for the client's life (the
 standard library's `http.client`: the query rows go from the array to the socket without a copy,
-and it costs about 1 ms less per request than httpx); requests have timeouts; 503 (queue full,
-honouring ``Retry-After``) and connection failures are retried a bounded number of times with
-exponential backoff; anything else fails at once with an error that says what the server answered.
+and it costs less per request than httpx, see the plain httpx row of benchmarks/bench_server.py);
+requests have timeouts; 503 (queue full, honouring ``Retry-After``) and connection failures are
+retried a bounded number of times with exponential backoff; anything else fails at once with an error that says what the server answered.
 Large buffers are sent as several requests of at most ``ClientConfig.max_rows`` rows. A material
 name goes into the URL path, so a name that is not a material name
 (`neumip.client.local.NAME_PATTERN`) is refused before anything is sent.
