@@ -5,10 +5,10 @@ a renderer takes either. One keep-alive HTTP/1.1 connection is kept for the clie
 standard library's `http.client`: the query rows go from the array to the socket without a copy,
 and it costs less per request than httpx, see the plain httpx row of benchmarks/bench_server.py);
 requests have timeouts; 503 (queue full, honouring ``Retry-After``) and connection failures are
-retried a bounded number of times with exponential backoff; anything else fails at once with an error that says what the server answered.
-Large buffers are sent as several requests of at most ``ClientConfig.max_rows`` rows. A material
-name goes into the URL path, so a name that is not a material name
-(`neumip.client.local.NAME_PATTERN`) is refused before anything is sent.
+retried a bounded number of times with exponential backoff; anything else fails at once with an
+error that says what the server answered. Large buffers are sent as several requests of at most
+``ClientConfig.max_rows`` rows. A material name goes into the URL path, so a name that is not a
+material name (`neumip.client.local.NAME_PATTERN`) is refused before anything is sent.
 
 Tests inject an httpx transport (``httpx.MockTransport``: this client is synchronous, so the
 async-only ``ASGITransport`` does not apply); with one, requests go through ``httpx.Client``
