@@ -8,7 +8,6 @@ import json
 import numpy as np
 import pytest
 
-from neumip.client import contract as C
 from tests.conftest import random_queries
 
 HEADER = "Inference-Header-Content-Length"
