@@ -56,6 +56,17 @@ case "$published" in 127.0.0.1:*) ;; *) echo "smoke: port published on $publishe
 
 "${COMPOSE[@]}" stop --timeout 20 server
 code="$(docker inspect -f '{{.State.ExitCode}}' "$CID")"
-docker logs "$CID" 2>&1 | grep -q "Application shutdown complete" || { echo "smoke: no graceful shutdown in the logs" >&2; exit 1; }
+graceful_logged() {  # the log driver may still be writing the last lines when `stop` returns
+    for _ in 1 2 3 4 5; do
+        docker logs "$CID" 2>&1 | grep -q "Application shutdown complete" && return 0
+        sleep 1
+    done
+    return 1
+}
+if ! graceful_logged; then
+    echo "smoke: no graceful shutdown in the logs (exit status $code); their end:" >&2
+    docker logs "$CID" 2>&1 | tail -n 15 >&2
+    exit 1
+fi
 [ "$code" = 0 ] || { echo "smoke: server exited with status $code after SIGTERM" >&2; exit 1; }
 echo "smoke: OK (uid $uid, published on $published, graceful exit 0)"
