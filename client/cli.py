@@ -38,11 +38,9 @@ def main(argv: list[str] | None = None) -> int:
         level=logging.DEBUG if args.verbose else logging.INFO,
         format="%(levelname)s %(name)s: %(message)s",
     )
-    from .local import ModelError, UnknownMaterial
-
     try:
         return int(args.func(args) or 0)
-    except (NeumipError, ModelError, UnknownMaterial, FileNotFoundError) as exc:
+    except (NeumipError, FileNotFoundError) as exc:
         print(f"neumip {args.command}: error: {exc}", file=sys.stderr)
         return 2
     except KeyboardInterrupt:

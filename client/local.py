@@ -21,6 +21,7 @@ from pathlib import Path
 import numpy as np
 
 from . import contract as C
+from .errors import NeumipError
 
 log = logging.getLogger(__name__)
 
@@ -41,11 +42,11 @@ NAME_PATTERN = re.compile(r"^[A-Za-z0-9][A-Za-z0-9_.-]{0,127}$")
 """What a material name may look like (also guards paths built from names)."""
 
 
-class ModelError(RuntimeError):
+class ModelError(NeumipError, RuntimeError):
     """A model file that cannot be used: unreadable, corrupt, or of another contract."""
 
 
-class UnknownMaterial(KeyError):
+class UnknownMaterial(NeumipError, KeyError):
     """A material name that is not loaded."""
 
     def __str__(self) -> str:
