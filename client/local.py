@@ -144,6 +144,27 @@ def split_chunk(rows: int, workers: int, chunk: int = DEFAULT_CHUNK) -> int:
     return min(chunk, max(share, MIN_SPLIT))
 
 
+def load_folder(folder: Path, threads: int = 1) -> tuple[dict[str, Material], dict[str, str]]:
+    """Open every ``*.onnx`` in `folder` -> (materials by name, {name: reason} of files that failed).
+
+    A file fails when it cannot be loaded (corrupt, another contract version, wrong graph) or when
+    its stem is not a material name (`NAME_PATTERN`); failures are logged, the others still load.
+    """
+    materials: dict[str, Material] = {}
+    failed: dict[str, str] = {}
+    for path in sorted(Path(folder).glob("*.onnx")):
+        if not NAME_PATTERN.match(path.stem):
+            failed[path.stem] = "file name is not a valid material name"
+        else:
+            try:
+                materials[path.stem] = load_material(path, threads)
+                continue
+            except ModelError as exc:
+                failed[path.stem] = str(exc)
+        log.error("skipping %s: %s", path.name, failed[path.stem])
+    return materials, failed
+
+
 class LocalMaterials:
     """Evaluate exported materials in this process.
 
@@ -161,14 +182,7 @@ class LocalMaterials:
         self.chunk = chunk
         self.threads = threads or os.cpu_count() or 1
         self._executor = ThreadPoolExecutor(self.threads, "neumip-ort") if self.threads > 1 else None
-        self._materials: dict[str, Material] = {}
-        self.errors: dict[str, str] = {}
-        for path in sorted(self.folder.glob("*.onnx")):
-            try:
-                self._materials[path.stem] = load_material(path, threads=1)
-            except ModelError as exc:
-                log.error("skipping %s", exc)
-                self.errors[path.stem] = str(exc)
+        self._materials, self.errors = load_folder(self.folder, threads=1)
 
     def materials(self) -> list[str]:
         return sorted(self._materials)

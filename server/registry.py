@@ -14,7 +14,7 @@ from pathlib import Path
 import numpy as np
 
 from neumip.client import contract as C
-from neumip.client.local import NAME_PATTERN, Material, ModelError, UnknownMaterial, load_material
+from neumip.client.local import NAME_PATTERN, Material, UnknownMaterial, load_folder, run_chunked
 
 from .errors import ApiError
 
@@ -66,9 +66,10 @@ class Registry:
         folder = Path(folder)
         if not folder.is_dir():
             raise FileNotFoundError(f"model folder {folder} does not exist")
-        registry = cls(folder)
-        for path in sorted(folder.glob("*.onnx")):
-            registry._load_one(path, threads, warmup_rows)
+        loaded, failed = load_folder(folder, threads)
+        registry = cls(folder, failed=failed)
+        for material in loaded.values():
+            registry._warm_up(material, warmup_rows)
         log.info(
             "serving %d material(s) from %s: %s%s",
             len(registry.materials),
@@ -78,26 +79,16 @@ class Registry:
         )
         return registry
 
-    def _load_one(self, path: Path, threads: int, warmup_rows: int) -> None:
-        if not NAME_PATTERN.match(path.stem):
-            log.error("skipping %s: file name is not a valid material name", path.name)
-            self.failed[path.stem] = "file name is not a valid material name"
-            return
+    def _warm_up(self, material: Material, warmup_rows: int) -> None:
+        """Evaluate a few queries once (first-call costs, and a graph that loads but cannot run)."""
         try:
-            material = load_material(path, threads)
             if warmup_rows:
-                queries = warmup_queries(warmup_rows)
-                rgb = material.session.run([C.ONNX_OUTPUT], {C.ONNX_INPUT: queries})[0]
-                C.as_rgb(rgb, warmup_rows)
-        except (ModelError, C.QueryError) as exc:
-            log.error("cannot serve %s: %s", path.name, exc)
-            self.failed[path.stem] = str(exc)
-            return
+                C.as_rgb(run_chunked(material.session, warmup_queries(warmup_rows)), warmup_rows)
         except Exception as exc:  # a model that loads but fails to run (bad graph, wrong shapes)
-            log.error("cannot serve %s: warm-up failed: %s", path.name, exc)
-            self.failed[path.stem] = f"{path.name}: warm-up evaluation failed: {exc}"
+            log.error("cannot serve %s: warm-up failed: %s", material.path.name, exc)
+            self.failed[material.name] = f"{material.path.name}: warm-up evaluation failed: {exc}"
             return
-        self.materials[path.stem] = material
+        self.materials[material.name] = material
 
     def get(self, name: str) -> Material:
         """The loaded material `name`; 400 for a malformed or failed one (as Triton does), 404 if unknown."""

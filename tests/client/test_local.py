@@ -43,9 +43,10 @@ def test_corrupt_and_foreign_models_are_skipped_not_fatal(model_dir, tmp_path):
     data = (model_dir / "rand16.onnx").read_bytes()
     (tmp_path / "truncated.onnx").write_bytes(data[: len(data) // 2])
     (tmp_path / "garbage.onnx").write_bytes(b"\x00\x01 not onnx")
+    shutil.copy(model_dir / "rand16.onnx", tmp_path / ".hidden.onnx")  # not a material name
     mats = LocalMaterials(tmp_path)
     assert mats.materials() == ["good"]
-    assert set(mats.errors) == {"truncated", "garbage"}
+    assert set(mats.errors) == {"truncated", "garbage", ".hidden"}
     with pytest.raises(ModelError, match="truncated.onnx"):
         load_material(tmp_path / "truncated.onnx")
 
