@@ -10,6 +10,14 @@ import math
 from dataclasses import asdict, dataclass, fields
 
 
+def dataclass_from_dict(cls, data: dict):
+    """Build dataclass `cls` from `data`, refusing keys that are not its fields (typos in files)."""
+    unknown = set(data) - {f.name for f in fields(cls)}
+    if unknown:
+        raise ValueError(f"unknown {cls.__name__} fields: {sorted(unknown)}")
+    return cls(**data)
+
+
 @dataclass(frozen=True)
 class MaterialConfig:
     """Architecture of a NeuMIP material (paper Sec. 3; defaults follow the paper)."""
@@ -68,11 +76,7 @@ class MaterialConfig:
 
     @classmethod
     def from_dict(cls, data: dict) -> "MaterialConfig":
-        known = {f.name for f in fields(cls)}
-        unknown = set(data) - known
-        if unknown:
-            raise ValueError(f"unknown MaterialConfig fields: {sorted(unknown)}")
-        return cls(**data)
+        return dataclass_from_dict(cls, data)
 
     @classmethod
     def from_json(cls, text: str) -> "MaterialConfig":

@@ -7,7 +7,9 @@ is the `paper` preset, and the shorter presets scale every step count by the sam
 
 from __future__ import annotations
 
-from dataclasses import asdict, dataclass, fields, replace
+from dataclasses import asdict, dataclass, replace
+
+from .config import dataclass_from_dict
 
 
 @dataclass(frozen=True)
@@ -67,11 +69,7 @@ class TrainConfig:
 
     @classmethod
     def from_dict(cls, data: dict) -> "TrainConfig":
-        known = {f.name for f in fields(cls)}
-        unknown = set(data) - known
-        if unknown:
-            raise ValueError(f"unknown TrainConfig fields: {sorted(unknown)}")
-        return cls(**data)
+        return dataclass_from_dict(cls, data)
 
 
 PAPER = TrainConfig(steps=30_000, batch=1 << 20, blur_half_life=3333.0, checkpoint_every=1000)

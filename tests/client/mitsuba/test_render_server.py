@@ -79,8 +79,8 @@ def test_server_render_of_trained_materials_is_bit_identical(tmp_path, one_drjit
     np.testing.assert_array_equal(remote.image, local.image)
 
 
-@needs_server
-def test_server_stopped_mid_render_is_an_error_and_writes_nothing(model_dir, server, tmp_path, monkeypatch, capsys):
+def stop_server_at_second_call(server, monkeypatch) -> dict:
+    """Make MaterialClient stop `server` just before its second evaluation; returns the call count."""
     calls = {"n": 0}
     evaluate = MaterialClient.evaluate
 
@@ -91,6 +91,12 @@ def test_server_stopped_mid_render_is_an_error_and_writes_nothing(model_dir, ser
         return evaluate(self, material, queries)
 
     monkeypatch.setattr(MaterialClient, "evaluate", stop_after_first_call)
+    return calls
+
+
+@needs_server
+def test_server_stopped_mid_render_is_an_error_and_writes_nothing(model_dir, server, tmp_path, monkeypatch, capsys):
+    calls = stop_server_at_second_call(server, monkeypatch)
     monkeypatch.setattr("neumip.client.http.ClientConfig", lambda: ClientConfig(retries=1, backoff_s=0.01))
     out = tmp_path / "out.png"
     rc = cli.main(["render", write_xml(tmp_path), "-o", str(out), "--server", server.url])
@@ -103,16 +109,7 @@ def test_server_stopped_mid_render_is_an_error_and_writes_nothing(model_dir, ser
 
 @needs_server
 def test_fallback_finishes_in_process_when_the_server_stops(model_dir, server, tmp_path, monkeypatch, capsys):
-    calls = {"n": 0}
-    evaluate = MaterialClient.evaluate
-
-    def stop_after_first_call(self, material, queries):
-        calls["n"] += 1
-        if calls["n"] == 2:
-            server.stop()
-        return evaluate(self, material, queries)
-
-    monkeypatch.setattr(MaterialClient, "evaluate", stop_after_first_call)
+    calls = stop_server_at_second_call(server, monkeypatch)
     monkeypatch.setattr("neumip.client.http.ClientConfig", lambda: ClientConfig(retries=0))
     scene = write_xml(tmp_path)
     out, reference = tmp_path / "out.exr", tmp_path / "reference.exr"

@@ -1,0 +1,21 @@
+"""Configs read from files refuse unknown keys and round-trip."""
+
+import pytest
+
+from neumip.training.config import MaterialConfig
+from neumip.training.train_config import SHIP, TrainConfig
+
+
+def test_material_config_roundtrip_and_unknown_keys():
+    cfg = MaterialConfig(resolution=32, offset=False)
+    assert MaterialConfig.from_json(cfg.to_json()) == cfg
+    with pytest.raises(ValueError, match=r"unknown MaterialConfig fields: \['resolutoin'\]"):
+        MaterialConfig.from_dict({"resolutoin": 64})
+    with pytest.raises(ValueError, match="power of two"):
+        MaterialConfig(resolution=48)
+
+
+def test_train_config_roundtrip_and_unknown_keys():
+    assert TrainConfig.from_dict(SHIP.to_dict()) == SHIP
+    with pytest.raises(ValueError, match=r"unknown TrainConfig fields: \['stpes'\]"):
+        TrainConfig.from_dict({"stpes": 10})
