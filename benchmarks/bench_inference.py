@@ -40,6 +40,7 @@ import onnxruntime as ort  # noqa: E402
 import torch  # noqa: E402
 
 from neumip.client import contract as C  # noqa: E402
+from neumip.client.contract import random_queries  # noqa: E402
 from neumip.client.local import LocalMaterials, run_chunked, split_chunk  # noqa: E402
 from neumip.training.config import MaterialConfig  # noqa: E402
 from neumip.training.export import GraphOptions, build_onnx, weights_from_state  # noqa: E402
@@ -92,16 +93,6 @@ class Session:
 
 def open_session(model: bytes | str, session: Session) -> ort.InferenceSession:
     return ort.InferenceSession(model, session.options(), providers=["CPUExecutionProvider"])
-
-
-def random_queries(n: int, seed: int) -> np.ndarray:
-    """(n, 7) queries: u, v in [-2, 3), sigma log-uniform over all levels, directions up to 85 deg."""
-    rng = np.random.default_rng(seed)
-    sigma = 2.0 ** rng.uniform(-11, 1, n)
-    r = np.sin(np.radians(85.0)) * np.sqrt(rng.uniform(0, 1, (n, 2)))
-    phi = rng.uniform(0, 2 * np.pi, (n, 2))
-    dirs = np.stack([r * np.cos(phi), r * np.sin(phi)], axis=2)  # (n, 2 directions, xy)
-    return C.pack_queries(rng.uniform(-2, 3, n), rng.uniform(-2, 3, n), sigma, dirs[:, 0], dirs[:, 1])
 
 
 def coherent_queries(n: int, resolution: int) -> np.ndarray:

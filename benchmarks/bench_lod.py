@@ -26,13 +26,12 @@ import onnxruntime as ort
 from onnx import TensorProto
 
 from neumip.client import contract as C
+from neumip.client.contract import random_queries
 from neumip.training import export_lookup
 from neumip.training.config import MaterialConfig
 from neumip.training.export import build_onnx, random_weights
 from neumip.training.onnx_graph import GraphWriter
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # the repository root, for tests.conftest
-from tests.conftest import random_queries  # noqa: E402
 
 
 def log_level_of_detail(g: GraphWriter, sigma: str, config: MaterialConfig) -> tuple[str, str]:

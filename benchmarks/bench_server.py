@@ -50,14 +50,6 @@ def parse_args() -> argparse.Namespace:
     return p.parse_args()
 
 
-def query_pool(n: int, seed: int = 0) -> np.ndarray:
-    """(n, 7) float32 uniformly random valid queries (u, v, sigma over all levels, directions)."""
-    rng = np.random.default_rng(seed)
-    r = np.sin(np.radians(85)) * np.sqrt(rng.uniform(0, 1, (n, 2)))
-    phi = rng.uniform(0, 2 * np.pi, (n, 2))
-    wi = np.stack([r[:, 0] * np.cos(phi[:, 0]), r[:, 0] * np.sin(phi[:, 0])], 1)
-    wo = np.stack([r[:, 1] * np.cos(phi[:, 1]), r[:, 1] * np.sin(phi[:, 1])], 1)
-    return C.pack_queries(rng.uniform(-2, 3, n), rng.uniform(-2, 3, n), 2.0 ** rng.uniform(-11, 1, n), wi, wo)
 
 
 def model_folder(args: argparse.Namespace, scratch: Path) -> tuple[Path, str]:
@@ -198,7 +190,7 @@ def latency(args, name, server, pool) -> None:
 
 
 def big_request(args, name, local, client, triton_client) -> None:
-    q = query_pool(args.big, seed=7)
+    q = C.random_queries(args.big, seed=7)
     expected = LocalMaterials(local.folder, threads=1).evaluate(name, q)
     kinds = {
         "in-process": lambda: local.evaluate(name, q),
@@ -229,7 +221,7 @@ def main() -> None:
         server = Server(folder, Path(scratch) / "server.log")
         try:
             local = LocalMaterials(folder)
-            pool = query_pool(max(args.rows * 4, 1 << 18))
+            pool = C.random_queries(max(args.rows * 4, 1 << 18))
             rss_start = server.rss_mib()
             with httpx.Client(base_url=server.url, timeout=120) as http, \
                     MaterialClient(server.url, ClientConfig(timeout_s=120)) as client:

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import argparse
 import importlib
+import importlib.metadata
 import logging
 import sys
 
@@ -23,12 +24,24 @@ class CommandError(NeumipError):
     """An error a command reports to the user as one line, exit status 2."""
 
 
+def version() -> str:
+    """The installed neumip's version (from the package metadata)."""
+    try:
+        return importlib.metadata.version("neumip")
+    except importlib.metadata.PackageNotFoundError:  # pragma: no cover - running from a bare checkout
+        return "unknown (not installed)"
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="neumip", description="Multi-resolution neural materials.")
+    parser.add_argument("--version", action="version", version=f"neumip {version()}")
     parser.add_argument("-v", "--verbose", action="store_true", help="log debug messages")
     sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
     for area in AREAS:
         importlib.import_module(area).register(sub)
+    for command in sub.choices.values():  # -v also after the subcommand: `neumip train ... -v`
+        command.add_argument("-v", "--verbose", action="store_true", default=argparse.SUPPRESS,
+                             help="log debug messages")
     return parser
 
 

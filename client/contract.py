@@ -133,6 +133,32 @@ def pack_queries(
     return np.ascontiguousarray(np.stack([np.asarray(c, dtype=DTYPE) for c in cols], axis=1))
 
 
+def random_queries(
+    n: int,
+    seed: int = 0,
+    *,
+    max_zenith_deg: float = 85.0,
+    u_range: tuple[float, float] = (-2.0, 3.0),
+    log2_sigma_range: tuple[float, float] = (-11.0, 1.0),
+) -> np.ndarray:
+    """(n, 7) float32 valid queries, uniformly random: the worst case for a texture cache.
+
+    ``u, v`` uniform in ``u_range`` (several tiles, so seams and wrap-around are exercised), ``sigma``
+    log-uniform (base 2) in ``log2_sigma_range`` (every level of detail and beyond both ends), ``wi`` and
+    ``wo`` uniform on the projected disk up to ``max_zenith_deg``. The one generator that tests,
+    benchmarks and smoke checks share; training data follows ``training.microgeometry.sampling``.
+    """
+    rng = np.random.default_rng(seed)
+    u = rng.uniform(*u_range, n)
+    v = rng.uniform(*u_range, n)
+    sigma = 2.0 ** rng.uniform(*log2_sigma_range, n)
+    r = math.sin(math.radians(max_zenith_deg)) * np.sqrt(rng.uniform(0, 1, (n, 2)))
+    phi = rng.uniform(0, 2 * np.pi, (n, 2))
+    wi = np.stack([r[:, 0] * np.cos(phi[:, 0]), r[:, 0] * np.sin(phi[:, 0])], 1)
+    wo = np.stack([r[:, 1] * np.cos(phi[:, 1]), r[:, 1] * np.sin(phi[:, 1])], 1)
+    return pack_queries(u, v, sigma, wi, wo)
+
+
 def direction_z(x: np.ndarray, y: np.ndarray) -> np.ndarray:
     """z of the unit vector with components x, y (0 for grazing or slightly-outside directions)."""
     return np.sqrt(np.maximum(1.0 - x * x - y * y, 0.0))

@@ -23,18 +23,6 @@ def make_models(folder: Path) -> None:
     folder.chmod(0o755)
 
 
-def queries(n: int, seed: int) -> np.ndarray:
-    """(n, 7) float32 valid queries."""
-    from neumip.client import contract as C
-
-    rng = np.random.default_rng(seed)
-    r = 0.9 * np.sqrt(rng.uniform(0, 1, (n, 2)))
-    phi = rng.uniform(0, 2 * np.pi, (n, 2))
-    wi = np.stack([r[:, 0] * np.cos(phi[:, 0]), r[:, 0] * np.sin(phi[:, 0])], 1)
-    wo = np.stack([r[:, 1] * np.cos(phi[:, 1]), r[:, 1] * np.sin(phi[:, 1])], 1)
-    return C.pack_queries(rng.uniform(-1, 2, n), rng.uniform(-1, 2, n), 2.0 ** rng.uniform(-10, 1, n), wi, wo)
-
-
 def check(url: str, folder: Path) -> None:
     """Every served material answers msgpack and v2 binary queries bit-identically to ONNX Runtime here."""
     import httpx
@@ -50,7 +38,7 @@ def check(url: str, folder: Path) -> None:
         listed = [m["name"] for m in http.get(C.MATERIALS_PATH).raise_for_status().json()["materials"]]
         assert listed == local.materials(), f"server lists {listed}, folder holds {local.materials()}"
         for i, name in enumerate(listed):
-            q = queries(50_000, seed=i)
+            q = C.random_queries(50_000, seed=i)
             ref = local.evaluate(name, q)
             resp = http.post(
                 C.EVALUATE_PATH.format(name=name),

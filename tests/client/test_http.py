@@ -10,7 +10,7 @@ from neumip.client import contract as C
 from neumip.client.http import ClientConfig, MaterialClient, ServerError, ServerUnavailable
 from neumip.client.local import LocalMaterials, UnknownMaterial
 
-from tests.conftest import random_queries
+from neumip.client.contract import random_queries
 
 FAST = dict(backoff_s=0.001, max_backoff_s=0.01)
 

@@ -10,7 +10,7 @@ import pytest
 
 from neumip.client import contract as C
 from neumip.client.local import LocalMaterials, ModelError, UnknownMaterial, load_material
-from tests.conftest import random_queries
+from neumip.client.contract import random_queries
 
 
 def test_loads_folder_and_matches_direct_onnxruntime(model_dir):

@@ -8,7 +8,7 @@ import pytest
 
 from neumip.client import contract as C
 from neumip.client.local import DEFAULT_CHUNK, MIN_SPLIT, LocalMaterials, load_material, run_chunked, split_chunk
-from tests.conftest import random_queries
+from neumip.client.contract import random_queries
 
 
 @pytest.mark.parametrize("rows", [0, 1, MIN_SPLIT * 2 + 3, 50_001])

@@ -12,7 +12,7 @@ from neumip.server.batching import Batcher, split
 from neumip.server.errors import QueueFull
 from neumip.server.metrics import Metrics
 from neumip.server.settings import Settings
-from tests.conftest import random_queries
+from neumip.client.contract import random_queries
 
 
 def make_batcher(model_dir, **settings) -> tuple[Batcher, Metrics]:

@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 from neumip.client import contract as C
-from tests.conftest import random_queries
+from neumip.client.contract import random_queries
 
 
 def value(text: str, prefix: str) -> float:

@@ -12,7 +12,7 @@ from neumip.client import contract as C
 from neumip.server.app import create_app
 from neumip.server.registry import Registry
 from neumip.server.settings import Settings
-from tests.conftest import random_queries
+from neumip.client.contract import random_queries
 
 
 @pytest.fixture(scope="module")

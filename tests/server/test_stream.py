@@ -11,7 +11,7 @@ import pytest
 
 from neumip.client import contract as C
 from neumip.server import v1
-from tests.conftest import random_queries
+from neumip.client.contract import random_queries
 
 MSGPACK = {"content-type": C.MSGPACK_MEDIA_TYPE}
 PATH = C.EVALUATE_PATH.format(name="rand16")

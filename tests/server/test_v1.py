@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 
 from neumip.client import contract as C
-from tests.conftest import random_queries
+from neumip.client.contract import random_queries
 
 MSGPACK = {"content-type": C.MSGPACK_MEDIA_TYPE}
 

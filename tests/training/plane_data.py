@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 
 from neumip.client import contract as C
-from tests.conftest import random_queries
+from neumip.client.contract import random_queries
 
 COLOR = np.array([0.9, 0.6, 0.3])
 """Base albedo of the plane."""

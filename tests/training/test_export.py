@@ -13,7 +13,7 @@ from neumip.training import checkpoint
 from neumip.training.config import MaterialConfig
 from neumip.training.export import build_onnx, constant_weights, export_checkpoint, random_weights, weights_from_state
 from neumip.training.material import NeuMIPMaterial
-from tests.conftest import random_queries
+from neumip.client.contract import random_queries
 
 ATOL, RTOL = 1e-5, 1e-4
 

@@ -12,7 +12,7 @@ from neumip.training.config import MaterialConfig
 from neumip.training.export import GraphOptions, build_onnx, random_weights, save_onnx
 from neumip.training.export_lod import log2_mantissa
 from neumip.training.onnx_graph import GraphWriter
-from tests.conftest import random_queries
+from neumip.client.contract import random_queries
 from tests.training.test_export import edge_queries
 from tests.training.test_export_variants import TAPS_VARIANTS
 

@@ -10,7 +10,7 @@ from neumip.training.config import MaterialConfig
 from neumip.training.export import GraphOptions, build_onnx, weights_from_state
 from neumip.training.material import NeuMIPMaterial
 from neumip.training.texture_tables import tap_atlas, tap_table, wrap_pad
-from tests.conftest import random_queries
+from neumip.client.contract import random_queries
 from tests.training.test_export import ATOL, RTOL, edge_queries
 
 TAPS_VARIANTS = [

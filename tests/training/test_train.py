@@ -16,7 +16,7 @@ from neumip.training.config import MaterialConfig
 from neumip.training.outputs import write_outputs
 from neumip.training.train import Trainer, TrainingDiverged, TrainingError
 from neumip.training.train_config import TEST
-from tests.conftest import random_queries
+from neumip.client.contract import random_queries
 from tests.training.plane_data import plane_data
 
 TINY = MaterialConfig(resolution=16)

@@ -9,16 +9,16 @@ import numpy as np
 import pytest
 
 from neumip.client import contract as C
+from neumip.client.contract import random_queries
 from neumip.training.microgeometry.description import MaterialDescription, find_description, resolve
 from neumip.training.microgeometry.tracer import QueryTracer, TracerConfig
-from tests.conftest import random_queries
 
 from .conftest import diffuse, height_description, wall_height
 
 
 def tile_queries(n: int, seed: int, max_theta_deg: float = 80.0) -> np.ndarray:
     """(n, 7) random queries over all positions, footprints and directions up to `max_theta_deg`."""
-    return random_queries(n, seed, max_theta_deg)
+    return random_queries(n, seed, max_zenith_deg=max_theta_deg)
 
 
 # --- flat Lambertian plane: a / pi for every query -------------------------------------------------
