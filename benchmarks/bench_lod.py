@@ -16,9 +16,7 @@ from __future__ import annotations
 import argparse
 import math
 import statistics
-import sys
 import time
-from pathlib import Path
 from unittest import mock
 
 import numpy as np
@@ -31,7 +29,6 @@ from neumip.training import export_lookup
 from neumip.training.config import MaterialConfig
 from neumip.training.export import build_onnx, random_weights
 from neumip.training.onnx_graph import GraphWriter
-
 
 
 def log_level_of_detail(g: GraphWriter, sigma: str, config: MaterialConfig) -> tuple[str, str]:

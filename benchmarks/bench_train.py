@@ -12,6 +12,9 @@ set, forward, comb2 loss, backward, Adam. Three implementations are timed in the
 Wall-clock figures on a shared machine are noisy, so CPU seconds per step are printed too
 (queries per CPU-second, with the process's CPU time; the ratio between implementations is what
 to compare). Run: .venv/bin/python benchmarks/bench_train.py [--resolution 128] [--batch 65536]
+
+`--threads-sweep 1,2 [--extra-load 2]` times the `quick` preset at 64^2 with each torch thread count
+instead (the figures behind `neumip train`'s default thread count).
 """
 
 from __future__ import annotations
@@ -28,11 +31,11 @@ import torch
 
 import neumip.training.blur as blur_mod
 import neumip.training.pyramid as pyramid_mod
-from neumip.client import contract as C
+from neumip.client.contract import random_queries
 from neumip.training.config import MaterialConfig
 from neumip.training.dataset import write_dataset
 from neumip.training.train import Trainer
-from neumip.training.train_config import SHIP
+from neumip.training.train_config import QUICK, SHIP
 
 
 def reference_gather_blend(atlas, rows, weights):
@@ -75,14 +78,7 @@ def reference_implementation():
 
 def synthetic_data(path: str, n: int) -> str:
     """n random queries with a smooth RGB answer (training speed does not depend on the values)."""
-    rng = np.random.default_rng(0)
-    q = np.empty((n, C.QUERY_DIM), np.float32)
-    q[:, :2] = rng.uniform(0, 1, (n, 2))
-    q[:, 2] = 2.0 ** rng.uniform(-8, 0, n)
-    r = 0.99 * np.sqrt(rng.uniform(0, 1, (n, 2)))
-    phi = rng.uniform(0, 2 * np.pi, (n, 2))
-    q[:, 3], q[:, 4] = r[:, 0] * np.cos(phi[:, 0]), r[:, 0] * np.sin(phi[:, 0])
-    q[:, 5], q[:, 6] = r[:, 1] * np.cos(phi[:, 1]), r[:, 1] * np.sin(phi[:, 1])
+    q = random_queries(n, seed=0, max_zenith_deg=84.3, u_range=(0.0, 1.0), log2_sigma_range=(-8.0, 0.0))
     rgb = (0.2 + 0.1 * np.sin(6.28 * q[:, :3])).astype(np.float32)
     write_dataset(path, q, rgb, {"material": "bench-synthetic", "generator": "bench_train"})
     return path
@@ -100,6 +96,44 @@ def implementation(mode: str):
     return reference_implementation() if mode == "reference" else contextlib.nullcontext()
 
 
+def busy_loop() -> None:
+    """Burn one core (an `--extra-load` process)."""
+    while True:
+        pass
+
+
+def threads_section(args) -> None:
+    """Wall and CPU seconds per step of the `quick` preset at 64^2 (the shipped models' size) for each
+    torch thread count in `--threads-sweep`, interleaved round by round, with `--extra-load` busy
+    processes beside it: what `neumip train --threads` trades on a shared machine."""
+    import multiprocessing
+
+    counts = [int(t) for t in args.threads_sweep.split(",")]
+    hogs = [multiprocessing.Process(target=busy_loop, daemon=True) for _ in range(args.extra_load)]
+    for hog in hogs:
+        hog.start()
+    try:
+        with tempfile.TemporaryDirectory() as tmp:
+            data = synthetic_data(os.path.join(tmp, "data"), 400_000)
+            trainer = Trainer(data, os.path.join(tmp, "t.pt"), MaterialConfig(resolution=64), replace(QUICK, device="cpu"))
+            trainer.state.step = 300  # inside the blur schedule, as most of a quick run is
+            trainer.step()  # warm-up
+            samples: dict[int, list[tuple[float, float]]] = {t: [] for t in counts}
+            for _ in range(args.rounds):
+                for t in counts:
+                    torch.set_num_threads(t)
+                    samples[t].append(time_steps(trainer, args.steps))
+    finally:
+        for hog in hogs:
+            hog.terminate()
+    print(f"quick preset, 64^2, batch {QUICK.batch}; {args.extra_load} extra busy processes; "
+          f"load average {os.getloadavg()[0]:.2f} after; {os.cpu_count()} cores")
+    for t, values in samples.items():
+        wall, cpu = (float(np.median([v[i] for v in values])) for i in (0, 1))
+        print(f"  {t} torch threads: {wall * 1e3:7.1f} ms/step wall, {cpu * 1e3:7.1f} ms/step CPU "
+              f"({QUICK.steps} steps: {QUICK.steps * wall:5.0f} s; medians of {args.rounds} rounds of {args.steps})")
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     parser.add_argument("--resolution", type=int, default=128)
@@ -109,7 +143,13 @@ def main() -> None:
     parser.add_argument("--modes", default="reference,eager,compiled")
     parser.add_argument("--no-offset", action="store_true")
     parser.add_argument("--threads", type=int, help="torch CPU threads (default: torch's choice)")
+    parser.add_argument("--threads-sweep", help="instead: time the quick preset at 64^2 with these torch "
+                        "thread counts, e.g. 1,2")
+    parser.add_argument("--extra-load", type=int, default=0, help="with --threads-sweep: busy processes beside it")
     args = parser.parse_args()
+    if args.threads_sweep:
+        threads_section(args)
+        return
     if args.threads:
         torch.set_num_threads(args.threads)
 

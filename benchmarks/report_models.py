@@ -24,21 +24,12 @@ from pathlib import Path
 import numpy as np
 
 from neumip.client import contract as C
+from neumip.client.contract import random_queries
 from neumip.client.local import LocalMaterials
 from neumip.training.validation import format_table
 
 FLAT_ALBEDO = 0.5
 """Albedo of the shipped `flat` material (training/microgeometry/library/flat.toml)."""
-
-
-def known_answer_queries(n: int, seed: int = 0) -> np.ndarray:
-    """(n, 7) queries: u, v anywhere, sigma over all levels, wi, wo up to 84 degrees."""
-    rng = np.random.default_rng(seed)
-    r = np.sin(np.radians(84.0)) * np.sqrt(rng.uniform(0, 1, (n, 2)))
-    phi = rng.uniform(0, 2 * np.pi, (n, 2))
-    wi = np.stack([r[:, 0] * np.cos(phi[:, 0]), r[:, 0] * np.sin(phi[:, 0])], 1)
-    wo = np.stack([r[:, 1] * np.cos(phi[:, 1]), r[:, 1] * np.sin(phi[:, 1])], 1)
-    return C.pack_queries(rng.uniform(-3, 3, n), rng.uniform(-3, 3, n), 2.0 ** rng.uniform(-10, 0, n), wi, wo)
 
 
 def report_reference(folder: Path, material: str, data_path: str) -> None:
@@ -93,7 +84,7 @@ def main() -> None:
         report_reference(folder, material, data_path)
 
     if (folder / "flat.onnx").exists():
-        q = known_answer_queries(200_000)
+        q = random_queries(200_000)
         rgb = LocalMaterials(folder).evaluate("flat", q)
         exact = FLAT_ALBEDO / np.pi
         rel = np.abs(rgb - exact) / exact

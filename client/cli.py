@@ -24,6 +24,18 @@ class CommandError(NeumipError):
     """An error a command reports to the user as one line, exit status 2."""
 
 
+class HelpFormatter(argparse.ArgumentDefaultsHelpFormatter):
+    """`--help` shows each option's default, "(default: X)", unless it has none (None, False, [])
+    or its help already says it."""
+
+    def _get_help_string(self, action: argparse.Action) -> str:
+        text = action.help or ""
+        no_default = any(action.default is none for none in (None, False, argparse.SUPPRESS)) or action.default == []
+        if no_default or "default" in text:
+            return text
+        return super()._get_help_string(action)
+
+
 def version() -> str:
     """The installed neumip's version (from the package metadata)."""
     try:
@@ -40,6 +52,7 @@ def build_parser() -> argparse.ArgumentParser:
     for area in AREAS:
         importlib.import_module(area).register(sub)
     for command in sub.choices.values():  # -v also after the subcommand: `neumip train ... -v`
+        command.formatter_class = HelpFormatter
         command.add_argument("-v", "--verbose", action="store_true", default=argparse.SUPPRESS,
                              help="log debug messages")
     return parser

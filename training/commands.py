@@ -3,17 +3,19 @@
 from __future__ import annotations
 
 import argparse
+import os
 from pathlib import Path
 
-PRESET_NAMES = ("paper", "ship", "quick", "test")
-"""Kept in step with `train_config.PRESETS` (not imported here: the CLI must start without torch)."""
+from .train_config import PRESETS  # torch-free
 
 
 def register(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser("train", help="fit a neural material to an MBTF data set and export it to ONNX")
     p.add_argument("data", help="data set folder (written by `neumip generate` or `write_dataset`)")
     p.add_argument("-o", "--output", required=True, help="output .onnx path (e.g. models/NAME.onnx)")
-    p.add_argument("--preset", choices=PRESET_NAMES, default="ship", help="training schedule preset")
+    p.add_argument("--force", action="store_true", help="replace the output model if it exists")
+    p.add_argument("--preset", choices=tuple(PRESETS), default="ship",
+                   help="training schedule preset (training/TRAINING.md)")
     p.add_argument("--config", help="JSON file of TrainConfig fields (applied over the preset)")
     p.add_argument("--checkpoint", help="checkpoint path (default runs/NAME/checkpoint.pt); resumes if it exists")
     p.add_argument("--resolution", type=int,
@@ -25,12 +27,14 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--loss", choices=("comb2", "mse"), help="override TrainConfig.loss")
     p.add_argument("--device", choices=("auto", "cpu", "cuda"), help="override TrainConfig.device")
     p.add_argument("--compile", action="store_true", help="torch.compile the step (~1.5x faster on CPU after ~15 s)")
-    p.add_argument("--threads", type=int, help="torch CPU threads (default: torch's choice; 1 is faster on a busy machine)")
+    p.add_argument("--threads", type=int, help="torch CPU threads (default: one per core; idle threads sleep "
+                   "instead of spinning, so this holds up on a busy machine: training/TRAINING.md)")
     p.set_defaults(func=_train)
 
     p = sub.add_parser("export", help="export a training checkpoint to an ONNX material")
     p.add_argument("checkpoint", help="checkpoint file written by `neumip train`")
     p.add_argument("-o", "--output", required=True, help="output .onnx path (e.g. models/NAME.onnx)")
+    p.add_argument("--force", action="store_true", help="replace the output model if it exists")
     p.add_argument("--description", default="", help="short description stored in the metadata")
     p.set_defaults(func=_export)
 
@@ -66,10 +70,18 @@ def _data_resolution(data: str, default: int = 128) -> int:
 
 
 def _train(args: argparse.Namespace) -> int:
+    from neumip.client.cli import CommandError
+
+    output = Path(args.output)
+    if output.suffix != ".onnx":
+        raise CommandError(f"--output must end in .onnx, got {output}")
+    if output.exists() and not args.force:
+        raise CommandError(f"{output} exists: pass --force to replace it, or choose another --output")
+    # torch's OpenMP threads spin while they wait by default: on a machine whose cores other jobs
+    # use, 2 spinning threads made a quick run ~7x slower than 1; sleeping threads do not (TRAINING.md)
+    os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
     import torch
     from tqdm import tqdm
-
-    from neumip.client.cli import CommandError
 
     from .checkpoint import CheckpointError
     from .config import MaterialConfig
@@ -80,9 +92,6 @@ def _train(args: argparse.Namespace) -> int:
 
     if args.threads:
         torch.set_num_threads(args.threads)
-    output = Path(args.output)
-    if output.suffix != ".onnx":
-        raise CommandError(f"--output must end in .onnx, got {output}")
     checkpoint = Path(args.checkpoint or Path("runs") / output.stem / "checkpoint.pt")
     try:
         config = _train_config(args)
@@ -120,7 +129,12 @@ def _train(args: argparse.Namespace) -> int:
 
 
 def _export(args: argparse.Namespace) -> int:
+    from neumip.client.cli import CommandError
+
     from .export import export_checkpoint
+
+    if Path(args.output).exists() and not args.force:
+        raise CommandError(f"{args.output} exists: pass --force to replace it, or choose another --output")
 
     path = export_checkpoint(args.checkpoint, args.output, args.description)
     print(f"wrote {path} ({path.stat().st_size / 1e6:.2f} MB)")

@@ -12,7 +12,8 @@ Why this format: ``.npy`` files are memory-mapped by numpy with no extra depende
 random batches straight from the page cache), readable by any tool, and can be pre-allocated at full
 size and filled chunk by chunk in place. ``meta.json`` says ``"complete": true`` only after every
 chunk is flushed, and it is written atomically, so an interrupted run is never mistaken for a whole
-data set; re-running the same command resumes at the first unfinished chunk.
+data set; re-running the same command resumes at the first unfinished chunk, and on a complete data
+set made with the same settings does nothing.
 
 External data (e.g. converted measured BTFs) enters through :func:`write_dataset`: any (N, 7)
 queries in the contract's layout with their (N, 3) RGB.
@@ -84,7 +85,8 @@ class DatasetWriter:
     """Fill a data set of `n` rows chunk by chunk; resumable.
 
     ``meta`` must identify what is generated (material, settings, seed): resuming with different
-    ``meta`` is refused rather than mixing two data sets.
+    ``meta`` is refused rather than mixing two data sets. On a complete data set with the same
+    ``meta`` there is nothing to write (`complete`), and `finalize` reopens it.
     """
 
     def __init__(self, path: str | Path, n: int, chunk: int, meta: dict[str, Any]) -> None:
@@ -94,8 +96,16 @@ class DatasetWriter:
         self.path.mkdir(parents=True, exist_ok=True)
         self._progress = self.path / "progress.json"
         meta_path = self.path / "meta.json"
-        if meta_path.exists() and json.loads(meta_path.read_text()).get("complete"):
-            raise DatasetError(f"{self.path} already holds a complete data set")
+        saved = json.loads(meta_path.read_text()) if meta_path.exists() else {}
+        self.complete = bool(saved.get("complete"))
+        if self.complete:  # the same data set again: nothing to write; another one: refused
+            if {k: v for k, v in saved.items() if k != "complete"} != json.loads(json.dumps(self.meta)):
+                raise DatasetError(
+                    f"{self.path} already holds a complete data set made with other settings; "
+                    "remove it or write to another folder"
+                )
+            self.done = self.chunks
+            return
         if self._progress.exists():
             state = json.loads(self._progress.read_text())
             if state["meta"] != json.loads(json.dumps(self.meta)):
@@ -138,6 +148,8 @@ class DatasetWriter:
         """Mark the data set complete (every chunk must be written) and reopen it read-only."""
         if self.done != self.chunks:
             raise DatasetError(f"{self.done} of {self.chunks} chunks written; cannot finalize")
+        if self.complete:
+            return open_dataset(self.path)
         del self.queries, self.rgb
         _write_json(self.path / "meta.json", {**self.meta, "complete": True})
         self._progress.unlink(missing_ok=True)

@@ -11,7 +11,7 @@ from __future__ import annotations
 
 import logging
 import time
-from dataclasses import dataclass, field
+from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Callable
 
@@ -61,6 +61,12 @@ class TrainState:
     """The offset texture has been baked with its blur floor and no longer trains."""
     baked: bool = False
     """The run ended inside the blur schedule and its blurred textures were stored as the weights."""
+
+
+def differences(saved: dict, now: dict, ignore=()) -> list[str]:
+    """'name: checkpoint X, now Y' for every field of two settings dicts that differs."""
+    names = sorted((saved.keys() | now.keys()) - set(ignore))
+    return [f"{k}: checkpoint {saved.get(k)!r}, now {now.get(k)!r}" for k in names if saved.get(k) != now.get(k)]
 
 
 def resolve_device(name: str) -> torch.device:
@@ -166,18 +172,19 @@ class Trainer:
 
     def _resume(self, material_config: MaterialConfig) -> NeuMIPMaterial:
         material, extra = checkpoint.load(self.checkpoint_path)
-        if material.config != material_config:
-            raise TrainingError(
-                f"{self.checkpoint_path} holds a different material config ({material.config}); "
-                "use the same settings to resume, or another --checkpoint"
-            )
-        saved = extra.get("train_config", {})
-        if {k: v for k, v in saved.items() if k not in MAY_CHANGE_ON_RESUME} != {
-            k: v for k, v in self.config.to_dict().items() if k not in MAY_CHANGE_ON_RESUME
-        }:
-            raise TrainingError(f"{self.checkpoint_path} was written with other training settings: {saved}")
-        if extra.get("data") != self._data_identity():
-            raise TrainingError(f"{self.checkpoint_path} was trained on other data: {extra.get('data')}")
+        mismatches = [
+            ("material config", differences(asdict(material.config), asdict(material_config))),
+            ("training settings", differences(extra.get("train_config", {}), self.config.to_dict(),
+                                              MAY_CHANGE_ON_RESUME)),
+            ("data", differences(extra.get("data", {}), self._data_identity())),
+        ]
+        for what, diff in mismatches:
+            if diff:
+                raise TrainingError(
+                    f"{self.checkpoint_path} was written with another {what}: {'; '.join(diff)}. "
+                    "To resume it, run with the checkpoint's values; to start a new run, pass another "
+                    "--checkpoint or move this one away"
+                )
         material.to(self.device)
         self.state = TrainState(**extra["state"])
         if self.state.offset_frozen:

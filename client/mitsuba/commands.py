@@ -5,7 +5,7 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-DEFAULT_MODELS = "models"
+from neumip.client.commands import DEFAULT_MODELS
 
 
 def register(sub: argparse._SubParsersAction) -> None:
@@ -20,7 +20,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("-o", "--output", type=Path, required=True, help="image to write (.png or .exr)")
     p.add_argument("--spp", type=int, default=None, help="samples per pixel (default: the scene's)")
     p.add_argument("--server", default=None, help="evaluate on this server (e.g. http://127.0.0.1:8000)")
-    p.add_argument("--models", type=Path, default=Path(DEFAULT_MODELS), help="model folder (in-process)")
+    p.add_argument("--models", type=Path, default=Path(DEFAULT_MODELS), help="folder of .onnx materials (in-process)")
     p.add_argument(
         "--fallback", action="store_true",
         help="with --server: if the server becomes unreachable, continue in-process from --models",
@@ -43,8 +43,9 @@ def _render(args: argparse.Namespace) -> int:
 
     from .runtime import MitsubaUnavailable
 
-    if args.output.suffix.lower() not in (".png", ".exr"):
-        raise CommandError(f"output must end in .png or .exr, got {args.output.name}")
+    if args.scene.is_dir():
+        scenes = ", ".join(sorted(p.name for p in args.scene.glob("*.xml"))) or "none"
+        raise CommandError(f"{args.scene} is a directory: give a Mitsuba XML scene file (XML files there: {scenes})")
     if args.fallback and not args.server:
         raise CommandError("--fallback needs --server (it names what to fall back from)")
     if args.spp is not None and args.spp < 1:
@@ -53,6 +54,8 @@ def _render(args: argparse.Namespace) -> int:
         from . import render as R
     except MitsubaUnavailable as exc:
         raise CommandError(str(exc)) from exc
+    if args.output.suffix.lower() not in R.IMAGE_SUFFIXES:
+        raise CommandError(f"output must end in {' or '.join(R.IMAGE_SUFFIXES)}, got {args.output.name}")
 
     params = {}
     for item in args.params:

@@ -24,3 +24,35 @@ def test_verbose_before_or_after_the_subcommand(argv):
 
 def test_verbose_defaults_to_off():
     assert cli.build_parser().parse_args(["query", "m.onnx", *"0 0 0 0 0 0 0".split()]).verbose is False
+
+
+def test_query_by_file_or_by_name_in_models(model_dir, capsys):
+    assert cli.main(["query", str(model_dir / "lambert.onnx"), *"0.3 0.7 0.01 0.2 0.1 -0.3 0.4".split()]) == 0
+    by_file = capsys.readouterr().out
+    assert [float(x) for x in by_file.split()] == pytest.approx([0.5 / 3.141592653589793] * 3, rel=1e-5)
+    assert cli.main(["query", "lambert", *"0.3 0.7 0.01 0.2 0.1 -0.3 0.4".split(), "--models", str(model_dir)]) == 0
+    assert capsys.readouterr().out == by_file
+
+
+def test_query_errors_say_what_is_wrong(model_dir, tmp_path, capsys):
+    values = "0 0 0 0 0 0 0".split()
+    assert cli.main(["query", str(model_dir), *values]) == 2
+    assert f"{model_dir} is a directory: give a material's .onnx file, or a material name with --models" in \
+        capsys.readouterr().err
+    assert cli.main(["query", "velvet", *values, "--models", str(model_dir)]) == 2
+    assert "no material 'velvet' in" in (err := capsys.readouterr().err) and "flat16, lambert, rand16" in err
+    assert cli.main(["query", str(tmp_path / "gone.onnx"), *values]) == 2
+    assert "gone.onnx does not exist" in capsys.readouterr().err
+
+
+def test_help_documents_the_query_values_and_the_defaults(capsys):
+    from neumip.client import contract as C
+
+    with pytest.raises(SystemExit):
+        cli.main(["query", "--help"])
+    text = " ".join(capsys.readouterr().out.split())
+    assert " ".join(C.QUERY_FIELDS) in text and "towards the light" in text and "(default: models)" in text
+    for argv, expected in [(["train", "--help"], "(default: ship)"), (["render", "--help"], "(default: models)")]:
+        with pytest.raises(SystemExit):
+            cli.main(argv)
+        assert expected in " ".join(capsys.readouterr().out.split()), argv

@@ -156,17 +156,21 @@ def test_export_of_a_mid_run_checkpoint_computes_what_training_computed(data, tm
     assert_parity(got, want)
 
 
-def test_resume_refuses_other_settings(data, tmp_path):
+def test_resume_refuses_other_settings(data, tmp_path, plane_data):
     done = Trainer(data.path, tmp_path / "c.pt", TINY, replace(FAST, steps=20))
     done.run()  # ends inside the blur schedule: the blurred textures are baked once
     again = Trainer(data.path, tmp_path / "c.pt", TINY, replace(FAST, steps=20))
     again.run()  # nothing left to do: same weights, not blurred twice
     for name, value in done.material.state_dict().items():
         torch.testing.assert_close(again.material.state_dict()[name], value)
-    with pytest.raises(TrainingError, match="material config"):
+    with pytest.raises(TrainingError, match=r"material config: resolution: checkpoint 16, now 32\. To resume"):
         Trainer(data.path, tmp_path / "c.pt", MaterialConfig(resolution=32), FAST)
-    with pytest.raises(TrainingError, match="training settings"):
+    with pytest.raises(TrainingError, match=r"training settings: lr: checkpoint 0\.001, now 0\.5\. .*--checkpoint"):
         Trainer(data.path, tmp_path / "c.pt", TINY, replace(FAST, lr=0.5))
+    Trainer(data.path, tmp_path / "c.pt", TINY, replace(FAST, steps=40, checkpoint_every=7))  # may change
+    other = plane_data(tmp_path / "other", 5000)
+    with pytest.raises(TrainingError, match=r"data: n: checkpoint 40000, now 5000"):
+        Trainer(other.path, tmp_path / "c.pt", TINY, FAST)
 
 
 def test_nan_loss_stops_and_keeps_last_good_checkpoint(data, tmp_path, monkeypatch):
@@ -199,10 +203,19 @@ def test_cli_train_writes_model_table_and_curve(data, tmp_path, capsys):
     assert "MSE x1e-3" in capsys.readouterr().out
     assert json.loads(out.with_suffix(".json").read_text())["material_config"]["resolution"] == 8
     assert main(["train", str(data.path), "-o", str(tmp_path / "x.txt")]) == 2
-    assert main(["train", str(tmp_path / "missing"), "-o", str(out)]) == 2
+    assert main(["train", str(tmp_path / "missing"), "-o", str(tmp_path / "new.onnx")]) == 2
     (tmp_path / "junk.pt").write_bytes(b"not a checkpoint")
-    assert main(["train", str(data.path), "-o", str(out), "--checkpoint", str(tmp_path / "junk.pt")]) == 2
+    assert main(["train", str(data.path), "-o", str(tmp_path / "new.onnx"), "--checkpoint", str(tmp_path / "junk.pt")]) == 2
     assert "not a readable checkpoint" in capsys.readouterr().err
+    # an existing model is replaced only with --force (the finished run's checkpoint is reused)
+    model = out.read_bytes()
+    assert main(argv) == 2
+    assert f"{out} exists: pass --force" in capsys.readouterr().err
+    assert out.read_bytes() == model
+    assert main([*argv, "--force", "--description", "again"]) == 0
+    assert out.read_bytes() != model  # rewritten with the new description
+    assert main(["export", str(tmp_path / "ck.pt"), "-o", str(out)]) == 2
+    assert main(["export", str(tmp_path / "ck.pt"), "-o", str(out), "--force"]) == 0
 
 
 def test_cli_default_resolution_is_the_datas(tmp_path):

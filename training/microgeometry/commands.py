@@ -14,23 +14,31 @@ def register(sub: argparse._SubParsersAction) -> None:
         "generate",
         help="path-trace an MBTF training set for a material (shipped name or .toml description)",
         description="Path-trace MBTF queries through tiled microgeometry (Mitsuba 3) into a data set "
-        "folder. Interrupted runs resume when the same command is run again.",
+        "folder. Interrupted runs resume when the same command is run again; on a complete data set "
+        "made with the same settings it does nothing.",
     )
+    from .generate import GenerateSettings  # the defaults shown are the settings' own
+    from .sampling import QuerySampling
+    from .tracer import TracerConfig
+
     p.add_argument("material", nargs="?", help="shipped material name (see --list) or a .toml description")
     p.add_argument("-o", "--output", help="data set folder to write (or resume)")
     p.add_argument("--queries", type=int, help="number of queries (default: --queries-per-texel per finest texel)")
-    p.add_argument("--queries-per-texel", type=float, default=256.0, help="default 256 (the paper used 200-400)")
-    p.add_argument("--spp", type=int, default=16, help="path samples per query (default 16)")
-    p.add_argument("--seed", type=int, default=0, help="data set seed (same seed, same data)")
-    p.add_argument("--max-depth", type=int, default=4, help="surface interactions per path (default 4)")
-    p.add_argument("--max-zenith", type=float, help="largest zenith angle of wi, wo in degrees (default 84.26)")
-    p.add_argument("--level-fraction", type=float, default=0.3, help="share of sigma log-uniform over levels")
-    p.add_argument("--heavy-fraction", type=float, default=0.6,
-                   help="share of sigma = texel / sqrt(U); the rest is sigma = 0 (default 0.6)")
+    p.add_argument("--queries-per-texel", type=float, default=QuerySampling.queries_per_texel,
+                   help="queries per finest texel (the paper used 200-400)")
+    p.add_argument("--spp", type=int, default=GenerateSettings.spp, help="path samples per query")
+    p.add_argument("--seed", type=int, default=GenerateSettings.seed, help="data set seed (same seed, same data)")
+    p.add_argument("--max-depth", type=int, default=TracerConfig.max_depth, help="surface interactions per path")
+    p.add_argument("--max-zenith", type=float, help="largest zenith angle of wi, wo in degrees "
+                   f"(default: {QuerySampling.max_zenith_deg:.2f}, the authors' r = sqrt(0.99 U))")
+    p.add_argument("--level-fraction", type=float, default=QuerySampling.level_fraction,
+                   help="share of sigma log-uniform over levels")
+    p.add_argument("--heavy-fraction", type=float, default=QuerySampling.heavy_fraction,
+                   help="share of sigma = texel / sqrt(U); the rest is sigma = 0")
     p.add_argument("--resolution", type=int, help="finest texels per tile side for sigma (default: the material's)")
-    p.add_argument("--chunk", type=int, default=1 << 16, help="queries per chunk, the unit of resumption")
-    p.add_argument("--lanes", type=int, default=1 << 20, help="samples per wavefront pass (memory ~0.3 GB/M)")
-    p.add_argument("--variant", default="llvm_ad_rgb", help="Mitsuba variant (cuda_ad_rgb on a GPU)")
+    p.add_argument("--chunk", type=int, default=GenerateSettings.chunk, help="queries per chunk, the unit of resumption")
+    p.add_argument("--lanes", type=int, default=TracerConfig.lanes, help="samples per wavefront pass (memory ~0.3 GB/M)")
+    p.add_argument("--variant", default=TracerConfig.variant, help="Mitsuba variant (cuda_ad_rgb on a GPU)")
     p.add_argument("--list", action="store_true", help="list the shipped materials and exit")
     p.set_defaults(func=_generate)
 
@@ -105,7 +113,7 @@ def _run_generate(desc, output: str, settings) -> int:
     finally:
         for bar in bars:
             bar.close()
-    print(f"wrote {len(data)} queries of {desc.name} ({settings.spp} spp) to {data.path}")
+    print(f"{data.path}: {len(data)} queries of {desc.name} ({settings.spp} spp), complete")
     return 0
 
 

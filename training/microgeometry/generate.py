@@ -102,7 +102,9 @@ def generate(
     n = settings.query_count(desc)
     meta = {"material": desc.to_dict(), "generator": settings.to_meta(desc)}
     writer = DatasetWriter(out, n, settings.chunk, meta)
-    if writer.done:
+    if writer.complete:
+        log.info("%s is already complete with these settings: nothing to do", out)
+    elif writer.done:
         log.info("resuming %s at chunk %d of %d", out, writer.done, writer.chunks)
     report = on_chunk or (lambda done, total: None)
     report(writer.chunk_range(writer.done)[0] if writer.done < writer.chunks else n, n)

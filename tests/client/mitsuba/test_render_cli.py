@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import socket
+
 import numpy as np
 import pytest
 
@@ -50,11 +52,12 @@ def test_unknown_material_is_a_clear_error(model_dir, tmp_path, capsys):
     assert "velvet" in capsys.readouterr().err and not out.exists()
 
 
-def test_unreachable_server_is_a_clear_error(tmp_path, capsys, monkeypatch):
-    from tests.client.mitsuba.server_process import free_port
-
+def test_unreachable_server_is_a_clear_error(tmp_path, capsys):
     out = tmp_path / "out.png"
-    rc = cli.main(["render", write_xml(tmp_path), "-o", str(out), "--server", f"http://127.0.0.1:{free_port()}"])
+    with socket.socket() as bound:  # a port that is bound but not listening: connections are refused
+        bound.bind(("127.0.0.1", 0))
+        url = f"http://127.0.0.1:{bound.getsockname()[1]}"
+        rc = cli.main(["render", write_xml(tmp_path), "-o", str(out), "--server", url])
     assert rc == 2
     assert "unreachable" in capsys.readouterr().err
     assert list(tmp_path.iterdir()) == [tmp_path / "scene.xml"]
@@ -82,8 +85,15 @@ def test_neural_scene_needs_neumip_path(model_dir, tmp_path):
 
 
 def test_bad_output_suffix(tmp_path, capsys):
-    assert cli.main(["render", "x.xml", "-o", str(tmp_path / "a.jpg")]) == 2
-    assert ".png or .exr" in capsys.readouterr().err
+    assert cli.main(["render", write_xml(tmp_path), "-o", str(tmp_path / "a.jpg")]) == 2
+    assert ".png or .exr, got a.jpg" in capsys.readouterr().err
+
+
+def test_a_folder_as_scene_says_so(tmp_path, capsys):
+    write_xml(tmp_path)
+    assert cli.main(["render", str(tmp_path), "-o", str(tmp_path / "a.png")]) == 2
+    assert f"{tmp_path} is a directory: give a Mitsuba XML scene file (XML files there: scene.xml)" in \
+        capsys.readouterr().err
 
 
 def test_bsdf_validates_properties():

@@ -19,7 +19,7 @@ def test_generate_writes_a_data_set_with_progress(tmp_path, capsys):
     out = tmp_path / "flat"
     assert main(["generate", "flat", "-o", str(out), "--queries", "300", "--spp", "2", "--seed", "1"]) == 0
     captured = capsys.readouterr()
-    assert "wrote 300 queries of flat" in captured.out
+    assert "300 queries of flat" in captured.out
     assert "300/300" in captured.err and "query/s" in captured.err  # tqdm bar with rate
     data = open_dataset(out)
     np.testing.assert_allclose(data.rgb, 0.5 / math.pi, rtol=2e-4)
@@ -45,11 +45,30 @@ def test_generate_lists_and_reports_errors(tmp_path, capsys):
     assert "spp" in capsys.readouterr().err
 
 
-def test_generate_refuses_a_complete_data_set(tmp_path, capsys):
+def test_generate_on_a_complete_data_set_is_a_no_op_unless_the_settings_differ(tmp_path, capsys):
     args = ["generate", "flat", "-o", str(tmp_path / "d"), "--queries", "10", "--spp", "1"]
     assert main(args) == 0
-    assert main(args) == 2
-    assert "already holds a complete data set" in capsys.readouterr().err
+    before = {p.name: p.stat().st_mtime_ns for p in (tmp_path / "d").iterdir()}
+    capsys.readouterr()
+    assert main(args) == 0  # the same command again: nothing to do
+    assert "10 queries of flat" in capsys.readouterr().out
+    assert {p.name: p.stat().st_mtime_ns for p in (tmp_path / "d").iterdir()} == before
+    assert main([*args, "--seed", "3"]) == 2
+    assert "complete data set made with other settings" in capsys.readouterr().err
+    assert open_dataset(tmp_path / "d").meta["generator"]["seed"] == 0
+
+
+def test_generate_help_shows_the_defaults(capsys):
+    from neumip.training.microgeometry.generate import GenerateSettings
+    from neumip.training.microgeometry.sampling import QuerySampling
+    from neumip.training.microgeometry.tracer import TracerConfig
+
+    with pytest.raises(SystemExit):
+        main(["generate", "--help"])
+    text = " ".join(capsys.readouterr().out.split())
+    for flag, value in [("--chunk", GenerateSettings.chunk), ("--lanes", TracerConfig.lanes),
+                        ("--level-fraction", QuerySampling.level_fraction), ("--spp", GenerateSettings.spp)]:
+        assert f"{flag} " in text and f"(default: {value})" in text, flag
 
 
 def test_old_llvm_fails_with_a_clear_message_before_mitsuba_loads(tmp_path):
