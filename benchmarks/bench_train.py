@@ -14,7 +14,8 @@ Wall-clock figures on a shared machine are noisy, so CPU seconds per step are pr
 to compare). Run: .venv/bin/python benchmarks/bench_train.py [--resolution 128] [--batch 65536]
 
 `--threads-sweep 1,2 [--extra-load 2]` times the `quick` preset at 64^2 with each torch thread count
-instead (the figures behind `neumip train`'s default thread count).
+instead (the figures behind `neumip train`'s threads; run it with and without OMP_WAIT_POLICY=PASSIVE,
+which `neumip train` sets).
 """
 
 from __future__ import annotations
@@ -126,7 +127,8 @@ def threads_section(args) -> None:
     finally:
         for hog in hogs:
             hog.terminate()
-    print(f"quick preset, 64^2, batch {QUICK.batch}; {args.extra_load} extra busy processes; "
+    policy = os.environ.get("OMP_WAIT_POLICY", "unset: threads spin")
+    print(f"quick preset, 64^2, batch {QUICK.batch}; OMP_WAIT_POLICY {policy}; {args.extra_load} extra busy processes; "
           f"load average {os.getloadavg()[0]:.2f} after; {os.cpu_count()} cores")
     for t, values in samples.items():
         wall, cpu = (float(np.median([v[i] for v in values])) for i in (0, 1))
