@@ -1,4 +1,4 @@
-"""In-process inference speed of an exported material: the shipped ONNX graph vs the first export and torch eager.
+"""In-process inference speed of an exported material: the shipped graph vs the first export and torch.
 
     .venv/bin/python benchmarks/bench_inference.py                 # everything (about 10 minutes)
     .venv/bin/python benchmarks/bench_inference.py --sections graphs --batches 10,14,20 --threads 1

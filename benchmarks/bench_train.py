@@ -116,7 +116,8 @@ def threads_section(args) -> None:
     try:
         with tempfile.TemporaryDirectory() as tmp:
             data = synthetic_data(os.path.join(tmp, "data"), 400_000)
-            trainer = Trainer(data, os.path.join(tmp, "t.pt"), MaterialConfig(resolution=64), replace(QUICK, device="cpu"))
+            config = replace(QUICK, device="cpu")
+            trainer = Trainer(data, os.path.join(tmp, "t.pt"), MaterialConfig(resolution=64), config)
             trainer.state.step = 300  # inside the blur schedule, as most of a quick run is
             trainer.step()  # warm-up
             samples: dict[int, list[tuple[float, float]]] = {t: [] for t in counts}
@@ -128,12 +129,13 @@ def threads_section(args) -> None:
         for hog in hogs:
             hog.terminate()
     policy = os.environ.get("OMP_WAIT_POLICY", "unset: threads spin")
-    print(f"quick preset, 64^2, batch {QUICK.batch}; OMP_WAIT_POLICY {policy}; {args.extra_load} extra busy processes; "
-          f"load average {os.getloadavg()[0]:.2f} after; {os.cpu_count()} cores")
+    print(f"quick preset, 64^2, batch {QUICK.batch}; OMP_WAIT_POLICY {policy}; {args.extra_load} extra busy "
+          f"processes; load average {os.getloadavg()[0]:.2f} after; {os.cpu_count()} cores")
     for t, values in samples.items():
         wall, cpu = (float(np.median([v[i] for v in values])) for i in (0, 1))
         print(f"  {t} torch threads: {wall * 1e3:7.1f} ms/step wall, {cpu * 1e3:7.1f} ms/step CPU "
-              f"({QUICK.steps} steps: {QUICK.steps * wall:5.0f} s; medians of {args.rounds} rounds of {args.steps})")
+              f"({QUICK.steps} steps: {QUICK.steps * wall:5.0f} s; "
+              f"medians of {args.rounds} rounds of {args.steps})")
 
 
 def main() -> None:
@@ -147,7 +149,8 @@ def main() -> None:
     parser.add_argument("--threads", type=int, help="torch CPU threads (default: torch's choice)")
     parser.add_argument("--threads-sweep", help="instead: time the quick preset at 64^2 with these torch "
                         "thread counts, e.g. 1,2")
-    parser.add_argument("--extra-load", type=int, default=0, help="with --threads-sweep: busy processes beside it")
+    parser.add_argument("--extra-load", type=int, default=0,
+                        help="with --threads-sweep: busy processes beside it")
     args = parser.parse_args()
     if args.threads_sweep:
         threads_section(args)

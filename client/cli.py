@@ -25,12 +25,13 @@ class CommandError(NeumipError):
 
 
 class HelpFormatter(argparse.ArgumentDefaultsHelpFormatter):
-    """`--help` shows each option's default, "(default: X)", unless it has none (None, False, [])
+    """`--help` shows each option's default, "(default: X)", unless it has none (None, False, [], "")
     or its help already says it."""
 
     def _get_help_string(self, action: argparse.Action) -> str:
         text = action.help or ""
-        no_default = any(action.default is none for none in (None, False, argparse.SUPPRESS)) or action.default == []
+        default = action.default
+        no_default = any(default is none for none in (None, False, argparse.SUPPRESS)) or default in ([], "")
         if no_default or "default" in text:
             return text
         return super()._get_help_string(action)

@@ -34,7 +34,8 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("material", help="a material's .onnx file, or a material name looked up in --models")
     for field in C.QUERY_FIELDS:
         p.add_argument(field, type=float, help=FIELD_HELP[field])
-    p.add_argument("--models", type=Path, default=Path(DEFAULT_MODELS), help="folder of .onnx materials (for a name)")
+    p.add_argument("--models", type=Path, default=Path(DEFAULT_MODELS),
+                   help="folder of .onnx materials (for a name)")
     p.set_defaults(func=_query)
 
 

@@ -39,7 +39,9 @@ SCENE = """<scene version="3.0.0">
         <float name="fov" value="45"/>
     </sensor>
     <shape type="rectangle">
-        <transform name="to_world"><scale value="0.5"/><rotate x="1" angle="90"/><translate value="0, 2.5, 0"/></transform>
+        <transform name="to_world">
+            <scale value="0.5"/><rotate x="1" angle="90"/><translate value="0, 2.5, 0"/>
+        </transform>
         <emitter type="area"><rgb name="radiance" value="20"/></emitter>
     </shape>
     <emitter type="constant"><rgb name="radiance" value="0.2"/></emitter>
@@ -98,14 +100,16 @@ def test_generate_train_export_serve_render(tmp_path, capsys):
     data, models = tmp_path / "data", tmp_path / "models"
 
     # --- ground truth: 8 000 path-traced queries of the flat plane, sigma for an 8^2 pyramid ---------
-    assert main(["generate", "flat", "-o", str(data), "--queries", "8000", "--spp", "2", "--resolution", "8"]) == 0
+    argv = ["generate", "flat", "-o", str(data), "--queries", "8000", "--spp", "2", "--resolution", "8"]
+    assert main(argv) == 0
     dataset = open_dataset(data)
     assert len(dataset) == 8000 and dataset.meta["generator"]["resolution"] == 8
     np.testing.assert_allclose(dataset.rgb, EXACT, rtol=1e-3)
 
     # --- train (resolution from the data), then export the checkpoint again ---------------------------
     argv = ["train", str(data), "-o", str(models / "flat.onnx"), "--preset", "test", "--steps", "150",
-            "--batch", "1024", "--threads", "1", "--checkpoint", str(tmp_path / "run.pt"), "--description", "e2e"]
+            "--batch", "1024", "--threads", "1", "--checkpoint", str(tmp_path / "run.pt"),
+            "--description", "e2e"]
     assert main(argv) == 0
     assert "wrote" in capsys.readouterr().out
     exported = tmp_path / "exported" / "flat.onnx"

@@ -12,7 +12,7 @@ from .train_config import PRESETS  # torch-free
 def register(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser("train", help="fit a neural material to an MBTF data set and export it to ONNX")
     p.add_argument("data", help="data set folder (written by `neumip generate` or `write_dataset`)")
-    p.add_argument("-o", "--output", required=True, help="output .onnx path (e.g. models/NAME.onnx)")
+    p.add_argument("-o", "--output", required=True, help="output .onnx path (e.g. out/NAME.onnx)")
     p.add_argument("--force", action="store_true", help="replace the output model if it exists")
     p.add_argument("--preset", choices=tuple(PRESETS), default="ship",
                    help="training schedule preset (training/TRAINING.md)")

@@ -200,7 +200,8 @@ def export_checkpoint(checkpoint: str | Path, out: str | Path, description: str 
             "%s was written mid-run (step %d): exporting with that step's blurred textures",
             checkpoint, extra["state"]["step"],
         )
-    return export_material(material, out, description or extra.get("description", ""), extra.get("validation"))
+    description = description or extra.get("description", "")
+    return export_material(material, out, description, extra.get("validation"))
 
 
 # --- weight factories (no torch): known-answer and random materials for tests and benchmarks ------

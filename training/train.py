@@ -66,7 +66,8 @@ class TrainState:
 def differences(saved: dict, now: dict, ignore=()) -> list[str]:
     """'name: checkpoint X, now Y' for every field of two settings dicts that differs."""
     names = sorted((saved.keys() | now.keys()) - set(ignore))
-    return [f"{k}: checkpoint {saved.get(k)!r}, now {now.get(k)!r}" for k in names if saved.get(k) != now.get(k)]
+    return [f"{k}: checkpoint {saved.get(k)!r}, now {now.get(k)!r}" for k in names
+            if saved.get(k) != now.get(k)]
 
 
 def resolve_device(name: str) -> torch.device:

@@ -20,7 +20,8 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("-o", "--output", type=Path, required=True, help="image to write (.png or .exr)")
     p.add_argument("--spp", type=int, default=None, help="samples per pixel (default: the scene's)")
     p.add_argument("--server", default=None, help="evaluate on this server (e.g. http://127.0.0.1:8000)")
-    p.add_argument("--models", type=Path, default=Path(DEFAULT_MODELS), help="folder of .onnx materials (in-process)")
+    p.add_argument("--models", type=Path, default=Path(DEFAULT_MODELS),
+                   help="folder of .onnx materials (in-process)")
     p.add_argument(
         "--fallback", action="store_true",
         help="with --server: if the server becomes unreachable, continue in-process from --models",
@@ -45,7 +46,9 @@ def _render(args: argparse.Namespace) -> int:
 
     if args.scene.is_dir():
         scenes = ", ".join(sorted(p.name for p in args.scene.glob("*.xml"))) or "none"
-        raise CommandError(f"{args.scene} is a directory: give a Mitsuba XML scene file (XML files there: {scenes})")
+        raise CommandError(
+            f"{args.scene} is a directory: give a Mitsuba XML scene file (XML files there: {scenes})"
+        )
     if args.fallback and not args.server:
         raise CommandError("--fallback needs --server (it names what to fall back from)")
     if args.spp is not None and args.spp < 1:

@@ -30,7 +30,8 @@ def test_query_by_file_or_by_name_in_models(model_dir, capsys):
     assert cli.main(["query", str(model_dir / "lambert.onnx"), *"0.3 0.7 0.01 0.2 0.1 -0.3 0.4".split()]) == 0
     by_file = capsys.readouterr().out
     assert [float(x) for x in by_file.split()] == pytest.approx([0.5 / 3.141592653589793] * 3, rel=1e-5)
-    assert cli.main(["query", "lambert", *"0.3 0.7 0.01 0.2 0.1 -0.3 0.4".split(), "--models", str(model_dir)]) == 0
+    values = "0.3 0.7 0.01 0.2 0.1 -0.3 0.4".split()
+    assert cli.main(["query", "lambert", *values, "--models", str(model_dir)]) == 0
     assert capsys.readouterr().out == by_file
 
 
@@ -52,7 +53,8 @@ def test_help_documents_the_query_values_and_the_defaults(capsys):
         cli.main(["query", "--help"])
     text = " ".join(capsys.readouterr().out.split())
     assert " ".join(C.QUERY_FIELDS) in text and "towards the light" in text and "(default: models)" in text
-    for argv, expected in [(["train", "--help"], "(default: ship)"), (["render", "--help"], "(default: models)")]:
+    for argv, expected in [(["train", "--help"], "(default: ship)"),
+                           (["render", "--help"], "(default: models)")]:
         with pytest.raises(SystemExit):
             cli.main(argv)
         assert expected in " ".join(capsys.readouterr().out.split()), argv

@@ -146,7 +146,8 @@ def test_export_of_a_mid_run_checkpoint_computes_what_training_computed(data, tm
         trainer.run(stop)
     assert blur_sigma(20, FAST) > 0, "the test needs a checkpoint inside the blur schedule"
     q = random_queries(2000, seed=4)
-    levels, otex = effective_textures(trainer.material, blur_sigma(20, FAST), FAST, trainer.state.offset_frozen)
+    sigma = blur_sigma(20, FAST)
+    levels, otex = effective_textures(trainer.material, sigma, FAST, trainer.state.offset_frozen)
     with torch.no_grad():
         want = trainer.material(torch.from_numpy(q), levels, otex).numpy()
         raw = trainer.material(torch.from_numpy(q)).numpy()
@@ -163,9 +164,10 @@ def test_resume_refuses_other_settings(data, tmp_path, plane_data):
     again.run()  # nothing left to do: same weights, not blurred twice
     for name, value in done.material.state_dict().items():
         torch.testing.assert_close(again.material.state_dict()[name], value)
-    with pytest.raises(TrainingError, match=r"material config: resolution: checkpoint 16, now 32\. To resume"):
+    advice = r"\. To resume it, run with the checkpoint's values; to start a new run, pass another --checkpoint"
+    with pytest.raises(TrainingError, match=r"material config: resolution: checkpoint 16, now 32" + advice):
         Trainer(data.path, tmp_path / "c.pt", MaterialConfig(resolution=32), FAST)
-    with pytest.raises(TrainingError, match=r"training settings: lr: checkpoint 0\.001, now 0\.5\. .*--checkpoint"):
+    with pytest.raises(TrainingError, match=r"training settings: lr: checkpoint 0\.001, now 0\.5" + advice):
         Trainer(data.path, tmp_path / "c.pt", TINY, replace(FAST, lr=0.5))
     Trainer(data.path, tmp_path / "c.pt", TINY, replace(FAST, steps=40, checkpoint_every=7))  # may change
     other = plane_data(tmp_path / "other", 5000)
@@ -205,7 +207,8 @@ def test_cli_train_writes_model_table_and_curve(data, tmp_path, capsys):
     assert main(["train", str(data.path), "-o", str(tmp_path / "x.txt")]) == 2
     assert main(["train", str(tmp_path / "missing"), "-o", str(tmp_path / "new.onnx")]) == 2
     (tmp_path / "junk.pt").write_bytes(b"not a checkpoint")
-    assert main(["train", str(data.path), "-o", str(tmp_path / "new.onnx"), "--checkpoint", str(tmp_path / "junk.pt")]) == 2
+    junk = ["--checkpoint", str(tmp_path / "junk.pt")]
+    assert main(["train", str(data.path), "-o", str(tmp_path / "new.onnx"), *junk]) == 2
     assert "not a readable checkpoint" in capsys.readouterr().err
     # an existing model is replaced only with --force (the finished run's checkpoint is reused)
     model = out.read_bytes()

@@ -27,8 +27,10 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--queries-per-texel", type=float, default=QuerySampling.queries_per_texel,
                    help="queries per finest texel (the paper used 200-400)")
     p.add_argument("--spp", type=int, default=GenerateSettings.spp, help="path samples per query")
-    p.add_argument("--seed", type=int, default=GenerateSettings.seed, help="data set seed (same seed, same data)")
-    p.add_argument("--max-depth", type=int, default=TracerConfig.max_depth, help="surface interactions per path")
+    p.add_argument("--seed", type=int, default=GenerateSettings.seed,
+                   help="data set seed (same seed, same data)")
+    p.add_argument("--max-depth", type=int, default=TracerConfig.max_depth,
+                   help="surface interactions per path")
     p.add_argument("--max-zenith", type=float, help="largest zenith angle of wi, wo in degrees "
                    f"(default: {QuerySampling.max_zenith_deg:.2f}, the authors' r = sqrt(0.99 U))")
     p.add_argument("--level-fraction", type=float, default=QuerySampling.level_fraction,
@@ -36,8 +38,10 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--heavy-fraction", type=float, default=QuerySampling.heavy_fraction,
                    help="share of sigma = texel / sqrt(U); the rest is sigma = 0")
     p.add_argument("--resolution", type=int, help="finest texels per tile side for sigma (default: the material's)")
-    p.add_argument("--chunk", type=int, default=GenerateSettings.chunk, help="queries per chunk, the unit of resumption")
-    p.add_argument("--lanes", type=int, default=TracerConfig.lanes, help="samples per wavefront pass (memory ~0.3 GB/M)")
+    p.add_argument("--chunk", type=int, default=GenerateSettings.chunk,
+                   help="queries per chunk, the unit of resumption")
+    p.add_argument("--lanes", type=int, default=TracerConfig.lanes,
+                   help="samples per wavefront pass (memory ~0.3 GB/M)")
     p.add_argument("--variant", default=TracerConfig.variant, help="Mitsuba variant (cuda_ad_rgb on a GPU)")
     p.add_argument("--list", action="store_true", help="list the shipped materials and exit")
     p.set_defaults(func=_generate)
