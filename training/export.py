@@ -15,8 +15,8 @@ row count, the thread count): it uses only ops that round per element - Mul, Add
 Floor, Max, Clip, Gather, and Gemm/MatMul, whose sums run in one order per row - and no Log (whose
 vectorised tail rounds otherwise; the level of detail is `export_lod.py`) and no ReduceSum (which sums
 a 1-row call in another order: taps are summed by a 0/1 MatMul instead).
-tests/training/test_export_determinism.py checks it. The variants this graph was chosen over are
-in benchmarks/graph_variants.py.
+tests/training/test_export_determinism.py checks it. benchmarks/bench_inference.py measures it
+against the first export's graph (benchmarks/export_modulo.py).
 
 `build_onnx` needs only numpy and onnx (weights as numpy arrays); `export_material` takes a torch
 material, `export_checkpoint` reads a training checkpoint.

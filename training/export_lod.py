@@ -8,7 +8,7 @@ detail is the same bits in any batch:
 
 - x = clip(sigma * R, 1, 2^L); log2 of it is the clamped level (log2 is monotonic).
 - lo = floor(log2 x) and 2^-lo: two tables of 2^L + 1 rows indexed by floor(x), exact (L <= 11 for
-  the default graph, whose tap tables need R <= 2048).
+  the graph, whose quad tables need R <= 2048).
 - m = x * 2^-lo in [1, 2): a multiplication by a power of two, exact.
 - t = log2(m) = s P(s^2), s = (m - 1) / (m + 1) in [0, 1/3): a degree-4 polynomial (fitted to
   log2 in float64, 6e-9 from it), evaluated in float32 within 2e-7 of log2 for every float32 m
