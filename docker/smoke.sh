@@ -80,6 +80,7 @@ published="$(docker port "$CID" 8000/tcp)"
 case "$published" in 127.0.0.1:*) ;; *) echo "smoke: port published on $published, not loopback" >&2; exit 1;; esac
 
 "$PY" docker/smoke_check.py check "http://127.0.0.1:$NEUMIP_HOST_PORT" "$MODELS"
+echo "smoke: memory in use after the checks: $(docker stats --no-stream --format '{{.MemUsage}}' "$CID")"
 
 "${COMPOSE[@]}" stop --timeout 20 server
 code="$(docker inspect -f '{{.State.ExitCode}}' "$CID")"

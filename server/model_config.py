@@ -3,7 +3,7 @@ and `neumip export-repository` writes as ``config.pbtxt``.
 
 `model_config` builds the config as a dict in protobuf's JSON form with Triton's field names
 (``model_config.proto``: ``max_batch_size``, ``input``, ``dynamic_batching``, ...). `to_pbtxt` writes the
-same dict in protobuf text format. Enum values are `Enum` strings (written unquoted in text format).
+same dict in protobuf text format. Enum values are `ProtoEnum` strings (written unquoted in text format).
 No protobuf or Triton package is needed; the tests parse both forms against Triton's real schema.
 """
 
@@ -22,7 +22,7 @@ BACKENDS = ("onnxruntime", "python")
 ``model.py`` that calls ONNX Runtime (`neumip.server.triton_python_model`)."""
 
 
-class Enum(str):
+class ProtoEnum(str):
     """A protobuf enum value (``TYPE_FP32``): a string in JSON, a bare word in text format."""
 
 
@@ -66,7 +66,7 @@ class TritonOptions:
 
 def tensor(name: str, dim: int) -> dict:
     """A batched FP32 tensor of `dim` values per row (Triton adds the batch dimension)."""
-    return {"name": name, "data_type": Enum("TYPE_FP32"), "dims": [dim]}
+    return {"name": name, "data_type": ProtoEnum("TYPE_FP32"), "dims": [dim]}
 
 
 def model_config(name: str, options: TritonOptions) -> dict:
@@ -86,7 +86,7 @@ def model_config(name: str, options: TritonOptions) -> dict:
             "preferred_batch_size": [options.preferred_batch_size],
             "max_queue_delay_microseconds": options.max_queue_delay_us,
         },
-        "instance_group": [{"count": options.instances, "kind": Enum("KIND_CPU")}],
+        "instance_group": [{"count": options.instances, "kind": ProtoEnum("KIND_CPU")}],
         # onnxruntime backend parameters (the python backend's model.py reads the same ones)
         "parameters": {
             "intra_op_thread_count": {"string_value": threads},
@@ -101,7 +101,7 @@ MAP_FIELDS = frozenset({"parameters"})
 
 
 def _scalar(value) -> str:
-    if isinstance(value, Enum):
+    if isinstance(value, ProtoEnum):
         return str(value)
     if isinstance(value, bool):
         return "true" if value else "false"

@@ -11,7 +11,10 @@ import pytest
 
 from neumip.client.contract import random_queries
 
-from .conftest import start_server
+try:  # the live-server helpers move to tests/conftest.py with the server-hardening branch
+    from tests.conftest import start_server
+except ImportError:
+    from tests.server.conftest import start_server
 
 pytest.importorskip("tritonclient.grpc", reason="needs tritonclient[grpc] (Triton's ModelConfig schema)")
 import tritonclient.http as triton  # noqa: E402
