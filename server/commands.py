@@ -49,10 +49,10 @@ def register_export_repository(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--threads", type=int, default=0,
                    help="ONNX Runtime intra-op threads per instance (0 = one per core); keep instances x threads <= cores")
     p.add_argument("--force", action="store_true", help="replace a non-empty output folder")
-    p.set_defaults(func=export_repository)
+    p.set_defaults(func=export_repository_command)
 
 
-def export_repository(args: argparse.Namespace) -> int:
+def export_repository_command(args: argparse.Namespace) -> int:
     from .model_config import TritonOptions
     from .model_repository import RepositoryError, export_repository
     from .settings import Settings
