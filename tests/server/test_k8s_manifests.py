@@ -87,16 +87,24 @@ def test_deployment_matches_the_server(neumip):
     assert hpa["spec"]["scaleTargetRef"]["name"] == neumip["Deployment"]["metadata"]["name"]
 
 
+def kserve_pod(isvc: dict) -> dict:
+    """The Pod KServe makes of the predictor: its PodSpec fields, and the model's Container fields."""
+    predictor = copy.deepcopy(isvc["spec"]["predictor"])
+    model = predictor.pop("model")
+    pod_fields = {k: v for k, v in predictor.items() if k not in KSERVE_COMPONENT_FIELDS}
+    container_fields = {k: v for k, v in model.items() if k not in KSERVE_MODEL_FIELDS}
+    return {"apiVersion": "v1", "kind": "Pod", "metadata": {"name": "predictor"},
+            "spec": {**pod_fields, "containers": [{"name": "kserve-container", **container_fields}]}}
+
+
 def test_kserve_inference_service():
     (isvc,) = load("kserve-inferenceservice.yaml").values()
     assert (isvc["apiVersion"], isvc["kind"]) == ("serving.kserve.io/v1beta1", "InferenceService")
-    predictor = copy.deepcopy(isvc["spec"]["predictor"])
-    model = predictor.pop("model")
+    model = isvc["spec"]["predictor"]["model"]
     assert model["modelFormat"] == {"name": "triton"} and model["protocolVersion"] == "v2"
     assert re.match(r"^(s3|gs|pvc|https?)://", model["storageUri"])
-    # KServe's own fields are known ones; what is left is a Kubernetes Container / PodSpec: validate it.
-    assert set(model) - {"args"} - {"resources"} <= KSERVE_MODEL_FIELDS
-    pod_fields = {k: v for k, v in predictor.items() if k not in KSERVE_COMPONENT_FIELDS}
-    container_fields = {k: v for k, v in model.items() if k not in KSERVE_MODEL_FIELDS}
-    validate({"apiVersion": "v1", "kind": "Pod", "metadata": {"name": "predictor"},
-              "spec": {**pod_fields, "containers": [{"name": "kserve-container", **container_fields}]}})
+    validate(kserve_pod(isvc))
+    bad = copy.deepcopy(isvc)
+    bad["spec"]["predictor"]["model"]["storageURI"] = bad["spec"]["predictor"]["model"].pop("storageUri")
+    with pytest.raises(kv.ValidationError):  # a misspelled KServe field is no Container field either
+        validate(kserve_pod(bad))
