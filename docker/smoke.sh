@@ -1,6 +1,6 @@
 #!/usr/bin/env bash
-# Docker smoke test: build the image with `docker compose`, start it, wait for its healthcheck, send
-# real queries (msgpack and Open Inference Protocol, compared bit for bit with in-process ONNX
+# Docker smoke test: build the image with compose (the v2 plugin `docker compose` or the v1
+# `docker-compose`, whichever exists), start it, wait for its healthcheck, send real queries (msgpack and Open Inference Protocol, compared bit for bit with in-process ONNX
 # Runtime), check it runs as non-root without torch/mitsuba, then stop it and check the shutdown
 # was graceful (exit status 0 after SIGTERM).
 #
@@ -8,7 +8,9 @@
 #
 # Environment: NEUMIP_BASE_IMAGE (default neumip-base:bookworm, made by make_base_image.sh when
 # missing), PYTHON (host Python with neumip[train,client,test]; default .venv/bin/python),
-# NEUMIP_HOST_PORT (default: a free port). Exit status 3: no Docker engine.
+# NEUMIP_HOST_PORT (default: a free port), NEUMIP_COMPOSE (the compose command, e.g. "docker-compose";
+# default: `docker compose` if the plugin answers, else `docker-compose`). Exit status 3: no Docker
+# engine or no compose.
 set -euo pipefail
 ROOT="$(cd "$(dirname "$0")/.." && pwd)"
 cd "$ROOT"
@@ -21,11 +23,23 @@ if ! docker info >/dev/null 2>&1; then
     echo "smoke: no Docker engine answers (start one: dockerd --iptables=false --bridge=none &)" >&2
     exit 3
 fi
+if [ -n "${NEUMIP_COMPOSE:-}" ]; then
+    read -r -a COMPOSE <<< "$NEUMIP_COMPOSE"
+elif docker compose version >/dev/null 2>&1; then
+    COMPOSE=(docker compose)
+elif command -v docker-compose >/dev/null; then
+    COMPOSE=(docker-compose)
+else
+    echo "smoke: neither \`docker compose\` nor \`docker-compose\` is installed (apt-get install docker-compose)" >&2
+    exit 3
+fi
+COMPOSE_NAME="${COMPOSE[*]}"
+echo "smoke: $("${COMPOSE[@]}" version 2>&1 | sed -n 1p)"
 docker image inspect "$NEUMIP_BASE_IMAGE" >/dev/null 2>&1 || docker/make_base_image.sh "$NEUMIP_BASE_IMAGE"
 docker/wheelhouse.sh "$PY"
 
 WORK="$(mktemp -d /tmp/neumip-smoke.XXXXXX)"
-COMPOSE=(docker compose -p "$PROJECT" -f compose.yaml)
+COMPOSE+=(-p "$PROJECT" -f compose.yaml)
 cleanup() {
     "${COMPOSE[@]}" down --timeout 20 >/dev/null 2>&1 || true
     rm -rf "$WORK"
@@ -41,10 +55,23 @@ if ! ls models/*.onnx >/dev/null 2>&1; then
     COMPOSE+=(-f "$WORK/models.yaml")
 fi
 
-echo "smoke: docker compose up (base image $NEUMIP_BASE_IMAGE, port 127.0.0.1:$NEUMIP_HOST_PORT)"
-"${COMPOSE[@]}" up --build --detach --wait --wait-timeout 120
+echo "smoke: ${COMPOSE[*]} up (base image $NEUMIP_BASE_IMAGE, port 127.0.0.1:$NEUMIP_HOST_PORT)"
+"${COMPOSE[@]}" build
+"${COMPOSE[@]}" up --detach   # no --wait: docker-compose v1 lacks it; the healthcheck is polled below
 CID="$("${COMPOSE[@]}" ps -q server)"
-echo "smoke: container $CID is $(docker inspect -f '{{.State.Health.Status}}' "$CID")"
+health=starting
+for _ in $(seq 120); do
+    health="$(docker inspect -f '{{.State.Health.Status}}' "$CID")"
+    [ "$health" = starting ] || break
+    sleep 1
+done
+echo "smoke: container $CID is $health"
+if [ "$health" != healthy ]; then
+    docker logs "$CID" 2>&1 | tail -n 15 >&2
+    exit 1
+fi
+memory="$(docker inspect -f '{{.HostConfig.Memory}}' "$CID")"
+[ "$memory" -gt 0 ] || { echo "smoke: the container has no memory limit" >&2; exit 1; }
 
 uid="$(docker exec "$CID" id -u)"
 [ "$uid" != 0 ] || { echo "smoke: the server runs as root" >&2; exit 1; }
@@ -53,6 +80,7 @@ published="$(docker port "$CID" 8000/tcp)"
 case "$published" in 127.0.0.1:*) ;; *) echo "smoke: port published on $published, not loopback" >&2; exit 1;; esac
 
 "$PY" docker/smoke_check.py check "http://127.0.0.1:$NEUMIP_HOST_PORT" "$MODELS"
+echo "smoke: memory in use after the checks: $(docker stats --no-stream --format '{{.MemUsage}}' "$CID")"
 
 "${COMPOSE[@]}" stop --timeout 20 server
 code="$(docker inspect -f '{{.State.ExitCode}}' "$CID")"
@@ -69,4 +97,4 @@ if ! graceful_logged; then
     exit 1
 fi
 [ "$code" = 0 ] || { echo "smoke: server exited with status $code after SIGTERM" >&2; exit 1; }
-echo "smoke: OK (uid $uid, published on $published, graceful exit 0)"
+echo "smoke: OK with $COMPOSE_NAME (uid $uid, published on $published, memory limit $((memory >> 20)) MiB, graceful exit 0)"

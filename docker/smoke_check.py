@@ -34,6 +34,7 @@ def check(url: str, folder: Path) -> None:
     # The exported graph answers each row with the same bits however a batch is cut, so the
     # default multi-worker evaluator must match the server exactly.
     local = LocalMaterials(folder)
+    client = triton.InferenceServerClient(url.split("://", 1)[1])
     with httpx.Client(base_url=url, timeout=60) as http:
         listed = [m["name"] for m in http.get(C.MATERIALS_PATH).raise_for_status().json()["materials"]]
         assert listed == local.materials(), f"server lists {listed}, folder holds {local.materials()}"
@@ -46,7 +47,6 @@ def check(url: str, folder: Path) -> None:
                 headers={"content-type": C.MSGPACK_MEDIA_TYPE},
             ).raise_for_status()
             assert np.array_equal(C.decode_response(resp.content), ref), f"{name}: msgpack answer differs"
-            client = triton.InferenceServerClient(url.split("://", 1)[1])
             tensor = triton.InferInput(C.ONNX_INPUT, list(q.shape), "FP32")
             tensor.set_data_from_numpy(q, binary_data=True)
             out = client.infer(name, [tensor]).as_numpy(C.ONNX_OUTPUT)
@@ -57,6 +57,14 @@ def check(url: str, folder: Path) -> None:
         assert bad.status_code == 400 and "error" in bad.json(), bad.text
         assert http.get("/v2/health/live").status_code == 200
         assert "neumip_query_rows_total" in http.get("/metrics").text
+    # Triton's extensions: configuration, statistics (both requests above went through the batcher)
+    # and the repository index
+    config = client.get_model_config(listed[0])
+    assert config["max_batch_size"] > 0 and config["input"][0]["dims"] == [C.QUERY_DIM], config
+    stats = client.get_inference_statistics(listed[0])["model_stats"][0]
+    assert stats["inference_count"] == 100_000 and stats["inference_stats"]["success"]["count"] == 2, stats
+    assert {m["name"]: m["state"] for m in client.get_model_repository_index()} == dict.fromkeys(listed, "READY")
+    print(f"smoke: {listed[0]}: config, statistics ({stats['execution_count']} ONNX Runtime calls) and repository index")
 
 
 if __name__ == "__main__":

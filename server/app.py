@@ -20,7 +20,7 @@ from .metrics import Metrics, MetricsMiddleware
 from .registry import Registry
 from .settings import Settings
 from .state import ServerState, get_state
-from . import v1, v2
+from . import v1, v2, v2_repository
 
 log = logging.getLogger(__name__)
 
@@ -59,6 +59,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     install_error_handlers(app)
     app.add_middleware(MetricsMiddleware, metrics=metrics)
     app.include_router(v1.router)
+    app.include_router(v2_repository.router)  # before v2: /v2/models/stats is not a model named "stats"
     app.include_router(v2.router)
 
     @app.get("/metrics", summary="Prometheus metrics", tags=["operations"])

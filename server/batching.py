@@ -39,6 +39,7 @@ from neumip.client.local import Material
 
 from .errors import ApiError, QueueFull
 from .metrics import Metrics
+from .model_stats import ModelStats
 from .settings import Settings
 
 log = logging.getLogger(__name__)
@@ -128,6 +129,7 @@ class Batcher:
     def __init__(self, materials: dict[str, Material], settings: Settings, metrics: Metrics) -> None:
         self.settings = settings
         self.metrics = metrics
+        self.stats = ModelStats()  # per-material statistics in Triton's shape (GET /v2/models/{name}/stats)
         self.workers = settings.workers()
         self._queues = {name: _MaterialQueue(material) for name, material in materials.items()}
         self._cond = threading.Condition()
@@ -211,6 +213,7 @@ class Batcher:
             raise ValueError(f"answer buffer must be ({n}, {C.RGB_DIM}) {C.DTYPE}, got {out.shape} {out.dtype}")
         job = _Job(self._loop.create_future(), out, self._queues[name], n)
         self._admit(n, +1)
+        self.stats.track(name, job.future, n)
         self.metrics.request_rows.observe(n)
         if n == 0:
             job.future.set_result(out)
@@ -309,6 +312,7 @@ class Batcher:
                 self.metrics.batch_rows.observe(rows)
                 self.metrics.batch_requests.observe(len(batch))
                 self.metrics.rows.labels(material.name).inc(rows)
+                self.stats.executed(material.name, rows, time.perf_counter() - start, [p.arrived for p in batch])
             finished = []
             with self._cond:
                 for piece in batch:

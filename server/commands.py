@@ -1,4 +1,4 @@
-"""Server subcommands: `neumip serve`."""
+"""Server subcommands: `neumip serve`, `neumip export-repository`."""
 
 from __future__ import annotations
 
@@ -17,6 +17,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--model-dir", help="folder of .onnx materials (NEUMIP_MODEL_DIR, default models)")
     p.add_argument("--list-settings", action="store_true", help="print every NEUMIP_* setting and exit")
     p.set_defaults(func=serve)
+    register_export_repository(sub)
 
 
 def serve(args: argparse.Namespace) -> int:
@@ -29,3 +30,40 @@ def serve(args: argparse.Namespace) -> int:
         return 0
     overrides = {"host": args.host, "port": args.port, "model_dir": args.model_dir}
     return run({k: v for k, v in overrides.items() if v is not None})
+
+
+def register_export_repository(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser(
+        "export-repository",
+        help="write a Triton / KServe model repository (NAME/config.pbtxt + NAME/1/model.onnx) of a model folder",
+        description="Write a Triton model repository of every *.onnx material in MODELS. Batching follows the "
+        "server's settings (NEUMIP_MAX_ROWS -> max_batch_size, NEUMIP_CHUNK_ROWS -> preferred batch size, "
+        "NEUMIP_MAX_WAIT_MS -> queue delay).",
+        formatter_class=argparse.ArgumentDefaultsHelpFormatter,
+    )
+    p.add_argument("models", help="folder of exported .onnx materials")
+    p.add_argument("-o", "--output", required=True, help="repository folder to write (must not exist or be empty)")
+    p.add_argument("--backend", choices=("onnxruntime", "python"), default="onnxruntime",
+                   help="Triton backend: onnxruntime, or python (model.py running ONNX Runtime, e.g. for PyTriton)")
+    p.add_argument("--instances", type=int, default=1, help="CPU instances of each model")
+    p.add_argument("--threads", type=int, default=0,
+                   help="ONNX Runtime intra-op threads per instance (0 = one per core); keep instances x threads <= cores")
+    p.add_argument("--force", action="store_true", help="replace a non-empty output folder")
+    p.set_defaults(func=export_repository_command)
+
+
+def export_repository_command(args: argparse.Namespace) -> int:
+    from .model_config import TritonOptions
+    from .model_repository import RepositoryError, export_repository
+    from .settings import Settings
+
+    try:
+        options = TritonOptions.from_settings(
+            Settings(), backend=args.backend, instances=args.instances, intra_op_threads=args.threads
+        )
+    except ValueError as exc:  # e.g. --instances 0
+        raise RepositoryError(str(exc)) from None
+    names = export_repository(args.models, args.output, options, force=args.force,
+                              command=f"neumip export-repository {args.models} -o {args.output} --backend {args.backend}")
+    print(f"wrote {args.output}: {len(names)} material(s) ({', '.join(names)}), backend {args.backend}")
+    return 0
