@@ -1,4 +1,4 @@
-"""In-process inference speed of an exported material: ONNX Runtime graph variants vs torch eager.
+"""In-process inference speed of an exported material: the shipped ONNX graph vs the first export and torch eager.
 
     .venv/bin/python benchmarks/bench_inference.py                 # everything (about 10 minutes)
     .venv/bin/python benchmarks/bench_inference.py --sections graphs --batches 10,14,20 --threads 1
@@ -11,12 +11,13 @@ round and reports the median of the rounds, twice: queries per wall-clock second
 CPU second of this process (what a query costs, whatever the other jobs take). Compare ratios within
 one table, and read the load average printed with it. Sections:
 
-- graphs:  each export variant (`GraphOptions`), `LocalMaterials.evaluate` and torch eager, one
-           call per batch of 2^10 ... 2^20 queries.
-- session: the default graph on 2 cores: ONNX Runtime's intra-op pool (spinning or not, arena,
+- graphs:  the shipped graph (`neumip.training.export`), the first export's graph (`export_modulo.py`,
+           int64 Mod on single texels), `LocalMaterials.evaluate` and torch eager, one call per batch
+           of 2^10 ... 2^20 queries.
+- session: the shipped graph on 2 cores: ONNX Runtime's intra-op pool (spinning or not, arena,
            optimization level) against one-thread sessions running chunks on 2 threads.
 - chunk:   `run_chunked` on 2^20 queries for several chunk sizes.
-- load:    seconds to open a session: each variant, and the default from a cached optimized model.
+- load:    seconds to open a session: each graph, and the shipped one from a cached optimized model.
 - ops:     one elementwise op on (N, 1) vs (N, 1) <op> (1, 1) shapes (ONNX Runtime's slow broadcast).
 """
 
@@ -43,20 +44,14 @@ from neumip.client import contract as C  # noqa: E402
 from neumip.client.contract import random_queries  # noqa: E402
 from neumip.client.local import LocalMaterials, run_chunked, split_chunk  # noqa: E402
 from neumip.training.config import MaterialConfig  # noqa: E402
-from neumip.training.export import GraphOptions, build_onnx, weights_from_state  # noqa: E402
+from neumip.training.export import build_onnx, weights_from_state  # noqa: E402
 from neumip.training.material import NeuMIPMaterial  # noqa: E402
 
-GRAPHS = {
-    "modulo (first export)": GraphOptions(lookup="modulo"),
-    "taps4 sum (default)": GraphOptions(),
-    "taps4 sum int32": GraphOptions(index_type="int32"),
-    "taps2 sum": GraphOptions(taps_per_row=2),
-    "taps1 sum": GraphOptions(taps_per_row=1),
-    "taps4 gemm": GraphOptions(blend="gemm"),
-    "taps4 premultiplied": GraphOptions(blend="premultiplied"),
-    "gridsample": GraphOptions(lookup="gridsample"),
-}
-"""Export variants the graphs section compares (name -> options)."""
+from export_modulo import modulo_onnx  # noqa: E402  (benchmarks/, beside this script)
+
+SHIPPED = "shipped (quad tables)"
+GRAPHS = {"modulo (first export)": modulo_onnx, SHIPPED: build_onnx}
+"""Graphs the graphs and load sections compare (name -> builder(config, weights) -> ModelProto)."""
 
 
 @dataclass
@@ -189,24 +184,24 @@ def graphs_section(mat, models: dict[str, bytes], args) -> None:
     pool = random_queries(1 << 20, seed=20)
     tpool = torch.from_numpy(pool)
     coherent = coherent_queries(1 << 20, args.resolution)
-    default = sessions["taps4 sum (default)"]
+    shipped = sessions[SHIPPED]
     with tempfile.TemporaryDirectory() as folder:
-        (Path(folder) / "m.onnx").write_bytes(models["taps4 sum (default)"])
+        (Path(folder) / "m.onnx").write_bytes(models[SHIPPED])
         local = LocalMaterials(folder, threads=args.threads)
-        names = [*sessions, "default, coherent queries", f"LocalMaterials.evaluate, {args.threads} workers",
+        names = [*sessions, "shipped, coherent queries", f"LocalMaterials.evaluate, {args.threads} workers",
                  "torch eager"]
         columns, table = [], {name: [] for name in names}
         for log2 in args.batches:
             q, tq = Batches(pool, 1 << log2), Batches(tpool, 1 << log2)
             cq = Batches(coherent, 1 << log2)
             fns = {name: (lambda s=s: s.run(None, {C.ONNX_INPUT: q.next()})) for name, s in sessions.items()}
-            fns["default, coherent queries"] = lambda: default.run(None, {C.ONNX_INPUT: cq.next()})
+            fns["shipped, coherent queries"] = lambda: shipped.run(None, {C.ONNX_INPUT: cq.next()})
             fns[names[-2]] = lambda: local.evaluate("m", q.next())
             fns["torch eager"] = lambda: torch_eval(mat, tq.next())
             for name, value in interleaved(fns, 1 << log2, args.seconds, args.rounds).items():
                 table[name].append(value)
             columns.append(f"2^{log2}")
-        print_table(f"graph variants, sessions of {args.threads} intra-op threads (no spinning), one run() "
+        print_table(f"graphs, sessions of {args.threads} intra-op threads (no spinning), one run() "
                     "per batch", columns, table)
 
 
@@ -240,7 +235,7 @@ def session_section(model: bytes, args) -> None:
             table[name].append(value)
         columns.append(f"2^{log2}")
     pool.shutdown()
-    print_table("session options, default graph, one batch", columns, table)
+    print_table("session options, shipped graph, one batch", columns, table)
 
 
 def chunk_section(model: bytes, args) -> None:
@@ -256,18 +251,18 @@ def chunk_section(model: bytes, args) -> None:
     fns["one run() of 2^20, 1 thread"] = lambda: single.run(None, {C.ONNX_INPUT: q})
     result = interleaved(fns, len(q), args.seconds, args.rounds)
     pool.shutdown()
-    print_table("run_chunked on 2^20 queries, default graph", ["2^20"], {n: [v] for n, v in result.items()})
+    print_table("run_chunked on 2^20 queries, shipped graph", ["2^20"], {n: [v] for n, v in result.items()})
 
 
 def load_section(models: dict[str, bytes], args) -> None:
     print(f"\n## seconds to open a session (median of {args.rounds})   [{load_text()}]")
     with tempfile.TemporaryDirectory() as folder:
-        cached = Path(folder) / "default.optimized.onnx"
+        cached = Path(folder) / "shipped.optimized.onnx"
         opts = Session(threads=args.threads).options()
         opts.optimized_model_filepath = str(cached)
-        ort.InferenceSession(models["taps4 sum (default)"], opts, providers=["CPUExecutionProvider"])
+        ort.InferenceSession(models[SHIPPED], opts, providers=["CPUExecutionProvider"])
         sources = dict(models)
-        sources["default, cached optimized model"] = str(cached)
+        sources["shipped, cached optimized model"] = str(cached)
         for name, source in sources.items():
             level = "disabled" if name.endswith("cached optimized model") else "all"
             times = []
@@ -322,24 +317,21 @@ def main() -> None:
     parser.add_argument("--threads", type=int, default=2)
     parser.add_argument("--seconds", type=float, default=0.3, help="minimum time per measurement")
     parser.add_argument("--rounds", type=int, default=3)
-    parser.add_argument("--graphs", default="", help="comma-separated subset of the graph variant names")
     args = parser.parse_args()
     torch.set_num_threads(args.threads)
 
     mat = material(args.resolution, seed=0)
     weights = weights_from_state(mat.state_dict(), mat.config)
-    names = [n for n in GRAPHS if not args.graphs or any(s in n for s in args.graphs.split(","))]
-    names = names if "taps4 sum (default)" in names else ["taps4 sum (default)", *names]
-    models = {n: build_onnx(mat.config, weights, options=GRAPHS[n]).SerializeToString() for n in names}
+    models = {name: build(mat.config, weights).SerializeToString() for name, build in GRAPHS.items()}
     print(f"# {args.resolution}^2 material with offset; onnxruntime {ort.__version__}, torch {torch.__version__}, "
           f"{args.threads} threads; {load_text()}")
     sections = args.sections.split(",")
     if "graphs" in sections:
         graphs_section(mat, models, args)
     if "session" in sections:
-        session_section(models["taps4 sum (default)"], args)
+        session_section(models[SHIPPED], args)
     if "chunk" in sections:
-        chunk_section(models["taps4 sum (default)"], args)
+        chunk_section(models[SHIPPED], args)
     if "load" in sections:
         load_section(models, args)
     if "ops" in sections:

@@ -4,6 +4,9 @@ Pure torch. The blur is separable and wraps around (the textures tile), with a k
 ceil(3 sigma) normalised to sum 1. Each of the two 1-D passes is a product with the S x S circulant
 matrix of the kernel folded onto the circle (levels up to 256 texels, or kernels wider than the
 level) or a circular 1-D convolution (larger levels); both compute the same wrapped blur.
+
+`effective_textures` gives the blurred textures a run evaluates the material with at a step, and
+`bake` stores them as the material's own, so an export computes what training computed.
 """
 
 from __future__ import annotations
@@ -13,6 +16,7 @@ import math
 import torch
 import torch.nn.functional as F
 
+from .material import NeuMIPMaterial
 from .train_config import TrainConfig
 
 
@@ -93,3 +97,47 @@ def blur_pyramid(levels: list[torch.Tensor], sigma: float, sigma_min: float) -> 
         s = sigma / 2.0**level
         out.append(blur_texture(texture, s) if s >= sigma_min and texture.shape[0] > 1 else texture)
     return out
+
+
+# --- the blur a run applies, baked into the material ----------------------------------------------
+
+
+def effective_textures(
+    material: NeuMIPMaterial, sigma: float, config: TrainConfig, offset_frozen: bool
+) -> tuple[list[torch.Tensor], torch.Tensor | None]:
+    """The (blurred) textures the material is evaluated with at blur `sigma`."""
+    levels, otex = material.textures()
+    if sigma > 0:
+        levels = blur_pyramid(levels, sigma, config.blur_min)
+    if otex is not None and not offset_frozen:
+        otex = blur_texture(otex, max(sigma, config.offset_blur_floor))
+    return levels, otex
+
+
+@torch.no_grad()
+def bake(material: NeuMIPMaterial, levels: list[torch.Tensor], otex: torch.Tensor | None) -> None:
+    """Store the given effective textures as the material's own (export then matches training)."""
+    for param, value in zip(material.pyramid, levels):
+        if value is not param:
+            param.copy_(value)
+    if otex is not None and otex is not material.offset_texture:
+        material.offset_texture.copy_(otex)
+
+
+def bake_checkpoint_textures(material: NeuMIPMaterial, extra: dict) -> bool:
+    """Bake the blur a training run applied at the checkpoint's step into `material` (in place).
+
+    A checkpoint written inside the blur schedule stores raw textures, while training evaluated
+    blurred copies; baking makes an export of it compute what training computed. Returns whether
+    anything was baked (False for finished or baked runs and for checkpoints without a run state).
+    """
+    state, saved = extra.get("state"), extra.get("train_config")
+    if not state or not saved or state.get("baked"):
+        return False
+    config = TrainConfig.from_dict(saved)
+    sigma = blur_sigma(state["step"], config)
+    frozen = state.get("offset_frozen", False)
+    if sigma <= 0 and (not material.config.offset or frozen):
+        return False
+    bake(material, *effective_textures(material, sigma, config, frozen))
+    return True

@@ -19,9 +19,10 @@ detail is the same bits in any batch:
 from __future__ import annotations
 
 import numpy as np
+from onnx import TensorProto
 
 from .config import MaterialConfig
-from .onnx_graph import INDEX_TYPES, GraphWriter
+from .onnx_graph import GraphWriter
 
 LOG2_POLYNOMIAL = (2.885390043258667, 0.9617878198623657, 0.5775499939918518, 0.40215760469436646,
                    0.41097143292427063)
@@ -45,7 +46,7 @@ def level_of_detail(g: GraphWriter, sigma: str, config: MaterialConfig) -> tuple
     level lo + 1; lo + t = clamp(log2(sigma * R), 0, L), sigma <= 0 reading the finest level."""
     levels = config.levels
     x = g.op("Clip", g.op("Mul", sigma, g.scalar(config.resolution)), g.const(1.0), g.const(2.0**levels))
-    index = g.shape(g.op("Cast", g.op("Floor", x), to=INDEX_TYPES["int64"][1]), [-1])  # (N,) in [1, 2^L]
+    index = g.shape(g.op("Cast", g.op("Floor", x), to=TensorProto.INT64), [-1])  # (N,) in [1, 2^L]
     k = np.maximum(np.arange(2**levels + 1), 1)
     floor_log2 = np.asarray([int(i).bit_length() - 1 for i in k], np.int64)  # row k: floor(log2 k)
     lo = g.op("Gather", g.const(floor_log2, np.int64), index, axis=0)  # (N,)

@@ -1,30 +1,97 @@
-"""ONNX stages of the texture lookups: wrap-padded tap tables read with float row arithmetic.
+"""ONNX stages of the texture lookups: wrap-padded quad tables read with float row arithmetic.
 
-Shapes: N queries, L levels read per query (1 for the offset texture, 2 for the pyramid), K = 4 // taps
-table rows per level footprint. The stages keep every tensor flat, (N, k) with the same k on both
-sides of each elementwise op: ONNX Runtime's broadcasting of small inner dimensions costs more than
-the arithmetic. Row arithmetic runs in float32 on integers below 2^24 (exact) and is cast once to
-the Gather index type; column shuffles are MatMuls with 0/1 matrices (exact for finite values).
+A bilinear wrap-around tap at texel x0 in [-1, S-1] reads texels x0 and x0 + 1 modulo S. Padding each
+level by one texel on every side with the opposite edge (`wrap_pad`) turns both into plain indices
+x0 + 1 and x0 + 2 of the padded level, so the graph needs no modulo, and grouping the 2 x 2 taps of
+each footprint into one row (`quad_table`) lets a query read a level's footprint with one Gather row.
+
+The model file stores the textures once; the tables are built from texel *indices* into the flat
+atlas, and the graph's constant subgraph Gather(atlas, index table) (`expand_table`), which ONNX
+Runtime folds when the session loads, expands them.
+
+Shapes: N queries, L levels read per query (1 for the offset texture, 2 for the pyramid). The stages
+keep every tensor flat, (N, k) with the same k on both sides of each elementwise op: ONNX Runtime's
+broadcasting of small inner dimensions costs more than the arithmetic. Row arithmetic runs in float32
+on integers below 2^24 (exact) and is cast once to int64; column shuffles are MatMuls with 0/1
+matrices (exact for finite values).
 """
 
 from __future__ import annotations
 
+from dataclasses import dataclass
+
 import numpy as np
+from onnx import TensorProto
 
 from .config import MaterialConfig
 from .export_lod import level_of_detail
-from .onnx_graph import INDEX_TYPES, GraphWriter
-from .texture_tables import tap_atlas
+from .onnx_graph import GraphWriter
+
+# --- the quad tables (numpy, built once at export) -----------------------------------------------
+
+
+def wrap_pad(level: np.ndarray) -> np.ndarray:
+    """(S, S, C) level -> (S + 2, S + 2, C); padded texel (i, j) is texel ((i - 1) % S, (j - 1) % S)."""
+    return np.pad(level, ((1, 1), (1, 1), (0, 0)), mode="wrap")
+
+
+def quad_table(level: np.ndarray) -> np.ndarray:
+    """(S, S, C) level -> ((S + 1)^2, 4C) rows: row y (S + 1) + x holds the wrap-padded texels at
+    (x, y), (x + 1, y), (x, y + 1), (x + 1, y + 1), the footprint whose top-left padded texel is (x, y)."""
+    p = wrap_pad(np.asarray(level))  # (S + 2, S + 2, C)
+    pairs = np.concatenate([p[:, :-1], p[:, 1:]], axis=2)  # (S + 2, S + 1, 2C): texels x, x + 1
+    quads = np.concatenate([pairs[:-1], pairs[1:]], axis=2)  # (S + 1, S + 1, 4C): rows y, y + 1
+    return quads.reshape(-1, quads.shape[2])
+
+
+@dataclass(frozen=True)
+class QuadAtlas:
+    """All pyramid levels' quad tables stacked in one index table, with a per-level parameter table."""
+
+    rows: np.ndarray
+    """(rows, 4) int64: atlas rows (flat texel indices) of each table row's taps, finest level first."""
+    level_params: np.ndarray
+    """(levels, 4) float32 per level: size S, 1, width W = S + 1, and the table row of the footprint
+    at padded (1, 1) (x0 = y0 = 0); a query adds x0 + y0 * W."""
+
+
+def quad_atlas(sizes: list[int]) -> QuadAtlas:
+    """Quad index tables of levels of `sizes` texels per side, stacked flat (finest first) in one atlas."""
+    params, tables, texel, start = [], [], 0, 0
+    for size in sizes:
+        table = quad_table(texel + np.arange(size * size, dtype=np.int64).reshape(size, size, 1))
+        width = size + 1
+        params.append([size, 1, width, start + width + 1])
+        tables.append(table)
+        start += table.shape[0]
+        texel += size * size
+    if start >= 2**24:
+        raise ValueError(f"{start} table rows: float32 row arithmetic is exact only below 2^24")
+    return QuadAtlas(np.concatenate(tables), np.asarray(params, np.float32))
+
+
+def level_pair_params(config: MaterialConfig, level_params: np.ndarray) -> np.ndarray:
+    """Per level (S, 1, W, base) -> per lower level lo a row (10,) for levels lo, hi:
+
+    [S_lo, S_lo, S_hi, S_hi, 1, W_lo, 1, W_hi, base_lo, base_hi], hi = min(lo + 1, levels).
+    """
+    lo = np.arange(config.levels + 1)
+    a, b = level_params[lo], level_params[np.minimum(lo + 1, config.levels)]
+    one = np.ones_like(a[:, 0])
+    cols = [a[:, 0], a[:, 0], b[:, 0], b[:, 0], one, a[:, 2], one, b[:, 2], a[:, 3], b[:, 3]]
+    return np.stack(cols, axis=1).astype(np.float32)
+
+
+# --- graph stages ----------------------------------------------------------------------------------
 
 
 def expand_table(g: GraphWriter, texels: str, index_rows: np.ndarray, width: int) -> str:
-    """Constant subgraph: (T, width) texels and (R, taps) index table -> (R, taps * width) tap table.
+    """Constant subgraph: (T, width) texels and (R, 4) index table -> (R, 4 width) quad table.
 
     Only initializers feed it, so ONNX Runtime computes it once when the session loads.
     """
-    taps = index_rows.shape[1]
-    table = g.op("Gather", texels, g.const(index_rows, INDEX_TYPES["int32"][0]), axis=0)
-    return g.shape(table, [-1, taps * width])
+    table = g.op("Gather", texels, g.const(index_rows, np.int32), axis=0)
+    return g.shape(table, [-1, 4 * width])
 
 
 def _tap_factors(levels: int, axis: int) -> tuple[np.ndarray, np.ndarray]:
@@ -58,58 +125,41 @@ def tap_weights(g: GraphWriter, frac: str, levels: int, t: str | None) -> str:
     return weights if t is None else g.op("Mul", weights, level_weights(g, t, 4))
 
 
-def _gather(g: GraphWriter, table: str, line: str, bases: str, levels: int, width: int,
-            index_type: str) -> str:
-    """Rows (N, L K) float -> (N, 4 L width) texels in tap order, level by level."""
-    rows = g.op("Cast", g.op("Add", line, bases), to=INDEX_TYPES[index_type][1])
+def _gather(g: GraphWriter, table: str, line: str, bases: str, levels: int, width: int) -> str:
+    """Rows (N, L) float -> (N, 4 L width) texels in tap order, level by level."""
+    rows = g.op("Cast", g.op("Add", line, bases), to=TensorProto.INT64)
     return g.shape(g.op("Gather", table, rows, axis=0), [-1, 4 * levels * width])
 
 
-def level_pair_params(config: MaterialConfig, level_params: np.ndarray) -> np.ndarray:
-    """Per level (S, 1, W, bases...) -> per lower level lo a row (8 + 2K,) for levels lo, hi:
-
-    [S_lo, S_lo, S_hi, S_hi, 1, W_lo, 1, W_hi, bases_lo (K), bases_hi (K)], hi = min(lo + 1, levels).
-    """
-    lo = np.arange(config.levels + 1)
-    a, b = level_params[lo], level_params[np.minimum(lo + 1, config.levels)]
-    one = np.ones_like(a[:, 0])
-    cols = [a[:, 0], a[:, 0], b[:, 0], b[:, 0], one, a[:, 2], one, b[:, 2]]
-    return np.concatenate([np.stack(cols, axis=1), a[:, 3:], b[:, 3:]], axis=1).astype(np.float32)
-
-
 def pyramid_texels(g: GraphWriter, config: MaterialConfig, atlas: str, width: int, uvw: str,
-                   sigma: str, taps: int, index_type: str) -> tuple[str, str]:
+                   sigma: str) -> tuple[str, str]:
     """Trilinear footprint: uvw (N, 2) in [0, 1], sigma (N, 1) -> texels (N, 8 width), weights (N, 8).
 
-    `atlas` (T, width) holds the pyramid levels flat, finest first (width = channels, or hidden when
-    the decoder's first layer is folded in).
+    `atlas` (T, width) holds the pyramid levels flat, finest first.
     """
-    k = 4 // taps
-    tables = tap_atlas(config.level_sizes(), taps)
+    tables = quad_atlas(config.level_sizes())
     lo, t = level_of_detail(g, sigma, config)
     pairs = g.const(level_pair_params(config, tables.level_params))
-    params = g.op("Gather", pairs, lo, axis=0)  # (N, 8 + 2K)
-    p = 8 + 2 * k
-    size, coef, bases = (g.pick(params, p, list(c)) for c in (range(4), range(4, 8), range(8, p)))
+    params = g.op("Gather", pairs, lo, axis=0)  # (N, 10)
+    size, coef, bases = (g.pick(params, 10, list(c)) for c in (range(4), range(4, 8), range(8, 10)))
     both = g.op("MatMul", uvw, g.const(np.tile(np.eye(2, dtype=np.float32), (1, 2))))  # (N, 4) u v u v
     x = g.op("Sub", g.op("Mul", both, size), g.scalar(0.5))  # (N, 4) texel coordinates per level
     x0 = g.op("Floor", x)
-    spread = np.kron(np.eye(2, dtype=np.float32), np.ones((2, k), np.float32))  # (4, 2K): x0 + W y0
-    line = g.op("MatMul", g.op("Mul", x0, coef), g.const(spread))  # (N, 2K)
+    spread = np.kron(np.eye(2, dtype=np.float32), np.ones((2, 1), np.float32))  # (4, 2): x0 + W y0
+    line = g.op("MatMul", g.op("Mul", x0, coef), g.const(spread))  # (N, 2)
     table = expand_table(g, atlas, tables.rows, width)
-    texels = _gather(g, table, line, bases, 2, width, index_type)
+    texels = _gather(g, table, line, bases, 2, width)
     return texels, tap_weights(g, g.op("Sub", x, x0), 2, t)
 
 
-def texture_texels(g: GraphWriter, texture: str, size: int, width: int, uvw: str, taps: int,
-                   index_type: str) -> tuple[str, str]:
+def texture_texels(g: GraphWriter, texture: str, size: int, width: int, uvw: str) -> tuple[str, str]:
     """Bilinear footprint of one texture, (S * S, width) flat: uvw (N, 2) in [0, 1] -> texels
     (N, 4 width), weights (N, 4)."""
-    tables = tap_atlas([size], taps)
-    _, _, w, *bases = tables.level_params[0]
+    tables = quad_atlas([size])
+    _, _, w, base = tables.level_params[0]
     x = g.op("Sub", g.op("Mul", uvw, g.scalar(size)), g.scalar(0.5))  # (N, 2)
     x0 = g.op("Floor", x)
-    line = g.op("MatMul", x0, g.const(np.tile([[1.0], [w]], (1, len(bases)))))  # (N, K): x0 + W y0
+    line = g.op("MatMul", x0, g.const(np.asarray([[1.0], [w]])))  # (N, 1): x0 + W y0
     table = expand_table(g, texture, tables.rows, width)
-    texels = _gather(g, table, line, g.const(bases), 1, width, index_type)
+    texels = _gather(g, table, line, g.const([base]), 1, width)
     return texels, tap_weights(g, g.op("Sub", x, x0), 1, None)

@@ -9,9 +9,6 @@ import numpy as np
 import onnx
 from onnx import TensorProto, helper, numpy_helper
 
-INDEX_TYPES = {"int64": (np.int64, TensorProto.INT64), "int32": (np.int32, TensorProto.INT32)}
-"""Integer types a Gather index may be cast to, by name."""
-
 
 class GraphWriter:
     """Collects nodes and initializers; every op returns the name of its (first) output."""
@@ -46,11 +43,6 @@ class GraphWriter:
     def shape(self, x: str, dims) -> str:
         """Reshape `x` to `dims` (0 copies a dimension, -1 infers one)."""
         return self.op("Reshape", x, self.const(list(dims), np.int64))
-
-    def columns(self, x: str, start: int, stop: int, axis: int = -1) -> str:
-        """x[..., start:stop] along `axis`."""
-        i64 = np.int64
-        return self.op("Slice", x, self.const([start], i64), self.const([stop], i64), self.const([axis], i64))
 
     def pick(self, x: str, width: int, columns: list[int]) -> str:
         """Columns of (N, width) `x` -> (N, len(columns)), by a MatMul with a 0/1 matrix.

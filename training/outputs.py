@@ -1,7 +1,7 @@
 """What a finished training run leaves next to its model: NAME.onnx, NAME.json, NAME.loss.png.
 
 NAME.json holds the validation table plus the run's settings; the ONNX metadata carries the same
-table under `contract.META_VALIDATION` (copied by `export.export_checkpoint`).
+table under `contract.META_VALIDATION`. The model is exported from the trained material in memory.
 """
 
 from __future__ import annotations
@@ -10,7 +10,7 @@ import json
 import logging
 from pathlib import Path
 
-from .export import export_checkpoint
+from .export import export_material
 from .train import Trainer
 
 log = logging.getLogger(__name__)
@@ -45,7 +45,7 @@ def write_loss_curve(history: list, path: Path, title: str) -> Path:
 
 
 def write_outputs(trainer: Trainer, table: dict, output: str | Path) -> dict[str, Path]:
-    """Export the final checkpoint to `output` (.onnx) and write the validation JSON and loss PNG."""
+    """Export the trained material to `output` (.onnx) and write the validation JSON and loss PNG."""
     output = Path(output)
     json_path, png_path = sidecar_paths(output)
     record = {
@@ -56,7 +56,7 @@ def write_outputs(trainer: Trainer, table: dict, output: str | Path) -> dict[str
         "train_config": trainer.config.to_dict(),
         "validation": table,
     }
-    onnx_path = export_checkpoint(trainer.checkpoint_path, output, trainer.description)
+    onnx_path = export_material(trainer.material, output, trainer.description, table)
     json_path.write_text(json.dumps(record, indent=2) + "\n")
     write_loss_curve(trainer.state.history, png_path, f"{output.stem}: {trainer.config.loss} loss")
     log.info("wrote %s (%.2f MB), %s, %s", onnx_path, onnx_path.stat().st_size / 1e6, json_path, png_path)

@@ -22,7 +22,7 @@ from neumip.client import contract as C
 from neumip.client.errors import NeumipError
 
 from . import checkpoint
-from .blur import blur_pyramid, blur_sigma, blur_texture, schedule_end
+from .blur import bake, blur_sigma, blur_texture, effective_textures, schedule_end
 from .config import MaterialConfig
 from .dataset import Dataset, open_dataset
 from .losses import training_loss
@@ -80,47 +80,6 @@ def split_indices(n: int, config: TrainConfig) -> tuple[np.ndarray, np.ndarray]:
     rng = np.random.default_rng(config.seed)
     perm = rng.permutation(n)
     return np.sort(perm[held:]), np.sort(perm[:held])
-
-
-def effective_textures(
-    material: NeuMIPMaterial, sigma: float, config: TrainConfig, offset_frozen: bool
-) -> tuple[list[torch.Tensor], torch.Tensor | None]:
-    """The (blurred) textures the material is evaluated with at blur `sigma`."""
-    levels, otex = material.textures()
-    if sigma > 0:
-        levels = blur_pyramid(levels, sigma, config.blur_min)
-    if otex is not None and not offset_frozen:
-        otex = blur_texture(otex, max(sigma, config.offset_blur_floor))
-    return levels, otex
-
-
-@torch.no_grad()
-def bake(material: NeuMIPMaterial, levels: list[torch.Tensor], otex: torch.Tensor | None) -> None:
-    """Store the given effective textures as the material's own (export then matches training)."""
-    for param, value in zip(material.pyramid, levels):
-        if value is not param:
-            param.copy_(value)
-    if otex is not None and otex is not material.offset_texture:
-        material.offset_texture.copy_(otex)
-
-
-def bake_checkpoint_textures(material: NeuMIPMaterial, extra: dict) -> bool:
-    """Bake the blur a training run applied at the checkpoint's step into `material` (in place).
-
-    A checkpoint written inside the blur schedule stores raw textures, while training evaluated
-    blurred copies; baking makes an export of it compute what training computed. Returns whether
-    anything was baked (False for finished or baked runs and for checkpoints without a run state).
-    """
-    state, saved = extra.get("state"), extra.get("train_config")
-    if not state or not saved or state.get("baked"):
-        return False
-    config = TrainConfig.from_dict(saved)
-    sigma = blur_sigma(state["step"], config)
-    frozen = state.get("offset_frozen", False)
-    if sigma <= 0 and (not material.config.offset or frozen):
-        return False
-    bake(material, *effective_textures(material, sigma, config, frozen))
-    return True
 
 
 class BatchSampler:

@@ -15,29 +15,6 @@ from neumip.training.export import build_onnx, constant_weights, export_checkpoi
 from neumip.training.material import NeuMIPMaterial
 from neumip.client.contract import random_queries
 
-ATOL, RTOL = 1e-5, 1e-4
-
-
-def edge_queries(resolution: int) -> np.ndarray:
-    """Queries at the contract's edges: sigma out of range and on level boundaries, huge |u|,
-    directions at 89.9 degrees, tile seams."""
-    rng = np.random.default_rng(7)
-    levels = int(np.log2(resolution))
-    sigmas = [0.0, -1.0, 1e-12, 0.1 / resolution, 1e3, 1e30]
-    sigmas += [2.0**j / resolution for j in range(levels + 1)]  # exactly on level boundaries
-    positions = [0.0, 1.0, -1.0, 0.5 / resolution, 1 - 1e-7, -1e-7, -1000.25, 1000.75, -1234.5]
-    s89 = np.sin(np.radians(89.9))
-    dirs = [(0.0, 0.0), (s89, 0.0), (0.0, -s89), (s89 / np.sqrt(2), s89 / np.sqrt(2)), (1.0, 0.0)]
-    rows = []
-    for s in sigmas:
-        for p in positions:
-            wi, wo = dirs[rng.integers(len(dirs))], dirs[rng.integers(len(dirs))]
-            rows.append([p, positions[rng.integers(len(positions))], s, *wi, *wo])
-    for (wi, wo) in [(a, b) for a in dirs for b in dirs]:
-        rows.append([0.3, 0.7, 1.5 / resolution, *wi, *wo])
-    return np.asarray(rows, np.float32)
-
-
 def torch_eval(material: NeuMIPMaterial, q: np.ndarray) -> np.ndarray:
     with torch.no_grad():
         return material(torch.from_numpy(q)).numpy()
@@ -57,23 +34,23 @@ def pair(request):
     return material, model, session
 
 
-def test_parity_random_queries(pair):
+def test_parity_random_queries(pair, assert_parity):
     material, _, session = pair
     q = random_queries(20000, seed=11)
     want = torch_eval(material, q)
     got = session.run(None, {C.ONNX_INPUT: q})[0]
     assert got.shape == (20000, 3) and got.dtype == np.float32
     assert want.std() > 1e-3, "test material must not be constant"
-    np.testing.assert_allclose(got, want, atol=ATOL, rtol=RTOL)
+    assert_parity(got, want)
 
 
-def test_parity_edge_queries(pair):
+def test_parity_edge_queries(pair, edge_queries, assert_parity):
     material, _, session = pair
     q = edge_queries(material.config.resolution)
     want = torch_eval(material, q)
     got = session.run(None, {C.ONNX_INPUT: q})[0]
     assert np.isfinite(got).all() and (got >= 0).all()
-    np.testing.assert_allclose(got, want, atol=ATOL, rtol=RTOL)
+    assert_parity(got, want)
 
 
 def test_graph_stores_textures_as_initializers_and_metadata(pair):
@@ -94,15 +71,14 @@ def test_dynamic_batch_sizes(pair):
         assert session.run(None, {C.ONNX_INPUT: random_queries(n)})[0].shape == (n, 3)
 
 
-def test_export_checkpoint_roundtrip(tmp_path):
+def test_export_checkpoint_roundtrip(tmp_path, assert_parity):
     cfg = MaterialConfig(resolution=8)
     material = NeuMIPMaterial(cfg, init_std=0.5)
     ckpt = checkpoint.save(tmp_path / "m.pt", material, {"validation": {"mse": [1.0]}})
     out = export_checkpoint(ckpt, tmp_path / "m.onnx", "roundtrip")
     session = ort.InferenceSession(str(out), providers=["CPUExecutionProvider"])
     q = random_queries(500, seed=5)
-    np.testing.assert_allclose(session.run(None, {C.ONNX_INPUT: q})[0], torch_eval(material, q),
-                               atol=ATOL, rtol=RTOL)
+    assert_parity(session.run(None, {C.ONNX_INPUT: q})[0], torch_eval(material, q))
     meta = session.get_modelmeta().custom_metadata_map
     assert meta[C.META_DESCRIPTION] == "roundtrip"
     assert json.loads(meta[C.META_VALIDATION]) == {"mse": [1.0]}

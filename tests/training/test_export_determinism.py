@@ -1,5 +1,5 @@
 """A query's answer does not depend on its batch: same bits in one call, in any split, on any thread
-count, for the default graph and every `GraphOptions` variant; the exact level of detail."""
+count; the exact level of detail."""
 
 import numpy as np
 import onnxruntime as ort
@@ -9,15 +9,10 @@ from onnx import helper
 from neumip.client import contract as C
 from neumip.client.local import LocalMaterials
 from neumip.training.config import MaterialConfig
-from neumip.training.export import GraphOptions, build_onnx, random_weights, save_onnx
+from neumip.training.export import build_onnx, random_weights, save_onnx
 from neumip.training.export_lod import log2_mantissa
 from neumip.training.onnx_graph import GraphWriter
 from neumip.client.contract import random_queries
-from tests.training.test_export import edge_queries
-from tests.training.test_export_variants import TAPS_VARIANTS
-
-VARIANTS = TAPS_VARIANTS + [GraphOptions(lookup="modulo"), GraphOptions(lookup="gridsample")]
-"""Every graph `build_onnx` writes; TAPS_VARIANTS holds the default, GraphOptions()."""
 SPLITS = (1, 3, 17, 1000, 4099)
 """Chunk sizes the queries are cut into (cycled, so rows land at every offset of a call)."""
 
@@ -28,7 +23,7 @@ def _session(model, threads: int = 1) -> ort.InferenceSession:
     return ort.InferenceSession(model.SerializeToString(), opts, providers=["CPUExecutionProvider"])
 
 
-def _queries(resolution: int) -> np.ndarray:
+def _queries(resolution: int, edge_queries) -> np.ndarray:
     """(N, 7): 12000 random queries and the edge queries (level boundaries, seams, grazing angles)."""
     return np.concatenate([random_queries(12_000, seed=31), edge_queries(resolution), random_queries(7, seed=2)])
 
@@ -54,11 +49,10 @@ def config(request):
     return MaterialConfig(resolution=32, offset=request.param)
 
 
-@pytest.mark.parametrize("options", VARIANTS, ids=str)
-def test_answers_do_not_depend_on_the_batch(config, options):
-    model = build_onnx(config, random_weights(config, seed=4), options=options)
+def test_answers_do_not_depend_on_the_batch(config, edge_queries):
+    model = build_onnx(config, random_weights(config, seed=4))
     session = _session(model)
-    q = _queries(config.resolution)
+    q = _queries(config.resolution, edge_queries)
     whole = session.run(None, {C.ONNX_INPUT: q})[0]  # (N, 3)
     assert (whole > 0).mean() > 0.9 and whole.std(axis=0).min() > 1e-2, "the material must vary"
     _same_bits(_in_pieces(session, q, SPLITS), whole)
@@ -68,11 +62,7 @@ def test_answers_do_not_depend_on_the_batch(config, options):
     _same_bits(_session(model, threads=2).run(None, {C.ONNX_INPUT: q})[0], whole)
 
 
-def test_the_default_graph_is_among_the_variants():
-    assert GraphOptions() in VARIANTS and len(set(VARIANTS)) == len(VARIANTS)
-
-
-def test_local_materials_answer_the_same_bits_for_any_threads_and_chunk(tmp_path):
+def test_local_materials_answer_the_same_bits_for_any_threads_and_chunk(tmp_path, edge_queries):
     cfg = MaterialConfig(resolution=64)
     save_onnx(build_onnx(cfg, random_weights(cfg, seed=9)), tmp_path / "m.onnx")
     q = np.concatenate([random_queries(20_011, seed=8), edge_queries(cfg.resolution)])

@@ -12,12 +12,12 @@ import torch
 from neumip.client import contract as C
 from neumip.training import checkpoint
 from neumip.training import train as train_mod
+from neumip.training.blur import blur_sigma, effective_textures
 from neumip.training.config import MaterialConfig
 from neumip.training.outputs import write_outputs
 from neumip.training.train import Trainer, TrainingDiverged, TrainingError
 from neumip.training.train_config import TEST
 from neumip.client.contract import random_queries
-from tests.training.plane_data import plane_data
 
 TINY = MaterialConfig(resolution=16)
 FAST = replace(TEST, steps=60, batch=1024, checkpoint_every=20, log_every=10)
@@ -37,7 +37,7 @@ def one_thread():
 
 
 @pytest.fixture(scope="module")
-def data(tmp_path_factory):
+def data(tmp_path_factory, plane_data):
     return plane_data(tmp_path_factory.mktemp("plane") / "data", 40_000, seed=3)
 
 
@@ -67,7 +67,11 @@ def test_held_out_split_is_disjoint_and_seeded(data):
     np.testing.assert_array_equal(val, val2)
 
 
-def test_export_passes_parity_and_carries_the_table(trained, tmp_path):
+def test_export_passes_parity_and_carries_the_table(trained, tmp_path, assert_parity):
+    """write_outputs exports the material in memory: the same file `neumip export` makes of the
+    final checkpoint, within the parity contract of the trained material."""
+    from neumip.training.export import export_checkpoint
+
     trainer, _, table = trained
     paths = write_outputs(trainer, table, tmp_path / "tiny.onnx")
     model = onnx.load(paths["onnx"])
@@ -81,7 +85,9 @@ def test_export_passes_parity_and_carries_the_table(trained, tmp_path):
     material, _ = checkpoint.load(trainer.checkpoint_path)
     with torch.no_grad():
         want = material(torch.from_numpy(q)).numpy()
-    np.testing.assert_allclose(got, want, atol=1e-5, rtol=1e-4)
+    assert_parity(got, want)
+    again = export_checkpoint(trainer.checkpoint_path, tmp_path / "again.onnx")
+    assert again.read_bytes() == paths["onnx"].read_bytes()
 
 
 class Interrupt(Exception):
@@ -126,7 +132,7 @@ def test_ctrl_c_writes_a_checkpoint_of_the_steps_done(data, tmp_path):
     assert Trainer(data.path, tmp_path / "k.pt", TINY, FAST).state.step == 27
 
 
-def test_export_of_a_mid_run_checkpoint_computes_what_training_computed(data, tmp_path):
+def test_export_of_a_mid_run_checkpoint_computes_what_training_computed(data, tmp_path, assert_parity):
     """A checkpoint inside the blur schedule stores raw textures; its export must use the blurred ones."""
     from neumip.training.export import export_checkpoint
 
@@ -138,18 +144,16 @@ def test_export_of_a_mid_run_checkpoint_computes_what_training_computed(data, tm
 
     with pytest.raises(Interrupt):
         trainer.run(stop)
-    assert train_mod.blur_sigma(20, FAST) > 0, "the test needs a checkpoint inside the blur schedule"
+    assert blur_sigma(20, FAST) > 0, "the test needs a checkpoint inside the blur schedule"
     q = random_queries(2000, seed=4)
-    levels, otex = train_mod.effective_textures(
-        trainer.material, train_mod.blur_sigma(20, FAST), FAST, trainer.state.offset_frozen
-    )
+    levels, otex = effective_textures(trainer.material, blur_sigma(20, FAST), FAST, trainer.state.offset_frozen)
     with torch.no_grad():
         want = trainer.material(torch.from_numpy(q), levels, otex).numpy()
         raw = trainer.material(torch.from_numpy(q)).numpy()
     assert np.abs(want - raw).max() > 1e-4, "blur must matter for this check to mean anything"
     out = export_checkpoint(tmp_path / "mid.pt", tmp_path / "mid.onnx")
     got = ort.InferenceSession(str(out)).run(None, {C.ONNX_INPUT: q})[0]
-    np.testing.assert_allclose(got, want, atol=1e-5, rtol=1e-4)
+    assert_parity(got, want)
 
 
 def test_resume_refuses_other_settings(data, tmp_path):

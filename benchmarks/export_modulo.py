@@ -1,21 +1,23 @@
-"""The first export's graph (lookup="modulo"): kept as the baseline the benchmark compares against.
+"""The first export's graph, kept as the baseline `bench_inference.py` compares the shipped one with.
 
 It gathers 8 single texels per query from the flat atlas (+4 from the offset texture) and does the
-wrap-around index arithmetic in int64 with Mod, as `pyramid.py` writes it. Like every graph it
-reads the level of detail from `export_lod.py` and sums taps with a 0/1 MatMul, so its answers do not
-depend on the batch.
+wrap-around index arithmetic in int64 with Mod, as `training/pyramid.py` writes it. Like the shipped
+graph it reads the level of detail from `export_lod.py` and sums taps with a 0/1 MatMul, so its
+answers do not depend on the batch. The shipped graph (`neumip.training.export`) reads wrap-padded
+quad tables instead: one Gather row per level footprint, no Mod.
 """
 
 from __future__ import annotations
 
 import numpy as np
-from onnx import TensorProto
+import onnx
+from onnx import TensorProto, helper
 
 from neumip.client import contract as C
-
-from .config import MaterialConfig
-from .export_lod import level_of_detail
-from .onnx_graph import GraphWriter
+from neumip.training.config import MaterialConfig
+from neumip.training.export import IR_VERSION, OPSET
+from neumip.training.export_lod import level_of_detail
+from neumip.training.onnx_graph import GraphWriter
 
 
 def _bilinear(g: GraphWriter, u: str, v: str, size: str, start: str) -> tuple[str, str]:
@@ -91,3 +93,11 @@ def modulo_graph(g: GraphWriter, config: MaterialConfig, weights: dict[str, np.n
     # --- decoder ---------------------------------------------------------------------------------
     x = g.op("Concat", features, wi_x, wi_y, wo_x, wo_y, axis=1)
     return g.mlp(x, weights, "decoder", config.layers)
+
+
+def modulo_onnx(config: MaterialConfig, weights: dict[str, np.ndarray]) -> onnx.ModelProto:
+    """The first export's model: (N, 7) float32 queries -> (N, 3) float32 RGB (no metadata)."""
+    g = GraphWriter()
+    rgb = modulo_graph(g, config, weights)
+    g.nodes.append(helper.make_node("Relu", [rgb], [C.ONNX_OUTPUT]))
+    return g.model(C.ONNX_INPUT, C.QUERY_DIM, C.ONNX_OUTPUT, C.RGB_DIM, OPSET, IR_VERSION)
