@@ -115,16 +115,17 @@ def ratio_scenes(mi, material, args) -> dict:
     }
 
 
-def time_render(mi, scene, evaluator, spp: int, seed: int) -> tuple[float, float]:
-    """(wall seconds, seconds inside neural evaluation) of one render."""
+def time_render(mi, scene, evaluator, spp: int, seed: int) -> tuple[float, float, float]:
+    """(wall seconds, CPU seconds of this process, seconds inside neural evaluation) of one render."""
     from neumip.client.mitsuba.render import RenderConfig, render_scene
 
+    start, cpu = time.perf_counter(), time.process_time()
     if evaluator is None:
-        start = time.perf_counter()
         np.array(mi.render(scene, spp=spp, seed=seed))
-        return time.perf_counter() - start, 0.0
-    result = render_scene(scene, evaluator, RenderConfig(spp=spp, seed=seed))
-    return result.seconds, result.stats.seconds
+        inside = 0.0
+    else:
+        inside = render_scene(scene, evaluator, RenderConfig(spp=spp, seed=seed)).stats.seconds
+    return time.perf_counter() - start, time.process_time() - cpu, inside
 
 
 def ratios(args) -> None:
@@ -140,22 +141,23 @@ def ratios(args) -> None:
           f"median of {args.rounds} interleaved rounds   [{load_avg()}]", flush=True)
     for scene, evaluator in scenes.values():  # warm-up: compile (or load cached) kernels
         time_render(mi, scene, evaluator, args.spp, 0)
-    seconds = {name: [] for name in scenes}
+    times = {name: [] for name in scenes}  # (wall, CPU) per round
     evaluation = []
     for r in range(args.rounds):
         for name, (scene, evaluator) in scenes.items():
-            wall, inside = time_render(mi, scene, evaluator, args.spp, r + 1)
-            seconds[name].append(wall)
+            wall, cpu, inside = time_render(mi, scene, evaluator, args.spp, r + 1)
+            times[name].append((wall, cpu))
             if evaluator is local:
                 evaluation.append(inside)
-    med = {name: statistics.median(s) for name, s in seconds.items()}
-    for name, s in med.items():
-        print(f"  {name:<24} {s:7.3f} s")
-    print(f"  (neural evaluation inside the neural render: {statistics.median(evaluation):.3f} s)")
-    neural = med["neural (neumip_path)"] / med["reference (path)"]
-    overhead = med["constant (neumip_path)"] / med["diffuse (path)"]
-    print(f"neural / reference: {neural:.2f}x (target <= 1.0)")
-    print(f"overhead / diffuse: {overhead:.2f}x (target <= 1.5)   [{load_avg()}]", flush=True)
+    wall = {name: statistics.median(t[0] for t in v) for name, v in times.items()}
+    cpu = {name: statistics.median(t[1] for t in v) for name, v in times.items()}
+    for name in scenes:
+        print(f"  {name:<24} {wall[name]:7.3f} s wall   {cpu[name]:7.3f} CPU s")
+    print(f"  (neural evaluation inside the neural render: {statistics.median(evaluation):.3f} s wall)")
+    for label, a, b, target in (("neural / reference", "neural (neumip_path)", "reference (path)", 1.0),
+                                ("overhead / diffuse", "constant (neumip_path)", "diffuse (path)", 1.5)):
+        print(f"{label}: {wall[a] / wall[b]:.2f}x wall, {cpu[a] / cpu[b]:.2f}x CPU (target <= {target})")
+    print(f"[{load_avg()}]", flush=True)
 
 
 # --- demo: in-process vs HTTP -------------------------------------------------------------------------
