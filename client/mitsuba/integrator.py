@@ -8,6 +8,13 @@ cosine-sampled direction - is collected into one buffer and evaluated in one cal
 integrator calls them; next-event estimation goes to all of Mitsuba's emitters with MIS (power
 heuristic) against BSDF sampling.
 
+Kernels per bounce. drjit evaluates only what a barrier asks for and traces again whatever a later
+barrier needs, so a bounce computes everything that does not depend on the neural answers (the
+intersection, emission, emitter and BSDF samples, the next ray, the query columns) and schedules all
+of it into one kernel; the neural answers then enter one small kernel that finishes the bounce (NEE,
+throughput, Russian roulette). The next ray is spawned from the stored interaction, so it is not
+stored itself.
+
 Footprint (sigma) of a query. The contract's sigma is the standard deviation of a Gaussian
 footprint, so it is set to the std of the pixel's reconstruction footprint: ``filter_std`` pixels
 (`filter_std_px`: 0.5 px for the film's default gaussian filter, 0.29 px for a box), not the full
