@@ -19,11 +19,16 @@ one table, and read the load average printed with it. Sections:
 - chunk:   `run_chunked` on 2^20 queries for several chunk sizes.
 - load:    seconds to open a session: each graph, and the shipped one from a cached optimized model.
 - ops:     one elementwise op on (N, 1) vs (N, 1) <op> (1, 1) shapes (ONNX Runtime's slow broadcast).
+- profile: where a query's time goes in the shipped graph: ONNX Runtime's per-node profile
+           (`SessionOptions.enable_profiling`) of 2^20 random queries in calls of 2^14 rows on one
+           thread, summed by op type and for the heaviest nodes.
 """
 
 from __future__ import annotations
 
 import argparse
+import collections
+import json
 import os
 import statistics
 import tempfile
@@ -300,6 +305,35 @@ def ops_section(args) -> None:
               f"{1e6 / per_cpu_s / 20:8.1f} us")
 
 
+def profile_section(model: bytes, args) -> None:
+    """ONNX Runtime's per-node kernel times of the shipped graph, by op type and by node."""
+    with tempfile.TemporaryDirectory() as folder:
+        opts = Session(threads=1, spinning=False).options()
+        opts.enable_profiling = True
+        opts.profile_file_prefix = str(Path(folder) / "profile")
+        sess = ort.InferenceSession(model, opts, providers=["CPUExecutionProvider"])
+        queries, rows = random_queries(1 << 20, seed=20), 1 << 14
+        for lo in range(0, len(queries), rows):
+            sess.run(None, {C.ONNX_INPUT: queries[lo : lo + rows]})
+        events = json.loads(Path(sess.end_profiling()).read_text())
+    per_node, op_of = collections.Counter(), {}
+    for event in events:
+        if event.get("cat") == "Node" and event["name"].endswith("_kernel_time"):
+            node = event["name"][: -len("_kernel_time")]
+            per_node[node] += event["dur"]
+            op_of[node] = event["args"].get("op_name", "?")
+    total = sum(per_node.values())
+    per_op = collections.Counter()
+    for node, us in per_node.items():
+        per_op[op_of[node]] += us
+    print(f"\n## shipped graph, per-node profile: {total / len(queries) * 1e3:.0f} ns of kernel time per query "
+          f"(2^20 random queries, calls of 2^14, 1 thread)   [{load_text()}]")
+    for op, us in per_op.most_common():
+        print(f"  {op:14s} {100 * us / total:5.1f} %")
+    print("  heaviest nodes: " + ", ".join(f"{n} ({op_of[n]}) {100 * us / total:.1f} %"
+                                          for n, us in per_node.most_common(8)))
+
+
 def log2_list(text: str) -> list[int]:
     if "-" in text:
         lo, hi = (int(x) for x in text.split("-"))
@@ -309,7 +343,7 @@ def log2_list(text: str) -> list[int]:
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    parser.add_argument("--sections", default="graphs,session,chunk,load,ops")
+    parser.add_argument("--sections", default="graphs,session,chunk,load,ops,profile")
     parser.add_argument("--resolution", type=int, default=256)
     parser.add_argument("--batches", type=log2_list, default=log2_list("10-20"), help="log2 batch sizes")
     parser.add_argument("--session-batches", type=log2_list, default=log2_list("12,14,16,18"))
@@ -336,6 +370,8 @@ def main() -> None:
         load_section(models, args)
     if "ops" in sections:
         ops_section(args)
+    if "profile" in sections:
+        profile_section(models[SHIPPED], args)
 
 
 if __name__ == "__main__":

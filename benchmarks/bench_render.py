@@ -1,24 +1,37 @@
-"""Benchmark: render the demo scene in-process and through a real `neumip serve` process.
+"""Benchmark: what a neural material costs to render, against the geometry it replaces.
 
-Prints, for each path: total render time, time inside neural evaluation, query rows evaluated, and
-the HTTP / in-process time ratio (targets: <= 60 s in-process at 512 x 512, 64 spp on 2 cores; HTTP
-<= 1.3x). Both renders use the same seed, so the images must agree; their largest difference is
-printed too. A small warm-up render first compiles the kernels (drjit caches them in ~/.drjit).
-CPU seconds (this process, plus the server process for HTTP) are printed beside wall time: on a
-shared machine they are the steadier figure.
+Section ``ratios`` (default) renders one view - a plane seen at 55 degrees from its normal, lit by a
+directional light and a dim constant environment - four ways in one process, in interleaved rounds,
+and prints the median seconds of each and two ratios:
 
-    .venv/bin/python benchmarks/bench_render.py                      # materials from models/
-    .venv/bin/python benchmarks/bench_render.py --stand-in           # untrained stand-ins (needs neumip[train])
+- **neural / reference**: `neumip_path` with the material on a flat rectangle, against Mitsuba's stock
+  `path` on the material's real displaced microgeometry (`training.microgeometry.mesh.reference_surface`,
+  at the resolution the model was trained at) filling the same rectangle. Target: <= 1.0.
+- **overhead / diffuse**: `neumip_path` with an evaluator that answers a constant at no cost (so
+  everything but evaluation: the wavefront loop, the query buffers, the scatter of the answers),
+  against stock `path` with a `diffuse` BSDF on the same plane. Target: <= 1.5.
+
+Both integrators run at the same spp, ``max_depth`` and ``rr_depth``. Section ``demo`` renders the
+demo scene in-process and through a real `neumip serve` process and prints the HTTP / in-process
+ratio; both renders use the same seed, so their largest image difference is printed too. CPU
+seconds (this process, plus the server process for HTTP) are printed beside wall time: on a shared
+machine they are the steadier figure. A warm-up render first compiles the kernels.
+
+    .venv/bin/python benchmarks/bench_render.py                         # ratios, rock from models/
+    .venv/bin/python benchmarks/bench_render.py --sections ratios,demo  # and the demo in-process vs HTTP
+    .venv/bin/python benchmarks/bench_render.py --sections demo --stand-in   # untrained stand-ins
 
 ``--stand-in`` builds constant-colour materials of the default architecture (256^2 pyramid,
-neural offset) into a temporary folder: evaluation costs what a trained material costs, the
-picture does not look like one.
+neural offset) into a temporary folder for the demo: evaluation costs what a trained material costs,
+the picture does not look like one.
 """
 
 from __future__ import annotations
 
 import argparse
+import math
 import os
+import statistics
 import sys
 import tempfile
 import time
@@ -30,6 +43,127 @@ ROOT = Path(__file__).resolve().parents[1]
 SCENE = ROOT / "scenes" / "demo.xml"
 DEMO_MATERIALS = {"yarn": (0.55, 0.2, 0.12), "rock": (0.4, 0.37, 0.33), "turtle": (0.2, 0.45, 0.2),
                   "foam": (0.8, 0.8, 0.72)}
+ZENITH_DEG = 55.0
+"""Angle between the plane's normal and the view direction of the ratios section."""
+
+
+def load_avg() -> str:
+    one, five, _ = os.getloadavg()
+    return f"load average {one:.2f} (1 min), {five:.2f} (5 min) on {os.cpu_count()} cores"
+
+
+# --- ratios: neural plane vs displaced reference geometry, overhead vs diffuse ------------------------
+
+
+class ConstantEvaluator:
+    """An evaluator that answers every query with one colour, at no cost (a view of a buffer filled
+    once): what is left of a `neumip_path` render with it is the integrator's own overhead."""
+
+    def __init__(self, material: str, rgb: float = 0.1) -> None:
+        self.material, self.rgb = material, rgb
+        self.answers = np.empty((0, 3), np.float32)
+
+    def materials(self) -> list[str]:
+        return [self.material]
+
+    def evaluate(self, material: str, queries: np.ndarray) -> np.ndarray:
+        if len(self.answers) < len(queries):
+            self.answers = np.full((2 * len(queries), 3), self.rgb, dtype=np.float32)
+        return self.answers[: len(queries)]
+
+
+def view(mi, surface, integrator: dict, size: int, spp: int) -> dict:
+    """The ratios section's scene around one surface (a rectangle of half-width 2 at the origin)."""
+    zenith = math.radians(ZENITH_DEG)
+    origin = [0.0, -3.0 * math.sin(zenith), 3.0 * math.cos(zenith)]
+    return {
+        "type": "scene",
+        "integrator": integrator,
+        "sensor": {
+            "type": "perspective",
+            "fov": 30,
+            "to_world": mi.ScalarTransform4f().look_at(origin=origin, target=[0, 0, 0], up=[0, 0, 1]),
+            "film": {"type": "hdrfilm", "width": size, "height": size},
+            "sampler": {"type": "independent", "sample_count": spp},
+        },
+        "sun": {"type": "directional", "direction": [-0.6, 0.3, -0.5], "irradiance": 3.0},
+        "sky": {"type": "constant", "radiance": 0.1},
+        "surface": surface,
+    }
+
+
+def ratio_scenes(mi, material, args) -> dict:
+    """name -> (scene, evaluator or None) of the four renders the ratios section times."""
+    from neumip.training.microgeometry import mesh
+    from neumip.training.microgeometry.description import find_description, resolve
+
+    desc = find_description(args.material)
+    desc.resolution = int(material.config["resolution"])  # the geometry the model was trained on
+    to_world = mi.ScalarTransform4f().scale([2.0, 2.0, 2.0])
+    depth = {"max_depth": args.max_depth, "rr_depth": args.rr_depth}
+    neural_bsdf = {"type": "neumip", "material": args.material, "uv_scale": float(args.tiles)}
+
+    def plane(bsdf: dict) -> dict:
+        return {"type": "rectangle", "to_world": to_world, "bsdf": bsdf}
+
+    reference = mesh.reference_surface(mi, resolve(desc), args.tiles, to_world)
+    return {
+        "reference (path)": (view(mi, reference, {"type": "path", **depth}, args.size, args.spp), None),
+        "neural (neumip_path)": (view(mi, plane(neural_bsdf), {"type": "neumip_path", **depth}, args.size,
+                                      args.spp), "local"),
+        "constant (neumip_path)": (view(mi, plane(neural_bsdf), {"type": "neumip_path", **depth}, args.size,
+                                        args.spp), "constant"),
+        "diffuse (path)": (view(mi, plane({"type": "diffuse"}), {"type": "path", **depth}, args.size,
+                                args.spp), None),
+    }
+
+
+def time_render(mi, scene, evaluator, spp: int, seed: int) -> tuple[float, float, float]:
+    """(wall seconds, CPU seconds of this process, seconds inside neural evaluation) of one render."""
+    from neumip.client.mitsuba.render import RenderConfig, render_scene
+
+    start, cpu = time.perf_counter(), time.process_time()
+    if evaluator is None:
+        np.array(mi.render(scene, spp=spp, seed=seed))
+        inside = 0.0
+    else:
+        inside = render_scene(scene, evaluator, RenderConfig(spp=spp, seed=seed)).stats.seconds
+    return time.perf_counter() - start, time.process_time() - cpu, inside
+
+
+def ratios(args) -> None:
+    from neumip.client.local import LocalMaterials
+    from neumip.client.mitsuba.render import mi
+
+    local = LocalMaterials(args.models)
+    evaluators = {"local": local, "constant": ConstantEvaluator(args.material), None: None}
+    scenes = {name: (mi.load_dict(scene), evaluators[ev])
+              for name, (scene, ev) in ratio_scenes(mi, local.get(args.material), args).items()}
+    print(f"## ratios: {args.material} on a plane at {ZENITH_DEG:g} deg, {args.tiles} x {args.tiles} tiles, "
+          f"{args.size}^2 px, {args.spp} spp, max_depth {args.max_depth}, rr_depth {args.rr_depth}; "
+          f"median of {args.rounds} interleaved rounds   [{load_avg()}]", flush=True)
+    for scene, evaluator in scenes.values():  # warm-up: compile (or load cached) kernels
+        time_render(mi, scene, evaluator, args.spp, 0)
+    times = {name: [] for name in scenes}  # (wall, CPU) per round
+    evaluation = []
+    for r in range(args.rounds):
+        for name, (scene, evaluator) in scenes.items():
+            wall, cpu, inside = time_render(mi, scene, evaluator, args.spp, r + 1)
+            times[name].append((wall, cpu))
+            if evaluator is local:
+                evaluation.append(inside)
+    wall = {name: statistics.median(t[0] for t in v) for name, v in times.items()}
+    cpu = {name: statistics.median(t[1] for t in v) for name, v in times.items()}
+    for name in scenes:
+        print(f"  {name:<24} {wall[name]:7.3f} s wall   {cpu[name]:7.3f} CPU s")
+    print(f"  (neural evaluation inside the neural render: {statistics.median(evaluation):.3f} s wall)")
+    for label, a, b, target in (("neural / reference", "neural (neumip_path)", "reference (path)", 1.0),
+                                ("overhead / diffuse", "constant (neumip_path)", "diffuse (path)", 1.5)):
+        print(f"{label}: {wall[a] / wall[b]:.2f}x wall, {cpu[a] / cpu[b]:.2f}x CPU (target <= {target})")
+    print(f"[{load_avg()}]", flush=True)
+
+
+# --- demo: in-process vs HTTP -------------------------------------------------------------------------
 
 
 def stand_in_models(folder: Path) -> Path:
@@ -50,7 +184,7 @@ def process_cpu_seconds(pid: int) -> float:
     return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
 
 
-def render(evaluator, args, size: int, spp: int, server_pid: int | None = None):
+def render_demo(evaluator, args, size: int, spp: int, server_pid: int | None = None):
     """Render the demo; returns (result, CPU seconds of this process plus the server's)."""
     from neumip.client.mitsuba.render import RenderConfig, load_scene, render_scene
 
@@ -71,39 +205,24 @@ def report(label: str, result, cpu: float) -> None:
     )
 
 
-def main() -> int:
-    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--models", type=Path, default=ROOT / "models", help="model folder")
-    parser.add_argument("--stand-in", action="store_true", help="use untrained stand-in materials")
-    parser.add_argument("--size", type=int, default=512, help="image width and height")
-    parser.add_argument("--spp", type=int, default=64, help="samples per pixel")
-    parser.add_argument("--seed", type=int, default=0)
-    parser.add_argument("--max-lanes", type=int, default=2**21, help="lanes per render pass")
-    parser.add_argument("--no-http", action="store_true", help="skip the server run")
-    args = parser.parse_args()
-
-    sys.path.insert(0, str(ROOT))
+def demo(args) -> None:
+    from neumip.client.http import MaterialClient
     from neumip.client.local import LocalMaterials
+    from tests.client.mitsuba.server_process import ServerProcess
 
     with tempfile.TemporaryDirectory() as tmp:
         models = stand_in_models(Path(tmp)) if args.stand_in else args.models
         local = LocalMaterials(models)
-        print(f"demo scene {SCENE.name}, {args.size}x{args.size}, {args.spp} spp; materials from {models}: "
-              f"{', '.join(local.materials())}", flush=True)
-        render(local, args, 64, 2)  # warm-up: compile (or load cached) kernels
-        in_process, cpu_local = render(local, args, args.size, args.spp)
+        print(f"## demo scene {SCENE.name}, {args.demo_size}^2, {args.demo_spp} spp; materials from {models}: "
+              f"{', '.join(local.materials())}   [{load_avg()}]", flush=True)
+        render_demo(local, args, 64, 2)  # warm-up
+        in_process, cpu_local = render_demo(local, args, args.demo_size, args.demo_spp)
         report("in-process", in_process, cpu_local)
-        if args.no_http:
-            return 0
-
-        from neumip.client.http import MaterialClient
-        from tests.client.mitsuba.server_process import ServerProcess
-
         server = ServerProcess(models)
         try:
             with MaterialClient(server.url) as client:
-                render(client, args, 64, 2)
-                remote, cpu_remote = render(client, args, args.size, args.spp, server.proc.pid)
+                render_demo(client, args, 64, 2)
+                remote, cpu_remote = render_demo(client, args, args.demo_size, args.demo_spp, server.proc.pid)
         finally:
             server.stop()
         report("HTTP", remote, cpu_remote)
@@ -111,6 +230,32 @@ def main() -> int:
         print(f"HTTP / in-process: {remote.seconds / in_process.seconds:.2f}x wall time, "
               f"{cpu_remote / cpu_local:.2f}x CPU time (client + server); "
               f"image difference max {diff.max():.2e}, mean {diff.mean():.2e}")
+
+
+def main() -> int:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--sections", default="ratios", help="comma-separated: ratios, demo")
+    parser.add_argument("--models", type=Path, default=ROOT / "models", help="model folder")
+    parser.add_argument("--material", default="rock", help="ratios: a shipped material with a library description")
+    parser.add_argument("--tiles", type=int, default=8, help="ratios: material tiles across the plane")
+    parser.add_argument("--size", type=int, default=256, help="ratios: image width and height")
+    parser.add_argument("--spp", type=int, default=64, help="ratios: samples per pixel")
+    parser.add_argument("--max-depth", type=int, default=6, help="ratios: longest path (both integrators)")
+    parser.add_argument("--rr-depth", type=int, default=4, help="ratios: Russian roulette depth (both)")
+    parser.add_argument("--rounds", type=int, default=5, help="ratios: interleaved rounds")
+    parser.add_argument("--stand-in", action="store_true", help="demo: use untrained stand-in materials")
+    parser.add_argument("--demo-size", type=int, default=512, help="demo: image width and height")
+    parser.add_argument("--demo-spp", type=int, default=64, help="demo: samples per pixel")
+    parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--max-lanes", type=int, default=2**21, help="demo: lanes per render pass")
+    args = parser.parse_args()
+
+    sys.path.insert(0, str(ROOT))
+    sections = args.sections.split(",")
+    if "ratios" in sections:
+        ratios(args)
+    if "demo" in sections:
+        demo(args)
     return 0
 
 

@@ -8,6 +8,13 @@ cosine-sampled direction - is collected into one buffer and evaluated in one cal
 integrator calls them; next-event estimation goes to all of Mitsuba's emitters with MIS (power
 heuristic) against BSDF sampling.
 
+Kernels per bounce. drjit evaluates only what a barrier asks for and traces again whatever a later
+barrier needs, so a bounce computes everything that does not depend on the neural answers (the
+intersection, emission, emitter and BSDF samples, the next ray, the query columns) and schedules all
+of it into one kernel; the neural answers then enter one small kernel that finishes the bounce (NEE,
+throughput, Russian roulette). The next ray is spawned from the stored interaction, so it is not
+stored itself.
+
 Footprint (sigma) of a query. The contract's sigma is the standard deviation of a Gaussian
 footprint, so it is set to the std of the pixel's reconstruction footprint: ``filter_std`` pixels
 (`filter_std_px`: 0.5 px for the film's default gaussian filter, 0.29 px for a box), not the full
@@ -140,9 +147,12 @@ class NeuMIPPathIntegrator(mi.SamplingIntegrator):
         )
         first_ray = ray
         ray = mi.Ray3f(ray)
+        ray_d = ray.d  # after the first bounce a ray is spawned from prev_si along ray_d
 
         for depth in range(max_depth):
             # --- intersect ---------------------------------------------------------------------
+            if depth > 0:
+                ray = prev_si.spawn_ray(ray_d)
             si = scene.ray_intersect(ray, ray_flags=mi.RayFlags.All, coherent=depth == 0, active=active)
 
             # --- emission hit by the previous BSDF sample (MIS against NEE) ----------------------
@@ -176,31 +186,30 @@ class NeuMIPPathIntegrator(mi.SamplingIntegrator):
                 ctx, si, wo_light, sample1, sample2, active_next
             )
 
-            # --- neural surfaces: one buffered evaluation for this bounce ------------------------
-            hits = shading.classify(si, active_next)
-            if dr.any(hits.any):
+            # --- neural surfaces: this bounce's queries (scheduled, evaluated below) -------------
+            queries = None
+            if shading.bsdfs:
+                hits = shading.classify(si, active_next)
                 front = mi.Frame3f.cos_theta(si.wi) > 0
                 light_ok = active_em & front & (mi.Frame3f.cos_theta(wo_light) > 0)
                 sample_ok = front & (mi.Frame3f.cos_theta(bs.wo) > 0) & (bs.pdf > 0)
                 # Mitsuba's shading frame (y = n x dp_du) -> the contract's (x along +u, y along +v).
                 frame = query_frame(si)
-                rho_light, rho_sample = shading.evaluate(
+                queries = shading.queries(
                     hits, si.uv, sigma_uv, to_query(si, frame, si.wi),
                     [(to_query(si, frame, wo_light), light_ok), (to_query(si, frame, bs.wo), sample_ok)],
                 )
                 # BTF under unit irradiance is used like a BRDF: f * cos for NEE, pi * f for a
-                # cosine-sampled direction (pdf cos / pi); back-side hits are black.
-                bsdf_val = dr.select(
-                    hits.any, rho_light * dr.maximum(mi.Frame3f.cos_theta(wo_light), 0.0), bsdf_val
-                )
-                bsdf_weight = dr.select(hits.any, rho_sample * dr.pi, bsdf_weight)
+                # cosine-sampled direction (pdf cos / pi); f multiplies in once it is known.
+                bsdf_val = dr.select(hits.any, dr.maximum(mi.Frame3f.cos_theta(wo_light), 0.0), bsdf_val)
+                bsdf_weight = dr.select(hits.any, dr.pi, bsdf_weight)
 
-            # --- next-event estimation -----------------------------------------------------------
+            # --- next-event estimation (the neural factor f is still missing) --------------------
             mis_em = dr.select(ds.delta, 1.0, mis_weight(ds.pdf, bsdf_pdf))
-            L = dr.select(active_em, L + beta * bsdf_val * em_weight * mis_em, L)
+            nee = beta * bsdf_val * em_weight * mis_em
 
             # --- continue along the sampled direction -------------------------------------------
-            ray = si.spawn_ray(si.to_world(bs.wo))
+            ray_d = si.to_world(bs.wo)
             beta = beta * bsdf_weight
             eta = eta * bs.eta
             valid_ray |= active & si.is_valid() & ~mi.has_flag(bs.sampled_type, mi.BSDFFlags.Null)
@@ -208,18 +217,29 @@ class NeuMIPPathIntegrator(mi.SamplingIntegrator):
             prev_bsdf_pdf = bs.pdf
             prev_bsdf_delta = mi.has_flag(bs.sampled_type, mi.BSDFFlags.Delta)
             cone_spread = dr.select(prev_bsdf_delta, cone_spread, cone_spread + cfg.footprint_spread)
+            rr_sample = sampler.next_1d()
+
+            # --- one kernel: everything above that the rest of the bounce needs --------------------
+            # (the intersection is traced once; the neural queries come out of the same kernel)
+            dr.schedule(L, nee, beta, eta, active_em, active_next, valid_ray, ray_d, prev_si, prev_bsdf_pdf,
+                        prev_bsdf_delta, cone_width, cone_spread, rr_sample)
+            sampler.schedule_state()
+            if queries is not None:
+                dr.schedule(hits.any)
+                if dr.any(hits.any):
+                    rho_light, rho_sample = shading.evaluate(queries)
+                    nee = dr.select(hits.any, nee * rho_light, nee)
+                    beta = dr.select(hits.any, beta * rho_sample, beta)
+            L = dr.select(active_em, L + nee, L)
 
             # --- Russian roulette ----------------------------------------------------------------
             beta_max = dr.max(beta * dr.square(eta))
             rr_active = mi.Bool(depth >= cfg.rr_depth)
             rr_prob = dr.minimum(beta_max, 0.95)
             beta = dr.select(rr_active & active_next, beta * dr.rcp(rr_prob), beta)
-            rr_continue = sampler.next_1d() < rr_prob
-            active = active_next & (~rr_active | rr_continue) & (beta_max != 0.0)
+            active = active_next & (~rr_active | (rr_sample < rr_prob)) & (beta_max != 0.0)
 
-            dr.eval(L, beta, eta, active, valid_ray, ray, prev_si, prev_bsdf_pdf, prev_bsdf_delta,
-                    cone_width, cone_spread)
-            sampler.schedule_state()
+            dr.eval(L, beta, active)
             if not dr.any(active):
                 break
 

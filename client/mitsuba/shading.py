@@ -2,10 +2,12 @@
 
 `NeuralShading` finds the scene's `neumip` surfaces and, per bounce, collects every shading query
 that lands on them (all lanes of the wavefront), evaluates them through the bound evaluator
-(`contract.Evaluator`: in-process `LocalMaterials` or the HTTP `MaterialClient`), and scatters the
-RGB answers back into per-lane drjit arrays. Query fields leave drjit one component at a time
-(`Float.numpy()` is zero-copy; converting a whole vector type would bake the lane count into a
-kernel and recompile on every call).
+(`contract.Evaluator`: in-process `LocalMaterials` or the HTTP `MaterialClient`), and hands the RGB
+answers back as per-lane drjit arrays. The data moves in bulk: the query columns come out of the
+integrator's one kernel per bounce, one more kernel writes each material's (n, 7) rows straight into
+a drjit buffer that numpy reads without a copy, and the answers are copied into drjit once and read
+per lane with gathers that run inside the integrator's next kernel. The answers are checked here
+(`contract.as_rgb`: shape and finiteness), once, whatever the evaluator.
 """
 
 from __future__ import annotations
@@ -13,8 +15,6 @@ from __future__ import annotations
 import logging
 import time
 from dataclasses import dataclass, field
-
-import numpy as np
 
 from neumip.client import contract as C
 from neumip.client.errors import NeumipError
@@ -149,51 +149,95 @@ class NeuralShading:
             masks[bsdf.material] = (hit & front) if prev is None else (prev | (hit & front))
         return NeuralHits(masks, any_hit, scale)
 
-    def evaluate(
+    def queries(
         self,
         hits: NeuralHits,
         uv: mi.Point2f,
         sigma: mi.Float,
         wo: mi.Vector3f,
         lights: list[tuple[mi.Vector3f, mi.Bool]],
-    ) -> list[mi.Color3f]:
-        """Evaluate the BTF for each (wi, valid) in ``lights`` at every neural lane, in one buffer.
+    ) -> NeuralQueries:
+        """This bounce's queries for each (wi, valid) in ``lights`` at every neural lane, scheduled.
 
         ``uv`` (shape uv), ``sigma`` (footprint std in shape uv units), ``wo`` (towards the viewer)
-        and each ``wi`` (towards the light) are per-lane, directions in the `query_frame`; returns one Color3f per entry of
-        ``lights``, zero on lanes that are not neural or whose ``valid`` is false. One evaluator call
-        per material covers all entries.
+        and each ``wi`` (towards the light) are per-lane, directions in the `query_frame`. The
+        columns and masks are only scheduled (`dr.schedule`): they are computed in the kernel that
+        evaluates the caller's other per-bounce state, so the intersection is traced once.
         """
-        width = dr.width(hits.any)
         u, v = uv.x * hits.uv_scale, uv.y * hits.uv_scale
         sigma = sigma * hits.uv_scale
         sigma = dr.select(dr.isfinite(sigma), dr.clip(sigma, 0.0, MAX_SIGMA), MAX_SIGMA)
-        columns = [u, v, sigma, wo.x, wo.y] + [c for wi, _ in lights for c in (wi.x, wi.y)]
-        dr.eval(columns, [ok for _, ok in lights], *hits.mask.values())
-        out = [[dr.zeros(mi.Float, width) for _ in range(C.RGB_DIM)] for _ in lights]
-        for material, mask in hits.mask.items():
-            idx = [dr.compress(mask & ok) for _, ok in lights]
-            counts = [dr.width(i) for i in idx]
-            if sum(counts) == 0:
-                continue
-            queries = np.concatenate(
-                [self._rows(idx[k], u, v, sigma, wi, wo) for k, (wi, _) in enumerate(lights) if counts[k]]
-            )
-            start = time.perf_counter()
-            rgb = C.as_rgb(self.evaluator.evaluate(material, queries), queries.shape[0])
-            self.stats.add(material, queries.shape[0], time.perf_counter() - start)
-            lo = 0
-            for k, n in enumerate(counts):
-                if n:
-                    for ch in range(C.RGB_DIM):
-                        dr.scatter(out[k][ch], mi.Float(rgb[lo : lo + n, ch]), idx[k])
-                    lo += n
-        return [mi.Color3f(*chans) for chans in out]
+        columns = [[u, v, sigma, wi.x, wi.y, wo.x, wo.y] for wi, _ in lights]
+        masks = {material: [mask & ok for _, ok in lights] for material, mask in hits.mask.items()}
+        dr.schedule(columns, list(masks.values()))
+        return NeuralQueries(columns, masks)
 
-    @staticmethod
-    def _rows(idx, u, v, sigma, wi, wo) -> np.ndarray:
-        """(n, 7) float32 queries for lanes ``idx`` (contract order: u, v, sigma, wi.xy, wo.xy)."""
-        cols = [u, v, sigma, wi.x, wi.y, wo.x, wo.y]
-        gathered = [dr.gather(mi.Float, c, idx) for c in cols]
-        dr.eval(gathered)
-        return np.stack([g.numpy() for g in gathered], axis=1).astype(C.DTYPE, copy=False)
+    def evaluate(self, queries: NeuralQueries) -> list[mi.Color3f]:
+        """Evaluate ``queries`` in one evaluator call per material -> one Color3f per entry of its
+        ``lights``: the answer on lanes whose mask is set, zero elsewhere.
+
+        Each material's rows are written by drjit into one (n, 7) buffer that numpy reads without a
+        copy (entry 0's lanes in lane order, then entry 1's...); the answers are read back with a
+        gather per lane that runs in the caller's next kernel.
+        """
+        width = dr.width(queries.columns[0][0])
+        out = [dr.zeros(mi.Color3f, width) for _ in queries.columns]
+        for material, masks in queries.masks.items():
+            rows, total = _row_numbers(masks)
+            if total == 0:
+                continue
+            buffer = _query_buffer(queries.columns, rows, masks, total)
+            start = time.perf_counter()
+            rows_in = buffer.numpy().reshape(total, C.QUERY_DIM)  # a view of drjit's memory
+            rgb = C.as_rgb(self.evaluator.evaluate(material, rows_in), total)
+            self.stats.add(material, total, time.perf_counter() - start)
+            answers = mi.Float(rgb.reshape(-1))
+            for k, (row, mask) in enumerate(zip(rows, masks)):
+                rgb_k = mi.Color3f(*(dr.gather(mi.Float, answers, row * C.RGB_DIM + ch, mask)
+                                     for ch in range(C.RGB_DIM)))
+                out[k] = dr.select(mask, rgb_k, out[k])
+        return out
+
+
+@dataclass
+class NeuralQueries:
+    """One bounce's neural queries, per entry of the integrator's ``lights`` (lazy drjit arrays)."""
+
+    columns: list[list[mi.Float]]
+    """Per entry: the 7 query columns in contract order, for every lane of the wavefront."""
+    masks: dict[str, list[mi.Bool]]
+    """Material name -> per entry: the lanes whose query goes to that material."""
+
+
+def _query_buffer(columns: list[list[mi.Float]], rows: list[mi.UInt32], masks: list[mi.Bool], total: int):
+    """A (total * 7) Float: row ``rows[k][lane]`` holds ``columns[k]`` of each lane set in ``masks[k]``.
+
+    One kernel: a symbolic loop over the 7 columns scatters one value per entry and lane each turn
+    (separate `dr.scatter` calls into one array would each launch a kernel of their own).
+    """
+    buffer = dr.empty(mi.Float, total * C.QUERY_DIM)
+
+    def scatter_column(col: mi.UInt32) -> tuple[mi.UInt32]:
+        for entry, row, mask in zip(columns, rows, masks):
+            value = entry[-1]
+            for k in range(C.QUERY_DIM - 2, -1, -1):
+                value = dr.select(col == k, entry[k], value)
+            dr.scatter(buffer, value, row * C.QUERY_DIM + col, mask)
+        return (col + 1,)
+
+    dr.while_loop((mi.UInt32(0),), lambda col: col < C.QUERY_DIM, scatter_column)
+    dr.eval(buffer)
+    return buffer
+
+
+def _row_numbers(masks: list[mi.Bool]) -> tuple[list[mi.UInt32], int]:
+    """Rows of a buffer that holds the set lanes of each mask in turn (lane order): per mask, each
+    lane's row (meaningful where the mask is set), and the total row count."""
+    rows, total = [], 0
+    for mask in masks:
+        count = mi.UInt32(mask)
+        before = dr.prefix_sum(count)  # exclusive
+        n = int(before.numpy()[-1]) + int(mask.numpy()[-1]) if dr.width(mask) else 0  # mask: evaluated
+        rows.append(before + total)
+        total += n
+    return rows, total
