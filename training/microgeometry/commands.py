@@ -32,6 +32,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--lanes", type=int, default=1 << 20, help="samples per wavefront pass (memory ~0.3 GB/M)")
     p.add_argument("--variant", default="llvm_ad_rgb", help="Mitsuba variant (cuda_ad_rgb on a GPU)")
     p.add_argument("--list", action="store_true", help="list the shipped materials and exit")
+    add_ray_options(p, "chunk")
     p.set_defaults(func=_generate)
 
     p = sub.add_parser(
@@ -51,6 +52,7 @@ def register(sub: argparse._SubParsersAction) -> None:
 def _generate(args: argparse.Namespace) -> int:
     from neumip.client.cli import CommandError
     from neumip.client.mitsuba.runtime import MitsubaUnavailable
+    from neumip.training.cluster import ClusterError
     from neumip.training.dataset import DatasetError
 
     from .description import DescriptionError, find_description, library_names
@@ -60,12 +62,13 @@ def _generate(args: argparse.Namespace) -> int:
             print(f"{name:10s} {find_description(name).summary}")
         return 0
     if not args.material or not args.output:
-        raise CommandError("give a MATERIAL and -o DATA (or --list)")
+        hint = f" (--ray took {args.ray!r} as its address: write --ray=ADDRESS or put --ray last)" if args.ray else ""
+        raise CommandError(f"give a MATERIAL and -o DATA (or --list){hint}")
     try:
         desc = find_description(args.material)
         settings = _settings(args)
-        return _run_generate(desc, args.output, settings)
-    except (DescriptionError, DatasetError, MitsubaUnavailable, ValueError) as exc:
+        return _run_generate(desc, args.output, settings, ray_config(args))
+    except (DescriptionError, DatasetError, MitsubaUnavailable, ClusterError, ValueError) as exc:
         raise CommandError(str(exc)) from None
 
 
@@ -86,7 +89,28 @@ def _settings(args: argparse.Namespace):
     )
 
 
-def _run_generate(desc, output: str, settings) -> int:
+def add_ray_options(p: argparse.ArgumentParser, task: str) -> None:
+    """--ray [ADDRESS] and the resources of each task (one task per `task`)."""
+    g = p.add_argument_group("Ray cluster (pip install 'neumip[cluster]')")
+    g.add_argument("--ray", nargs="?", const="", metavar="ADDRESS",
+                   help=f"run each {task} as a Ray task: 'auto' or HOST:PORT joins a cluster, no ADDRESS starts "
+                   "a local Ray (put --ray last or write --ray=ADDRESS)")
+    g.add_argument("--ray-cpus-per-task", type=int, default=1, help=f"CPUs (threads) of each {task} task (default 1)")
+    g.add_argument("--ray-in-flight", type=int, help=f"most {task}s in flight (default: twice the task slots)")
+    g.add_argument("--ray-dashboard", action="store_true", help="start Ray's dashboard with a local Ray")
+
+
+def ray_config(args: argparse.Namespace):
+    """The RayConfig of the --ray options, or None without --ray."""
+    if args.ray is None:
+        return None
+    from neumip.training.cluster import RayConfig
+
+    return RayConfig(address=args.ray or None, cpus_per_task=args.ray_cpus_per_task,
+                     in_flight=args.ray_in_flight, dashboard=args.ray_dashboard)
+
+
+def _run_generate(desc, output: str, settings, ray=None) -> int:
     from tqdm import tqdm
 
     from .generate import generate
@@ -101,7 +125,7 @@ def _run_generate(desc, output: str, settings) -> int:
             bars[0].update(done - bars[0].n)
 
     try:
-        data = generate(desc, output, settings, on_chunk)
+        data = generate(desc, output, settings, on_chunk, ray)
     finally:
         for bar in bars:
             bar.close()

@@ -1,0 +1,137 @@
+"""Ground truth as Ray tasks on a local 2-CPU Ray: bit-identical to one process, resumable after an
+interrupt, and after a worker process is killed mid-chunk (Ray retries the chunk)."""
+
+from __future__ import annotations
+
+import os
+import signal
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from neumip.client.cli import main
+from neumip.training.dataset import DatasetError, open_dataset
+from neumip.training.microgeometry.description import find_description
+from neumip.training.microgeometry.generate import GenerateSettings, generate
+
+ray = pytest.importorskip("ray", reason="Ray is not installed: pip install 'neumip[cluster]'")
+from neumip.training.cluster import RayConfig  # noqa: E402
+
+SETTINGS = dict(queries=3000, spp=4, seed=11, chunk=500)
+
+
+class Interrupt(Exception):
+    pass
+
+
+def turtle():
+    desc = find_description("turtle")
+    desc.resolution = 16
+    return desc
+
+
+@pytest.fixture(scope="module")
+def local_ray():
+    """One local Ray with 2 CPUs for the whole module (starting one costs seconds)."""
+    ray.init(num_cpus=2, include_dashboard=False, logging_level="WARNING")
+    yield ray
+    ray.shutdown()
+
+
+@pytest.fixture(scope="module")
+def reference(tmp_path_factory):
+    """The single-process data set with the same seed."""
+    return generate(turtle(), tmp_path_factory.mktemp("single") / "data", GenerateSettings(**SETTINGS))
+
+
+def assert_same_data(data, reference):
+    assert data.meta == reference.meta
+    np.testing.assert_array_equal(data.queries, reference.queries)
+    np.testing.assert_array_equal(data.rgb, reference.rgb)
+
+
+def test_ray_data_set_is_bit_identical_to_one_process(local_ray, reference, tmp_path):
+    reports = []
+    config = RayConfig(in_flight=3)  # fewer than the 6 chunks: the window must slide
+    data = generate(turtle(), tmp_path / "data", GenerateSettings(**SETTINGS), lambda d, t: reports.append(d), config)
+    assert reports == [0, 500, 1000, 1500, 2000, 2500, 3000]  # progress in chunk order
+    assert_same_data(data, reference)
+
+
+def test_ray_run_resumes_after_an_interrupt(local_ray, reference, tmp_path):
+    out = tmp_path / "data"
+
+    def stop_after_two_chunks(done: int, total: int) -> None:
+        if done >= 1000:
+            raise Interrupt
+
+    with pytest.raises(Interrupt):
+        generate(turtle(), out, GenerateSettings(**SETTINGS), stop_after_two_chunks, RayConfig())
+    with pytest.raises(DatasetError, match="incomplete"):
+        open_dataset(out)
+    resumed = []
+    data = generate(turtle(), out, GenerateSettings(**SETTINGS), lambda d, t: resumed.append(d), RayConfig())
+    assert resumed[0] == 1000  # the written chunks were kept
+    assert_same_data(data, reference)
+
+
+def test_a_partial_ray_run_resumes_in_one_process(local_ray, reference, tmp_path):
+    """The data set does not record how it was traced: either way finishes the other's run."""
+    out = tmp_path / "data"
+    with pytest.raises(Interrupt):
+        generate(turtle(), out, GenerateSettings(**SETTINGS), lambda d, t: _stop_at(d, 1500), RayConfig())
+    assert_same_data(generate(turtle(), out, GenerateSettings(**SETTINGS)), reference)
+
+
+def _stop_at(done: int, limit: int) -> None:
+    if done >= limit:
+        raise Interrupt
+
+
+def running_chunk_workers() -> list[int]:
+    """PIDs of Ray workers running a chunk right now (Ray titles a busy worker ray::FUNCTION)."""
+    pids = []
+    for proc in Path("/proc").iterdir():
+        try:
+            if proc.name.isdigit() and (proc / "cmdline").read_bytes().startswith(b"ray::_chunk_task"):
+                pids.append(int(proc.name))
+        except OSError:
+            continue
+    return pids
+
+
+@pytest.mark.skipif(not Path("/proc/self/cmdline").exists(), reason="finds Ray's worker processes in /proc")
+def test_a_worker_killed_mid_chunk_is_retried_with_identical_data(local_ray, reference, tmp_path):
+    killed = []
+
+    def kill_a_busy_worker(done: int, total: int) -> None:
+        if done < 500 or killed:
+            return
+        deadline = time.monotonic() + 20
+        while not killed and time.monotonic() < deadline:
+            for pid in running_chunk_workers():
+                os.kill(pid, signal.SIGKILL)
+                killed.append(pid)
+                break
+            time.sleep(0.005)
+
+    data = generate(turtle(), tmp_path / "data", GenerateSettings(**SETTINGS), kill_a_busy_worker, RayConfig())
+    assert killed, "no worker was running a chunk after the first chunk was written"
+    assert not Path(f"/proc/{killed[0]}").exists() or b"_chunk_task" not in Path(f"/proc/{killed[0]}/cmdline").read_bytes()
+    assert_same_data(data, reference)
+
+
+def test_generate_command_with_ray(local_ray, tmp_path, capsys):
+    args = ["generate", "flat", "--queries", "1200", "--spp", "2", "--seed", "3", "--chunk", "500"]
+    assert main([*args, "-o", str(tmp_path / "ray"), "--ray", "--ray-in-flight", "2"]) == 0
+    captured = capsys.readouterr()
+    assert "wrote 1200 queries of flat" in captured.out and "1.20k/1.20k" in captured.err
+    single = generate(find_description("flat"), tmp_path / "single", GenerateSettings(queries=1200, spp=2, seed=3, chunk=500))
+    assert_same_data(open_dataset(tmp_path / "ray"), single)
+
+
+def test_ray_address_swallowing_the_material_is_explained(capsys):
+    assert main(["generate", "--ray", "flat", "-o", "x"]) == 2
+    assert "--ray took 'flat' as its address" in capsys.readouterr().err

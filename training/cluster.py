@@ -1,0 +1,151 @@
+"""Running independent, deterministic jobs as Ray tasks: ground-truth chunks, materials to train.
+
+Ray is an optional extra (``pip install 'neumip[cluster]'``), imported only when a cluster is used.
+The driver keeps every file write: tasks return their results and the driver stores them, so what
+lands on disk is the same as a single-process run. Two ways to collect results:
+
+- :func:`ordered` yields results in submission order with a bounded number of tasks in flight
+  (ground-truth chunks: the data set is written chunk after chunk);
+- :func:`as_completed` yields ``(job, result or exception)`` as tasks finish (training a library:
+  one failed material does not stop the others).
+
+A worker that dies mid-task (killed, out of memory, node lost) is retried by Ray up to
+``max_retries`` times; a job is a pure function of its arguments, so a retry returns the same bits.
+"""
+
+from __future__ import annotations
+
+import logging
+from contextlib import contextmanager
+from dataclasses import dataclass
+from typing import Any, Callable, Iterable, Iterator
+
+from neumip.client.errors import NeumipError
+
+log = logging.getLogger(__name__)
+
+INSTALL_HINT = "pip install 'neumip[cluster]'"
+
+
+class ClusterError(NeumipError, RuntimeError):
+    """Ray is missing, the cluster cannot be reached, or a task failed for good."""
+
+
+@dataclass
+class RayConfig:
+    """Where tasks run and what each may use."""
+
+    address: str | None = None
+    """Cluster to join ("auto", "HOST:6379", "ray://HOST:10001"); None: start a local Ray (or use the
+    one this process has already started)."""
+    cpus_per_task: int = 1
+    """CPUs Ray reserves for each task; the task uses that many threads (drjit or torch)."""
+    in_flight: int | None = None
+    """Most tasks submitted but not yet collected (bounds memory); None: twice the task slots."""
+    local_cpus: int | None = None
+    """CPUs of a local Ray started here; None: every core of this machine."""
+    dashboard: bool = False
+    """Start Ray's dashboard with a local Ray (http://127.0.0.1:8265)."""
+    max_retries: int = 3
+    """Times Ray re-runs a task whose worker process died."""
+
+    def __post_init__(self) -> None:
+        if self.cpus_per_task < 1:
+            raise ValueError(f"cpus_per_task must be >= 1, got {self.cpus_per_task}")
+        if self.in_flight is not None and self.in_flight < 1:
+            raise ValueError(f"in_flight must be >= 1, got {self.in_flight}")
+        if self.max_retries < 0:
+            raise ValueError(f"max_retries must be >= 0, got {self.max_retries}")
+
+
+def import_ray():
+    """The ray module, or ClusterError saying how to install it."""
+    try:
+        import ray
+    except ImportError as exc:
+        raise ClusterError(f"Ray is not installed: {INSTALL_HINT}") from exc
+    return ray
+
+
+@contextmanager
+def session(config: RayConfig) -> Iterator[Any]:
+    """Connect (or start a local Ray), yield the ray module; shut down only a Ray started here."""
+    ray = import_ray()
+    started = not ray.is_initialized()
+    if started:
+        local = {} if config.address else {"num_cpus": config.local_cpus, "include_dashboard": config.dashboard}
+        try:
+            ray.init(address=config.address, logging_level=logging.WARNING, **local)
+        except (ConnectionError, ValueError, RuntimeError) as exc:
+            raise ClusterError(f"cannot start or join Ray at {config.address or 'a local instance'}: {exc}") from exc
+        log.info("Ray: %s", ray.cluster_resources())
+    try:
+        yield ray
+    finally:
+        if started:
+            ray.shutdown()
+
+
+def task_slots(ray, config: RayConfig) -> int:
+    """How many tasks of `config.cpus_per_task` CPUs the cluster runs at once (at least 1)."""
+    return max(1, int(ray.cluster_resources().get("CPU", 1)) // config.cpus_per_task)
+
+
+def _remote(ray, fn: Callable, config: RayConfig):
+    return ray.remote(fn).options(num_cpus=config.cpus_per_task, max_retries=config.max_retries)
+
+
+def _failure(exc: Exception) -> ClusterError:
+    cause = getattr(exc, "cause", None)  # a RayTaskError carries the task's own exception
+    return ClusterError(f"a Ray task failed: {cause or exc}")
+
+
+def ordered(fn: Callable, jobs: Iterable[tuple], config: RayConfig, shared: tuple = ()) -> Iterator[Any]:
+    """``fn(*shared, *job)`` for every job as Ray tasks, results yielded in job order.
+
+    At most ``in_flight`` jobs are submitted and not yet yielded (finished ones wait for their
+    predecessors, so memory stays bounded). ``shared`` values are put in Ray's object store once.
+    Closing the generator (an interrupt, an error downstream) cancels the jobs still in flight.
+    """
+    with session(config) as ray:
+        remote = _remote(ray, fn, config)
+        shared_refs = [ray.put(value) for value in shared]
+        window = config.in_flight or 2 * task_slots(ray, config)
+        jobs = iter(jobs)
+        queue: list = []  # refs in job order, oldest first
+        try:
+            while True:
+                while len(queue) < window and (job := next(jobs, None)) is not None:
+                    queue.append(remote.remote(*shared_refs, *job))
+                if not queue:
+                    return
+                try:
+                    result = ray.get(queue[0])
+                except ray.exceptions.RayError as exc:
+                    raise _failure(exc) from exc
+                queue.pop(0)
+                yield result
+        finally:
+            for ref in queue:
+                ray.cancel(ref, force=True)
+
+
+def as_completed(
+    fn: Callable, jobs: list[tuple], config: RayConfig
+) -> Iterator[tuple[tuple, Any | ClusterError]]:
+    """``fn(*job)`` for every job as Ray tasks; yields ``(job, result)`` or ``(job, ClusterError)``
+    as each finishes. Closing the generator cancels the jobs still running."""
+    with session(config) as ray:
+        remote = _remote(ray, fn, config)
+        running = {remote.remote(*job): job for job in jobs}
+        try:
+            while running:
+                [ref], _ = ray.wait(list(running), num_returns=1)
+                job = running.pop(ref)
+                try:
+                    yield job, ray.get(ref)
+                except ray.exceptions.RayError as exc:
+                    yield job, _failure(exc)
+        finally:
+            for ref in running:
+                ray.cancel(ref, force=True)
