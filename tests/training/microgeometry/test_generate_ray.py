@@ -16,8 +16,9 @@ from neumip.training.dataset import DatasetError, open_dataset
 from neumip.training.microgeometry.description import find_description
 from neumip.training.microgeometry.generate import GenerateSettings, generate
 
-ray = pytest.importorskip("ray", reason="Ray is not installed: pip install 'neumip[cluster]'")
-from neumip.training.cluster import RayConfig  # noqa: E402
+from neumip.training.cluster import RayConfig
+
+pytest.importorskip("ray", reason="Ray is not installed: pip install 'neumip[cluster]'")
 
 SETTINGS = dict(queries=3000, spp=4, seed=11, chunk=500)
 
@@ -30,14 +31,6 @@ def turtle():
     desc = find_description("turtle")
     desc.resolution = 16
     return desc
-
-
-@pytest.fixture(scope="module")
-def local_ray():
-    """One local Ray with 2 CPUs for the whole module (starting one costs seconds)."""
-    ray.init(num_cpus=2, include_dashboard=False, logging_level="WARNING")
-    yield ray
-    ray.shutdown()
 
 
 @pytest.fixture(scope="module")
