@@ -15,6 +15,7 @@ A worker that dies mid-task (killed, out of memory, node lost) is retried by Ray
 
 from __future__ import annotations
 
+import argparse
 import logging
 from contextlib import contextmanager
 from dataclasses import dataclass
@@ -56,6 +57,26 @@ class RayConfig:
             raise ValueError(f"in_flight must be >= 1, got {self.in_flight}")
         if self.max_retries < 0:
             raise ValueError(f"max_retries must be >= 0, got {self.max_retries}")
+
+
+def add_ray_arguments(p: argparse.ArgumentParser, task: str, per_task: bool = True) -> None:
+    """--ray [ADDRESS] and its options on a command that runs one Ray task per `task`."""
+    g = p.add_argument_group(f"Ray cluster ({INSTALL_HINT})")
+    g.add_argument("--ray", nargs="?", const="", metavar="ADDRESS",
+                   help=f"run each {task} as a Ray task: 'auto' or HOST:PORT joins a cluster, no ADDRESS starts "
+                   "a local Ray (put --ray last or write --ray=ADDRESS)")
+    if per_task:
+        g.add_argument("--ray-cpus-per-task", type=int, default=1, help=f"CPUs (threads) of each {task} task (default 1)")
+        g.add_argument("--ray-in-flight", type=int, help=f"most {task}s in flight (default: twice the task slots)")
+    g.add_argument("--ray-dashboard", action="store_true", help="start Ray's dashboard with a local Ray")
+
+
+def ray_config(args: argparse.Namespace, **fields) -> RayConfig | None:
+    """The RayConfig of the --ray options (`fields` override them), or None without --ray."""
+    if args.ray is None:
+        return None
+    per_task = {"cpus_per_task": getattr(args, "ray_cpus_per_task", 1), "in_flight": getattr(args, "ray_in_flight", None)}
+    return RayConfig(address=args.ray or None, dashboard=args.ray_dashboard, **{**per_task, **fields})
 
 
 def import_ray():

@@ -8,6 +8,8 @@ from __future__ import annotations
 import argparse
 import sys
 
+from neumip.training.cluster import add_ray_arguments, ray_config
+
 
 def register(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser(
@@ -32,7 +34,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--lanes", type=int, default=1 << 20, help="samples per wavefront pass (memory ~0.3 GB/M)")
     p.add_argument("--variant", default="llvm_ad_rgb", help="Mitsuba variant (cuda_ad_rgb on a GPU)")
     p.add_argument("--list", action="store_true", help="list the shipped materials and exit")
-    add_ray_options(p, "chunk")
+    add_ray_arguments(p, "chunk")
     p.set_defaults(func=_generate)
 
     p = sub.add_parser(
@@ -87,27 +89,6 @@ def _settings(args: argparse.Namespace):
         queries=args.queries, spp=args.spp, seed=args.seed, chunk=args.chunk, resolution=args.resolution,
         sampling=sampling, tracer=TracerConfig(max_depth=args.max_depth, lanes=args.lanes, variant=args.variant),
     )
-
-
-def add_ray_options(p: argparse.ArgumentParser, task: str) -> None:
-    """--ray [ADDRESS] and the resources of each task (one task per `task`)."""
-    g = p.add_argument_group("Ray cluster (pip install 'neumip[cluster]')")
-    g.add_argument("--ray", nargs="?", const="", metavar="ADDRESS",
-                   help=f"run each {task} as a Ray task: 'auto' or HOST:PORT joins a cluster, no ADDRESS starts "
-                   "a local Ray (put --ray last or write --ray=ADDRESS)")
-    g.add_argument("--ray-cpus-per-task", type=int, default=1, help=f"CPUs (threads) of each {task} task (default 1)")
-    g.add_argument("--ray-in-flight", type=int, help=f"most {task}s in flight (default: twice the task slots)")
-    g.add_argument("--ray-dashboard", action="store_true", help="start Ray's dashboard with a local Ray")
-
-
-def ray_config(args: argparse.Namespace):
-    """The RayConfig of the --ray options, or None without --ray."""
-    if args.ray is None:
-        return None
-    from neumip.training.cluster import RayConfig
-
-    return RayConfig(address=args.ray or None, cpus_per_task=args.ray_cpus_per_task,
-                     in_flight=args.ray_in_flight, dashboard=args.ray_dashboard)
 
 
 def _run_generate(desc, output: str, settings, ray=None) -> int:
