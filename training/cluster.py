@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import argparse
 import logging
+import os
 from contextlib import contextmanager
 from dataclasses import dataclass
 from typing import Any, Callable, Iterable, Iterator
@@ -26,6 +27,9 @@ from neumip.client.errors import NeumipError
 log = logging.getLogger(__name__)
 
 INSTALL_HINT = "pip install 'neumip[cluster]'"
+
+AUTH_HINT = (" (a cluster started with `ray start` uses token authentication: set RAY_AUTH_MODE=token and make "
+             "its token available, ~/.ray/auth_token or RAY_AUTH_TOKEN)")
 
 
 class ClusterError(NeumipError, RuntimeError):
@@ -98,8 +102,10 @@ def session(config: RayConfig) -> Iterator[Any]:
         try:
             ray.init(address=config.address, logging_level=logging.WARNING, **local)
         except (ConnectionError, ValueError, RuntimeError) as exc:
-            raise ClusterError(f"cannot start or join Ray at {config.address or 'a local instance'}: {exc}") from exc
-        log.info("Ray: %s", ray.cluster_resources())
+            raise ClusterError(f"cannot start or join Ray at {config.address or 'a local instance'}: {exc}"
+                               + (AUTH_HINT if config.address and "RAY_AUTH_MODE" not in os.environ else "")) from exc
+        nodes = sum(1 for node in ray.nodes() if node.get("Alive"))
+        log.info("Ray: %g CPUs on %d node(s)", ray.cluster_resources().get("CPU", 0), nodes)
     try:
         yield ray
     finally:

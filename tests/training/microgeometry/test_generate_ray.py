@@ -128,3 +128,31 @@ def test_generate_command_with_ray(local_ray, tmp_path, capsys):
 def test_ray_address_swallowing_the_material_is_explained(capsys):
     assert main(["generate", "--ray", "flat", "-o", "x"]) == 2
     assert "--ray took 'flat' as its address" in capsys.readouterr().err
+
+
+@pytest.mark.slow  # starts a local Ray twice in child processes (~10 s each on 2 cores)
+def test_interrupted_ray_process_resumes_to_the_same_data(tmp_path):
+    """A real `neumip generate --ray` stopped by Ctrl-C mid-run, then the same command again."""
+    import json
+    import subprocess
+    import sys
+
+    command = [sys.executable, "-m", "neumip.client.cli", "generate", "turtle", "--resolution", "16", "--queries",
+               "40000", "--chunk", "1000", "--spp", "4", "--seed", "5", "-o", str(tmp_path / "a"), "--ray"]
+    proc = subprocess.Popen(command, stdout=subprocess.PIPE, stderr=subprocess.PIPE)
+    progress = tmp_path / "a" / "progress.json"
+    deadline = time.monotonic() + 300
+    while proc.poll() is None and time.monotonic() < deadline:
+        if progress.exists() and json.loads(progress.read_text())["done"] >= 2:
+            break
+        time.sleep(0.05)
+    assert proc.poll() is None, f"generate ended before it could be interrupted: {proc.stderr.read()}"
+    proc.send_signal(signal.SIGINT)
+    assert proc.wait(timeout=60) == 130, proc.stderr.read()
+    done = json.loads(progress.read_text())["done"]
+    assert 2 <= done < 40 and not (tmp_path / "a" / "meta.json").exists()
+    resumed = subprocess.run(command, capture_output=True, text=True, timeout=300)
+    assert resumed.returncode == 0, resumed.stderr
+    desc = find_description("turtle")
+    single = generate(desc, tmp_path / "b", GenerateSettings(queries=40000, chunk=1000, spp=4, seed=5, resolution=16))
+    assert_same_data(open_dataset(tmp_path / "a"), single)
