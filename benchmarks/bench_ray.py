@@ -120,7 +120,8 @@ def main() -> None:
 
     print(f"{args.material} {args.resolution}^2, {args.chunks} chunks of {args.chunk} queries, {args.spp} spp; "
           f"machine: {os.cpu_count()} cores, load average {os.getloadavg()[0]:.1f} at start")
-    start_up, _ = timed(lambda: ray.init(num_cpus=args.workers, include_dashboard=False, logging_level="WARNING"))
+    start_up, _ = timed(lambda: ray.init(address="local", num_cpus=args.workers, include_dashboard=False,
+                                         logging_level="WARNING"))
     print(f"local Ray start-up: {start_up:.1f} s (once per `neumip generate --ray` without an address)")
     config = RayConfig(cpus_per_task=1)
     with tempfile.TemporaryDirectory() as tmp:

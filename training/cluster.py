@@ -98,12 +98,14 @@ def session(config: RayConfig) -> Iterator[Any]:
     ray = import_ray()
     started = not ray.is_initialized()
     if started:
-        local = {} if config.address else {"num_cpus": config.local_cpus, "include_dashboard": config.dashboard}
+        joining = config.address not in (None, "", "local")
+        local = {} if joining else {"num_cpus": config.local_cpus, "include_dashboard": config.dashboard}
         try:
-            ray.init(address=config.address, logging_level=logging.WARNING, **local)
+            # "local": a new local Ray even when a `ray start` cluster runs here (that is what `auto` is for)
+            ray.init(address=config.address or "local", logging_level=logging.WARNING, **local)
         except (ConnectionError, ValueError, RuntimeError) as exc:
             raise ClusterError(f"cannot start or join Ray at {config.address or 'a local instance'}: {exc}"
-                               + (AUTH_HINT if config.address and "RAY_AUTH_MODE" not in os.environ else "")) from exc
+                               + (AUTH_HINT if joining and "RAY_AUTH_MODE" not in os.environ else "")) from exc
         nodes = sum(1 for node in ray.nodes() if node.get("Alive"))
         log.info("Ray: %g CPUs on %d node(s)", ray.cluster_resources().get("CPU", 0), nodes)
     try:

@@ -9,6 +9,6 @@ import pytest
 def local_ray():
     """A local Ray with 2 CPUs, started once (it costs seconds); skips when Ray is not installed."""
     ray = pytest.importorskip("ray", reason="Ray is not installed: pip install 'neumip[cluster]'")
-    ray.init(num_cpus=2, include_dashboard=False, logging_level="WARNING")
+    ray.init(address="local", num_cpus=2, include_dashboard=False, logging_level="WARNING")
     yield ray
     ray.shutdown()
