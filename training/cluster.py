@@ -76,9 +76,12 @@ def add_ray_arguments(p: argparse.ArgumentParser, task: str, per_task: bool = Tr
 
 
 def ray_config(args: argparse.Namespace, **fields) -> RayConfig | None:
-    """The RayConfig of the --ray options (`fields` override them), or None without --ray."""
+    """The RayConfig of the --ray options (`fields` override them), or None without --ray.
+
+    Fails at once (ClusterError) when Ray is not installed, before any output is started."""
     if args.ray is None:
         return None
+    import_ray()
     per_task = {"cpus_per_task": getattr(args, "ray_cpus_per_task", 1), "in_flight": getattr(args, "ray_in_flight", None)}
     return RayConfig(address=args.ray or None, dashboard=args.ray_dashboard, **{**per_task, **fields})
 

@@ -185,6 +185,7 @@ def _train_many(args: argparse.Namespace) -> int:
     from .library import LibrarySettings, finished, train_library
     from .validation import format_table
 
+    ray = ray_config(args)
     try:
         settings = LibrarySettings(Path(args.models), Path(args.runs), _train_config(args), args.threads)
         jobs = _library_jobs(args, args.preset)
@@ -208,7 +209,7 @@ def _train_many(args: argparse.Namespace) -> int:
         return lambda step, loss: steps[job.name].update(step - steps[job.name].n)
 
     try:
-        results = train_library(jobs, settings, ray_config(args), on_done, progress)
+        results = train_library(jobs, settings, ray, on_done, progress)
     finally:
         bar.close()
     failed = [name for name, result in results.items() if isinstance(result, Exception)]

@@ -51,3 +51,13 @@ def test_failures_are_cluster_errors(local_ray):
     results = dict(cluster.as_completed(fails_on, [(1, i) for i in range(3)], RayConfig()))
     assert results[(1, 0)] == 0 and results[(1, 2)] == 2  # the others finish
     assert isinstance(results[(1, 1)], ClusterError) and "job 1 is bad" in str(results[(1, 1)])
+
+
+@pytest.mark.parametrize("command", [["generate", "flat", "--queries", "10"], ["train-many", "DATA"]])
+def test_commands_without_ray_fail_at_once(command, monkeypatch, tmp_path, capsys):
+    from neumip.client.cli import main
+
+    monkeypatch.setitem(sys.modules, "ray", None)
+    assert main([*command, "-o", str(tmp_path / "out"), "--ray"]) == 2
+    assert "Ray is not installed: pip install 'neumip[cluster]'" in capsys.readouterr().err
+    assert not (tmp_path / "out").exists()  # nothing started

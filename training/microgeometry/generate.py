@@ -128,7 +128,10 @@ def generate(
         log.info("resuming %s at chunk %d of %d", out, writer.done, writer.chunks)
     report = on_chunk or (lambda done, total: None)
     report(writer.chunk_range(writer.done)[0] if writer.done < writer.chunks else n, n)
-    jobs = [(index, hi - lo) for index in range(writer.done, writer.chunks) for lo, hi in [writer.chunk_range(index)]]
+    jobs = []  # (chunk index, queries in it) of the chunks still to do
+    for index in range(writer.done, writer.chunks):
+        lo, hi = writer.chunk_range(index)
+        jobs.append((index, hi - lo))
     if jobs:
         chunks = _local_chunks(desc, settings, jobs) if ray is None else _ray_chunks(desc, settings, jobs, ray)
         with closing(chunks):

@@ -83,14 +83,19 @@ def _stop_at(done: int, limit: int) -> None:
         raise Interrupt
 
 
-def running_chunk_workers() -> list[int]:
-    """PIDs of Ray workers running a chunk right now (Ray titles a busy worker ray::FUNCTION)."""
+def parent_pid() -> int:
+    return os.getppid()
+
+
+def running_chunk_workers(raylet: int) -> list[int]:
+    """PIDs of this Ray's workers running a chunk right now (Ray titles a busy worker ray::FUNCTION)."""
     pids = []
     for proc in Path("/proc").iterdir():
         try:
-            if proc.name.isdigit() and (proc / "cmdline").read_bytes().startswith(b"ray::_chunk_task"):
+            if (proc.name.isdigit() and (proc / "cmdline").read_bytes().startswith(b"ray::_chunk_task")
+                    and int((proc / "stat").read_text().rsplit(")", 1)[1].split()[1]) == raylet):
                 pids.append(int(proc.name))
-        except OSError:
+        except (OSError, ValueError, IndexError):
             continue
     return pids
 
@@ -98,13 +103,14 @@ def running_chunk_workers() -> list[int]:
 @pytest.mark.skipif(not Path("/proc/self/cmdline").exists(), reason="finds Ray's worker processes in /proc")
 def test_a_worker_killed_mid_chunk_is_retried_with_identical_data(local_ray, reference, tmp_path):
     killed = []
+    raylet = local_ray.get(local_ray.remote(parent_pid).remote())  # the workers' parent
 
     def kill_a_busy_worker(done: int, total: int) -> None:
         if done < 500 or killed:
             return
         deadline = time.monotonic() + 20
         while not killed and time.monotonic() < deadline:
-            for pid in running_chunk_workers():
+            for pid in running_chunk_workers(raylet):
                 os.kill(pid, signal.SIGKILL)
                 killed.append(pid)
                 break
