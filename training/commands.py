@@ -155,7 +155,8 @@ def _register_train_many(sub: argparse._SubParsersAction) -> None:
     p.set_defaults(func=_train_many, batch=None, lr=None, seed=None, blur_half_life=None, loss=None, compile=False)
 
 
-def _library_jobs(args: argparse.Namespace, preset: str) -> list:
+def _library_jobs(args: argparse.Namespace) -> list:
+    """The MaterialJob of every [NAME=]DATA, described as models/make_models.sh describes them."""
     from neumip.client.cli import CommandError
 
     from .config import MaterialConfig
@@ -169,7 +170,7 @@ def _library_jobs(args: argparse.Namespace, preset: str) -> list:
         offset = name not in args.no_offset
         kind = "neural offset" if offset else "no neural offset"
         material = MaterialConfig(resolution=resolution, offset=offset)
-        jobs.append(MaterialJob(name, data, material, f"{Path(data).name}, {resolution}^2, {kind}, {preset} preset"))
+        jobs.append(MaterialJob(name, data, material, f"{Path(data).name}, {resolution}^2, {kind}, {args.preset} preset"))
     unknown = set(args.no_offset) - {job.name for job in jobs}
     if unknown:
         raise CommandError(f"--no-offset names no material: {', '.join(sorted(unknown))}")
@@ -179,16 +180,16 @@ def _library_jobs(args: argparse.Namespace, preset: str) -> list:
 def _train_many(args: argparse.Namespace) -> int:
     from tqdm import tqdm
 
-    from .cluster import ray_config
     from neumip.client.cli import CommandError
 
+    from .cluster import ray_config
     from .library import LibrarySettings, finished, train_library
     from .validation import format_table
 
     ray = ray_config(args)
     try:
         settings = LibrarySettings(Path(args.models), Path(args.runs), _train_config(args), args.threads)
-        jobs = _library_jobs(args, args.preset)
+        jobs = _library_jobs(args)
     except ValueError as exc:
         raise CommandError(str(exc)) from exc
     done = [job.name for job in jobs if finished(job, settings)]

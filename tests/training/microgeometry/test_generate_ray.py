@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import os
 import signal
+import threading
 import time
 from pathlib import Path
 
@@ -101,25 +102,27 @@ def running_chunk_workers(raylet: int) -> list[int]:
 
 
 @pytest.mark.skipif(not Path("/proc/self/cmdline").exists(), reason="finds Ray's worker processes in /proc")
-def test_a_worker_killed_mid_chunk_is_retried_with_identical_data(local_ray, reference, tmp_path):
-    killed = []
+def test_a_worker_killed_mid_chunk_is_retried_with_identical_data(local_ray, tmp_path):
+    settings = GenerateSettings(**{**SETTINGS, "seed": 12})  # a new scene key: workers build their tracer
     raylet = local_ray.get(local_ray.remote(parent_pid).remote())  # the workers' parent
+    killed, stop = [], threading.Event()
 
-    def kill_a_busy_worker(done: int, total: int) -> None:
-        if done < 500 or killed:
-            return
-        deadline = time.monotonic() + 20
-        while not killed and time.monotonic() < deadline:
-            for pid in running_chunk_workers(raylet):
+    def kill_the_first_busy_worker() -> None:
+        while not (stop.is_set() or killed):
+            for pid in running_chunk_workers(raylet)[:1]:
                 os.kill(pid, signal.SIGKILL)
                 killed.append(pid)
-                break
-            time.sleep(0.005)
+            time.sleep(0.002)
 
-    data = generate(turtle(), tmp_path / "data", GenerateSettings(**SETTINGS), kill_a_busy_worker, RayConfig())
-    assert killed, "no worker was running a chunk after the first chunk was written"
-    assert not Path(f"/proc/{killed[0]}").exists() or b"_chunk_task" not in Path(f"/proc/{killed[0]}/cmdline").read_bytes()
-    assert_same_data(data, reference)
+    killer = threading.Thread(target=kill_the_first_busy_worker)
+    killer.start()
+    try:
+        data = generate(turtle(), tmp_path / "ray", settings, ray=RayConfig())
+    finally:
+        stop.set()
+        killer.join()
+    assert killed, "no worker was seen running a chunk"
+    assert_same_data(data, generate(turtle(), tmp_path / "single", settings))
 
 
 def test_generate_command_with_ray(local_ray, tmp_path, capsys):
