@@ -50,7 +50,7 @@ class RayConfig:
     local_cpus: int | None = None
     """CPUs of a local Ray started here; None: every core of this machine."""
     dashboard: bool = False
-    """Start Ray's dashboard with a local Ray (http://127.0.0.1:8265)."""
+    """Start Ray's dashboard with a local Ray (http://127.0.0.1:8265; needs ray[default])."""
     max_retries: int = 3
     """Times Ray re-runs a task whose worker process died."""
 
@@ -62,6 +62,11 @@ class RayConfig:
         if self.max_retries < 0:
             raise ValueError(f"max_retries must be >= 0, got {self.max_retries}")
 
+    @property
+    def joining(self) -> bool:
+        """Whether this joins a running cluster (else it starts a local Ray)."""
+        return self.address not in (None, "", "local")
+
 
 def add_ray_arguments(p: argparse.ArgumentParser, task: str, per_task: bool = True) -> None:
     """--ray [ADDRESS] and its options on a command that runs one Ray task per `task`."""
@@ -72,7 +77,8 @@ def add_ray_arguments(p: argparse.ArgumentParser, task: str, per_task: bool = Tr
     if per_task:
         g.add_argument("--ray-cpus-per-task", type=int, default=1, help=f"CPUs (threads) of each {task} task (default 1)")
         g.add_argument("--ray-in-flight", type=int, help=f"most {task}s in flight (default: twice the task slots)")
-    g.add_argument("--ray-dashboard", action="store_true", help="start Ray's dashboard with a local Ray")
+    g.add_argument("--ray-dashboard", action="store_true",
+                   help="start Ray's dashboard with a local Ray (needs pip install 'ray[default]')")
 
 
 def ray_config(args: argparse.Namespace, **fields) -> RayConfig | None:
@@ -81,9 +87,10 @@ def ray_config(args: argparse.Namespace, **fields) -> RayConfig | None:
     Fails at once (ClusterError) when Ray is not installed, before any output is started."""
     if args.ray is None:
         return None
-    import_ray()
     per_task = {"cpus_per_task": getattr(args, "ray_cpus_per_task", 1), "in_flight": getattr(args, "ray_in_flight", None)}
-    return RayConfig(address=args.ray or None, dashboard=args.ray_dashboard, **{**per_task, **fields})
+    config = RayConfig(address=args.ray or None, dashboard=args.ray_dashboard, **{**per_task, **fields})
+    check_installed(config)
+    return config
 
 
 def import_ray():
@@ -95,20 +102,30 @@ def import_ray():
     return ray
 
 
+def check_installed(config: RayConfig):
+    """The ray module, after checking it has what `config` asks for (the dashboard needs ray[default])."""
+    ray = import_ray()
+    if config.dashboard and not config.joining:
+        missing = ray._private.utils.get_dashboard_dependency_error()
+        if missing:
+            raise ClusterError(f"Ray's dashboard needs the full Ray: pip install 'ray[default]=={ray.__version__}' "
+                               f"({missing})")
+    return ray
+
+
 @contextmanager
 def session(config: RayConfig) -> Iterator[Any]:
     """Connect (or start a local Ray), yield the ray module; shut down only a Ray started here."""
-    ray = import_ray()
+    ray = check_installed(config)
     started = not ray.is_initialized()
     if started:
-        joining = config.address not in (None, "", "local")
-        local = {} if joining else {"num_cpus": config.local_cpus, "include_dashboard": config.dashboard}
+        local = {} if config.joining else {"num_cpus": config.local_cpus, "include_dashboard": config.dashboard}
         try:
             # "local": a new local Ray even when a `ray start` cluster runs here (that is what `auto` is for)
             ray.init(address=config.address or "local", logging_level=logging.WARNING, **local)
         except (ConnectionError, ValueError, RuntimeError) as exc:
             raise ClusterError(f"cannot start or join Ray at {config.address or 'a local instance'}: {exc}"
-                               + (AUTH_HINT if joining and "RAY_AUTH_MODE" not in os.environ else "")) from exc
+                               + (AUTH_HINT if config.joining and "RAY_AUTH_MODE" not in os.environ else "")) from exc
         nodes = sum(1 for node in ray.nodes() if node.get("Alive"))
         log.info("Ray: %g CPUs on %d node(s)", ray.cluster_resources().get("CPU", 0), nodes)
     try:
