@@ -1,8 +1,8 @@
 """Running independent, deterministic jobs as Ray tasks: ground-truth chunks, materials to train.
 
 Ray is an optional extra (``pip install 'neumip[cluster]'``), imported only when a cluster is used.
-The driver keeps every file write: tasks return their results and the driver stores them, so what
-lands on disk is the same as a single-process run. Two ways to collect results:
+Tasks are pure functions of their arguments; what they return comes back to the driver (ground-truth
+chunks are written by the driver alone, exactly as in one process). Two ways to collect results:
 
 - :func:`ordered` yields results in submission order with a bounded number of tasks in flight
   (ground-truth chunks: the data set is written chunk after chunk);
@@ -10,7 +10,8 @@ lands on disk is the same as a single-process run. Two ways to collect results:
   one failed material does not stop the others).
 
 A worker that dies mid-task (killed, out of memory, node lost) is retried by Ray up to
-``max_retries`` times; a job is a pure function of its arguments, so a retry returns the same bits.
+``max_retries`` times, and a retry returns the same bits (a training task resumes from its last
+checkpoint, which replays exactly).
 """
 
 from __future__ import annotations

@@ -18,6 +18,7 @@ from neumip.training.config import MaterialConfig
 from neumip.training.library import LibrarySettings, MaterialJob, finished, train_library, train_material
 from neumip.training.train_config import TEST
 from tests.training.plane_data import plane_data
+from tests.training.ray_workers import killing_the_first_busy_worker
 
 CONFIG = replace(TEST, steps=40, batch=512, checkpoint_every=20)
 
@@ -89,5 +90,21 @@ def test_library_as_ray_tasks(local_ray, data, tmp_path):
     local = settings(tmp_path / "local")
     train_library([job("a", data)], local)
     queries = random_queries(500, seed=2)
+    np.testing.assert_array_equal(LocalMaterials(local.models).evaluate("a", queries),
+                                  LocalMaterials(lib.models).evaluate("a", queries))
+
+
+@pytest.mark.slow  # ~20 s: the retried task starts a fresh worker, which imports torch again
+@pytest.mark.skipif(not Path("/proc/self/cmdline").exists(), reason="finds Ray's worker processes in /proc")
+def test_a_training_task_killed_after_a_checkpoint_resumes_to_the_same_model(local_ray, data, tmp_path):
+    lib = settings(tmp_path)
+    checkpoint = lib.runs / "a" / "checkpoint.pt"  # written at step 20 of 40
+    with killing_the_first_busy_worker(local_ray, "_material_task", when=checkpoint.exists) as killed:
+        results = train_library([job("a", data)], lib, RayConfig())
+    assert killed, "the task finished before it could be killed"
+    assert results["a"]["steps"] == 40  # Ray's retry resumed from the checkpoint and finished
+    local = settings(tmp_path / "local")
+    train_library([job("a", data)], local)
+    queries = random_queries(500, seed=3)
     np.testing.assert_array_equal(LocalMaterials(local.models).evaluate("a", queries),
                                   LocalMaterials(lib.models).evaluate("a", queries))

@@ -3,9 +3,7 @@ interrupt, and after a worker process is killed mid-chunk (Ray retries the chunk
 
 from __future__ import annotations
 
-import os
 import signal
-import threading
 import time
 from pathlib import Path
 
@@ -16,6 +14,7 @@ from neumip.client.cli import main
 from neumip.training.dataset import DatasetError, open_dataset
 from neumip.training.microgeometry.description import find_description
 from neumip.training.microgeometry.generate import GenerateSettings, generate
+from tests.training.ray_workers import killing_the_first_busy_worker
 
 from neumip.training.cluster import RayConfig
 
@@ -84,43 +83,11 @@ def _stop_at(done: int, limit: int) -> None:
         raise Interrupt
 
 
-def parent_pid() -> int:
-    return os.getppid()
-
-
-def running_chunk_workers(raylet: int) -> list[int]:
-    """PIDs of this Ray's workers running a chunk right now (Ray titles a busy worker ray::FUNCTION)."""
-    pids = []
-    for proc in Path("/proc").iterdir():
-        try:
-            if (proc.name.isdigit() and (proc / "cmdline").read_bytes().startswith(b"ray::_chunk_task")
-                    and int((proc / "stat").read_text().rsplit(")", 1)[1].split()[1]) == raylet):
-                pids.append(int(proc.name))
-        except (OSError, ValueError, IndexError):
-            continue
-    return pids
-
-
 @pytest.mark.skipif(not Path("/proc/self/cmdline").exists(), reason="finds Ray's worker processes in /proc")
 def test_a_worker_killed_mid_chunk_is_retried_with_identical_data(local_ray, tmp_path):
     settings = GenerateSettings(**{**SETTINGS, "seed": 12})  # a new scene key: workers build their tracer
-    raylet = local_ray.get(local_ray.remote(parent_pid).remote())  # the workers' parent
-    killed, stop = [], threading.Event()
-
-    def kill_the_first_busy_worker() -> None:
-        while not (stop.is_set() or killed):
-            for pid in running_chunk_workers(raylet)[:1]:
-                os.kill(pid, signal.SIGKILL)
-                killed.append(pid)
-            time.sleep(0.002)
-
-    killer = threading.Thread(target=kill_the_first_busy_worker)
-    killer.start()
-    try:
+    with killing_the_first_busy_worker(local_ray, "_chunk_task") as killed:
         data = generate(turtle(), tmp_path / "ray", settings, ray=RayConfig())
-    finally:
-        stop.set()
-        killer.join()
     assert killed, "no worker was seen running a chunk"
     assert_same_data(data, generate(turtle(), tmp_path / "single", settings))
 
