@@ -94,6 +94,14 @@ def test_library_as_ray_tasks(local_ray, data, tmp_path):
                                   LocalMaterials(lib.models).evaluate("a", queries))
 
 
+def test_cli_with_ray(local_ray, data, tmp_path, capsys):
+    argv = ["train-many", f"x={data}", "-o", str(tmp_path / "m"), "--runs", str(tmp_path / "runs"),
+            "--preset", "test", "--steps", "10", "--resolution", "8", "--threads", "1", "--ray"]
+    assert main(argv) == 0
+    assert "1 trained, 0 skipped, 0 failed" in capsys.readouterr().out
+    assert LocalMaterials(tmp_path / "m").materials() == ["x"]
+
+
 @pytest.mark.slow  # ~20 s: the retried task starts a fresh worker, which imports torch again
 @pytest.mark.skipif(not Path("/proc/self/cmdline").exists(), reason="finds Ray's worker processes in /proc")
 def test_a_training_task_killed_after_a_checkpoint_resumes_to_the_same_model(local_ray, data, tmp_path):
