@@ -11,6 +11,7 @@ The data set format (``.npy`` + ``meta.json``, memory-mapped for training) is
 
 from __future__ import annotations
 
+import importlib.metadata
 import json
 import logging
 import time
@@ -159,7 +160,7 @@ def _ray_chunks(
     geo = resolve(desc)
     key = json.dumps([desc.to_dict(), settings.to_meta(desc), asdict(settings.tracer)], sort_keys=True)
     resolution = settings.sampling_resolution(desc)
-    shared = (geo, key, settings, resolution, config.cpus_per_task)
+    shared = (geo, key, settings, resolution, config.cpus_per_task, _versions())
     results = cluster.ordered(_chunk_task, jobs, config, shared)
     with closing(results):
         for (index, _), (queries, rgb) in zip(jobs, results):
@@ -169,13 +170,30 @@ def _ray_chunks(
 _worker_tracer: dict[str, QueryTracer] = {}
 """The tracer of the material this worker process traced last (building its scene takes seconds)."""
 
+VERSIONED = ("neumip", "mitsuba", "drjit", "numpy")
+"""Packages whose versions must match between the driver and every worker for identical bits."""
+
+
+def _versions() -> dict[str, str]:
+    def version(name: str) -> str:
+        try:
+            return importlib.metadata.version(name)
+        except importlib.metadata.PackageNotFoundError:
+            return "not installed"
+
+    return {name: version(name) for name in VERSIONED}
+
 
 def _chunk_task(
-    geo: Microgeometry, key: str, settings: GenerateSettings, resolution: int, threads: int, index: int, size: int
+    geo: Microgeometry, key: str, settings: GenerateSettings, resolution: int, threads: int,
+    driver_versions: dict[str, str], index: int, size: int,
 ) -> tuple[np.ndarray, np.ndarray]:
     """One chunk in a Ray worker, with `threads` drjit threads (its CPU share, not every core)."""
     tracer = _worker_tracer.get(key)
     if tracer is None:
+        if _versions() != driver_versions:
+            raise RuntimeError(f"this Ray node has {_versions()}, the driver {driver_versions}: the same "
+                               "versions on every node give the same data")
         _worker_tracer.clear()
         import_mitsuba(settings.tracer.variant)
         import drjit as dr

@@ -132,3 +132,13 @@ def test_interrupted_ray_process_resumes_to_the_same_data(tmp_path):
     desc = find_description("turtle")
     single = generate(desc, tmp_path / "b", GenerateSettings(queries=40000, chunk=1000, spp=4, seed=5, resolution=16))
     assert_same_data(open_dataset(tmp_path / "a"), single)
+
+
+def test_a_worker_with_other_versions_refuses_to_trace(monkeypatch):
+    from neumip.training.microgeometry import generate as module
+
+    desc = turtle()
+    driver = {**module._versions(), "mitsuba": "0.0.1"}
+    monkeypatch.setattr(module, "_worker_tracer", {})
+    with pytest.raises(RuntimeError, match="same versions on every node"):
+        module._chunk_task(None, "key", GenerateSettings(**SETTINGS), desc.resolution, 1, driver, 0, 10)
