@@ -76,8 +76,8 @@ def add_ray_arguments(p: argparse.ArgumentParser, task: str, per_task: bool = Tr
                    help=f"run each {task} as a Ray task: 'auto' or HOST:PORT joins a cluster, no ADDRESS starts "
                    "a local Ray (put --ray last or write --ray=ADDRESS)")
     if per_task:
-        g.add_argument("--ray-cpus-per-task", type=int, default=1, help=f"CPUs (threads) of each {task} task (default 1)")
-        g.add_argument("--ray-in-flight", type=int, help=f"most {task}s in flight (default: twice the task slots)")
+        g.add_argument("--ray-cpus-per-task", type=int, default=1, metavar="N", help=f"CPUs (threads) of each {task} task (default 1)")
+        g.add_argument("--ray-in-flight", type=int, metavar="N", help=f"most {task}s in flight (default: twice the task slots)")
     g.add_argument("--ray-dashboard", action="store_true",
                    help="start Ray's dashboard with a local Ray (needs pip install 'ray[default]')")
 
