@@ -37,6 +37,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--force", action="store_true", help="replace the output model if it exists")
     p.add_argument("--description", default="", help="short description stored in the metadata")
     p.set_defaults(func=_export)
+    _register_train_many(sub)
 
 
 def _train_config(args: argparse.Namespace):
@@ -139,3 +140,94 @@ def _export(args: argparse.Namespace) -> int:
     path = export_checkpoint(args.checkpoint, args.output, args.description)
     print(f"wrote {path} ({path.stat().st_size / 1e6:.2f} MB)")
     return 0
+
+
+# --- train-many: a material library, in this process or one Ray task per material ----------------
+
+def _register_train_many(sub: argparse._SubParsersAction) -> None:
+    from .cluster import add_ray_arguments
+
+    p = sub.add_parser(
+        "train-many", help="train a library of materials (one `neumip train` each), optionally as Ray tasks",
+        description="Train every [NAME=]DATA (NAME defaults to the folder's name) into MODELS/NAME.onnx. "
+        "Finished materials (NAME.onnx and NAME.json present) are skipped, interrupted ones resume from "
+        "RUNS/NAME/checkpoint.pt; outputs are moved into place only when whole.",
+    )
+    p.add_argument("jobs", nargs="+", metavar="[NAME=]DATA", help="data set folder, optionally named")
+    p.add_argument("-o", "--models", required=True, help="folder of the exported materials")
+    p.add_argument("--runs", default="runs", help="folder of the checkpoints (default runs)")
+    p.add_argument("--preset", choices=PRESET_NAMES, default="ship", help="training schedule preset")
+    p.add_argument("--config", help="JSON file of TrainConfig fields (applied over the preset)")
+    p.add_argument("--resolution", type=int, help="finest pyramid level (default: each data set's resolution)")
+    p.add_argument("--no-offset", action="append", default=[], metavar="NAME",
+                   help="train NAME without the neural offset (repeatable)")
+    p.add_argument("--steps", type=int, help="override TrainConfig.steps")
+    p.add_argument("--device", choices=("auto", "cpu", "cuda"), help="override TrainConfig.device")
+    p.add_argument("--threads", type=int, default=1, help="torch threads of each material (default 1; "
+                   "with --ray the CPUs each task reserves)")
+    add_ray_arguments(p, "material", per_task=False)
+    p.set_defaults(func=_train_many, batch=None, lr=None, seed=None, blur_half_life=None, loss=None, compile=False)
+
+
+def _library_jobs(args: argparse.Namespace) -> list:
+    """The MaterialJob of every [NAME=]DATA, described as models/make_models.sh describes them."""
+    from neumip.client.cli import CommandError
+
+    from .config import MaterialConfig
+    from .library import MaterialJob
+
+    jobs = []
+    for spec in args.jobs:
+        name, _, data = spec.rpartition("=")
+        name = name or Path(data).name
+        resolution = args.resolution or _data_resolution(data)
+        offset = name not in args.no_offset
+        kind = "neural offset" if offset else "no neural offset"
+        material = MaterialConfig(resolution=resolution, offset=offset)
+        jobs.append(MaterialJob(name, data, material, f"{Path(data).name}, {resolution}^2, {kind}, {args.preset} preset"))
+    unknown = set(args.no_offset) - {job.name for job in jobs}
+    if unknown:
+        raise CommandError(f"--no-offset names no material: {', '.join(sorted(unknown))}")
+    return jobs
+
+
+def _train_many(args: argparse.Namespace) -> int:
+    from tqdm import tqdm
+
+    from neumip.client.cli import CommandError
+
+    from .cluster import ray_config
+    from .library import LibrarySettings, finished, train_library
+    from .validation import format_table
+
+    ray = ray_config(args)
+    try:
+        settings = LibrarySettings(Path(args.models), Path(args.runs), _train_config(args), args.threads)
+        jobs = _library_jobs(args)
+    except ValueError as exc:
+        raise CommandError(str(exc)) from exc
+    done = [job.name for job in jobs if finished(job, settings)]
+    if done:
+        print(f"finished already (remove NAME.onnx and NAME.json to retrain): {', '.join(done)}")
+    bar = tqdm(total=len(jobs), initial=len(done), unit="material", dynamic_ncols=True, position=0)
+    steps: dict[str, tqdm] = {}  # a bar per material trained in this process
+
+    def on_done(job, result) -> None:
+        if job.name in steps:
+            steps.pop(job.name).close()
+        bar.update(1)
+        outcome = f"failed: {result}" if isinstance(result, Exception) else "\n" + format_table(result)
+        tqdm.write(f"{job.name}: {outcome}")
+
+    def progress(job):
+        steps[job.name] = tqdm(total=settings.config.steps, unit="step", desc=job.name, leave=False, position=1)
+        return lambda step, loss: steps[job.name].update(step - steps[job.name].n)
+
+    try:
+        results = train_library(jobs, settings, ray, on_done, progress)
+    finally:
+        bar.close()
+    failed = [name for name, result in results.items() if isinstance(result, Exception)]
+    print(f"{len(results) - len(failed)} trained, {len(done)} skipped, {len(failed)} failed"
+          + (f": {', '.join(failed)} (re-run to retry; finished materials are skipped)" if failed else ""))
+    return 1 if failed else 0

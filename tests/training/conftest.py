@@ -79,3 +79,12 @@ def _write_plane_data(path, n: int, seed: int = 0):
 def plane_data():
     """plane_data(path, n, seed=0): write an n-query analytic plane data set to `path`, return it opened."""
     return _write_plane_data
+
+
+@pytest.fixture(scope="session")
+def local_ray():
+    """A local Ray with 2 CPUs, started once (it costs seconds); skips when Ray is not installed."""
+    ray = pytest.importorskip("ray", reason="Ray is not installed: pip install 'neumip[cluster]'")
+    ray.init(address="local", num_cpus=2, include_dashboard=False, logging_level="WARNING")
+    yield ray
+    ray.shutdown()

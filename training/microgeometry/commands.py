@@ -8,6 +8,8 @@ from __future__ import annotations
 import argparse
 import sys
 
+from neumip.training.cluster import add_ray_arguments, ray_config
+
 
 def register(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser(
@@ -44,6 +46,7 @@ def register(sub: argparse._SubParsersAction) -> None:
                    help="samples per wavefront pass (memory ~0.3 GB/M)")
     p.add_argument("--variant", default=TracerConfig.variant, help="Mitsuba variant (cuda_ad_rgb on a GPU)")
     p.add_argument("--list", action="store_true", help="list the shipped materials and exit")
+    add_ray_arguments(p, "chunk")
     p.set_defaults(func=_generate)
 
     p = sub.add_parser(
@@ -63,6 +66,7 @@ def register(sub: argparse._SubParsersAction) -> None:
 def _generate(args: argparse.Namespace) -> int:
     from neumip.client.cli import CommandError
     from neumip.client.mitsuba.runtime import MitsubaUnavailable
+    from neumip.training.cluster import ClusterError
     from neumip.training.dataset import DatasetError
 
     from .description import DescriptionError, find_description, library_names
@@ -72,12 +76,13 @@ def _generate(args: argparse.Namespace) -> int:
             print(f"{name:10s} {find_description(name).summary}")
         return 0
     if not args.material or not args.output:
-        raise CommandError("give a MATERIAL and -o DATA (or --list)")
+        hint = f" (--ray took {args.ray!r} as its address: write --ray=ADDRESS or put --ray last)" if args.ray else ""
+        raise CommandError(f"give a MATERIAL and -o DATA (or --list){hint}")
     try:
         desc = find_description(args.material)
         settings = _settings(args)
-        return _run_generate(desc, args.output, settings)
-    except (DescriptionError, DatasetError, MitsubaUnavailable, ValueError) as exc:
+        return _run_generate(desc, args.output, settings, ray_config(args))
+    except (DescriptionError, DatasetError, MitsubaUnavailable, ClusterError, ValueError) as exc:
         raise CommandError(str(exc)) from None
 
 
@@ -98,7 +103,7 @@ def _settings(args: argparse.Namespace):
     )
 
 
-def _run_generate(desc, output: str, settings) -> int:
+def _run_generate(desc, output: str, settings, ray=None) -> int:
     from tqdm import tqdm
 
     from .generate import generate
@@ -113,7 +118,7 @@ def _run_generate(desc, output: str, settings) -> int:
             bars[0].update(done - bars[0].n)
 
     try:
-        data = generate(desc, output, settings, on_chunk)
+        data = generate(desc, output, settings, on_chunk, ray)
     finally:
         for bar in bars:
             bar.close()
