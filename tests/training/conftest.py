@@ -1,5 +1,5 @@
-"""Shared fixtures of the training tests: edge queries, the torch vs ONNX parity check, and an
-analytic flat-plane data set with a known answer at every level of detail."""
+"""Shared fixtures of the training tests: edge queries, the torch vs ONNX parity check, an
+analytic flat-plane data set with a known answer at every level of detail, and one local Ray."""
 
 from __future__ import annotations
 
