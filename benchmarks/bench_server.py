@@ -34,6 +34,7 @@ import httpx
 import numpy as np
 
 from neumip.client import contract as C
+from neumip.client import wire
 from neumip.client.http import ClientConfig, MaterialClient, ServerError
 from neumip.client.local import LocalMaterials
 
@@ -110,10 +111,10 @@ def msgpack_call(client: MaterialClient, name: str, q: np.ndarray, stages: dict 
 
 def httpx_call(http: httpx.Client, name: str, q: np.ndarray) -> np.ndarray:
     """The same request from a plain httpx client (the transport MaterialClient used before)."""
-    resp = http.post(C.EVALUATE_PATH.format(name=name), content=C.encode_request(q),
-                     headers={"content-type": C.MSGPACK_MEDIA_TYPE})
+    resp = http.post(wire.EVALUATE_PATH.format(name=name), content=wire.encode_request(q),
+                     headers={"content-type": wire.MSGPACK_MEDIA_TYPE})
     resp.raise_for_status()
-    return C.decode_response(resp.content)
+    return wire.decode_response(resp.content)
 
 
 def v2_call(triton_client, name: str, q: np.ndarray) -> np.ndarray:

@@ -7,6 +7,7 @@ every body themselves.
 from __future__ import annotations
 
 from neumip.client import contract as C
+from neumip.client import wire
 
 ERROR_SCHEMA = {
     "type": "object",
@@ -43,7 +44,7 @@ EVALUATE_BODY = {
                 "properties": {"queries": {"type": "array", "items": _ROW}, "n": {"type": "integer"}},
             }
         },
-        C.MSGPACK_MEDIA_TYPE: {
+        wire.MSGPACK_MEDIA_TYPE: {
             "schema": _BINARY,
             "description": 'msgpack map {"n": N, "queries": N*7 little-endian float32 bytes}',
         },
@@ -61,7 +62,7 @@ EVALUATE_RESPONSE = {
                 },
             }
         },
-        C.MSGPACK_MEDIA_TYPE: {"schema": _BINARY},
+        wire.MSGPACK_MEDIA_TYPE: {"schema": _BINARY},
     },
 }
 

@@ -9,7 +9,6 @@ import pytest
 
 from neumip.client.local import LocalMaterials, load_material
 from neumip.server.batching import Batcher, split
-from neumip.server.errors import QueueFull
 from neumip.server.metrics import Metrics
 from neumip.server.settings import Settings
 from neumip.client.contract import random_queries
@@ -89,18 +88,6 @@ def test_lone_requests_do_not_wait_to_be_merged(model_dir, reference):
     np.testing.assert_array_equal(small, reference.evaluate("rand16", random_queries(10, seed=1)))
     np.testing.assert_array_equal(split_tail, reference.evaluate("rand16", random_queries(2500, seed=2)))
     assert sample(metrics, "neumip_batch_rows_count") == 1 + 3
-
-
-def test_queue_bound_refuses_with_queue_full(model_dir):
-    batcher, metrics = make_batcher(model_dir, ort_workers=1, max_rows=3000, max_queue_rows=3000, chunk_rows=1024)
-    requests = [("rand16", random_queries(2000, seed=i)) for i in range(4)]
-    answers = asyncio.run(run_all(batcher, requests))
-    full = [a for a in answers if isinstance(a, QueueFull)]
-    assert isinstance(answers[0], np.ndarray) and len(full) == 3
-    assert full[0].status == 503 and full[0].headers["Retry-After"] == "1"
-    assert "retry" in full[0].message
-    assert sample(metrics, "neumip_queue_rejected_total") == 3
-    assert batcher.admitted_rows == 0
 
 
 def test_model_failure_fails_the_batch_not_the_batcher(model_dir):

@@ -9,8 +9,9 @@ import httpx
 import pytest
 
 from neumip.client import contract as C
+from neumip.client import wire
 
-PATH = C.EVALUATE_PATH.format(name="rand16")
+PATH = wire.EVALUATE_PATH.format(name="rand16")
 RAW = {
     "garbage request line": b"\x00\x01\x02 not http\r\n\r\n",
     "bad content-length": f"POST {PATH} HTTP/1.1\r\nHost: x\r\nContent-Type: application/msgpack\r\nContent-Length: abc\r\n\r\n".encode(),
