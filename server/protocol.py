@@ -13,7 +13,8 @@ gives uvicorn a subclass that:
   or header, an unknown method, a malformed Content-Length or chunk size: 400).
 
 Errors are written on the connection and then it is closed: the rest of such a request cannot be
-trusted to mark where the next one starts.
+trusted to mark where the next one starts. A framing error in a body the app is already reading (a bad
+chunk size) is answered the same way, and the app sees the client as gone.
 """
 
 from __future__ import annotations
@@ -91,8 +92,14 @@ def protocol_class(settings: Settings) -> type[asyncio.Protocol]:
         def _refuse(self, status: int, message: str) -> None:
             self._stop_header_timer()
             self.logger.warning("%s %s", status, message)
-            if self.cycle is None or self.cycle.response_complete:  # never inside an answer the app is writing
-                self.transport.write(error_bytes(status, message))
+            cycle = self.cycle
+            if cycle is not None and not cycle.response_complete:  # the app is reading this request's body
+                if cycle.response_started:  # never inside an answer the app is writing: just close
+                    self.transport.close()
+                    return
+                cycle.disconnected = True  # the app's reads now end, its writes go nowhere
+                cycle.message_event.set()
+            self.transport.write(error_bytes(status, message))
             self.transport.close()
 
     return GuardedProtocol

@@ -107,6 +107,42 @@ def live_server(model_dir, tmp_path_factory):
     assert server.stop() == 0, server.log.read_text()
 
 
+def _servers(model_dir: Path, log_path):
+    """A `start(folder=None, **settings)` that starts `neumip serve` processes; after the yield each
+    is stopped and must have exited with status 0."""
+    servers = []
+
+    def start(folder: Path | None = None, **env) -> LiveServer:
+        servers.append(start_server(folder or model_dir, log_path(len(servers)), **env))
+        return servers[-1]
+
+    yield start
+    for server in servers:
+        assert server.stop() == 0, server.log.read_text()
+
+
+@pytest.fixture
+def serve(model_dir, tmp_path):
+    """Start real `neumip serve` processes for one test: ``serve(max_rows=5000)`` (settings as keyword
+    arguments, NEUMIP_* without the prefix; the folder defaults to the test materials). Each stops
+    after the test, and must have exited with status 0."""
+    yield from _servers(model_dir, lambda i: tmp_path / f"server{i}.log")
+
+
+@pytest.fixture(scope="module")
+def serve_module(model_dir, tmp_path_factory):
+    """`serve` for servers that a whole test module shares."""
+    yield from _servers(model_dir, lambda i: tmp_path_factory.mktemp("server") / f"server{i}.log")
+
+
+@pytest.fixture(scope="module")
+def live_server(model_dir, tmp_path_factory):
+    """A real `neumip serve` process serving the test materials; checks the graceful exit after."""
+    server = start_server(model_dir, tmp_path_factory.mktemp("server") / "server.log")
+    yield server
+    assert server.stop() == 0, server.log.read_text()
+
+
 @pytest.fixture
 def serve(model_dir, tmp_path):
     """Start real `neumip serve` processes for one test: ``serve(max_rows=5000)`` (settings as keyword
