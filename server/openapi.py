@@ -19,9 +19,11 @@ ERROR_RESPONSES = {
     for status, text in (
         (400, "Malformed request (bad body, shape, values, header or name)"),
         (404, "Unknown material or endpoint"),
-        (413, "Body or row count over the limit"),
+        (408, "Body not complete within NEUMIP_BODY_TIMEOUT_S"),
+        (413, "Body, JSON or row count over the limit"),
         (415, "Unsupported Content-Type or Content-Encoding"),
-        (503, "Queue full (see Retry-After) or server starting"),
+        (500, "The model failed or answered NaN/Inf (the message names the material)"),
+        (503, "Queue or body budget full (see Retry-After), or server starting"),
     )
 }
 

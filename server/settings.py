@@ -81,11 +81,11 @@ class Settings(BaseSettings):
                 f"max_queue_rows ({self.max_queue_rows}) must be >= max_rows ({self.max_rows}):"
                 " otherwise the largest allowed request could never be admitted"
             )
-        largest = max(self.max_body_bytes, JSON_MEMORY_FACTOR * self.max_json_body_bytes)
+        largest = self.max_body_bytes + JSON_MEMORY_FACTOR * self.max_json_body_bytes  # a v2 body: both parts
         if self.body_budget_bytes < largest:
             raise ValueError(
-                f"body_budget_bytes ({self.body_budget_bytes}) must be >= max_body_bytes ({self.max_body_bytes}) and "
-                f">= {JSON_MEMORY_FACTOR} x max_json_body_bytes ({self.max_json_body_bytes}): otherwise the largest "
+                f"body_budget_bytes ({self.body_budget_bytes}) must be >= max_body_bytes ({self.max_body_bytes}) + "
+                f"{JSON_MEMORY_FACTOR} x max_json_body_bytes ({self.max_json_body_bytes}): otherwise the largest "
                 "allowed request could never be admitted"
             )
         return self

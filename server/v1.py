@@ -1,7 +1,7 @@
 """The renderer fast path (``/v1``): msgpack in, msgpack out; JSON for people trying it with curl.
 
 ``POST /v1/materials/{name}/evaluate`` with ``Content-Type: application/msgpack`` takes the
-`contract.encode_request` body and answers `contract.encode_response`; with ``application/json`` it
+`wire.encode_request` body and answers `wire.encode_response`; with ``application/json`` it
 takes ``{"queries": [[u, v, sigma, wi_x, wi_y, wo_x, wo_y], ...]}`` and answers
 ``{"n": N, "rgb": [[r, g, b], ...]}``. ``GET /v1/materials`` lists the materials with their metadata.
 """
@@ -104,11 +104,9 @@ async def evaluate(name: str, request: Request, state: ServerState = Depends(ser
             check_rows(queries.shape[0], state.settings.max_rows)
             state.admission.resize(ticket, ticket.memory, queries.shape[0])
             timer.mark("decode")
-            if kind == "msgpack":  # the workers write the answer straight into the response body
-                content, rgb = wire.response_buffer(queries.shape[0])  # rgb: (N, 3) float32 view of content
-                ticket.until = state.batcher.submit(name, queries, out=rgb)
-            else:
-                ticket.until = state.batcher.submit(name, queries)
+            # msgpack: the workers write the answer straight into the response body (out: a view of it)
+            content, out = wire.response_buffer(queries.shape[0]) if kind == "msgpack" else (None, None)
+            ticket.until = state.batcher.submit(name, queries, out=out)
         rgb = await asyncio.shield(ticket.until)  # (N, 3) float32
     timer.mark("evaluate")
     if kind == "msgpack":

@@ -20,7 +20,7 @@ def request(**headers: str) -> Request:
 
 def test_plan_bounds_rows_and_memory_from_the_headers():
     settings = Settings(max_rows=1000, max_queue_rows=1000, max_body_bytes=1 << 20,
-                        max_json_body_bytes=1 << 16, body_budget_bytes=1 << 20)
+                        max_json_body_bytes=1 << 16, body_budget_bytes=2 << 20)
     msgpack = plan(request(content_length=str(6 + 28 * 300)), settings, json=False)
     assert (msgpack.rows, msgpack.memory()) == (300, 6 + 28 * 300)
     assert plan(request(content_length=str(28 * 5000)), settings, json=False).rows == 1000  # at most max_rows
@@ -42,7 +42,7 @@ def test_plan_bounds_rows_and_memory_from_the_headers():
 
 def test_budgets_refuse_at_once_and_release_when_the_answer_is_done():
     settings = Settings(max_rows=3000, max_queue_rows=3000, max_body_bytes=1 << 20, max_json_body_bytes=1 << 16,
-                        body_budget_bytes=1 << 20)
+                        body_budget_bytes=2 << 20)
     metrics = Metrics()
     admission = Admission(settings, metrics)
 
@@ -62,10 +62,12 @@ def test_budgets_refuse_at_once_and_release_when_the_answer_is_done():
         ticket.until.set_result(None)
         await asyncio.sleep(0)  # done callbacks run on the loop
         assert (admission.rows, admission.memory, admission.requests) == (0, 0, 0)
-        big = plan(request(content_length=str(900_000)), settings, json=False)
-        with admission.admit(big):
+        roomy = settings.model_copy(update={"max_queue_rows": 100_000})  # rows to spare: memory binds
+        memory = Admission(roomy, metrics)
+        big = plan(request(content_length=str(900_000)), roomy, json=False)
+        with memory.admit(big), memory.admit(big):
             with pytest.raises(QueueFull, match="bytes of request bodies"):
-                with admission.admit(big):
+                with memory.admit(big):
                     pass
 
     asyncio.run(scenario())
