@@ -187,6 +187,16 @@ class MaterialClient:
     def __exit__(self, *exc) -> None:
         self.close()
 
+    def _send(self, method: str, path: str, body: list | None, headers: dict | None):
+        """One exchange; sent once more on a new connection if the kept-alive one turns out closed by
+        the server as the request went out (a race no idle check can rule out; evaluation is
+        idempotent). Not an attempt of its own: a server that is really gone fails the second send."""
+        try:
+            return self._http.request(method, path, content=body, headers=headers)
+        except self._httpx.RemoteProtocolError:
+            log.debug("%s %s: connection closed by the server as the request went out; sending anew", method, path)
+            return self._http.request(method, path, content=body, headers=headers)
+
     def _request(self, method: str, path: str, what: str, body: list | None = None, headers: dict | None = None):
         """One HTTP exchange with bounded retries on 503 / connection errors; raises ServerError.
 
@@ -197,7 +207,7 @@ class MaterialClient:
         for attempt in range(cfg.retries + 1):
             last = attempt == cfg.retries
             try:
-                response = self._http.request(method, path, content=body, headers=headers)
+                response = self._send(method, path, body, headers)
             except self._httpx.TransportError as exc:
                 problem = _describe(exc)
                 if last:

@@ -221,22 +221,30 @@ def test_json_over_its_limit_is_refused_before_it_is_read(hardened):
 
 # --- time ---------------------------------------------------------------------------------------------
 def test_a_slow_uploader_does_not_hold_batches_open(hardened):
-    """While one client uploads a body byte by byte, 16-row requests answer without the 1 s merge wait."""
+    """While clients upload bodies byte by byte, 16-row requests answer without the 1 s merge wait."""
     body = wire.encode_request(random_queries(16, seed=1))
     stop = threading.Event()
 
-    def slow_upload() -> None:
-        with connect(hardened) as sock:
-            sock.sendall(post_head(len(body)))
-            for i in range(len(body) - 1):
-                if stop.wait(0.05):
-                    return
-                sock.sendall(body[i : i + 1])
+    def slow_upload(delay: float) -> None:  # one upload after the other (each ends with a 408), until stopped
+        stop.wait(delay)
+        while not stop.is_set():
+            with connect(hardened) as sock:
+                try:
+                    sock.sendall(post_head(len(body)))
+                    for i in range(len(body) - 1):
+                        if stop.wait(0.05):
+                            return
+                        sock.sendall(body[i : i + 1])
+                except OSError:  # timed out by the server: start the next one
+                    pass
 
-    uploader = threading.Thread(target=slow_upload)
-    uploader.start()
+    half = SMALL["body_timeout_s"] / 2  # two staggered: one is always in flight, also while the other restarts
+    uploaders = [threading.Thread(target=slow_upload, args=(delay,)) for delay in (0, half)]
+    for uploader in uploaders:
+        uploader.start()
     try:
         time.sleep(0.2)
+        assert metric(hardened, "neumip_body_bytes ") > 0  # the upload is in flight
         latencies = []
         with MaterialClient(hardened.url, ClientConfig(timeout_s=30)) as client:
             for seed in range(10):
@@ -246,7 +254,8 @@ def test_a_slow_uploader_does_not_hold_batches_open(hardened):
                 latencies.append(time.perf_counter() - start)
     finally:
         stop.set()
-        uploader.join(timeout=10)
+        for uploader in uploaders:
+            uploader.join(timeout=10)
     p50 = statistics.median(latencies)
     print(f"16-row p50 with a slow uploader and a 1 s merge wait: {p50 * 1e3:.1f} ms")
     assert p50 < 0.5, f"16-row p50 {p50 * 1e3:.0f} ms: a batch waited for the upload"
