@@ -9,7 +9,7 @@ after the load.
 Starts a real `neumip serve` process on 127.0.0.1 (default settings unless NEUMIP_* variables say
 otherwise) and talks to it from this process, so client-side encoding and decoding are part of every
 end-to-end figure. msgpack goes through the product client, `MaterialClient` (one kept-alive
-httpx.Client); v2 through tritonclient. The default model is the default `MaterialConfig` (256^2, neural offset) with
+httpx.Client); v2 through `MaterialClient(protocol="v2")` and through tritonclient. The default model is the default `MaterialConfig` (256^2, neural offset) with
 random weights, as in bench_inference.py (speed does not depend on training); `--model` takes an
 exported file, e.g. one of `models/`. In-process = `LocalMaterials`
 with its defaults (a worker per core). Other jobs share this machine's cores: the throughput table
@@ -119,13 +119,14 @@ def v2_call(triton_client, name: str, q: np.ndarray) -> np.ndarray:
     return triton_client.infer(name, [tensor], outputs=[out]).as_numpy(C.ONNX_OUTPUT)
 
 
-def throughput(args, name, local, client, triton_client, pool) -> None:
+def throughput(args, name, local, client, v2_client, triton_client, pool) -> None:
     n = args.rows
     batches = [pool[i * n : (i + 1) * n] for i in range(len(pool) // n)]
     stages: dict[str, list[float]] = {}
     kinds = {
         "in-process (LocalMaterials)": lambda q: local.evaluate(name, q),
         "msgpack /v1 (MaterialClient)": lambda q: msgpack_call(client, name, q, stages),
+        "v2 binary (MaterialClient)": lambda q: v2_client.evaluate(name, q),
         "v2 binary (tritonclient)": lambda q: v2_call(triton_client, name, q),
     }
     for fn in kinds.values():  # warm-up
@@ -256,9 +257,10 @@ def main() -> None:
             local = LocalMaterials(folder)
             pool = C.random_queries(max(args.rows * 4, 1 << 18))
             rss_start = server.rss_mib()
-            with MaterialClient(server.url, ClientConfig(timeout_s=120)) as client:
+            with MaterialClient(server.url, ClientConfig(timeout_s=120)) as client, \
+                    MaterialClient(server.url, ClientConfig(timeout_s=120), protocol="v2") as v2_client:
                 triton_client = triton.InferenceServerClient(server.url.split("://")[1], network_timeout=120)
-                throughput(args, name, local, client, triton_client, pool)
+                throughput(args, name, local, client, v2_client, triton_client, pool)
                 rss_before_load = server.rss_mib()
                 latency(args, name, server, pool)
                 rss_after_load = server.rss_mib()

@@ -9,9 +9,9 @@ the server answered. Large buffers are sent as several requests of at most ``Cli
 rows. A material name goes into the URL path, so a name that is not a material name
 (`neumip.client.local.NAME_PATTERN`) is refused before anything is sent.
 
-How queries and answers travel is a `Codec`: today the msgpack ``/v1`` format (`neumip.client.wire`);
-another one (the Open Inference Protocol's binary tensors) fits beside it without touching the
-retries or the transport. Tests inject an httpx transport (``httpx.MockTransport``) into the same
+How queries and answers travel is a `Codec` (`PROTOCOLS`): the msgpack ``/v1`` format by default, or
+the Open Inference Protocol's ``/v2`` binary tensors (``protocol="v2"``), both laid out in
+`neumip.client.wire`; the retries and the transport are the same for both. Tests inject an httpx transport (``httpx.MockTransport``) into the same
 ``httpx.Client`` path, and run against a real server process.
 """
 
@@ -81,8 +81,8 @@ class Codec(Protocol):
         """Validated (n, 7) float32 queries -> (request headers, body as a list of buffers)."""
         ...
 
-    def decode(self, content: bytes, rows: int) -> np.ndarray:
-        """The answer body of a request of `rows` queries -> (rows, 3) float32 RGB."""
+    def decode(self, response, rows: int) -> np.ndarray:
+        """The answer (an ``httpx.Response``) to a request of `rows` queries -> (rows, 3) float32 RGB."""
         ...
 
 
@@ -101,19 +101,38 @@ class MsgpackCodec:
         }
         return headers, [header, rows]
 
-    def decode(self, content: bytes, rows: int) -> np.ndarray:
-        return C.as_rgb(wire.decode_response(content), rows)
+    def decode(self, response, rows: int) -> np.ndarray:
+        return C.as_rgb(wire.decode_response(response.content), rows)
+
+
+class InferCodec:
+    """The Open Inference Protocol ``/v2`` infer endpoint with binary tensors in and out (`wire`)."""
+
+    def path(self, material: str) -> str:
+        return wire.INFER_PATH.format(name=material)
+
+    def encode(self, queries: np.ndarray) -> tuple[dict[str, str], list]:
+        return wire.encode_infer_request(queries)
+
+    def decode(self, response, rows: int) -> np.ndarray:
+        rgb = wire.decode_infer_response(response.content, response.headers.get(wire.INFER_HEADER_LENGTH))
+        return C.as_rgb(rgb, rows)
+
+
+PROTOCOLS: dict[str, Codec] = {"msgpack": MsgpackCodec(), "v2": InferCodec()}
+"""How `MaterialClient` can talk to the server: ``/v1`` msgpack (the default) or ``/v2`` binary tensors."""
 
 
 class MaterialClient:
     """Evaluate named materials on a remote server: ``MaterialClient("http://127.0.0.1:8000")``.
 
-    `transport` replaces httpx's network transport (tests: ``httpx.MockTransport``); `codec` says how
-    queries and answers travel (default: msgpack ``/v1``).
+    `transport` replaces httpx's network transport (tests: ``httpx.MockTransport``); `protocol` says
+    how queries and answers travel: ``"msgpack"`` (``/v1``, the default) or ``"v2"`` (the Open Inference
+    Protocol with binary tensors), see `PROTOCOLS`.
     """
 
     def __init__(
-        self, url: str, config: ClientConfig | None = None, transport=None, codec: Codec | None = None
+        self, url: str, config: ClientConfig | None = None, transport=None, protocol: str = "msgpack"
     ) -> None:
         self.url = url.rstrip("/")
         if not self.url.startswith(("http://", "https://")):
@@ -121,7 +140,9 @@ class MaterialClient:
         self.config = config or ClientConfig()
         if self.config.max_rows < 1 or self.config.retries < 0:
             raise ValueError("ClientConfig: max_rows must be >= 1 and retries >= 0")
-        self.codec = codec or MsgpackCodec()
+        if protocol not in PROTOCOLS:
+            raise ValueError(f"protocol must be one of {', '.join(PROTOCOLS)}, got {protocol!r}")
+        self.codec = PROTOCOLS[protocol]
         httpx = self._httpx = _httpx()
         self._http = httpx.Client(
             base_url=self.url,
@@ -171,7 +192,7 @@ class MaterialClient:
             "POST", self.codec.path(material), what=f"evaluate {n} queries on {material!r}", body=body, headers=headers
         )
         self.server_timing = _server_timing(response.headers.get("Server-Timing", ""))
-        return self.codec.decode(response.content, n)
+        return self.codec.decode(response, n)
 
     # --- plumbing -------------------------------------------------------------------------------
     def refresh(self) -> None:

@@ -1,20 +1,27 @@
-"""The msgpack wire format of the ``/v1`` endpoints: the bodies the server and `MaterialClient` exchange.
+"""The wire formats the server and `MaterialClient` exchange: msgpack (``/v1``) and the Open Inference
+Protocol's binary tensors (``/v2``).
 
-Request body:  msgpack map ``{"n": N, "queries": <N*7*4 bytes, little-endian float32, row-major>}``
-Response body: msgpack map ``{"n": N, "rgb": <N*3*4 bytes, little-endian float32, row-major>}``
+msgpack request body:  map ``{"n": N, "queries": <N*7*4 bytes, little-endian float32, row-major>}``
+msgpack response body: map ``{"n": N, "rgb": <N*3*4 bytes, little-endian float32, row-major>}``
 
 The rows travel as raw float32 bytes, so neither side copies them: a body laid out exactly as
 `msgpack.packb` writes it is read as a view (`_fast_rows`), and the server writes its answer straight
 into a response body (`response_buffer`). Any other valid msgpack layout of the same map is still
 decoded, by msgpack itself. What a query *means* is `neumip.client.contract`; this module is only
 how its rows travel.
+
+The v2 binary layout (Triton's binary tensor extension) is a JSON header of
+``Inference-Header-Content-Length`` bytes followed by the raw tensor bytes: `encode_infer_request`
+and `decode_infer_response` are the client's half; the server reads every form the protocol allows.
 """
 
 from __future__ import annotations
 
+import json
+
 import numpy as np
 
-from .contract import DTYPE, QUERY_DIM, RGB_DIM, QueryError, as_queries
+from .contract import DTYPE, ONNX_INPUT, ONNX_OUTPUT, QUERY_DIM, RGB_DIM, QueryError, as_queries
 
 MSGPACK_MEDIA_TYPE = "application/msgpack"
 """Content type of the request and response bodies."""
@@ -24,6 +31,12 @@ MATERIALS_PATH = "/v1/materials"
 """GET here to list the served materials with their metadata."""
 ROW_BYTES = QUERY_DIM * DTYPE.itemsize
 """Bytes of one query row on the wire."""
+INFER_PATH = "/v2/models/{name}/infer"
+"""POST here (Open Inference Protocol) to evaluate queries on material `name`."""
+INFER_HEADER_LENGTH = "Inference-Header-Content-Length"
+"""Header giving the length of the JSON part of a v2 body with binary tensors."""
+INFER_DATATYPE = "FP32"
+"""The Open Inference Protocol datatype of queries and answers."""
 
 
 def _prefix(key: str, n: int) -> bytes:
@@ -124,3 +137,39 @@ def encode_response(rgb: np.ndarray) -> bytes:
 def decode_response(body) -> np.ndarray:
     """msgpack response body -> (N, 3) float32 RGB (a view of `body`). Raises QueryError."""
     return _unpack_rows(body, "rgb", RGB_DIM)
+
+
+def encode_infer_request(queries: np.ndarray) -> tuple[dict[str, str], list]:
+    """(N, 7) queries -> (headers, body parts) of a v2 infer request with a binary input and output:
+    the JSON header, then the rows without a copy."""
+    q = np.ascontiguousarray(queries, dtype=DTYPE)
+    tensor = {"name": ONNX_INPUT, "datatype": INFER_DATATYPE, "shape": list(q.shape),
+              "parameters": {"binary_data_size": q.nbytes}}
+    head = {"inputs": [tensor], "outputs": [{"name": ONNX_OUTPUT, "parameters": {"binary_data": True}}]}
+    header = json.dumps(head, separators=(",", ":")).encode()
+    headers = {
+        "Content-Type": "application/octet-stream",
+        INFER_HEADER_LENGTH: str(len(header)),
+        "Content-Length": str(len(header) + q.nbytes),
+    }
+    return headers, [header, memoryview(q.reshape(-1)).cast("B")]
+
+
+def decode_infer_response(body, header_length: str | None) -> np.ndarray:
+    """A v2 infer answer with a binary ``rgb`` output (and `header_length`, its
+    Inference-Header-Content-Length) -> (N, 3) float32 RGB, a view of `body`. Raises QueryError."""
+    if header_length is None or not header_length.isdigit() or int(header_length) > len(body):
+        raise QueryError(f"v2 answer has no valid {INFER_HEADER_LENGTH} ({header_length!r}): no binary output")
+    length = int(header_length)
+    try:
+        head = json.loads(bytes(memoryview(body)[:length]))
+        [output] = [o for o in head["outputs"] if o["name"] == ONNX_OUTPUT]
+        shape, size = output["shape"], output["parameters"]["binary_data_size"]
+    except (ValueError, KeyError, TypeError) as exc:
+        raise QueryError(f"v2 answer header is not an infer response with a binary '{ONNX_OUTPUT}': {exc}") from None
+    if output.get("datatype") != INFER_DATATYPE or len(shape) != 2 or shape[1] != RGB_DIM:
+        raise QueryError(f"v2 answer '{ONNX_OUTPUT}' is {output.get('datatype')} {shape}, not {INFER_DATATYPE} [N, 3]")
+    if size != shape[0] * RGB_DIM * DTYPE.itemsize or len(body) - length != size:
+        raise QueryError(f"v2 answer holds {len(body) - length} bytes of '{ONNX_OUTPUT}', shape {shape} needs "
+                         f"{shape[0] * RGB_DIM * DTYPE.itemsize}")
+    return np.frombuffer(body, dtype=DTYPE, offset=length).reshape(shape[0], RGB_DIM)

@@ -16,6 +16,7 @@ from fastapi import APIRouter, Depends, Request, Response
 from fastapi.responses import JSONResponse
 
 from neumip.client import contract as C
+from neumip.client import wire
 
 from .admission import plan, read_body
 from .body import JSON_TYPE, check_rows, media_type, parse_json
@@ -28,8 +29,8 @@ from .v1 import OFFLOAD_BYTES
 
 router = APIRouter(prefix="/v2", tags=["v2 (Open Inference Protocol)"])
 
-HEADER_LENGTH = "Inference-Header-Content-Length"
-DATATYPE = "FP32"
+HEADER_LENGTH = wire.INFER_HEADER_LENGTH
+DATATYPE = wire.INFER_DATATYPE
 PLATFORM = "onnxruntime_onnx"
 INFER_TYPES = (None, JSON_TYPE, "application/octet-stream")
 """Content types an infer request may carry (tritonclient sends none)."""

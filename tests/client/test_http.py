@@ -228,11 +228,12 @@ def client_port(client: MaterialClient) -> int:
     return reply.extensions["network_stream"].get_extra_info("client_addr")[1]
 
 
-def test_real_server_answers_bit_identical_on_one_kept_alive_connection(serve, model_dir):
-    """MaterialClient, as it runs in a render, against a real `neumip serve` process."""
+@pytest.mark.parametrize("protocol", ["msgpack", "v2"])
+def test_real_server_answers_bit_identical_on_one_kept_alive_connection(serve, model_dir, protocol):
+    """MaterialClient, as it runs in a render, against a real `neumip serve` process, in both protocols."""
     server = serve(max_rows=5000)
     reference = LocalMaterials(model_dir)
-    with MaterialClient(server.url, ClientConfig(max_rows=3000)) as client:
+    with MaterialClient(server.url, ClientConfig(max_rows=3000), protocol=protocol) as client:
         assert client.materials() == ["flat16", "lambert", "rand16"]
         port = client_port(client)
         for n, seed in ((1, 0), (7000, 1), (20000, 2)):  # 7000 and 20000: several requests each
@@ -245,10 +246,17 @@ def test_real_server_answers_bit_identical_on_one_kept_alive_connection(serve, m
         with pytest.raises(ServerError, match="answered 404: unknown material 'nope'") as info:
             client.evaluate("nope", random_queries(4))
         assert info.value.status == 404
+        with pytest.raises(ServerError, match="answered 400: queries must be finite"):
+            client._evaluate_once("rand16", np.full((2, 7), np.nan, np.float32))  # past the client's own check
         assert client.evaluate("lambert", np.zeros((0, 7), np.float32)).shape == (0, 3)
-    with MaterialClient(server.url, ClientConfig(max_rows=6000)) as client:
+    with MaterialClient(server.url, ClientConfig(max_rows=6000), protocol=protocol) as client:
         with pytest.raises(ServerError, match="answered 413: 6000 query rows is more than the limit of 5000"):
             client.evaluate("rand16", random_queries(6000))
+
+
+def test_unknown_protocol_is_refused():
+    with pytest.raises(ValueError, match="msgpack, v2"):
+        MaterialClient("http://x", protocol="grpc")
 
 
 def test_real_server_gone_and_back(serve, model_dir):

@@ -1,4 +1,5 @@
-"""The msgpack wire format: bit-exact round trips, the zero-copy layout, and malformed bodies."""
+"""The wire formats: msgpack bit-exact round trips, the zero-copy layout and malformed bodies; the v2
+binary-tensor request and answer."""
 
 import msgpack
 import numpy as np
@@ -55,3 +56,29 @@ def test_decode_still_takes_other_msgpack_layouts_and_refuses_broken_ones():
     for broken in (good + b"\x00", good[:-1], b"\x82\xa1n\xcf" + b"\xff" * 8):
         with pytest.raises(C.QueryError, match="not valid msgpack"):
             wire.decode_request(broken)
+
+
+def test_v2_binary_request_and_answer():
+    import json
+
+    q = random_queries(5, seed=3)
+    headers, parts = wire.encode_infer_request(q)
+    body = b"".join(bytes(part) for part in parts)
+    length = int(headers[wire.INFER_HEADER_LENGTH])
+    assert int(headers["Content-Length"]) == len(body)
+    head = json.loads(body[:length])
+    assert head["inputs"][0]["shape"] == [5, 7] and head["outputs"][0]["parameters"]["binary_data"] is True
+    np.testing.assert_array_equal(np.frombuffer(body[length:], np.float32).reshape(5, 7), q)
+    rgb = np.random.default_rng(0).random((5, 3), dtype=np.float32)
+    out = {"name": "rgb", "datatype": "FP32", "shape": [5, 3], "parameters": {"binary_data_size": rgb.nbytes}}
+    answer_head = json.dumps({"model_name": "m", "outputs": [out]}).encode()
+    answer = answer_head + rgb.tobytes()
+    np.testing.assert_array_equal(wire.decode_infer_response(answer, str(len(answer_head))), rgb)
+    for broken, length_header, message in (
+        (answer, None, "no valid"),
+        (answer[:-4], str(len(answer_head)), "holds 56 bytes"),
+        (b"{}" + rgb.tobytes(), "2", "not an infer response"),
+        (answer_head.replace(b"FP32", b"FP64") + rgb.tobytes(), str(len(answer_head)), "not FP32"),
+    ):
+        with pytest.raises(C.QueryError, match=message):
+            wire.decode_infer_response(broken, length_header)
