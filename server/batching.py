@@ -120,6 +120,18 @@ def run_batch(session, pieces: list[_Piece]) -> int:
     return lo
 
 
+class _Arrival:
+    """A request being decoded (`Batcher.receiving`): batches wait for it until it submits its rows."""
+
+    def __init__(self, batcher: "Batcher") -> None:
+        self.batcher = batcher
+        self.open = True  # still counted as on its way (changed under the batcher's lock)
+
+    def submit(self, name: str, queries: np.ndarray, out: np.ndarray | None = None) -> asyncio.Future:
+        """`Batcher.submit` of this request's rows; it stops being waited for in the same step."""
+        return self.batcher.submit(name, queries, out, arrival=self)
+
+
 def first_nonfinite(piece: _Piece) -> str | None:
     """Where the piece's answer holds NaN or Inf ("row i of the request is nan"), None if nowhere."""
     finite = np.isfinite(piece.out)  # (n, 3)
@@ -168,24 +180,37 @@ class Batcher:
 
     # --- batch (event loop side) --------------------------------------------------------------
     @contextmanager
-    def receiving(self) -> Iterator[None]:
+    def receiving(self) -> Iterator[_Arrival]:
         """Around decoding a request whose body is in: while any request is being decoded, a batch that
         is not full waits (up to ``max_wait_ms``) for its rows; with none, queued rows run at once.
-        A body still arriving holds nothing: a slow uploader must not slow everyone else."""
+        A body still arriving holds nothing: a slow uploader must not slow everyone else.
+
+        Yields the request's `_Arrival`: its ``submit`` queues the rows and ends the wait in one step,
+        so a batch waiting for them takes them, and the request never waits for itself."""
+        arrival = _Arrival(self)
         with self._cond:
             self._receiving += 1
         try:
-            yield
+            yield arrival
         finally:
             with self._cond:
-                self._receiving -= 1
-                if not self._receiving:  # nothing more is coming: waiting batches go now
-                    self._cond.notify_all()
+                self._arrived(arrival)
 
-    def submit(self, name: str, queries: np.ndarray, out: np.ndarray | None = None) -> asyncio.Future:
+    def _arrived(self, arrival: _Arrival | None) -> None:
+        """Under the lock: `arrival` is no longer on its way; waiting batches go once none is."""
+        if arrival is not None and arrival.open:
+            arrival.open = False
+            self._receiving -= 1
+            if not self._receiving:
+                self._cond.notify_all()
+
+    def submit(
+        self, name: str, queries: np.ndarray, out: np.ndarray | None = None, arrival: _Arrival | None = None
+    ) -> asyncio.Future:
         """Queue validated (N, 7) float32 queries for material `name`; the future's result is their
         (N, 3) float32 RGB, written into `out` ((N, 3) float32, e.g. a view into the response body)
-        when given, else into a new array; its exception an ApiError (500) if the model failed."""
+        when given, else into a new array; its exception an ApiError (500) if the model failed.
+        `arrival`: the request's `receiving` (use ``arrival.submit``)."""
         n = queries.shape[0]
         if out is None:
             out = np.empty((n, C.RGB_DIM), dtype=C.DTYPE)
@@ -195,7 +220,6 @@ class Batcher:
         self.metrics.request_rows.observe(n)
         if n == 0:
             job.future.set_result(out)
-            return job.future
         queue = self._queues[name]
         pieces = split(queries, out, self.settings.chunk_rows, job)
         now = time.monotonic()
@@ -205,6 +229,7 @@ class Batcher:
                 queue.pieces.append(piece)
             queue.rows += n
             self._cond.notify(len(pieces))
+            self._arrived(arrival)
         return job.future
 
     async def evaluate(self, name: str, queries: np.ndarray, out: np.ndarray | None = None) -> np.ndarray:

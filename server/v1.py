@@ -99,14 +99,14 @@ async def evaluate(name: str, request: Request, state: ServerState = Depends(ser
     with state.admission.admit(body_plan) as ticket:  # 503 at once if the budgets are spent
         body = await read_body(request, body_plan, ticket, state.admission)  # 408 if too slow
         timer.mark("read")
-        with state.batcher.receiving():  # batches not yet full wait for this request's rows
+        with state.batcher.receiving() as arrival:  # batches not yet full wait for this request's rows
             queries = await decode(body, kind)  # (N, 7) float32
             check_rows(queries.shape[0], state.settings.max_rows)
             state.admission.resize(ticket, ticket.memory, queries.shape[0])
             timer.mark("decode")
             # msgpack: the workers write the answer straight into the response body (out: a view of it)
             content, out = wire.response_buffer(queries.shape[0]) if kind == "msgpack" else (None, None)
-            ticket.until = state.batcher.submit(name, queries, out=out)
+            ticket.until = arrival.submit(name, queries, out=out)
         rgb = await asyncio.shield(ticket.until)  # (N, 3) float32
     timer.mark("evaluate")
     if kind == "msgpack":

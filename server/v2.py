@@ -253,7 +253,7 @@ async def infer(name: str, request: Request, version: str | None = None, state: 
     with state.admission.admit(body_plan) as ticket:  # 503 at once if the budgets are spent
         body = await read_body(request, body_plan, ticket, state.admission)  # 408 if too slow
         timer.mark("read")
-        with state.batcher.receiving():  # batches not yet full wait for this request's rows
+        with state.batcher.receiving() as arrival:  # batches not yet full wait for this request's rows
             if len(body) > OFFLOAD_BYTES:
                 parsed = await asyncio.to_thread(parse_infer, body, header_length)
             else:
@@ -261,7 +261,7 @@ async def infer(name: str, request: Request, version: str | None = None, state: 
             check_rows(parsed.queries.shape[0], state.settings.max_rows)
             state.admission.resize(ticket, ticket.memory, parsed.queries.shape[0])
             timer.mark("decode")
-            ticket.until = state.batcher.submit(name, parsed.queries)
+            ticket.until = arrival.submit(name, parsed.queries)
         rgb = await asyncio.shield(ticket.until)  # (N, 3) float32
     timer.mark("evaluate")
     response = infer_response(name, parsed, rgb)

@@ -104,3 +104,31 @@ def test_model_failure_fails_the_batch_not_the_batcher(model_dir):
             await batcher.close()
 
     assert asyncio.run(scenario()).shape == (10, 3)
+
+
+def test_a_request_never_waits_for_itself_and_waiting_batches_take_its_rows(model_dir, reference):
+    """`receiving().submit` queues the rows and ends the wait in one step: a lone request runs at once
+    (here the answer is awaited inside its own block, with a minute of merge wait), and a batch that
+    waited for a request being decoded takes its rows in the same call."""
+    batcher, metrics = make_batcher(model_dir, ort_workers=1, chunk_rows=4096, max_wait_ms=60_000)
+    q1, q2 = random_queries(10, seed=1), random_queries(20, seed=2)
+
+    async def scenario():
+        batcher.start()
+        try:
+            with batcher.receiving() as lone:
+                alone = await asyncio.wait_for(lone.submit("rand16", q1), 30)
+            with batcher.receiving() as first, batcher.receiving() as second:
+                a = first.submit("rand16", q1)
+                await asyncio.sleep(0.05)  # the batch holding a waits: second is still being decoded
+                assert not a.done()
+                b = second.submit("rand16", q2)
+                return alone, await asyncio.wait_for(asyncio.gather(a, b), 30)
+        finally:
+            await batcher.close()
+
+    alone, (a, b) = asyncio.run(scenario())
+    np.testing.assert_array_equal(alone, reference.evaluate("rand16", q1))
+    np.testing.assert_array_equal(a, alone)
+    np.testing.assert_array_equal(b, reference.evaluate("rand16", q2))
+    assert sample(metrics, "neumip_batch_rows_count") == 2  # the lone request, then a and b merged
