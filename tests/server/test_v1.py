@@ -131,3 +131,16 @@ def test_framework_errors_use_the_error_body(client):
     ):
         assert resp.status_code == status
         assert set(resp.json()) == {"error"}
+
+
+def test_chunked_uploads_are_read_and_bounded(client, reference):
+    """A body without Content-Length (chunked) reserves memory as it grows: answered, or 413 past the limit."""
+    q = random_queries(1000, seed=5)
+    body = wire.encode_request(q)
+    resp = client.post(evaluate_path(), content=iter([body[:100], body[100:]]), headers=MSGPACK)
+    assert resp.status_code == 200, resp.text
+    np.testing.assert_array_equal(wire.decode_response(resp.content), reference.evaluate("rand16", q))
+    too_big = iter([b"\x00" * (1 << 20)] * 5)  # 5 MiB against the 4 MiB limit of this app
+    resp = client.post(evaluate_path(), content=too_big, headers=MSGPACK)
+    assert resp.status_code == 413 and "limit of 4194304 bytes" in resp.json()["error"]
+    assert client.app.state.neumip.admission.memory == 0
