@@ -23,7 +23,7 @@ import pytest
 from neumip.client import contract as C
 from neumip.client import wire
 from neumip.client.contract import random_queries
-from neumip.client.http import ClientConfig, MaterialClient
+from neumip.client.http import ClientConfig, MaterialClient, ServerUnavailable
 
 PATH = wire.EVALUATE_PATH.format(name="rand16")
 MiB = 1 << 20
@@ -198,6 +198,10 @@ def test_a_full_queue_refuses_from_the_headers(hardened):
         reply = answer(sock, wait_s=5)
         took = time.perf_counter() - start
         sock.close()
+        # a client that uploads everything before it reads still gets the 503, not a broken connection
+        with MaterialClient(hardened.url, ClientConfig(retries=0)) as client:
+            with pytest.raises(ServerUnavailable, match=r"busy \(503\).*rows queued"):
+                client.evaluate("rand16", random_queries(SMALL["max_rows"]))
     finally:
         for holder in holders:
             holder.close()
