@@ -1,14 +1,15 @@
 """Inference server speed over loopback: msgpack (/v1) and Open Inference Protocol binary (/v2)
-throughput against in-process ONNX Runtime, latency under 1/4/16 concurrent clients, a 10^6-query
-request, and the server's resident memory before and after the load.
+throughput against in-process ONNX Runtime, latency under 1/4/16 concurrent clients, 16-row latency
+with and without a slow uploader, a 10^6-query request, and the server's resident memory before and
+after the load.
 
     .venv/bin/python benchmarks/bench_server.py                    # about 2 minutes
     .venv/bin/python benchmarks/bench_server.py --model models/foo.onnx --rows 65536 --rounds 9
 
 Starts a real `neumip serve` process on 127.0.0.1 (default settings unless NEUMIP_* variables say
 otherwise) and talks to it from this process, so client-side encoding and decoding are part of every
-end-to-end figure. msgpack goes through the product client, `MaterialClient` (the throughput table
-also shows the same request from a plain httpx client); v2 through tritonclient. The default model is the default `MaterialConfig` (256^2, neural offset) with
+end-to-end figure. msgpack goes through the product client, `MaterialClient` (one kept-alive
+httpx.Client); v2 through `MaterialClient(protocol="v2")` and through tritonclient. The default model is the default `MaterialConfig` (256^2, neural offset) with
 random weights, as in bench_inference.py (speed does not depend on training); `--model` takes an
 exported file, e.g. one of `models/`. In-process = `LocalMaterials`
 with its defaults (a worker per core). Other jobs share this machine's cores: the throughput table
@@ -34,6 +35,7 @@ import httpx
 import numpy as np
 
 from neumip.client import contract as C
+from neumip.client import wire
 from neumip.client.http import ClientConfig, MaterialClient, ServerError
 from neumip.client.local import LocalMaterials
 
@@ -108,14 +110,6 @@ def msgpack_call(client: MaterialClient, name: str, q: np.ndarray, stages: dict 
     return rgb
 
 
-def httpx_call(http: httpx.Client, name: str, q: np.ndarray) -> np.ndarray:
-    """The same request from a plain httpx client (the transport MaterialClient used before)."""
-    resp = http.post(C.EVALUATE_PATH.format(name=name), content=C.encode_request(q),
-                     headers={"content-type": C.MSGPACK_MEDIA_TYPE})
-    resp.raise_for_status()
-    return C.decode_response(resp.content)
-
-
 def v2_call(triton_client, name: str, q: np.ndarray) -> np.ndarray:
     import tritonclient.http as triton
 
@@ -125,14 +119,14 @@ def v2_call(triton_client, name: str, q: np.ndarray) -> np.ndarray:
     return triton_client.infer(name, [tensor], outputs=[out]).as_numpy(C.ONNX_OUTPUT)
 
 
-def throughput(args, name, local, client, http, triton_client, pool) -> None:
+def throughput(args, name, local, client, v2_client, triton_client, pool) -> None:
     n = args.rows
     batches = [pool[i * n : (i + 1) * n] for i in range(len(pool) // n)]
     stages: dict[str, list[float]] = {}
     kinds = {
         "in-process (LocalMaterials)": lambda q: local.evaluate(name, q),
         "msgpack /v1 (MaterialClient)": lambda q: msgpack_call(client, name, q, stages),
-        "msgpack /v1 (plain httpx)": lambda q: httpx_call(http, name, q),
+        "v2 binary (MaterialClient)": lambda q: v2_client.evaluate(name, q),
         "v2 binary (tritonclient)": lambda q: v2_call(triton_client, name, q),
     }
     for fn in kinds.values():  # warm-up
@@ -151,8 +145,7 @@ def throughput(args, name, local, client, http, triton_client, pool) -> None:
         ratio = statistics.median(b / t for b, t in zip(base, ts))
         print(f"{kind:32s} {statistics.median(ts) * 1e3:10.1f} {n / statistics.median(ts) / 1e6:7.3f} {ratio:13.0%}")
     parts = ", ".join(f"{stage} {statistics.median(ms):.1f}" for stage, ms in stages.items())
-    print(f"MaterialClient server-side stages, median ms (Server-Timing): {parts}; the rest is HTTP and the client\n"
-          "(a body of more than one chunk is evaluated while it arrives: its read includes evaluating the first chunks)")
+    print(f"MaterialClient server-side stages, median ms (Server-Timing): {parts}; the rest is HTTP and the client")
 
 
 def latency(args, name, server, pool) -> None:
@@ -189,6 +182,47 @@ def latency(args, name, server, pool) -> None:
               f"{lat.size * n / wall / 1e6:7.3f} {sum(errors):7d}")
 
 
+def p50_16_rows(url: str, name: str, pool, beside_upload: bool, requests: int = 100) -> float:
+    """p50 (ms) of `requests` 16-row requests, optionally while a slow upload is in progress."""
+    body = wire.encode_request(pool[:16])
+    stop = threading.Event()
+
+    def upload() -> None:
+        host, port = url.split("://")[1].split(":")
+        with socket.create_connection((host, int(port)), timeout=30) as sock:
+            sock.sendall(f"POST {wire.EVALUATE_PATH.format(name=name)} HTTP/1.1\r\nHost: x\r\nContent-Type: "
+                         f"{wire.MSGPACK_MEDIA_TYPE}\r\nContent-Length: {len(body)}\r\n\r\n".encode())
+            for i in range(len(body) - 1):  # never the last byte: the upload lasts the whole run
+                if stop.wait(0.01):
+                    return
+                sock.sendall(body[i : i + 1])
+
+    uploader = threading.Thread(target=upload)
+    if beside_upload:
+        uploader.start()
+        time.sleep(0.1)
+    times = []
+    try:
+        with MaterialClient(url) as client:
+            for i in range(requests):
+                start = time.perf_counter()
+                client.evaluate(name, pool[16 * i : 16 * i + 16])
+                times.append(time.perf_counter() - start)
+    finally:
+        stop.set()
+        if beside_upload:
+            uploader.join()
+    return statistics.median(times) * 1e3
+
+
+def slow_uploader(args, name, server, pool, rounds: int = 200) -> None:
+    """16-row request latency alone, then while another client uploads a body one byte every 10 ms."""
+    alone = p50_16_rows(server.url, name, pool, False, rounds)
+    beside = p50_16_rows(server.url, name, pool, True, rounds)
+    print(f"\n## 16-row requests, p50 of {rounds}: {alone:.2f} ms alone, {beside:.2f} ms beside a slow uploader "
+          f"(load avg {os.getloadavg()[0]:.2f})")
+
+
 def big_request(args, name, local, client, triton_client) -> None:
     q = C.random_queries(args.big, seed=7)
     expected = LocalMaterials(local.folder, threads=1).evaluate(name, q)
@@ -223,13 +257,14 @@ def main() -> None:
             local = LocalMaterials(folder)
             pool = C.random_queries(max(args.rows * 4, 1 << 18))
             rss_start = server.rss_mib()
-            with httpx.Client(base_url=server.url, timeout=120) as http, \
-                    MaterialClient(server.url, ClientConfig(timeout_s=120)) as client:
+            with MaterialClient(server.url, ClientConfig(timeout_s=120)) as client, \
+                    MaterialClient(server.url, ClientConfig(timeout_s=120), protocol="v2") as v2_client:
                 triton_client = triton.InferenceServerClient(server.url.split("://")[1], network_timeout=120)
-                throughput(args, name, local, client, http, triton_client, pool)
+                throughput(args, name, local, client, v2_client, triton_client, pool)
                 rss_before_load = server.rss_mib()
                 latency(args, name, server, pool)
                 rss_after_load = server.rss_mib()
+                slow_uploader(args, name, server, pool)
                 big_request(args, name, local, client, triton_client)
             print(f"\n## Server resident memory: {rss_start:.0f} MiB after start-up, {rss_before_load:.0f} MiB "
                   f"before the latency runs, {rss_after_load:.0f} MiB after them "

@@ -1,33 +1,31 @@
 """`MaterialClient`: evaluate materials on a `neumip serve` server over its msgpack endpoint.
 
 The same interface as the in-process `LocalMaterials` (`materials()`, `evaluate(name, queries)`), so
-a renderer takes either. One keep-alive HTTP/1.1 connection is kept for the client's life (the
-standard library's `http.client`: the query rows go from the array to the socket without a copy,
-and it costs less per request than httpx, see the plain httpx row of benchmarks/bench_server.py);
-requests have timeouts; 503 (queue full, honouring ``Retry-After``) and connection failures are
-retried a bounded number of times with exponential backoff; anything else fails at once with an
-error that says what the server answered. Large buffers are sent as several requests of at most
-``ClientConfig.max_rows`` rows. A material name goes into the URL path, so a name that is not a
-material name (`neumip.client.local.NAME_PATTERN`) is refused before anything is sent.
+a renderer takes either. Requests go through one ``httpx.Client`` kept for the client's life: one
+kept-alive HTTP/1.1 connection, the query rows handed to the socket without a copy. Requests have
+timeouts; 503 (queue full, honouring ``Retry-After``) and connection failures are retried a bounded
+number of times with exponential backoff; anything else fails at once with an error that says what
+the server answered. Large buffers are sent as several requests of at most ``ClientConfig.max_rows``
+rows. A material name goes into the URL path, so a name that is not a material name
+(`neumip.client.local.NAME_PATTERN`) is refused before anything is sent.
 
-Tests inject an httpx transport (``httpx.MockTransport``: this client is synchronous, so the
-async-only ``ASGITransport`` does not apply); with one, requests go through ``httpx.Client``
-instead. Tests also run against a real server process.
+How queries and answers travel is a `Codec` (`PROTOCOLS`): the msgpack ``/v1`` format by default, or
+the Open Inference Protocol's ``/v2`` binary tensors (``protocol="v2"``), both laid out in
+`neumip.client.wire`; the retries and the transport are the same for both. Tests inject an httpx transport (``httpx.MockTransport``) into the same
+``httpx.Client`` path, and run against a real server process.
 """
 
 from __future__ import annotations
 
-import http.client
-import json
 import logging
-import select
 import time
 from dataclasses import dataclass
-from urllib.parse import urlsplit
+from typing import Protocol
 
 import numpy as np
 
 from . import contract as C
+from . import wire
 from .errors import NeumipError
 from .local import NAME_PATTERN, UnknownMaterial
 
@@ -72,20 +70,87 @@ class ClientConfig:
     """Most query rows per request; larger buffers are split (server default limit: 2M rows)."""
 
 
-class MaterialClient:
-    """Evaluate named materials on a remote server: ``MaterialClient("http://127.0.0.1:8000")``."""
+class Codec(Protocol):
+    """How one evaluation travels: where it goes, its request body, and how its answer reads."""
 
-    def __init__(self, url: str, config: ClientConfig | None = None, transport=None) -> None:
+    def path(self, material: str) -> str:
+        """URL path of the evaluation endpoint of `material`."""
+        ...
+
+    def encode(self, queries: np.ndarray) -> tuple[dict[str, str], list]:
+        """Validated (n, 7) float32 queries -> (request headers, body as a list of buffers)."""
+        ...
+
+    def decode(self, response, rows: int) -> np.ndarray:
+        """The answer (an ``httpx.Response``) to a request of `rows` queries -> (rows, 3) float32 RGB."""
+        ...
+
+
+class MsgpackCodec:
+    """The ``/v1`` msgpack format (`neumip.client.wire`): the rows go out and come back as raw float32."""
+
+    def path(self, material: str) -> str:
+        return wire.EVALUATE_PATH.format(name=material)
+
+    def encode(self, queries: np.ndarray) -> tuple[dict[str, str], list]:
+        header, rows = wire.encode_request_parts(queries)
+        headers = {
+            "Content-Type": wire.MSGPACK_MEDIA_TYPE,
+            "Accept": wire.MSGPACK_MEDIA_TYPE,
+            "Content-Length": str(len(header) + rows.nbytes),  # set: the parts go out as one body, not chunked
+        }
+        return headers, [header, rows]
+
+    def decode(self, response, rows: int) -> np.ndarray:
+        return C.as_rgb(wire.decode_response(response.content), rows)
+
+
+class InferCodec:
+    """The Open Inference Protocol ``/v2`` infer endpoint with binary tensors in and out (`wire`)."""
+
+    def path(self, material: str) -> str:
+        return wire.INFER_PATH.format(name=material)
+
+    def encode(self, queries: np.ndarray) -> tuple[dict[str, str], list]:
+        return wire.encode_infer_request(queries)
+
+    def decode(self, response, rows: int) -> np.ndarray:
+        rgb = wire.decode_infer_response(response.content, response.headers.get(wire.INFER_HEADER_LENGTH))
+        return C.as_rgb(rgb, rows)
+
+
+PROTOCOLS: dict[str, Codec] = {"msgpack": MsgpackCodec(), "v2": InferCodec()}
+"""How `MaterialClient` can talk to the server: ``/v1`` msgpack (the default) or ``/v2`` binary tensors."""
+
+
+class MaterialClient:
+    """Evaluate named materials on a remote server: ``MaterialClient("http://127.0.0.1:8000")``.
+
+    `transport` replaces httpx's network transport (tests: ``httpx.MockTransport``); `protocol` says
+    how queries and answers travel: ``"msgpack"`` (``/v1``, the default) or ``"v2"`` (the Open Inference
+    Protocol with binary tensors), see `PROTOCOLS`.
+    """
+
+    def __init__(
+        self, url: str, config: ClientConfig | None = None, transport=None, protocol: str = "msgpack"
+    ) -> None:
         self.url = url.rstrip("/")
         if not self.url.startswith(("http://", "https://")):
             raise ValueError(f"server URL must start with http:// or https://, got {url!r}")
         self.config = config or ClientConfig()
         if self.config.max_rows < 1 or self.config.retries < 0:
             raise ValueError("ClientConfig: max_rows must be >= 1 and retries >= 0")
-        if transport is None:
-            self._http = _Connection(self.url, self.config)
-        else:
-            self._http = _HttpxTransport(self.url, self.config, transport)
+        if protocol not in PROTOCOLS:
+            raise ValueError(f"protocol must be one of {', '.join(PROTOCOLS)}, got {protocol!r}")
+        self.codec = PROTOCOLS[protocol]
+        httpx = self._httpx = _httpx()
+        self._http = httpx.Client(
+            base_url=self.url,
+            timeout=httpx.Timeout(self.config.timeout_s, connect=self.config.connect_timeout_s),
+            limits=httpx.Limits(max_connections=1, max_keepalive_connections=1),
+            transport=transport,
+            trust_env=False,  # no proxies from the environment: the server is named by its URL
+        )
         self._names: list[str] | None = None
         self.server_timing: dict[str, float] = {}
         """Stage durations (ms) the server reported for the last evaluation (``Server-Timing``)."""
@@ -94,7 +159,7 @@ class MaterialClient:
     def materials(self) -> list[str]:
         """Names the server serves (asked once, then cached; `refresh()` asks again)."""
         if self._names is None:
-            listing = self._request("GET", C.MATERIALS_PATH, what="list materials").json()
+            listing = self._request("GET", wire.MATERIALS_PATH, what="list materials").json()
             entries = listing.get("materials", []) if isinstance(listing, dict) else listing
             self._names = sorted(e["name"] if isinstance(e, dict) else str(e) for e in entries)
         return list(self._names)
@@ -122,15 +187,12 @@ class MaterialClient:
     def _evaluate_once(self, material: str, queries: np.ndarray) -> np.ndarray:
         """One request: validated (n, 7) queries -> (n, 3) RGB (a view of the answer's body)."""
         n = queries.shape[0]
+        headers, body = self.codec.encode(queries)
         response = self._request(
-            "POST",
-            C.EVALUATE_PATH.format(name=material),
-            what=f"evaluate {n} queries on {material!r}",
-            body=C.encode_request_parts(queries),
-            headers={"Content-Type": C.MSGPACK_MEDIA_TYPE, "Accept": C.MSGPACK_MEDIA_TYPE},
+            "POST", self.codec.path(material), what=f"evaluate {n} queries on {material!r}", body=body, headers=headers
         )
         self.server_timing = _server_timing(response.headers.get("Server-Timing", ""))
-        return C.as_rgb(C.decode_response(response.content), n)
+        return self.codec.decode(response, n)
 
     # --- plumbing -------------------------------------------------------------------------------
     def refresh(self) -> None:
@@ -146,19 +208,29 @@ class MaterialClient:
     def __exit__(self, *exc) -> None:
         self.close()
 
-    def _request(self, method: str, path: str, what: str, body: tuple = (), headers: dict | None = None):
+    def _send(self, method: str, path: str, body: list | None, headers: dict | None):
+        """One exchange; sent once more on a new connection if the kept-alive one turns out closed by
+        the server as the request went out (a race no idle check can rule out; evaluation is
+        idempotent). Not an attempt of its own: a server that is really gone fails the second send."""
+        try:
+            return self._http.request(method, path, content=body, headers=headers)
+        except self._httpx.RemoteProtocolError:
+            log.debug("%s %s: connection closed by the server as the request went out; sending anew", method, path)
+            return self._http.request(method, path, content=body, headers=headers)
+
+    def _request(self, method: str, path: str, what: str, body: list | None = None, headers: dict | None = None):
         """One HTTP exchange with bounded retries on 503 / connection errors; raises ServerError.
 
-        `body` is a sequence of buffers sent one after the other (none for a GET).
+        `body` is a list of buffers sent one after the other as one body (none for a GET).
         """
         cfg = self.config
         delay = cfg.backoff_s
         for attempt in range(cfg.retries + 1):
             last = attempt == cfg.retries
             try:
-                response = self._http.send(method, path, body, headers or {})
-            except TransportFailure as exc:
-                problem = str(exc)
+                response = self._send(method, path, body, headers)
+            except self._httpx.TransportError as exc:
+                problem = _describe(exc)
                 if last:
                     raise ServerUnavailable(
                         f"cannot {what}: server {self.url} unreachable after {attempt + 1} attempt(s) "
@@ -185,116 +257,6 @@ class MaterialClient:
             time.sleep(min(delay, cfg.max_backoff_s))
             delay = min(delay * 2, cfg.max_backoff_s)
         raise AssertionError("unreachable")  # pragma: no cover
-
-
-class TransportFailure(Exception):
-    """The exchange failed below HTTP (refused, reset, timed out): worth retrying."""
-
-
-@dataclass
-class _Reply:
-    """An HTTP answer, with the attributes of ``httpx.Response`` this module reads."""
-
-    status_code: int
-    reason_phrase: str
-    headers: http.client.HTTPMessage  # case-insensitive .get()
-    content: bytearray
-
-    def json(self) -> object:
-        return json.loads(self.content)
-
-    @property
-    def text(self) -> str:
-        return self.content.decode("utf-8", "replace")
-
-
-class _Connection:
-    """One keep-alive HTTP/1.1 connection (`http.client`), opened on first use and reopened when the
-    server has closed it (uvicorn drops idle connections after 5 s)."""
-
-    def __init__(self, url: str, config: ClientConfig) -> None:
-        parts = urlsplit(url)
-        self._cls = http.client.HTTPSConnection if parts.scheme == "https" else http.client.HTTPConnection
-        self._host, self._port = parts.hostname or "", parts.port
-        self._prefix = parts.path.rstrip("/")
-        self._config = config
-        self._conn: http.client.HTTPConnection | None = None
-
-    def send(self, method: str, path: str, body: tuple, headers: dict) -> _Reply:
-        reused = self._conn is not None and not _closed_by_peer(self._conn)
-        try:
-            return self._exchange(method, path, body, headers)
-        except (http.client.HTTPException, OSError) as exc:
-            self.close()
-            stale = isinstance(exc, (http.client.RemoteDisconnected, BrokenPipeError, ConnectionResetError))
-            if not (reused and stale):
-                raise TransportFailure(_describe(exc)) from exc
-        try:  # the server closed the kept-alive connection as this request went out: once more, anew
-            return self._exchange(method, path, body, headers)
-        except (http.client.HTTPException, OSError) as exc:
-            self.close()
-            raise TransportFailure(_describe(exc)) from exc
-
-    def _exchange(self, method: str, path: str, body: tuple, headers: dict) -> _Reply:
-        conn = self._connected()
-        headers = dict(headers)
-        if body:
-            headers["Content-Length"] = str(sum(memoryview(b).nbytes for b in body))
-        conn.request(method, self._prefix + path, body=body or None, headers=headers)
-        response = conn.getresponse()
-        length = response.length  # None for a chunked or close-delimited answer
-        if length is None:
-            content = bytearray(response.read())
-        else:  # a writable buffer: the answer's rows are handed out as a view, not copied
-            content = bytearray(length)
-            view, got = memoryview(content), 0
-            while got < length:  # readinto raises IncompleteRead if the connection ends early
-                got += response.readinto(view[got:])
-            view.release()
-        if response.will_close:
-            self.close()
-        return _Reply(response.status, response.reason, response.headers, content)
-
-    def _connected(self) -> http.client.HTTPConnection:
-        if self._conn is not None and _closed_by_peer(self._conn):
-            self.close()
-        if self._conn is None:
-            conn = self._cls(self._host, self._port, timeout=self._config.connect_timeout_s)
-            conn.connect()  # sets TCP_NODELAY: the header and the rows go out as separate sends
-            conn.sock.settimeout(self._config.timeout_s)
-            self._conn = conn
-        return self._conn
-
-    def close(self) -> None:
-        if self._conn is not None:
-            self._conn.close()
-            self._conn = None
-
-
-def _closed_by_peer(conn: http.client.HTTPConnection) -> bool:
-    """Whether an idle kept-alive connection is readable: closed by the server (or out of step)."""
-    if conn.sock is None:
-        return True
-    readable, _, _ = select.select([conn.sock], [], [], 0)
-    return bool(readable)
-
-
-class _HttpxTransport:
-    """Requests through ``httpx.Client`` with an injected transport (tests: ``httpx.MockTransport``)."""
-
-    def __init__(self, url: str, config: ClientConfig, transport) -> None:
-        self._httpx = _httpx()
-        timeout = self._httpx.Timeout(config.timeout_s, connect=config.connect_timeout_s)
-        self._client = self._httpx.Client(base_url=url, timeout=timeout, transport=transport)
-
-    def send(self, method: str, path: str, body: tuple, headers: dict):
-        try:
-            return self._client.request(method, path, content=b"".join(body) if body else None, headers=headers)
-        except self._httpx.TransportError as exc:
-            raise TransportFailure(_describe(exc)) from exc
-
-    def close(self) -> None:
-        self._client.close()
 
 
 def _describe(exc: Exception) -> str:

@@ -29,6 +29,7 @@ def check(url: str, folder: Path) -> None:
     import tritonclient.http as triton
 
     from neumip.client import contract as C
+    from neumip.client import wire
     from neumip.client.local import LocalMaterials
 
     # The exported graph answers each row with the same bits however a batch is cut, so the
@@ -36,24 +37,24 @@ def check(url: str, folder: Path) -> None:
     local = LocalMaterials(folder)
     client = triton.InferenceServerClient(url.split("://", 1)[1])
     with httpx.Client(base_url=url, timeout=60) as http:
-        listed = [m["name"] for m in http.get(C.MATERIALS_PATH).raise_for_status().json()["materials"]]
+        listed = [m["name"] for m in http.get(wire.MATERIALS_PATH).raise_for_status().json()["materials"]]
         assert listed == local.materials(), f"server lists {listed}, folder holds {local.materials()}"
         for i, name in enumerate(listed):
             q = C.random_queries(50_000, seed=i)
             ref = local.evaluate(name, q)
             resp = http.post(
-                C.EVALUATE_PATH.format(name=name),
-                content=C.encode_request(q),
-                headers={"content-type": C.MSGPACK_MEDIA_TYPE},
+                wire.EVALUATE_PATH.format(name=name),
+                content=wire.encode_request(q),
+                headers={"content-type": wire.MSGPACK_MEDIA_TYPE},
             ).raise_for_status()
-            assert np.array_equal(C.decode_response(resp.content), ref), f"{name}: msgpack answer differs"
+            assert np.array_equal(wire.decode_response(resp.content), ref), f"{name}: msgpack answer differs"
             tensor = triton.InferInput(C.ONNX_INPUT, list(q.shape), "FP32")
             tensor.set_data_from_numpy(q, binary_data=True)
             out = client.infer(name, [tensor]).as_numpy(C.ONNX_OUTPUT)
             assert np.array_equal(out, ref), f"{name}: v2 binary answer differs"
             print(f"smoke: {name}: 50000 queries, msgpack and v2 answers bit-identical to in-process")
-        bad = http.post(C.EVALUATE_PATH.format(name=listed[0]), content=b"\x00garbage",
-                        headers={"content-type": C.MSGPACK_MEDIA_TYPE})
+        bad = http.post(wire.EVALUATE_PATH.format(name=listed[0]), content=b"\x00garbage",
+                        headers={"content-type": wire.MSGPACK_MEDIA_TYPE})
         assert bad.status_code == 400 and "error" in bad.json(), bad.text
         assert http.get("/v2/health/live").status_code == 200
         assert "neumip_query_rows_total" in http.get("/metrics").text

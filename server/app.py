@@ -14,6 +14,7 @@ from contextlib import asynccontextmanager
 
 from fastapi import Depends, FastAPI, Response
 
+from .admission import Admission
 from .batching import Batcher
 from .errors import install_error_handlers
 from .metrics import Metrics, MetricsMiddleware
@@ -55,7 +56,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
         summary="NeuMIP neural materials: (N, 7) shading queries -> (N, 3) RGB",
         lifespan=lifespan,
     )
-    app.state.neumip = ServerState(settings, metrics)
+    app.state.neumip = ServerState(settings, metrics, Admission(settings, metrics))
     install_error_handlers(app)
     app.add_middleware(MetricsMiddleware, metrics=metrics)
     app.include_router(v1.router)

@@ -6,18 +6,21 @@ times slower than the same rows in cache-sized chunks) and queues them. A pool o
 per ONNX Runtime worker (default: one per core), is the executor: each worker takes the oldest queued
 pieces of one material, merging consecutive small ones into one call of up to ``chunk_rows`` rows and
 waiting at most ``max_wait_ms`` (counted from the oldest piece's arrival) for a call to fill - only
-while other requests are being received (`Batcher.receiving`): a lone request, or the tail of a lone
-large one, runs at once - then runs the call and copies each piece's rows back. Workers pull work themselves, so consecutive chunks of a large
-request run back to back without a round trip through the event loop; the loop hears back once per
-request. `predict` is the only function that touches ONNX Runtime.
+while other requests are being decoded (`Batcher.receiving`), never for a body still arriving: a lone
+request, or the tail of a lone large one, runs at once - then runs the call and copies each piece's
+rows back. Workers pull work themselves, so consecutive chunks of a large request run back to back
+without a round trip through the event loop; the loop hears back once per request. `predict` is the
+only function that touches ONNX Runtime.
+
+Answers are checked: a model that answers NaN or Inf for some row fails that request with a 500
+naming the material (counted in ``neumip_nonfinite_answers_total``), never a silent NaN.
 
 Merging and splitting keep answers bit-identical to evaluating each request on its own, in one call or
 in process (`neumip.client.local`): the exported graph answers a row with the same bits wherever it
 sits in a call and however many rows the call has (`neumip.training.export`), so pieces go into
 calls in any cut.
 
-Admission is bounded in rows: a request that would take the rows admitted and not yet answered above
-``max_queue_rows`` is refused at once with `QueueFull` (503 + Retry-After), never queued to time out.
+How many rows may be queued is decided before a request gets here (`neumip.server.admission`).
 """
 
 from __future__ import annotations
@@ -37,7 +40,7 @@ import numpy as np
 from neumip.client import contract as C
 from neumip.client.local import Material
 
-from .errors import ApiError, QueueFull
+from .errors import ApiError
 from .metrics import Metrics
 from .model_stats import ModelStats
 from .settings import Settings
@@ -56,14 +59,8 @@ class _Job:
 
     future: asyncio.Future
     out: np.ndarray  # (N, 3) float32, filled piece by piece
-    queue: _MaterialQueue
-    rows_left: int  # rows not yet answered, queued or not (changed under the batcher's lock)
-    queued: int = 0  # rows queued so far (rows 0..queued of the request)
+    rows_left: int  # rows not yet answered (changed under the batcher's lock)
     error: ApiError | None = None
-
-    @property
-    def rows(self) -> int:
-        return self.out.shape[0]
 
 
 @dataclass
@@ -73,6 +70,7 @@ class _Piece:
     job: _Job
     queries: np.ndarray  # (n, 7) float32 view into the request's queries
     out: np.ndarray  # (n, 3) float32 view into the job's answer buffer
+    start: int = 0  # index of the piece's first row in the request
     arrived: float = 0.0  # time.monotonic() when queued
     order: int = 0  # global arrival order (first in, first out across materials)
 
@@ -93,7 +91,7 @@ class _MaterialQueue:
 def split(queries: np.ndarray, out: np.ndarray, chunk: int, job: _Job) -> list[_Piece]:
     """Cut (N, 7) queries and their (N, 3) answer buffer into pieces of at most `chunk` rows."""
     n = queries.shape[0]
-    return [_Piece(job, queries[lo : lo + chunk], out[lo : lo + chunk]) for lo in range(0, n, chunk)]
+    return [_Piece(job, queries[lo : lo + chunk], out[lo : lo + chunk], lo) for lo in range(0, n, chunk)]
 
 
 def take(queue: _MaterialQueue, chunk: int) -> list[_Piece]:
@@ -109,7 +107,7 @@ def take(queue: _MaterialQueue, chunk: int) -> list[_Piece]:
 def run_batch(session, pieces: list[_Piece]) -> int:
     """Merge pieces, predict once, and copy each piece's rows of the answer back (unbatch).
 
-    Runs in a worker thread; returns the rows evaluated.
+    Runs in a worker thread; returns the rows evaluated. Check the answers with `first_nonfinite`.
     """
     if len(pieces) == 1:
         queries = pieces[0].queries  # (n, 7): a row slice of a C-contiguous buffer, no copy
@@ -121,6 +119,27 @@ def run_batch(session, pieces: list[_Piece]) -> int:
         piece.out[...] = rgb[lo : lo + piece.rows]
         lo += piece.rows
     return lo
+
+
+class _Arrival:
+    """A request being decoded (`Batcher.receiving`): batches wait for it until it submits its rows."""
+
+    def __init__(self, batcher: "Batcher") -> None:
+        self.batcher = batcher
+        self.open = True  # still counted as on its way (changed under the batcher's lock)
+
+    def submit(self, name: str, queries: np.ndarray, out: np.ndarray | None = None) -> asyncio.Future:
+        """`Batcher.submit` of this request's rows; it stops being waited for in the same step."""
+        return self.batcher.submit(name, queries, out, arrival=self)
+
+
+def first_nonfinite(piece: _Piece) -> str | None:
+    """Where the piece's answer holds NaN or Inf ("row i of the request is nan"), None if nowhere."""
+    finite = np.isfinite(piece.out)  # (n, 3)
+    if finite.all():
+        return None
+    row, col = np.argwhere(~finite)[0]
+    return f"query row {piece.start + row} of the request answered {piece.out[row, col]} ({C.RGB_FIELDS[col]})"
 
 
 class Batcher:
@@ -137,9 +156,7 @@ class Batcher:
         self._closing = False
         self._threads: list[threading.Thread] = []
         self._loop: asyncio.AbstractEventLoop | None = None
-        self._admitted_rows = 0  # touched on the event loop only
-        self._admitted_requests = 0
-        self._receiving = 0  # requests being read and decoded (changed under the lock)
+        self._receiving = 0  # requests being decoded (changed under the lock)
 
     # --- life cycle -------------------------------------------------------------------------
     def start(self) -> None:
@@ -163,107 +180,64 @@ class Batcher:
         for thread in self._threads:
             await asyncio.to_thread(thread.join)
 
-    @property
-    def admitted_rows(self) -> int:
-        """Rows admitted and not yet answered."""
-        return self._admitted_rows
-
     # --- batch (event loop side) --------------------------------------------------------------
     @contextmanager
-    def receiving(self) -> Iterator[None]:
-        """Around reading and decoding a request: while any request is on its way, a batch that is
-        not full waits (up to ``max_wait_ms``) for it; with none, a queued request runs at once."""
+    def receiving(self) -> Iterator[_Arrival]:
+        """Around decoding a request whose body is in: while any request is being decoded, a batch that
+        is not full waits (up to ``max_wait_ms``) for its rows; with none, queued rows run at once.
+        A body still arriving holds nothing: a slow uploader must not slow everyone else.
+
+        Yields the request's `_Arrival`: its ``submit`` queues the rows and ends the wait in one step,
+        so a batch waiting for them takes them, and the request never waits for itself."""
+        arrival = _Arrival(self)
         with self._cond:
             self._receiving += 1
         try:
-            yield
+            yield arrival
         finally:
             with self._cond:
-                self._receiving -= 1
-                if not self._receiving:  # nothing more is coming: waiting batches go now
-                    self._cond.notify_all()
+                self._arrived(arrival)
 
-    async def evaluate(self, name: str, queries: np.ndarray, out: np.ndarray | None = None) -> np.ndarray:
-        """Validated (N, 7) float32 queries for material `name` -> (N, 3) float32 RGB.
+    def _arrived(self, arrival: _Arrival | None) -> None:
+        """Under the lock: `arrival` is no longer on its way; waiting batches go once none is."""
+        if arrival is not None and arrival.open:
+            arrival.open = False
+            self._receiving -= 1
+            if not self._receiving:
+                self._cond.notify_all()
 
-        The workers write the answer into `out` ((N, 3) float32, e.g. a view into the response
-        body) when given, else into a new array. Raises QueueFull when admitting N more rows would
-        pass ``max_queue_rows``.
-        """
-        job = self.submit(name, queries.shape[0], out)
-        self.queue(job, queries)
-        return await self.result(job)
-
-    def submit(self, name: str, n: int, out: np.ndarray | None = None) -> _Job:
-        """Admit a request of `n` rows for material `name` before its rows are all there; they follow
-        in order with `queue`, then `result` awaits the answer (or `abandon` gives the request up).
-
-        Raises QueueFull when admitting `n` more rows would pass ``max_queue_rows``.
-        """
-        if self._admitted_rows + n > self.settings.max_queue_rows:
-            self.metrics.rejected.inc()
-            raise QueueFull(
-                f"server busy: {self._admitted_rows} rows queued, {n} more would pass the limit of "
-                f"{self.settings.max_queue_rows}; retry after {self.settings.retry_after_s} s",
-                self.settings.retry_after_s,
-            )
+    def submit(
+        self, name: str, queries: np.ndarray, out: np.ndarray | None = None, arrival: _Arrival | None = None
+    ) -> asyncio.Future:
+        """Queue validated (N, 7) float32 queries for material `name`; the future's result is their
+        (N, 3) float32 RGB, written into `out` ((N, 3) float32, e.g. a view into the response body)
+        when given, else into a new array; its exception an ApiError (500) if the model failed.
+        `arrival`: the request's `receiving` (use ``arrival.submit``)."""
+        n = queries.shape[0]
         if out is None:
             out = np.empty((n, C.RGB_DIM), dtype=C.DTYPE)
         elif out.shape != (n, C.RGB_DIM) or out.dtype != C.DTYPE:
             raise ValueError(f"answer buffer must be ({n}, {C.RGB_DIM}) {C.DTYPE}, got {out.shape} {out.dtype}")
-        job = _Job(self._loop.create_future(), out, self._queues[name], n)
-        self._admit(n, +1)
+        job = _Job(self._loop.create_future(), out, n)
         self.stats.track(name, job.future, n)
         self.metrics.request_rows.observe(n)
         if n == 0:
             job.future.set_result(out)
-        return job
-
-    def queue(self, job: _Job, queries: np.ndarray) -> None:
-        """Queue the job's next validated (m, 7) float32 rows: rows ``queued .. queued + m`` of its request."""
-        lo, m = job.queued, queries.shape[0]
-        if lo + m > job.rows:
-            raise ValueError(f"{lo + m} rows queued for a request of {job.rows}")
-        pieces = split(queries, job.out[lo : lo + m], self.settings.chunk_rows, job)
+        queue = self._queues[name]
+        pieces = split(queries, out, self.settings.chunk_rows, job)
         now = time.monotonic()
         with self._cond:
-            job.queued += m
             for piece in pieces:
                 piece.arrived, piece.order = now, next(self._order)
-                job.queue.pieces.append(piece)
-            job.queue.rows += m
+                queue.pieces.append(piece)
+            queue.rows += n
             self._cond.notify(len(pieces))
+            self._arrived(arrival)
+        return job.future
 
-    async def result(self, job: _Job) -> np.ndarray:
-        """The job's (N, 3) answer once its N rows are queued and evaluated."""
-        try:
-            return await asyncio.shield(job.future)
-        finally:
-            self._release(job)
-
-    def abandon(self, job: _Job) -> None:
-        """Give up a job whose remaining rows will never come (its body turned out bad): the rows
-        already queued still run and count as admitted until they are done."""
-        with self._cond:
-            job.rows_left -= job.rows - job.queued
-            job.queued = job.rows
-            done = job.rows_left == 0
-        if done:
-            self._finish(job)
-        self._release(job)
-
-    def _release(self, job: _Job) -> None:
-        """Un-admit the job's rows now if it is done, else when it is (a cancelled handler's pieces still run)."""
-        if job.future.done():
-            self._admit(job.rows, -1)
-        else:
-            job.future.add_done_callback(lambda _: self._admit(job.rows, -1))
-
-    def _admit(self, rows: int, sign: int) -> None:
-        self._admitted_rows += sign * rows
-        self._admitted_requests += sign
-        self.metrics.queue_rows.set(self._admitted_rows)
-        self.metrics.queue_requests.set(self._admitted_requests)
+    async def evaluate(self, name: str, queries: np.ndarray, out: np.ndarray | None = None) -> np.ndarray:
+        """`submit`, then await the answer."""
+        return await asyncio.shield(self.submit(name, queries, out))
 
     @staticmethod
     def _finish(job: _Job) -> None:
@@ -292,6 +266,19 @@ class Batcher:
                 return queue.material, take(queue, chunk)
             self._cond.wait(remaining)  # more pieces may arrive to fill the call
 
+    def _nonfinite(self, name: str, piece: _Piece) -> ApiError | None:
+        """The error of a piece whose answer holds NaN or Inf (counted and logged), else None."""
+        where = first_nonfinite(piece)
+        if where is None:
+            return None
+        self.metrics.nonfinite.labels(name).inc()
+        log.error("material %s answered NaN/Inf: %s", name, where)
+        return ApiError(
+            500,
+            f"material {name!r} answered a non-finite value ({where}): the model is broken for these "
+            "inputs, so no answer is given",
+        )
+
     def _work(self) -> None:
         """A worker thread: take a batch, run it, report finished jobs to the event loop."""
         while True:
@@ -317,7 +304,7 @@ class Batcher:
             with self._cond:
                 for piece in batch:
                     job = piece.job
-                    job.error = job.error or error
+                    job.error = job.error or error or self._nonfinite(material.name, piece)
                     job.rows_left -= piece.rows
                     if job.rows_left == 0:
                         finished.append(job)

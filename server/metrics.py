@@ -53,8 +53,16 @@ class Metrics:
         self.queue_requests = Gauge(
             "neumip_queue_requests", "Evaluation requests admitted and not yet answered", registry=r
         )
+        self.body_bytes = Gauge(
+            "neumip_body_bytes", "Bytes of request-body memory reserved by requests in flight", registry=r
+        )
         self.rejected = Counter(
-            "neumip_queue_rejected", "Requests refused with 503 because the queue was full", registry=r
+            "neumip_queue_rejected", "Requests refused with 503 because the row queue or body budget was full",
+            registry=r,
+        )
+        self.nonfinite = Counter(
+            "neumip_nonfinite_answers", "Requests refused with 500 because the model answered NaN or Inf",
+            ["material"], registry=r,
         )
 
     def render(self) -> tuple[bytes, str]:

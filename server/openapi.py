@@ -7,6 +7,7 @@ every body themselves.
 from __future__ import annotations
 
 from neumip.client import contract as C
+from neumip.client import wire
 
 ERROR_SCHEMA = {
     "type": "object",
@@ -18,9 +19,11 @@ ERROR_RESPONSES = {
     for status, text in (
         (400, "Malformed request (bad body, shape, values, header or name)"),
         (404, "Unknown material or endpoint"),
-        (413, "Body or row count over the limit"),
+        (408, "Body not complete within NEUMIP_BODY_TIMEOUT_S"),
+        (413, "Body, JSON or row count over the limit"),
         (415, "Unsupported Content-Type or Content-Encoding"),
-        (503, "Queue full (see Retry-After) or server starting"),
+        (500, "The model failed or answered NaN/Inf (the message names the material)"),
+        (503, "Queue or body budget full (see Retry-After), or server starting"),
     )
 }
 
@@ -43,7 +46,7 @@ EVALUATE_BODY = {
                 "properties": {"queries": {"type": "array", "items": _ROW}, "n": {"type": "integer"}},
             }
         },
-        C.MSGPACK_MEDIA_TYPE: {
+        wire.MSGPACK_MEDIA_TYPE: {
             "schema": _BINARY,
             "description": 'msgpack map {"n": N, "queries": N*7 little-endian float32 bytes}',
         },
@@ -61,7 +64,7 @@ EVALUATE_RESPONSE = {
                 },
             }
         },
-        C.MSGPACK_MEDIA_TYPE: {"schema": _BINARY},
+        wire.MSGPACK_MEDIA_TYPE: {"schema": _BINARY},
     },
 }
 

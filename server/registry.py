@@ -8,6 +8,7 @@ Material names from requests are only ever looked up in a dict, never joined int
 from __future__ import annotations
 
 import logging
+import os
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -36,6 +37,14 @@ def warmup_queries(rows: int) -> np.ndarray:
     queries[:, C.WO_X] = 0.5 * np.sin(3 * t)
     queries[:, C.WO_Y] = 0.5 * np.cos(3 * t)
     return queries
+
+
+def without_folder(message: str, folder: Path) -> str:
+    """`message` with the model folder's path taken out of the file paths in it (ONNX Runtime's errors
+    name the file in full): clients learn the file name, not where the server keeps its files."""
+    for prefix in {str(folder.resolve()), str(folder.absolute()), str(folder)}:
+        message = message.replace(prefix + os.sep, "")
+    return message
 
 
 def check_name(name: str) -> str:
@@ -67,7 +76,7 @@ class Registry:
         if not folder.is_dir():
             raise FileNotFoundError(f"model folder {folder} does not exist")
         loaded, failed = load_folder(folder, threads)
-        registry = cls(folder, failed=failed)
+        registry = cls(folder, failed={name: without_folder(reason, folder) for name, reason in failed.items()})
         for material in loaded.values():
             registry._warm_up(material, warmup_rows)
         log.info(
@@ -86,7 +95,8 @@ class Registry:
                 C.as_rgb(run_chunked(material.session, warmup_queries(warmup_rows)), warmup_rows)
         except Exception as exc:  # a model that loads but fails to run (bad graph, wrong shapes)
             log.error("cannot serve %s: warm-up failed: %s", material.path.name, exc)
-            self.failed[material.name] = f"{material.path.name}: warm-up evaluation failed: {exc}"
+            reason = f"{material.path.name}: warm-up evaluation failed: {exc}"
+            self.failed[material.name] = without_folder(reason, self.folder)
             return
         self.materials[material.name] = material
 

@@ -14,6 +14,11 @@ from pydantic import Field, model_validator
 from pydantic_settings import BaseSettings, SettingsConfigDict
 
 
+JSON_MEMORY_FACTOR = 16
+"""Bytes of memory one byte of a JSON body may become while parsed: ``json.loads`` of the densest query
+JSON (``[0,0,0,0,0,0,0]`` rows), then numpy, peaked at 13.5x the body's length (tracemalloc)."""
+
+
 def available_cores() -> int:
     """CPU cores this process may run on (affinity-aware where the OS tells)."""
     try:
@@ -43,13 +48,25 @@ class Settings(BaseSettings):
     chunk_rows: int = Field(8192, ge=1)
     """Most rows in one ONNX Runtime call: large requests are split, small ones merged."""
     max_wait_ms: float = Field(2.0, ge=0)
-    """How long a batch that is not yet full waits for more rows, while other requests are being received."""
+    """How long a batch that is not yet full waits for more rows while other requests are being decoded."""
     max_rows: int = Field(2_000_000, ge=1)
     """Most query rows one request may carry (more is rejected with 413)."""
     max_queue_rows: int = Field(8_000_000, ge=1)
     """Most rows admitted and not yet answered; beyond it requests get 503 with Retry-After."""
     max_body_bytes: int = Field(128 * 1024 * 1024, ge=1024)
     """Largest request body accepted, in bytes (more is rejected with 413)."""
+    max_json_body_bytes: int = Field(16 * 1024 * 1024, ge=1024)
+    """Largest JSON body (or v2 JSON header) accepted, in bytes (more: 413; large requests go as msgpack/binary)."""
+    body_budget_bytes: int = Field(512 * 1024 * 1024, ge=1024)
+    """Most request-body memory the requests in flight may reserve (JSON counts 16x); beyond it: 503."""
+    body_timeout_s: float = Field(60.0, gt=0)
+    """Seconds a request body may take to arrive once its headers are in (slower: 408, connection closed)."""
+    header_timeout_s: float = Field(10.0, gt=0)
+    """Seconds a request line and headers may take to arrive (slower: 408, connection closed)."""
+    max_header_bytes: int = Field(64 * 1024, ge=1024)
+    """Largest request line plus headers, in bytes (more: 431, connection closed)."""
+    keep_alive_s: int = Field(5, ge=1)
+    """Seconds an idle kept-alive connection stays open."""
     retry_after_s: int = Field(1, ge=0)
     """Seconds a 503 (queue full) tells the client to wait, in its Retry-After header."""
     warmup_rows: int = Field(1024, ge=0)
@@ -63,6 +80,13 @@ class Settings(BaseSettings):
             raise ValueError(
                 f"max_queue_rows ({self.max_queue_rows}) must be >= max_rows ({self.max_rows}):"
                 " otherwise the largest allowed request could never be admitted"
+            )
+        largest = self.max_body_bytes + JSON_MEMORY_FACTOR * self.max_json_body_bytes  # a v2 body: both parts
+        if self.body_budget_bytes < largest:
+            raise ValueError(
+                f"body_budget_bytes ({self.body_budget_bytes}) must be >= max_body_bytes ({self.max_body_bytes}) + "
+                f"{JSON_MEMORY_FACTOR} x max_json_body_bytes ({self.max_json_body_bytes}): otherwise the largest "
+                "allowed request could never be admitted"
             )
         return self
 

@@ -9,6 +9,7 @@ from dataclasses import dataclass
 
 from fastapi import Request
 
+from .admission import Admission
 from .batching import Batcher
 from .errors import ApiError
 from .metrics import Metrics
@@ -24,6 +25,8 @@ class ServerState:
     """Settings read once at start-up."""
     metrics: Metrics
     """Prometheus collectors of this app."""
+    admission: Admission
+    """The budgets of body memory and queued rows that requests reserve from."""
     registry: Registry | None = None
     """Loaded materials; None until start-up has loaded them."""
     batcher: Batcher | None = None

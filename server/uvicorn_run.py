@@ -4,10 +4,31 @@ from __future__ import annotations
 
 import logging
 import signal
+import socket
 
-from neumip.client.cli import CommandError
+from neumip.client.errors import NeumipError
 
 log = logging.getLogger(__name__)
+
+
+class ServeError(NeumipError):
+    """`neumip serve` cannot start: bad settings, a missing model folder, a port it cannot listen on."""
+
+
+def listen(host: str, port: int) -> socket.socket:
+    """A TCP socket bound to (host, port), checked before any model loads; ServeError if it is taken."""
+    family = socket.AF_INET6 if ":" in host else socket.AF_INET
+    sock = socket.socket(family, socket.SOCK_STREAM)
+    sock.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)  # as uvicorn: restart at once after a stop
+    try:
+        sock.bind((host, port))
+    except OSError as exc:
+        sock.close()
+        raise ServeError(
+            f"cannot listen on {host}:{port}: {exc.strerror or exc} (is another server running there? "
+            "choose another --port or NEUMIP_PORT)"
+        ) from None
+    return sock
 
 
 def run(overrides: dict) -> int:
@@ -17,22 +38,26 @@ def run(overrides: dict) -> int:
         from pydantic import ValidationError
 
         from .app import create_app
+        from .protocol import protocol_class
         from .settings import Settings
     except ImportError as exc:
-        raise CommandError(f"{exc}: install the server extra: pip install 'neumip[serve]'") from exc
+        raise ServeError(f"{exc}: install the server extra: pip install 'neumip[serve]'") from exc
 
     try:
         settings = Settings(**overrides)
     except ValidationError as exc:
-        raise CommandError(f"invalid server settings: {exc}") from exc
+        raise ServeError(f"invalid server settings: {exc}") from exc
     if not settings.model_dir.is_dir():
-        raise CommandError(f"model folder {settings.model_dir} does not exist (set --model-dir or NEUMIP_MODEL_DIR)")
+        raise ServeError(f"model folder {settings.model_dir} does not exist (set --model-dir or NEUMIP_MODEL_DIR)")
+    sock = listen(settings.host, settings.port)
     logging.getLogger().setLevel(settings.log_level.upper())
     config = uvicorn.Config(
         create_app(settings),
         host=settings.host,
         port=settings.port,
+        http=protocol_class(settings),
         log_level=settings.log_level.lower(),
+        timeout_keep_alive=settings.keep_alive_s,
         timeout_graceful_shutdown=settings.graceful_shutdown_s,
         access_log=False,
     )
@@ -41,7 +66,8 @@ def run(overrides: dict) -> int:
     # before it started: make that one a no-op so a graceful stop exits with status 0.
     previous = signal.signal(signal.SIGTERM, lambda signum, frame: log.info("stopped by SIGTERM"))
     try:
-        server.run()
+        server.run(sockets=[sock])
     finally:
         signal.signal(signal.SIGTERM, previous)
+        sock.close()
     return 0 if server.started else 1

@@ -1,7 +1,7 @@
 """The renderer fast path (``/v1``): msgpack in, msgpack out; JSON for people trying it with curl.
 
 ``POST /v1/materials/{name}/evaluate`` with ``Content-Type: application/msgpack`` takes the
-`contract.encode_request` body and answers `contract.encode_response`; with ``application/json`` it
+`wire.encode_request` body and answers `wire.encode_response`; with ``application/json`` it
 takes ``{"queries": [[u, v, sigma, wi_x, wi_y, wo_x, wo_y], ...]}`` and answers
 ``{"n": N, "rgb": [[r, g, b], ...]}``. ``GET /v1/materials`` lists the materials with their metadata.
 """
@@ -15,13 +15,14 @@ from fastapi import APIRouter, Depends, Request, Response
 from fastapi.responses import JSONResponse
 
 from neumip.client import contract as C
+from neumip.client import wire
 
-from .body import JSON_TYPE, MSGPACK_TYPES, check_rows, declared_length, media_type, parse_json, read_body
+from .admission import plan, read_body
+from .body import JSON_TYPE, MSGPACK_TYPES, check_rows, media_type, parse_json
 from .errors import ApiError
 from .metrics import StageTimer
 from .openapi import ERROR_RESPONSES, EVALUATE_BODY, EVALUATE_RESPONSE
 from .state import ServerState, serving
-from .stream import read_and_queue, worth_streaming
 
 router = APIRouter(tags=["v1 (renderer fast path)"])
 
@@ -56,7 +57,7 @@ async def decode(body: bytes | bytearray, kind: str) -> np.ndarray:
     copy), leaving only the value checks, cheaper than a hop to a thread and back.
     """
     if kind == "msgpack":
-        return C.decode_request(body)
+        return wire.decode_request(body)
     if len(body) > OFFLOAD_BYTES:
         return await asyncio.to_thread(decode_json, body)
     return decode_json(body)
@@ -70,21 +71,21 @@ def body_kind(request: Request) -> str:
     if ctype == JSON_TYPE:
         return "json"
     got = f"got {ctype!r}" if ctype else "it is missing"
-    raise ApiError(415, f"Content-Type must be {C.MSGPACK_MEDIA_TYPE} or {JSON_TYPE}; {got}")
+    raise ApiError(415, f"Content-Type must be {wire.MSGPACK_MEDIA_TYPE} or {JSON_TYPE}; {got}")
 
 
-@router.get(C.MATERIALS_PATH, summary="List the served materials with their metadata")
+@router.get(wire.MATERIALS_PATH, summary="List the served materials with their metadata")
 async def list_materials(state: ServerState = Depends(serving)) -> dict:
     return state.registry.listing()
 
 
-@router.get(C.MATERIALS_PATH + "/{name}", summary="Metadata of one material", responses=ERROR_RESPONSES)
+@router.get(wire.MATERIALS_PATH + "/{name}", summary="Metadata of one material", responses=ERROR_RESPONSES)
 async def material_info(name: str, state: ServerState = Depends(serving)) -> dict:
     return state.registry.get(name).info()
 
 
 @router.post(
-    C.EVALUATE_PATH,
+    wire.EVALUATE_PATH,
     summary="Evaluate (N, 7) queries -> (N, 3) RGB (msgpack or JSON)",
     openapi_extra={"requestBody": EVALUATE_BODY},
     responses={200: EVALUATE_RESPONSE, **ERROR_RESPONSES},
@@ -94,29 +95,23 @@ async def evaluate(name: str, request: Request, state: ServerState = Depends(ser
     timer = StageTimer()
     state.registry.get(name)
     kind = body_kind(request)
-    settings, batcher = state.settings, state.batcher
-    stream = None
-    with batcher.receiving():  # batches not yet full wait for this request's rows
-        declared = declared_length(request, settings.max_body_bytes)
-        if kind == "msgpack" and worth_streaming(declared, settings):  # rows queued as they arrive
-            body, stream = await read_and_queue(name, request, declared, batcher, settings)
-        else:
-            body = await read_body(request, settings.max_body_bytes)
+    body_plan = plan(request, state.settings, json=kind == "json")  # 413 / 415 from the headers alone
+    with state.admission.admit(body_plan) as ticket:  # 503 at once if the budgets are spent
+        body = await read_body(request, body_plan, ticket, state.admission)  # 408 if too slow
         timer.mark("read")
-        if stream is None or stream.given_up:
+        with state.batcher.receiving() as arrival:  # batches not yet full wait for this request's rows
             queries = await decode(body, kind)  # (N, 7) float32
-            check_rows(queries.shape[0], settings.max_rows)
-        timer.mark("decode")
-    if stream is not None and not stream.given_up:
-        await batcher.result(stream.job)
-        content, media = memoryview(stream.response), C.MSGPACK_MEDIA_TYPE
-    elif kind == "msgpack":  # the workers write the answer straight into the response body: no encode copy
-        body_out, rgb = C.response_buffer(queries.shape[0])  # rgb: (N, 3) float32 view of body_out
-        await batcher.evaluate(name, queries, out=rgb)
-        content, media = memoryview(body_out), C.MSGPACK_MEDIA_TYPE  # Response takes no bytearray
-    else:
-        rgb = await batcher.evaluate(name, queries)  # (N, 3) float32
-        content, media = JSONResponse({"n": int(rgb.shape[0]), "rgb": rgb.tolist()}).body, JSON_TYPE
+            check_rows(queries.shape[0], state.settings.max_rows)
+            state.admission.resize(ticket, ticket.memory, queries.shape[0])
+            timer.mark("decode")
+            # msgpack: the workers write the answer straight into the response body (out: a view of it)
+            content, out = wire.response_buffer(queries.shape[0]) if kind == "msgpack" else (None, None)
+            ticket.until = arrival.submit(name, queries, out=out)
+        rgb = await asyncio.shield(ticket.until)  # (N, 3) float32
     timer.mark("evaluate")
+    if kind == "msgpack":
+        content, media = memoryview(content), wire.MSGPACK_MEDIA_TYPE  # Response takes no bytearray
+    else:
+        content, media = JSONResponse({"n": int(rgb.shape[0]), "rgb": rgb.tolist()}).body, JSON_TYPE
     timer.mark("encode")
     return Response(content, media_type=media, headers=timer.header())

@@ -16,8 +16,10 @@ from fastapi import APIRouter, Depends, Request, Response
 from fastapi.responses import JSONResponse
 
 from neumip.client import contract as C
+from neumip.client import wire
 
-from .body import JSON_TYPE, check_rows, media_type, parse_json, read_body
+from .admission import plan, read_body
+from .body import JSON_TYPE, check_rows, media_type, parse_json
 from .errors import ApiError
 from .metrics import StageTimer
 from .openapi import ERROR_RESPONSES, INFER_BODY
@@ -27,8 +29,8 @@ from .v1 import OFFLOAD_BYTES
 
 router = APIRouter(prefix="/v2", tags=["v2 (Open Inference Protocol)"])
 
-HEADER_LENGTH = "Inference-Header-Content-Length"
-DATATYPE = "FP32"
+HEADER_LENGTH = wire.INFER_HEADER_LENGTH
+DATATYPE = wire.INFER_DATATYPE
 PLATFORM = "onnxruntime_onnx"
 INFER_TYPES = (None, JSON_TYPE, "application/octet-stream")
 """Content types an infer request may carry (tritonclient sends none)."""
@@ -59,13 +61,20 @@ def check_version(version: str | None) -> None:
 
 
 # --- decode -----------------------------------------------------------------------------------
-def split_body(body: bytes, header_length: str | None) -> tuple[object, memoryview]:
-    """Body -> (JSON header, binary tail) using the Inference-Header-Content-Length header."""
-    if header_length is None:
+def json_length(request: Request) -> int | None:
+    """The Inference-Header-Content-Length header: bytes of the JSON part (None: the body is all JSON)."""
+    value = request.headers.get(HEADER_LENGTH)
+    if value is None:
+        return None
+    if not value.strip().isdigit():
+        raise ApiError(400, f"{HEADER_LENGTH} must be a non-negative integer, got {value[:40]!r}")
+    return int(value)
+
+
+def split_body(body: bytes, length: int | None) -> tuple[object, memoryview]:
+    """Body -> (JSON header, binary tail), the header `length` bytes long (None: all of the body)."""
+    if length is None:
         return parse_json(body), memoryview(b"")
-    if not header_length.strip().isdigit():
-        raise ApiError(400, f"{HEADER_LENGTH} must be a non-negative integer, got {header_length[:40]!r}")
-    length = int(header_length)
     if length == 0 or length > len(body):
         raise ApiError(400, f"{HEADER_LENGTH} is {length} but the body holds {len(body)} bytes")
     view = memoryview(body)
@@ -151,7 +160,7 @@ def _flag(params: dict, key: str, default: bool) -> bool:
     return value
 
 
-def parse_infer(body: bytes, header_length: str | None) -> InferRequest:
+def parse_infer(body: bytes, header_length: int | None) -> InferRequest:
     """Infer body -> InferRequest with validated queries. Raises ApiError/QueryError."""
     msg, binary = split_body(body, header_length)
     if not isinstance(msg, dict):
@@ -239,17 +248,21 @@ async def infer(name: str, request: Request, version: str | None = None, state: 
     state.registry.get(name)
     if media_type(request) not in INFER_TYPES:
         raise ApiError(415, f"infer takes {JSON_TYPE}, application/octet-stream or no Content-Type; got {media_type(request)!r}")
-    with state.batcher.receiving():  # batches not yet full wait for this request's rows
-        body = await read_body(request, state.settings.max_body_bytes)
+    header_length = json_length(request)
+    body_plan = plan(request, state.settings, json=True, json_length=header_length)  # 413 / 415 from the headers
+    with state.admission.admit(body_plan) as ticket:  # 503 at once if the budgets are spent
+        body = await read_body(request, body_plan, ticket, state.admission)  # 408 if too slow
         timer.mark("read")
-        header_length = request.headers.get(HEADER_LENGTH)
-        if len(body) > OFFLOAD_BYTES:
-            parsed = await asyncio.to_thread(parse_infer, body, header_length)
-        else:
-            parsed = parse_infer(body, header_length)
-        check_rows(parsed.queries.shape[0], state.settings.max_rows)
-        timer.mark("decode")
-    rgb = await state.batcher.evaluate(name, parsed.queries)  # (N, 3) float32
+        with state.batcher.receiving() as arrival:  # batches not yet full wait for this request's rows
+            if len(body) > OFFLOAD_BYTES:
+                parsed = await asyncio.to_thread(parse_infer, body, header_length)
+            else:
+                parsed = parse_infer(body, header_length)
+            check_rows(parsed.queries.shape[0], state.settings.max_rows)
+            state.admission.resize(ticket, ticket.memory, parsed.queries.shape[0])
+            timer.mark("decode")
+            ticket.until = arrival.submit(name, parsed.queries)
+        rgb = await asyncio.shield(ticket.until)  # (N, 3) float32
     timer.mark("evaluate")
     response = infer_response(name, parsed, rgb)
     timer.mark("encode")

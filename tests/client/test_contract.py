@@ -1,6 +1,5 @@
-"""The query contract: validation, level of detail, wire format."""
+"""The query contract: validation and level of detail."""
 
-import msgpack
 import numpy as np
 import pytest
 
@@ -53,25 +52,3 @@ def test_level_of_detail_convention():
     lod = C.level_of_detail(np.array([0.0, -5, 1 / 512, 1 / 256, 4 / 256, 1.0, 1e20]), 256)
     np.testing.assert_allclose(lod, [0, 0, 0, 0, 2, 8, 8])
     assert C.sigma_for_level(3, 256) == 8 / 256
-
-
-def test_wire_roundtrip_is_bit_exact():
-    q = np.random.default_rng(0).uniform(-0.5, 0.5, (1000, 7)).astype(np.float32)
-    np.testing.assert_array_equal(C.decode_request(C.encode_request(q)), q)
-    rgb = np.random.default_rng(1).uniform(0, 1, (1000, 3)).astype(np.float32)
-    np.testing.assert_array_equal(C.decode_response(C.encode_response(rgb)), rgb)
-
-
-@pytest.mark.parametrize(
-    "body, message",
-    [
-        (b"\xc1garbage", "not valid msgpack"),
-        (msgpack.packb([1, 2]), "must be a map"),
-        (msgpack.packb({"n": 2, "queries": b"\0" * 55}), "holds 55 bytes"),
-        (msgpack.packb({"n": -1, "queries": b""}), "non-negative"),
-        (msgpack.packb({"n": 1, "queries": "text"}), "must be binary"),
-    ],
-)
-def test_malformed_wire_bodies(body, message):
-    with pytest.raises(C.QueryError, match=message):
-        C.decode_request(body)

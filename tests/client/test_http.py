@@ -1,4 +1,5 @@
-"""MaterialClient against an in-process stand-in of the server (httpx.MockTransport)."""
+"""MaterialClient: against an in-process stand-in of the server (httpx.MockTransport, the same
+httpx.Client path with another transport), a stand-in that drops connections, and real server processes."""
 
 from __future__ import annotations
 
@@ -7,6 +8,7 @@ import numpy as np
 import pytest
 
 from neumip.client import contract as C
+from neumip.client import wire
 from neumip.client.http import ClientConfig, MaterialClient, ServerError, ServerUnavailable
 from neumip.client.local import LocalMaterials, UnknownMaterial
 
@@ -31,14 +33,14 @@ class FakeServer:
             if isinstance(failure, Exception):
                 raise failure
             return httpx.Response(failure, json={"error": f"injected {failure}"}, headers={"Retry-After": "0"})
-        if request.method == "GET" and request.url.path == C.MATERIALS_PATH:
+        if request.method == "GET" and request.url.path == wire.MATERIALS_PATH:
             return httpx.Response(200, json={"materials": [{"name": n} for n in self.local.materials()]})
         name = request.url.path.split("/")[-2]
         try:
-            rgb = self.local.evaluate(name, C.decode_request(request.content))
+            rgb = self.local.evaluate(name, wire.decode_request(request.content))
         except UnknownMaterial as exc:
             return httpx.Response(404, json={"error": str(exc)})
-        return httpx.Response(200, content=C.encode_response(rgb))
+        return httpx.Response(200, content=wire.encode_response(rgb))
 
 
 def client_for(server, **config) -> MaterialClient:
@@ -54,8 +56,8 @@ def test_evaluate_matches_in_process_and_splits_large_buffers(model_dir):
     np.testing.assert_array_equal(rgb, server.local.evaluate("rand16", queries))
     assert rgb.flags.writeable and one.flags.writeable
     posts = [r for r in server.requests if r.method == "POST"]
-    assert [C.decode_request(r.content).shape[0] for r in posts] == [1000, 1000, 500, 10]
-    assert posts[0].headers["content-type"] == C.MSGPACK_MEDIA_TYPE
+    assert [wire.decode_request(r.content).shape[0] for r in posts] == [1000, 1000, 500, 10]
+    assert posts[0].headers["content-type"] == wire.MSGPACK_MEDIA_TYPE
 
 
 def test_materials_lists_the_server(model_dir):
@@ -100,7 +102,7 @@ def test_client_errors_fail_at_once_with_the_server_message(model_dir):
 
 def test_bad_answer_size_is_an_error():
     def short(request):
-        return httpx.Response(200, content=C.encode_response(np.zeros((3, 3), np.float32)))
+        return httpx.Response(200, content=wire.encode_response(np.zeros((3, 3), np.float32)))
 
     client = MaterialClient("http://x", ClientConfig(**FAST), httpx.MockTransport(short))
     with pytest.raises(C.QueryError, match=r"answer must have shape \(4, 3\)"):
@@ -167,32 +169,6 @@ def test_fallback_does_not_hide_client_errors(model_dir):
     assert evaluator.switched is None
 
 
-def test_wire_parts_are_the_msgpack_bodies():
-    """The zero-copy pieces the client sends and the server fills are exactly `msgpack.packb`'s bodies,
-    across the bin8/bin16/bin32 and fixint/uint8/uint16/uint32 boundaries of the header."""
-    for n in (0, 1, 9, 36, 37, 127, 128, 2340, 2341, 9362, 9363, 65536, 70000):
-        q = random_queries(n, seed=n)
-        header, rows = C.encode_request_parts(q)
-        assert header + bytes(rows) == C.encode_request(q)
-        np.testing.assert_array_equal(C.decode_request(C.encode_request(q)), q)
-        rgb = np.random.default_rng(n).random((n, 3), dtype=np.float32)
-        body, view = C.response_buffer(n)
-        view[...] = rgb
-        assert bytes(body) == C.encode_response(rgb)
-
-
-def test_decode_still_takes_other_msgpack_layouts_and_refuses_broken_ones():
-    import msgpack
-
-    q = random_queries(5, seed=1)
-    swapped = msgpack.packb({"queries": q.tobytes(), "n": 5})  # keys in the other order: msgpack path
-    np.testing.assert_array_equal(C.decode_request(swapped), q)
-    good = C.encode_request(q)
-    for broken in (good + b"\x00", good[:-1], b"\x82\xa1n\xcf" + b"\xff" * 8):
-        with pytest.raises(C.QueryError, match="not valid msgpack"):
-            C.decode_request(broken)
-
-
 class _HandlerLog:
     connections = 0
 
@@ -216,7 +192,7 @@ def _closing_server(model_dir):
         def do_POST(self):
             body = self.rfile.read(int(self.headers["Content-Length"]))
             name = self.path.split("/")[-2]
-            answer = C.encode_response(local.evaluate(name, C.decode_request(body)))
+            answer = wire.encode_response(local.evaluate(name, wire.decode_request(body)))
             self.send_response(200)
             self.send_header("Content-Length", str(len(answer)))
             self.end_headers()
@@ -246,29 +222,50 @@ def test_stale_kept_alive_connection_is_reopened_without_a_retry(model_dir, capl
     assert "retrying" not in caplog.text  # retries=0: a stale connection is not a failed attempt
 
 
-def test_real_server_answers_bit_identical_on_one_kept_alive_connection(model_dir, tmp_path):
-    """MaterialClient's default transport against a real `neumip serve` process."""
-    from tests.server.conftest import start_server
+def client_port(client: MaterialClient) -> int:
+    """The local port of the client's kept-alive connection (a new one means a new connection)."""
+    reply = client._http.get("/v2/health/live")
+    return reply.extensions["network_stream"].get_extra_info("client_addr")[1]
 
-    server = start_server(model_dir, tmp_path / "server.log", max_rows="5000")
-    try:
-        reference = LocalMaterials(model_dir)
-        with MaterialClient(server.url, ClientConfig(max_rows=3000)) as client:
-            assert client.materials() == ["flat16", "lambert", "rand16"]
-            for n, seed in ((1, 0), (7000, 1), (20000, 2)):  # 7000 and 20000: several requests each
-                queries = random_queries(n, seed=seed)
-                rgb = client.evaluate("rand16", queries)
-                np.testing.assert_array_equal(rgb, reference.evaluate("rand16", queries))
-                assert rgb.flags.writeable
-            assert set(client.server_timing) == {"read", "decode", "evaluate", "encode"}
-            first = client._http._conn
-            client.evaluate("lambert", random_queries(10))
-            assert client._http._conn is first  # kept alive, not reopened
-            with pytest.raises(ServerError, match="answered 404: unknown material 'nope'") as info:
-                client.evaluate("nope", random_queries(4))
-            assert info.value.status == 404
-        with MaterialClient(server.url, ClientConfig(max_rows=6000)) as client:
-            with pytest.raises(ServerError, match="answered 413: 6000 query rows is more than the limit of 5000"):
-                client.evaluate("rand16", random_queries(6000))
-    finally:
-        assert server.stop() == 0
+
+@pytest.mark.parametrize("protocol", ["msgpack", "v2"])
+def test_real_server_answers_bit_identical_on_one_kept_alive_connection(serve, model_dir, protocol):
+    """MaterialClient, as it runs in a render, against a real `neumip serve` process, in both protocols."""
+    server = serve(max_rows=5000)
+    reference = LocalMaterials(model_dir)
+    with MaterialClient(server.url, ClientConfig(max_rows=3000), protocol=protocol) as client:
+        assert client.materials() == ["flat16", "lambert", "rand16"]
+        port = client_port(client)
+        for n, seed in ((1, 0), (7000, 1), (20000, 2)):  # 7000 and 20000: several requests each
+            queries = random_queries(n, seed=seed)
+            rgb = client.evaluate("rand16", queries)
+            np.testing.assert_array_equal(rgb, reference.evaluate("rand16", queries))
+            assert rgb.flags.writeable
+        assert set(client.server_timing) == {"read", "decode", "evaluate", "encode"}
+        assert client_port(client) == port  # every request on the one kept-alive connection
+        with pytest.raises(ServerError, match="answered 404: unknown material 'nope'") as info:
+            client.evaluate("nope", random_queries(4))
+        assert info.value.status == 404
+        with pytest.raises(ServerError, match="answered 400: queries must be finite"):
+            client._evaluate_once("rand16", np.full((2, 7), np.nan, np.float32))  # past the client's own check
+        assert client.evaluate("lambert", np.zeros((0, 7), np.float32)).shape == (0, 3)
+    with MaterialClient(server.url, ClientConfig(max_rows=6000), protocol=protocol) as client:
+        with pytest.raises(ServerError, match="answered 413: 6000 query rows is more than the limit of 5000"):
+            client.evaluate("rand16", random_queries(6000))
+
+
+def test_unknown_protocol_is_refused():
+    with pytest.raises(ValueError, match="msgpack, v2"):
+        MaterialClient("http://x", protocol="grpc")
+
+
+def test_real_server_gone_and_back(serve, model_dir):
+    """A server that has stopped: the client reports it unavailable after its retries."""
+    server = serve()
+    client = MaterialClient(server.url, ClientConfig(retries=1, **FAST))
+    q = random_queries(100, seed=5)
+    assert client.evaluate("rand16", q).shape == (100, 3)
+    assert server.stop() == 0
+    with pytest.raises(ServerUnavailable, match="unreachable after 2 attempt"):
+        client.evaluate("rand16", q)
+    client.close()

@@ -1,89 +1,13 @@
-"""Server fixtures: an in-process app (TestClient, lifespan run) and a real `neumip serve` process."""
+"""Server fixtures: an in-process app (TestClient, lifespan run) and the in-process reference answers.
+
+Real `neumip serve` processes: `serve` and `live_server` in tests/conftest.py."""
 
 from __future__ import annotations
 
-import os
-import signal
-import socket
-import subprocess
-import sys
-import time
-from dataclasses import dataclass
-from pathlib import Path
-
-import httpx
 import pytest
 
 from neumip.server.app import create_app
 from neumip.server.settings import Settings
-
-
-def free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
-
-
-@dataclass
-class LiveServer:
-    """A `neumip serve` process on loopback."""
-
-    url: str
-    process: subprocess.Popen
-    log: Path
-
-    @property
-    def host_port(self) -> str:
-        return self.url.split("://", 1)[1]
-
-    def rss_bytes(self) -> int:
-        """Resident memory of the server process."""
-        for line in Path(f"/proc/{self.process.pid}/status").read_text().splitlines():
-            if line.startswith("VmRSS:"):
-                return int(line.split()[1]) * 1024
-        raise RuntimeError("no VmRSS")
-
-    def stop(self) -> int:
-        """SIGTERM, wait for the graceful exit; returns the exit status."""
-        if self.process.poll() is None:
-            self.process.send_signal(signal.SIGTERM)
-            try:
-                return self.process.wait(timeout=30)
-            except subprocess.TimeoutExpired:
-                self.process.kill()
-                self.process.wait()
-                raise
-        return self.process.returncode
-
-
-def start_server(model_dir: Path, log: Path, **env: str) -> LiveServer:
-    """Start `neumip serve` on a free loopback port and wait (<= 60 s) until it reports ready."""
-    port = free_port()
-    environ = {**os.environ, "NEUMIP_WARMUP_ROWS": "256", **{f"NEUMIP_{k.upper()}": str(v) for k, v in env.items()}}
-    cmd = [sys.executable, "-m", "neumip.client.cli", "serve", "--host", "127.0.0.1", "--port", str(port),
-           "--model-dir", str(model_dir)]
-    process = subprocess.Popen(cmd, env=environ, stdout=log.open("w"), stderr=subprocess.STDOUT)
-    server = LiveServer(f"http://127.0.0.1:{port}", process, log)
-    deadline = time.monotonic() + 60
-    while time.monotonic() < deadline:
-        if process.poll() is not None:
-            raise RuntimeError(f"server exited with {process.returncode}:\n{log.read_text()}")
-        try:
-            if httpx.get(server.url + "/v2/health/ready", timeout=1).status_code == 200:
-                return server
-        except httpx.TransportError:
-            pass
-        time.sleep(0.1)
-    server.stop()
-    raise RuntimeError(f"server not ready within 60 s:\n{log.read_text()}")
-
-
-@pytest.fixture(scope="module")
-def live_server(model_dir, tmp_path_factory):
-    """A real `neumip serve` process serving the test materials; checks the graceful exit after."""
-    server = start_server(model_dir, tmp_path_factory.mktemp("server") / "server.log")
-    yield server
-    assert server.stop() == 0, server.log.read_text()
 
 
 @pytest.fixture(scope="module")

@@ -9,7 +9,6 @@ import pytest
 
 from neumip.client.local import LocalMaterials, load_material
 from neumip.server.batching import Batcher, split
-from neumip.server.errors import QueueFull
 from neumip.server.metrics import Metrics
 from neumip.server.settings import Settings
 from neumip.client.contract import random_queries
@@ -91,18 +90,6 @@ def test_lone_requests_do_not_wait_to_be_merged(model_dir, reference):
     assert sample(metrics, "neumip_batch_rows_count") == 1 + 3
 
 
-def test_queue_bound_refuses_with_queue_full(model_dir):
-    batcher, metrics = make_batcher(model_dir, ort_workers=1, max_rows=3000, max_queue_rows=3000, chunk_rows=1024)
-    requests = [("rand16", random_queries(2000, seed=i)) for i in range(4)]
-    answers = asyncio.run(run_all(batcher, requests))
-    full = [a for a in answers if isinstance(a, QueueFull)]
-    assert isinstance(answers[0], np.ndarray) and len(full) == 3
-    assert full[0].status == 503 and full[0].headers["Retry-After"] == "1"
-    assert "retry" in full[0].message
-    assert sample(metrics, "neumip_queue_rejected_total") == 3
-    assert batcher.admitted_rows == 0
-
-
 def test_model_failure_fails_the_batch_not_the_batcher(model_dir):
     batcher, _ = make_batcher(model_dir, max_wait_ms=0)
     bad = np.zeros((4, 5), np.float32)  # bypasses validation: ONNX Runtime rejects the shape
@@ -117,3 +104,31 @@ def test_model_failure_fails_the_batch_not_the_batcher(model_dir):
             await batcher.close()
 
     assert asyncio.run(scenario()).shape == (10, 3)
+
+
+def test_a_request_never_waits_for_itself_and_waiting_batches_take_its_rows(model_dir, reference):
+    """`receiving().submit` queues the rows and ends the wait in one step: a lone request runs at once
+    (here the answer is awaited inside its own block, with a minute of merge wait), and a batch that
+    waited for a request being decoded takes its rows in the same call."""
+    batcher, metrics = make_batcher(model_dir, ort_workers=1, chunk_rows=4096, max_wait_ms=60_000)
+    q1, q2 = random_queries(10, seed=1), random_queries(20, seed=2)
+
+    async def scenario():
+        batcher.start()
+        try:
+            with batcher.receiving() as lone:
+                alone = await asyncio.wait_for(lone.submit("rand16", q1), 30)
+            with batcher.receiving() as first, batcher.receiving() as second:
+                a = first.submit("rand16", q1)
+                await asyncio.sleep(0.05)  # the batch holding a waits: second is still being decoded
+                assert not a.done()
+                b = second.submit("rand16", q2)
+                return alone, await asyncio.wait_for(asyncio.gather(a, b), 30)
+        finally:
+            await batcher.close()
+
+    alone, (a, b) = asyncio.run(scenario())
+    np.testing.assert_array_equal(alone, reference.evaluate("rand16", q1))
+    np.testing.assert_array_equal(a, alone)
+    np.testing.assert_array_equal(b, reference.evaluate("rand16", q2))
+    assert sample(metrics, "neumip_batch_rows_count") == 2  # the lone request, then a and b merged

@@ -15,9 +15,8 @@ import numpy as np
 import pytest
 
 from neumip.client import contract as C
+from neumip.client import wire
 from neumip.client.contract import random_queries
-
-from .conftest import start_server
 
 CLIENTS = 16
 MEMORY_BOUND = 64 << 20
@@ -32,12 +31,12 @@ def hammer(url: str, work: list[tuple[str, np.ndarray, np.ndarray]], seconds: fl
     with httpx.Client(base_url=url, timeout=30) as http:
         while time.monotonic() < deadline:
             name, q, expected = work[rng.integers(len(work))]
-            resp = http.post(C.EVALUATE_PATH.format(name=name), content=C.encode_request(q),
-                             headers={"content-type": C.MSGPACK_MEDIA_TYPE})
+            resp = http.post(wire.EVALUATE_PATH.format(name=name), content=wire.encode_request(q),
+                             headers={"content-type": wire.MSGPACK_MEDIA_TYPE})
             stats["status"][resp.status_code] = stats["status"].get(resp.status_code, 0) + 1
             if resp.status_code == 200:
                 stats["ok"] += 1
-                stats["mismatch"] += not np.array_equal(C.decode_response(resp.content), expected)
+                stats["mismatch"] += not np.array_equal(wire.decode_response(resp.content), expected)
             elif resp.status_code == 503:
                 stats["retry_after"].add(resp.headers.get("retry-after"))
     return stats
@@ -87,35 +86,32 @@ def test_sixteen_clients_no_errors_bit_identical_bounded_memory(live_server, wor
     assert httpx.get(live_server.url + "/v2/health/ready").status_code == 200
 
 
-def test_queue_overflow_gives_503_not_timeouts(model_dir, work, tmp_path):
-    server = start_server(model_dir, tmp_path / "server.log", max_rows=4096, max_queue_rows=4096, ort_workers=1)
-    try:
-        big = [w for w in work if w[1].shape[0] >= 2000]
-        results = run_clients(server.url, big, seconds=3)
-        statuses = {}
-        for r in results:
-            for code, count in r["status"].items():
-                statuses[code] = statuses.get(code, 0) + count
-        print(f"overflow: statuses {statuses}")
-        assert set(statuses) == {200, 503}, statuses
-        assert set().union(*(r["retry_after"] for r in results)) == {"1"}
-        assert sum(r["mismatch"] for r in results) == 0
-        metrics = httpx.get(server.url + "/metrics").text
-        assert "neumip_queue_rejected_total" in metrics
-        assert httpx.get(server.url + "/v2/health/ready").status_code == 200
-    finally:
-        assert server.stop() == 0, server.log.read_text()
+def test_queue_overflow_gives_503_not_timeouts(serve, work):
+    server = serve(max_rows=4096, max_queue_rows=4096, ort_workers=1)
+    big = [w for w in work if w[1].shape[0] >= 2000]
+    results = run_clients(server.url, big, seconds=3)
+    statuses = {}
+    for r in results:
+        for code, count in r["status"].items():
+            statuses[code] = statuses.get(code, 0) + count
+    print(f"overflow: statuses {statuses}")
+    assert set(statuses) == {200, 503}, statuses
+    assert set().union(*(r["retry_after"] for r in results)) == {"1"}
+    assert sum(r["mismatch"] for r in results) == 0
+    metrics = httpx.get(server.url + "/metrics").text
+    assert "neumip_queue_rejected_total" in metrics
+    assert httpx.get(server.url + "/v2/health/ready").status_code == 200
 
 
-def test_sigterm_finishes_requests_in_flight(model_dir, work, tmp_path):
-    server = start_server(model_dir, tmp_path / "server.log", ort_workers=1, chunk_rows=1024)
+def test_sigterm_finishes_requests_in_flight(serve):
+    server = serve(ort_workers=1, chunk_rows=1024)
     q = random_queries(400_000, seed=8)
     answer = {}
 
     def request() -> None:
         with httpx.Client(timeout=60) as http:
-            answer["resp"] = http.post(server.url + C.EVALUATE_PATH.format(name="flat16"), content=C.encode_request(q),
-                                       headers={"content-type": C.MSGPACK_MEDIA_TYPE})
+            answer["resp"] = http.post(server.url + wire.EVALUATE_PATH.format(name="flat16"), content=wire.encode_request(q),
+                                       headers={"content-type": wire.MSGPACK_MEDIA_TYPE})
 
     thread = threading.Thread(target=request)
     thread.start()
@@ -127,5 +123,5 @@ def test_sigterm_finishes_requests_in_flight(model_dir, work, tmp_path):
     assert server.stop() == 0, server.log.read_text()
     thread.join(timeout=60)
     assert answer["resp"].status_code == 200
-    assert C.decode_response(answer["resp"].content).shape == (400_000, 3)
+    assert wire.decode_response(answer["resp"].content).shape == (400_000, 3)
     assert "Application shutdown complete" in server.log.read_text()

@@ -9,6 +9,7 @@ import pytest
 from fastapi.testclient import TestClient
 
 from neumip.client import contract as C
+from neumip.client import wire
 from neumip.server.app import create_app
 from neumip.server.registry import Registry
 from neumip.server.settings import Settings
@@ -37,6 +38,8 @@ def test_registry_reports_failures_and_keeps_the_rest(mixed_dir):
     assert set(registry.failed) == {"corrupt", "future", ".hidden"}
     assert "contract version '99'" in registry.failed["future"]
     assert "cannot load" in registry.failed["corrupt"]
+    assert "corrupt.onnx" in registry.failed["corrupt"]  # the file name, but not where the server keeps it
+    assert not any(str(mixed_dir.resolve()) in reason or str(mixed_dir) in reason for reason in registry.failed.values())
 
 
 def test_missing_folder_is_a_clear_error(tmp_path):
@@ -50,14 +53,16 @@ def test_server_with_a_bad_model_serves_the_others(mixed_dir):
         assert client.get("/v2/models/rand16/ready").status_code == 200
         not_ready = client.get("/v2/models/future/ready")
         assert not_ready.status_code == 400 and not_ready.content == b""
-        listing = client.get(C.MATERIALS_PATH).json()
+        listing = client.get(wire.MATERIALS_PATH).json()
         assert [m["name"] for m in listing["materials"]] == ["rand16"]
         assert {f["name"] for f in listing["failed"]} == {"corrupt", "future", ".hidden"}
-        resp = client.post(C.EVALUATE_PATH.format(name="corrupt"), content=C.encode_request(random_queries(4)),
-                           headers={"content-type": C.MSGPACK_MEDIA_TYPE})
+        resp = client.post(wire.EVALUATE_PATH.format(name="corrupt"), content=wire.encode_request(random_queries(4)),
+                           headers={"content-type": wire.MSGPACK_MEDIA_TYPE})
         assert resp.status_code == 400 and "failed to load" in resp.json()["error"]
-        ok = client.post(C.EVALUATE_PATH.format(name="rand16"), content=C.encode_request(random_queries(4)),
-                         headers={"content-type": C.MSGPACK_MEDIA_TYPE})
+        assert "corrupt.onnx" in resp.json()["error"] and str(mixed_dir) not in resp.text
+        assert str(mixed_dir) not in client.get(wire.MATERIALS_PATH).text
+        ok = client.post(wire.EVALUATE_PATH.format(name="rand16"), content=wire.encode_request(random_queries(4)),
+                         headers={"content-type": wire.MSGPACK_MEDIA_TYPE})
         assert ok.status_code == 200
 
 
@@ -65,4 +70,4 @@ def test_server_without_models_is_live_but_not_ready(tmp_path):
     with TestClient(create_app(Settings(model_dir=tmp_path))) as client:
         assert client.get("/v2/health/live").status_code == 200
         assert client.get("/v2/health/ready").status_code == 400
-        assert client.get(C.MATERIALS_PATH).json()["materials"] == []
+        assert client.get(wire.MATERIALS_PATH).json()["materials"] == []

@@ -28,7 +28,8 @@ def test_defaults():
 
 @pytest.mark.parametrize(
     "bad",
-    [{"chunk_rows": 0}, {"max_rows": 10, "max_queue_rows": 5}, {"max_wait_ms": -1}, {"port": 70000}],
+    [{"chunk_rows": 0}, {"max_rows": 10, "max_queue_rows": 5}, {"max_wait_ms": -1}, {"port": 70000},
+     {"max_body_bytes": 1 << 30}, {"max_json_body_bytes": 64 << 20}, {"body_timeout_s": 0}],
 )
 def test_inconsistent_settings_are_rejected(bad):
     with pytest.raises(ValidationError):

@@ -25,11 +25,6 @@ import pytest
 from neumip.client.contract import random_queries
 from neumip.client.local import LocalMaterials
 
-try:  # the live-server helpers move to tests/conftest.py with the server-hardening branch
-    from tests.conftest import free_port
-except ImportError:
-    from tests.server.conftest import free_port
-
 pytestmark = pytest.mark.slow
 
 
@@ -41,7 +36,7 @@ def triton_python() -> str | None:
 
 
 @pytest.fixture(scope="module")
-def triton(model_dir, tmp_path_factory):
+def triton(model_dir, tmp_path_factory, port_finder):
     spec = importlib.util.find_spec("pytriton")
     if spec is None:
         pytest.skip("nvidia-pytriton is not installed (pip install --no-deps nvidia-pytriton)")
@@ -58,7 +53,7 @@ def triton(model_dir, tmp_path_factory):
     env = {**os.environ, "NEUMIP_MAX_WAIT_MS": "20"}  # 20 ms queue delay: concurrent requests merge
     subprocess.run([sys.executable, "-m", "neumip.client.cli", "export-repository", str(model_dir), "-o", str(repo),
                     "--backend", "python", "--threads", "1"], check=True, env=env)
-    port = free_port()
+    port = port_finder()
     log = work / "triton.log"
     env = {**os.environ, "PATH": f"{Path(python).parent}:{os.environ['PATH']}",
            "LD_LIBRARY_PATH": str(root.parent.parent / "nvidia_pytriton.libs")}

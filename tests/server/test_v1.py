@@ -7,21 +7,22 @@ import numpy as np
 import pytest
 
 from neumip.client import contract as C
+from neumip.client import wire
 from neumip.client.contract import random_queries
 
-MSGPACK = {"content-type": C.MSGPACK_MEDIA_TYPE}
+MSGPACK = {"content-type": wire.MSGPACK_MEDIA_TYPE}
 
 
 def evaluate_path(name: str = "rand16") -> str:
-    return C.EVALUATE_PATH.format(name=name)
+    return wire.EVALUATE_PATH.format(name=name)
 
 
 def test_msgpack_answer_is_bit_identical_to_in_process(client, reference):
     q = random_queries(40_000, seed=11)  # > chunk_rows: split into several ONNX Runtime calls
-    resp = client.post(evaluate_path(), content=C.encode_request(q), headers=MSGPACK)
+    resp = client.post(evaluate_path(), content=wire.encode_request(q), headers=MSGPACK)
     assert resp.status_code == 200, resp.text
-    assert resp.headers["content-type"] == C.MSGPACK_MEDIA_TYPE
-    np.testing.assert_array_equal(C.decode_response(resp.content), reference.evaluate("rand16", q))
+    assert resp.headers["content-type"] == wire.MSGPACK_MEDIA_TYPE
+    np.testing.assert_array_equal(wire.decode_response(resp.content), reference.evaluate("rand16", q))
 
 
 def test_json_answer_matches_msgpack(client):
@@ -30,8 +31,17 @@ def test_json_answer_matches_msgpack(client):
     assert resp.status_code == 200, resp.text
     body = resp.json()
     assert body["n"] == 5
-    packed = client.post(evaluate_path(), content=C.encode_request(q), headers=MSGPACK)
-    np.testing.assert_array_equal(np.asarray(body["rgb"], dtype=np.float32), C.decode_response(packed.content))
+    packed = client.post(evaluate_path(), content=wire.encode_request(q), headers=MSGPACK)
+    np.testing.assert_array_equal(np.asarray(body["rgb"], dtype=np.float32), wire.decode_response(packed.content))
+
+
+def test_zero_rows_answer_zero_rows(client):
+    """N = 0 is valid (the contract): msgpack and JSON both answer an empty (0, 3)."""
+    resp = client.post(evaluate_path(), content=wire.encode_request(np.zeros((0, 7), np.float32)), headers=MSGPACK)
+    assert resp.status_code == 200, resp.text
+    assert wire.decode_response(resp.content).shape == (0, 3)
+    resp = client.post(evaluate_path(), json={"queries": []})
+    assert resp.status_code == 200 and resp.json() == {"n": 0, "rgb": []}
 
 
 def test_lambert_answers_albedo_over_pi(client):
@@ -40,7 +50,7 @@ def test_lambert_answers_albedo_over_pi(client):
 
 
 def test_listing_carries_metadata(client):
-    listing = client.get(C.MATERIALS_PATH).json()
+    listing = client.get(wire.MATERIALS_PATH).json()
     names = [m["name"] for m in listing["materials"]]
     assert names == ["flat16", "lambert", "rand16"]
     rand = listing["materials"][names.index("rand16")]
@@ -48,7 +58,7 @@ def test_listing_carries_metadata(client):
     assert rand["config"]["resolution"] == 16
     assert rand["description"] == "random test material"
     assert listing["failed"] == []
-    assert client.get(C.MATERIALS_PATH + "/lambert").json()["name"] == "lambert"
+    assert client.get(wire.MATERIALS_PATH + "/lambert").json()["name"] == "lambert"
 
 
 def _msgpack(**fields) -> bytes:
@@ -72,20 +82,19 @@ BAD_REQUESTS = [
     ("missing key", evaluate_path(), _msgpack(queries=GOOD.tobytes()), MSGPACK, 400, "keys"),
     ("not a map", evaluate_path(), msgpack.packb([1, 2, 3]), MSGPACK, 400, "map"),
     ("malformed msgpack", evaluate_path(), b"\xc1\xff\x00garbage", MSGPACK, 400, "msgpack"),
-    ("truncated msgpack", evaluate_path(), C.encode_request(GOOD)[:-10], MSGPACK, 400, "msgpack"),
-    ("NaN", evaluate_path(), C.encode_request(NAN), MSGPACK, 400, "finite"),
-    ("Inf", evaluate_path(), C.encode_request(INF), MSGPACK, 400, "finite"),
-    ("direction outside disk", evaluate_path(), C.encode_request(OUTSIDE), MSGPACK, 400, "unit vector"),
-    ("N = 0", evaluate_path(), C.encode_request(np.zeros((0, 7), np.float32)), MSGPACK, 400, "at least one"),
-    ("N above limit", evaluate_path(), C.encode_request(random_queries(50_001)), MSGPACK, 413, "limit"),
-    ("unknown material", evaluate_path("nope"), C.encode_request(GOOD), MSGPACK, 404, "unknown material"),
-    ("path trick", "/v1/materials/..%2F..%2Fetc%2Fpasswd/evaluate", C.encode_request(GOOD), MSGPACK, 404, "no such"),
-    ("dot name", evaluate_path(".."), C.encode_request(GOOD), MSGPACK, 404, "no such"),
-    ("hidden name", evaluate_path(".rand16"), C.encode_request(GOOD), MSGPACK, 400, "invalid material name"),
-    ("long name", evaluate_path("a" * 300), C.encode_request(GOOD), MSGPACK, 400, "invalid material name"),
-    ("missing content type", evaluate_path(), C.encode_request(GOOD), {}, 415, "missing"),
-    ("wrong content type", evaluate_path(), C.encode_request(GOOD), {"content-type": "text/plain"}, 415, "text/plain"),
-    ("gzip body", evaluate_path(), C.encode_request(GOOD), {**MSGPACK, "content-encoding": "gzip"}, 415, "gzip"),
+    ("truncated msgpack", evaluate_path(), wire.encode_request(GOOD)[:-10], MSGPACK, 400, "msgpack"),
+    ("NaN", evaluate_path(), wire.encode_request(NAN), MSGPACK, 400, "finite"),
+    ("Inf", evaluate_path(), wire.encode_request(INF), MSGPACK, 400, "finite"),
+    ("direction outside disk", evaluate_path(), wire.encode_request(OUTSIDE), MSGPACK, 400, "unit vector"),
+    ("N above limit", evaluate_path(), wire.encode_request(random_queries(50_001)), MSGPACK, 413, "limit"),
+    ("unknown material", evaluate_path("nope"), wire.encode_request(GOOD), MSGPACK, 404, "unknown material"),
+    ("path trick", "/v1/materials/..%2F..%2Fetc%2Fpasswd/evaluate", wire.encode_request(GOOD), MSGPACK, 404, "no such"),
+    ("dot name", evaluate_path(".."), wire.encode_request(GOOD), MSGPACK, 404, "no such"),
+    ("hidden name", evaluate_path(".rand16"), wire.encode_request(GOOD), MSGPACK, 400, "invalid material name"),
+    ("long name", evaluate_path("a" * 300), wire.encode_request(GOOD), MSGPACK, 400, "invalid material name"),
+    ("missing content type", evaluate_path(), wire.encode_request(GOOD), {}, 415, "missing"),
+    ("wrong content type", evaluate_path(), wire.encode_request(GOOD), {"content-type": "text/plain"}, 415, "text/plain"),
+    ("gzip body", evaluate_path(), wire.encode_request(GOOD), {**MSGPACK, "content-encoding": "gzip"}, 415, "gzip"),
     ("oversized body", evaluate_path(), b"\x00" * (4 << 20 | 1), MSGPACK, 413, "limit"),
     ("malformed JSON", evaluate_path(), b'{"queries": [[1,2', {"content-type": "application/json"}, 400, "JSON"),
     ("JSON not an object", evaluate_path(), b"[1, 2]", {"content-type": "application/json"}, 400, "queries"),
@@ -95,7 +104,7 @@ BAD_REQUESTS = [
     ("JSON NaN", evaluate_path(), b'{"queries": [[NaN, 0, 0, 0, 0, 0, 0]]}', {"content-type": "application/json"}, 400, "finite"),
     ("JSON huge value", evaluate_path(), b'{"queries": [[1e300, 0, 0, 0, 0, 0, 0]]}', {"content-type": "application/json"}, 400, "finite"),
     ("JSON integer beyond float", evaluate_path(), b'{"queries": [[1' + b"0" * 400 + b', 0, 0, 0, 0, 0, 0]]}', {"content-type": "application/json"}, 400, "finite"),
-    ("JSON empty", evaluate_path(), b'{"queries": []}', {"content-type": "application/json"}, 400, "at least one"),
+    ("JSON nested deeply", evaluate_path(), b'{"queries": ' + b"[" * 100_000, {"content-type": "application/json"}, 400, "nests too deep"),
     ("JSON n disagrees", evaluate_path(), b'{"n": 2, "queries": [[0, 0, 0, 0, 0, 0, 0]]}', {"content-type": "application/json"}, 400, "'n'"),
     ("bad Content-Length", evaluate_path(), None, {**MSGPACK, "content-length": "abc"}, 400, "content-length"),
 ]
@@ -110,7 +119,7 @@ def test_bad_request_gets_4xx_with_message_and_server_stays_live(client, path, b
     message = resp.json()["error"]
     assert words.lower() in message.lower(), message
     assert client.get("/v2/health/live").status_code == 200
-    ok = client.post(evaluate_path(), content=C.encode_request(GOOD), headers=MSGPACK)
+    ok = client.post(evaluate_path(), content=wire.encode_request(GOOD), headers=MSGPACK)
     assert ok.status_code == 200
 
 
@@ -118,7 +127,20 @@ def test_framework_errors_use_the_error_body(client):
     for resp, status in (
         (client.get("/no/such/thing"), 404),
         (client.get(evaluate_path()), 405),
-        (client.delete(C.MATERIALS_PATH), 405),
+        (client.delete(wire.MATERIALS_PATH), 405),
     ):
         assert resp.status_code == status
         assert set(resp.json()) == {"error"}
+
+
+def test_chunked_uploads_are_read_and_bounded(client, reference):
+    """A body without Content-Length (chunked) reserves memory as it grows: answered, or 413 past the limit."""
+    q = random_queries(1000, seed=5)
+    body = wire.encode_request(q)
+    resp = client.post(evaluate_path(), content=iter([body[:100], body[100:]]), headers=MSGPACK)
+    assert resp.status_code == 200, resp.text
+    np.testing.assert_array_equal(wire.decode_response(resp.content), reference.evaluate("rand16", q))
+    too_big = iter([b"\x00" * (1 << 20)] * 5)  # 5 MiB against the 4 MiB limit of this app
+    resp = client.post(evaluate_path(), content=too_big, headers=MSGPACK)
+    assert resp.status_code == 413 and "limit of 4194304 bytes" in resp.json()["error"]
+    assert client.app.state.neumip.admission.memory == 0

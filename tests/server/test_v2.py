@@ -65,6 +65,14 @@ def test_infer_matches_in_process(client, reference, binary_in, binary_out):
     assert json.loads(head)["id"] == "req-7" and json.loads(head)["model_name"] == "rand16"
 
 
+@pytest.mark.parametrize("binary", [False, True])
+def test_zero_rows_answer_zero_rows(client, binary):
+    body, headers = infer_body(np.zeros((0, 7), np.float32), binary, binary)
+    resp = client.post("/v2/models/rand16/infer", content=body, headers=headers)
+    assert resp.status_code == 200, resp.text
+    assert read_output(resp).shape == (0, 3)
+
+
 def test_request_level_binary_output_and_versioned_path(client, reference):
     body, headers = infer_body(Q, True, False)
     msg = json.loads(body[: int(headers[HEADER])])
@@ -94,7 +102,7 @@ BAD_INFER = [
     ("data strings", _bad(data=["a"] * 7), {}, 400, "numbers"),
     ("data ragged", _bad(data=[[0.0] * 7, [0.0]]), {}, 400, "nested"),
     ("data NaN", b'{"inputs": [{"name": "queries", "datatype": "FP32", "shape": [1, 7], "data": [NaN, 0, 0, 0, 0, 0, 0]}]}', {}, 400, "finite"),
-    ("N = 0", _bad(shape=[0, 7], data=[]), {}, 400, "at least one"),
+    ("nested deeply", b'{"inputs": ' + b"[" * 100_000, {}, 400, "nests too deep"),
     ("N above limit", *infer_body(random_queries(50_001), True, True), 413, "limit"),
     ("unknown input", _bad(name="x"), {}, 400, "unknown input"),
     ("two inputs", json.dumps({"inputs": [json.loads(_bad())["inputs"][0]] * 2}).encode(), {}, 400, "exactly one"),

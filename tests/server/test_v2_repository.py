@@ -11,11 +11,6 @@ import pytest
 
 from neumip.client.contract import random_queries
 
-try:  # the live-server helpers move to tests/conftest.py with the server-hardening branch
-    from tests.conftest import start_server
-except ImportError:
-    from tests.server.conftest import start_server
-
 pytest.importorskip("tritonclient.grpc", reason="needs tritonclient[grpc] (Triton's ModelConfig schema)")
 import tritonclient.http as triton  # noqa: E402
 from google.protobuf import json_format  # noqa: E402
@@ -27,14 +22,12 @@ SETTINGS = {"chunk_rows": 1024, "max_wait_ms": 3, "ort_workers": 2, "ort_threads
 
 
 @pytest.fixture(scope="module")
-def server(model_dir, tmp_path_factory):
+def server(model_dir, tmp_path_factory, serve_module):
     folder = tmp_path_factory.mktemp("repo-models")
     for path in model_dir.glob("*.onnx"):
         shutil.copy(path, folder)
     (folder / "broken.onnx").write_bytes(b"not an onnx graph")
-    live = start_server(folder, tmp_path_factory.mktemp("server") / "server.log", **SETTINGS)
-    yield live
-    assert live.stop() == 0, live.log.read_text()
+    return serve_module(folder, **SETTINGS)
 
 
 @pytest.fixture(scope="module")

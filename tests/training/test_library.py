@@ -17,14 +17,13 @@ from neumip.training.cluster import ClusterError, RayConfig
 from neumip.training.config import MaterialConfig
 from neumip.training.library import LibrarySettings, MaterialJob, finished, train_library, train_material
 from neumip.training.train_config import TEST
-from tests.training.plane_data import plane_data
 from tests.training.ray_workers import killing_the_first_busy_worker
 
 CONFIG = replace(TEST, steps=40, batch=512, checkpoint_every=20)
 
 
 @pytest.fixture(scope="module")
-def data(tmp_path_factory):
+def data(tmp_path_factory, plane_data):
     return plane_data(tmp_path_factory.mktemp("plane") / "plane", 6000, seed=5).path
 
 

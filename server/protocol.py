@@ -1,0 +1,105 @@
+"""The HTTP/1.1 connection, before the app runs: header size and time limits, and JSON errors.
+
+uvicorn's httptools protocol puts no bound on the size of a request's line and headers and none on the
+time they take to arrive, and answers a request it cannot parse with a plain-text 400. `protocol_class`
+gives uvicorn a subclass that:
+
+- answers **431** once a request's line and headers pass ``max_header_bytes`` without ending (counted
+  as bytes received while they are incomplete; a pipelined request may count up to one read of the
+  previous body as well), then closes the connection;
+- answers **408** when they take longer than ``header_timeout_s`` from the connection opening or the
+  request's first byte (an idle kept-alive connection is closed after ``keep_alive_s`` by uvicorn);
+- answers every error it raises with ``{"error": "..."}``, like the app (an unparsable request line
+  or header, an unknown method, a malformed Content-Length or chunk size: 400).
+
+Errors are written on the connection and then it is closed: the rest of such a request cannot be
+trusted to mark where the next one starts. A framing error in a body the app is already reading (a bad
+chunk size) is answered the same way, and the app sees the client as gone.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import json
+
+from uvicorn.protocols.http.httptools_impl import HttpToolsProtocol
+
+from .settings import Settings
+
+STATUS_TEXT = {400: "Bad Request", 408: "Request Timeout", 431: "Request Header Fields Too Large"}
+
+
+def error_bytes(status: int, message: str) -> bytes:
+    """A complete HTTP/1.1 error answer with a ``{"error": message}`` body that closes the connection."""
+    body = json.dumps({"error": message}).encode()
+    head = (
+        f"HTTP/1.1 {status} {STATUS_TEXT[status]}\r\ncontent-type: application/json\r\n"
+        f"content-length: {len(body)}\r\nconnection: close\r\n\r\n"
+    )
+    return head.encode("ascii") + body
+
+
+def protocol_class(settings: Settings) -> type[asyncio.Protocol]:
+    """uvicorn's httptools protocol with this server's header limits (see the module docstring)."""
+
+    class GuardedProtocol(HttpToolsProtocol):
+        max_header_bytes = settings.max_header_bytes
+        header_timeout_s = settings.header_timeout_s
+
+        def connection_made(self, transport) -> None:  # type: ignore[override]
+            super().connection_made(transport)
+            self._header_bytes = 0
+            self._in_headers = True
+            self._header_timer = self.loop.call_later(self.header_timeout_s, self._header_timeout)
+
+        def connection_lost(self, exc) -> None:
+            self._stop_header_timer()
+            super().connection_lost(exc)
+
+        def data_received(self, data: bytes) -> None:
+            if self._in_headers:
+                self._header_bytes += len(data)
+            super().data_received(data)
+            if self._in_headers and self._header_bytes > self.max_header_bytes and not self.transport.is_closing():
+                self._refuse(431, f"request line and headers are larger than the limit of {self.max_header_bytes} bytes")
+
+        def on_message_begin(self) -> None:
+            super().on_message_begin()
+            if not self._in_headers:  # the next request on a kept-alive connection: its clock starts now
+                self._in_headers, self._header_bytes = True, 0
+                self._header_timer = self.loop.call_later(self.header_timeout_s, self._header_timeout)
+
+        def on_headers_complete(self) -> None:
+            self._in_headers = False
+            self._stop_header_timer()
+            super().on_headers_complete()
+
+        def send_400_response(self, msg: str) -> None:
+            self._stop_header_timer()
+            self._refuse(400, "invalid HTTP request: the request line, a header, the method, the Content-Length or "
+                         "the chunked framing could not be parsed")
+
+        def _header_timeout(self) -> None:
+            self._header_timer = None
+            if not self.transport.is_closing():
+                self._refuse(408, f"request line and headers not complete after {self.header_timeout_s:g} s")
+
+        def _stop_header_timer(self) -> None:
+            if getattr(self, "_header_timer", None) is not None:
+                self._header_timer.cancel()
+                self._header_timer = None
+
+        def _refuse(self, status: int, message: str) -> None:
+            self._stop_header_timer()
+            self.logger.warning("%s %s", status, message)
+            cycle = self.cycle
+            if cycle is not None and not cycle.response_complete:  # the app is reading this request's body
+                if cycle.response_started:  # never inside an answer the app is writing: just close
+                    self.transport.close()
+                    return
+                cycle.disconnected = True  # the app's reads now end, its writes go nowhere
+                cycle.message_event.set()
+            self.transport.write(error_bytes(status, message))
+            self.transport.close()
+
+    return GuardedProtocol

@@ -1,0 +1,84 @@
+"""The wire formats: msgpack bit-exact round trips, the zero-copy layout and malformed bodies; the v2
+binary-tensor request and answer."""
+
+import msgpack
+import numpy as np
+import pytest
+
+from neumip.client import contract as C
+from neumip.client import wire
+from neumip.client.contract import random_queries
+
+
+def test_wire_roundtrip_is_bit_exact():
+    q = np.random.default_rng(0).uniform(-0.5, 0.5, (1000, 7)).astype(np.float32)
+    np.testing.assert_array_equal(wire.decode_request(wire.encode_request(q)), q)
+    rgb = np.random.default_rng(1).uniform(0, 1, (1000, 3)).astype(np.float32)
+    np.testing.assert_array_equal(wire.decode_response(wire.encode_response(rgb)), rgb)
+
+
+@pytest.mark.parametrize(
+    "body, message",
+    [
+        (b"\xc1garbage", "not valid msgpack"),
+        (msgpack.packb([1, 2]), "must be a map"),
+        (msgpack.packb({"n": 2, "queries": b"\0" * 55}), "holds 55 bytes"),
+        (msgpack.packb({"n": -1, "queries": b""}), "non-negative"),
+        (msgpack.packb({"n": 1, "queries": "text"}), "must be binary"),
+    ],
+)
+def test_malformed_wire_bodies(body, message):
+    with pytest.raises(C.QueryError, match=message):
+        wire.decode_request(body)
+
+
+def test_wire_parts_are_the_msgpack_bodies():
+    """The zero-copy pieces the client sends and the server fills are exactly `msgpack.packb`'s bodies,
+    across the bin8/bin16/bin32 and fixint/uint8/uint16/uint32 boundaries of the header."""
+    for n in (0, 1, 9, 36, 37, 127, 128, 2340, 2341, 9362, 9363, 65536, 70000):
+        q = random_queries(n, seed=n)
+        packed = msgpack.packb({"n": n, "queries": q.tobytes()})
+        header, rows = wire.encode_request_parts(q)
+        assert header + bytes(rows) == wire.encode_request(q) == packed
+        np.testing.assert_array_equal(wire.decode_request(packed), q)
+        rgb = np.random.default_rng(n).random((n, 3), dtype=np.float32)
+        body, view = wire.response_buffer(n)
+        view[...] = rgb
+        assert bytes(body) == wire.encode_response(rgb) == msgpack.packb({"n": n, "rgb": rgb.tobytes()})
+        np.testing.assert_array_equal(wire.decode_response(body), rgb)
+
+
+def test_decode_still_takes_other_msgpack_layouts_and_refuses_broken_ones():
+    q = random_queries(5, seed=1)
+    swapped = msgpack.packb({"queries": q.tobytes(), "n": 5})  # keys in the other order: msgpack path
+    np.testing.assert_array_equal(wire.decode_request(swapped), q)
+    good = wire.encode_request(q)
+    for broken in (good + b"\x00", good[:-1], b"\x82\xa1n\xcf" + b"\xff" * 8):
+        with pytest.raises(C.QueryError, match="not valid msgpack"):
+            wire.decode_request(broken)
+
+
+def test_v2_binary_request_and_answer():
+    import json
+
+    q = random_queries(5, seed=3)
+    headers, parts = wire.encode_infer_request(q)
+    body = b"".join(bytes(part) for part in parts)
+    length = int(headers[wire.INFER_HEADER_LENGTH])
+    assert int(headers["Content-Length"]) == len(body)
+    head = json.loads(body[:length])
+    assert head["inputs"][0]["shape"] == [5, 7] and head["outputs"][0]["parameters"]["binary_data"] is True
+    np.testing.assert_array_equal(np.frombuffer(body[length:], np.float32).reshape(5, 7), q)
+    rgb = np.random.default_rng(0).random((5, 3), dtype=np.float32)
+    out = {"name": "rgb", "datatype": "FP32", "shape": [5, 3], "parameters": {"binary_data_size": rgb.nbytes}}
+    answer_head = json.dumps({"model_name": "m", "outputs": [out]}).encode()
+    answer = answer_head + rgb.tobytes()
+    np.testing.assert_array_equal(wire.decode_infer_response(answer, str(len(answer_head))), rgb)
+    for broken, length_header, message in (
+        (answer, None, "no valid"),
+        (answer[:-4], str(len(answer_head)), "holds 56 bytes"),
+        (b"{}" + rgb.tobytes(), "2", "not an infer response"),
+        (answer_head.replace(b"FP32", b"FP64") + rgb.tobytes(), str(len(answer_head)), "not FP32"),
+    ):
+        with pytest.raises(C.QueryError, match=message):
+            wire.decode_infer_response(broken, length_header)
