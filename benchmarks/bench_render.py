@@ -208,7 +208,7 @@ def report(label: str, result, cpu: float) -> None:
 def demo(args) -> None:
     from neumip.client.http import MaterialClient
     from neumip.client.local import LocalMaterials
-    from tests.client.mitsuba.server_process import ServerProcess
+    from bench_server import Server  # this folder is on sys.path when run as a script
 
     with tempfile.TemporaryDirectory() as tmp:
         models = stand_in_models(Path(tmp)) if args.stand_in else args.models
@@ -218,11 +218,11 @@ def demo(args) -> None:
         render_demo(local, args, 64, 2)  # warm-up
         in_process, cpu_local = render_demo(local, args, args.demo_size, args.demo_spp)
         report("in-process", in_process, cpu_local)
-        server = ServerProcess(models)
+        server = Server(Path(models), Path(tmp) / "server.log")
         try:
             with MaterialClient(server.url) as client:
                 render_demo(client, args, 64, 2)
-                remote, cpu_remote = render_demo(client, args, args.demo_size, args.demo_spp, server.proc.pid)
+                remote, cpu_remote = render_demo(client, args, args.demo_size, args.demo_spp, server.process.pid)
         finally:
             server.stop()
         report("HTTP", remote, cpu_remote)

@@ -11,7 +11,8 @@ from __future__ import annotations
 
 from fastapi import APIRouter, Depends, Request
 
-from .body import parse_json, read_body
+from .admission import plan, read_body
+from .body import parse_json
 from .errors import ApiError
 from .model_config import TritonOptions, model_config
 from .openapi import ERROR_RESPONSES
@@ -45,7 +46,11 @@ async def stats(name: str | None = None, version: str | None = None, state: Serv
 @router.post("/repository/index", summary="Every model of the repository and its state", responses=ERROR_RESPONSES)
 async def repository_index(request: Request, state: ServerState = Depends(serving)) -> list[dict]:
     """Body (optional): ``{"ready": true}`` lists only the models ready to serve."""
-    body = await read_body(request, INDEX_BODY_BYTES)
+    body_plan = plan(request, state.settings, json=True)
+    if (body_plan.declared or 0) > INDEX_BODY_BYTES:
+        raise ApiError(413, f"a repository-index body holds at most {INDEX_BODY_BYTES} bytes")
+    with state.admission.admit(body_plan) as ticket:  # the same budgets and timeouts as every body
+        body = await read_body(request, body_plan, ticket, state.admission)
     options = parse_json(body) if body.strip() else {}
     if not isinstance(options, dict) or not isinstance(options.get("ready", False), bool):
         raise ApiError(400, 'the repository index body must be a JSON object like {"ready": true}')

@@ -20,6 +20,9 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("-o", "--output", type=Path, required=True, help="image to write (.png or .exr)")
     p.add_argument("--spp", type=int, default=None, help="samples per pixel (default: the scene's)")
     p.add_argument("--server", default=None, help="evaluate on this server (e.g. http://127.0.0.1:8000)")
+    p.add_argument("--protocol", choices=("msgpack", "v2"), default="msgpack",
+                   help="with --server: msgpack /v1, or the Open Inference Protocol's binary tensors (v2: "
+                   "neumip serve, Triton, KServe)")
     p.add_argument("--models", type=Path, default=Path(DEFAULT_MODELS),
                    help="folder of .onnx materials (in-process)")
     p.add_argument(
@@ -107,7 +110,7 @@ def _evaluator(args: argparse.Namespace):
         return LocalMaterials(args.models, threads=args.threads)
     from neumip.client.http import FallbackEvaluator, MaterialClient
 
-    client = MaterialClient(args.server)
+    client = MaterialClient(args.server, protocol=args.protocol)
     if args.fallback:
         return FallbackEvaluator(client, LocalMaterials(args.models, threads=args.threads))
     return client

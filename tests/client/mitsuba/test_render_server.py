@@ -15,7 +15,6 @@ from neumip.client.local import LocalMaterials
 from neumip.client.mitsuba.render import RenderConfig, load_scene, render_scene
 
 from .scenes import write_xml
-from .server_process import ServerProcess, needs_server
 
 
 @pytest.fixture
@@ -31,30 +30,44 @@ def one_drjit_thread():
 
 
 @pytest.fixture
-def server(model_dir):
-    proc = ServerProcess(model_dir)
-    yield proc
-    proc.stop()
+def server(serve):
+    """A real `neumip serve` process serving the test materials (stopped after the test)."""
+    return serve()
 
 
-@needs_server
-def test_server_render_equals_in_process(model_dir, server, tmp_path, one_drjit_thread):
+@pytest.mark.parametrize("protocol", ["msgpack", "v2"])
+def test_server_render_equals_in_process(model_dir, server, tmp_path, one_drjit_thread, protocol):
+    """Through msgpack /v1 and the Open Inference Protocol's binary tensors alike: the same bits."""
     path = write_xml(tmp_path)
     config = RenderConfig(spp=16, seed=5, max_lanes=32 * 32 * 8, threads=one_drjit_thread)  # two passes
     local = render_scene(load_scene(path), LocalMaterials(model_dir), config)
-    with MaterialClient(server.url) as client:
+    with MaterialClient(server.url, protocol=protocol) as client:
         remote = render_scene(load_scene(path), client, config)
     assert remote.stats.queries == local.stats.queries > 0
     assert local.image.mean() > 0.01
     np.testing.assert_array_equal(remote.image, local.image)
 
 
+def test_render_command_over_v2_equals_msgpack(model_dir, server, tmp_path):
+    """`neumip render --protocol v2` writes the image `--protocol msgpack` writes (up to the film's
+    thread-dependent summation order; bit for bit on one thread: test_server_render_equals_in_process)."""
+    from neumip.client.mitsuba.render import mi
+
+    scene = write_xml(tmp_path)
+    images = {}
+    for protocol in ("msgpack", "v2"):
+        out = tmp_path / f"{protocol}.exr"
+        assert cli.main(["render", scene, "-o", str(out), "--server", server.url, "--protocol", protocol]) == 0
+        images[protocol] = np.array(mi.Bitmap(str(out)))
+    assert images["v2"].mean() > 0.01
+    np.testing.assert_allclose(images["v2"], images["msgpack"], rtol=1e-5, atol=1e-6)
+
+
 SHIPPED = Path(__file__).resolve().parents[3] / "models"
 """The trained materials the repository ships."""
 
 
-@needs_server
-def test_server_render_of_trained_materials_is_bit_identical(tmp_path, one_drjit_thread):
+def test_server_render_of_trained_materials_is_bit_identical(tmp_path, serve, one_drjit_thread):
     """Trained rock and yarn rendered in process (default evaluator; and calls cut every 17 rows, over
     two threads) and through the server (which cuts and merges calls its own way): the same bits.
     With the export's former Log-based level of detail the 17-row cut alone changed a pixel here, and
@@ -67,12 +80,8 @@ def test_server_render_of_trained_materials_is_bit_identical(tmp_path, one_drjit
     config = RenderConfig(spp=16, seed=11, max_lanes=32 * 32 * 5, threads=one_drjit_thread)  # 4 passes
     local = render_scene(load_scene(path), LocalMaterials(folder), config)
     cut = render_scene(load_scene(path), LocalMaterials(folder, threads=2, chunk=17), config)
-    proc = ServerProcess(folder)
-    try:
-        with MaterialClient(proc.url) as client:
-            remote = render_scene(load_scene(path), client, config)
-    finally:
-        proc.stop()
+    with MaterialClient(serve(folder).url) as client:
+        remote = render_scene(load_scene(path), client, config)
     assert remote.stats.queries == local.stats.queries > 0
     assert local.image.mean() > 0.01 and local.image.std() > 0.01
     np.testing.assert_array_equal(cut.image, local.image)
@@ -94,7 +103,6 @@ def stop_server_at_second_call(server, monkeypatch) -> dict:
     return calls
 
 
-@needs_server
 def test_server_stopped_mid_render_is_an_error_and_writes_nothing(model_dir, server, tmp_path, monkeypatch, capsys):
     calls = stop_server_at_second_call(server, monkeypatch)
     monkeypatch.setattr("neumip.client.http.ClientConfig", lambda: ClientConfig(retries=1, backoff_s=0.01))
@@ -107,7 +115,6 @@ def test_server_stopped_mid_render_is_an_error_and_writes_nothing(model_dir, ser
     assert not out.exists() and not list(tmp_path.glob("*.png"))
 
 
-@needs_server
 def test_fallback_finishes_in_process_when_the_server_stops(model_dir, server, tmp_path, monkeypatch, capsys):
     calls = stop_server_at_second_call(server, monkeypatch)
     monkeypatch.setattr("neumip.client.http.ClientConfig", lambda: ClientConfig(retries=0))
