@@ -129,3 +129,19 @@ def test_triton_refuses_nan_with_an_error(triton):
     tensor.set_data_from_numpy(q, binary_data=True)
     with pytest.raises(InferenceServerException, match="row 2 holds NaN"):
         client.infer("rand16", [tensor])
+
+
+def test_material_client_over_v2_against_triton(triton, model_dir):
+    """The renderer's client speaks the Open Inference Protocol to a real Triton: the same answers as
+    in-process, large buffers split into several requests, and Triton's errors reported as ServerError."""
+    from neumip.client.http import ClientConfig, MaterialClient, ServerError
+
+    _, url = triton
+    local = LocalMaterials(model_dir)
+    with MaterialClient(f"http://{url}", ClientConfig(max_rows=4096), protocol="v2") as client:
+        for i, name in enumerate(local.materials()):
+            q = random_queries(10_000, seed=200 + i)  # three requests of <= 4096 rows
+            np.testing.assert_array_equal(client.evaluate(name, q), local.evaluate(name, q))
+        with pytest.raises(ServerError) as info:
+            client.evaluate("no_such_material", random_queries(4))
+        assert info.value.status in (400, 404)
