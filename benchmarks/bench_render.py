@@ -220,16 +220,18 @@ def demo(args) -> None:
         report("in-process", in_process, cpu_local)
         server = Server(Path(models), Path(tmp) / "server.log")
         try:
-            with MaterialClient(server.url) as client:
-                render_demo(client, args, 64, 2)
-                remote, cpu_remote = render_demo(client, args, args.demo_size, args.demo_spp, server.process.pid)
+            for protocol in ("msgpack", "v2"):
+                with MaterialClient(server.url, protocol=protocol) as client:
+                    render_demo(client, args, 64, 2)
+                    remote, cpu_remote = render_demo(client, args, args.demo_size, args.demo_spp,
+                                                     server.process.pid)
+                report(f"HTTP {protocol}", remote, cpu_remote)
+                diff = np.abs(remote.image - in_process.image)
+                print(f"HTTP {protocol} / in-process: {remote.seconds / in_process.seconds:.2f}x wall time, "
+                      f"{cpu_remote / cpu_local:.2f}x CPU time (client + server); "
+                      f"image difference max {diff.max():.2e}, mean {diff.mean():.2e}", flush=True)
         finally:
             server.stop()
-        report("HTTP", remote, cpu_remote)
-        diff = np.abs(remote.image - in_process.image)
-        print(f"HTTP / in-process: {remote.seconds / in_process.seconds:.2f}x wall time, "
-              f"{cpu_remote / cpu_local:.2f}x CPU time (client + server); "
-              f"image difference max {diff.max():.2e}, mean {diff.mean():.2e}")
 
 
 def main() -> int:

@@ -96,7 +96,7 @@ def test_generate_command_with_ray(local_ray, tmp_path, capsys):
     args = ["generate", "flat", "--queries", "1200", "--spp", "2", "--seed", "3", "--chunk", "500"]
     assert main([*args, "-o", str(tmp_path / "ray"), "--ray", "--ray-in-flight", "2"]) == 0
     captured = capsys.readouterr()
-    assert "wrote 1200 queries of flat" in captured.out and "1.20k/1.20k" in captured.err
+    assert "1200 queries of flat (2 spp), complete" in captured.out and "1.20k/1.20k" in captured.err
     single = generate(find_description("flat"), tmp_path / "single", GenerateSettings(queries=1200, spp=2, seed=3, chunk=500))
     assert_same_data(open_dataset(tmp_path / "ray"), single)
 
