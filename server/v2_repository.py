@@ -10,8 +10,9 @@ are what the batcher records (`neumip.server.model_stats`).
 from __future__ import annotations
 
 from fastapi import APIRouter, Depends, Request
+from starlette.requests import ClientDisconnect
 
-from .body import parse_json, read_body
+from .body import parse_json
 from .errors import ApiError
 from .model_config import TritonOptions, model_config
 from .openapi import ERROR_RESPONSES
@@ -23,6 +24,23 @@ router = APIRouter(prefix="/v2", tags=["v2 (Open Inference Protocol)"])
 
 INDEX_BODY_BYTES = 4096
 """Largest body of a repository-index request (it holds at most ``{"ready": true}``)."""
+
+
+async def read_small_body(request: Request, limit: int) -> bytes:
+    """The whole body of a small control request; 413 past `limit` bytes (declared or arrived)."""
+    declared = request.headers.get("content-length")
+    if declared is not None and declared.isdigit() and int(declared) > limit:
+        raise ApiError(413, f"body is larger than the limit of {limit} bytes")
+    chunks, size = [], 0
+    try:
+        async for chunk in request.stream():
+            size += len(chunk)
+            if size > limit:
+                raise ApiError(413, f"body is larger than the limit of {limit} bytes")
+            chunks.append(chunk)
+    except ClientDisconnect:
+        raise ApiError(400, f"client disconnected after {size} bytes of the body") from None
+    return b"".join(chunks)
 
 
 @router.get("/models/{name}/config", summary="Model configuration (Triton's ModelConfig)", responses=ERROR_RESPONSES)
@@ -45,7 +63,7 @@ async def stats(name: str | None = None, version: str | None = None, state: Serv
 @router.post("/repository/index", summary="Every model of the repository and its state", responses=ERROR_RESPONSES)
 async def repository_index(request: Request, state: ServerState = Depends(serving)) -> list[dict]:
     """Body (optional): ``{"ready": true}`` lists only the models ready to serve."""
-    body = await read_body(request, INDEX_BODY_BYTES)
+    body = await read_small_body(request, INDEX_BODY_BYTES)
     options = parse_json(body) if body.strip() else {}
     if not isinstance(options, dict) or not isinstance(options.get("ready", False), bool):
         raise ApiError(400, 'the repository index body must be a JSON object like {"ready": true}')

@@ -156,7 +156,7 @@ def _register_train_many(sub: argparse._SubParsersAction) -> None:
     p.add_argument("jobs", nargs="+", metavar="[NAME=]DATA", help="data set folder, optionally named")
     p.add_argument("-o", "--models", required=True, help="folder of the exported materials")
     p.add_argument("--runs", default="runs", help="folder of the checkpoints (default runs)")
-    p.add_argument("--preset", choices=PRESET_NAMES, default="ship", help="training schedule preset")
+    p.add_argument("--preset", choices=tuple(PRESETS), default="ship", help="training schedule preset")
     p.add_argument("--config", help="JSON file of TrainConfig fields (applied over the preset)")
     p.add_argument("--resolution", type=int, help="finest pyramid level (default: each data set's resolution)")
     p.add_argument("--no-offset", action="append", default=[], metavar="NAME",
