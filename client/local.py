@@ -77,12 +77,14 @@ class Material:
     def info(self) -> dict:
         """What a listing shows of this material."""
         validation = self.metadata.get(C.META_VALIDATION)
+        trim = self.metadata.get(C.META_TRIM)
         return {
             "name": self.name,
             "contract_version": self.metadata.get(C.META_CONTRACT),
             "description": self.metadata.get(C.META_DESCRIPTION, ""),
             "config": self.config,
             "validation": json.loads(validation) if validation else None,
+            "trim": json.loads(trim) if trim else None,
             "bytes": self.path.stat().st_size,
         }
 

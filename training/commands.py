@@ -6,6 +6,7 @@ import argparse
 import os
 from pathlib import Path
 
+from . import trim_command
 from .train_config import PRESETS  # torch-free
 
 
@@ -38,6 +39,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--description", default="", help="short description stored in the metadata")
     p.set_defaults(func=_export)
     _register_train_many(sub)
+    trim_command.register(sub)
 
 
 def _train_config(args: argparse.Namespace):

@@ -153,10 +153,11 @@ def model_facts(path: Path) -> ModelFacts:
 
 
 def trimmed_size(facts: ModelFacts, finest_level: int) -> int:
-    """Bytes of the model after dropping its levels finer than ``finest_level`` (float32 texels)."""
+    """About the bytes of the model trimmed to ``finest_level`` (`neumip trim`): each level cut takes
+    its float32 texels and the (S + 1)^2 int32 rows of 4 taps of its quad index table with it."""
     sizes = [facts.resolution >> level for level in range(int(math.log2(facts.resolution)) + 1)]
-    dropped = sum(s * s for s in sizes[facts.finest_level:max(finest_level, facts.finest_level)])
-    return facts.bytes - 4 * facts.channels * dropped
+    cut = sizes[facts.finest_level:max(finest_level, facts.finest_level)]
+    return facts.bytes - sum(4 * facts.channels * s * s + 16 * (s + 1) ** 2 for s in cut)
 
 
 @dataclass
