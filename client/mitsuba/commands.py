@@ -169,8 +169,8 @@ def _evaluator(args: argparse.Namespace):
     """The in-process evaluator over --models, or a MaterialClient for --server."""
     from neumip.client.local import LocalMaterials
 
-    if not args.server:
-        return LocalMaterials(args.models, threads=args.threads)
+    if not args.server:  # lazy: only the scene's materials load
+        return LocalMaterials(args.models, threads=args.threads, lazy=True)
     from neumip.client.http import FallbackEvaluator, MaterialClient
 
     client = MaterialClient(args.server)
