@@ -119,3 +119,29 @@ def test_cli_from_a_budget_and_the_listing(tmp_path, capsys, model_dir):
                  str(tmp_path / "x.onnx")]) != 0
     assert "no material 'flat16'" in capsys.readouterr().err
     assert not (tmp_path / "x.onnx").exists()
+
+
+def test_train_takes_its_resolution_from_a_budget(tmp_path, capsys):
+    import argparse
+
+    from neumip.training.commands import _budget_resolution
+    from neumip.training.trim import TrimError
+
+    budget = tmp_path / "budget.json"
+    budget.write_text(json.dumps({"materials": [
+        {"material": "rock", "finest_level": 1, "recommended_resolution": 32},
+        {"material": "yarn", "finest_level": 0, "recommended_resolution": 512}]}))
+    data = tmp_path / "data"
+    data.mkdir()
+    (data / "meta.json").write_text(json.dumps({"generator": {"resolution": 64}}))
+
+    def args(**kw):
+        return argparse.Namespace(**{"budget": budget, "material": None, "data": str(data), **kw})
+
+    assert _budget_resolution(args(), tmp_path / "rock.onnx") == 32
+    assert "regenerate" not in capsys.readouterr().out
+    assert _budget_resolution(args(material="yarn"), tmp_path / "out.onnx") == 512
+    assert "neumip generate --resolution 512" in capsys.readouterr().out
+    assert _budget_resolution(args(budget=None), tmp_path / "rock.onnx") is None
+    with pytest.raises(TrimError, match="no material 'foam'"):
+        _budget_resolution(args(), tmp_path / "foam.onnx")
