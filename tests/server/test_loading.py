@@ -197,3 +197,21 @@ def test_a_file_replaced_in_place_is_never_served_half_written(serve, tmp_path):
     first_new = outcomes.index("new")
     assert all(o == "new" for o in outcomes[first_new:])  # swapped once, for good
     assert metric(server, "neumip_model_loads_total", material="m0", outcome="failed") >= 1
+
+
+def test_the_listing_shows_what_a_trim_cut(model_dir, tmp_path):
+    from fastapi.testclient import TestClient
+
+    from neumip.server.app import create_app
+    from neumip.server.settings import Settings
+    from neumip.training.trim import trim_file
+
+    folder = tmp_path / "trimmed"
+    folder.mkdir()
+    trim_file(model_dir / "rand16.onnx", folder / "rand16.onnx", 2)
+    shutil.copy(model_dir / "flat16.onnx", folder / "flat16.onnx")
+    with TestClient(create_app(Settings(model_dir=folder, warmup_rows=16, poll_s=0))) as client:
+        listing = {m["name"]: m for m in client.get(wire.MATERIALS_PATH).json()["materials"]}
+    assert listing["rand16"]["trim"]["finest_level"] == 2 and listing["rand16"]["trim"]["levels_cut"] == [16, 8]
+    assert listing["flat16"]["trim"] is None
+    assert listing["rand16"]["bytes"] == (folder / "rand16.onnx").stat().st_size
