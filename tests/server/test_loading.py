@@ -67,6 +67,10 @@ def test_a_folder_of_200_models_starts_without_loading_any(serve, model_dir, tmp
     assert metric(server, "neumip_model_resident_bytes", material="mat123") == (folder / "mat123.onnx").stat().st_size
     assert metric(server, "neumip_model_load_seconds_count") == 1
     assert evaluate(server, "mat200", q).status_code == 404
+    index = httpx.post(server.url + "/v2/repository/index", json={}).json()
+    assert len(index) == 200 and [m["name"] for m in index if m["state"] == "READY"] == ["mat123"]
+    assert {m.get("reason") for m in index if m["state"] != "READY"} == {"not loaded: loads on its first request"}
+    assert [m["name"] for m in httpx.post(server.url + "/v2/repository/index", json={"ready": True}).json()] == ["mat123"]
 
 
 def test_a_render_through_the_server_loads_exactly_its_materials(serve, model_dir):
