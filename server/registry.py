@@ -185,6 +185,8 @@ class Registry:
         with self._lock:
             gone = [n for n in set(self.files) | set(self.materials) if n not in listing]
             self.files = {**{n: s for n, s in self.files.items() if n in listing}, **stable}
+            for name in [n for n in self.failed if n not in listing]:  # e.g. a badly named file removed
+                del self.failed[name]
         for name in gone:
             self._drop(name, "deleted")
         for name, stamp in stable.items():
