@@ -219,3 +219,23 @@ def test_the_listing_shows_what_a_trim_cut(model_dir, tmp_path):
     assert listing["rand16"]["trim"]["finest_level"] == 2 and listing["rand16"]["trim"]["levels_cut"] == [16, 8]
     assert listing["flat16"]["trim"] is None
     assert listing["rand16"]["bytes"] == (folder / "rand16.onnx").stat().st_size
+
+
+def test_a_deleted_file_without_polling(tmp_path):
+    """The listing answers 200 at once (it used to stat every file: 500), and an explicit load
+    drops the material: 404 for it alone."""
+    from fastapi.testclient import TestClient
+
+    from neumip.server.app import create_app
+    from neumip.server.settings import Settings
+
+    folder = distinct_models(tmp_path / "del", 2)
+    with TestClient(create_app(Settings(model_dir=folder, warmup_rows=16, poll_s=0))) as client:
+        (folder / "m1.onnx").unlink()
+        assert client.get(wire.MATERIALS_PATH).status_code == 200
+        assert client.post("/v2/repository/models/m1/load").status_code == 404
+        assert [m["name"] for m in client.get(wire.MATERIALS_PATH).json()["materials"]] == ["m0"]
+        q = wire.encode_request(random_queries(10))
+        headers = {"content-type": wire.MSGPACK_MEDIA_TYPE}
+        assert client.post(wire.EVALUATE_PATH.format(name="m1"), content=q, headers=headers).status_code == 404
+        assert client.post(wire.EVALUATE_PATH.format(name="m0"), content=q, headers=headers).status_code == 200
