@@ -57,6 +57,8 @@ META_CONTRACT = "neumip.contract_version"
 META_CONFIG = "neumip.config"
 META_DESCRIPTION = "neumip.description"
 META_VALIDATION = "neumip.validation"
+META_TRIM = "neumip.trim"
+"""JSON of what `neumip trim` cut from a model (absent: an untrimmed model)."""
 
 
 class QueryError(NeumipError, ValueError):

@@ -14,6 +14,7 @@ import json
 import logging
 import os
 import re
+import threading
 from concurrent.futures import Executor, ThreadPoolExecutor
 from dataclasses import dataclass
 from pathlib import Path
@@ -69,6 +70,8 @@ class Material:
     path: Path
     session: object
     metadata: dict[str, str]
+    bytes: int = 0
+    """Size of the model file it was loaded from."""
 
     @property
     def config(self) -> dict:
@@ -77,18 +80,21 @@ class Material:
     def info(self) -> dict:
         """What a listing shows of this material."""
         validation = self.metadata.get(C.META_VALIDATION)
+        trim = self.metadata.get(C.META_TRIM)
         return {
             "name": self.name,
             "contract_version": self.metadata.get(C.META_CONTRACT),
             "description": self.metadata.get(C.META_DESCRIPTION, ""),
             "config": self.config,
             "validation": json.loads(validation) if validation else None,
-            "bytes": self.path.stat().st_size,
+            "trim": json.loads(trim) if trim else None,
+            "bytes": self.bytes,
         }
 
 
-def load_material(path: str | Path, threads: int = 0) -> Material:
-    """Open one ``.onnx`` material; raises ModelError if unreadable or of another contract version."""
+def load_material(path: str | Path, threads: int = 0, data: bytes | None = None) -> Material:
+    """Open one ``.onnx`` material (from `data`, the file's bytes already read, if given); raises
+    ModelError if unreadable or of another contract version."""
     ort = _onnxruntime()
     path = Path(path)
     opts = ort.SessionOptions()
@@ -98,7 +104,10 @@ def load_material(path: str | Path, threads: int = 0) -> Material:
     for key, value in SESSION_CONFIG.items():
         opts.add_session_config_entry(key, value)
     try:
-        session = ort.InferenceSession(str(path), opts, providers=["CPUExecutionProvider"])
+        source = data if data is not None else path.read_bytes()
+        session = ort.InferenceSession(source, opts, providers=["CPUExecutionProvider"])
+    except OSError as exc:
+        raise ModelError(f"{path.name}: cannot read: {exc.strerror or exc}") from exc
     except Exception as exc:  # onnxruntime raises its own exception types for corrupt files
         raise ModelError(f"{path.name}: cannot load ONNX model: {exc}") from exc
     meta = dict(session.get_modelmeta().custom_metadata_map)
@@ -110,7 +119,7 @@ def load_material(path: str | Path, threads: int = 0) -> Material:
     inputs, outputs = session.get_inputs(), session.get_outputs()
     if [i.name for i in inputs] != [C.ONNX_INPUT] or [o.name for o in outputs] != [C.ONNX_OUTPUT]:
         raise ModelError(f"{path.name}: graph must map '{C.ONNX_INPUT}' to '{C.ONNX_OUTPUT}'")
-    return Material(path.stem, path, session, meta)
+    return Material(path.stem, path, session, meta, len(source))
 
 
 def run_chunked(
@@ -170,10 +179,12 @@ class LocalMaterials:
 
     ``LocalMaterials("models/")`` loads every ``.onnx`` file there; files that fail to load are
     logged and listed in :attr:`errors`, the others still serve. `threads` (0: one per CPU) chunks
-    of a batch run at once, each on a single-threaded session.
+    of a batch run at once, each on a single-threaded session. With ``lazy=True`` only the folder is
+    listed, and a material loads on its first evaluation (a render loads only its scene's materials);
+    a file that fails to load then raises ModelError at that evaluation.
     """
 
-    def __init__(self, folder: str | Path, threads: int = 0, chunk: int = DEFAULT_CHUNK) -> None:
+    def __init__(self, folder: str | Path, threads: int = 0, chunk: int = DEFAULT_CHUNK, lazy: bool = False) -> None:
         self.folder = Path(folder)
         if not self.folder.is_dir():
             raise FileNotFoundError(f"model folder {self.folder} does not exist")
@@ -182,17 +193,38 @@ class LocalMaterials:
         self.chunk = chunk
         self.threads = threads or os.cpu_count() or 1
         self._executor = ThreadPoolExecutor(self.threads, "neumip-ort") if self.threads > 1 else None
-        self._materials, self.errors = load_folder(self.folder, threads=1)
+        self._lock = threading.Lock()
+        if lazy:
+            self._materials, self.errors = {}, {}
+            self._listed = sorted(p.stem for p in self.folder.glob("*.onnx") if NAME_PATTERN.match(p.stem))
+        else:
+            self._materials, self.errors = load_folder(self.folder, threads=1)
+            self._listed = sorted(self._materials)
 
     def materials(self) -> list[str]:
+        """Names served: loaded ones (lazy: every listed file that has not failed)."""
+        return sorted(set(self._listed) - set(self.errors))
+
+    def loaded(self) -> list[str]:
+        """Names of the materials loaded so far."""
         return sorted(self._materials)
 
     def get(self, name: str) -> Material:
-        try:
-            return self._materials[name]
-        except KeyError:
+        material = self._materials.get(name)
+        if material is not None:
+            return material
+        if name not in self.materials():
             known = ", ".join(self.materials()) or "none"
-            raise UnknownMaterial(f"unknown material {name!r} (loaded: {known})") from None
+            raise UnknownMaterial(f"unknown material {name!r} (served: {known})")
+        with self._lock:  # lazy: load once, whichever thread asks first
+            if name not in self._materials:
+                try:
+                    self._materials[name] = load_material(self.folder / f"{name}.onnx", threads=1)
+                except ModelError as exc:
+                    self.errors[name] = str(exc)
+                    raise
+                log.info("loaded %s on first use", name)
+            return self._materials[name]
 
     def evaluate(self, material: str, queries: np.ndarray) -> np.ndarray:
         """(N, 7) queries -> (N, 3) float32 RGB. Raises QueryError for a bad buffer."""

@@ -32,19 +32,33 @@ async def lifespan(app: FastAPI):
     state: ServerState = app.state.neumip
     settings = state.settings
     registry = await asyncio.to_thread(
-        Registry.load, settings.model_dir, settings.ort_threads, settings.warmup_rows
+        Registry.load, settings.model_dir, settings.ort_threads, settings.warmup_rows, settings.load == "lazy",
+        int(settings.memory_budget_mb * 2**20), state.metrics,
     )
     batcher = Batcher(registry.materials, settings, state.metrics)
     batcher.start()
     state.registry, state.batcher, state.started = registry, batcher, True
-    if not registry.materials:
-        log.warning("no material could be loaded from %s: the server will not report ready", settings.model_dir)
+    if not registry.names():
+        log.warning("no material can be served from %s (yet): the server will not report ready", settings.model_dir)
+    poller = asyncio.create_task(follow_folder(registry, settings.poll_s)) if settings.poll_s else None
     try:
         yield
     finally:
         state.started = False
+        if poller is not None:
+            poller.cancel()
         await batcher.close()
         log.info("batcher stopped")
+
+
+async def follow_folder(registry: Registry, interval_s: float) -> None:
+    """List the model folder every `interval_s` seconds (`Registry.poll`, in a thread)."""
+    while True:
+        await asyncio.sleep(interval_s)
+        try:
+            await asyncio.to_thread(registry.poll)
+        except Exception:  # a folder gone for a moment must not end the polling
+            log.exception("polling the model folder failed")
 
 
 def create_app(settings: Settings | None = None) -> FastAPI:

@@ -128,9 +128,10 @@ class _Arrival:
         self.batcher = batcher
         self.open = True  # still counted as on its way (changed under the batcher's lock)
 
-    def submit(self, name: str, queries: np.ndarray, out: np.ndarray | None = None) -> asyncio.Future:
+    def submit(self, name: str, queries: np.ndarray, out: np.ndarray | None = None,
+               material: Material | None = None) -> asyncio.Future:
         """`Batcher.submit` of this request's rows; it stops being waited for in the same step."""
-        return self.batcher.submit(name, queries, out, arrival=self)
+        return self.batcher.submit(name, queries, out, arrival=self, material=material)
 
 
 def first_nonfinite(piece: _Piece) -> str | None:
@@ -150,7 +151,10 @@ class Batcher:
         self.metrics = metrics
         self.stats = ModelStats()  # per-material statistics in Triton's shape (GET /v2/models/{name}/stats)
         self.workers = settings.workers()
-        self._queues = {name: _MaterialQueue(material) for name, material in materials.items()}
+        self._materials = materials  # name -> Material, read at submit (a registry may change it)
+        # one queue per loaded model object while it has pieces: a swapped model's queued pieces still
+        # run on the model they were submitted to, and a drained queue lets its model go
+        self._queues: dict[int, _MaterialQueue] = {}
         self._cond = threading.Condition()
         self._order = itertools.count()
         self._closing = False
@@ -207,9 +211,11 @@ class Batcher:
                 self._cond.notify_all()
 
     def submit(
-        self, name: str, queries: np.ndarray, out: np.ndarray | None = None, arrival: _Arrival | None = None
+        self, name: str, queries: np.ndarray, out: np.ndarray | None = None, arrival: _Arrival | None = None,
+        material: Material | None = None,
     ) -> asyncio.Future:
-        """Queue validated (N, 7) float32 queries for material `name`; the future's result is their
+        """Queue validated (N, 7) float32 queries for material `name` (the loaded `material`, default:
+        the one `name` maps to now); the future's result is their
         (N, 3) float32 RGB, written into `out` ((N, 3) float32, e.g. a view into the response body)
         when given, else into a new array; its exception an ApiError (500) if the model failed.
         `arrival`: the request's `receiving` (use ``arrival.submit``)."""
@@ -223,10 +229,11 @@ class Batcher:
         self.metrics.request_rows.observe(n)
         if n == 0:
             job.future.set_result(out)
-        queue = self._queues[name]
+        material = material or self._materials[name]
         pieces = split(queries, out, self.settings.chunk_rows, job)
         now = time.monotonic()
         with self._cond:
+            queue = self._queues.setdefault(id(material), _MaterialQueue(material))
             for piece in pieces:
                 piece.arrived, piece.order = now, next(self._order)
                 queue.pieces.append(piece)
@@ -263,7 +270,10 @@ class Batcher:
             first, queue = min(ready, key=lambda pq: pq[0].order)
             remaining = first.arrived + wait_s - time.monotonic()
             if queue.rows >= chunk or remaining <= 0 or not self._receiving or self._closing:
-                return queue.material, take(queue, chunk)
+                batch = take(queue, chunk)
+                if not queue.pieces:
+                    del self._queues[id(queue.material)]
+                return queue.material, batch
             self._cond.wait(remaining)  # more pieces may arrive to fill the call
 
     def _nonfinite(self, name: str, piece: _Piece) -> ApiError | None:

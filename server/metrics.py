@@ -1,4 +1,4 @@
-"""Prometheus metrics of the server: requests, rows, batch sizes, latencies and queue depth.
+"""Prometheus metrics of the server: requests, rows, batch sizes, latencies, queue depth, model loads.
 
 Each app owns its own `CollectorRegistry`, so several apps (tests) never share counters. The ASGI
 middleware labels requests by route template (``/v1/materials/{name}/evaluate``), never by raw path,
@@ -63,6 +63,22 @@ class Metrics:
         self.nonfinite = Counter(
             "neumip_nonfinite_answers", "Requests refused with 500 because the model answered NaN or Inf",
             ["material"], registry=r,
+        )
+
+        self.model_loads = Counter(
+            "neumip_model_loads", "Model loads by outcome (loaded, failed)", ["material", "outcome"], registry=r
+        )
+        self.model_unloads = Counter(
+            "neumip_model_unloads", "Models unloaded, by reason (memory, request, deleted)", ["material", "reason"],
+            registry=r,
+        )
+        self.resident_bytes = Gauge(
+            "neumip_model_resident_bytes", "Bytes of each loaded model (its file's size; 0 once unloaded)",
+            ["material"], registry=r,
+        )
+        self.model_load_seconds = Histogram(
+            "neumip_model_load_seconds", "Time to read, load and warm up one model", buckets=LATENCY_BUCKETS,
+            registry=r,
         )
 
     def render(self) -> tuple[bytes, str]:

@@ -1,23 +1,49 @@
-"""The model registry: every ``*.onnx`` material of the model folder, loaded, checked and warmed up.
+"""The model registry: the ``*.onnx`` materials of the model folder, loaded, checked and warmed up.
 
-A file that fails to load (corrupt, another contract version, wrong graph) is logged and kept in
-:attr:`Registry.failed` with its reason, so its ready endpoint can say no; the others still serve.
-Material names from requests are only ever looked up in a dict, never joined into a path.
+Loading. Eagerly (``NEUMIP_LOAD=eager``, the default) every file loads at start-up; lazily
+(``NEUMIP_LOAD=lazy``) start-up only lists the folder and a material loads on its first request. In
+both modes a request for a file that appeared later loads it (no restart).
+
+Following the folder. Every ``NEUMIP_POLL_S`` seconds the folder is listed again (`Registry.poll`):
+a new file loads (eager mode; lazy mode waits for a request), a changed file of a loaded material is
+loaded and swapped in, a deleted file's material is dropped (404 from then on). A file is acted on
+only once it looked the same on two polls in a row, so one being copied is not read half-way.
+``POST /v2/repository/models/{name}/load`` and ``/unload`` do the same for one material at once.
+
+Swaps are atomic: the new model is read, loaded and warmed up beside the old one, which serves until
+the new one takes its place; requests already given the old one finish on it. A file that fails to
+load (corrupt, half-written, another contract) never replaces a working model: the old one keeps
+serving and the failure is logged; a material with no working model is kept in :attr:`failed` with
+its reason, so its ready endpoint can say no. A file that changes while it is read is not loaded.
+
+Memory. With ``NEUMIP_MEMORY_BUDGET_MB`` the least recently used materials are unloaded (they load
+again when asked for) while the loaded models' bytes exceed it; a material with a request in flight
+(`Registry.using`) is never unloaded, so the budget may be exceeded while every loaded material is
+busy. A model's bytes are its file's size.
+
+Material names from requests are only ever looked up in dicts, never joined into a path before
+`check_name` accepted them.
 """
 
 from __future__ import annotations
 
+import asyncio
 import logging
 import os
+import threading
+import time
+from collections import Counter, OrderedDict
+from contextlib import asynccontextmanager
 from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
 
 from neumip.client import contract as C
-from neumip.client.local import NAME_PATTERN, Material, UnknownMaterial, load_folder, run_chunked
+from neumip.client.local import NAME_PATTERN, Material, ModelError, UnknownMaterial, load_material, run_chunked
 
 from .errors import ApiError
+from .metrics import Metrics
 
 log = logging.getLogger(__name__)
 
@@ -58,65 +84,319 @@ def check_name(name: str) -> str:
     return name
 
 
-@dataclass
-class Registry:
-    """Loaded materials by name, plus the files that failed to load and why."""
+@dataclass(frozen=True)
+class FileStamp:
+    """What says a model file changed: modification time, size, inode."""
 
-    folder: Path
-    """The model folder the materials came from."""
-    materials: dict[str, Material] = field(default_factory=dict)
-    """Materials that loaded and warmed up, by name (file stem)."""
-    failed: dict[str, str] = field(default_factory=dict)
-    """Files that could not be served: name -> reason."""
+    mtime_ns: int
+    size: int
+    inode: int
 
     @classmethod
-    def load(cls, folder: Path, threads: int, warmup_rows: int) -> "Registry":
-        """Load and warm up every ``*.onnx`` in `folder` (raises FileNotFoundError if it is missing)."""
+    def of(cls, path: Path) -> "FileStamp | None":
+        try:
+            st = path.stat()
+        except FileNotFoundError:
+            return None
+        return cls(st.st_mtime_ns, st.st_size, st.st_ino)
+
+
+@dataclass
+class RegistryConfig:
+    """How the registry loads and keeps materials (from the server settings)."""
+
+    threads: int = 1
+    """Intra-op threads of each ONNX Runtime session."""
+    warmup_rows: int = 1024
+    """Rows each material evaluates when it loads, before it serves."""
+    lazy: bool = False
+    """Load a material on its first request instead of at start-up."""
+    memory_budget_bytes: int = 0
+    """Most bytes of loaded models before the least recently used are unloaded (0: no limit)."""
+
+
+@dataclass
+class Registry:
+    """Materials by name: loaded ones, the folder's files, and the files that failed and why."""
+
+    folder: Path
+    """The model folder the materials come from."""
+    config: RegistryConfig = field(default_factory=RegistryConfig)
+    metrics: Metrics | None = None
+    materials: dict[str, Material] = field(default_factory=dict)
+    """Materials loaded and warmed up, by name (file stem)."""
+    failed: dict[str, str] = field(default_factory=dict)
+    """Files that could not be served: name -> reason."""
+    files: dict[str, FileStamp] = field(default_factory=dict)
+    """The folder's model files with valid names, as last listed."""
+    unloaded: set[str] = field(default_factory=set)
+    """Materials unloaded by request: not served until loaded again."""
+
+    def __post_init__(self) -> None:
+        self._lock = threading.RLock()
+        self._load_locks: dict[str, threading.Lock] = {}
+        self._stamps: dict[str, FileStamp] = {}  # stamp of each loaded material's file when read
+        self._in_flight: Counter[str] = Counter()
+        self._used: OrderedDict[str, None] = OrderedDict()  # loaded materials, least recently used first
+        self._seen: dict[str, FileStamp | None] = {}  # the previous poll's listing
+        self._failed_at: dict[str, FileStamp] = {}  # the file a failed material failed with
+
+    @classmethod
+    def load(cls, folder: Path, threads: int = 1, warmup_rows: int = 1024, lazy: bool = False,
+             memory_budget_bytes: int = 0, metrics: Metrics | None = None) -> "Registry":
+        """List `folder` and (unless lazy) load and warm up every ``*.onnx`` in it (raises
+        FileNotFoundError if the folder is missing)."""
         folder = Path(folder)
         if not folder.is_dir():
             raise FileNotFoundError(f"model folder {folder} does not exist")
-        loaded, failed = load_folder(folder, threads)
-        registry = cls(folder, failed={name: without_folder(reason, folder) for name, reason in failed.items()})
-        for material in loaded.values():
-            registry._warm_up(material, warmup_rows)
+        registry = cls(folder, RegistryConfig(threads, warmup_rows, lazy, memory_budget_bytes), metrics)
+        registry._seen = registry._list()
+        registry.files = {n: s for n, s in registry._seen.items() if s is not None}
+        if not lazy:
+            for name in sorted(registry.files):
+                registry._try_load(name)
         log.info(
-            "serving %d material(s) from %s: %s%s",
-            len(registry.materials),
-            folder,
-            ", ".join(registry.materials) or "none",
+            "%s %d material(s) from %s%s", "listed (lazy loading)" if lazy else "serving",
+            len(registry.files) if lazy else len(registry.materials), folder,
             f"; {len(registry.failed)} failed" if registry.failed else "",
         )
         return registry
 
-    def _warm_up(self, material: Material, warmup_rows: int) -> None:
-        """Evaluate a few queries once (first-call costs, and a graph that loads but cannot run)."""
+    # --- the folder ------------------------------------------------------------------------------
+    def _list(self) -> dict[str, FileStamp | None]:
+        """Name -> stamp of every ``*.onnx`` in the folder (None: an invalid name, recorded as failed)."""
+        listing = {}
+        for path in self.folder.glob("*.onnx"):
+            if NAME_PATTERN.match(path.stem):
+                stamp = FileStamp.of(path)
+                if stamp is not None:
+                    listing[path.stem] = stamp
+            else:
+                listing[path.stem] = None
+                self.failed.setdefault(path.stem, "file name is not a valid material name")
+        return listing
+
+    def poll(self) -> None:
+        """List the folder again and act on the files that changed and then stayed the same since
+        the previous poll (see the module docstring). Runs in a thread."""
+        listing = self._list()
+        stable = {n: s for n, s in listing.items() if s is not None and self._seen.get(n) == s}
+        self._seen = listing
+        with self._lock:
+            gone = [n for n in set(self.files) | set(self.materials) if n not in listing]
+            self.files = {**{n: s for n, s in self.files.items() if n in listing}, **stable}
+            for name in [n for n in self.failed if n not in listing]:  # e.g. a badly named file removed
+                del self.failed[name]
+        for name in gone:
+            self._drop(name, "deleted")
+        for name, stamp in stable.items():
+            loaded = self._stamps.get(name)
+            if loaded is not None:
+                reload = loaded != stamp and self._failed_at.get(name) != stamp  # changed: swap it in
+            else:  # not loaded: eager mode loads new files (and failed ones that changed since)
+                reload = not self.config.lazy and name not in self.unloaded and self._failed_at.get(name) != stamp
+            if reload:
+                self._try_load(name)
+
+    def path(self, name: str) -> Path:
+        return self.folder / f"{check_name(name)}.onnx"
+
+    # --- loading -----------------------------------------------------------------------------------
+    def _try_load(self, name: str) -> None:
         try:
-            if warmup_rows:
-                C.as_rgb(run_chunked(material.session, warmup_queries(warmup_rows)), warmup_rows)
+            self.load_material(name)
+        except (ApiError, UnknownMaterial):
+            pass  # logged and recorded; a file deleted meanwhile is dropped
+
+    def load_material(self, name: str, pin: bool = False) -> Material:
+        """Load (or reload, if its file changed) material `name` and make it the one served; with
+        `pin`, count a request in flight on it in the same step. Blocking: run it in a thread.
+
+        Raises ApiError: 404 if there is no such file, 400 if it cannot be served (the reason; an
+        older model of the same name, if loaded, keeps serving).
+        """
+        path = self.path(name)
+        with self._lock:
+            lock = self._load_locks.setdefault(name, threading.Lock())
+        with lock:
+            stamp = FileStamp.of(path)
+            if stamp is None:
+                self._drop(name, "deleted")
+                raise UnknownMaterial(f"unknown material {name!r} (no {name}.onnx in the model folder)")
+            with self._lock:
+                if name in self.materials and self._stamps.get(name) == stamp:
+                    return self._mark_used(name, pin)
+            start = time.perf_counter()
+            try:
+                material = self._read(path, stamp)
+            except ApiError as exc:
+                self._count_load(name, "failed")
+                with self._lock:
+                    self._failed_at[name] = stamp  # polls do not retry this file
+                    if name in self.materials:
+                        log.error("keeping the loaded %s: its new file cannot be served: %s", name, exc.message)
+                    else:
+                        self.failed[name] = exc.message
+                raise
+            with self._lock:
+                self.materials[name], self._stamps[name], self.files[name] = material, stamp, stamp
+                self.failed.pop(name, None)
+                self._failed_at.pop(name, None)
+                self.unloaded.discard(name)
+                self._mark_used(name, pin)
+            seconds = time.perf_counter() - start
+            self._count_load(name, "loaded", seconds, material.bytes)
+            log.info("loaded %s (%d bytes) in %.3f s", name, material.bytes, seconds)
+        self._evict(keep=name)
+        return material
+
+    def _read(self, path: Path, stamp: FileStamp) -> Material:
+        """Read, load and warm up one file; ApiError(400) with the reason if it cannot be served."""
+        try:
+            data = path.read_bytes()
+            if FileStamp.of(path) != stamp or len(data) != stamp.size:
+                raise ModelError(f"{path.name} changed while it was read (still being written?)")
+            material = load_material(path, self.config.threads, data=data)
+            if self.config.warmup_rows:
+                C.as_rgb(run_chunked(material.session, warmup_queries(self.config.warmup_rows)),
+                         self.config.warmup_rows)
+        except (ModelError, OSError) as exc:
+            reason = str(exc)
         except Exception as exc:  # a model that loads but fails to run (bad graph, wrong shapes)
-            log.error("cannot serve %s: warm-up failed: %s", material.path.name, exc)
-            reason = f"{material.path.name}: warm-up evaluation failed: {exc}"
-            self.failed[material.name] = without_folder(reason, self.folder)
+            reason = f"{path.name}: warm-up evaluation failed: {exc}"
+        else:
+            return material
+        log.error("cannot serve %s: %s", path.name, reason)
+        raise ApiError(400, without_folder(reason, self.folder))
+
+    def _mark_used(self, name: str, pin: bool) -> Material:
+        """Under the lock: `name` was just used (and, with `pin`, has one more request in flight)."""
+        self._used[name] = None
+        self._used.move_to_end(name)
+        if pin:
+            self._in_flight[name] += 1
+        return self.materials[name]
+
+    # --- unloading ---------------------------------------------------------------------------------
+    def _drop(self, name: str, reason: str) -> None:
+        """Stop serving `name` (its file is gone, or on request); requests holding it finish on it."""
+        with self._lock:
+            material = self.materials.pop(name, None)
+            self._stamps.pop(name, None)
+            self._used.pop(name, None)
+            if reason == "deleted":
+                self.files.pop(name, None)
+                self.failed.pop(name, None)
+        if material is not None:
+            self._count_unload(name, reason)
+            log.info("unloaded %s (%s)", name, reason)
+
+    def unload(self, name: str) -> None:
+        """`POST .../unload`: unload `name` now; it is not served until loaded again (404 if unknown)."""
+        self.check(name)
+        with self._lock:
+            self.unloaded.add(name)
+        self._drop(name, "request")
+
+    def _evict(self, keep: str) -> None:
+        """Unload least recently used materials with no request in flight while over the budget."""
+        budget = self.config.memory_budget_bytes
+        if not budget:
             return
-        self.materials[material.name] = material
+        while True:
+            with self._lock:
+                if sum(m.bytes for m in self.materials.values()) <= budget:
+                    return
+                idle = [n for n in self._used if n != keep and not self._in_flight[n]]
+                if not idle:
+                    log.warning("memory budget exceeded: every other loaded material has a request in flight")
+                    return
+                victim = idle[0]
+            self._drop(victim, "memory")
+
+    # --- requests ----------------------------------------------------------------------------------
+    @asynccontextmanager
+    async def using(self, name: str):
+        """Around evaluating a request: the material, loaded if need be, counted in flight (so it is
+        not unloaded for memory) until the block ends."""
+        check_name(name)
+        with self._lock:
+            material = self._mark_used(name, pin=True) if name in self.materials else None
+        if material is None:
+            self._servable(name)
+            material = await asyncio.to_thread(self.load_material, name, True)
+        try:
+            yield material
+        finally:
+            with self._lock:
+                self._in_flight[name] -= 1
+
+    def _servable(self, name: str) -> None:
+        """Raise unless `name` is loaded or can be loaded on request: 400 if it failed or was unloaded,
+        404 if there is no file for it."""
+        if name in self.unloaded:
+            raise ApiError(400, f"material {name!r} is not ready: it was unloaded (POST .../load to load it)")
+        stamp = FileStamp.of(self.path(name))
+        if name in self.failed and stamp == self._failed_at.get(name):  # the same file: no second try
+            raise ApiError(400, f"material {name!r} is not ready (failed to load): {self.failed[name]}")
+        if stamp is None:
+            known = ", ".join(self.names()) or "none"
+            raise UnknownMaterial(f"unknown material {name!r} (served: {known})")
+
+    def check(self, name: str) -> str:
+        """`name` if it is served (loaded, or loadable on request); 400 if malformed, failed or
+        unloaded, 404 if unknown. Loads nothing."""
+        check_name(name)
+        if name not in self.materials:
+            self._servable(name)
+        return name
 
     def get(self, name: str) -> Material:
-        """The loaded material `name`; 400 for a malformed or failed one (as Triton does), 404 if unknown."""
-        check_name(name)
+        """The loaded material `name` (loading it first if need be; blocking)."""
+        self.check(name)
         material = self.materials.get(name)
-        if material is not None:
-            return material
-        if name in self.failed:
-            raise ApiError(400, f"material {name!r} is not ready (failed to load): {self.failed[name]}")
-        known = ", ".join(sorted(self.materials)) or "none"
-        raise UnknownMaterial(f"unknown material {name!r} (served: {known})")
+        return material if material is not None else self.load_material(name)
 
     def names(self) -> list[str]:
-        return sorted(self.materials)
+        """Materials served: loaded, or (lazily) loadable on request."""
+        with self._lock:
+            listed = set(self.files) - set(self.failed) - self.unloaded
+            return sorted(listed | set(self.materials))
+
+    def resident_bytes(self) -> int:
+        with self._lock:
+            return sum(m.bytes for m in self.materials.values())
 
     def listing(self) -> dict:
-        """What ``GET /v1/materials`` answers: metadata of each material and the failures."""
+        """What ``GET /v1/materials`` answers: each served material (metadata if loaded) and the failures."""
+        with self._lock:
+            materials = dict(self.materials)
+            files = dict(self.files)
+        entries = []
+        for name in self.names():
+            if name in materials:
+                entries.append({**materials[name].info(), "loaded": True})
+            else:
+                entries.append({"name": name, "loaded": False, "bytes": files[name].size})
         return {
-            "materials": [self.materials[name].info() for name in self.names()],
+            "materials": entries,
             "failed": [{"name": n, "error": e} for n, e in sorted(self.failed.items())],
         }
+
+    def info(self, name: str) -> dict:
+        """``GET /v1/materials/{name}``: the material's metadata (loads it if need be)."""
+        return {**self.get(name).info(), "loaded": True}
+
+    # --- metrics -----------------------------------------------------------------------------------
+    def _count_load(self, name: str, outcome: str, seconds: float = 0.0, size: int = 0) -> None:
+        if self.metrics is None:
+            return
+        self.metrics.model_loads.labels(name, outcome).inc()
+        if outcome == "loaded":
+            self.metrics.model_load_seconds.observe(seconds)
+            self.metrics.resident_bytes.labels(name).set(size)
+
+    def _count_unload(self, name: str, reason: str) -> None:
+        if self.metrics is not None:
+            self.metrics.model_unloads.labels(name, reason).inc()
+            self.metrics.resident_bytes.labels(name).set(0)

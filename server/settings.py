@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import os
 from pathlib import Path
+from typing import Literal
 
 from pydantic import Field, model_validator
 from pydantic_settings import BaseSettings, SettingsConfigDict
@@ -69,6 +70,12 @@ class Settings(BaseSettings):
     """Seconds an idle kept-alive connection stays open."""
     retry_after_s: int = Field(1, ge=0)
     """Seconds a 503 (queue full) tells the client to wait, in its Retry-After header."""
+    load: Literal["eager", "lazy"] = "eager"
+    """eager: load every model at start-up; lazy: list the folder at start-up, load a model on its first request."""
+    memory_budget_mb: float = Field(0.0, ge=0)
+    """Most MB of loaded models (file sizes); past it the least recently used idle ones unload (0: no limit)."""
+    poll_s: float = Field(2.0, ge=0)
+    """Seconds between listings of the model folder (new, changed, deleted files); 0: only on request."""
     warmup_rows: int = Field(1024, ge=0)
     """Rows each material evaluates at start-up, before the server reports ready."""
     graceful_shutdown_s: float = Field(10.0, ge=0)

@@ -36,8 +36,8 @@ class ServerState:
 
     @property
     def ready(self) -> bool:
-        """Ready to answer: started and serving at least one material."""
-        return self.started and self.registry is not None and bool(self.registry.materials)
+        """Ready to answer: started and serving at least one material (loaded, or loadable on request)."""
+        return self.started and self.registry is not None and bool(self.registry.names())
 
 
 async def get_state(request: Request) -> ServerState:

@@ -81,7 +81,7 @@ async def list_materials(state: ServerState = Depends(serving)) -> dict:
 
 @router.get(wire.MATERIALS_PATH + "/{name}", summary="Metadata of one material", responses=ERROR_RESPONSES)
 async def material_info(name: str, state: ServerState = Depends(serving)) -> dict:
-    return state.registry.get(name).info()
+    return await asyncio.to_thread(state.registry.info, name)
 
 
 @router.post(
@@ -93,25 +93,25 @@ async def material_info(name: str, state: ServerState = Depends(serving)) -> dic
 )
 async def evaluate(name: str, request: Request, state: ServerState = Depends(serving)) -> Response:
     timer = StageTimer()
-    state.registry.get(name)
-    kind = body_kind(request)
-    body_plan = plan(request, state.settings, json=kind == "json")  # 413 / 415 from the headers alone
-    with state.admission.admit(body_plan) as ticket:  # 503 at once if the budgets are spent
-        body = await read_body(request, body_plan, ticket, state.admission)  # 408 if too slow
-        timer.mark("read")
-        with state.batcher.receiving() as arrival:  # batches not yet full wait for this request's rows
-            queries = await decode(body, kind)  # (N, 7) float32
-            check_rows(queries.shape[0], state.settings.max_rows)
-            state.admission.resize(ticket, ticket.memory, queries.shape[0])
-            timer.mark("decode")
-            # msgpack: the workers write the answer straight into the response body (out: a view of it)
-            content, out = wire.response_buffer(queries.shape[0]) if kind == "msgpack" else (None, None)
-            ticket.until = arrival.submit(name, queries, out=out)
-        rgb = await asyncio.shield(ticket.until)  # (N, 3) float32
-    timer.mark("evaluate")
-    if kind == "msgpack":
-        content, media = memoryview(content), wire.MSGPACK_MEDIA_TYPE  # Response takes no bytearray
-    else:
-        content, media = JSONResponse({"n": int(rgb.shape[0]), "rgb": rgb.tolist()}).body, JSON_TYPE
-    timer.mark("encode")
-    return Response(content, media_type=media, headers=timer.header())
+    async with state.registry.using(name) as material:  # loaded, and kept while in flight
+        kind = body_kind(request)
+        body_plan = plan(request, state.settings, json=kind == "json")  # 413 / 415 from the headers alone
+        with state.admission.admit(body_plan) as ticket:  # 503 at once if the budgets are spent
+            body = await read_body(request, body_plan, ticket, state.admission)  # 408 if too slow
+            timer.mark("read")
+            with state.batcher.receiving() as arrival:  # batches not yet full wait for this request's rows
+                queries = await decode(body, kind)  # (N, 7) float32
+                check_rows(queries.shape[0], state.settings.max_rows)
+                state.admission.resize(ticket, ticket.memory, queries.shape[0])
+                timer.mark("decode")
+                # msgpack: the workers write the answer straight into the response body (out: a view of it)
+                content, out = wire.response_buffer(queries.shape[0]) if kind == "msgpack" else (None, None)
+                ticket.until = arrival.submit(name, queries, out=out, material=material)
+            rgb = await asyncio.shield(ticket.until)  # (N, 3) float32
+        timer.mark("evaluate")
+        if kind == "msgpack":
+            content, media = memoryview(content), wire.MSGPACK_MEDIA_TYPE  # Response takes no bytearray
+        else:
+            content, media = JSONResponse({"n": int(rgb.shape[0]), "rgb": rgb.tolist()}).body, JSON_TYPE
+        timer.mark("encode")
+        return Response(content, media_type=media, headers=timer.header())

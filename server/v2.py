@@ -217,7 +217,7 @@ async def ready(state: ServerState = Depends(get_state)) -> Response:
 @router.get("/models/{name}/versions/{version}", include_in_schema=False)
 async def metadata(name: str, version: str | None = None, state: ServerState = Depends(serving)) -> dict:
     check_version(version)
-    state.registry.get(name)
+    state.registry.check(name)
     return model_metadata(name)
 
 
@@ -226,7 +226,7 @@ async def metadata(name: str, version: str | None = None, state: ServerState = D
 async def model_ready(name: str, version: str | None = None, state: ServerState = Depends(serving)) -> Response:
     check_version(version)
     try:
-        state.registry.get(name)
+        state.registry.check(name)
     except ApiError as exc:
         if exc.status == 400 and name in state.registry.failed:
             return Response(status_code=400)
@@ -245,26 +245,26 @@ async def model_ready(name: str, version: str | None = None, state: ServerState 
 async def infer(name: str, request: Request, version: str | None = None, state: ServerState = Depends(serving)) -> Response:
     timer = StageTimer()
     check_version(version)
-    state.registry.get(name)
-    if media_type(request) not in INFER_TYPES:
-        raise ApiError(415, f"infer takes {JSON_TYPE}, application/octet-stream or no Content-Type; got {media_type(request)!r}")
-    header_length = json_length(request)
-    body_plan = plan(request, state.settings, json=True, json_length=header_length)  # 413 / 415 from the headers
-    with state.admission.admit(body_plan) as ticket:  # 503 at once if the budgets are spent
-        body = await read_body(request, body_plan, ticket, state.admission)  # 408 if too slow
-        timer.mark("read")
-        with state.batcher.receiving() as arrival:  # batches not yet full wait for this request's rows
-            if len(body) > OFFLOAD_BYTES:
-                parsed = await asyncio.to_thread(parse_infer, body, header_length)
-            else:
-                parsed = parse_infer(body, header_length)
-            check_rows(parsed.queries.shape[0], state.settings.max_rows)
-            state.admission.resize(ticket, ticket.memory, parsed.queries.shape[0])
-            timer.mark("decode")
-            ticket.until = arrival.submit(name, parsed.queries)
-        rgb = await asyncio.shield(ticket.until)  # (N, 3) float32
-    timer.mark("evaluate")
-    response = infer_response(name, parsed, rgb)
-    timer.mark("encode")
-    response.headers.update(timer.header())
-    return response
+    async with state.registry.using(name) as material:  # loaded, and kept while in flight
+        if media_type(request) not in INFER_TYPES:
+            raise ApiError(415, f"infer takes {JSON_TYPE}, application/octet-stream or no Content-Type; got {media_type(request)!r}")
+        header_length = json_length(request)
+        body_plan = plan(request, state.settings, json=True, json_length=header_length)  # 413 / 415 from the headers
+        with state.admission.admit(body_plan) as ticket:  # 503 at once if the budgets are spent
+            body = await read_body(request, body_plan, ticket, state.admission)  # 408 if too slow
+            timer.mark("read")
+            with state.batcher.receiving() as arrival:  # batches not yet full wait for this request's rows
+                if len(body) > OFFLOAD_BYTES:
+                    parsed = await asyncio.to_thread(parse_infer, body, header_length)
+                else:
+                    parsed = parse_infer(body, header_length)
+                check_rows(parsed.queries.shape[0], state.settings.max_rows)
+                state.admission.resize(ticket, ticket.memory, parsed.queries.shape[0])
+                timer.mark("decode")
+                ticket.until = arrival.submit(name, parsed.queries, material=material)
+            rgb = await asyncio.shield(ticket.until)  # (N, 3) float32
+        timer.mark("evaluate")
+        response = infer_response(name, parsed, rgb)
+        timer.mark("encode")
+        response.headers.update(timer.header())
+        return response

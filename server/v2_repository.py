@@ -1,6 +1,7 @@
 """Triton's extensions to the Open Inference Protocol that tools call beside inference:
-model configuration, statistics and the repository index (``tritonclient.http``'s
-`get_model_config`, `get_inference_statistics`, `get_model_repository_index`).
+model configuration, statistics, the repository index and explicit model control (``tritonclient.http``'s
+`get_model_config`, `get_inference_statistics`, `get_model_repository_index`, `load_model`,
+`unload_model`).
 
 The configuration is the same `ModelConfig` that `neumip export-repository` writes as
 ``config.pbtxt`` (`neumip.server.model_config`), filled in with this server's settings; the statistics
@@ -9,6 +10,8 @@ are what the batcher records (`neumip.server.model_stats`).
 
 from __future__ import annotations
 
+import asyncio
+
 from fastapi import APIRouter, Depends, Request
 
 from .admission import plan, read_body
@@ -16,7 +19,7 @@ from .body import parse_json
 from .errors import ApiError
 from .model_config import TritonOptions, model_config
 from .openapi import ERROR_RESPONSES
-from .registry import MODEL_VERSION
+from .registry import MODEL_VERSION, check_name
 from .state import ServerState, serving
 from .v2 import check_version
 
@@ -26,11 +29,21 @@ INDEX_BODY_BYTES = 4096
 """Largest body of a repository-index request (it holds at most ``{"ready": true}``)."""
 
 
+async def read_small_body(request: Request, state: ServerState, limit: int) -> bytes:
+    """The whole body of a small control request, through the same admission, budgets and timeouts as
+    every body; 413 past `limit` declared bytes."""
+    body_plan = plan(request, state.settings, json=True)
+    if (body_plan.declared or 0) > limit:
+        raise ApiError(413, f"body is larger than the limit of {limit} bytes")
+    with state.admission.admit(body_plan) as ticket:
+        return bytes(await read_body(request, body_plan, ticket, state.admission))
+
+
 @router.get("/models/{name}/config", summary="Model configuration (Triton's ModelConfig)", responses=ERROR_RESPONSES)
 @router.get("/models/{name}/versions/{version}/config", include_in_schema=False)
 async def config(name: str, version: str | None = None, state: ServerState = Depends(serving)) -> dict:
     check_version(version)
-    state.registry.get(name)
+    state.registry.check(name)
     return model_config(name, TritonOptions.from_settings(state.settings))
 
 
@@ -39,25 +52,40 @@ async def config(name: str, version: str | None = None, state: ServerState = Dep
 @router.get("/models/{name}/versions/{version}/stats", include_in_schema=False)
 async def stats(name: str | None = None, version: str | None = None, state: ServerState = Depends(serving)) -> dict:
     check_version(version)
-    names = [state.registry.get(name).name] if name is not None else state.registry.names()
+    names = [state.registry.check(name)] if name is not None else state.registry.names()
     return {"model_stats": [state.batcher.stats.json(n, MODEL_VERSION) for n in names]}
 
 
 @router.post("/repository/index", summary="Every model of the repository and its state", responses=ERROR_RESPONSES)
 async def repository_index(request: Request, state: ServerState = Depends(serving)) -> list[dict]:
     """Body (optional): ``{"ready": true}`` lists only the models ready to serve."""
-    body_plan = plan(request, state.settings, json=True)
-    if (body_plan.declared or 0) > INDEX_BODY_BYTES:
-        raise ApiError(413, f"a repository-index body holds at most {INDEX_BODY_BYTES} bytes")
-    with state.admission.admit(body_plan) as ticket:  # the same budgets and timeouts as every body
-        body = await read_body(request, body_plan, ticket, state.admission)
+    body = await read_small_body(request, state, INDEX_BODY_BYTES)
     options = parse_json(body) if body.strip() else {}
     if not isinstance(options, dict) or not isinstance(options.get("ready", False), bool):
         raise ApiError(400, 'the repository index body must be a JSON object like {"ready": true}')
-    index = [{"name": n, "version": MODEL_VERSION, "state": "READY"} for n in state.registry.names()]
+    registry = state.registry
+    index = [{"name": n, "version": MODEL_VERSION, "state": "READY"} for n in registry.names() if n in registry.materials]
     if not options.get("ready", False):
-        index += [
-            {"name": n, "version": MODEL_VERSION, "state": "UNAVAILABLE", "reason": reason}
-            for n, reason in state.registry.failed.items()
-        ]
+        waiting = {n: "not loaded: loads on its first request" for n in registry.names() if n not in registry.materials}
+        waiting |= {n: "unloaded" for n in registry.unloaded} | dict(registry.failed)
+        index += [{"name": n, "version": MODEL_VERSION, "state": "UNAVAILABLE", "reason": r} for n, r in waiting.items()]
     return sorted(index, key=lambda m: m["name"])
+
+
+@router.post("/repository/models/{name}/load", summary="Load (or reload) a model now", responses=ERROR_RESPONSES)
+async def load(name: str, request: Request, state: ServerState = Depends(serving)) -> dict:
+    """Read `name`.onnx from the model folder now and serve it (a changed file replaces the model
+    atomically; a file that fails leaves a loaded older model serving): 404 without a file, 400 if it
+    cannot be served. The body (tritonclient sends ``{}`` or parameters) is read and ignored."""
+    await read_small_body(request, state, INDEX_BODY_BYTES)
+    await asyncio.to_thread(state.registry.load_material, check_name(name))
+    return {}
+
+
+@router.post("/repository/models/{name}/unload", summary="Unload a model", responses=ERROR_RESPONSES)
+async def unload(name: str, request: Request, state: ServerState = Depends(serving)) -> dict:
+    """Stop serving `name` and free its model; requests in flight finish on it. It is not served
+    again until loaded (``.../load``)."""
+    await read_small_body(request, state, INDEX_BODY_BYTES)
+    state.registry.unload(name)
+    return {}

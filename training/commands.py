@@ -6,6 +6,7 @@ import argparse
 import os
 from pathlib import Path
 
+from . import trim_command
 from .train_config import PRESETS  # torch-free
 
 
@@ -18,8 +19,12 @@ def register(sub: argparse._SubParsersAction) -> None:
                    help="training schedule preset (training/TRAINING.md)")
     p.add_argument("--config", help="JSON file of TrainConfig fields (applied over the preset)")
     p.add_argument("--checkpoint", help="checkpoint path (default runs/NAME/checkpoint.pt); resumes if it exists")
-    p.add_argument("--resolution", type=int,
-                   help="finest pyramid level, texels per side (default: the data's generator resolution, else 128)")
+    level = p.add_mutually_exclusive_group()
+    level.add_argument("--resolution", "--finest-resolution", type=int,
+                       help="finest pyramid level, texels per side (default: the data's generator resolution, else 128)")
+    level.add_argument("--budget", type=Path,
+                       help="`neumip budget --json` output: train at its recommended finest resolution for the material")
+    p.add_argument("--material", help="material name to look up in --budget (default: the output's file stem)")
     p.add_argument("--no-offset", action="store_true", help="train without the neural offset")
     p.add_argument("--description", default="", help="short description stored in the model metadata")
     for name, kind in (("steps", int), ("batch", int), ("lr", float), ("seed", int), ("blur-half-life", float)):
@@ -38,6 +43,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--description", default="", help="short description stored in the metadata")
     p.set_defaults(func=_export)
     _register_train_many(sub)
+    trim_command.register(sub)
 
 
 def _train_config(args: argparse.Namespace):
@@ -70,6 +76,25 @@ def _data_resolution(data: str, default: int = 128) -> int:
     return int(generator.get("resolution", default)) if isinstance(generator, dict) else default
 
 
+def _budget_resolution(args: argparse.Namespace, output: Path) -> int | None:
+    """The finest resolution `--budget` recommends for the material (None without --budget); says so
+    when that is finer than the data was sampled for (regenerate it with --resolution)."""
+    import json
+
+    from .trim import finest_level_from_budget
+
+    if args.budget is None:
+        return None
+    name = args.material or output.stem
+    finest_level_from_budget(budget := json.loads(args.budget.read_text()), name)  # TrimError if absent
+    resolution = next(int(m["recommended_resolution"]) for m in budget["materials"] if m["material"] == name)
+    if resolution > _data_resolution(args.data, resolution):
+        print(f"note: the budget asks for {resolution}^2, finer than the data was sampled for; "
+              f"regenerate it with `neumip generate --resolution {resolution}` for a model that resolves it")
+    print(f"training {name} at {resolution}^2 (recommended by {args.budget})")
+    return resolution
+
+
 def _train(args: argparse.Namespace) -> int:
     from neumip.client.cli import CommandError
 
@@ -96,7 +121,7 @@ def _train(args: argparse.Namespace) -> int:
     checkpoint = Path(args.checkpoint or Path("runs") / output.stem / "checkpoint.pt")
     try:
         config = _train_config(args)
-        resolution = args.resolution or _data_resolution(args.data)
+        resolution = args.resolution or _budget_resolution(args, output) or _data_resolution(args.data)
         material = MaterialConfig(resolution=resolution, offset=not args.no_offset)
         trainer = Trainer(args.data, checkpoint, material, config, args.description)
     except (ValueError, DatasetError, CheckpointError) as exc:

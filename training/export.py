@@ -124,8 +124,11 @@ def _query_columns(g: GraphWriter) -> tuple[str, str, str]:
             g.pick(q, C.QUERY_DIM, [C.WO_X, C.WO_Y]))
 
 
-def material_graph(g: GraphWriter, config: MaterialConfig, weights: dict) -> str:
-    """Queries (N, 7) (graph input) -> decoder output (N, 3) before the final Relu."""
+def material_graph(g: GraphWriter, config: MaterialConfig, weights: dict, finest_level: int = 0) -> str:
+    """Queries (N, 7) (graph input) -> decoder output (N, 3) before the final Relu.
+
+    ``weights["pyramid"]`` holds levels ``finest_level``..L (all of them unless trimmed).
+    """
     uv, sigma, wo = _query_columns(g)
 
     # --- neural offset: uv += r * wo_xy / max(wo_z, min_cos) -----------------------------------
@@ -139,7 +142,7 @@ def material_graph(g: GraphWriter, config: MaterialConfig, weights: dict) -> str
 
     # --- trilinear pyramid lookup, then the decoder ----------------------------------------------
     atlas = g.const(weights["pyramid"], name="pyramid")
-    texels, tap_w = pyramid_texels(g, config, atlas, config.channels, g.wrap(uv), sigma)
+    texels, tap_w = pyramid_texels(g, config, atlas, config.channels, g.wrap(uv), sigma, finest_level)
     dirs = [C.WI_X, C.WI_Y, C.WO_X, C.WO_Y]
     hidden = _first_layer(g, texels, tap_w, 8, dirs, weights, "decoder", config.layers)
     return g.mlp(hidden, weights, "decoder", config.layers, first=1)
@@ -150,10 +153,15 @@ def build_onnx(
     weights: dict[str, np.ndarray],
     description: str = "",
     extra_metadata: dict[str, str] | None = None,
+    finest_level: int = 0,
 ) -> onnx.ModelProto:
-    """The material's inference graph: (N, 7) float32 queries -> (N, 3) float32 RGB."""
+    """The material's inference graph: (N, 7) float32 queries -> (N, 3) float32 RGB.
+
+    With ``finest_level`` K > 0 the pyramid holds levels K..L only (`trim.trim_model` makes such a
+    model from an exported one) and finer queries read level K.
+    """
     g = GraphWriter()
-    rgb = material_graph(g, config, weights)
+    rgb = material_graph(g, config, weights, finest_level)
     g.nodes.append(helper.make_node("Relu", [rgb], [C.ONNX_OUTPUT]))
     model = g.model(C.ONNX_INPUT, C.QUERY_DIM, C.ONNX_OUTPUT, C.RGB_DIM, OPSET, IR_VERSION)
     meta = {

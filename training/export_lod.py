@@ -30,6 +30,19 @@ LOG2_POLYNOMIAL = (2.885390043258667, 0.9617878198623657, 0.5775499939918518, 0.
 Chebyshev fit of log2(m) / s over s in [0, 1/3] (2 / ln 2 = 2.88539... leads)."""
 
 
+def clip_min(finest_level: int) -> float:
+    """Lower bound of sigma * R in the level-of-detail Clip: 2^K for a model whose finest level is K."""
+    return 2.0**finest_level
+
+
+def clip_node(graph) -> "onnx.NodeProto":
+    """The level-of-detail Clip of an exported graph (the graph's only Clip; `level_of_detail`)."""
+    clips = [node for node in graph.node if node.op_type == "Clip"]
+    if len(clips) != 1:
+        raise ValueError(f"expected the level-of-detail Clip, found {len(clips)} Clip nodes")
+    return clips[0]
+
+
 def log2_mantissa(g: GraphWriter, m: str) -> str:
     """m (N, 1) in [1, 2) -> log2(m) (N, 1) in [0, 1), 0 exactly at m = 1 (Horner in s^2)."""
     one = g.scalar(1.0)
@@ -41,11 +54,16 @@ def log2_mantissa(g: GraphWriter, m: str) -> str:
     return g.op("Mul", s, p)
 
 
-def level_of_detail(g: GraphWriter, sigma: str, config: MaterialConfig) -> tuple[str, str]:
-    """sigma (N, 1) -> lower level lo (N,) int64 in [0, L] and the fraction t (N, 1) in [0, 1) towards
-    level lo + 1; lo + t = clamp(log2(sigma * R), 0, L), sigma <= 0 reading the finest level."""
+def level_of_detail(g: GraphWriter, sigma: str, config: MaterialConfig, finest_level: int = 0) -> tuple[str, str]:
+    """sigma (N, 1) -> lower level lo (N,) int64 in [K, L] and the fraction t (N, 1) in [0, 1) towards
+    level lo + 1; lo + t = clamp(log2(sigma * R), K, L), sigma <= 0 reading the finest level K.
+
+    K = ``finest_level`` (> 0 for a trimmed model) only raises the Clip's lower bound from 1 to 2^K:
+    every query whose level is >= K computes the same bits as in the untrimmed graph.
+    """
     levels = config.levels
-    x = g.op("Clip", g.op("Mul", sigma, g.scalar(config.resolution)), g.const(1.0), g.const(2.0**levels))
+    x = g.op("Clip", g.op("Mul", sigma, g.scalar(config.resolution)), g.const(clip_min(finest_level)),
+             g.const(2.0**levels))
     index = g.shape(g.op("Cast", g.op("Floor", x), to=TensorProto.INT64), [-1])  # (N,) in [1, 2^L]
     k = np.maximum(np.arange(2**levels + 1), 1)
     floor_log2 = np.asarray([int(i).bit_length() - 1 for i in k], np.int64)  # row k: floor(log2 k)

@@ -70,6 +70,14 @@ def quad_atlas(sizes: list[int]) -> QuadAtlas:
     return QuadAtlas(np.concatenate(tables), np.asarray(params, np.float32))
 
 
+def trimmed_atlas(config: MaterialConfig, finest_level: int = 0) -> tuple[QuadAtlas, np.ndarray]:
+    """Quad atlas of levels K..L (K = ``finest_level``) and its per-level parameters indexed by the
+    full level number 0..L (levels finer than K repeat level K's row; the graph never reads them)."""
+    tables = quad_atlas(config.level_sizes()[finest_level:])
+    params = np.concatenate([np.repeat(tables.level_params[:1], finest_level, 0), tables.level_params])
+    return tables, params
+
+
 def level_pair_params(config: MaterialConfig, level_params: np.ndarray) -> np.ndarray:
     """Per level (S, 1, W, base) -> per lower level lo a row (10,) for levels lo, hi:
 
@@ -132,14 +140,16 @@ def _gather(g: GraphWriter, table: str, line: str, bases: str, levels: int, widt
 
 
 def pyramid_texels(g: GraphWriter, config: MaterialConfig, atlas: str, width: int, uvw: str,
-                   sigma: str) -> tuple[str, str]:
+                   sigma: str, finest_level: int = 0) -> tuple[str, str]:
     """Trilinear footprint: uvw (N, 2) in [0, 1], sigma (N, 1) -> texels (N, 8 width), weights (N, 8).
 
-    `atlas` (T, width) holds the pyramid levels flat, finest first.
+    `atlas` (T, width) holds the pyramid levels flat, finest first, from level ``finest_level`` on (a
+    trimmed model): only the table rows move, so a query of level >= K reads the same texels with
+    the same weights.
     """
-    tables = quad_atlas(config.level_sizes())
-    lo, t = level_of_detail(g, sigma, config)
-    pairs = g.const(level_pair_params(config, tables.level_params))
+    tables, level_params = trimmed_atlas(config, finest_level)
+    lo, t = level_of_detail(g, sigma, config, finest_level)
+    pairs = g.const(level_pair_params(config, level_params))
     params = g.op("Gather", pairs, lo, axis=0)  # (N, 10)
     size, coef, bases = (g.pick(params, 10, list(c)) for c in (range(4), range(4, 8), range(8, 10)))
     both = g.op("MatMul", uvw, g.const(np.tile(np.eye(2, dtype=np.float32), (1, 2))))  # (N, 4) u v u v
@@ -163,3 +173,29 @@ def texture_texels(g: GraphWriter, texture: str, size: int, width: int, uvw: str
     table = expand_table(g, texture, tables.rows, width)
     texels = _gather(g, table, line, g.const([base]), 1, width)
     return texels, tap_weights(g, g.op("Sub", x, x0), 1, None)
+
+
+# --- the inverse: where an exported graph keeps the constants above (`neumip trim`) ---------------
+
+
+def _producers(graph) -> dict[str, "object"]:
+    return {out: node for node in graph.node for out in node.output}
+
+
+def texture_constants(graph, texture: str) -> dict[str, str]:
+    """Initializer names of what the graph built for texture initializer ``texture`` ("pyramid" or
+    "offset_texture"): its quad index table (`expand_table`) and, for the pyramid, the per-level pair
+    table (`level_pair_params`) its rows Gather reads. Found by the graph's structure, so it works on
+    any model this module wrote; the caller checks the values against what the writer would write."""
+    producers = _producers(graph)
+    expand = [n for n in graph.node if n.op_type == "Gather" and n.input[0] == texture]
+    if len(expand) != 1:
+        raise ValueError(f"expected one table expansion of {texture!r}, found {len(expand)}")
+    found = {"quads": expand[0].input[1]}
+    if texture == "pyramid":
+        reshape = next(n for n in graph.node if n.op_type == "Reshape" and n.input[0] == expand[0].output[0])
+        lookup = next(n for n in graph.node if n.op_type == "Gather" and n.input[0] == reshape.output[0])
+        add = producers[producers[lookup.input[1]].input[0]]  # Cast(Add(line, bases))
+        bases = producers[add.input[1]]  # a MatMul picking columns 8..9 of the pair parameters
+        found["pairs"] = producers[bases.input[0]].input[0]  # Gather(pairs, lo)
+    return found

@@ -1,4 +1,4 @@
-"""Subcommands of this area (registered by neumip.client.cli): `render`."""
+"""Subcommands of this area (registered by neumip.client.cli): `render`, `budget`."""
 
 from __future__ import annotations
 
@@ -30,13 +30,88 @@ def register(sub: argparse._SubParsersAction) -> None:
         help="with --server: if the server becomes unreachable, continue in-process from --models",
     )
     p.add_argument("--max-lanes", type=int, default=None, help="most pixels x samples per pass (memory bound)")
+    _scene_params(p)
+    p.add_argument("--seed", type=int, default=0, help="seed of the first pass")
+    p.add_argument("--threads", type=int, default=0, help="evaluation threads in-process (0: all cores)")
+    p.set_defaults(func=_render)
+
+    b = sub.add_parser(
+        "budget",
+        help="which pyramid levels a scene reads of each neural material (no neural evaluation)",
+        description="Trace SCENE at a few samples per pixel with the footprints of neumip_path and the "
+        "materials' preview BSDF; report per neural material the levels its queries read, the finest "
+        "level that matters, the bytes a model trimmed to it would save, and the finest training "
+        "resolution the scene's closest views need.",
+    )
+    b.add_argument("scene", type=Path, help="Mitsuba 3 XML scene")
+    b.add_argument("--models", type=Path, default=Path(DEFAULT_MODELS), help="folder of the .onnx materials")
+    b.add_argument("--spp", type=int, default=4, help="samples per pixel traced (default 4)")
+    b.add_argument("--coverage", type=float, default=0.999,
+                   help="share of queries the finest level that matters must serve (default 0.999)")
+    b.add_argument("--plot", type=Path, default=None, help="write the per-level histograms to this image")
+    b.add_argument("--json", action="store_true", help="print machine-readable JSON (for neumip trim --budget)")
+    _scene_params(b)
+    b.add_argument("--seed", type=int, default=0, help="sampler seed")
+    b.set_defaults(func=_budget)
+
+
+def _scene_params(p: argparse.ArgumentParser) -> None:
     p.add_argument(
         "-D", dest="params", action="append", default=[], metavar="NAME=VALUE",
         help="set a scene parameter ($NAME in the XML), e.g. -D resx=256; repeatable",
     )
-    p.add_argument("--seed", type=int, default=0, help="seed of the first pass")
-    p.add_argument("--threads", type=int, default=0, help="evaluation threads in-process (0: all cores)")
-    p.set_defaults(func=_render)
+
+
+def _parse_params(items: list[str]) -> dict[str, str]:
+    from neumip.client.cli import CommandError
+
+    params = {}
+    for item in items:
+        name, sep, value = item.partition("=")
+        if not sep or not name:
+            raise CommandError(f"-D takes NAME=VALUE, got {item!r}")
+        params[name] = value
+    return params
+
+
+def _scene_file(path: Path) -> None:
+    from neumip.client.cli import CommandError
+
+    if path.is_dir():
+        scenes = ", ".join(sorted(p.name for p in path.glob("*.xml"))) or "none"
+        raise CommandError(f"{path} is a directory: give a Mitsuba XML scene file (XML files there: {scenes})")
+
+
+def _budget(args: argparse.Namespace) -> int:
+    from neumip.client.cli import CommandError
+
+    from .runtime import MitsubaUnavailable
+
+    _scene_file(args.scene)
+    if args.spp < 1:
+        raise CommandError(f"--spp must be >= 1, got {args.spp}")
+    if not 0 < args.coverage <= 1:
+        raise CommandError(f"--coverage must be in (0, 1], got {args.coverage}")
+    params = _parse_params(args.params)
+    try:
+        from . import budget as B
+        from . import render as R
+    except MitsubaUnavailable as exc:
+        raise CommandError(str(exc)) from exc
+    try:
+        scene = R.load_scene(args.scene, **params)
+        result = B.scene_budget(scene, args.models, args.spp, args.coverage, args.seed)
+    except R.RenderError as exc:
+        raise CommandError(str(exc)) from exc
+    if args.plot:
+        try:
+            B.plot_budget(result, args.plot)
+        except ImportError as exc:
+            raise CommandError(str(exc)) from exc
+    print(result.to_json() if args.json else B.format_budget(result))
+    if args.plot and not args.json:
+        print(f"wrote {args.plot.resolve()}")
+    return 0
 
 
 def _render(args: argparse.Namespace) -> int:
@@ -47,11 +122,7 @@ def _render(args: argparse.Namespace) -> int:
 
     from .runtime import MitsubaUnavailable
 
-    if args.scene.is_dir():
-        scenes = ", ".join(sorted(p.name for p in args.scene.glob("*.xml"))) or "none"
-        raise CommandError(
-            f"{args.scene} is a directory: give a Mitsuba XML scene file (XML files there: {scenes})"
-        )
+    _scene_file(args.scene)
     if args.fallback and not args.server:
         raise CommandError("--fallback needs --server (it names what to fall back from)")
     if args.spp is not None and args.spp < 1:
@@ -63,12 +134,7 @@ def _render(args: argparse.Namespace) -> int:
     if args.output.suffix.lower() not in R.IMAGE_SUFFIXES:
         raise CommandError(f"output must end in {' or '.join(R.IMAGE_SUFFIXES)}, got {args.output.name}")
 
-    params = {}
-    for item in args.params:
-        name, sep, value = item.partition("=")
-        if not sep or not name:
-            raise CommandError(f"-D takes NAME=VALUE, got {item!r}")
-        params[name] = value
+    params = _parse_params(args.params)
     try:
         evaluator = _evaluator(args)
     except ValueError as exc:  # a malformed --server URL
@@ -106,8 +172,8 @@ def _evaluator(args: argparse.Namespace):
     """The in-process evaluator over --models, or a MaterialClient for --server."""
     from neumip.client.local import LocalMaterials
 
-    if not args.server:
-        return LocalMaterials(args.models, threads=args.threads)
+    if not args.server:  # lazy: only the scene's materials load
+        return LocalMaterials(args.models, threads=args.threads, lazy=True)
     from neumip.client.http import FallbackEvaluator, MaterialClient
 
     client = MaterialClient(args.server, protocol=args.protocol)

@@ -1,0 +1,236 @@
+"""Scene footprint analysis (`neumip budget`): which pyramid levels a scene's renders read.
+
+The scene is rendered by its own `neumip_path` integrator (the same footprints as a real render:
+ray differentials at the first hit, the ray cone after bounces, the same two queries per shading
+point) with a `PreviewRecorder` as the evaluator: it answers every query with the material's preview
+Lambertian (``preview_albedo / pi``, no neural evaluation) and keeps each query's footprint sigma
+(tile units, ``uv_scale`` applied). A few samples per pixel suffice: the footprint does not depend on
+spp (the integrator undoes Mitsuba's 1/sqrt(spp) shrink of the differentials).
+
+Per material, `material_budget` turns the footprints into what a model of finest resolution R reads:
+the level of detail ``log2(sigma R)`` (`contract.level_of_detail`), whose floor is the finer of the
+two levels a trilinear lookup reads. The finest level that matters is the finest level L such that at
+least ``coverage`` of the queries have a level >= L (they read L or coarser; a model trimmed to L
+answers them bit-identically, `neumip trim`). The recommended finest training resolution is the
+power of two at which that same footprint quantile reads level 0 (``2^ceil(log2(1 / sigma))``): a
+model coarser than that magnifies its finest level in the scene's closest views ("too coarse").
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import math
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from neumip.client import contract as C
+
+from .bsdf import mi
+from .render import RenderConfig, render_scene
+from .shading import neural_bsdfs
+
+log = logging.getLogger(__name__)
+
+
+class PreviewRecorder:
+    """A `contract.Evaluator` that answers the preview Lambertian and records each query's sigma."""
+
+    def __init__(self, scene: mi.Scene) -> None:
+        self.albedo: dict[str, float] = {}
+        for bsdf in neural_bsdfs(scene):
+            self.albedo.setdefault(bsdf.material, bsdf.preview_albedo)
+        self.sigmas: dict[str, list[np.ndarray]] = {name: [] for name in self.albedo}
+
+    def materials(self) -> list[str]:
+        return sorted(self.albedo)
+
+    def evaluate(self, material: str, queries: np.ndarray) -> np.ndarray:
+        """(N, 7) queries -> (N, 3) preview answers; keeps a copy of the sigma column."""
+        self.sigmas[material].append(np.array(queries[:, C.SIGMA], dtype=np.float32))
+        return np.full((queries.shape[0], C.RGB_DIM), self.albedo[material] / math.pi, dtype=C.DTYPE)
+
+    def footprints(self, material: str) -> np.ndarray:
+        """(N,) float32 sigma of every query recorded for ``material``."""
+        parts = self.sigmas.get(material) or [np.zeros(0, np.float32)]
+        return np.concatenate(parts)
+
+
+def trace_footprints(scene: mi.Scene, spp: int = 4, seed: int = 0) -> dict[str, np.ndarray]:
+    """Render ``scene`` at ``spp`` with the preview answers -> material -> (N,) query sigmas."""
+    recorder = PreviewRecorder(scene)
+    render_scene(scene, recorder, RenderConfig(spp=spp, seed=seed))
+    return {name: recorder.footprints(name) for name in recorder.materials()}
+
+
+@dataclass
+class ModelFacts:
+    """What the budget needs to know of a material's model (from its ONNX metadata)."""
+
+    resolution: int
+    """Texels per side of the model's finest level (level 0)."""
+    channels: int
+    """Feature channels per pyramid texel."""
+    bytes: int
+    """Size of the model file."""
+    finest_level: int = 0
+    """Finest level the model still holds (> 0 for a trimmed model)."""
+
+
+@dataclass
+class MaterialBudget:
+    """The levels one material's queries read in a scene, and what that asks of its model."""
+
+    material: str
+    queries: int
+    """Queries recorded for the material (all bounces)."""
+    resolution: int
+    """Finest resolution of the model the levels refer to."""
+    level_range: tuple[int, int]
+    """Finest and coarsest level any query read (a query reads floor(level) and the next level)."""
+    histogram: list[float]
+    """Share of the queries whose finer level read is 0, 1, ..., log2(resolution)."""
+    finest_level: int
+    """Finest level that matters: at least ``coverage`` of the queries read it or coarser."""
+    coverage: float
+    magnified: float
+    """Share of the queries finer than level 0 (sigma R < 1: the model's finest level is magnified)."""
+    recommended_resolution: int
+    """Finest training resolution at which the scene's closest views (the same quantile) read level 0."""
+    too_coarse: bool
+    """True where the recommended resolution is finer than the model's."""
+    model_bytes: int | None = None
+    """The model file's size now (None: no model file for this material)."""
+    trimmed_bytes: int | None = None
+    """Its size after trimming to ``finest_level`` (`neumip trim`)."""
+
+    def to_dict(self) -> dict:
+        return asdict(self)
+
+
+def material_budget(material: str, sigma: np.ndarray, resolution: int, coverage: float = 0.999) -> MaterialBudget:
+    """Levels read by queries of footprints ``sigma`` (N,) on a model of finest ``resolution``."""
+    if not 0 < coverage <= 1:
+        raise ValueError(f"coverage must be in (0, 1], got {coverage}")
+    levels = int(math.log2(resolution))
+    sigma = np.asarray(sigma, np.float64)
+    if sigma.size == 0:
+        return MaterialBudget(material, 0, resolution, (levels, levels), [0.0] * (levels + 1), levels, coverage,
+                              0.0, 1, False)
+    lod = C.level_of_detail(sigma, resolution)
+    finer = np.floor(lod).astype(np.int64)
+    coarser = np.minimum(finer + (lod > finer), levels)
+    histogram = np.bincount(finer, minlength=levels + 1) / sigma.size
+    # the (1 - coverage) quantile of the footprint: `coverage` of the queries are at least this wide
+    closest = float(np.quantile(sigma, 1.0 - coverage, method="lower"))
+    finest = int(np.floor(C.level_of_detail(np.asarray([closest]), resolution)[0]))
+    recommended = 2 ** max(0, math.ceil(math.log2(1.0 / max(closest, 2.0**-24))))
+    return MaterialBudget(
+        material=material,
+        queries=int(sigma.size),
+        resolution=resolution,
+        level_range=(int(finer.min()), int(coarser.max())),
+        histogram=[float(h) for h in histogram],
+        finest_level=finest,
+        coverage=coverage,
+        magnified=float(np.mean(sigma * resolution < 1.0)),
+        recommended_resolution=int(recommended),
+        too_coarse=recommended > resolution,
+    )
+
+
+def model_facts(path: Path) -> ModelFacts:
+    """Resolution, channels, bytes and trim of the model at ``path`` (its ONNX metadata)."""
+    from neumip.client.local import load_material
+
+    material = load_material(path, threads=1)
+    config = material.config
+    trim = json.loads(material.metadata.get(C.META_TRIM, "{}"))
+    return ModelFacts(int(config["resolution"]), int(config["channels"]), path.stat().st_size,
+                      int(trim.get("finest_level", 0)))
+
+
+def trimmed_size(facts: ModelFacts, finest_level: int) -> int:
+    """About the bytes of the model trimmed to ``finest_level`` (`neumip trim`): each level cut takes
+    its float32 texels and the (S + 1)^2 int32 rows of 4 taps of its quad index table with it."""
+    sizes = [facts.resolution >> level for level in range(int(math.log2(facts.resolution)) + 1)]
+    cut = sizes[facts.finest_level:max(finest_level, facts.finest_level)]
+    return facts.bytes - sum(4 * facts.channels * s * s + 16 * (s + 1) ** 2 for s in cut)
+
+
+@dataclass
+class SceneBudget:
+    """The budget of every neural material of one scene."""
+
+    materials: list[MaterialBudget] = field(default_factory=list)
+    spp: int = 4
+    """Samples per pixel traced."""
+
+    def to_json(self) -> str:
+        return json.dumps({"spp": self.spp, "materials": [m.to_dict() for m in self.materials]}, indent=2)
+
+
+DEFAULT_RESOLUTION = 64
+"""Finest resolution the levels refer to for a material that has no model file (the shipped size)."""
+
+
+def scene_budget(scene: mi.Scene, models: Path | None, spp: int = 4, coverage: float = 0.999,
+                 seed: int = 0) -> SceneBudget:
+    """Trace ``scene`` and budget each neural material against its model in ``models`` (if there)."""
+    footprints = trace_footprints(scene, spp, seed)
+    out = SceneBudget(spp=spp)
+    for name, sigma in footprints.items():
+        path = Path(models) / f"{name}.onnx" if models else None
+        facts = model_facts(path) if path is not None and path.is_file() else None
+        budget = material_budget(name, sigma, facts.resolution if facts else DEFAULT_RESOLUTION, coverage)
+        if facts is not None:
+            budget.model_bytes = facts.bytes
+            budget.trimmed_bytes = trimmed_size(facts, budget.finest_level)
+        out.materials.append(budget)
+    return out
+
+
+def format_budget(budget: SceneBudget, width: int = 40) -> str:
+    """A human-readable report: per material the histogram and the recommendations."""
+    lines = []
+    for m in budget.materials:
+        lines.append(f"{m.material}: {m.queries:,} queries, model {m.resolution}^2"
+                     + (f" ({m.model_bytes:,} bytes)" if m.model_bytes is not None else " (no model file)"))
+        lines.append(f"  levels read: {m.level_range[0]}..{m.level_range[1]}")
+        for level, share in enumerate(m.histogram):
+            bar = "#" * round(share * width)
+            lines.append(f"  level {level:2d} ({m.resolution >> level:4d}^2) {100 * share:6.2f} % {bar}")
+        lines.append(f"  finest level that matters ({100 * m.coverage:g} % of queries): {m.finest_level}")
+        if m.trimmed_bytes is not None:
+            lines.append(f"  bytes: {m.model_bytes:,} now, {m.trimmed_bytes:,} trimmed to level {m.finest_level}")
+        verdict = (f"the model ({m.resolution}^2) is too coarse for the closest views: "
+                   f"{100 * m.magnified:.2f} % of queries magnify level 0" if m.too_coarse else "the model suffices")
+        lines.append(f"  recommended finest training resolution: {m.recommended_resolution}^2 ({verdict})")
+    return "\n".join(lines)
+
+
+def plot_budget(budget: SceneBudget, path: Path) -> Path:
+    """Bar charts of the share of queries per level, one panel per material, written to ``path``."""
+    try:
+        import matplotlib
+
+        matplotlib.use("Agg")
+        import matplotlib.pyplot as plt
+    except ImportError as exc:
+        raise ImportError("--plot needs matplotlib: pip install 'neumip[render]'") from exc
+    count = max(len(budget.materials), 1)
+    fig, axes = plt.subplots(1, count, figsize=(4 * count, 3), squeeze=False)
+    for ax, m in zip(axes[0], budget.materials):
+        ax.bar(range(len(m.histogram)), [100 * h for h in m.histogram], color="tab:blue")
+        ax.axvline(m.finest_level - 0.5, color="tab:red", linestyle="--", label=f"finest that matters: {m.finest_level}")
+        ax.set_title(f"{m.material} ({m.resolution}^2)")
+        ax.set_xlabel("level read (finer of the two)")
+        ax.set_ylabel("% of queries")
+        ax.legend(fontsize=7)
+    fig.tight_layout()
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(path, dpi=100)
+    plt.close(fig)
+    return path

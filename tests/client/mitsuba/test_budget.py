@@ -1,0 +1,85 @@
+"""`neumip budget`: the footprints it traces are those a real render sends, and the levels, finest
+level that matters and recommended resolution follow from them."""
+
+from __future__ import annotations
+
+import json
+import math
+
+import numpy as np
+import pytest
+
+from neumip.client import contract as C
+from neumip.client.cli import main
+from neumip.client.mitsuba.budget import material_budget, trace_footprints
+from neumip.client.mitsuba.bsdf import mi
+from neumip.client.mitsuba.render import RenderConfig, render_scene
+
+from .recording import Recording
+from .test_footprint import facing_plane
+
+
+def test_footprints_are_those_of_a_render(model_dir):
+    """The preview answers equal the `lambert` model's (albedo 0.5), so the paths and every query's
+    sigma - first hits and bounces - are the render's, bit for bit (a dict scene)."""
+    scene = facing_plane(uv_scale=3.0)
+    scene["integrator"]["max_depth"] = 4
+    scene["floor"] = {"type": "rectangle", "to_world": mi.ScalarTransform4f().translate([0, 0, -1]).scale(4),
+                      "bsdf": {"type": "neumip", "material": "lambert", "uv_scale": 0.5}}
+    recording = Recording(model_dir)
+    render_scene(mi.load_dict(scene), recording, RenderConfig(spp=4, seed=3))
+    rendered = np.concatenate([q[:, C.SIGMA] for q in recording.calls])
+    traced = trace_footprints(mi.load_dict(scene), spp=4, seed=3)
+    assert list(traced) == ["lambert"]
+    np.testing.assert_array_equal(traced["lambert"], rendered)
+    assert len(np.unique(traced["lambert"])) > 100  # bounces and two uv scales: many footprints
+
+
+def test_levels_finest_level_and_recommendation():
+    resolution = 64
+    # 0.05 % of queries at level 0.5, 10 % at 2.5, the rest at 4.25
+    sigma = np.concatenate([np.full(5, C.sigma_for_level(0.5, resolution)),
+                            np.full(1000, C.sigma_for_level(2.5, resolution)),
+                            np.full(8995, C.sigma_for_level(4.25, resolution))])
+    b = material_budget("m", sigma, resolution, coverage=0.999)
+    assert b.queries == 10_000
+    assert b.level_range == (0, 5)
+    np.testing.assert_allclose(b.histogram, [0.0005, 0, 0.1, 0, 0.8995, 0, 0])
+    assert b.finest_level == 2  # 99.95 % read level 2 or coarser; 10 % + ... do not make 3
+    assert b.recommended_resolution == 16 and not b.too_coarse  # level 2.5 of 64: 1 / sigma = 11.3
+    strict = material_budget("m", sigma, resolution, coverage=1.0)
+    assert strict.finest_level == 0 and strict.recommended_resolution == 64 and not strict.too_coarse
+    close = material_budget("m", np.full(100, 0.25 / 64), resolution)  # 4x magnified
+    assert close.too_coarse and close.recommended_resolution == 256 and close.magnified == 1.0
+    assert close.histogram[0] == 1.0 and close.finest_level == 0
+    with pytest.raises(ValueError, match="coverage"):
+        material_budget("m", sigma, resolution, coverage=0.0)
+
+
+def test_cli_closeup_is_too_coarse_and_far_view_trims(tmp_path, capsys):
+    models = "models"
+    assert main(["budget", "scenes/closeup.xml", "--models", models, "--spp", "1", "-D", "resx=128",
+                 "-D", "resy=128", "--json"]) == 0
+    close = json.loads(capsys.readouterr().out)["materials"]
+    assert [m["material"] for m in close] == ["yarn"]
+    assert close[0]["too_coarse"] and close[0]["recommended_resolution"] > 64
+    plot = tmp_path / "budget.png"
+    assert main(["budget", "scenes/demo.xml", "--models", models, "--spp", "2", "-D", "resx=64",
+                 "-D", "resy=64", "--plot", str(plot)]) == 0
+    out = capsys.readouterr().out
+    assert plot.stat().st_size > 1000 and "finest level that matters" in out
+    assert main(["budget", "scenes/demo.xml", "--models", models, "--spp", "2", "-D", "resx=64",
+                 "-D", "resy=64", "--json"]) == 0
+    far = {m["material"]: m for m in json.loads(capsys.readouterr().out)["materials"]}
+    assert sorted(far) == ["foam", "rock", "turtle", "yarn"]
+    for m in far.values():
+        assert m["finest_level"] >= 1 and not m["too_coarse"]
+        assert m["trimmed_bytes"] < m["model_bytes"]
+        assert math.isclose(sum(m["histogram"]), 1.0, rel_tol=1e-9)
+
+
+def test_cli_refuses_bad_input(capsys):
+    assert main(["budget", "scenes/demo.xml", "--coverage", "1.5"]) != 0
+    assert "--coverage" in capsys.readouterr().err
+    assert main(["budget", "scenes", "--spp", "1"]) != 0
+    assert "directory" in capsys.readouterr().err
