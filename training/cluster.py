@@ -145,6 +145,16 @@ def _remote(ray, fn: Callable, config: RayConfig):
     return ray.remote(fn).options(num_cpus=config.cpus_per_task, max_retries=config.max_retries)
 
 
+def _drop(refs: list) -> None:
+    """Forget tasks whose results are no longer wanted. They are not cancelled: with Ray 2.60,
+    ``ray.cancel`` on a task that is finishing (or has just failed) at that moment aborts the whole
+    driver process ("Tried to complete task that was not pending"), which was seen in tests here. A local
+    Ray started by `session` stops them at shutdown; on a joined cluster they run to completion."""
+    if refs:
+        log.info("dropping %d Ray task(s) still in flight", len(refs))
+    refs.clear()
+
+
 def _failure(exc: Exception) -> ClusterError:
     cause = getattr(exc, "cause", None)  # a RayTaskError carries the task's own exception
     return ClusterError(f"a Ray task failed: {cause or exc}")
@@ -155,7 +165,8 @@ def ordered(fn: Callable, jobs: Iterable[tuple], config: RayConfig, shared: tupl
 
     At most ``in_flight`` jobs are submitted and not yet yielded (finished ones wait for their
     predecessors, so memory stays bounded). ``shared`` values are put in Ray's object store once.
-    Closing the generator (an interrupt, an error downstream) cancels the jobs still in flight.
+    Closing the generator (an interrupt, an error downstream) stops submitting; the jobs in flight are
+    dropped, not cancelled (see `_drop`).
     """
     with session(config) as ray:
         remote = _remote(ray, fn, config)
@@ -176,15 +187,14 @@ def ordered(fn: Callable, jobs: Iterable[tuple], config: RayConfig, shared: tupl
                 queue.pop(0)
                 yield result
         finally:
-            for ref in queue:
-                ray.cancel(ref, force=True)
+            _drop(queue)
 
 
 def as_completed(
     fn: Callable, jobs: list[tuple], config: RayConfig
 ) -> Iterator[tuple[tuple, Any | ClusterError]]:
     """``fn(*job)`` for every job as Ray tasks; yields ``(job, result)`` or ``(job, ClusterError)``
-    as each finishes. Closing the generator cancels the jobs still running."""
+    as each finishes. Closing the generator drops the jobs still running (see `_drop`)."""
     with session(config) as ray:
         remote = _remote(ray, fn, config)
         running = {remote.remote(*job): job for job in jobs}
@@ -197,5 +207,4 @@ def as_completed(
                 except ray.exceptions.RayError as exc:
                     yield job, _failure(exc)
         finally:
-            for ref in running:
-                ray.cancel(ref, force=True)
+            _drop(list(running))
