@@ -48,13 +48,14 @@ def headline(material_result: dict, spp: int) -> list[dict]:
     return rows
 
 
-def winning_footprint(rows: list[dict], against: str) -> float | None:
-    """Smallest footprint (texels) from which N's MSE is below ``against``'s at every larger one."""
+def winning_footprint(rows: list[dict], against: str, key: str = "mse") -> float | None:
+    """Smallest footprint (texels) from which N's ``key`` (``mse`` at the report's spp, or ``bias``:
+    the error floor that more samples do not remove) is below ``against``'s at every larger one."""
     win = None
     for row in reversed(rows):
         if row["N"] is None or row.get(against) is None:
             break
-        if row["N"]["mse"] < row[against]["mse"]:
+        if row["N"][key] <= row[against][key]:
             win = row["texels"]
         else:
             break

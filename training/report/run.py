@@ -134,7 +134,8 @@ def horizon(out, config, evaluator, cache, progress) -> dict:
                "model": (evaluator.get(HORIZON_MATERIAL).path.stat().st_mtime if method == "N" else None)}
         cached = cache.get(key)
         if cached is None:
-            scene = mi.load_dict(stability.horizon_scene(mi, config.horizon_film, make))
+            integrator = "neumip_path" if method == "N" else "path"
+            scene = mi.load_dict(stability.horizon_scene(mi, config.horizon_film, make, integrator))
             result = R.render_scene(scene, evaluator, R.RenderConfig(spp=config.spp, max_lanes=config.max_lanes))
             cache.put(key, result.image[..., :3], result.seconds)
             cached = cache.get(key)

@@ -109,7 +109,8 @@ def sweeps(evaluator, name: str, points: int, resolution: int) -> dict:
 # --- a plane out to the horizon ---------------------------------------------------------------------
 
 
-def horizon_scene(mi, film, material_bsdf, theta: float = 80.0, fov: float = 24.0, height: float = 1.0) -> dict:
+def horizon_scene(mi, film, material_bsdf, integrator: str, theta: float = 80.0, fov: float = 24.0,
+                  height: float = 1.0) -> dict:
     """A huge plane seen from ``height`` tiles above it, looking ``theta`` degrees from the normal:
     the footprint grows from a few texels at the bottom of the image to whole tiles at the horizon."""
     from .views import ENV_RADIANCE
@@ -119,7 +120,7 @@ def horizon_scene(mi, film, material_bsdf, theta: float = 80.0, fov: float = 24.
     bsdf = material_bsdf(2.0 * half)
     return {
         "type": "scene",
-        "integrator": {"type": "neumip_path" if bsdf.get("type") == "neumip" else "path", "max_depth": 5},
+        "integrator": {"type": integrator, "max_depth": 5},
         "sensor": {
             "type": "perspective", "fov": fov, "fov_axis": "y",
             "to_world": mi.ScalarTransform4f().look_at(origin=[0, 0, height], target=[0, math.tan(t) * height, 0],

@@ -28,12 +28,13 @@ def headline_table(results: dict) -> list[str]:
 
 
 def winners(results: dict) -> list[str]:
-    lines = ["| material | N beats C from (texels) | N beats Cmip from (texels) |", "|---|---|---|"]
+    lines = ["| material | N beats C: MSE at equal spp | C: bias (floor) | N beats Cmip: MSE | Cmip: bias |",
+             "|---|---|---|---|---|"]
     for name, mat in results["materials"].items():
         rows = mat.get("headline", [])
         if rows:
-            c, cm = winning_footprint(rows, "C"), winning_footprint(rows, "Cmip")
-            lines.append(f"| {name} | {'never' if c is None else f'{c:g}'} | {'never' if cm is None else f'{cm:g}'} |")
+            cells = [winning_footprint(rows, against, key) for against in ("C", "Cmip") for key in ("mse", "bias")]
+            lines.append(f"| {name} | " + " | ".join("never" if c is None else f"{c:g}" for c in cells) + " |")
     return lines
 
 
@@ -88,7 +89,9 @@ def write_markdown(out: Path, results: dict, config: ReportConfig) -> Path:
           f"MSE x1e-3 / FLIP at {cfg.spp} spp; `N s`: N's render time; `R s to N's MSE`: seconds R's ladder needs to "
           "reach N's MSE (log-log interpolation; `-`: not within the ladder).", ""]
     L += headline_table(results) + [""]
-    L += ["Footprint from which N's MSE is below the classical material's at every larger footprint:", ""]
+    L += ["Footprint (texels) from which N is better than the classical material at every larger footprint, "
+          f"by MSE at {cfg.spp} spp (what a render at equal samples shows; the neural material is also less noisy "
+          "per sample) and by bias (the error floor left after the noise is averaged away):", ""]
     L += winners(results) + [""]
     for name, note in results.get("notes", {}).items():
         L.append(f"- {note}")
@@ -127,7 +130,9 @@ def stability_section(results: dict) -> list[str]:
         L += ["![horizon](horizon.png)", "",
               "A plane out to the horizon (N and C; R cannot be built to the horizon). Largest relative jump of the "
               "row-mean luminance between neighbouring rows (bands or popping between levels show as jumps): "
-              + ", ".join(f"{m} {_f(r['largest_jump'])} (median {_f(r['median_jump'], 1, 4)})" for m, r in h.items()), ""]
+              + ", ".join(f"{m} {_f(r['largest_jump'])} (median {_f(r['median_jump'], 1, 4)})" for m, r in h.items())
+              + ". The largest jumps are the pattern's own rows near the camera, in both; a level boundary would "
+              "show as a step in N's profile that C's lacks.", ""]
     L += ["Glints under a low light: the `low_light` strips above (light 5 degrees above the horizon).", ""]
     return L
 
@@ -138,7 +143,8 @@ def tradeoff_section(results: dict) -> list[str]:
         return []
     L = ["## The model's own trade-off", "",
          f"Configurations trained on {tr['material']} with {tr['steps']} steps of {tr['batch']} queries (a short "
-         "schedule, the same for all: they compare with one another, not with the shipped models). Validation MSE "
+         "schedule, the same for all: they compare with one another, not with the shipped models, and the larger "
+         "pyramids are the least converged after it). Validation MSE "
          "on low-noise (64 spp) reference queries; image MSE in the level0 view against R; queries per second "
          "in-process (ONNX Runtime, median of interleaved rounds).", "",
          "![trade-off](tradeoff.png)", "",

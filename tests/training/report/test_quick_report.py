@@ -76,3 +76,20 @@ def test_rerun_reuses_every_render(report):
                        views=DISTANCE_VIEWS[:1])
     assert again["cached_renders_reused"] > 0
     assert again["materials"]["flat"][VIEW]["methods"]["N"] == results["materials"]["flat"][VIEW]["methods"]["N"]
+
+
+@pytest.mark.slow
+def test_cli_quick_runs_every_stage(tmp_path):
+    """`neumip report --quick` end to end (every view, stability, the trade-off's training): minutes."""
+    from neumip.client.cli import main
+
+    out = tmp_path / "report"
+    assert main(["report", "--quick", "-o", str(out), "--materials", "flat", "rock", "yarn",
+                 "--models", str(MODELS), "--cache", str(tmp_path / "cache")]) == 0
+    results = json.loads((out / "results.json").read_text())
+    assert set(results["tradeoff"]["points"]) >= {"base", "no_offset", "seed1", "seed2"}
+    assert all(p["queries_per_second"] > 0 for p in results["tradeoff"]["points"].values())
+    assert results["stability"]["sweeps"]["flat"]["sigma"]["largest_step"] < 0.01
+    assert "horizon" in results["stability"]
+    for name in ("tradeoff.png", "stability_sweeps.png", "horizon.png", "report.md"):
+        assert (out / name).exists()
