@@ -41,6 +41,8 @@ class RenderCache:
         self.folder = Path(folder)
         self.folder.mkdir(parents=True, exist_ok=True)
         self.hits = 0
+        self.seconds = 0.0
+        """Wall time of every render handed out (fresh or cached), summed."""
 
     def path(self, params: dict) -> Path:
         return self.folder / f"{cache_key(params)}.npz"
@@ -56,6 +58,7 @@ class RenderCache:
             log.warning("cached render %s unreadable (%s): rendering again", path.name, exc)
             return None
         self.hits += 1
+        self.seconds += cached.seconds
         return cached
 
     def put(self, params: dict, image: np.ndarray, seconds: float) -> None:
@@ -66,5 +69,6 @@ class RenderCache:
                 np.savez(f, image=image.astype(np.float32), seconds=np.float64(seconds),
                          params=json.dumps(params, sort_keys=True, default=str))
             os.replace(tmp, path)
+            self.seconds += seconds
         finally:
             tmp.unlink(missing_ok=True)

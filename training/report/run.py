@@ -88,6 +88,7 @@ def run_report(out: Path, materials: list[str], config: ReportConfig, models: Pa
         results["tradeoff"] = run_tradeoff(out, renderers[TRADEOFF_MATERIAL], config, cache_dir, progress)
     results["seconds"] = time.perf_counter() - start
     results["cached_renders_reused"] = cache.hits
+    results["render_seconds"] = cache.seconds
     (out / "results.json").write_text(json.dumps(results, indent=1, default=float))
     from .writer import write_markdown
 
@@ -138,9 +139,10 @@ def horizon(out, config, evaluator, cache, progress) -> dict:
             scene = mi.load_dict(stability.horizon_scene(mi, config.horizon_film, make, integrator))
             result = R.render_scene(scene, evaluator, R.RenderConfig(spp=config.spp, max_lanes=config.max_lanes))
             cache.put(key, result.image[..., :3], result.seconds)
-            cached = cache.get(key)
-        images[method] = cached.image
-        rows[method] = stability.row_banding(cached.image)
+            images[method] = result.image[..., :3]
+        else:
+            images[method] = cached.image
+        rows[method] = stability.row_banding(images[method])
         progress.tick()
     exposure = Q.exposure_for(images["C"])
     charts.horizon(images, exposure, rows, out / "horizon.png")

@@ -57,6 +57,7 @@ def variants(config: ReportConfig) -> list[Variant]:
 
 def datasets(material: str, folder: Path, config: ReportConfig, on_chunk=None) -> tuple[Path, Path]:
     """Training data (4 spp) and low-noise validation queries (64 spp) of ``material`` (resumable)."""
+    from neumip.training.dataset import DatasetError, open_dataset
     from neumip.training.microgeometry.description import find_description
     from neumip.training.microgeometry.generate import GenerateSettings, generate
 
@@ -64,10 +65,18 @@ def datasets(material: str, folder: Path, config: ReportConfig, on_chunk=None) -
     resolution = max(config.tradeoff_resolutions)
     train = folder / f"{material}_train"
     ref = folder / f"{material}_reference"
-    generate(desc, train, GenerateSettings(queries=config.tradeoff_queries, spp=4, seed=0, resolution=resolution,
-                                           chunk=1 << 15), on_chunk)
-    generate(desc, ref, GenerateSettings(queries=config.tradeoff_reference_queries, spp=64, seed=1,
-                                         resolution=resolution, chunk=1 << 12), on_chunk)
+    for path, settings in (
+        (train, GenerateSettings(queries=config.tradeoff_queries, spp=4, seed=0, resolution=resolution, chunk=1 << 15)),
+        (ref, GenerateSettings(queries=config.tradeoff_reference_queries, spp=64, seed=1, resolution=resolution,
+                               chunk=1 << 12)),
+    ):
+        try:
+            data = open_dataset(path)  # complete already: reuse it
+        except DatasetError:
+            generate(desc, path, settings, on_chunk)  # new, or resumes an interrupted one
+            continue
+        if data.meta.get("generator") != settings.to_meta(desc):
+            raise DatasetError(f"{path} was generated with other settings: remove it to generate it again")
     return train, ref
 
 
