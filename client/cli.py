@@ -15,6 +15,7 @@ AREAS = (
     "neumip.client.mitsuba.commands",
     "neumip.training.commands",
     "neumip.training.microgeometry.commands",
+    "neumip.training.report.commands",
     "neumip.server.commands",
 )
 """Modules with a `register(subparsers)` function adding that area's subcommands."""

@@ -115,8 +115,9 @@ def surface_coords(resolution: int, tiles: int) -> np.ndarray:
 # --- Mitsuba objects -------------------------------------------------------------------------------
 
 
-def make_bsdf(mi, geo: Microgeometry):
-    """The material's Mitsuba BSDF: its homogeneous BSDF, or a principled BSDF driven by its maps."""
+def make_bsdf(mi, geo: Microgeometry, to_uv=None):
+    """The material's Mitsuba BSDF: its homogeneous BSDF, or a principled BSDF driven by its maps
+    (``to_uv``: an optional transform of the shape's uv before the maps are read)."""
     if geo.bsdf is not None:
         try:
             return mi.load_dict(geo.bsdf)
@@ -128,8 +129,11 @@ def make_bsdf(mi, geo: Microgeometry):
             value = arr.reshape(-1)
             return {"type": "rgb", "value": value.tolist()} if value.size == 3 else float(value[0])
         data = arr if arr.ndim == 3 else arr[:, :, None]
-        return {"type": "bitmap", "data": mi.TensorXf(np.ascontiguousarray(data, dtype=np.float32)),
-                "raw": True, "wrap_mode": "repeat"}
+        bitmap = {"type": "bitmap", "data": mi.TensorXf(np.ascontiguousarray(data, dtype=np.float32)),
+                  "raw": True, "wrap_mode": "repeat"}
+        if to_uv is not None:
+            bitmap["to_uv"] = to_uv
+        return bitmap
 
     return mi.load_dict({
         "type": "principled",
@@ -195,3 +199,49 @@ def reference_surface(mi, geo: Microgeometry, tiles: int, to_world=None):
         arrays["normals"] = normals / np.linalg.norm(normals, axis=1, keepdims=True)
     log.info("reference surface: %d x %d tiles, %d triangles", tiles, tiles, arrays["faces"].shape[0])
     return make_mesh(mi, "reference_surface", arrays, make_bsdf(mi, geo))
+
+
+def reference_block(mi, geo: Microgeometry, block: int):
+    """One ``block x block`` tile block of the displaced geometry as a Mitsuba ``shapegroup`` dictionary
+    (a dictionary: an instance finds a group by its key only while the scene is loaded).
+
+    In the block's own frame the geometry spans ``[0, block]^2`` in xy (tile units, uv = xy) and lies
+    below ``z = 0``; :func:`reference_instances` places copies of it.
+    """
+    coords = surface_coords(geo.height.shape[0], block)
+    arrays = grid_arrays(geo, coords, coords)
+    mesh = make_mesh(mi, "reference_block", arrays, make_bsdf(mi, geo))
+    log.info("reference block: %d x %d tiles, %d triangles", block, block, arrays["faces"].shape[0])
+    return {"type": "shapegroup", "block": mesh}
+
+
+def reference_instances(mi, geo: Microgeometry, origins: np.ndarray, block: int, to_world=None) -> dict:
+    """The material as real displaced geometry built from instances of one tile block.
+
+    ``origins`` (K, 2) are integer tile coordinates of the blocks' corners; the geometry is in tile
+    units, mapped to the scene by ``to_world``. Returns scene-dictionary entries: the ``shapegroup``
+    (id ``reference_block``) and one ``instance`` per origin referring to it by id (Mitsuba's
+    instances must reference the group through ``{"type": "ref"}``). Memory grows with the block,
+    not with the number of tiles, so views of thousands of tiles render in seconds.
+    """
+    origins = np.asarray(origins, dtype=np.int64).reshape(-1, 2)
+    base = mi.ScalarTransform4f(to_world) if to_world is not None else mi.ScalarTransform4f()
+    entries = {"reference_block": reference_block(mi, geo, block)}
+    for k, (x, y) in enumerate(origins.tolist()):
+        entries[f"reference_{k}"] = {
+            "type": "instance",
+            "shapegroup": {"type": "ref", "id": "reference_block"},
+            "to_world": base @ mi.ScalarTransform4f().translate([float(x), float(y), 0.0]),
+        }
+    log.info("reference instances: %d blocks of %d x %d tiles", len(origins), block, block)
+    return entries
+
+
+def block_origins(lo: np.ndarray, hi: np.ndarray, block: int) -> np.ndarray:
+    """(K, 2) corners of the ``block``-sized blocks covering the xy box ``[lo, hi]`` (tile units)."""
+    start = np.floor(np.asarray(lo) / block).astype(np.int64)
+    stop = np.ceil(np.asarray(hi) / block).astype(np.int64)
+    xs = np.arange(start[0], stop[0]) * block
+    ys = np.arange(start[1], stop[1]) * block
+    gx, gy = np.meshgrid(xs, ys)
+    return np.stack([gx.ravel(), gy.ravel()], axis=1)

@@ -161,3 +161,33 @@ def test_each_query_agrees_with_mitsubas_path_tracer_at_oblique_angles(mi, mater
     z = z_scores(0.0)
     assert np.abs(z).max() < 4.5 and abs(z.mean()) < 0.6, z
     assert np.abs(z_scores(2 / geo.height.shape[0])).max() > 6  # the test sees a 2-texel parallax error
+
+
+def oblique_render(mi, geo, shapes: dict, seed: int) -> np.ndarray:
+    """A 32 x 24 oblique view (60 degrees) of a 4 x 4-tile surface, side light, 16 spp, stock `path`."""
+    camera = mi.ScalarTransform4f().look_at(origin=[2, -1.2, 3.0], target=[2, 2, 0], up=[0, 0, 1])
+    scene = mi.load_dict({
+        "type": "scene", **shapes,
+        "light": {"type": "directional", "direction": [-0.6, 0.2, -0.77], "irradiance": 1.5},
+        "integrator": {"type": "path", "max_depth": 4},
+        "sensor": {"type": "perspective", "fov": 40, "to_world": camera,
+                   "film": {"type": "hdrfilm", "width": 32, "height": 24},
+                   "sampler": {"type": "independent", "sample_count": 16}},
+    })
+    return np.array(mi.render(scene, seed=seed))[:, :, :3]
+
+
+def test_instanced_reference_equals_the_single_mesh(mi, geo):
+    """Instances of a 2 x 2-tile block (shapegroup + instance by id) render the same image as one
+    mesh of the 4 x 4 tiles: the difference at the same seed is far below the seed-to-seed noise."""
+    tiles = 4
+    to_world = mi.ScalarTransform4f().translate([2, 2, 0]).scale([2, 2, 2])  # the rectangle [-1, 1]^2 -> [0, 4]^2
+    single = {"surface": mesh.reference_surface(mi, geo, tiles, to_world)}
+    origins = mesh.block_origins(np.zeros(2), np.full(2, tiles), 2)
+    assert len(origins) == 4
+    instanced = mesh.reference_instances(mi, geo, origins, 2)
+    a, b = oblique_render(mi, geo, single, 0), oblique_render(mi, geo, instanced, 0)
+    noise = np.mean((a - oblique_render(mi, geo, single, 1)) ** 2)
+    assert a.mean() > 0.05  # the view sees the lit surface
+    assert np.mean((a - b) ** 2) < 0.01 * noise
+    assert b.mean() == pytest.approx(a.mean(), rel=1e-3)

@@ -1,0 +1,198 @@
+"""One report run: images of every material, stability, the model trade-off; then results.json,
+the charts and report.md. Each render and each trained configuration is cached, so a re-run after
+an interruption continues where it stopped."""
+
+from __future__ import annotations
+
+import json
+import logging
+import time
+from collections.abc import Callable
+from dataclasses import asdict
+from pathlib import Path
+
+import numpy as np
+
+from . import charts, stability, tradeoff
+from . import metrics as Q
+from .analysis import headline
+from .cache import RenderCache
+from .config import ReportConfig
+from .pipeline import REFERENCE_SEEDS, run_material, view_steps
+from .views import DISTANCE_VIEWS, VIEWS, View
+
+log = logging.getLogger(__name__)
+
+TRADEOFF_MATERIAL = "rock"
+"""The material whose configurations the trade-off trains (the deepest shipped relief)."""
+HORIZON_MATERIAL = "yarn"
+"""The material of the plane-to-the-horizon render."""
+
+
+class Progress:
+    """Progress callbacks: ``stage(name, total)`` then ``tick()`` per step."""
+
+    def stage(self, name: str, total: int) -> None:
+        log.info("%s (%d steps)", name, total)
+
+    def tick(self) -> None:
+        pass
+
+
+def _jsonable(results: dict) -> dict:
+    """The view results without images, spp keys as strings."""
+    out = {}
+    for view, res in results.items():
+        out[view] = {
+            "reference": res["reference"], "mip_level": res["mip_level"], "fits": res["fits"],
+            "methods": {m: {str(s): e for s, e in sorted(entries.items())} for m, entries in res["methods"].items()},
+        }
+    return out
+
+
+def run_report(out: Path, materials: list[str], config: ReportConfig, models: Path, cache_dir: Path,
+               progress: Progress | None = None, stages: tuple[str, ...] = ("images", "stability", "tradeoff"),
+               views: tuple[View, ...] = VIEWS) -> dict:
+    from neumip.client.local import LocalMaterials
+    from neumip.training.microgeometry.description import find_description, resolve
+
+    from .renderer import MaterialRenderer
+
+    progress = progress or Progress()
+    out.mkdir(parents=True, exist_ok=True)
+    cache = RenderCache(cache_dir / "renders")
+    evaluator = LocalMaterials(models, threads=config.threads)
+    start = time.perf_counter()
+    results: dict = {"config": asdict(config), "materials": {}, "notes": {}}
+    renderers = {}
+    for name in materials:
+        desc = find_description(name)
+        renderers[name] = MaterialRenderer(name, desc, resolve(desc), models, evaluator, config, cache)
+        if "N0" not in renderers[name].methods:
+            results["notes"][name] = f"no {name}_nooffset model in {models}: N0 not shown"
+    images: dict = {}
+    if "images" in stages:
+        progress.stage("renders", sum(view_steps(r, v) for r in renderers.values() for v in views))
+        for name, r in renderers.items():
+            images[name] = run_material(r, views, progress.tick)
+            results["materials"][name] = _jsonable(images[name])
+            for view, res in images[name].items():
+                charts.strip(res, out / "strips" / f"{name}_{view}.png", f"{name}, {view}")
+            ladder_views = [v.name for v in views if v.ladder]
+            if ladder_views:
+                charts.error_time(images[name], ladder_views, out / f"error_time_{name}.png", f"{name}: error against time")
+            results["materials"][name]["headline"] = headline(images[name], config.spp)
+    if "stability" in stages:
+        results["stability"] = run_stability(out, materials, config, models, evaluator, cache, progress)
+    if "tradeoff" in stages and TRADEOFF_MATERIAL in renderers:
+        results["tradeoff"] = run_tradeoff(out, renderers[TRADEOFF_MATERIAL], config, cache_dir, progress)
+    results["seconds"] = time.perf_counter() - start
+    results["cached_renders_reused"] = cache.hits
+    results["render_seconds"] = cache.seconds
+    (out / "results.json").write_text(json.dumps(results, indent=1, default=float))
+    from .writer import write_markdown
+
+    write_markdown(out, results, config)
+    return results
+
+
+def run_stability(out, materials, config, models, evaluator, cache, progress) -> dict:
+    names = [n for n in evaluator.materials() if n.split("_nooffset")[0] in materials]
+    progress.stage("stability", len(names) + 2)
+    sweeps = {}
+    for name in names:
+        resolution = int(evaluator.get(name).config["resolution"])
+        sweeps[name] = stability.sweeps(evaluator, name, config.sweep_points, resolution)
+        progress.tick()
+    charts.sweeps(sweeps, out / "stability_sweeps.png")
+    result = {"sweeps": {n: _summary(s) for n, s in sweeps.items()}}
+    if HORIZON_MATERIAL in materials:
+        result["horizon"] = horizon(out, config, evaluator, cache, progress)
+    return result
+
+
+def _summary(sweep: dict) -> dict:
+    """The sweep figures without the curves (the curves are in the chart)."""
+    return {kind: {k: v for k, v in r.items() if not isinstance(v, list) or k in ("shift_tiles", "max_rel_change")}
+            for kind, r in sweep.items()}
+
+
+def horizon(out, config, evaluator, cache, progress) -> dict:
+    from neumip.client.mitsuba import render as R
+    from neumip.training.microgeometry.description import find_description, resolve
+
+    from .methods import classical_bsdf
+
+    mi = R.mi
+    geo = resolve(find_description(HORIZON_MATERIAL))
+    bsdfs = {
+        "N": lambda scale: {"type": "neumip", "material": HORIZON_MATERIAL, "uv_scale": scale},
+        "C": lambda scale: classical_bsdf(mi, geo, scale),
+    }
+    images, rows = {}, {}
+    for method, make in bsdfs.items():
+        key = {"horizon": HORIZON_MATERIAL, "method": method, "film": asdict(config.horizon_film), "spp": config.spp,
+               "model": (evaluator.get(HORIZON_MATERIAL).path.stat().st_mtime if method == "N" else None)}
+        cached = cache.get(key)
+        if cached is None:
+            integrator = "neumip_path" if method == "N" else "path"
+            scene = mi.load_dict(stability.horizon_scene(mi, config.horizon_film, make, integrator))
+            result = R.render_scene(scene, evaluator, R.RenderConfig(spp=config.spp, max_lanes=config.max_lanes))
+            cache.put(key, result.image[..., :3], result.seconds)
+            images[method] = result.image[..., :3]
+        else:
+            images[method] = cached.image
+        rows[method] = stability.row_banding(images[method])
+        progress.tick()
+    exposure = Q.exposure_for(images["C"])
+    charts.horizon(images, exposure, rows, out / "horizon.png")
+    return {m: {k: v for k, v in r.items() if k != "row_mean"} for m, r in rows.items()}
+
+
+def run_tradeoff(out, renderer, config, cache_dir, progress) -> dict:
+    from neumip.client.local import LocalMaterials
+
+    folder = cache_dir / "tradeoff"
+    variants = tradeoff.variants(config)
+    progress.stage("trade-off: data", 1)
+    train, ref = tradeoff.datasets(renderer.name, folder / "data", config)
+    progress.tick()
+    progress.stage("trade-off: training", len(variants))
+    for v in variants:
+        tradeoff.train_variant(v, train, folder / "models", config)
+        progress.tick()
+    evaluator = LocalMaterials(folder / "models", threads=config.threads)
+    names = [v.name for v in variants]
+    qps = tradeoff.queries_per_second(evaluator, names)
+    view = DISTANCE_VIEWS[0]
+    spec = renderer.spec(view)
+    reference_images = [renderer.render(view, "R", config.reference_spp, s, timed=False)[0] for s in REFERENCE_SEEDS]
+    reference = (reference_images[0] + reference_images[1]) / 2
+    points = {}
+    progress.stage("trade-off: measure", len(variants))
+    for v in variants:
+        image = _render_variant(renderer, spec, evaluator, v.name, folder / "models" / f"{v.name}.onnx", config, view)
+        points[v.name] = {**tradeoff.describe(v), "queries_per_second": qps[v.name],
+                          "validation_mse": tradeoff.validation_mse(evaluator, v.name, ref),
+                          "image_mse": Q.mse(reference, image), "image_view": view.name}
+        progress.tick()
+    charts.tradeoff(points, out / "tradeoff.png")
+    return {"material": renderer.name, "points": points, "seeds": tradeoff.summary(points),
+            "steps": config.tradeoff_steps, "batch": config.tradeoff_batch}
+
+
+def _render_variant(renderer, spec, evaluator, name, onnx, config, view) -> np.ndarray:
+    from neumip.client.mitsuba import render as R
+
+    from .methods import neural_scene
+    from .renderer import file_digest
+
+    key = {"tradeoff": name, "model": file_digest(onnx), "view": asdict(view), "film": asdict(config.film),
+           "spp": config.spp, "resolution": spec.resolution}
+    cached = renderer.cache.get(key)
+    if cached is not None:
+        return cached.image
+    scene = R.mi.load_dict(neural_scene(R.mi, spec, name))
+    result = R.render_scene(scene, evaluator, R.RenderConfig(spp=config.spp, max_lanes=config.max_lanes))
+    renderer.cache.put(key, result.image[..., :3], result.seconds)
+    return result.image[..., :3]

@@ -1,0 +1,151 @@
+"""The model's own trade-off: one point per configuration (finest resolution, channels, MLP width,
+offset on or off, and the same configuration with three training seeds), each trained the same
+short way on one data set, then measured in one run: queries per second in-process, validation
+error on low-noise reference queries, and image error in one view against the real geometry.
+
+The configurations are trained with the `quick` preset's schedule halved (``tradeoff_steps``
+steps of ``tradeoff_batch`` queries, blur half-life scaled the same way) on a data set of
+``tradeoff_queries`` 4-spp queries sampled for the finest 256^2 level, so they compare with one
+another, not with the shipped models (trained 8x longer). Validation uses ``tradeoff_reference_queries``
+new queries at 64 spp (seed 1). Training, data and models are cached: a re-run only measures.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import time
+from dataclasses import asdict, dataclass, replace
+from pathlib import Path
+
+import numpy as np
+
+from neumip.client import contract as C
+
+from .config import ReportConfig
+
+log = logging.getLogger(__name__)
+
+QPS_ROWS = 1 << 17
+"""Random queries per throughput measurement."""
+QPS_ROUNDS = 3
+"""Interleaved rounds of the throughput measurement (median)."""
+
+
+@dataclass(frozen=True)
+class Variant:
+    """One trained configuration."""
+
+    name: str
+    resolution: int = 64
+    channels: int = 7
+    hidden: int = 25
+    offset: bool = True
+    seed: int = 0
+
+
+def variants(config: ReportConfig) -> list[Variant]:
+    base = Variant("base")
+    out = [base]
+    out += [replace(base, name=f"res{r}", resolution=r) for r in config.tradeoff_resolutions if r != base.resolution]
+    out += [replace(base, name="ch4", channels=4), replace(base, name="ch12", channels=12)]
+    out += [replace(base, name="mlp16", hidden=16), replace(base, name="mlp48", hidden=48)]
+    out += [replace(base, name="no_offset", offset=False)]
+    out += [replace(base, name=f"seed{s}", seed=s) for s in (1, 2)]
+    return out
+
+
+def datasets(material: str, folder: Path, config: ReportConfig, on_chunk=None) -> tuple[Path, Path]:
+    """Training data (4 spp) and low-noise validation queries (64 spp) of ``material`` (resumable)."""
+    from neumip.training.dataset import DatasetError, open_dataset
+    from neumip.training.microgeometry.description import find_description
+    from neumip.training.microgeometry.generate import GenerateSettings, generate
+
+    desc = find_description(material)
+    resolution = max(config.tradeoff_resolutions)
+    train = folder / f"{material}_train"
+    ref = folder / f"{material}_reference"
+    for path, settings in (
+        (train, GenerateSettings(queries=config.tradeoff_queries, spp=4, seed=0, resolution=resolution, chunk=1 << 15)),
+        (ref, GenerateSettings(queries=config.tradeoff_reference_queries, spp=64, seed=1, resolution=resolution,
+                               chunk=1 << 12)),
+    ):
+        try:
+            data = open_dataset(path)  # complete already: reuse it
+        except DatasetError:
+            generate(desc, path, settings, on_chunk)  # new, or resumes an interrupted one
+            continue
+        if data.meta.get("generator") != settings.to_meta(desc):
+            raise DatasetError(f"{path} was generated with other settings: remove it to generate it again")
+    return train, ref
+
+
+def train_variant(variant: Variant, data: Path, folder: Path, config: ReportConfig) -> Path:
+    """Train (or resume, or reuse) one configuration; returns its .onnx."""
+    import torch
+
+    from neumip.training.config import MaterialConfig
+    from neumip.training.outputs import write_outputs
+    from neumip.training.train import Trainer
+    from neumip.training.train_config import QUICK
+
+    onnx = folder / f"{variant.name}.onnx"
+    if onnx.exists():
+        return onnx
+    scale = config.tradeoff_steps / QUICK.steps
+    train = replace(QUICK, steps=config.tradeoff_steps, batch=config.tradeoff_batch, seed=variant.seed,
+                    blur_half_life=QUICK.blur_half_life * scale, checkpoint_every=config.tradeoff_steps,
+                    log_every=max(1, config.tradeoff_steps // 20), device="cpu")
+    material = MaterialConfig(resolution=variant.resolution, channels=variant.channels, hidden=variant.hidden,
+                              offset=variant.offset)
+    torch.set_num_threads(1)  # one torch thread: faster than two on the shared, busy machine
+    trainer = Trainer(data, folder / f"{variant.name}.pt", material, train, f"trade-off {variant.name}")
+    start = time.perf_counter()
+    table = trainer.run()
+    log.info("trained %s in %.0f s", variant.name, time.perf_counter() - start)
+    write_outputs(trainer, table, onnx)
+    return onnx
+
+
+def validation_mse(evaluator, name: str, reference: Path) -> float:
+    """MSE (linear RGB) of material ``name`` against the low-noise reference queries."""
+    from neumip.training.dataset import open_dataset
+
+    data = open_dataset(reference)
+    pred = evaluator.evaluate(name, np.ascontiguousarray(data.queries[:], np.float32))
+    diff = pred.astype(np.float64) - data.rgb[:]
+    return float(np.mean(diff * diff))
+
+
+def queries_per_second(evaluator, names: list[str], rounds: int = QPS_ROUNDS) -> dict[str, float]:
+    """In-process throughput of each material on the same random queries, interleaved rounds, median."""
+    queries = C.random_queries(QPS_ROWS, seed=0)
+    times: dict[str, list[float]] = {name: [] for name in names}
+    for name in names:  # warm-up
+        evaluator.evaluate(name, queries[:4096])
+    for _ in range(rounds):
+        for name in names:
+            start = time.perf_counter()
+            evaluator.evaluate(name, queries)
+            times[name].append(time.perf_counter() - start)
+    return {name: QPS_ROWS / float(np.median(ts)) for name, ts in times.items()}
+
+
+def describe(variant: Variant) -> dict:
+    return {k: v for k, v in asdict(variant).items() if k != "name"}
+
+
+def summary(points: dict) -> dict:
+    """Spread over the training seeds (base, seed1, seed2) of validation and image error."""
+    seeds = [points[n] for n in ("base", "seed1", "seed2") if n in points]
+    out = {}
+    for key in ("validation_mse", "image_mse"):
+        values = np.array([p[key] for p in seeds if p.get(key) is not None])
+        if len(values):
+            out[key] = {"values": values.tolist(), "mean": float(values.mean()), "std": float(values.std(ddof=1)) if len(values) > 1 else 0.0,
+                        "spread": float((values.max() - values.min()) / values.mean())}
+    return out
+
+
+def save(points: dict, path: Path) -> None:
+    path.write_text(json.dumps(points, indent=2))
