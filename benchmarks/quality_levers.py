@@ -119,7 +119,8 @@ def print_table(path: str) -> None:
     for label in dict.fromkeys(r["label"] for r in rows):
         group = [r for r in rows if r["label"] == label]
         base = next((r for r in group if r["variant"] == "base"), None)
-        print(f"\n== {label}: MSE x1e-3 against the low-noise reference, per level (64^2 binning)")
+        print(f"\n== {label}: MSE x1e-3 against the low-noise reference, per level "
+              f"({group[0].get('bin', 64)}^2 binning); graze: views > {GRAZING_DEG:.0f} degrees")
         print(f"{'variant':<14} {'data':<16} {'train s':>7} {'L0':>7} {'L1':>7} {'L2':>7} {'L3+':>7} {'all':>7} "
               f"{'vs base':>7} {'logMSE':>8} {'mean/ref':>8} {'graze':>7}")
         for r in group:
@@ -161,6 +162,7 @@ def target_noise(material: str, n: int, spp: int, budget_samples: float) -> None
 
 
 def main() -> None:
+    global BIN_RESOLUTION
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     parser.add_argument("variants", nargs="*", help=f"any of: {', '.join(VARIANTS)}")
     parser.add_argument("--data")
@@ -173,7 +175,6 @@ def main() -> None:
     parser.add_argument("--table", metavar="JSONL")
     parser.add_argument("--noise", metavar="MATERIAL")
     args = parser.parse_args()
-    global BIN_RESOLUTION
     BIN_RESOLUTION = args.bin
     if args.table:
         print_table(args.table)

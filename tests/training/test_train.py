@@ -338,3 +338,16 @@ def test_checkpoint_from_before_the_new_settings_resumes(data, tmp_path):
     del extra["state"]["progress"]
     checkpoint.save(tmp_path / "c.pt", material, extra)
     assert Trainer(data.path, tmp_path / "c.pt", TINY, cfg).run()["steps"] == 20
+
+
+@pytest.mark.parametrize("name", ["paper", "quality", "ship", "quick"])
+def test_presets_scale_the_papers_schedule(name):
+    """Every preset but `test` is the paper's blur schedule scaled to its step count: the blur halves
+    every ~1/9 of the run and ends (offset frozen) at ~59 % of it, leaving 40 % unblurred training."""
+    from neumip.training.blur import schedule_end
+    from neumip.training.train_config import PRESETS
+
+    cfg = PRESETS[name]
+    assert cfg.blur_half_life / cfg.steps == pytest.approx(3333 / 30_000, rel=0.01)
+    assert schedule_end(cfg) / cfg.steps == pytest.approx(0.59, abs=0.01)
+    assert cfg.lr_schedule == "constant" and cfg.offset_freeze  # what measured best (benchmarks/quality_levers.py)
