@@ -95,6 +95,7 @@ def write_progress(trainer: Trainer, path: Path, views=None, grid: ViewGrid | No
                 if j == 0 and k == 0:
                     light_az, light_zen, view_az, view_zen = grid.views[i]
                     a.set_ylabel(f"light {light_zen:.0f}\u00b0\nview {view_zen:.0f}\u00b0", fontsize=7)
+    path.parent.mkdir(parents=True, exist_ok=True)  # mid-run: the model's folder may not exist yet
     tmp = path.with_name(path.name + ".tmp.png")
     fig.savefig(tmp)
     plt.close(fig)

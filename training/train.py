@@ -70,10 +70,6 @@ class TrainState:
     """[step, [[level, MSE], ...], overall MSE] of each progress validation (`Trainer.check_progress`)."""
 
 
-PROGRESS_QUERIES = 20_000
-"""Held-out queries a progress validation evaluates (every k-th of the split)."""
-
-
 def differences(saved: dict, now: dict, ignore=()) -> list[str]:
     """'name: checkpoint X, now Y' for every field of two settings dicts that differs."""
     names = sorted((saved.keys() | now.keys()) - set(ignore))
@@ -293,10 +289,12 @@ class Trainer:
                                       self.state.offset_frozen)
 
     def check_progress(self) -> list:
-        """Per-level MSE on up to PROGRESS_QUERIES held-out queries, with the current step's blur;
-        appended to state.progress (and so kept in checkpoints) and returned."""
-        idx = self.val_idx[:: max(1, len(self.val_idx) // PROGRESS_QUERIES)]
-        queries, target = np.asarray(self.data.queries[idx]), np.asarray(self.data.rgb[idx])
+        """Per-level MSE on the held-out split (at most `max_holdout` queries) with the current step's
+        blur; appended to state.progress (and so kept in checkpoints) and returned. The whole split,
+        not a sample: a few bright outliers carry much of the MSE (a half sample of 52 000 stones
+        queries read 2.5e-3 where the whole split reads 3.7e-3)."""
+        queries = np.asarray(self.data.queries[self.val_idx])
+        target = np.asarray(self.data.rgb[self.val_idx])
         self.material.eval()
         pred = predict(self.material, queries, *self.current_textures())
         self.material.train()

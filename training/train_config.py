@@ -47,8 +47,8 @@ class TrainConfig:
     max_holdout: int = 200_000
     """Upper bound on held-out queries (validation time stays small on large data sets)."""
     validate_every: int = 400
-    """Steps between progress validations (per-level MSE of up to 20 000 held-out queries with the
-    step's blur, kept in the run's history; `neumip train` then redraws NAME.progress.png); 0: none."""
+    """Steps between progress validations (per-level MSE of the held-out split with the step's blur,
+    kept in the run's history; `neumip train` then redraws NAME.progress.png); 0: none."""
     checkpoint_every: int = 500
     """Steps between checkpoints (one is also written at the end)."""
     log_every: int = 50
