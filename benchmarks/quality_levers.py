@@ -76,6 +76,7 @@ VARIANTS: dict[str, tuple[dict, object, str]] = {
     "long4x_q64s64": ({}, _scaled(4), "q64s64"),
     "long4x_res128": ({"resolution": 128}, _scaled(4), ""),
     "quality": ({}, replace(PRESETS["quality"], validate_every=0), ""),  # the recipe kept, full length
+    "quality_res128": ({"resolution": 128}, replace(PRESETS["quality"], validate_every=0), ""),
 }
 
 
