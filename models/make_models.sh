@@ -1,40 +1,51 @@
 #!/usr/bin/env bash
-# Reproduce the shipped materials: path-traced data (64^2 level of detail, 256 queries per texel,
-# 16 spp), then `neumip train` with the preset $PRESET (default `ship`), replacing models/NAME.onnx
-# (--force). Each step resumes if interrupted (a checkpoint in runs/NAME/ from another preset is
-# refused: move it away first).
-# Run from the repository root: [PRESET=quick] [THREADS=2] bash models/make_models.sh [NAME ...]
+# Reproduce the shipped materials: path-traced data ($RES^2 level of detail, $QPT queries per texel,
+# $SPP spp), then `neumip train` with the preset $PRESET, replacing models/NAME.onnx (--force). Each
+# step resumes if interrupted (a checkpoint in runs/NAME/ from another preset is refused: move it away).
+# Defaults reproduce the models shipped now (`ship` preset, 64^2, 256 queries per texel, 16 spp).
+# PRESET=quality is the longer recipe measured in models/README.md ("Quality levers"): 10 000 steps of 16 384.
+# Run from the repository root: [PRESET=ship|quality] [RES=64] [THREADS=1] bash models/make_models.sh [NAME ...]
 # RAY=auto (or HOST:PORT, or local) runs data chunks and then one training per material as Ray tasks
 # (`neumip generate --ray`, `neumip train-many --ray`; pip install 'neumip[cluster]'); THREADS is
 # then the CPUs of each training task, and models already finished are skipped.
 set -euo pipefail
 NEUMIP=${NEUMIP:-.venv/bin/neumip}
-RES=64
+RES=${RES:-64}
+QPT=${QPT:-256}  # queries per finest texel: measured better than fewer queries with more spp each
+SPP=${SPP:-16}
 PRESET=${PRESET:-ship}
 THREADS=${THREADS:-1}  # the shipped models were trained with one torch thread
 RAY=${RAY:-}
 names=("$@")
 [ ${#names[@]} -gt 0 ] || names=(flat rock rock_nooffset yarn yarn_nooffset turtle foam)
+data_dir() {  # the 64^2 / 256 / 16 data keep their old folder (data/NAME)
+  if [ "$RES" = 64 ] && [ "$QPT" = 256 ] && [ "$SPP" = 16 ]; then echo "data/$1"; else echo "data/$1_r${RES}_q${QPT}_s${SPP}"; fi
+}
 generate_data() {  # MATERIAL [--ray=ADDRESS]
-  [ -f "data/$1/meta.json" ] && grep -q '"complete": true' "data/$1/meta.json" ||
-    "$NEUMIP" generate "$1" -o "data/$1" --queries-per-texel 256 --resolution $RES --spp 16 --seed 0 "${@:2}"
+  local data; data=$(data_dir "$1")
+  [ -f "$data/meta.json" ] && grep -q '"complete": true' "$data/meta.json" ||
+    "$NEUMIP" generate "$1" -o "$data" --queries-per-texel "$QPT" --resolution "$RES" --spp "$SPP" --seed 0 "${@:2}"
+}
+describe() {  # NAME
+  local material=${1%_nooffset}
+  echo "$material, ${RES}^2, $([ "$1" != "$material" ] && echo 'no neural offset' || echo 'neural offset'), $PRESET preset"
 }
 if [ -n "$RAY" ]; then
   jobs=() flags=()
   for name in "${names[@]}"; do
     material=${name%_nooffset}
     generate_data "$material" --ray="$RAY"
-    jobs+=("$name=data/$material")
+    jobs+=("$name=$(data_dir "$material")")
     [ "$name" != "$material" ] && flags+=(--no-offset "$name")
   done
   exec "$NEUMIP" train-many "${jobs[@]}" "${flags[@]}" -o models --preset "$PRESET" --threads "$THREADS" \
-    --resolution $RES --ray="$RAY"
+    --resolution "$RES" --ray="$RAY"
 fi
 for name in "${names[@]}"; do
   material=${name%_nooffset}
   flags=()
   [ "$name" != "$material" ] && flags=(--no-offset)
   generate_data "$material"
-  "$NEUMIP" train "data/$material" -o "models/$name.onnx" --force --preset "$PRESET" --threads "$THREADS" --resolution $RES "${flags[@]}" \
-    --description "$material, ${RES}^2, $([ ${#flags[@]} -gt 0 ] && echo 'no neural offset' || echo 'neural offset'), $PRESET preset"
+  "$NEUMIP" train "$(data_dir "$material")" -o "models/$name.onnx" --force --preset "$PRESET" --threads "$THREADS" \
+    --resolution "$RES" "${flags[@]}" --description "$(describe "$name")"
 done

@@ -27,6 +27,11 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--material", help="material name to look up in --budget (default: the output's file stem)")
     p.add_argument("--no-offset", action="store_true", help="train without the neural offset")
     p.add_argument("--description", default="", help="short description stored in the model metadata")
+    p.add_argument("--head", choices=("relu", "yuv"), default="relu",
+                   help="decoder output head: relu (paper) or yuv (authors' exp(YUV) - 1 with a shadow mask)")
+    p.add_argument("--views-material", metavar="NAME_OR_TOML",
+                   help="material whose ground truth the progress grid NAME.progress.png shows (default: the "
+                        "data's own, when its description can be rebuilt from meta.json)")
     for name, kind in (("steps", int), ("batch", int), ("lr", float), ("seed", int), ("blur-half-life", float)):
         p.add_argument(f"--{name}", type=kind, help=f"override TrainConfig.{name.replace('-', '_')}")
     p.add_argument("--loss", choices=("comb2", "mse"), help="override TrainConfig.loss")
@@ -112,9 +117,10 @@ def _train(args: argparse.Namespace) -> int:
     from .checkpoint import CheckpointError
     from .config import MaterialConfig
     from .dataset import DatasetError
-    from .outputs import write_outputs
+    from .outputs import progress_path, write_outputs, write_progress
     from .train import Trainer, TrainingDiverged, TrainingError
     from .validation import format_table
+    from .views import ViewGrid, trace_views
 
     if args.threads:
         torch.set_num_threads(args.threads)
@@ -122,10 +128,18 @@ def _train(args: argparse.Namespace) -> int:
     try:
         config = _train_config(args)
         resolution = args.resolution or _budget_resolution(args, output) or _data_resolution(args.data)
-        material = MaterialConfig(resolution=resolution, offset=not args.no_offset)
+        material = MaterialConfig(resolution=resolution, offset=not args.no_offset, head=args.head)
         trainer = Trainer(args.data, checkpoint, material, config, args.description)
     except (ValueError, DatasetError, CheckpointError) as exc:
         raise CommandError(str(exc)) from exc
+    views = trace_views(trainer.data.meta.get("material") or {}, ViewGrid(), resolution,
+                        checkpoint.parent / "views", args.views_material)
+    progress_png = progress_path(output)
+
+    def on_progress(trainer: Trainer) -> None:
+        write_progress(trainer, progress_png, views)
+        step, _levels, mse = trainer.state.progress[-1]
+        bar.write(f"step {step}: held-out MSE {mse * 1e3:.4f}e-3, {progress_png} updated")
 
     bar = tqdm(total=config.steps, initial=trainer.state.step, unit="step", dynamic_ncols=True)
 
@@ -136,7 +150,7 @@ def _train(args: argparse.Namespace) -> int:
             bar.set_postfix(loss=f"{loss:.4g}", queries_per_s=f"{rate * config.batch / 1e6:.2f}M")
 
     try:
-        table = trainer.run(progress)
+        table = trainer.run(progress, on_progress)
     except (TrainingDiverged, TrainingError) as exc:
         raise CommandError(str(exc)) from exc
     except KeyboardInterrupt:
@@ -146,10 +160,10 @@ def _train(args: argparse.Namespace) -> int:
         raise
     finally:
         bar.close()
-    paths = write_outputs(trainer, table, output)
+    paths = write_outputs(trainer, table, output, views)
     print(format_table(table))
     size = paths["onnx"].stat().st_size / 1e6
-    print(f"wrote {paths['onnx']} ({size:.2f} MB), {paths['json']}, {paths['png']}")
+    print(f"wrote {paths['onnx']} ({size:.2f} MB), {paths['json']}, {paths['png']}, {paths['progress']}")
     print(f"trained {trainer.state.step} steps in {trainer.state.seconds / 60:.1f} min; checkpoint {checkpoint}")
     return 0
 

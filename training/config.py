@@ -9,6 +9,8 @@ import json
 import math
 from dataclasses import asdict, dataclass, fields
 
+from .head import HEADS
+
 
 def dataclass_from_dict(cls, data: dict):
     """Build dataclass `cls` from `data`, refusing keys that are not its fields (typos in files)."""
@@ -38,6 +40,9 @@ class MaterialConfig:
     """Ray depth r = offset_scale * MLP output (author code: 0.1)."""
     offset_min_cos: float = 0.6
     """wo_z is clamped to at least this in offset = r * wo_xy / wo_z (grazing-angle stability)."""
+    head: str = "relu"
+    """Decoder output head (training/head.py): "relu" (paper: RGB = max(out, 0)) or "yuv" (authors'
+    code: exp(YUV) - 1 times a shadow mask 0.1 + sigmoid, 6 outputs)."""
 
     def __post_init__(self) -> None:
         if self.resolution < 1 or self.resolution & (self.resolution - 1):
@@ -47,6 +52,8 @@ class MaterialConfig:
                 raise ValueError(f"{name} must be >= 1, got {getattr(self, name)}")
         if self.layers < 1:
             raise ValueError(f"layers must be >= 1, got {self.layers}")
+        if self.head not in HEADS:
+            raise ValueError(f"head must be one of {HEADS}, got {self.head!r}")
         if not 0 < self.offset_min_cos <= 1:
             raise ValueError(f"offset_min_cos must be in (0, 1], got {self.offset_min_cos}")
 

@@ -35,6 +35,7 @@ from onnx import helper
 
 from neumip.client import contract as C
 
+from . import head
 from .config import MaterialConfig
 from .export_lookup import pyramid_texels, texture_texels
 from .onnx_graph import GraphWriter
@@ -148,6 +149,17 @@ def material_graph(g: GraphWriter, config: MaterialConfig, weights: dict, finest
     return g.mlp(hidden, weights, "decoder", config.layers, first=1)
 
 
+def _yuv_head(g: GraphWriter, out: str) -> str:
+    """Decoder output (N, 6) -> (N, 3) exp(YUV_TO_RGB yuv) - 1 times the shadow mask (training/head.py)."""
+    yuv = np.zeros((6, 3), np.float64)
+    yuv[:3] = head.YUV_TO_RGB.T  # columns 0-2 -> RGB in log space, in one MatMul (no Slice)
+    shadow = np.zeros((6, 3), np.float32)
+    shadow[3:] = np.eye(3)
+    colour = g.op("Sub", g.op("Exp", g.op("MatMul", out, g.const(yuv))), g.scalar(1.0))
+    mask = g.op("Add", g.op("Sigmoid", g.op("MatMul", out, g.const(shadow))), g.scalar(head.SHADOW_FLOOR))
+    return g.op("Mul", colour, mask)
+
+
 def build_onnx(
     config: MaterialConfig,
     weights: dict[str, np.ndarray],
@@ -162,6 +174,8 @@ def build_onnx(
     """
     g = GraphWriter()
     rgb = material_graph(g, config, weights, finest_level)
+    if config.head == "yuv":
+        rgb = _yuv_head(g, rgb)
     g.nodes.append(helper.make_node("Relu", [rgb], [C.ONNX_OUTPUT]))
     model = g.model(C.ONNX_INPUT, C.QUERY_DIM, C.ONNX_OUTPUT, C.RGB_DIM, OPSET, IR_VERSION)
     meta = {
@@ -217,7 +231,7 @@ def export_checkpoint(checkpoint: str | Path, out: str | Path, description: str 
 
 def _shapes(config: MaterialConfig) -> dict[str, tuple[int, ...]]:
     shapes: dict[str, tuple[int, ...]] = {"pyramid": (config.atlas_rows(), config.channels)}
-    mlps = {"decoder": (config.channels + 4, C.RGB_DIM)}
+    mlps = {"decoder": (config.channels + 4, head.outputs(config.head))}
     if config.offset:
         mlps["offset_mlp"] = (config.offset_channels + 2, 1)
         shapes["offset_texture"] = (config.resolution**2, config.offset_channels)
@@ -255,5 +269,5 @@ def random_weights(config: MaterialConfig, seed: int = 0, scale: float = 0.5) ->
 def constant_weights(config: MaterialConfig, rgb) -> dict[str, np.ndarray]:
     """Weights of a material that answers `rgb` for every query (e.g. albedo / pi: a Lambertian)."""
     out = {name: np.zeros(shape, np.float32) for name, shape in _shapes(config).items()}
-    out[f"decoder.{config.layers - 1}.bias"] = np.asarray(rgb, np.float32).reshape(C.RGB_DIM)
+    out[f"decoder.{config.layers - 1}.bias"] = head.answer_bias(config.head, rgb)
     return out

@@ -7,6 +7,7 @@ from torch import nn
 
 from neumip.client import contract as C
 
+from . import head
 from .config import MaterialConfig
 from .offset import parallax_shift
 from .pyramid import pyramid_lookup, texture_lookup
@@ -32,7 +33,9 @@ class NeuMIPMaterial(nn.Module):
         self.pyramid = nn.ParameterList(
             nn.Parameter(torch.randn(s, s, config.channels) * init_std) for s in config.level_sizes()
         )
-        self.decoder = mlp(config.channels + 4, config.hidden, C.RGB_DIM, config.layers)
+        self.decoder = mlp(config.channels + 4, config.hidden, head.outputs(config.head), config.layers)
+        if config.head == "yuv":
+            self.register_buffer("yuv_to_rgb", torch.tensor(head.YUV_TO_RGB.T, dtype=torch.float32), persistent=False)
         if config.offset:
             r = config.resolution
             self.offset_texture = nn.Parameter(torch.randn(r, r, config.offset_channels) * init_std)
@@ -64,5 +67,8 @@ class NeuMIPMaterial(nn.Module):
             u, v = u + du, v + dv
         atlas = torch.cat([lvl.reshape(-1, self.config.channels) for lvl in levels], dim=0)
         features = pyramid_lookup(atlas, self.config, u, v, sigma)
-        rgb = self.decoder(torch.cat([features, queries[:, C.WI_X : C.WO_Y + 1]], dim=1))
-        return torch.relu(rgb)
+        out = self.decoder(torch.cat([features, queries[:, C.WI_X : C.WO_Y + 1]], dim=1))
+        if self.config.head == "yuv":  # exp(YUV) - 1 times the shadow mask (training/head.py)
+            shadow = head.SHADOW_FLOOR + torch.sigmoid(out[:, 3:])
+            out = torch.expm1(out[:, :3] @ self.yuv_to_rgb) * shadow
+        return torch.relu(out)

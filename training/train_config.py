@@ -22,6 +22,11 @@ class TrainConfig:
     """Queries per step, drawn uniformly with replacement from the training split."""
     lr: float = 1e-3
     """Adam learning rate (paper and author code: 1e-3, no scheduler)."""
+    lr_schedule: str = "constant"
+    """'constant' (paper) or 'cosine': the rate falls from `lr` to `lr * lr_final` along half a cosine
+    over `steps` (a resumed run with another `steps` follows the new curve from where it is)."""
+    lr_final: float = 0.05
+    """Final learning rate of the cosine schedule, as a fraction of `lr`."""
     loss: str = "comb2"
     """'comb2': MSE of log1p(max(x, -0.1)) plus l1_weight x L1 of the same (author code); 'mse': plain MSE."""
     l1_weight: float = 0.1
@@ -34,10 +39,16 @@ class TrainConfig:
     """Blur sigmas below this are skipped; the schedule ends when the finest level's sigma drops below it."""
     offset_blur_floor: float = 1.0
     """The offset texture is blurred with at least this sigma while the schedule runs, then frozen."""
+    offset_freeze: bool = True
+    """Freeze the offset texture when the blur schedule ends (author code); False trains it to the end
+    (still blurred by `offset_blur_floor`, baked into the texture when the run ends)."""
     holdout: float = 0.05
     """Fraction of the data set held out for validation (never trained on)."""
     max_holdout: int = 200_000
     """Upper bound on held-out queries (validation time stays small on large data sets)."""
+    validate_every: int = 400
+    """Steps between progress validations (per-level MSE of the held-out split with the step's blur,
+    kept in the run's history; `neumip train` then redraws NAME.progress.png); 0: none."""
     checkpoint_every: int = 500
     """Steps between checkpoints (one is also written at the end)."""
     log_every: int = 50
@@ -53,8 +64,13 @@ class TrainConfig:
     """Run the forward pass and loss through torch.compile (about a minute of compiling first)."""
 
     def __post_init__(self) -> None:
+        if self.validate_every < 0:
+            raise ValueError(f"validate_every must be >= 0, got {self.validate_every}")
         if self.steps < 1 or self.batch < 1:
             raise ValueError(f"steps and batch must be >= 1, got {self.steps}, {self.batch}")
+        if self.lr_schedule not in ("constant", "cosine") or not 0 <= self.lr_final <= 1:
+            raise ValueError(f"lr_schedule must be 'constant' or 'cosine' and lr_final in [0, 1], "
+                             f"got {self.lr_schedule!r}, {self.lr_final}")
         if self.loss not in ("comb2", "mse"):
             raise ValueError(f"loss must be 'comb2' or 'mse', got {self.loss!r}")
         if not 0 < self.holdout < 1:
@@ -79,10 +95,17 @@ SHIP = TrainConfig()
 """What the shipped 64^2 materials use on 2 shared CPU cores: the paper's schedule scaled by 0.08
 (2 400 steps; blur reaches 1 texel at step 800 and ends at ~1 420), batches of 16 384."""
 
-QUICK = replace(SHIP, steps=1200, blur_half_life=133.0, checkpoint_every=200)
+QUICK = replace(SHIP, steps=1200, blur_half_life=133.0, checkpoint_every=200, validate_every=200)
 """Half of `ship`: the same schedule scaled by 0.04."""
 
-TEST = replace(SHIP, steps=300, batch=4096, blur_start=2.0, blur_half_life=50.0, checkpoint_every=100, log_every=10)
+QUALITY = replace(SHIP, steps=10_000, blur_half_life=1111.0, checkpoint_every=1000, validate_every=1000)
+"""The paper's schedule scaled by 1/3 in steps (10 000 steps; blur reaches 1 texel at step ~3 330, ends
+at ~5 900, then the offset freezes) at ship's batch of 16 384: 4.2x ship's queries. Measured on
+2-core machines (benchmarks/quality_levers.py): more steps beat a bigger batch of the same queries,
+a constant rate beats cosine decay; models/make_models.sh trains with it (its cost: models/README.md)."""
+
+TEST = replace(SHIP, steps=300, batch=4096, blur_start=2.0, blur_half_life=50.0, checkpoint_every=100, log_every=10,
+               validate_every=100)
 """Unit-test sized: a few seconds for a 16 x 16 material."""
 
-PRESETS = {"paper": PAPER, "ship": SHIP, "quick": QUICK, "test": TEST}
+PRESETS = {"paper": PAPER, "quality": QUALITY, "ship": SHIP, "quick": QUICK, "test": TEST}

@@ -26,7 +26,7 @@ def predict(
     device = next(material.parameters()).device
     out = np.empty((queries.shape[0], C.RGB_DIM), np.float32)
     for lo in range(0, queries.shape[0], batch):
-        q = torch.from_numpy(np.ascontiguousarray(queries[lo : lo + batch])).to(device)
+        q = torch.from_numpy(np.array(queries[lo : lo + batch], np.float32)).to(device)  # a writable copy
         out[lo : lo + batch] = material(q, pyramid, offset_texture).cpu().numpy()
     return out
 

@@ -198,11 +198,15 @@ def test_cli_train_writes_model_table_and_curve(data, tmp_path, capsys):
     from neumip.client.cli import main
 
     out = tmp_path / "models" / "plane.onnx"
+    (tmp_path / "progress.json").write_text('{"validate_every": 10}')  # drawn mid-run, before models/ exists
     argv = ["train", str(data.path), "-o", str(out), "--preset", "test", "--resolution", "8",
-            "--steps", "20", "--batch", "512", "--checkpoint", str(tmp_path / "ck.pt")]
+            "--steps", "20", "--batch", "512", "--checkpoint", str(tmp_path / "ck.pt"),
+            "--config", str(tmp_path / "progress.json")]
     assert main(argv) == 0
     assert out.exists() and out.with_suffix(".json").exists() and (out.parent / "plane.loss.png").exists()
-    assert "MSE x1e-3" in capsys.readouterr().out
+    assert (out.parent / "plane.progress.png").exists() and not list(out.parent.glob("*.tmp.png"))
+    printed = capsys.readouterr().out
+    assert "step 10: held-out MSE" in printed and "MSE x1e-3" in printed
     assert json.loads(out.with_suffix(".json").read_text())["material_config"]["resolution"] == 8
     assert main(["train", str(data.path), "-o", str(tmp_path / "x.txt")]) == 2
     assert main(["train", str(tmp_path / "missing"), "-o", str(tmp_path / "new.onnx")]) == 2
@@ -239,3 +243,115 @@ def test_compiled_step_matches_eager(data, tmp_path):
     for _ in range(10):
         assert compiled.step() == pytest.approx(eager.step(), rel=1e-4)
     assert compiled._loss != compiled._batch_loss  # it did not fall back to eager
+
+
+def test_cosine_schedule_falls_from_lr_to_its_final_fraction():
+    from neumip.training.train import learning_rate
+
+    cfg = replace(TEST, steps=100, lr=1e-3, lr_schedule="cosine", lr_final=0.1)
+    assert learning_rate(0, cfg) == pytest.approx(1e-3)
+    assert learning_rate(50, cfg) == pytest.approx(0.55e-3)
+    assert learning_rate(100, cfg) == pytest.approx(1e-4)
+    assert learning_rate(50, replace(cfg, lr_schedule="constant")) == 1e-3
+    with pytest.raises(ValueError, match="lr_schedule"):
+        replace(cfg, lr_schedule="step")
+
+
+def test_cosine_run_sets_the_optimiser_rate(data, tmp_path):
+    cfg = replace(FAST, steps=20, lr_schedule="cosine", lr_final=0.0)
+    trainer = Trainer(data.path, tmp_path / "c.pt", TINY, cfg)
+    for _ in range(10):
+        trainer.step()
+    assert trainer.optimizer.param_groups[0]["lr"] == pytest.approx(cfg.lr * 0.5 * (1 + np.cos(np.pi * 9 / 20)))
+
+
+def test_offset_freeze_off_keeps_training_the_offset_texture(data, tmp_path):
+    cfg = replace(FAST, steps=40, blur_half_life=5.0)  # the blur schedule ends at step ~17
+    frozen = Trainer(data.path, tmp_path / "f.pt", TINY, cfg)
+    free = Trainer(data.path, tmp_path / "n.pt", TINY, replace(cfg, offset_freeze=False))
+    for trainer in (frozen, free):
+        trainer.run()
+    assert frozen.state.offset_frozen and not frozen.material.offset_texture.requires_grad
+    assert not free.state.offset_frozen and free.material.offset_texture.requires_grad
+
+
+def test_progress_validations_are_recorded_and_drawn(data, tmp_path):
+    """Every validate_every steps the held-out MSE per level is recorded (kept across resume) and
+    the progress PNG shows ground truth beside the model for the view grid."""
+    from neumip.training.dataset import write_dataset
+    from neumip.training.outputs import write_progress
+    from neumip.training.views import ViewGrid, view_queries
+
+    from .conftest import plane_mbtf
+
+    cfg = replace(FAST, steps=30, validate_every=10, checkpoint_every=10)
+    drawn = []
+    trainer = Trainer(data.path, tmp_path / "c.pt", TINY, replace(cfg, steps=20))
+    trainer.run(on_progress=lambda t: drawn.append(t.state.step))
+    assert drawn == [10, 20]
+    resumed = Trainer(data.path, tmp_path / "c.pt", TINY, cfg)
+    table = resumed.run()
+    steps = [record[0] for record in resumed.state.progress]
+    assert steps == [10, 20, 30]
+    levels, overall = resumed.state.progress[-1][1:]
+    assert [lvl for lvl, _ in levels] == [r["level"] for r in table["levels"]]
+    assert overall == pytest.approx(table["overall"]["mse"], rel=1e-5)  # the same split, the same function
+
+    grid = ViewGrid(pixels=8, levels=(0, 2, 9))
+    queries = view_queries(grid, TINY.resolution)
+    assert queries.shape == (3 * 3 * 64, 7)  # level 9 is clamped to the 16^2 pyramid's top (4)
+    views = write_dataset(tmp_path / "views", queries, plane_mbtf(queries), {"material": "analytic-plane"})
+    for kind, truth in (("with truth", views), ("model only", None)):
+        path = write_progress(resumed, tmp_path / f"{kind}.png", truth, grid)
+        image = plt_image(path)
+        assert image.shape[1] > image.shape[0] > 200, kind
+    assert plt_image(tmp_path / "with truth.png").shape[1] > plt_image(tmp_path / "model only.png").shape[1]
+
+
+def plt_image(path):
+    from PIL import Image
+
+    return np.asarray(Image.open(path))
+
+
+def test_progress_views_ground_truth_of_the_flat_plane(tmp_path):
+    """trace_views path-traces the view grid once (the flat plane: exactly albedo / pi) and reuses it;
+    a material whose map files changed since the data was made gets no ground truth."""
+    from neumip.training.microgeometry.description import find_description
+    from neumip.training.views import ViewGrid, trace_views
+
+    grid = ViewGrid(pixels=4, levels=(0,), spp=4)
+    meta = find_description("flat").to_dict()
+    views = trace_views(meta, grid, 16, tmp_path / "views")
+    np.testing.assert_allclose(np.asarray(views.rgb), 0.5 / np.pi, rtol=1e-4)
+    stamp = (tmp_path / "views" / "meta.json").stat().st_mtime_ns
+    assert trace_views(meta, grid, 16, tmp_path / "views") is not None
+    assert (tmp_path / "views" / "meta.json").stat().st_mtime_ns == stamp  # reused, not traced again
+    assert trace_views({**meta, "map_sha256": {"height": "0" * 64}}, grid, 16, tmp_path / "v2") is None
+    assert trace_views("analytic-plane", grid, 16, tmp_path / "v3") is None
+
+
+def test_checkpoint_from_before_the_new_settings_resumes(data, tmp_path):
+    """A checkpoint written without the newer TrainConfig fields resumes with their defaults."""
+    cfg = replace(FAST, steps=20)
+    trainer = Trainer(data.path, tmp_path / "c.pt", TINY, replace(cfg, steps=10))
+    trainer.run()
+    material, extra = checkpoint.load(tmp_path / "c.pt")
+    for name in ("lr_schedule", "lr_final", "offset_freeze", "validate_every"):
+        del extra["train_config"][name]
+    del extra["state"]["progress"]
+    checkpoint.save(tmp_path / "c.pt", material, extra)
+    assert Trainer(data.path, tmp_path / "c.pt", TINY, cfg).run()["steps"] == 20
+
+
+@pytest.mark.parametrize("name", ["paper", "quality", "ship", "quick"])
+def test_presets_scale_the_papers_schedule(name):
+    """Every preset but `test` is the paper's blur schedule scaled to its step count: the blur halves
+    every ~1/9 of the run and ends (offset frozen) at ~59 % of it, leaving 40 % unblurred training."""
+    from neumip.training.blur import schedule_end
+    from neumip.training.train_config import PRESETS
+
+    cfg = PRESETS[name]
+    assert cfg.blur_half_life / cfg.steps == pytest.approx(3333 / 30_000, rel=0.01)
+    assert schedule_end(cfg) / cfg.steps == pytest.approx(0.59, abs=0.01)
+    assert cfg.lr_schedule == "constant" and cfg.offset_freeze  # what measured best (benchmarks/quality_levers.py)

@@ -1,0 +1,39 @@
+"""Training losses: values on known inputs."""
+
+import math
+
+import pytest
+import torch
+
+from neumip.training.losses import comb2, log_space, mse, training_loss
+from neumip.training.train_config import TrainConfig
+
+
+def test_comb2_known_values():
+    pred = torch.tensor([[math.e - 1, 0.0, 0.0]])
+    target = torch.zeros(1, 3)
+    # log1p(e - 1) = 1: one difference of 1 in three channels -> MSE 1/3, L1 1/3
+    assert float(comb2(pred, target, 0.1)) == pytest.approx(1 / 3 + 0.1 / 3, rel=1e-6)
+    assert float(comb2(pred, target, 0.0)) == pytest.approx(1 / 3, rel=1e-6)
+    assert float(comb2(target, target)) == 0.0
+
+
+def test_comb2_weighs_a_glint_like_a_few_times_brighter_value():
+    """A 100x highlight error costs ~log(101)^2 under comb2, not 100^2 as under MSE."""
+    target = torch.full((1, 3), 0.0)
+    glint = torch.full((1, 3), 100.0)
+    assert float(comb2(glint, target, 0.0)) == pytest.approx(math.log(101) ** 2, rel=1e-5)
+    assert float(mse(glint, target)) == pytest.approx(1e4)
+
+
+def test_log_space_floor_keeps_slightly_negative_outputs_finite():
+    x = torch.tensor([[-5.0, -0.1, 0.0]])
+    assert torch.equal(log_space(x)[0, 0], log_space(x)[0, 1])
+    assert torch.isfinite(log_space(x)).all()
+
+
+def test_training_loss_follows_the_config():
+    pred, target = torch.tensor([[2.0, 0.0, 0.0]]), torch.zeros(1, 3)
+    assert float(training_loss(pred, target, TrainConfig(loss="mse"))) == pytest.approx(4 / 3)
+    assert float(training_loss(pred, target, TrainConfig(loss="comb2", l1_weight=0.0))) == pytest.approx(
+        math.log(3) ** 2 / 3, rel=1e-6)

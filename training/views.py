@@ -1,0 +1,114 @@
+"""Progress views: a few image grids of one tile (a few lights/views at a few levels of detail) that a
+training run renders with its model and compares with ground truth as it goes.
+
+`view_queries` is pure numpy. `trace_views` path-traces the ground truth once with the query tracer
+(Mitsuba) and stores it as an ordinary data set folder, so a resumed run reuses it.
+"""
+
+from __future__ import annotations
+
+import logging
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from neumip.client import contract as C
+
+log = logging.getLogger(__name__)
+
+
+@dataclass(frozen=True)
+class ViewGrid:
+    """Which images the progress grid shows."""
+
+    pixels: int = 32
+    """Pixels per image side; the image covers one tile, pixel centres on a regular grid."""
+    levels: tuple[int, ...] = (0, 2, 4)
+    """Levels of detail shown (0 = finest), clamped to the material's pyramid."""
+    views: tuple[tuple[float, float, float, float], ...] = (
+        (0.0, 30.0, 0.0, 0.0),
+        (180.0, 60.0, 0.0, 30.0),
+        (0.0, 80.0, 180.0, 45.0),
+    )
+    """(light azimuth, light zenith, view azimuth, view zenith) in degrees, one image row each; the
+    last is a low light (glints and long shadows)."""
+    spp: int = 64
+    """Path samples per pixel of the ground truth."""
+
+
+def _direction_xy(azimuth: float, zenith: float) -> tuple[float, float]:
+    a, z = np.radians(azimuth), np.radians(zenith)
+    return float(np.sin(z) * np.cos(a)), float(np.sin(z) * np.sin(a))
+
+
+def grid_levels(grid: ViewGrid, resolution: int) -> list[int]:
+    """The grid's levels that exist on a pyramid of finest `resolution` (duplicates dropped)."""
+    top = int(np.log2(resolution))
+    return sorted({min(level, top) for level in grid.levels})
+
+
+def view_queries(grid: ViewGrid, resolution: int) -> np.ndarray:
+    """(views x levels x pixels^2, 7) float32 queries, image after image in row-major pixel order."""
+    p = grid.pixels
+    t = (np.arange(p) + 0.5) / p
+    v, u = np.meshgrid(t, t, indexing="ij")
+    blocks = []
+    for light_az, light_zen, view_az, view_zen in grid.views:
+        wi, wo = _direction_xy(light_az, light_zen), _direction_xy(view_az, view_zen)
+        for level in grid_levels(grid, resolution):
+            q = np.empty((p * p, C.QUERY_DIM), np.float32)
+            q[:, C.U], q[:, C.V] = u.ravel(), v.ravel()
+            q[:, C.SIGMA] = C.sigma_for_level(level, resolution) if level > 0 else 0.0
+            q[:, C.WI_X], q[:, C.WI_Y] = wi
+            q[:, C.WO_X], q[:, C.WO_Y] = wo
+            blocks.append(q)
+    return np.concatenate(blocks)
+
+
+def images(values: np.ndarray, grid: ViewGrid, resolution: int) -> np.ndarray:
+    """(views x levels x pixels^2, 3) values in `view_queries` order -> (views, levels, p, p, 3)."""
+    p = grid.pixels
+    return values.reshape(len(grid.views), len(grid_levels(grid, resolution)), p, p, C.RGB_DIM)
+
+
+def trace_views(material_meta: dict, grid: ViewGrid, resolution: int, out: str | Path,
+                description: str | Path | None = None):
+    """Ground truth of the view grid, traced once into the data set folder `out` (reused when it holds
+    the same queries). The material is `description` (a library name or .toml path) if given, else
+    the one a data set's meta.json describes (`material_meta`); its map files must hash as in
+    `material_meta`. Returns the opened data set, or None (logged) when the material cannot be rebuilt,
+    e.g. a description whose map files are elsewhere: then the grid shows the model only.
+    """
+    from .dataset import open_dataset, write_dataset
+    from .microgeometry.description import DescriptionError, MaterialDescription, find_description, resolve
+    from .microgeometry.tracer import QueryTracer
+
+    out = Path(out)
+    material_meta = material_meta if isinstance(material_meta, dict) else {}
+    if description is None and not material_meta:
+        log.info("the data set does not describe its material: the progress grid shows the model only")
+        return None
+    queries = view_queries(grid, resolution)
+    if (out / "meta.json").exists():
+        try:
+            data = open_dataset(out)
+            if data.queries.shape == queries.shape and np.array_equal(np.asarray(data.queries), queries):
+                return data
+        except Exception as exc:  # a stale or broken cache: trace again
+            log.warning("progress views at %s unusable (%s): tracing them again", out, exc)
+    try:
+        if description is not None:
+            desc = find_description(description)
+        else:
+            desc = MaterialDescription.from_dict({k: v for k, v in material_meta.items() if k != "map_sha256"})
+        hashes = desc.to_dict().get("map_sha256")
+        if material_meta and hashes != material_meta.get("map_sha256"):
+            raise DescriptionError(f"the map files of {desc.name!r} differ from the training data's")
+        geo = resolve(desc)
+    except (DescriptionError, OSError, ValueError, TypeError) as exc:
+        log.warning("no ground truth for the progress grid (%s): it shows the model only", exc)
+        return None
+    rgb = QueryTracer(geo).estimate(queries, grid.spp, seed=1)
+    meta = {"material": material_meta, "generator": {"name": "progress views", "spp": grid.spp}}
+    return write_dataset(out, queries, rgb, meta)
