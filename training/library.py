@@ -74,8 +74,9 @@ def train_material(job: MaterialJob, settings: LibrarySettings, progress: Progre
     shutil.rmtree(staging, ignore_errors=True)  # left by an interrupted export
     staging.mkdir(parents=True)
     paths = write_outputs(trainer, table, staging / f"{job.name}.onnx")
-    for kind in ("png", "onnx", "json"):  # the record last: it marks the material finished
-        os.replace(paths[kind], settings.models / paths[kind].name)
+    for kind in sorted(paths, key=lambda k: k == "json"):  # the record last: it marks the material finished
+        if paths[kind] is not None:
+            os.replace(paths[kind], settings.models / paths[kind].name)
     staging.rmdir()
     return table
 
