@@ -1,6 +1,7 @@
 """Benchmark: what trimming a scene's models to its budget saves, and what it changes in the render.
 
-For the demo scene at each ``--sizes`` resolution: `neumip budget` (4 spp) finds each material's
+For the demo scene at each ``--sizes`` resolution: `neumip budget` (4 spp traced, footprints of a
+render at ``--spp``) finds each material's
 finest level that matters, the shipped models are trimmed to it (`neumip trim`) into a temporary
 folder, and the scene is rendered at ``--spp`` through the untrimmed and the trimmed models with one
 seed, and through the untrimmed models with a second seed. Printed: bytes before and after per
@@ -39,7 +40,7 @@ def main() -> None:
     args = parser.parse_args()
     for size in (int(s) for s in args.sizes.split(",")):
         params = {"resx": str(size), "resy": str(size)}
-        budget = scene_budget(load_scene(args.scene, **params), args.models, spp=4)
+        budget = scene_budget(load_scene(args.scene, **params), args.models, spp=4, render_spp=args.spp)
         with tempfile.TemporaryDirectory() as tmp:
             before = after = 0
             print(f"{args.scene} at {size}x{size}:")

@@ -4,8 +4,9 @@ The scene is rendered by its own `neumip_path` integrator (the same footprints a
 ray differentials at the first hit, the ray cone after bounces, the same two queries per shading
 point) with a `PreviewRecorder` as the evaluator: it answers every query with the material's preview
 Lambertian (``preview_albedo / pi``, no neural evaluation) and keeps each query's footprint sigma
-(tile units, ``uv_scale`` applied). A few samples per pixel suffice: the footprint does not depend on
-spp (the integrator undoes Mitsuba's 1/sqrt(spp) shrink of the differentials).
+(tile units, ``uv_scale`` applied). A few samples per pixel suffice: they are traced with the
+footprints of a render at the scene's own spp (or ``render_spp``), which is what sets each sample's
+share of the pixel footprint (`integrator.sample_footprint`).
 
 Per material, `material_budget` turns the footprints into what a model of finest resolution R reads:
 the level of detail ``log2(sigma R)`` (`contract.level_of_detail`), whose floor is the finer of the
@@ -58,10 +59,13 @@ class PreviewRecorder:
         return np.concatenate(parts)
 
 
-def trace_footprints(scene: mi.Scene, spp: int = 4, seed: int = 0) -> dict[str, np.ndarray]:
-    """Render ``scene`` at ``spp`` with the preview answers -> material -> (N,) query sigmas."""
+def trace_footprints(scene: mi.Scene, spp: int = 4, seed: int = 0,
+                     render_spp: int | None = None) -> dict[str, np.ndarray]:
+    """Render ``scene`` at ``spp`` with the preview answers and the footprints of a render at
+    ``render_spp`` (default: the scene's sampler count) -> material -> (N,) query sigmas."""
     recorder = PreviewRecorder(scene)
-    render_scene(scene, recorder, RenderConfig(spp=spp, seed=seed))
+    render_spp = render_spp or scene.sensors()[0].sampler().sample_count()
+    render_scene(scene, recorder, RenderConfig(spp=spp, seed=seed, footprint_spp=render_spp))
     return {name: recorder.footprints(name) for name in recorder.materials()}
 
 
@@ -167,9 +171,11 @@ class SceneBudget:
     materials: list[MaterialBudget] = field(default_factory=list)
     spp: int = 4
     """Samples per pixel traced."""
+    render_spp: int = 4
+    """Samples per pixel of the render whose footprints were traced."""
 
     def to_json(self) -> str:
-        return json.dumps({"spp": self.spp, "materials": [m.to_dict() for m in self.materials]}, indent=2)
+        return json.dumps({"spp": self.spp, "render_spp": self.render_spp, "materials": [m.to_dict() for m in self.materials]}, indent=2)
 
 
 DEFAULT_RESOLUTION = 64
@@ -177,10 +183,11 @@ DEFAULT_RESOLUTION = 64
 
 
 def scene_budget(scene: mi.Scene, models: Path | None, spp: int = 4, coverage: float = 0.999,
-                 seed: int = 0) -> SceneBudget:
+                 seed: int = 0, render_spp: int | None = None) -> SceneBudget:
     """Trace ``scene`` and budget each neural material against its model in ``models`` (if there)."""
-    footprints = trace_footprints(scene, spp, seed)
-    out = SceneBudget(spp=spp)
+    render_spp = render_spp or scene.sensors()[0].sampler().sample_count()
+    footprints = trace_footprints(scene, spp, seed, render_spp)
+    out = SceneBudget(spp=spp, render_spp=render_spp)
     for name, sigma in footprints.items():
         path = Path(models) / f"{name}.onnx" if models else None
         facts = model_facts(path) if path is not None and path.is_file() else None
@@ -194,7 +201,7 @@ def scene_budget(scene: mi.Scene, models: Path | None, spp: int = 4, coverage: f
 
 def format_budget(budget: SceneBudget, width: int = 40) -> str:
     """A human-readable report: per material the histogram and the recommendations."""
-    lines = []
+    lines = [f"footprints of a render at {budget.render_spp} spp (traced at {budget.spp} spp)"]
     for m in budget.materials:
         lines.append(f"{m.material}: {m.queries:,} queries, model {m.resolution}^2"
                      + (f" ({m.model_bytes:,} bytes)" if m.model_bytes is not None else " (no model file)"))

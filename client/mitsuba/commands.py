@@ -46,6 +46,8 @@ def register(sub: argparse._SubParsersAction) -> None:
     b.add_argument("scene", type=Path, help="Mitsuba 3 XML scene")
     b.add_argument("--models", type=Path, default=Path(DEFAULT_MODELS), help="folder of the .onnx materials")
     b.add_argument("--spp", type=int, default=4, help="samples per pixel traced (default 4)")
+    b.add_argument("--render-spp", type=int, default=None,
+                   help="spp of the render to budget for: it sets each sample's footprint (default: the scene's)")
     b.add_argument("--coverage", type=float, default=0.999,
                    help="share of queries the finest level that matters must serve (default 0.999)")
     b.add_argument("--plot", type=Path, default=None, help="write the per-level histograms to this image")
@@ -88,8 +90,9 @@ def _budget(args: argparse.Namespace) -> int:
     from .runtime import MitsubaUnavailable
 
     _scene_file(args.scene)
-    if args.spp < 1:
-        raise CommandError(f"--spp must be >= 1, got {args.spp}")
+    for flag, value in (("--spp", args.spp), ("--render-spp", args.render_spp)):
+        if value is not None and value < 1:
+            raise CommandError(f"{flag} must be >= 1, got {value}")
     if not 0 < args.coverage <= 1:
         raise CommandError(f"--coverage must be in (0, 1], got {args.coverage}")
     params = _parse_params(args.params)
@@ -100,7 +103,7 @@ def _budget(args: argparse.Namespace) -> int:
         raise CommandError(str(exc)) from exc
     try:
         scene = R.load_scene(args.scene, **params)
-        result = B.scene_budget(scene, args.models, args.spp, args.coverage, args.seed)
+        result = B.scene_budget(scene, args.models, args.spp, args.coverage, args.seed, args.render_spp)
     except R.RenderError as exc:
         raise CommandError(str(exc)) from exc
     if args.plot:

@@ -46,6 +46,9 @@ class RenderConfig:
     """Seed of the first pass; pass i uses seed + i."""
     threads: int = 0
     """Mitsuba worker threads (0: leave drjit's default)."""
+    footprint_spp: int | None = None
+    """spp whose per-sample footprint the queries use (`integrator.sample_footprint`); None: ``spp``.
+    `neumip budget` traces a few samples with the footprints of the scene's full spp."""
 
 
 @dataclass
@@ -108,18 +111,18 @@ def render_scene(
     """
     config = config or RenderConfig()
     integrator = integrator or scene.integrator()
-    if not isinstance(integrator, NeuMIPPathIntegrator):
-        if neural_bsdfs(scene):
-            raise RenderError(
-                f"the scene has neumip materials but its integrator is {type(integrator).__name__}; "
-                "use <integrator type=\"neumip_path\"/>"
-            )
-    else:
-        integrator.bind(scene, evaluator)
-    if config.threads:
-        dr.set_thread_count(config.threads)
+    neural = isinstance(integrator, NeuMIPPathIntegrator)
+    if not neural and neural_bsdfs(scene):
+        raise RenderError(
+            f"the scene has neumip materials but its integrator is {type(integrator).__name__}; "
+            "use <integrator type=\"neumip_path\"/>"
+        )
     sensor = scene.sensors()[0]
     spp = config.spp or sensor.sampler().sample_count()
+    if neural:
+        integrator.bind(scene, evaluator, footprint_spp=config.footprint_spp or spp)
+    if config.threads:
+        dr.set_thread_count(config.threads)
     w, h = sensor.film().crop_size()
     plan = pass_plan(w * h, spp, config.max_lanes)
     log.info("rendering %dx%d at %d spp in %d pass(es)", w, h, spp, len(plan))
@@ -130,7 +133,7 @@ def render_scene(
         total = image * k if total is None else total + image * k
         if on_pass:
             on_pass(i + 1, len(plan))
-    stats = integrator.shading.stats if isinstance(integrator, NeuMIPPathIntegrator) else ShadingStats()
+    stats = integrator.shading.stats if neural else ShadingStats()
     return RenderResult(total / spp, time.perf_counter() - start, len(plan), spp, stats)
 
 

@@ -22,6 +22,8 @@ log = logging.getLogger(__name__)
 
 CACHE_VERSION = 3
 """Bump when a change in this package changes what a cached render would hold."""
+NEURAL_VERSION = 2
+"""Bump when `neumip_path` renders a neural material differently (2: per-sample footprints)."""
 
 
 def file_digest(path: Path) -> str:
@@ -62,7 +64,7 @@ class MaterialRenderer:
                "film": asdict(self.config.film), "resolution": self.resolution, "method": method,
                "spp": spp, "seed": seed}
         if method in M.NEURAL:
-            key["model"] = self.digests[method]
+            key["model"], key["neural_version"] = self.digests[method], NEURAL_VERSION
         return key
 
     def scene(self, view: View, method: str):

@@ -6,11 +6,12 @@ World frame: the material plane is ``z = 0`` with **one tile per world unit**, t
 ``theta`` in the ``y-z`` plane (it sees the plane receding along +y); the light comes from the side
 (azimuth 90 degrees from the view).
 
-Footprint. The `neumip_path` integrator sets a query's sigma to ``filter_std`` (0.5 px for the
-film's default Gaussian filter) times the larger uv length of one pixel step. At the image centre
-that step is ``distance * pixel_angle / cos(theta)`` tiles along the receding axis, so a view for
-level ``L`` of a material whose finest level has ``R`` texels per tile puts the camera at the
-distance where ``sigma = 2^L / R`` tiles (a footprint of ``2^L`` finest texels). The footprint
+Footprint. A pixel's footprint (std) is ``filter_std`` (0.5 px for the film's default Gaussian
+filter) times the larger uv length of one pixel step; `neumip_path` queries one sample's share of it
+(``sample_footprint(spp)``: all of it at 1 spp, 1/8 from 64 spp). At the image centre the step is
+``distance * pixel_angle / cos(theta)`` tiles along the receding axis, so a view for level ``L`` of a
+material whose finest level has ``R`` texels per tile puts the camera at the distance where the
+pixel footprint is ``2^L / R`` tiles (``2^L`` finest texels; what a 1-spp render queries). The footprint
 grows towards the top of the image (perspective); the vertical field of view is kept small.
 """
 

@@ -76,8 +76,8 @@ def write_markdown(out: Path, results: dict, config: ReportConfig) -> Path:
          "Timings are wall time in one process on a busy shared 2-core machine: compare them as ratios.", "",
          "## Set-up", "",
          f"- **Views**: a plane seen by a perspective camera ({cfg.film.width} x {cfg.film.height} pixels) at "
-         "55 degrees from the normal, at distances where a pixel's footprint (sigma = half a pixel step, the "
-         "integrator's rule) covers 1, 4, 16 and 64 finest texels of the neural material (levels 0, 2, 4, 6) at the "
+         "55 degrees from the normal, at distances where a pixel's footprint (std: half a pixel step, the film's "
+         "Gaussian filter) covers 1, 4, 16 and 64 finest texels of the neural material (levels 0, 2, 4, 6) at the "
          "image centre; grazing views at 75 and 85 degrees and a light 5 degrees above the horizon (4 texels). "
          "A directional light from the side (60 degrees, unit irradiance on the plane) and a dim constant "
          "environment (radiance 0.05).",
@@ -86,7 +86,9 @@ def write_markdown(out: Path, results: dict, config: ReportConfig) -> Path:
          f"plane plus the parallax and shadow reach of the deepest groove, stock `path`, max_depth {MAX_DEPTH} "
          f"(up to 4 surface interactions, as the ground-truth tracer). Reference = mean of two seeds at "
          f"{cfg.reference_spp} spp each; its noise (MSE of the mean, from the two seeds) is listed per view.",
-         "- **N** / **N0**: the shipped neural material with / without the neural offset, `neumip_path`.",
+         "- **N** / **N0**: the shipped neural material with / without the neural offset, `neumip_path`. Each of "
+         "n samples per pixel queries max(1/8, 1/sqrt(n)) of the pixel footprint (pbrt-v4's rule): at 64 spp, "
+         "three levels finer than the footprint.",
          "- **C**: the generator's principled BSDF with full-resolution albedo, roughness and metallic bitmaps and a "
          "`normalmap` from the height's periodic central-difference gradient, stock `path`.",
          "- **Cmip**: C with every map box-averaged by 2^k before rendering, k = log2(pixel step x map resolution) at "

@@ -68,18 +68,26 @@ def test_cli_closeup_is_too_coarse_and_far_view_trims(tmp_path, capsys):
                  "-D", "resy=64", "--plot", str(plot)]) == 0
     out = capsys.readouterr().out
     assert plot.stat().st_size > 1000 and "finest level that matters" in out
-    assert main(["budget", "scenes/demo.xml", "--models", models, "--spp", "2", "-D", "resx=64",
-                 "-D", "resy=64", "--json"]) == 0
-    far = {m["material"]: m for m in json.loads(capsys.readouterr().out)["materials"]}
+    # a small image at 1 spp reads coarse levels; at the scene's 64 spp each sample reads 1/8 of the
+    # pixel footprint: 3 levels finer
+    levels = {}
+    for render_spp in ("1", "64"):
+        assert main(["budget", "scenes/demo.xml", "--models", models, "--spp", "2", "-D", "resx=64",
+                     "-D", "resy=64", "--render-spp", render_spp, "--json"]) == 0
+        levels[render_spp] = {m["material"]: m for m in json.loads(capsys.readouterr().out)["materials"]}
+    far = levels["1"]
     assert sorted(far) == ["foam", "rock", "turtle", "yarn"]
-    for m in far.values():
+    for name, m in far.items():
         assert m["finest_level"] >= 1 and not m["too_coarse"]
         assert m["trimmed_bytes"] < m["model_bytes"]
         assert math.isclose(sum(m["histogram"]), 1.0, rel_tol=1e-9)
+        assert levels["64"][name]["finest_level"] == max(0, m["finest_level"] - 3)
 
 
 def test_cli_refuses_bad_input(capsys):
     assert main(["budget", "scenes/demo.xml", "--coverage", "1.5"]) != 0
     assert "--coverage" in capsys.readouterr().err
+    assert main(["budget", "scenes/demo.xml", "--render-spp", "0"]) != 0
+    assert "--render-spp" in capsys.readouterr().err
     assert main(["budget", "scenes", "--spp", "1"]) != 0
     assert "directory" in capsys.readouterr().err

@@ -1,5 +1,5 @@
-"""Query geometry: first-hit sigma is the std of the pixel footprint (the film's reconstruction filter;
-independent of spp) times uv_scale, and query directions follow the contract (wo towards the viewer,
+"""Query geometry: first-hit sigma is one sample's share of the pixel footprint (the std of the film's
+reconstruction filter times `sample_footprint(spp)` of the whole render) times uv_scale, and query directions follow the contract (wo towards the viewer,
 x along +u and y along +v on rectangles, spheres and every cube face)."""
 
 from __future__ import annotations
@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 
 from neumip.client.mitsuba.bsdf import mi
-from neumip.client.mitsuba.integrator import filter_std_px
+from neumip.client.mitsuba.integrator import filter_std_px, sample_footprint
 from neumip.client.mitsuba.render import RenderConfig, render_scene
 
 from .recording import Recording
@@ -42,17 +42,27 @@ def test_filter_std(rfilter):
     assert filter_std_px(mi.load_dict({"type": rfilter})) == pytest.approx(FILTER_STD[rfilter])
 
 
+def test_sample_footprint_follows_pbrt():
+    assert sample_footprint(1) == 1.0
+    assert sample_footprint(4) == 0.5
+    assert sample_footprint(64) == sample_footprint(1024) == 1 / 8
+
+
 @pytest.mark.parametrize(
-    ("spp", "uv_scale", "rfilter"), [(1, 1.0, "gaussian"), (16, 1.0, "gaussian"), (16, 4.0, "gaussian"), (4, 1.0, "box")]
+    ("spp", "max_lanes", "uv_scale", "rfilter", "share"),
+    [(1, 2**21, 1.0, "gaussian", 1.0), (16, 2**21, 1.0, "gaussian", 0.25), (16, 2**21, 4.0, "gaussian", 0.25),
+     (4, 2**21, 1.0, "box", 0.5), (16, 4 * WIDTH**2, 1.0, "gaussian", 0.25)],  # the last in 4 passes of 4 spp
 )
-def test_first_hit_sigma_is_the_pixel_footprint(model_dir, spp, uv_scale, rfilter):
+def test_first_hit_sigma_is_a_sample_share_of_the_pixel_footprint(model_dir, spp, max_lanes, uv_scale, rfilter, share):
     evaluator = Recording(model_dir)
-    render_scene(mi.load_dict(facing_plane(uv_scale, rfilter)), evaluator, RenderConfig(spp=spp))
+    result = render_scene(mi.load_dict(facing_plane(uv_scale, rfilter)), evaluator,
+                          RenderConfig(spp=spp, max_lanes=max_lanes))
+    assert result.passes == spp * WIDTH**2 // max_lanes or max_lanes > spp * WIDTH**2
     first = evaluator.calls[0]  # bounce 0: all camera hits, light and sampled queries
     pixel_world = 2 * DISTANCE * math.tan(math.radians(FOV / 2)) / WIDTH
     # sigma is the std of the pixel's reconstruction filter, in tiles (the rectangle spans 2 world
-    # units per uv unit): 0.5 px for the default gaussian filter
-    expected = uv_scale * FILTER_STD[rfilter] * pixel_world / 2
+    # units per uv unit): 0.5 px for the default gaussian filter; each of n samples reads 1/sqrt(n) of it
+    expected = uv_scale * FILTER_STD[rfilter] * pixel_world / 2 * share
     np.testing.assert_allclose(np.median(first[:, 2]), expected, rtol=0.02)
     assert first[:, 2].std() < 0.05 * expected  # a fronto-parallel plane: the same everywhere
     # the view covers the middle 80 % of the rectangle (2 * 3 * tan 15 deg = 1.6 of 2 units), in tiles

@@ -19,6 +19,7 @@ import pytest
 
 from neumip.client import contract as C
 from neumip.client.mitsuba.bsdf import mi
+from neumip.client.mitsuba.integrator import sample_footprint
 from neumip.client.mitsuba.render import RenderConfig, render_scene
 
 from .recording import Recording
@@ -28,6 +29,7 @@ PIXEL_ANGLE = 2 * math.tan(math.radians(FOV / 2)) / WIDTH
 """Pixel spacing (radians, at the image centre)."""
 FILTER_STD = 0.5
 """Std in pixels of hdrfilm's default gaussian reconstruction filter."""
+SPP = 2
 TOL = 2e-3
 
 
@@ -93,7 +95,7 @@ def check_first_hit_queries(model_dir, shape, camera, up, light, geometry):
         side = _unit(np.cross(axis, up)) * 0.4
         geometry = planar_geometry(scene, camera, [axis, axis + side, axis + np.cross(axis, side) / 0.999])
     evaluator = Recording(model_dir)
-    render_scene(scene, evaluator, RenderConfig(spp=2, seed=3))
+    render_scene(scene, evaluator, RenderConfig(spp=SPP, seed=3))
     assert len(evaluator.calls) == 1
     rows = evaluator.calls[0]
     u, v = rows[:, C.U] / UV_SCALE, rows[:, C.V] / UV_SCALE
@@ -115,11 +117,11 @@ def check_first_hit_queries(model_dir, shape, camera, up, light, geometry):
     assert abs(lit - faces_light.sum()) <= 0.01 * lit + 2 + np.sum(np.abs(wi[lit:, 2]) <= 0.01)
     assert match[lit:].mean() < 0.05  # sampled directions are not the light's
 
-    # sigma: the std of the pixel's footprint on the surface, in tiles: between the head-on size on
+    # sigma: one sample's share of the std of the pixel's footprint on the surface, in tiles: between the head-on size on
     # the longer uv axis and the foreshortened size on the shorter one (an off-axis pixel subtends
     # down to cos^2 of the half-diagonal, 0.87, of the central pixel's angle)
     distance = np.linalg.norm(np.asarray(camera) - p, axis=1)
-    head_on = UV_SCALE * FILTER_STD * PIXEL_ANGLE * distance
+    head_on = UV_SCALE * FILTER_STD * sample_footprint(SPP) * PIXEL_ANGLE * distance
     sigma = rows[:, C.SIGMA]
     assert np.all(sigma >= 0.85 * head_on / np.maximum(len_u, len_v))
     facing = wo[:, 2] > 0.25  # nearer the silhouette the tangent plane and the surface part ways

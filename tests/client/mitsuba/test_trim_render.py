@@ -1,5 +1,6 @@
 """A render through models trimmed to the level `neumip budget` found safe differs from the untrimmed
-render by far less than Monte-Carlo noise (the demo scene seen small, shipped models)."""
+render by far less than Monte-Carlo noise (the demo scene seen small, shipped models, the budget taken
+for the render's spp)."""
 
 from __future__ import annotations
 
@@ -10,18 +11,19 @@ from neumip.client.mitsuba.budget import scene_budget
 from neumip.client.mitsuba.render import RenderConfig, load_scene, render_scene
 from neumip.training.trim import trim_file
 
-PARAMS = {"resx": "64", "resy": "64", "max_depth": "4"}
+PARAMS = {"resx": "32", "resy": "32", "max_depth": "4"}
+SPP = 4
 
 
 def test_trimmed_render_is_within_noise(tmp_path):
-    budget = scene_budget(load_scene("scenes/demo.xml", **PARAMS), "models", spp=4)
+    budget = scene_budget(load_scene("scenes/demo.xml", **PARAMS), "models", spp=4, render_spp=SPP)
     assert all(m.finest_level >= 1 for m in budget.materials)  # the cut is safe at 99.9 %
     for m in budget.materials:
         trim_file(f"models/{m.material}.onnx", tmp_path / f"{m.material}.onnx", m.finest_level)
 
     def render(folder, seed):
         scene = load_scene("scenes/demo.xml", **PARAMS)
-        return render_scene(scene, LocalMaterials(folder, threads=1), RenderConfig(spp=16, seed=seed)).image[..., :3]
+        return render_scene(scene, LocalMaterials(folder, threads=1), RenderConfig(spp=SPP, seed=seed)).image[..., :3]
 
     full, trimmed, other_seed = render("models", 0), render(tmp_path, 0), render("models", 1)
     noise = np.abs(other_seed - full).mean()
