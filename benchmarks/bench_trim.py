@@ -8,8 +8,8 @@ seed, and through the untrimmed models with a second seed. Printed: bytes before
 material, and the mean and largest pixel difference trimmed vs untrimmed (same seed) beside the
 same figures for the two seeds (the Monte-Carlo noise of the render).
 
-    .venv/bin/python benchmarks/bench_trim.py                    # 96^2 and 64^2, 64 spp
-    .venv/bin/python benchmarks/bench_trim.py --sizes 128 --spp 16
+    .venv/bin/python benchmarks/bench_trim.py --sizes 32,16 --spp 4   # far and few samples: levels 1, 2
+    .venv/bin/python benchmarks/bench_trim.py                         # 96^2 and 64^2, 64 spp: level 0
 """
 
 from __future__ import annotations

@@ -13,8 +13,10 @@ the level of detail ``log2(sigma R)`` (`contract.level_of_detail`), whose floor 
 two levels a trilinear lookup reads. The finest level that matters is the finest level L such that at
 least ``coverage`` of the queries have a level >= L (they read L or coarser; a model trimmed to L
 answers them bit-identically, `neumip trim`). The recommended finest training resolution is the
-power of two at which that same footprint quantile reads level 0 (``2^ceil(log2(1 / sigma))``): a
-model coarser than that magnifies its finest level in the scene's closest views ("too coarse").
+power of two at which that same quantile of the *pixel* footprint (a query's sigma divided by its
+sample's share) reads level 0 (``2^ceil(log2(1 / sigma))``): a model coarser than that magnifies its
+finest level in the scene's closest pixels ("too coarse"). Queries read finer levels than their pixel
+(each of many samples reads 1/8 of it at 64 spp), but the pixel averages what lies below it.
 """
 
 from __future__ import annotations
@@ -30,6 +32,7 @@ import numpy as np
 from neumip.client import contract as C
 
 from .bsdf import mi
+from .integrator import sample_footprint
 from .render import RenderConfig, render_scene
 from .shading import neural_bsdfs
 
@@ -100,9 +103,10 @@ class MaterialBudget:
     """Finest level that matters: at least ``coverage`` of the queries read it or coarser."""
     coverage: float
     magnified: float
-    """Share of the queries finer than level 0 (sigma R < 1: the model's finest level is magnified)."""
+    """Share of the queries whose pixel footprint is finer than level 0 (the finest level is magnified)."""
     recommended_resolution: int
-    """Finest training resolution at which the scene's closest views (the same quantile) read level 0."""
+    """Finest training resolution at which the scene's closest pixel footprints (the same quantile)
+    read level 0."""
     too_coarse: bool
     """True where the recommended resolution is finer than the model's."""
     model_bytes: int | None = None
@@ -114,8 +118,15 @@ class MaterialBudget:
         return asdict(self)
 
 
-def material_budget(material: str, sigma: np.ndarray, resolution: int, coverage: float = 0.999) -> MaterialBudget:
-    """Levels read by queries of footprints ``sigma`` (N,) on a model of finest ``resolution``."""
+def material_budget(material: str, sigma: np.ndarray, resolution: int, coverage: float = 0.999,
+                    sample_share: float = 1.0) -> MaterialBudget:
+    """Levels read by queries of footprints ``sigma`` (N,) on a model of finest ``resolution``.
+
+    ``sample_share``: the share of the pixel footprint each query read (`integrator.sample_footprint`
+    of the render's spp). The levels read (and so the trim) follow the queries; the resolution a
+    scene needs follows the pixel footprint ``sigma / sample_share``: detail finer than a pixel is
+    averaged by the pixel's samples, so it need not be resolved by the model.
+    """
     if not 0 < coverage <= 1:
         raise ValueError(f"coverage must be in (0, 1], got {coverage}")
     levels = int(math.log2(resolution))
@@ -130,7 +141,8 @@ def material_budget(material: str, sigma: np.ndarray, resolution: int, coverage:
     # the (1 - coverage) quantile of the footprint: `coverage` of the queries are at least this wide
     closest = float(np.quantile(sigma, 1.0 - coverage, method="lower"))
     finest = int(np.floor(C.level_of_detail(np.asarray([closest]), resolution)[0]))
-    recommended = 2 ** max(0, math.ceil(math.log2(1.0 / max(closest, 2.0**-24))))
+    pixel = sigma / sample_share
+    recommended = 2 ** max(0, math.ceil(math.log2(1.0 / max(closest / sample_share, 2.0**-24))))
     return MaterialBudget(
         material=material,
         queries=int(sigma.size),
@@ -139,7 +151,7 @@ def material_budget(material: str, sigma: np.ndarray, resolution: int, coverage:
         histogram=[float(h) for h in histogram],
         finest_level=finest,
         coverage=coverage,
-        magnified=float(np.mean(sigma * resolution < 1.0)),
+        magnified=float(np.mean(pixel * resolution < 1.0)),
         recommended_resolution=int(recommended),
         too_coarse=recommended > resolution,
     )
@@ -191,7 +203,8 @@ def scene_budget(scene: mi.Scene, models: Path | None, spp: int = 4, coverage: f
     for name, sigma in footprints.items():
         path = Path(models) / f"{name}.onnx" if models else None
         facts = model_facts(path) if path is not None and path.is_file() else None
-        budget = material_budget(name, sigma, facts.resolution if facts else DEFAULT_RESOLUTION, coverage)
+        budget = material_budget(name, sigma, facts.resolution if facts else DEFAULT_RESOLUTION, coverage,
+                                 sample_footprint(render_spp))
         if facts is not None:
             budget.model_bytes = facts.bytes
             budget.trimmed_bytes = trimmed_size(facts, budget.finest_level)
@@ -213,7 +226,7 @@ def format_budget(budget: SceneBudget, width: int = 40) -> str:
         if m.trimmed_bytes is not None:
             lines.append(f"  bytes: {m.model_bytes:,} now, {m.trimmed_bytes:,} trimmed to level {m.finest_level}")
         verdict = (f"the model ({m.resolution}^2) is too coarse for the closest views: "
-                   f"{100 * m.magnified:.2f} % of queries magnify level 0" if m.too_coarse else "the model suffices")
+                   f"{100 * m.magnified:.2f} % of queries come from pixels finer than level 0" if m.too_coarse else "the model suffices")
         lines.append(f"  recommended finest training resolution: {m.recommended_resolution}^2 ({verdict})")
     return "\n".join(lines)
 

@@ -52,6 +52,11 @@ def test_levels_finest_level_and_recommendation():
     close = material_budget("m", np.full(100, 0.25 / 64), resolution)  # 4x magnified
     assert close.too_coarse and close.recommended_resolution == 256 and close.magnified == 1.0
     assert close.histogram[0] == 1.0 and close.finest_level == 0
+    # samples that each read 1/8 of their pixel: the levels read follow the queries, the resolution
+    # needed follows the pixel footprint (8x the queries' sigma)
+    shared = material_budget("m", sigma / 8, resolution, coverage=0.999, sample_share=1 / 8)
+    assert shared.finest_level == 0 and shared.histogram[0] > 0.1
+    assert shared.recommended_resolution == b.recommended_resolution and shared.magnified == b.magnified
     with pytest.raises(ValueError, match="coverage"):
         material_budget("m", sigma, resolution, coverage=0.0)
 
