@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import math
 
-from .views import DISTANCE_VIEWS
+from .views import DISTANCE_VIEWS, EXTRA_VIEWS
 
 COMPARED = ("N", "N0", "C", "Cmip")
 
@@ -60,3 +60,22 @@ def winning_footprint(rows: list[dict], against: str, key: str = "mse") -> float
         else:
             break
     return win
+
+
+OFFSET_VIEWS = tuple(v.name for v in DISTANCE_VIEWS[:2]) + tuple(v.name for v in EXTRA_VIEWS[:2])
+"""Views where the offset's gain is checked: close-ups (1 and 4 texels) and the grazing views."""
+HIGHLIGHT_VIEW = "low_light"
+"""The view whose highlights are checked (a light 5 degrees above the horizon)."""
+
+
+def close_up_checks(material_result: dict, spp: int) -> dict:
+    """What the close-ups show: the offset's gain (N0's MSE / N's) per view of :data:`OFFSET_VIEWS`,
+    and N's mean and 99th-percentile luminance against R's under the low light."""
+    gain = {}
+    for view in OFFSET_VIEWS:
+        res = material_result.get(view)
+        n, n0 = (main_entry(res, m, spp) if res else None for m in ("N", "N0"))
+        gain[view] = n0["mse"] / n["mse"] if n and n0 and n["mse"] > 0 else None
+    low = material_result.get(HIGHLIGHT_VIEW)
+    n = main_entry(low, "N", spp) if low else None
+    return {"offset_gain": gain, "low_light_mean": n and n["mean_ratio"], "low_light_p99": n and n["p99_ratio"]}

@@ -1,4 +1,4 @@
-"""Image metrics against the reference: MSE, FLIP, SSIM, mean brightness, and bias versus noise.
+"""Image metrics against the reference: MSE, FLIP, SSIM, mean and highlight brightness, bias versus noise.
 
 Every method's image goes through the same tone mapping (:func:`tonemap`, its exposure fixed by the
 reference) before FLIP and SSIM; MSE and the brightness ratio are on linear RGB.
@@ -67,6 +67,8 @@ class Scores:
     """SSIM after the shared tone mapping."""
     mean_ratio: float
     """Mean luminance of the image / the reference's."""
+    p99_ratio: float
+    """99th-percentile luminance of the image / the reference's (do the highlights survive?)."""
 
     def to_dict(self) -> dict:
         return asdict(self)
@@ -76,8 +78,10 @@ def score(reference: np.ndarray, image: np.ndarray, exposure: float) -> tuple[Sc
     """Scores of ``image`` against ``reference`` and the FLIP error map."""
     ref_ldr, img_ldr = tonemap(reference, exposure), tonemap(image, exposure)
     fmap, fmean = flip_map(ref_ldr, img_ldr)
-    ratio = float(luminance(image).mean() / max(luminance(reference).mean(), 1e-12))
-    return Scores(mse(reference, image), fmean, ssim(ref_ldr, img_ldr), ratio), fmap
+    lum, ref_lum = luminance(image), luminance(reference)
+    ratio = float(lum.mean() / max(ref_lum.mean(), 1e-12))
+    p99 = float(np.percentile(lum, 99) / max(np.percentile(ref_lum, 99), 1e-12))
+    return Scores(mse(reference, image), fmean, ssim(ref_ldr, img_ldr), ratio, p99), fmap
 
 
 def noise_mse(a: np.ndarray, b: np.ndarray) -> float:

@@ -15,7 +15,7 @@ import numpy as np
 
 from . import charts, stability, tradeoff
 from . import metrics as Q
-from .analysis import headline
+from .analysis import close_up_checks, headline
 from .cache import RenderCache
 from .config import ReportConfig
 from .pipeline import REFERENCE_SEEDS, run_material, view_steps
@@ -82,6 +82,7 @@ def run_report(out: Path, materials: list[str], config: ReportConfig, models: Pa
             if ladder_views:
                 charts.error_time(images[name], ladder_views, out / f"error_time_{name}.png", f"{name}: error against time")
             results["materials"][name]["headline"] = headline(images[name], config.spp)
+            results["materials"][name]["close_up"] = close_up_checks(images[name], config.spp)
     if "stability" in stages:
         results["stability"] = run_stability(out, materials, config, models, evaluator, cache, progress)
     if "tradeoff" in stages and TRADEOFF_MATERIAL in renderers:

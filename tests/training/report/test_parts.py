@@ -90,6 +90,22 @@ def test_time_to_reach_interpolates_log_log():
     assert analysis.winning_footprint(rows, "C") == 4
 
 
+def test_close_up_checks_read_the_offset_gain_and_the_highlights():
+    def entry(mse, mean=1.0, p99=1.0):
+        return {64: {"mse": mse, "mean_ratio": mean, "p99_ratio": p99}}
+
+    material = {
+        "level0": {"methods": {"N": entry(1.0), "N0": entry(2.5)}},
+        "level2": {"methods": {"N": entry(2.0), "N0": entry(1.0)}},
+        "grazing75": {"methods": {"N": entry(1.0)}},  # no N0: no gain
+        "low_light": {"methods": {"N": entry(1.0, 0.9, 0.5), "N0": entry(1.0)}},
+    }
+    checks = analysis.close_up_checks(material, 64)
+    assert checks["offset_gain"] == {"level0": 2.5, "level2": 0.5, "grazing75": None, "grazing85": None}
+    assert (checks["low_light_mean"], checks["low_light_p99"]) == (0.9, 0.5)
+    assert analysis.close_up_checks({}, 64)["low_light_p99"] is None
+
+
 def test_sweeps_of_the_known_answer_are_flat():
     """flat answers 0.5 / pi everywhere: no steps across levels, seams, shifts or sub-texel moves."""
     ev = LocalMaterials(MODELS, threads=1)
