@@ -17,7 +17,7 @@ PRESET=${PRESET:-ship}
 THREADS=${THREADS:-1}  # the shipped models were trained with one torch thread
 RAY=${RAY:-}
 names=("$@")
-[ ${#names[@]} -gt 0 ] || names=(flat rock rock_nooffset yarn yarn_nooffset turtle foam)
+[ ${#names[@]} -gt 0 ] || names=(flat rock rock_nooffset yarn yarn_nooffset turtle turtle_nooffset foam foam_nooffset)
 data_dir() {  # the 64^2 / 256 / 16 data keep their old folder (data/NAME)
   if [ "$RES" = 64 ] && [ "$QPT" = 256 ] && [ "$SPP" = 16 ]; then echo "data/$1"; else echo "data/$1_r${RES}_q${QPT}_s${SPP}"; fi
 }
