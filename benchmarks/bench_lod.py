@@ -31,14 +31,18 @@ from neumip.training.export import build_onnx, random_weights
 from neumip.training.onnx_graph import GraphWriter
 
 
-def log_level_of_detail(g: GraphWriter, sigma: str, config: MaterialConfig) -> tuple[str, str]:
-    """The former stage: sigma (N, 1) -> lo (N,) int64, t (N, 1) through Log (batch-dependent bits)."""
+def log_level_of_detail(g: GraphWriter, sigma: str, config: MaterialConfig, finest_level: int = 0,
+                        tables: dict | None = None) -> tuple[dict, str]:
+    """The former stage: sigma (N, 1) -> lo = floor of a Log (batch-dependent bits), row lo of each
+    per-level table (Gather), t (N, 1)."""
     tiny = np.finfo(np.float32).tiny
     scaled = g.op("Mul", g.op("Max", sigma, g.scalar(tiny)), g.scalar(config.resolution))
     lod = g.op("Div", g.op("Log", scaled), g.scalar(math.log(2.0)))
-    lod = g.op("Clip", lod, g.const(0.0), g.const(float(config.levels)))
+    lod = g.op("Clip", lod, g.const(float(finest_level)), g.const(float(config.levels)))
     lo = g.op("Floor", lod)
-    return g.shape(g.op("Cast", lo, to=TensorProto.INT64), [-1]), g.op("Sub", lod, lo)
+    index = g.shape(g.op("Cast", lo, to=TensorProto.INT64), [-1])
+    rows = {name: g.op("Gather", g.const(table), index, axis=0) for name, table in (tables or {}).items()}
+    return rows, g.op("Sub", lod, lo)
 
 
 def session(model) -> ort.InferenceSession:

@@ -78,12 +78,11 @@ def modulo_graph(g: GraphWriter, config: MaterialConfig, weights: dict[str, np.n
         v = g.op("Add", v, g.op("Mul", scale, wo_y))
 
     # --- trilinear pyramid lookup ----------------------------------------------------------------
-    lo, t = level_of_detail(g, sigma, config)  # (N,) int64, (N, 1)
-    lo_i = g.shape(lo, [-1, 1])
-    hi_i = g.op("Min", g.op("Add", lo_i, g.const(1, np.int64)), g.const(config.levels, np.int64))
-    levels = g.op("Concat", lo_i, hi_i, axis=1)  # (N, 2)
-    size = g.op("Gather", g.const(config.level_sizes(), np.int64), levels, axis=0)
-    start = g.op("Gather", g.const(config.level_starts(), np.int64), levels, axis=0)
+    sizes, starts = np.asarray(config.level_sizes()), np.asarray(config.level_starts())
+    hi = np.minimum(np.arange(config.levels + 1) + 1, config.levels)
+    tables = {"size": np.stack([sizes, sizes[hi]], 1), "start": np.stack([starts, starts[hi]], 1)}
+    rows, t = level_of_detail(g, sigma, config, tables=tables)  # levels lo and hi: (N, 2) each, (N, 1)
+    size, start = (g.op("Cast", rows[name], to=TensorProto.INT64) for name in ("size", "start"))
     rows, w = _bilinear(g, g.wrap(u), g.wrap(v), size, start)  # (N, 2, 4)
     level_w = g.op("Concat", g.op("Sub", g.const(1.0), t), t, axis=1)
     w = g.op("Mul", w, g.op("Unsqueeze", level_w, g.const([-1], np.int64)))
