@@ -4,7 +4,7 @@ It gathers 8 single texels per query from the flat atlas (+4 from the offset tex
 wrap-around index arithmetic in int64 with Mod, as `training/pyramid.py` writes it. Like the shipped
 graph it reads the level of detail from `export_lod.py` and sums taps with a 0/1 MatMul, so its
 answers do not depend on the batch. The shipped graph (`neumip.training.export`) reads wrap-padded
-quad tables instead: one Gather row per level footprint, no Mod.
+quad tables instead: one Gather row per level footprint, no Mod, and runs its MLPs column-major.
 """
 
 from __future__ import annotations
@@ -57,6 +57,15 @@ def _gather_blend(g: GraphWriter, table: str, rows: str, weights: str, taps: int
     return g.op("MatMul", weighted, g.const(np.tile(np.eye(channels, dtype=np.float32), (taps, 1))))
 
 
+def _mlp(g: GraphWriter, x: str, weights: dict, prefix: str, layers: int) -> str:
+    """(N, in) -> (N, out): one Gemm (W transposed) + Relu per layer, no Relu after the last."""
+    for i in range(layers):
+        w, b = (g.const(weights[f"{prefix}.{i}.{part}"]) for part in ("weight", "bias"))
+        x = g.op("Gemm", x, w, b, transB=1)
+        x = g.op("Relu", x) if i < layers - 1 else x
+    return x
+
+
 def modulo_graph(g: GraphWriter, config: MaterialConfig, weights: dict[str, np.ndarray]) -> str:
     """Queries (N, 7) (graph input) -> decoder output (N, 3) before the final Relu."""
     cols = g.op("Split", C.ONNX_INPUT, axis=1, num_outputs=C.QUERY_DIM, outputs=C.QUERY_DIM)
@@ -68,7 +77,7 @@ def modulo_graph(g: GraphWriter, config: MaterialConfig, weights: dict[str, np.n
         rows, w = _bilinear(g, g.wrap(u), g.wrap(v), res, g.const([[0]], np.int64))
         otex = g.const(weights["offset_texture"], name="offset_texture")
         feat = _gather_blend(g, otex, rows, w, 4, config.offset_channels)
-        depth = g.mlp(g.op("Concat", feat, wo_x, wo_y, axis=1), weights, "offset_mlp", config.layers)
+        depth = _mlp(g, g.op("Concat", feat, wo_x, wo_y, axis=1), weights, "offset_mlp", config.layers)
         depth = g.op("Mul", depth, g.const(config.offset_scale))
         one = g.const(1.0)
         r2 = g.op("Add", g.op("Mul", wo_x, wo_x), g.op("Mul", wo_y, wo_y))
@@ -91,7 +100,7 @@ def modulo_graph(g: GraphWriter, config: MaterialConfig, weights: dict[str, np.n
 
     # --- decoder ---------------------------------------------------------------------------------
     x = g.op("Concat", features, wi_x, wi_y, wo_x, wo_y, axis=1)
-    return g.mlp(x, weights, "decoder", config.layers)
+    return _mlp(g, x, weights, "decoder", config.layers)
 
 
 def modulo_onnx(config: MaterialConfig, weights: dict[str, np.ndarray]) -> onnx.ModelProto:

@@ -6,14 +6,14 @@ metadata (config, description, validation, trim record), and - when the graphs c
 function in the same float order, as every graph change so far - the same answer bits
 (`reexport_file` checks that on random queries and reports the largest difference).
 
-What the graph keeps and where (the writer is `export.py`):
+What the graph keeps, by initializer name (the writer is `export.py`; matrices are stored halved,
+`onnx_graph.GraphWriter.product`, and doubled back here, exact):
 
-- the textures: initializers ``pyramid`` (levels K..L of a trimmed model) and ``offset_texture``;
-- every layer but the first of each MLP: initializers ``{prefix}.{i}.weight`` (out, in) and
-  ``.bias``; the first layer's bias ``{prefix}.0.bias``;
-- the first layer's weights on the query's columns: the (7, hidden) matrix of the Gemm that reads
-  the graph input with that bias (`export._query_part`), and its weights on the texture features:
-  the matrix of the Gemm that adds that Gemm's output (`export._first_layer`);
+- the textures: ``pyramid`` (levels K..L of a trimmed model) and ``offset_texture``;
+- every layer but the first of each MLP: ``{prefix}.{i}.half_weight`` (out, in) and ``.bias``
+  (out, 1); the first layer's bias ``{prefix}.0.bias``, its weights on the texture features
+  ``{prefix}.0.half_weight.texture`` (hidden, C) and on the query ``{prefix}.0.half_weight.query``
+  (hidden, 7: the columns it reads, zeros elsewhere);
 - the offset MLP's last layer is stored folded (`export._depth_weights`: its one output repeated
   twice, times ``offset_scale``); it is unfolded to weights that fold to the same bits.
 """
@@ -44,17 +44,17 @@ def _initializers(model: onnx.ModelProto) -> dict[str, np.ndarray]:
     return {init.name: numpy_helper.to_array(init) for init in model.graph.initializer}
 
 
-def _first_layer(model: onnx.ModelProto, inits: dict, prefix: str) -> np.ndarray:
-    """First layer's weights (hidden, C + D) of MLP `prefix`, from its two Gemms."""
-    gemms = [n for n in model.graph.node if n.op_type == "Gemm"]
-    query = [n for n in gemms if n.input[0] == C.ONNX_INPUT and n.input[2:] == [f"{prefix}.0.bias"]]
-    if len(query) != 1:
-        raise ModelLayoutError(f"expected one query Gemm of {prefix}.0, found {len(query)}")
-    texture = [n for n in gemms if n.input[2:] == [query[0].output[0]]]
-    if len(texture) != 1:
-        raise ModelLayoutError(f"expected one texture Gemm of {prefix}.0, found {len(texture)}")
-    rows, w_tex = inits[query[0].input[1]], inits[texture[0].input[1]]  # (7, hidden), (C, hidden)
-    return np.concatenate([w_tex.T, rows[QUERY_COLUMNS[prefix]].T], axis=1)
+def _layer(inits: dict, prefix: str, i: int, columns: list[int]) -> tuple[np.ndarray, np.ndarray]:
+    """Layer i of MLP `prefix`: weights (out, in), bias (out,)."""
+    if i > 0:
+        weight = inits[f"{prefix}.{i}.half_weight"] * np.float32(2.0)
+    else:
+        texture, query = (inits[f"{prefix}.0.half_weight.{part}"] * np.float32(2.0) for part in ("texture", "query"))
+        weight = np.concatenate([texture, query[:, columns]], axis=1)
+    bias = inits[f"{prefix}.{i}.bias"]
+    if bias.shape != (weight.shape[0], 1):
+        raise ModelLayoutError(f"{prefix}.{i}.bias of shape {bias.shape}, expected ({weight.shape[0]}, 1)")
+    return weight, bias[:, 0]
 
 
 def _unfold_depth(folded: dict, config: MaterialConfig) -> dict:
@@ -86,19 +86,16 @@ def read_model(model: onnx.ModelProto) -> tuple[MaterialConfig, dict[str, np.nda
     config = MaterialConfig.from_json(meta[C.META_CONFIG])
     finest = json.loads(meta[C.META_TRIM])["finest_level"] if meta.get(C.META_TRIM) else 0
     inits = _initializers(model)
-    weights = {"pyramid": inits["pyramid"]}
+    textures = ["pyramid"] + (["offset_texture"] if config.offset else [])
     prefixes = ["decoder"] + (["offset_mlp"] if config.offset else [])
-    if config.offset:
-        weights["offset_texture"] = inits["offset_texture"]
     try:
+        weights = {name: inits[name] for name in textures}
         for prefix in prefixes:
-            weights[f"{prefix}.0.weight"] = _first_layer(model, inits, prefix)
-            weights[f"{prefix}.0.bias"] = inits[f"{prefix}.0.bias"]
-            for i in range(1, config.layers):
-                weights[f"{prefix}.{i}.weight"] = inits[f"{prefix}.{i}.weight"]
-                weights[f"{prefix}.{i}.bias"] = inits[f"{prefix}.{i}.bias"]
+            for i in range(config.layers):
+                weights[f"{prefix}.{i}.weight"], weights[f"{prefix}.{i}.bias"] = _layer(
+                    inits, prefix, i, QUERY_COLUMNS[prefix])
     except KeyError as exc:
-        raise ModelLayoutError(f"no initializer {exc}") from exc
+        raise ModelLayoutError(f"no initializer {exc}: not a graph of this export") from exc
     if config.offset:
         weights = _unfold_depth(weights, config)
     return config, weights, meta, finest
