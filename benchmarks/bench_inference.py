@@ -207,17 +207,20 @@ def graphs_section(mat, models: dict[str, bytes], args) -> None:
     coherent = coherent_queries(1 << 20, args.resolution)
     shipped = sessions[SHIPPED]
     with tempfile.TemporaryDirectory() as folder:
-        (Path(folder) / "m.onnx").write_bytes(models[SHIPPED])
+        evaluated = {f"LocalMaterials.evaluate, {args.threads} workers": models[SHIPPED]}
+        evaluated.update({f"{name}, LocalMaterials.evaluate": model for name, model in files.items()})
+        for i, model in enumerate(evaluated.values()):
+            (Path(folder) / f"m{i}.onnx").write_bytes(model)
         local = LocalMaterials(folder, threads=args.threads)
-        names = [*sessions, "shipped, coherent queries", f"LocalMaterials.evaluate, {args.threads} workers",
-                 "torch eager"]
+        names = [*sessions, "shipped, coherent queries", *evaluated, "torch eager"]
         columns, table = [], {name: [] for name in names}
         for log2 in args.batches:
             q, tq = Batches(pool, 1 << log2), Batches(tpool, 1 << log2)
             cq = Batches(coherent, 1 << log2)
             fns = {name: (lambda s=s: s.run(None, {C.ONNX_INPUT: q.next()})) for name, s in sessions.items()}
             fns["shipped, coherent queries"] = lambda: shipped.run(None, {C.ONNX_INPUT: cq.next()})
-            fns[names[-2]] = lambda: local.evaluate("m", q.next())
+            for i, name in enumerate(evaluated):
+                fns[name] = lambda m=f"m{i}": local.evaluate(m, q.next())
             fns["torch eager"] = lambda: torch_eval(mat, tq.next())
             for name, value in interleaved(fns, 1 << log2, args.seconds, args.rounds).items():
                 table[name].append(value)
