@@ -23,7 +23,8 @@ one table, and read the load average printed with it. Sections:
            optimization level) against one-thread sessions running chunks on 2 threads.
 - chunk:   `run_chunked` on 2^20 queries for several chunk sizes.
 - load:    seconds to open a session: each graph, and the shipped one from a cached optimized model.
-- ops:     one elementwise op on (N, 1) vs (N, 1) <op> (1, 1) shapes (ONNX Runtime's slow broadcast).
+- ops:     one elementwise op on (N, 1) vs (N, 1) <op> (1, 1) shapes (ONNX Runtime's slow broadcast),
+           and what a Gather costs per row (small and large tables).
 - profile: where a query's time goes in the shipped graph: ONNX Runtime's per-node profile
            (`SessionOptions.enable_profiling`) of 2^20 random queries in calls of 2^14 rows on one
            thread, summed by op type and for the heaviest nodes.
@@ -322,6 +323,23 @@ def ops_section(args) -> None:
         _, per_cpu_s = throughput(lambda: sess.run(None, data), 1, args.seconds)
         print(f"  ({', '.join(str(d) for d in shape)}) * const of shape {const_shape}: "
               f"{1e6 / per_cpu_s / 20:8.1f} us")
+
+    # Why the level of detail reads no table with Gather: a Gather costs per row, even from a table
+    # in L1; 20 Gathers of the same rows, each from its own copy of the table (no common subexpression)
+    print(f"\n## nanoseconds per row of a Gather of 2^14 rows, 1 thread   [{load_text()}]")
+    rng = np.random.default_rng(0)
+    for rows, width, spread in ((257, 1, 257), (257, 10, 257), (257**2, 28, 256), (257**2, 28, 257**2)):
+        inits = [numpy_helper.from_array(rng.normal(size=(rows, width)).astype(np.float32), f"t{i}") for i in range(20)]
+        nodes = [helper.make_node("Gather", [f"t{i}", "x"], [f"y{i}"], axis=0) for i in range(20)]
+        graph = helper.make_graph(nodes, "ops", [helper.make_tensor_value_info("x", TensorProto.INT64, ["N"])],
+                                  [helper.make_tensor_value_info(f"y{i}", TensorProto.FLOAT, ["N", width]) for i in range(20)],
+                                  initializer=inits)
+        model = helper.make_model(graph, opset_imports=[helper.make_opsetid("", 18)])
+        model.ir_version = 9
+        sess = open_session(model.SerializeToString(), Session(threads=1, spinning=False, level="disabled"))
+        data = {"x": rng.integers(0, spread, n).astype(np.int64)}
+        _, per_cpu_s = throughput(lambda: sess.run(None, data), n, args.seconds)
+        print(f"  ({rows}, {width}) table, rows drawn from the first {spread}: {1e9 / per_cpu_s / 20:6.1f} ns")
 
 
 def profile_section(model: bytes, args) -> None:
