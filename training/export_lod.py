@@ -75,6 +75,17 @@ def level_constants(tables: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
     return out
 
 
+def stage_constants(config: MaterialConfig, finest_level: int = 0,
+                    tables: dict[str, np.ndarray] | None = None) -> dict[str, np.ndarray]:
+    """The ``lod.*`` initializers `level_of_detail` writes for per-level `tables` (its own 2^-lo
+    table, "scale", included): what `neumip trim` checks and swaps."""
+    return level_constants(_with_scale(config, finest_level, tables))
+
+
+def _with_scale(config: MaterialConfig, finest_level: int, tables: dict | None) -> dict[str, np.ndarray]:
+    return {"scale": scale_table(config, finest_level), **(tables or {})}
+
+
 def level_rows(g: GraphWriter, steps: str, tables: dict[str, np.ndarray]) -> dict[str, str]:
     """Level steps (N, L) -> each (L + 1, k) table's row lo, (N, k): one Gemm each (exact)."""
     consts = level_constants(tables)
@@ -98,6 +109,6 @@ def level_of_detail(g: GraphWriter, sigma: str, config: MaterialConfig, finest_l
              g.const(2.0**levels))
     inverse = (2.0 ** -np.arange(1, max(levels, 1) + 1))[None, :]  # (1, L): x 2^-j, exact
     steps = g.op("Min", g.op("Floor", g.op("MatMul", x, g.const(inverse))), g.scalar(1.0))  # (N, L)
-    rows = level_rows(g, steps, {"scale": scale_table(config, finest_level), **(tables or {})})
+    rows = level_rows(g, steps, _with_scale(config, finest_level, tables))
     t = log2_mantissa(g, g.op("Mul", x, rows.pop("scale")))  # m = x 2^-lo (N, 1) in [1, 2)
     return rows, t

@@ -181,7 +181,7 @@ def texture_constants(graph, texture: str) -> dict[str, str]:
     """Initializer names of what the graph built for texture initializer ``texture`` ("pyramid" or
     "offset_texture"): its quad index table (`expand_table`), found by the graph's structure; the
     caller checks the values against what the writer would write. (The pyramid's per-level tables
-    are initializers named ``lod.*``, `export_lod.level_constants`.)"""
+    are initializers named ``lod.*``, `export_lod.stage_constants`.)"""
     expand = [n for n in graph.node if n.op_type == "Gather" and n.input[0] == texture]
     if len(expand) != 1:
         raise ValueError(f"expected one table expansion of {texture!r}, found {len(expand)}")

@@ -5,7 +5,7 @@ re-exporting: it swaps constants and changes nothing else (no node, no other wei
 
 - the ``pyramid`` atlas keeps the texels of levels K..L (`config.level_starts()[K]` on);
 - its quad index table and the per-level tables the level of detail reads (initializers ``lod.*``,
-  `export_lod.level_constants`) become those of the shorter atlas (`export_lookup.trimmed_atlas`:
+  `export_lod.stage_constants`) become those of the shorter atlas (`export_lookup.trimmed_atlas`:
   only the table rows move, each level's size and row width stay; levels finer than K repeat K's);
 - the level-of-detail Clip's lower bound becomes 2^K (`export_lod.clip_min`).
 
@@ -36,7 +36,7 @@ from neumip.client import contract as C
 
 from .config import MaterialConfig
 from .export import save_onnx
-from .export_lod import clip_min, clip_node, level_constants, scale_table
+from .export_lod import clip_min, clip_node, stage_constants
 from .export_lookup import level_tables, texture_constants, trimmed_atlas
 
 log = logging.getLogger(__name__)
@@ -104,8 +104,7 @@ def trim_model(model: onnx.ModelProto, finest_level: int) -> onnx.ModelProto:
     g = out.graph
     found = texture_constants(g, "pyramid")
     _replace(g, found["quads"], trimmed_atlas(config, old)[0].rows, trimmed_atlas(config, finest_level)[0].rows)
-    old_lod, new_lod = (level_constants({"scale": scale_table(config, k), **level_tables(config, k)})
-                        for k in (old, finest_level))
+    old_lod, new_lod = (stage_constants(config, k, level_tables(config, k)) for k in (old, finest_level))
     for name, value in new_lod.items():
         _replace(g, name, old_lod[name], value)
     _replace(g, clip_node(g).input[1], np.asarray(clip_min(old), np.float32),
