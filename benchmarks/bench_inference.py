@@ -2,6 +2,7 @@
 
     .venv/bin/python benchmarks/bench_inference.py                 # everything (about 10 minutes)
     .venv/bin/python benchmarks/bench_inference.py --sections graphs --batches 10,14,20 --threads 1
+    .venv/bin/python benchmarks/bench_inference.py --sections graphs --model before=/tmp/before.onnx
 
 The material is 256^2 with the neural offset and random weights (speed does not depend on training);
 queries are uniformly random (u, v, sigma over all levels, directions): the worst case for the texel
@@ -13,15 +14,30 @@ one table, and read the load average printed with it. Sections:
 
 - graphs:  the shipped graph (`neumip.training.export`), the first export's graph (`export_modulo.py`,
            int64 Mod on single texels), `LocalMaterials.evaluate` and torch eager, one call per batch
-           of 2^10 ... 2^20 queries.
+           of 2^10 ... 2^20 queries; and each ``--model NAME=FILE``, a model of the same material
+           written elsewhere (an older version of the export: in its checkout, ``python -c "from
+           bench_inference import *; m = material(256, 0); open('/tmp/before.onnx', 'wb').write(
+           build_onnx(m.config, weights_from_state(m.state_dict(), m.config)).SerializeToString())"``
+           run in benchmarks/).
 - session: the shipped graph on 2 cores: ONNX Runtime's intra-op pool (spinning or not, arena,
            optimization level) against one-thread sessions running chunks on 2 threads.
 - chunk:   `run_chunked` on 2^20 queries for several chunk sizes.
 - load:    seconds to open a session: each graph, and the shipped one from a cached optimized model.
-- ops:     one elementwise op on (N, 1) vs (N, 1) <op> (1, 1) shapes (ONNX Runtime's slow broadcast).
+- ops:     one elementwise op on (N, 1) vs (N, 1) <op> (1, 1) shapes (ONNX Runtime's slow broadcast),
+           and what a Gather costs per row (small and large tables).
 - profile: where a query's time goes in the shipped graph: ONNX Runtime's per-node profile
            (`SessionOptions.enable_profiling`) of 2^20 random queries in calls of 2^14 rows on one
            thread, summed by op type and for the heaviest nodes.
+- stages:  where a query's time goes, by taking stages away (the profiler's per-node times are
+           inflated on a busy machine): the shipped graph, the same material's graph without the
+           neural offset, and its two MLPs alone (same shapes, fed a fixed linear map of the
+           queries); one thread, calls of 4096 rows, random and coherent queries, nanoseconds of
+           CPU per query and the differences.
+- quantized: the two MLPs alone as ONNX Runtime's quantization tools write them (int8 weights,
+           uint8 activations: static QDQ and QOperator calibrated on 4 x 4096 random queries, and
+           dynamic, MatMulInteger) against float32 (one query per row, and the export's column-major
+           form): speed on one thread in calls of 4096 rows, and the largest error against float32
+           relative to the largest answer.
 """
 
 from __future__ import annotations
@@ -176,8 +192,9 @@ class Batches:
 
 
 def graphs_section(mat, models: dict[str, bytes], args) -> None:
+    files = {name: Path(path).read_bytes() for name, path in args.model}
     sessions = {name: open_session(model, Session(threads=args.threads, spinning=False))
-                for name, model in models.items()}
+                for name, model in {**models, **files}.items()}
     check = random_queries(4096, seed=1)
     with torch.inference_mode():
         want = mat(torch.from_numpy(check)).numpy()
@@ -191,17 +208,20 @@ def graphs_section(mat, models: dict[str, bytes], args) -> None:
     coherent = coherent_queries(1 << 20, args.resolution)
     shipped = sessions[SHIPPED]
     with tempfile.TemporaryDirectory() as folder:
-        (Path(folder) / "m.onnx").write_bytes(models[SHIPPED])
+        evaluated = {f"LocalMaterials.evaluate, {args.threads} workers": models[SHIPPED]}
+        evaluated.update({f"{name}, LocalMaterials.evaluate": model for name, model in files.items()})
+        for i, model in enumerate(evaluated.values()):
+            (Path(folder) / f"m{i}.onnx").write_bytes(model)
         local = LocalMaterials(folder, threads=args.threads)
-        names = [*sessions, "shipped, coherent queries", f"LocalMaterials.evaluate, {args.threads} workers",
-                 "torch eager"]
+        names = [*sessions, "shipped, coherent queries", *evaluated, "torch eager"]
         columns, table = [], {name: [] for name in names}
         for log2 in args.batches:
             q, tq = Batches(pool, 1 << log2), Batches(tpool, 1 << log2)
             cq = Batches(coherent, 1 << log2)
             fns = {name: (lambda s=s: s.run(None, {C.ONNX_INPUT: q.next()})) for name, s in sessions.items()}
             fns["shipped, coherent queries"] = lambda: shipped.run(None, {C.ONNX_INPUT: cq.next()})
-            fns[names[-2]] = lambda: local.evaluate("m", q.next())
+            for i, name in enumerate(evaluated):
+                fns[name] = lambda m=f"m{i}": local.evaluate(m, q.next())
             fns["torch eager"] = lambda: torch_eval(mat, tq.next())
             for name, value in interleaved(fns, 1 << log2, args.seconds, args.rounds).items():
                 table[name].append(value)
@@ -304,6 +324,23 @@ def ops_section(args) -> None:
         print(f"  ({', '.join(str(d) for d in shape)}) * const of shape {const_shape}: "
               f"{1e6 / per_cpu_s / 20:8.1f} us")
 
+    # Why the level of detail reads no table with Gather: a Gather costs per row, even from a table
+    # in L1; 20 Gathers of the same rows, each from its own copy of the table (no common subexpression)
+    print(f"\n## nanoseconds per row of a Gather of 2^14 rows, 1 thread   [{load_text()}]")
+    rng = np.random.default_rng(0)
+    for rows, width, spread in ((257, 1, 257), (257, 10, 257), (257**2, 28, 256), (257**2, 28, 257**2)):
+        inits = [numpy_helper.from_array(rng.normal(size=(rows, width)).astype(np.float32), f"t{i}") for i in range(20)]
+        nodes = [helper.make_node("Gather", [f"t{i}", "x"], [f"y{i}"], axis=0) for i in range(20)]
+        graph = helper.make_graph(nodes, "ops", [helper.make_tensor_value_info("x", TensorProto.INT64, ["N"])],
+                                  [helper.make_tensor_value_info(f"y{i}", TensorProto.FLOAT, ["N", width]) for i in range(20)],
+                                  initializer=inits)
+        model = helper.make_model(graph, opset_imports=[helper.make_opsetid("", 18)])
+        model.ir_version = 9
+        sess = open_session(model.SerializeToString(), Session(threads=1, spinning=False, level="disabled"))
+        data = {"x": rng.integers(0, spread, n).astype(np.int64)}
+        _, per_cpu_s = throughput(lambda: sess.run(None, data), n, args.seconds)
+        print(f"  ({rows}, {width}) table, rows drawn from the first {spread}: {1e9 / per_cpu_s / 20:6.1f} ns")
+
 
 def profile_section(model: bytes, args) -> None:
     """ONNX Runtime's per-node kernel times of the shipped graph, by op type and by node."""
@@ -334,6 +371,110 @@ def profile_section(model: bytes, args) -> None:
                                           for n, us in per_node.most_common(8)))
 
 
+def mlps_only_onnx(config: MaterialConfig, weights: dict) -> bytes:
+    """Both MLPs of the material alone, fed fixed linear maps of the queries (no texture, no level
+    of detail, no parallax): what the MLPs cost in the graph's own shapes."""
+    from onnx import helper
+
+    from neumip.training.export import IR_VERSION, OPSET
+    from neumip.training.onnx_graph import GraphWriter
+
+    g, rng = GraphWriter(), np.random.default_rng(0)
+    widths = {"decoder": config.channels + 4, "offset_mlp": config.offset_channels + 2}
+    out = None
+    for prefix, width in widths.items():
+        x = g.product(rng.normal(size=(width, C.QUERY_DIM)), C.ONNX_INPUT, rows=True)  # (width, N)
+        y = g.mlp(x, weights, prefix, config.layers)  # (3, N) decoder, (1, N) offset, as the export's
+        out = y if out is None else g.op("Add", out, g.op("MatMul", g.const(np.ones((C.RGB_DIM, 1))), y))
+    out = g.op("Transpose", out, perm=[1, 0])
+    g.nodes.append(helper.make_node("Relu", [out], [C.ONNX_OUTPUT]))
+    return g.model(C.ONNX_INPUT, C.QUERY_DIM, C.ONNX_OUTPUT, C.RGB_DIM, OPSET, IR_VERSION).SerializeToString()
+
+
+def stages_section(mat, args) -> None:
+    """The shipped graph against itself without the offset stage and against its MLPs alone."""
+    from dataclasses import replace
+
+    config = mat.config
+    weights = weights_from_state(mat.state_dict(), config)
+    plain = replace(config, offset=False)
+    variants = {
+        "shipped graph": build_onnx(config, weights).SerializeToString(),
+        "without the neural offset": build_onnx(plain, weights_from_state(mat.state_dict(), plain)).SerializeToString(),
+        "the two MLPs alone": mlps_only_onnx(config, weights),
+    }
+    sessions = {name: open_session(model, Session(threads=1, spinning=False)) for name, model in variants.items()}
+    rows = 4096
+    for kind, pool in (("random", random_queries(1 << 20, seed=20)), ("coherent", coherent_queries(1 << 20, args.resolution))):
+        q = Batches(pool, rows)
+        fns = {name: (lambda s=s: s.run(None, {C.ONNX_INPUT: q.next()})) for name, s in sessions.items()}
+        ns = {name: 1e9 / cpu for name, (_, cpu) in interleaved(fns, rows, args.seconds, args.rounds).items()}
+        full, plain_ns, mlps = ns["shipped graph"], ns["without the neural offset"], ns["the two MLPs alone"]
+        print(f"\n## stages, {kind} queries: ns of CPU per query, 1 thread, calls of {rows}   [{load_text()}]")
+        for name, value in ns.items():
+            print(f"  {name:34s} {value:6.0f} ns   ({1e3 / value:.2f} M queries / CPU s)")
+        print(f"  -> offset stage (lookup, offset MLP, parallax): {full - plain_ns:.0f} ns ({100 * (full - plain_ns) / full:.0f} %); "
+              f"both MLPs: {mlps:.0f} ns ({100 * mlps / full:.0f} %); everything but the MLPs: {full - mlps:.0f} ns "
+              f"({100 * (full - mlps) / full:.0f} %)")
+
+
+def quantized_section(mat, args) -> None:
+    from onnx import helper
+    from onnxruntime.quantization import (CalibrationDataReader, QuantFormat, QuantType, quantize_dynamic,
+                                          quantize_static)
+
+    from neumip.training.export import IR_VERSION, OPSET
+    from neumip.training.onnx_graph import GraphWriter
+
+    config = mat.config
+    weights = weights_from_state(mat.state_dict(), config)
+    g, rng = GraphWriter(), np.random.default_rng(0)
+    out = None
+    for prefix, width in {"decoder": config.channels + 4, "offset_mlp": config.offset_channels + 2}.items():
+        x = g.op("MatMul", C.ONNX_INPUT, g.const(rng.normal(size=(width, C.QUERY_DIM)).T))  # as mlps_only_onnx
+        for i in range(config.layers):  # one query per row: Gemm (N, in) x (in, out)
+            w, b = (g.const(weights[f"{prefix}.{i}.{part}"]) for part in ("weight", "bias"))
+            x = g.op("Gemm", x, w, b, transB=1)
+            x = g.op("Relu", x) if i < config.layers - 1 else x
+        out = x if out is None else g.op("Add", out, g.op("MatMul", x, g.const(np.ones((1, C.RGB_DIM)))))
+    g.nodes.append(helper.make_node("Relu", [out], [C.ONNX_OUTPUT]))
+    rows_model = g.model(C.ONNX_INPUT, C.QUERY_DIM, C.ONNX_OUTPUT, C.RGB_DIM, OPSET, IR_VERSION)
+
+    class Calibration(CalibrationDataReader):
+        def __init__(self) -> None:
+            self.batches = iter([{C.ONNX_INPUT: random_queries(4096, seed=100 + k)} for k in range(4)])
+
+        def get_next(self):
+            return next(self.batches, None)
+
+    variants = {"float32, one query per row": rows_model.SerializeToString(),
+                "float32, column-major (export)": mlps_only_onnx(config, weights)}
+    with tempfile.TemporaryDirectory() as folder:
+        source = Path(folder) / "rows.onnx"
+        source.write_bytes(variants["float32, one query per row"])
+        ops = ["Gemm", "MatMul"]
+        for name, fmt in (("int8 static QDQ", QuantFormat.QDQ), ("int8 static QOperator", QuantFormat.QOperator)):
+            target = Path(folder) / f"{fmt}.onnx"
+            quantize_static(str(source), str(target), Calibration(), quant_format=fmt, op_types_to_quantize=ops,
+                            activation_type=QuantType.QUInt8, weight_type=QuantType.QInt8)
+            variants[name] = target.read_bytes()
+        target = Path(folder) / "dynamic.onnx"
+        quantize_dynamic(str(source), str(target), weight_type=QuantType.QInt8, op_types_to_quantize=ops)
+        variants["int8 dynamic (MatMulInteger)"] = target.read_bytes()
+    sessions = {name: open_session(model, Session(threads=1, spinning=False)) for name, model in variants.items()}
+    check = random_queries(65536, seed=7)
+    want = sessions["float32, one query per row"].run(None, {C.ONNX_INPUT: check})[0]
+    q = Batches(random_queries(1 << 20, seed=20), 4096)
+    fns = {name: (lambda s=s: s.run(None, {C.ONNX_INPUT: q.next()})) for name, s in sessions.items()}
+    result = interleaved(fns, 4096, args.seconds, args.rounds)
+    base = result["float32, one query per row"][1]
+    print(f"\n## the two MLPs alone, quantized: 1 thread, calls of 4096   [{load_text()}]")
+    for name, s in sessions.items():
+        err = np.abs(s.run(None, {C.ONNX_INPUT: check})[0] - want).max() / np.abs(want).max()
+        cpu = result[name][1]
+        print(f"  {name:32s} {cpu / 1e6:6.2f} M queries / CPU s ({cpu / base:4.2f}x)   max error {err:.1e} of the largest answer")
+
+
 def log2_list(text: str) -> list[int]:
     if "-" in text:
         lo, hi = (int(x) for x in text.split("-"))
@@ -343,7 +484,7 @@ def log2_list(text: str) -> list[int]:
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    parser.add_argument("--sections", default="graphs,session,chunk,load,ops,profile")
+    parser.add_argument("--sections", default="graphs,session,chunk,load,ops,profile,stages,quantized")
     parser.add_argument("--resolution", type=int, default=256)
     parser.add_argument("--batches", type=log2_list, default=log2_list("10-20"), help="log2 batch sizes")
     parser.add_argument("--session-batches", type=log2_list, default=log2_list("12,14,16,18"))
@@ -351,6 +492,8 @@ def main() -> None:
     parser.add_argument("--threads", type=int, default=2)
     parser.add_argument("--seconds", type=float, default=0.3, help="minimum time per measurement")
     parser.add_argument("--rounds", type=int, default=3)
+    parser.add_argument("--model", type=lambda t: tuple(t.split("=", 1)), action="append", default=[],
+                        metavar="NAME=FILE", help="another model file of the same material for the graphs section")
     args = parser.parse_args()
     torch.set_num_threads(args.threads)
 
@@ -372,6 +515,10 @@ def main() -> None:
         ops_section(args)
     if "profile" in sections:
         profile_section(models[SHIPPED], args)
+    if "stages" in sections:
+        stages_section(mat, args)
+    if "quantized" in sections:
+        quantized_section(mat, args)
 
 
 if __name__ == "__main__":

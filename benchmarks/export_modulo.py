@@ -4,7 +4,7 @@ It gathers 8 single texels per query from the flat atlas (+4 from the offset tex
 wrap-around index arithmetic in int64 with Mod, as `training/pyramid.py` writes it. Like the shipped
 graph it reads the level of detail from `export_lod.py` and sums taps with a 0/1 MatMul, so its
 answers do not depend on the batch. The shipped graph (`neumip.training.export`) reads wrap-padded
-quad tables instead: one Gather row per level footprint, no Mod.
+quad tables instead: one Gather row per level footprint, no Mod, and runs its MLPs column-major.
 """
 
 from __future__ import annotations
@@ -57,6 +57,15 @@ def _gather_blend(g: GraphWriter, table: str, rows: str, weights: str, taps: int
     return g.op("MatMul", weighted, g.const(np.tile(np.eye(channels, dtype=np.float32), (taps, 1))))
 
 
+def _mlp(g: GraphWriter, x: str, weights: dict, prefix: str, layers: int) -> str:
+    """(N, in) -> (N, out): one Gemm (W transposed) + Relu per layer, no Relu after the last."""
+    for i in range(layers):
+        w, b = (g.const(weights[f"{prefix}.{i}.{part}"]) for part in ("weight", "bias"))
+        x = g.op("Gemm", x, w, b, transB=1)
+        x = g.op("Relu", x) if i < layers - 1 else x
+    return x
+
+
 def modulo_graph(g: GraphWriter, config: MaterialConfig, weights: dict[str, np.ndarray]) -> str:
     """Queries (N, 7) (graph input) -> decoder output (N, 3) before the final Relu."""
     cols = g.op("Split", C.ONNX_INPUT, axis=1, num_outputs=C.QUERY_DIM, outputs=C.QUERY_DIM)
@@ -68,7 +77,7 @@ def modulo_graph(g: GraphWriter, config: MaterialConfig, weights: dict[str, np.n
         rows, w = _bilinear(g, g.wrap(u), g.wrap(v), res, g.const([[0]], np.int64))
         otex = g.const(weights["offset_texture"], name="offset_texture")
         feat = _gather_blend(g, otex, rows, w, 4, config.offset_channels)
-        depth = g.mlp(g.op("Concat", feat, wo_x, wo_y, axis=1), weights, "offset_mlp", config.layers)
+        depth = _mlp(g, g.op("Concat", feat, wo_x, wo_y, axis=1), weights, "offset_mlp", config.layers)
         depth = g.op("Mul", depth, g.const(config.offset_scale))
         one = g.const(1.0)
         r2 = g.op("Add", g.op("Mul", wo_x, wo_x), g.op("Mul", wo_y, wo_y))
@@ -78,12 +87,11 @@ def modulo_graph(g: GraphWriter, config: MaterialConfig, weights: dict[str, np.n
         v = g.op("Add", v, g.op("Mul", scale, wo_y))
 
     # --- trilinear pyramid lookup ----------------------------------------------------------------
-    lo, t = level_of_detail(g, sigma, config)  # (N,) int64, (N, 1)
-    lo_i = g.shape(lo, [-1, 1])
-    hi_i = g.op("Min", g.op("Add", lo_i, g.const(1, np.int64)), g.const(config.levels, np.int64))
-    levels = g.op("Concat", lo_i, hi_i, axis=1)  # (N, 2)
-    size = g.op("Gather", g.const(config.level_sizes(), np.int64), levels, axis=0)
-    start = g.op("Gather", g.const(config.level_starts(), np.int64), levels, axis=0)
+    sizes, starts = np.asarray(config.level_sizes()), np.asarray(config.level_starts())
+    hi = np.minimum(np.arange(config.levels + 1) + 1, config.levels)
+    tables = {"size": np.stack([sizes, sizes[hi]], 1), "start": np.stack([starts, starts[hi]], 1)}
+    rows, t = level_of_detail(g, sigma, config, tables=tables)  # levels lo and hi: (N, 2) each, (N, 1)
+    size, start = (g.op("Cast", rows[name], to=TensorProto.INT64) for name in ("size", "start"))
     rows, w = _bilinear(g, g.wrap(u), g.wrap(v), size, start)  # (N, 2, 4)
     level_w = g.op("Concat", g.op("Sub", g.const(1.0), t), t, axis=1)
     w = g.op("Mul", w, g.op("Unsqueeze", level_w, g.const([-1], np.int64)))
@@ -92,7 +100,7 @@ def modulo_graph(g: GraphWriter, config: MaterialConfig, weights: dict[str, np.n
 
     # --- decoder ---------------------------------------------------------------------------------
     x = g.op("Concat", features, wi_x, wi_y, wo_x, wo_y, axis=1)
-    return g.mlp(x, weights, "decoder", config.layers)
+    return _mlp(g, x, weights, "decoder", config.layers)
 
 
 def modulo_onnx(config: MaterialConfig, weights: dict[str, np.ndarray]) -> onnx.ModelProto:

@@ -41,8 +41,9 @@ def register(sub: argparse._SubParsersAction) -> None:
                    "instead of spinning, so this holds up on a busy machine: training/TRAINING.md)")
     p.set_defaults(func=_train)
 
-    p = sub.add_parser("export", help="export a training checkpoint to an ONNX material")
-    p.add_argument("checkpoint", help="checkpoint file written by `neumip train`")
+    p = sub.add_parser("export", help="export a training checkpoint to an ONNX material, or rewrite an "
+                       "exported .onnx material with this version's graph (same weights and metadata)")
+    p.add_argument("checkpoint", help="checkpoint file written by `neumip train`, or an exported .onnx model")
     p.add_argument("-o", "--output", required=True, help="output .onnx path (e.g. models/NAME.onnx)")
     p.add_argument("--force", action="store_true", help="replace the output model if it exists")
     p.add_argument("--description", default="", help="short description stored in the metadata")
@@ -176,6 +177,18 @@ def _export(args: argparse.Namespace) -> int:
     if Path(args.output).exists() and not args.force:
         raise CommandError(f"{args.output} exists: pass --force to replace it, or choose another --output")
 
+    if args.checkpoint.endswith(".onnx"):
+        from google.protobuf.message import DecodeError
+
+        from .export_read import reexport_file
+
+        try:
+            path, difference = reexport_file(args.checkpoint, args.output, args.description)
+        except (OSError, ValueError, DecodeError) as exc:  # ModelLayoutError, unreadable or corrupt file
+            raise CommandError(f"{args.checkpoint}: cannot re-export: {exc}") from exc
+        print(f"wrote {path} ({path.stat().st_size / 1e6:.2f} MB); largest answer difference from "
+              f"{args.checkpoint} on 65 536 random queries: {difference:.3g}")
+        return 0
     path = export_checkpoint(args.checkpoint, args.output, args.description)
     print(f"wrote {path} ({path.stat().st_size / 1e6:.2f} MB)")
     return 0

@@ -4,6 +4,8 @@ The graph takes ``queries`` (N, 7) float32 and returns ``rgb`` (N, 3) float32, N
 computes what `material.NeuMIPMaterial.forward` computes, in three stages read top to bottom in
 `material_graph`: the neural offset (a bilinear lookup of the offset texture, the offset MLP, the
 parallax shift), a trilinear lookup of the two nearest pyramid levels, then the decoder MLP. The
+lookups work on one query per row; the MLPs on one query per column (`GraphWriter.product`: the
+first layers read the weighted texels and the queries transposed, one Transpose after each MLP). The
 file stores the textures once, in the layout `weights_from_state` gives (flat atlas "pyramid"
 (T, C), "offset_texture" (R * R, C)); a constant subgraph that ONNX Runtime folds at session load
 expands them into wrap-padded quad tables (`export_lookup.py`), so each query reads one table row per
@@ -12,7 +14,7 @@ description travel in the ONNX metadata.
 
 The graph answers a query with the same bits whatever the batch it sits in (its position, the call's
 row count, the thread count): it uses only ops that round per element - Mul, Add, Sub, Div, Sqrt,
-Floor, Max, Clip, Gather, and Gemm/MatMul, whose sums run in one order per row - and no Log (whose
+Floor, Max, Min, Clip, Gather, and Gemm/MatMul, whose sums run in one order per row - and no Log (whose
 vectorised tail rounds otherwise; the level of detail is `export_lod.py`) and no ReduceSum (which sums
 a 1-row call in another order: taps are summed by a 0/1 MatMul instead).
 tests/training/test_export_determinism.py checks it. benchmarks/bench_inference.py measures it
@@ -65,24 +67,24 @@ def weights_from_state(state: dict, config: MaterialConfig) -> dict[str, np.ndar
 
 
 def _query_part(g: GraphWriter, weights: dict, prefix: str, columns: list[int]) -> str:
-    """First layer's weights on the query's own columns, plus its bias: (N, 7) queries -> (N, hidden).
+    """First layer's weights on the query's own columns, plus its bias: (N, 7) queries -> (hidden, N).
 
-    The layer's last inputs are the query `columns`; their weights sit in a (7, hidden) matrix with
-    zero rows elsewhere, so no Slice/Concat of the query is needed.
+    The layer's last inputs are the query `columns`; their weights sit in a (hidden, 7) matrix with
+    zero columns elsewhere, so no Slice/Concat of the query is needed.
     """
     w = weights[f"{prefix}.0.weight"]  # (hidden, C + len(columns))
-    rows = np.zeros((C.QUERY_DIM, w.shape[0]), np.float32)
-    rows[columns] = w[:, -len(columns):].T
-    bias = g.const(weights[f"{prefix}.0.bias"], name=f"{prefix}.0.bias")
-    return g.op("Gemm", C.ONNX_INPUT, g.const(rows), bias)
+    matrix = np.zeros((w.shape[0], C.QUERY_DIM), np.float32)
+    matrix[:, columns] = w[:, -len(columns):]
+    bias = g.const(weights[f"{prefix}.0.bias"][:, None], name=f"{prefix}.0.bias")
+    return g.product(matrix, C.ONNX_INPUT, bias, rows=True, name=f"{prefix}.0.half_weight.query")
 
 
 def _first_layer(g: GraphWriter, texels: str, tap_w: str, taps: int, columns: list[int], weights: dict,
                  prefix: str, layers: int) -> str:
-    """texels (N, K C), tap weights (N, K), K = taps -> first layer's output (N, hidden), the query
-    `columns` being the layer's other inputs.
+    """texels (N, K C), tap weights (N, K), K = taps -> first layer's output (hidden, N) (column-
+    major, `GraphWriter.product`), the query `columns` being the layer's other inputs.
 
-    A 0/1 MatMul sums the weighted taps (in one order per row, unlike ReduceSum), then one Gemm
+    A 0/1 matrix sums the weighted taps (in one order per query, unlike ReduceSum), then one Gemm
     applies the texture weights and adds the query part.
     """
     w = weights[f"{prefix}.0.weight"]  # (hidden, C + D): texture part, then the query columns
@@ -90,9 +92,9 @@ def _first_layer(g: GraphWriter, texels: str, tap_w: str, taps: int, columns: li
     width = w_tex.shape[1]
     spread = np.kron(np.eye(taps, dtype=np.float32), np.ones((1, width), np.float32))  # (K, K C)
     weighted = g.op("Mul", texels, g.op("MatMul", tap_w, g.const(spread)))  # (N, K C)
-    rest = _query_part(g, weights, prefix, columns)  # (N, hidden)
-    summed = g.op("MatMul", weighted, g.const(np.tile(np.eye(width, dtype=np.float32), (taps, 1))))  # (N, C)
-    x = g.op("Gemm", summed, g.const(np.ascontiguousarray(w_tex.T)), rest)
+    rest = _query_part(g, weights, prefix, columns)  # (hidden, N)
+    summed = g.product(np.tile(np.eye(width, dtype=np.float32), (1, taps)), weighted, rows=True)  # (C, N)
+    x = g.product(w_tex, summed, rest, name=f"{prefix}.0.half_weight.texture")
     return g.op("Relu", x) if layers > 1 else x
 
 
@@ -138,7 +140,7 @@ def material_graph(g: GraphWriter, config: MaterialConfig, weights: dict, finest
         texels, tap_w = texture_texels(g, texture, config.resolution, config.offset_channels, g.wrap(uv))
         mlp = _depth_weights(weights, config)
         hidden = _first_layer(g, texels, tap_w, 4, [C.WO_X, C.WO_Y], mlp, "offset_mlp", config.layers)
-        depth = g.mlp(hidden, mlp, "offset_mlp", config.layers, first=1)  # (N, 2)
+        depth = g.op("Transpose", g.mlp(hidden, mlp, "offset_mlp", config.layers, first=1), perm=[1, 0])  # (N, 2)
         uv = g.op("Add", uv, _parallax(g, depth, wo, config.offset_min_cos))
 
     # --- trilinear pyramid lookup, then the decoder ----------------------------------------------
@@ -146,7 +148,7 @@ def material_graph(g: GraphWriter, config: MaterialConfig, weights: dict, finest
     texels, tap_w = pyramid_texels(g, config, atlas, config.channels, g.wrap(uv), sigma, finest_level)
     dirs = [C.WI_X, C.WI_Y, C.WO_X, C.WO_Y]
     hidden = _first_layer(g, texels, tap_w, 8, dirs, weights, "decoder", config.layers)
-    return g.mlp(hidden, weights, "decoder", config.layers, first=1)
+    return g.op("Transpose", g.mlp(hidden, weights, "decoder", config.layers, first=1), perm=[1, 0])
 
 
 def _yuv_head(g: GraphWriter, out: str) -> str:

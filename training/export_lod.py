@@ -3,12 +3,16 @@
 ONNX Runtime's ``Log`` kernel computes the last few elements of a call (the remainder after its
 vector blocks) differently from the others, so a query's answer would depend in its last bits on
 where it sits in a call and on how many rows the call has. This stage uses only ops that IEEE
-arithmetic rounds per element (Mul, Add, Div, Clip, Floor, Gather), so a query's level of
-detail is the same bits in any batch:
+arithmetic rounds per element (Mul, Add, Div, Clip, Floor, Min) and 0/1-weighted sums of integers
+and powers of two (Gemm, exact in any order), so a query's level of detail is the same bits in any
+batch, and it reads no table with Gather (ONNX Runtime's Gather costs ~8 ns a row even from a table
+in L1):
 
 - x = clip(sigma * R, 1, 2^L); log2 of it is the clamped level (log2 is monotonic).
-- lo = floor(log2 x) and 2^-lo: two tables of 2^L + 1 rows indexed by floor(x), exact (L <= 11 for
-  the graph, whose quad tables need R <= 2048).
+- the level steps s_j = min(floor(x 2^-j), 1), j = 1..L: s_j = 1 exactly for j <= lo = floor(log2 x).
+- a per-level table's row lo is then row 0 plus the sum of its row differences up to lo:
+  ``table[0] + steps @ diff(table)``, one Gemm (`level_rows`); the tables hold integers below 2^24
+  and powers of two, so every partial sum is exact. One of them is 2^-lo.
 - m = x * 2^-lo in [1, 2): a multiplication by a power of two, exact.
 - t = log2(m) = s P(s^2), s = (m - 1) / (m + 1) in [0, 1/3): a degree-4 polynomial (fitted to
   log2 in float64, 6e-9 from it), evaluated in float32 within 2e-7 of log2 for every float32 m
@@ -19,8 +23,6 @@ detail is the same bits in any batch:
 from __future__ import annotations
 
 import numpy as np
-from onnx import TensorProto
-
 from .config import MaterialConfig
 from .onnx_graph import GraphWriter
 
@@ -54,19 +56,59 @@ def log2_mantissa(g: GraphWriter, m: str) -> str:
     return g.op("Mul", s, p)
 
 
-def level_of_detail(g: GraphWriter, sigma: str, config: MaterialConfig, finest_level: int = 0) -> tuple[str, str]:
-    """sigma (N, 1) -> lower level lo (N,) int64 in [K, L] and the fraction t (N, 1) in [0, 1) towards
-    level lo + 1; lo + t = clamp(log2(sigma * R), K, L), sigma <= 0 reading the finest level K.
+def scale_table(config: MaterialConfig, finest_level: int = 0) -> np.ndarray:
+    """(L + 1, 1) per lower level lo: 2^-lo, levels finer than K repeating level K's row."""
+    lo = np.maximum(np.arange(config.levels + 1), finest_level)
+    return (2.0 ** -lo[:, None]).astype(np.float32)
 
-    K = ``finest_level`` (> 0 for a trimmed model) only raises the Clip's lower bound from 1 to 2^K:
-    every query whose level is >= K computes the same bits as in the untrimmed graph.
+
+def level_constants(tables: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
+    """Per-level tables (L + 1, k) -> the initializers `level_rows` writes, by name: row 0 as
+    ``lod.NAME.first`` (k,) and the row differences as ``lod.NAME.steps`` (L, k) (one zero row
+    when L = 0, whose one step is always 0)."""
+    out = {}
+    for name, table in tables.items():
+        table = np.asarray(table, np.float32)
+        table = np.concatenate([table, table[-1:]]) if len(table) == 1 else table  # L = 0: one step, 0
+        out[f"lod.{name}.first"] = table[0]
+        out[f"lod.{name}.steps"] = np.diff(table, axis=0)
+    return out
+
+
+def stage_constants(config: MaterialConfig, finest_level: int = 0,
+                    tables: dict[str, np.ndarray] | None = None) -> dict[str, np.ndarray]:
+    """The ``lod.*`` initializers `level_of_detail` writes for per-level `tables` (its own 2^-lo
+    table, "scale", included): what `neumip trim` checks and swaps."""
+    return level_constants(_with_scale(config, finest_level, tables))
+
+
+def _with_scale(config: MaterialConfig, finest_level: int, tables: dict | None) -> dict[str, np.ndarray]:
+    return {"scale": scale_table(config, finest_level), **(tables or {})}
+
+
+def level_rows(g: GraphWriter, steps: str, tables: dict[str, np.ndarray]) -> dict[str, str]:
+    """Level steps (N, L) -> each (L + 1, k) table's row lo, (N, k): one Gemm each (exact)."""
+    consts = level_constants(tables)
+    return {name: g.op("Gemm", steps, g.const(consts[f"lod.{name}.steps"], name=f"lod.{name}.steps"),
+                       g.const(consts[f"lod.{name}.first"], name=f"lod.{name}.first"))
+            for name in tables}
+
+
+def level_of_detail(g: GraphWriter, sigma: str, config: MaterialConfig, finest_level: int = 0,
+                    tables: dict[str, np.ndarray] | None = None) -> tuple[dict[str, str], str]:
+    """sigma (N, 1) -> (row lo (N, k) of each per-level table (L + 1, k) of `tables`, the fraction
+    t (N, 1) in [0, 1) towards level lo + 1); lo + t = clamp(log2(sigma * R), K, L), sigma <= 0
+    reading the finest level K.
+
+    K = ``finest_level`` (> 0 for a trimmed model) only raises the Clip's lower bound from 1 to 2^K
+    (and the tables repeat level K's row for finer levels): every query whose level is >= K computes
+    the same bits as in the untrimmed graph.
     """
     levels = config.levels
     x = g.op("Clip", g.op("Mul", sigma, g.scalar(config.resolution)), g.const(clip_min(finest_level)),
              g.const(2.0**levels))
-    index = g.shape(g.op("Cast", g.op("Floor", x), to=TensorProto.INT64), [-1])  # (N,) in [1, 2^L]
-    k = np.maximum(np.arange(2**levels + 1), 1)
-    floor_log2 = np.asarray([int(i).bit_length() - 1 for i in k], np.int64)  # row k: floor(log2 k)
-    lo = g.op("Gather", g.const(floor_log2, np.int64), index, axis=0)  # (N,)
-    scale = g.op("Gather", g.const(2.0 ** -floor_log2[:, None].astype(np.float64)), index, axis=0)  # (N, 1)
-    return lo, log2_mantissa(g, g.op("Mul", x, scale))  # m = x 2^-lo (N, 1) in [1, 2)
+    inverse = (2.0 ** -np.arange(1, max(levels, 1) + 1))[None, :]  # (1, L): x 2^-j, exact
+    steps = g.op("Min", g.op("Floor", g.op("MatMul", x, g.const(inverse))), g.scalar(1.0))  # (N, L)
+    rows = level_rows(g, steps, _with_scale(config, finest_level, tables))
+    t = log2_mantissa(g, g.op("Mul", x, rows.pop("scale")))  # m = x 2^-lo (N, 1) in [1, 2)
+    return rows, t

@@ -78,16 +78,17 @@ def trimmed_atlas(config: MaterialConfig, finest_level: int = 0) -> tuple[QuadAt
     return tables, params
 
 
-def level_pair_params(config: MaterialConfig, level_params: np.ndarray) -> np.ndarray:
-    """Per level (S, 1, W, base) -> per lower level lo a row (10,) for levels lo, hi:
-
-    [S_lo, S_lo, S_hi, S_hi, 1, W_lo, 1, W_hi, base_lo, base_hi], hi = min(lo + 1, levels).
-    """
+def level_tables(config: MaterialConfig, finest_level: int = 0) -> dict[str, np.ndarray]:
+    """Per lower level lo (rows 0..L) the parameters of levels lo and hi = min(lo + 1, L) that a
+    query reads, finer levels than K repeating level K's (`trimmed_atlas`): "size" (4,)
+    [S_lo, S_lo, S_hi, S_hi], "coef" (4,) [1, W_lo, 1, W_hi] and "base" (2,) [base_lo, base_hi]."""
+    _, level_params = trimmed_atlas(config, finest_level)
     lo = np.arange(config.levels + 1)
     a, b = level_params[lo], level_params[np.minimum(lo + 1, config.levels)]
     one = np.ones_like(a[:, 0])
-    cols = [a[:, 0], a[:, 0], b[:, 0], b[:, 0], one, a[:, 2], one, b[:, 2], a[:, 3], b[:, 3]]
-    return np.stack(cols, axis=1).astype(np.float32)
+    tables = {"size": [a[:, 0], a[:, 0], b[:, 0], b[:, 0]], "coef": [one, a[:, 2], one, b[:, 2]],
+              "base": [a[:, 3], b[:, 3]]}
+    return {name: np.stack(cols, axis=1).astype(np.float32) for name, cols in tables.items()}
 
 
 # --- graph stages ----------------------------------------------------------------------------------
@@ -147,11 +148,9 @@ def pyramid_texels(g: GraphWriter, config: MaterialConfig, atlas: str, width: in
     trimmed model): only the table rows move, so a query of level >= K reads the same texels with
     the same weights.
     """
-    tables, level_params = trimmed_atlas(config, finest_level)
-    lo, t = level_of_detail(g, sigma, config, finest_level)
-    pairs = g.const(level_pair_params(config, level_params))
-    params = g.op("Gather", pairs, lo, axis=0)  # (N, 10)
-    size, coef, bases = (g.pick(params, 10, list(c)) for c in (range(4), range(4, 8), range(8, 10)))
+    tables, _ = trimmed_atlas(config, finest_level)
+    rows, t = level_of_detail(g, sigma, config, finest_level, level_tables(config, finest_level))
+    size, coef, bases = rows["size"], rows["coef"], rows["base"]  # (N, 4), (N, 4), (N, 2)
     both = g.op("MatMul", uvw, g.const(np.tile(np.eye(2, dtype=np.float32), (1, 2))))  # (N, 4) u v u v
     x = g.op("Sub", g.op("Mul", both, size), g.scalar(0.5))  # (N, 4) texel coordinates per level
     x0 = g.op("Floor", x)
@@ -178,24 +177,12 @@ def texture_texels(g: GraphWriter, texture: str, size: int, width: int, uvw: str
 # --- the inverse: where an exported graph keeps the constants above (`neumip trim`) ---------------
 
 
-def _producers(graph) -> dict[str, "object"]:
-    return {out: node for node in graph.node for out in node.output}
-
-
 def texture_constants(graph, texture: str) -> dict[str, str]:
     """Initializer names of what the graph built for texture initializer ``texture`` ("pyramid" or
-    "offset_texture"): its quad index table (`expand_table`) and, for the pyramid, the per-level pair
-    table (`level_pair_params`) its rows Gather reads. Found by the graph's structure, so it works on
-    any model this module wrote; the caller checks the values against what the writer would write."""
-    producers = _producers(graph)
+    "offset_texture"): its quad index table (`expand_table`), found by the graph's structure; the
+    caller checks the values against what the writer would write. (The pyramid's per-level tables
+    are initializers named ``lod.*``, `export_lod.stage_constants`.)"""
     expand = [n for n in graph.node if n.op_type == "Gather" and n.input[0] == texture]
     if len(expand) != 1:
         raise ValueError(f"expected one table expansion of {texture!r}, found {len(expand)}")
-    found = {"quads": expand[0].input[1]}
-    if texture == "pyramid":
-        reshape = next(n for n in graph.node if n.op_type == "Reshape" and n.input[0] == expand[0].output[0])
-        lookup = next(n for n in graph.node if n.op_type == "Gather" and n.input[0] == reshape.output[0])
-        add = producers[producers[lookup.input[1]].input[0]]  # Cast(Add(line, bases))
-        bases = producers[add.input[1]]  # a MatMul picking columns 8..9 of the pair parameters
-        found["pairs"] = producers[bases.input[0]].input[0]  # Gather(pairs, lo)
-    return found
+    return {"quads": expand[0].input[1]}

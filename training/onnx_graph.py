@@ -10,6 +10,10 @@ import onnx
 from onnx import TensorProto, helper, numpy_helper
 
 
+COLUMN_ALPHA = 2.0
+"""The Gemm alpha of `GraphWriter.product` (its matrices are stored halved)."""
+
+
 class GraphWriter:
     """Collects nodes and initializers; every op returns the name of its (first) output."""
 
@@ -58,17 +62,30 @@ class GraphWriter:
         """Position -> position in [0, 1]: u - floor(u)."""
         return self.op("Sub", u, self.op("Floor", u))
 
-    def linear(self, x: str, weights: dict, prefix: str, layer: int, relu: bool) -> str:
-        """One Gemm (+ Relu) with weights[f"{prefix}.{layer}.weight"] (out, in) and its bias."""
-        w = self.const(weights[f"{prefix}.{layer}.weight"], name=f"{prefix}.{layer}.weight")
-        b = self.const(weights[f"{prefix}.{layer}.bias"], name=f"{prefix}.{layer}.bias")
-        x = self.op("Gemm", x, w, b, transB=1)
-        return self.op("Relu", x) if relu else x
+    def product(self, w: np.ndarray, x: str, bias: str | None = None, rows: bool = False,
+                name: str | None = None) -> str:
+        """W (out, in) times the columns of `x` -> (out, N), column-major: `x` is (in, N), or (N, in)
+        with ``rows`` (read transposed by the Gemm), `bias` (out, 1) is added.
+
+        Activations one query per column keep ONNX Runtime's matrix kernels on full vectors (a layer
+        of 25 outputs fills 16-lane vectors along N, not 25 of 32 lanes per row). The file stores
+        W / 2 (named `name`) and the Gemm multiplies by alpha = 2, exact: with alpha 1 ONNX Runtime
+        (MLAS) computes a 1-column product - a call of one query - with its GEMV kernel, which sums in
+        another order than a wider call, and a query's answer would depend on its batch.
+        """
+        half = self.const(np.asarray(w, np.float32) * np.float32(0.5), name=name)
+        inputs = [half, x] + ([bias] if bias is not None else [])
+        return self.op("Gemm", *inputs, alpha=COLUMN_ALPHA, transB=1 if rows else 0)
 
     def mlp(self, x: str, weights: dict, prefix: str, layers: int, first: int = 0) -> str:
-        """Gemm + Relu chain over layers first..layers-1; no Relu after the last layer."""
+        """Column-major activations (in, N) -> (out, N) through layers first..layers-1 of MLP
+        `prefix` (weights[f"{prefix}.{i}.weight"] (out, in) and ``.bias``): Gemm + Relu, no Relu
+        after the last layer. Initializers ``{prefix}.{i}.half_weight`` and ``{prefix}.{i}.bias``."""
         for i in range(first, layers):
-            x = self.linear(x, weights, prefix, i, relu=i < layers - 1)
+            bias = self.const(weights[f"{prefix}.{i}.bias"][:, None], name=f"{prefix}.{i}.bias")
+            x = self.product(weights[f"{prefix}.{i}.weight"], x, bias, name=f"{prefix}.{i}.half_weight")
+            if i < layers - 1:
+                x = self.op("Relu", x)
         return x
 
     def model(self, input_name: str, input_dim: int, output_name: str, output_dim: int, opset: int,

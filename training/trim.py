@@ -1,11 +1,12 @@
 """`neumip trim`: an exported model without its pyramid levels finer than K.
 
 Shipped models are ONNX files only, so trimming edits the exported graph in place rather than
-re-exporting: it swaps four constants and changes nothing else (no node, no other weight):
+re-exporting: it swaps constants and changes nothing else (no node, no other weight):
 
 - the ``pyramid`` atlas keeps the texels of levels K..L (`config.level_starts()[K]` on);
-- its quad index table and per-level pair table become those of the shorter atlas
-  (`export_lookup.trimmed_atlas`: only the table rows move, each level's size and row width stay);
+- its quad index table and the per-level tables the level of detail reads (initializers ``lod.*``,
+  `export_lod.stage_constants`) become those of the shorter atlas (`export_lookup.trimmed_atlas`:
+  only the table rows move, each level's size and row width stay; levels finer than K repeat K's);
 - the level-of-detail Clip's lower bound becomes 2^K (`export_lod.clip_min`).
 
 So every query whose level ``clamp(log2(sigma R), 0, L)`` is >= K gathers the same texels with the
@@ -35,8 +36,8 @@ from neumip.client import contract as C
 
 from .config import MaterialConfig
 from .export import save_onnx
-from .export_lod import clip_min, clip_node
-from .export_lookup import level_pair_params, texture_constants, trimmed_atlas
+from .export_lod import clip_min, clip_node, stage_constants
+from .export_lookup import level_tables, texture_constants, trimmed_atlas
 
 log = logging.getLogger(__name__)
 
@@ -82,7 +83,9 @@ def current_trim(model: onnx.ModelProto) -> TrimRecord | None:
 
 def _replace(graph, name: str, expected: np.ndarray, value: np.ndarray) -> None:
     """Swap initializer `name` for `value`, after checking it holds `expected` (the writer's layout)."""
-    init = next(i for i in graph.initializer if i.name == name)
+    init = next((i for i in graph.initializer if i.name == name), None)
+    if init is None:
+        raise TrimError(f"no initializer {name!r}: not a graph of this export; cannot trim this graph")
     current = numpy_helper.to_array(init)
     if current.shape != expected.shape or not np.array_equal(current, expected.astype(current.dtype)):
         raise TrimError(f"initializer {name!r} is not what this export writes; cannot trim this graph")
@@ -100,10 +103,10 @@ def trim_model(model: onnx.ModelProto, finest_level: int) -> onnx.ModelProto:
     out.CopyFrom(model)
     g = out.graph
     found = texture_constants(g, "pyramid")
-    old_tables, old_params = trimmed_atlas(config, old)
-    new_tables, new_params = trimmed_atlas(config, finest_level)
-    _replace(g, found["quads"], old_tables.rows, new_tables.rows)
-    _replace(g, found["pairs"], level_pair_params(config, old_params), level_pair_params(config, new_params))
+    _replace(g, found["quads"], trimmed_atlas(config, old)[0].rows, trimmed_atlas(config, finest_level)[0].rows)
+    old_lod, new_lod = (stage_constants(config, k, level_tables(config, k)) for k in (old, finest_level))
+    for name, value in new_lod.items():
+        _replace(g, name, old_lod[name], value)
     _replace(g, clip_node(g).input[1], np.asarray(clip_min(old), np.float32),
              np.asarray(clip_min(finest_level), np.float32))
     starts = config.level_starts() + [config.atlas_rows()]

@@ -1,0 +1,88 @@
+"""Reading an exported model's weights back (`export_read`): re-exporting a model this version wrote
+gives the same bytes, the shipped models are in this version's layout, and `neumip export MODEL.onnx`
+rewrites a model file and refuses what it cannot read."""
+
+from __future__ import annotations
+
+from dataclasses import replace
+from pathlib import Path
+
+import numpy as np
+import onnx
+import pytest
+
+from neumip.client.cli import main
+from neumip.training.config import MaterialConfig
+from neumip.training.export import build_onnx, random_weights, save_onnx
+from neumip.training.export_read import ModelLayoutError, read_model, reexport
+from neumip.training.trim import trim_model
+
+BASE = MaterialConfig(resolution=16)
+CONFIGS = {
+    "offset": BASE,
+    "no-offset": replace(BASE, offset=False),
+    "one-layer": replace(BASE, layers=1),
+    "yuv": replace(BASE, head="yuv", channels=5, hidden=9, offset_scale=0.37),
+}
+SHIPPED = sorted(Path("models").glob("*.onnx"))
+
+
+@pytest.mark.parametrize("name", list(CONFIGS))
+def test_reexport_of_an_export_is_the_same_bytes(name):
+    config = CONFIGS[name]
+    model = build_onnx(config, random_weights(config, seed=3), "round trip", {"neumip.validation": "{}"})
+    assert reexport(model).SerializeToString() == model.SerializeToString()
+    for trimmed in (trim_model(model, 2), trim_model(trim_model(model, 1), 3)):
+        assert reexport(trimmed).SerializeToString() == trimmed.SerializeToString()
+
+
+def test_weights_read_back_are_the_weights_written():
+    """Every weight exactly, but the offset MLP's last layer: stored times offset_scale, it is read
+    back as weights that scale to the same float32 bits."""
+    config = CONFIGS["offset"]
+    weights = random_weights(config, seed=5)
+    got_config, got, meta, finest = read_model(build_onnx(config, weights, "w"))
+    assert got_config == config and finest == 0 and meta["neumip.description"] == "w"
+    assert set(got) == set(weights)
+    last = f"offset_mlp.{config.layers - 1}"
+    for name, value in weights.items():
+        if name.startswith(last):
+            assert np.array_equal(got[name] * np.float32(config.offset_scale), value * np.float32(config.offset_scale))
+        else:
+            assert np.array_equal(got[name], value), name
+
+
+@pytest.mark.skipif(not SHIPPED, reason="no shipped models")
+@pytest.mark.parametrize("path", SHIPPED, ids=[p.stem for p in SHIPPED])
+def test_shipped_models_are_in_this_versions_layout(path):
+    """So `neumip trim` and everything that reads the graph's constants works on them."""
+    model = onnx.load(str(path))
+    assert reexport(model).SerializeToString() == model.SerializeToString()
+
+
+def test_a_graph_of_another_layout_is_refused():
+    config = CONFIGS["offset"]
+    model = build_onnx(config, random_weights(config, seed=1))
+    init = next(i for i in model.graph.initializer if i.name == "decoder.0.half_weight.query")
+    init.name = "decoder.0.weight"  # as an older export named its layers
+    with pytest.raises(ModelLayoutError, match="decoder.0.half_weight.query"):
+        read_model(model)
+    del model.metadata_props[:]
+    with pytest.raises(ModelLayoutError, match="contract"):
+        read_model(model)
+
+
+def test_cli_rewrites_a_model_and_refuses_bad_input(tmp_path, capsys):
+    config = CONFIGS["offset"]
+    source = save_onnx(build_onnx(config, random_weights(config, seed=2), "cli"), tmp_path / "m.onnx")
+    out = tmp_path / "new.onnx"
+    assert main(["export", str(source), "-o", str(out)]) == 0
+    assert "largest answer difference" in capsys.readouterr().out
+    assert out.read_bytes() == source.read_bytes()
+    assert main(["export", str(source), "-o", str(out)]) != 0  # exists, no --force
+    assert "exists" in capsys.readouterr().err
+    broken = tmp_path / "broken.onnx"
+    broken.write_bytes(source.read_bytes()[: 1000])
+    assert main(["export", str(broken), "-o", str(tmp_path / "x.onnx")]) != 0
+    assert "cannot re-export" in capsys.readouterr().err
+    assert not (tmp_path / "x.onnx").exists()
