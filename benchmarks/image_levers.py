@@ -67,6 +67,7 @@ VARIANTS: dict[str, tuple[dict, object, str]] = {
     "hidden48_mincos0.3": ({"hidden": 48, "offset_min_cos": 0.3}, SHIP, ""),
     "hidden48_mincos0.3_seed1": ({"hidden": 48, "offset_min_cos": 0.3}, replace(SHIP, seed=1), ""),
     "hidden48_nooffset": ({"hidden": 48, "offset": False}, SHIP, ""),
+    "hidden64_mincos0.3": ({"hidden": 64, "offset_min_cos": 0.3}, SHIP, ""),
     "mse": ({}, replace(SHIP, loss="mse"), ""),
     "relmse": ({}, replace(SHIP, loss=RELMSE), ""),
     "hemi": ({}, SHIP, "_hemi"),
@@ -197,6 +198,26 @@ def query_space(ref: str, models: list[str]) -> None:
               + f" {lp.mean() / lt.mean():6.3f} {np.percentile(lp, 99) / np.percentile(lt, 99):6.3f}", flush=True)
 
 
+def speed(models: list[str], rounds: int = 5, n: int = 1 << 18) -> None:
+    """Seconds per n random queries of each model file on one ONNX Runtime thread, interleaved
+    round by round, median of the rounds (the cost of a wider MLP per query)."""
+    from neumip.client.contract import random_queries
+    from neumip.client.local import LocalMaterials
+
+    q = random_queries(n, seed=0, max_zenith_deg=80.0)
+    evaluators = [(Path(m), LocalMaterials(Path(m).parent, threads=1)) for m in models]
+    times: dict = {m: [] for m, _ in evaluators}
+    for _ in range(rounds):
+        for path, ev in evaluators:
+            start = time.perf_counter()
+            ev.evaluate(path.stem, q)
+            times[path].append(time.perf_counter() - start)
+    base = np.median(times[evaluators[0][0]])
+    for path, t in times.items():
+        print(f"{str(path):<40} {np.median(t):.3f} s per {n} queries ({np.median(t) / base:.2f}x the first), "
+              f"load average {os.getloadavg()[0]:.1f}")
+
+
 def no_offset_twin(variant: str) -> str:
     """The variant without the offset that `variant` is compared with: the same name with the
     offset-only settings (mincos) dropped, plus _nooffset ('base' -> 'nooffset')."""
@@ -242,6 +263,8 @@ def main() -> None:
     p = sub.add_parser("query")
     p.add_argument("models", nargs="+", help="model files")
     p.add_argument("--ref", required=True, help="low-noise reference data set (neumip generate ... --spp 256)")
+    p = sub.add_parser("speed")
+    p.add_argument("models", nargs="+", help="model files (the first is the baseline)")
     p = sub.add_parser("score")
     p.add_argument("variants", nargs="+", choices=tuple(VARIANTS))
     p.add_argument("--material", required=True)
@@ -257,6 +280,8 @@ def main() -> None:
             train(variant, args.data, Path(args.runs), args.threads)
     elif args.command == "query":
         query_space(args.ref, args.models)
+    elif args.command == "speed":
+        speed(args.models)
     elif args.command == "score":
         score(args.variants, args.material, Path(args.runs), args.cache, args.camera_res, args.out)
     else:
