@@ -132,7 +132,8 @@ def _train(args: argparse.Namespace) -> int:
     try:
         config = _train_config(args)
         resolution = args.resolution or _budget_resolution(args, output) or _data_resolution(args.data)
-        material = MaterialConfig(resolution=resolution, offset=not args.no_offset, head=args.head, hidden=args.hidden)
+        material = MaterialConfig(resolution=resolution, offset=not args.no_offset, head=args.head,
+                                  hidden=args.hidden)
         trainer = Trainer(args.data, checkpoint, material, config, args.description)
     except (ValueError, DatasetError, CheckpointError) as exc:
         raise CommandError(str(exc)) from exc
@@ -227,8 +228,8 @@ def _library_jobs(args: argparse.Namespace) -> list:
         offset = name not in args.no_offset
         kind = "neural offset" if offset else "no neural offset"
         material = MaterialConfig(resolution=resolution, offset=offset, hidden=args.hidden)
-        jobs.append(MaterialJob(name, data, material,
-                                f"{Path(data).name}, {resolution}^2, {kind}, MLP width {args.hidden}, {args.preset} preset"))
+        description = f"{Path(data).name}, {resolution}^2, {kind}, MLP width {args.hidden}, {args.preset} preset"
+        jobs.append(MaterialJob(name, data, material, description))
     unknown = set(args.no_offset) - {job.name for job in jobs}
     if unknown:
         raise CommandError(f"--no-offset names no material: {', '.join(sorted(unknown))}")

@@ -52,7 +52,9 @@ class QuerySampling:
             raise ValueError("queries_per_texel must be positive")
 
 
-def sample_directions(n: int, rng: np.random.Generator, max_zenith_deg: float, kind: str = "disk") -> np.ndarray:
+def sample_directions(
+    n: int, rng: np.random.Generator, max_zenith_deg: float, kind: str = "disk"
+) -> np.ndarray:
     """(n, 2) x, y of directions up to `max_zenith_deg`, uniform on the projected disk (`kind` 'disk')
     or in solid angle ('solid_angle': cos theta uniform)."""
     if kind == "disk":
