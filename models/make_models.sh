@@ -14,6 +14,7 @@ RES=${RES:-64}
 QPT=${QPT:-256}  # queries per finest texel: measured better than fewer queries with more spp each
 SPP=${SPP:-16}
 PRESET=${PRESET:-ship}
+HIDDEN=${HIDDEN:-48}  # MLP width: 48 measured better than the paper's 25 in images (models/README.md)
 THREADS=${THREADS:-1}  # the shipped models were trained with one torch thread
 RAY=${RAY:-}
 names=("$@")
@@ -28,7 +29,7 @@ generate_data() {  # MATERIAL [--ray=ADDRESS]
 }
 describe() {  # NAME
   local material=${1%_nooffset}
-  echo "$material, ${RES}^2, $([ "$1" != "$material" ] && echo 'no neural offset' || echo 'neural offset'), $PRESET preset"
+  echo "$material, ${RES}^2, $([ "$1" != "$material" ] && echo 'no neural offset' || echo 'neural offset'), MLP width $HIDDEN, $PRESET preset"
 }
 if [ -n "$RAY" ]; then
   jobs=() flags=()
@@ -39,7 +40,7 @@ if [ -n "$RAY" ]; then
     [ "$name" != "$material" ] && flags+=(--no-offset "$name")
   done
   exec "$NEUMIP" train-many "${jobs[@]}" "${flags[@]}" -o models --preset "$PRESET" --threads "$THREADS" \
-    --resolution "$RES" --ray="$RAY"
+    --resolution "$RES" --hidden "$HIDDEN" --ray="$RAY"
 fi
 for name in "${names[@]}"; do
   material=${name%_nooffset}
@@ -47,5 +48,5 @@ for name in "${names[@]}"; do
   [ "$name" != "$material" ] && flags=(--no-offset)
   generate_data "$material"
   "$NEUMIP" train "$(data_dir "$material")" -o "models/$name.onnx" --force --preset "$PRESET" --threads "$THREADS" \
-    --resolution "$RES" "${flags[@]}" --description "$(describe "$name")"
+    --resolution "$RES" --hidden "$HIDDEN" "${flags[@]}" --description "$(describe "$name")"
 done

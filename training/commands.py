@@ -7,7 +7,11 @@ import os
 from pathlib import Path
 
 from . import trim_command
+from .config import MaterialConfig  # torch-free
 from .train_config import PRESETS  # torch-free
+
+HIDDEN_HELP = (f"width of the hidden layers of both MLPs (default {MaterialConfig.hidden}, the paper's; "
+               "models/make_models.sh trains the shipped materials with 48: models/README.md)")
 
 
 def register(sub: argparse._SubParsersAction) -> None:
@@ -29,6 +33,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--description", default="", help="short description stored in the model metadata")
     p.add_argument("--head", choices=("relu", "yuv"), default="relu",
                    help="decoder output head: relu (paper) or yuv (authors' exp(YUV) - 1 with a shadow mask)")
+    p.add_argument("--hidden", type=int, default=MaterialConfig.hidden, help=HIDDEN_HELP)
     p.add_argument("--views-material", metavar="NAME_OR_TOML",
                    help="material whose ground truth the progress grid NAME.progress.png shows (default: the "
                         "data's own, when its description can be rebuilt from meta.json)")
@@ -116,7 +121,6 @@ def _train(args: argparse.Namespace) -> int:
     from tqdm import tqdm
 
     from .checkpoint import CheckpointError
-    from .config import MaterialConfig
     from .dataset import DatasetError
     from .outputs import progress_path, write_outputs, write_progress
     from .train import Trainer, TrainingDiverged, TrainingError
@@ -129,7 +133,8 @@ def _train(args: argparse.Namespace) -> int:
     try:
         config = _train_config(args)
         resolution = args.resolution or _budget_resolution(args, output) or _data_resolution(args.data)
-        material = MaterialConfig(resolution=resolution, offset=not args.no_offset, head=args.head)
+        material = MaterialConfig(resolution=resolution, offset=not args.no_offset, head=args.head,
+                                  hidden=args.hidden)
         trainer = Trainer(args.data, checkpoint, material, config, args.description)
     except (ValueError, DatasetError, CheckpointError) as exc:
         raise CommandError(str(exc)) from exc
@@ -211,6 +216,7 @@ def _register_train_many(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--preset", choices=tuple(PRESETS), default="ship", help="training schedule preset")
     p.add_argument("--config", help="JSON file of TrainConfig fields (applied over the preset)")
     p.add_argument("--resolution", type=int, help="finest pyramid level (default: each data set's resolution)")
+    p.add_argument("--hidden", type=int, default=MaterialConfig.hidden, help=HIDDEN_HELP)
     p.add_argument("--no-offset", action="append", default=[], metavar="NAME",
                    help="train NAME without the neural offset (repeatable)")
     p.add_argument("--steps", type=int, help="override TrainConfig.steps")
@@ -225,7 +231,6 @@ def _library_jobs(args: argparse.Namespace) -> list:
     """The MaterialJob of every [NAME=]DATA, described as models/make_models.sh describes them."""
     from neumip.client.cli import CommandError
 
-    from .config import MaterialConfig
     from .library import MaterialJob
 
     jobs = []
@@ -235,8 +240,9 @@ def _library_jobs(args: argparse.Namespace) -> list:
         resolution = args.resolution or _data_resolution(data)
         offset = name not in args.no_offset
         kind = "neural offset" if offset else "no neural offset"
-        material = MaterialConfig(resolution=resolution, offset=offset)
-        jobs.append(MaterialJob(name, data, material, f"{Path(data).name}, {resolution}^2, {kind}, {args.preset} preset"))
+        material = MaterialConfig(resolution=resolution, offset=offset, hidden=args.hidden)
+        description = f"{Path(data).name}, {resolution}^2, {kind}, MLP width {args.hidden}, {args.preset} preset"
+        jobs.append(MaterialJob(name, data, material, description))
     unknown = set(args.no_offset) - {job.name for job in jobs}
     if unknown:
         raise CommandError(f"--no-offset names no material: {', '.join(sorted(unknown))}")

@@ -38,14 +38,15 @@ def job(name: str, data, offset: bool = True) -> MaterialJob:
 def test_cli_trains_a_library_then_skips_it(data, tmp_path, capsys):
     models = tmp_path / "models"
     argv = ["train-many", str(data), f"flat={data}", "--no-offset", "flat", "-o", str(models),
-            "--runs", str(tmp_path / "runs"), "--preset", "test", "--steps", "30", "--resolution", "8"]
+            "--runs", str(tmp_path / "runs"), "--preset", "test", "--steps", "30", "--resolution", "8", "--hidden", "9"]
     assert main(argv) == 0
     out = capsys.readouterr().out
     assert "2 trained, 0 skipped, 0 failed" in out and "MSE x1e-3" in out
     materials = LocalMaterials(models)
     assert materials.materials() == ["flat", "plane"] and not list(models.glob(".*"))
-    assert materials.get("plane").info()["description"] == "plane, 8^2, neural offset, test preset"
-    assert json.loads((models / "flat.json").read_text())["material_config"]["offset"] is False
+    assert materials.get("plane").info()["description"] == "plane, 8^2, neural offset, MLP width 9, test preset"
+    flat = json.loads((models / "flat.json").read_text())["material_config"]
+    assert flat["offset"] is False and flat["hidden"] == 9
     stamp = (models / "plane.onnx").stat().st_mtime_ns
     assert main(argv) == 0  # everything finished: nothing is retrained
     assert "0 trained, 2 skipped, 0 failed" in capsys.readouterr().out

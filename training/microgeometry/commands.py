@@ -20,7 +20,7 @@ def register(sub: argparse._SubParsersAction) -> None:
         "made with the same settings it does nothing.",
     )
     from .generate import GenerateSettings  # the defaults shown are the settings' own
-    from .sampling import QuerySampling
+    from .sampling import DIRECTIONS, QuerySampling
     from .tracer import TracerConfig
 
     p.add_argument("material", nargs="?", help="shipped material name (see --list) or a .toml description")
@@ -35,6 +35,9 @@ def register(sub: argparse._SubParsersAction) -> None:
                    help="surface interactions per path")
     p.add_argument("--max-zenith", type=float, help="largest zenith angle of wi, wo in degrees "
                    f"(default: {QuerySampling.max_zenith_deg:.2f}, the authors' r = sqrt(0.99 U))")
+    p.add_argument("--directions", choices=DIRECTIONS, default=QuerySampling.directions,
+                   help="distribution of wi, wo: uniform on the projected disk (the authors') or in solid angle "
+                   "(4x the grazing queries)")
     p.add_argument("--level-fraction", type=float, default=QuerySampling.level_fraction,
                    help="share of sigma log-uniform over levels")
     p.add_argument("--heavy-fraction", type=float, default=QuerySampling.heavy_fraction,
@@ -95,6 +98,7 @@ def _settings(args: argparse.Namespace):
         queries_per_texel=args.queries_per_texel,
         level_fraction=args.level_fraction,
         heavy_fraction=args.heavy_fraction,
+        directions=args.directions,
         **({} if args.max_zenith is None else {"max_zenith_deg": args.max_zenith}),
     )
     return GenerateSettings(

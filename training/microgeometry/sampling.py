@@ -4,7 +4,9 @@ Defaults follow the NeuMIP authors' code:
 
 - ``u, v`` uniform over the tile ``[0, 1)^2``;
 - ``wi`` and ``wo`` independent, uniform on the projected disk up to ``max_zenith_deg``
-  (``r = sin(theta_max) sqrt(U)``; the default 84.26 degrees is their ``r = sqrt(0.99 U)``);
+  (``r = sin(theta_max) sqrt(U)``; the default 84.26 degrees is their ``r = sqrt(0.99 U)``), or
+  (``directions="solid_angle"``) uniform in solid angle over the same cap, which gives the grazing
+  directions 4x the queries (beyond 80 degrees: 8 % instead of 2 %);
 - ``sigma`` a mixture over levels of detail, in finest texels ``t = 1 / resolution``:
   ``level_fraction`` log-uniform over all levels (``sigma = 2^L t``, ``L ~ U(0, log2 R)``),
   ``heavy_fraction`` heavy-tailed ``sigma = t / sqrt(U)`` (most mass near the finest level),
@@ -21,12 +23,17 @@ import numpy as np
 from neumip.client import contract as C
 
 
+DIRECTIONS = ("disk", "solid_angle")
+
+
 @dataclass
 class QuerySampling:
     """Distribution of the generated queries."""
 
     max_zenith_deg: float = math.degrees(math.asin(math.sqrt(0.99)))
-    """Largest zenith angle of wi and wo (degrees); directions are uniform on the projected disk."""
+    """Largest zenith angle of wi and wo (degrees)."""
+    directions: str = "disk"
+    """'disk': uniform on the projected disk (the authors'); 'solid_angle': uniform in solid angle."""
     level_fraction: float = 0.3
     """Share of queries with sigma log-uniform over all levels of detail."""
     heavy_fraction: float = 0.6
@@ -37,15 +44,24 @@ class QuerySampling:
     def __post_init__(self) -> None:
         if not 0 < self.max_zenith_deg < 90:
             raise ValueError(f"max_zenith_deg must be in (0, 90), got {self.max_zenith_deg}")
+        if self.directions not in DIRECTIONS:
+            raise ValueError(f"directions must be one of {DIRECTIONS}, got {self.directions!r}")
         if self.level_fraction < 0 or self.heavy_fraction < 0 or self.level_fraction + self.heavy_fraction > 1:
             raise ValueError("level_fraction and heavy_fraction must be >= 0 and sum to at most 1")
         if self.queries_per_texel <= 0:
             raise ValueError("queries_per_texel must be positive")
 
 
-def sample_directions(n: int, rng: np.random.Generator, max_zenith_deg: float) -> np.ndarray:
-    """(n, 2) x, y of directions uniform on the projected disk up to `max_zenith_deg`."""
-    r = math.sin(math.radians(max_zenith_deg)) * np.sqrt(rng.random(n))
+def sample_directions(
+    n: int, rng: np.random.Generator, max_zenith_deg: float, kind: str = "disk"
+) -> np.ndarray:
+    """(n, 2) x, y of directions up to `max_zenith_deg`, uniform on the projected disk (`kind` 'disk')
+    or in solid angle ('solid_angle': cos theta uniform)."""
+    if kind == "disk":
+        r = math.sin(math.radians(max_zenith_deg)) * np.sqrt(rng.random(n))
+    else:
+        cos = 1.0 - (1.0 - math.cos(math.radians(max_zenith_deg))) * rng.random(n)
+        r = np.sqrt(1.0 - cos * cos)
     phi = 2 * math.pi * rng.random(n)
     return np.stack([r * np.cos(phi), r * np.sin(phi)], axis=1)
 
@@ -66,6 +82,6 @@ def sample_queries(n: int, rng: np.random.Generator, resolution: int, config: Qu
     """(n, 7) float32 queries in the contract's layout, drawn from `config` for a material of `resolution`."""
     uv = rng.random((n, 2), dtype=np.float32)  # float32 draws stay below 1
     sigma = sample_sigma(n, rng, resolution, config)
-    wi = sample_directions(n, rng, config.max_zenith_deg)
-    wo = sample_directions(n, rng, config.max_zenith_deg)
+    wi = sample_directions(n, rng, config.max_zenith_deg, config.directions)
+    wo = sample_directions(n, rng, config.max_zenith_deg, config.directions)
     return C.pack_queries(uv[:, 0], uv[:, 1], sigma, wi, wo)

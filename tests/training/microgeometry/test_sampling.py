@@ -33,6 +33,21 @@ def test_directions_fill_the_projected_disk_up_to_the_cap(queries):
         assert abs(queries[:, x].mean()) < 0.01 and abs(queries[:, y].mean()) < 0.01
 
 
+def test_solid_angle_directions_are_uniform_in_cos_theta():
+    cfg = QuerySampling(directions="solid_angle")
+    q = sample_queries(N, np.random.default_rng(0), RES, cfg)
+    cos_cap = math.cos(math.radians(cfg.max_zenith_deg))
+    for x, y in ((C.WI_X, C.WI_Y), (C.WO_X, C.WO_Y)):
+        cos = np.sqrt(1 - q[:, x].astype(np.float64) ** 2 - q[:, y] ** 2)
+        assert cos.min() >= cos_cap - 1e-6 and cos.max() <= 1
+        # cos theta uniform on [cos_cap, 1]: its CDF at the midpoint is 1/2
+        assert (cos < (1 + cos_cap) / 2).mean() == pytest.approx(0.5, abs=0.01)
+        # 4x the grazing queries of the projected disk beyond 80 degrees
+        grazing = (cos < math.cos(math.radians(80))).mean()
+        assert grazing == pytest.approx((math.cos(math.radians(80)) - cos_cap) / (1 - cos_cap), abs=0.005)
+        assert abs(q[:, x].mean()) < 0.01 and abs(q[:, y].mean()) < 0.01
+
+
 def test_sigma_mixture(queries):
     sigma = queries[:, C.SIGMA].astype(np.float64)
     cfg = QuerySampling()
@@ -52,5 +67,7 @@ def test_seeded(queries):
 def test_bad_settings_are_rejected():
     with pytest.raises(ValueError, match="max_zenith"):
         QuerySampling(max_zenith_deg=90)
+    with pytest.raises(ValueError, match="directions"):
+        QuerySampling(directions="cosine")
     with pytest.raises(ValueError, match="sum"):
         QuerySampling(level_fraction=0.7, heavy_fraction=0.6)
