@@ -78,13 +78,16 @@ class GenerateSettings:
     def to_meta(self, desc: MaterialDescription) -> dict:
         """What identifies the data (pass sizes and the wavefront width do not change it)."""
         tracer = {k: v for k, v in asdict(self.tracer).items() if k != "lanes"}
+        sampling = asdict(self.sampling)
+        if sampling["directions"] == "disk":  # the only kind before the option: older data sets stay valid
+            del sampling["directions"]
         return {
             "name": GENERATOR,
             "queries": self.query_count(desc),
             "spp": self.spp,
             "seed": self.seed,
             "resolution": self.sampling_resolution(desc),
-            "sampling": asdict(self.sampling),
+            "sampling": sampling,
             "tracer": tracer,
             "tiling": asdict(self.tiling),
         }

@@ -86,3 +86,16 @@ def test_default_query_count_follows_texels():
     settings = GenerateSettings()
     assert settings.query_count(small("yarn", 64)) == 256 * 64 * 64
     assert GenerateSettings(resolution=32).query_count(small("yarn", 64)) == 256 * 32 * 32
+
+
+def test_default_directions_keep_older_data_sets_valid():
+    """Data sets made before `directions` existed identify themselves without it: the default
+    ('disk') leaves it out of the metadata, another kind names itself."""
+    from neumip.training.microgeometry.sampling import QuerySampling
+
+    desc = find_description("flat")
+    disk = GenerateSettings(queries=64, seed=0).to_meta(desc)
+    assert "directions" not in disk["sampling"]
+    solid = GenerateSettings(queries=64, seed=0, sampling=QuerySampling(directions="solid_angle")).to_meta(desc)
+    assert solid["sampling"]["directions"] == "solid_angle"
+    assert {k: v for k, v in solid["sampling"].items() if k != "directions"} == disk["sampling"]
