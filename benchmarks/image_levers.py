@@ -43,7 +43,7 @@ from neumip.training.train_config import PRESETS  # noqa: E402
 
 SHIP = replace(PRESETS["ship"], validate_every=0)
 RECIPE = {"resolution": 64, "hidden": 25, "offset_min_cos": 0.6}
-"""The architecture the variants change one thing of: the shipped models' before this study."""
+"""The architecture the variants change one thing of: the shipped models'."""
 RELMSE = "mse"
 """A variant whose TrainConfig has this loss and whose name starts with 'relmse' trains with `relmse`."""
 

@@ -81,6 +81,16 @@ def sigma_for_level(level: float, resolution: int) -> float:
     return 2.0**level / resolution
 
 
+MIN_SAMPLE_FOOTPRINT = 1 / 8
+"""Smallest share of the pixel footprint a sample reads (pbrt-v4's floor)."""
+
+
+def sample_footprint(spp: int) -> float:
+    """Share of a pixel's footprint (std) that one of ``spp`` samples per pixel queries: the samples
+    average over the pixel themselves, so each reads ``max(1/8, 1/sqrt(spp))`` of it (pbrt-v4's rule)."""
+    return max(MIN_SAMPLE_FOOTPRINT, 1 / math.sqrt(max(spp, 1)))
+
+
 def as_queries(data: object, *, copy: bool = False) -> np.ndarray:
     """Check a buffer against the contract and return it as a C-contiguous (N, 7) float32 array.
 

@@ -14,7 +14,7 @@ RES=${RES:-64}
 QPT=${QPT:-256}  # queries per finest texel: measured better than fewer queries with more spp each
 SPP=${SPP:-16}
 PRESET=${PRESET:-ship}
-HIDDEN=${HIDDEN:-25}  # MLP width, the paper's; 48 is 7-30 % more accurate and 1.34x the render time (models/README.md)
+HIDDEN=${HIDDEN:-25}  # MLP width, the paper's; 48 was 0-32 % more accurate in images and 1.34x the render time (models/README.md)
 THREADS=${THREADS:-1}  # the shipped models were trained with one torch thread
 RAY=${RAY:-}
 names=("$@")
@@ -29,7 +29,7 @@ generate_data() {  # MATERIAL [--ray=ADDRESS]
 }
 describe() {  # NAME
   local material=${1%_nooffset}
-  echo "$material, ${RES}^2, $([ "$1" != "$material" ] && echo 'no neural offset' || echo 'neural offset'), MLP width $HIDDEN, $PRESET preset"
+  echo "$material, ${RES}^2, $([ "$1" != "$material" ] && echo 'no neural offset' || echo 'neural offset'),$([ "$HIDDEN" != 25 ] && echo " MLP width $HIDDEN,") $PRESET preset"
 }
 if [ -n "$RAY" ]; then
   jobs=() flags=()

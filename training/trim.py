@@ -101,6 +101,8 @@ def trim_model(model: onnx.ModelProto, finest_level: int) -> onnx.ModelProto:
         raise TrimError(f"finest level must be in [{old}, {config.levels}] for this model, got {finest_level}")
     out = onnx.ModelProto()
     out.CopyFrom(model)
+    if finest_level == old:  # nothing to cut: the same model, bit for bit
+        return out
     g = out.graph
     found = texture_constants(g, "pyramid")
     _replace(g, found["quads"], trimmed_atlas(config, old)[0].rows, trimmed_atlas(config, finest_level)[0].rows)

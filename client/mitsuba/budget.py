@@ -6,7 +6,7 @@ point) with a `PreviewRecorder` as the evaluator: it answers every query with th
 Lambertian (``preview_albedo / pi``, no neural evaluation) and keeps each query's footprint sigma
 (tile units, ``uv_scale`` applied). A few samples per pixel suffice: they are traced with the
 footprints of a render at the scene's own spp (or ``render_spp``), which is what sets each sample's
-share of the pixel footprint (`integrator.sample_footprint`).
+share of the pixel footprint (`contract.sample_footprint`).
 
 Per material, `material_budget` turns the footprints into what a model of finest resolution R reads:
 the level of detail ``log2(sigma R)`` (`contract.level_of_detail`), whose floor is the finer of the
@@ -30,9 +30,9 @@ from pathlib import Path
 import numpy as np
 
 from neumip.client import contract as C
+from neumip.client.contract import sample_footprint
 
 from .bsdf import mi
-from .integrator import sample_footprint
 from .render import RenderConfig, render_scene
 from .shading import neural_bsdfs
 
@@ -65,9 +65,8 @@ class PreviewRecorder:
 def trace_footprints(scene: mi.Scene, spp: int = 4, seed: int = 0,
                      render_spp: int | None = None) -> dict[str, np.ndarray]:
     """Render ``scene`` at ``spp`` with the preview answers and the footprints of a render at
-    ``render_spp`` (default: the scene's sampler count) -> material -> (N,) query sigmas."""
+    ``render_spp`` (default: ``spp``, as `render_scene`) -> material -> (N,) query sigmas."""
     recorder = PreviewRecorder(scene)
-    render_spp = render_spp or scene.sensors()[0].sampler().sample_count()
     render_scene(scene, recorder, RenderConfig(spp=spp, seed=seed, footprint_spp=render_spp))
     return {name: recorder.footprints(name) for name in recorder.materials()}
 
@@ -122,10 +121,12 @@ def material_budget(material: str, sigma: np.ndarray, resolution: int, coverage:
                     sample_share: float = 1.0) -> MaterialBudget:
     """Levels read by queries of footprints ``sigma`` (N,) on a model of finest ``resolution``.
 
-    ``sample_share``: the share of the pixel footprint each query read (`integrator.sample_footprint`
+    ``sample_share``: the share of the pixel footprint each query read (`contract.sample_footprint`
     of the render's spp). The levels read (and so the trim) follow the queries; the resolution a
     scene needs follows the pixel footprint ``sigma / sample_share``: detail finer than a pixel is
-    averaged by the pixel's samples, so it need not be resolved by the model.
+    averaged by the pixel's samples, so it need not be resolved by the model. (After a bounce the
+    ray cone's spread is not a share of anything, so those footprints come out coarser than they
+    are; they are the widest anyway and do not reach the closest quantile.)
     """
     if not 0 < coverage <= 1:
         raise ValueError(f"coverage must be in (0, 1], got {coverage}")

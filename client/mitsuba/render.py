@@ -47,7 +47,7 @@ class RenderConfig:
     threads: int = 0
     """Mitsuba worker threads (0: leave drjit's default)."""
     footprint_spp: int | None = None
-    """spp whose per-sample footprint the queries use (`integrator.sample_footprint`); None: ``spp``.
+    """spp whose per-sample footprint the queries use (`contract.sample_footprint`); None: ``spp``.
     `neumip budget` traces a few samples with the footprints of the scene's full spp."""
 
 

@@ -81,6 +81,9 @@ def test_trim_equals_an_export_at_that_level_and_trims_again(untrimmed, tmp_path
     assert (record.finest_level, record.finest_resolution, record.levels_cut) == (2, 4, [16, 8])
     assert record.texels_cut == 16 * 16 + 8 * 8 and record.bytes_before == model.ByteSize()
     assert twice.ByteSize() < model.ByteSize() - 4 * config.channels * record.texels_cut
+    # nothing to cut: the same model, bit for bit
+    assert trim_model(twice, 2).SerializeToString() == twice.SerializeToString()
+    assert trim_model(model, 0).SerializeToString() == model.SerializeToString()
     with pytest.raises(TrimError, match=r"finest level must be in \[2, 4\]"):
         trim_model(twice, 1)
     with pytest.raises(TrimError, match="finest level"):

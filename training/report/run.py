@@ -19,6 +19,7 @@ from .analysis import close_up_checks, headline
 from .cache import RenderCache
 from .config import ReportConfig
 from .pipeline import REFERENCE_SEEDS, run_material, view_steps
+from .renderer import NEURAL_VERSION, file_digest
 from .views import DISTANCE_VIEWS, VIEWS, View
 
 log = logging.getLogger(__name__)
@@ -132,8 +133,9 @@ def horizon(out, config, evaluator, cache, progress) -> dict:
     }
     images, rows = {}, {}
     for method, make in bsdfs.items():
-        key = {"horizon": HORIZON_MATERIAL, "method": method, "film": asdict(config.horizon_film), "spp": config.spp,
-               "model": (evaluator.get(HORIZON_MATERIAL).path.stat().st_mtime if method == "N" else None)}
+        key = {"horizon": HORIZON_MATERIAL, "method": method, "film": asdict(config.horizon_film), "spp": config.spp}
+        if method == "N":
+            key["model"], key["neural_version"] = file_digest(evaluator.get(HORIZON_MATERIAL).path), NEURAL_VERSION
         cached = cache.get(key)
         if cached is None:
             integrator = "neumip_path" if method == "N" else "path"
@@ -186,10 +188,9 @@ def _render_variant(renderer, spec, evaluator, name, onnx, config, view) -> np.n
     from neumip.client.mitsuba import render as R
 
     from .methods import neural_scene
-    from .renderer import file_digest
 
     key = {"tradeoff": name, "model": file_digest(onnx), "view": asdict(view), "film": asdict(config.film),
-           "spp": config.spp, "resolution": spec.resolution}
+           "spp": config.spp, "resolution": spec.resolution, "neural_version": NEURAL_VERSION}
     cached = renderer.cache.get(key)
     if cached is not None:
         return cached.image

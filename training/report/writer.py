@@ -2,7 +2,10 @@
 
 from __future__ import annotations
 
+import math
 from pathlib import Path
+
+from neumip.client.contract import sample_footprint
 
 from .analysis import COMPARED, OFFSET_VIEWS, winning_footprint
 from .config import ReportConfig
@@ -100,14 +103,15 @@ def write_markdown(out: Path, results: dict, config: ReportConfig) -> Path:
          f"(up to 4 surface interactions, as the ground-truth tracer). Reference = mean of two seeds at "
          f"{cfg.reference_spp} spp each; its noise (MSE of the mean, from the two seeds) is listed per view.",
          "- **N** / **N0**: the shipped neural material with / without the neural offset, `neumip_path`. Each of "
-         "n samples per pixel queries max(1/8, 1/sqrt(n)) of the pixel footprint (pbrt-v4's rule): at 64 spp, "
-         "three levels finer than the footprint.",
+         "n samples per pixel queries max(1/8, 1/sqrt(n)) of the pixel footprint (pbrt-v4's rule): at "
+         f"{cfg.spp} spp, {math.log2(1 / sample_footprint(cfg.spp)):g} levels finer than the footprint.",
          "- **C**: the generator's principled BSDF with full-resolution albedo, roughness and metallic bitmaps and a "
          "`normalmap` from the height's periodic central-difference gradient, stock `path`.",
          "- **Cmip**: C with every map box-averaged by 2^k before rendering, k = log2(pixel step x map resolution) at "
          "the image centre (one texel per pixel step, the trilinear mip rule; Mitsuba 3.9's bitmap has no mipmap "
          "filter, so the level is chosen per view). The normal map of level k comes from the box-averaged height, "
-         "i.e. averaged slopes: grooves flatten as in a mip-mapped normal map.",
+         "i.e. averaged slopes: grooves flatten as in a mip-mapped normal map. Unlike N, Cmip's prefilter is the "
+         "whole pixel step at every spp: it is what a real-time mip lookup reads, and it blurs the pixel twice.",
          f"- **Metrics**: linear-RGB MSE (x 1e-3); LDR-FLIP (`flip-evaluator`) and SSIM (scikit-image) after the same "
          "tone mapping (exposure mapping R's mean luminance to 0.25, clip, sRGB); mean luminance / R's. "
          f"Each method is rendered with two seeds at {cfg.spp} spp: noise = MSE(seed 0, seed 1) / 2, "
@@ -122,7 +126,7 @@ def write_markdown(out: Path, results: dict, config: ReportConfig) -> Path:
           f"by MSE at {cfg.spp} spp (what a render at equal samples shows; the neural material is also less noisy "
           "per sample) and by bias (the error floor left after the noise is averaged away):", ""]
     L += winners(results) + [""]
-    L += ["Close-ups: the neural offset's gain (N0's MSE / N's, at 64 spp; above 1: the offset helps) at 1 and 4 "
+    L += [f"Close-ups: the neural offset's gain (N0's MSE / N's, at {cfg.spp} spp; above 1: the offset helps) at 1 and 4 "
           "texels and at the grazing views, and whether N's highlights survive a light 5 degrees above the horizon "
           "(its mean and 99th-percentile luminance / R's):", ""]
     L += close_up_table(results) + [""]

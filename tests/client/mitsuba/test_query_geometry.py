@@ -19,7 +19,7 @@ import pytest
 
 from neumip.client import contract as C
 from neumip.client.mitsuba.bsdf import mi
-from neumip.client.mitsuba.integrator import sample_footprint
+from neumip.client.contract import sample_footprint
 from neumip.client.mitsuba.render import RenderConfig, render_scene
 
 from .recording import Recording
