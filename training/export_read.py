@@ -16,6 +16,10 @@ What the graph keeps, by initializer name (the writer is `export.py`; matrices a
   (hidden, 7: the columns it reads, zeros elsewhere);
 - the offset MLP's last layer is stored folded (`export._depth_weights`: its one output repeated
   twice, times ``offset_scale``); it is unfolded to weights that fold to the same bits.
+
+Models written before issue 12's graph (row-major MLPs: ``{prefix}.{i}.weight`` (out, in) and
+``.bias`` (out,), the first layer split over a query Gemm and a texture Gemm) are read too
+(`_previous_layer`), so `neumip export OLD.onnx` brings them to this layout.
 """
 
 from __future__ import annotations
@@ -57,6 +61,21 @@ def _layer(inits: dict, prefix: str, i: int, columns: list[int]) -> tuple[np.nda
     return weight, bias[:, 0]
 
 
+def _previous_layer(model: onnx.ModelProto, inits: dict, prefix: str, i: int,
+                    columns: list[int]) -> tuple[np.ndarray, np.ndarray]:
+    """Layer i of MLP `prefix` in the layout before issue 12: weights (out, in), bias (out,). The first
+    layer is two Gemms: the query's (7, hidden) rows, whose output is the texture Gemm's bias."""
+    if i > 0:
+        return inits[f"{prefix}.{i}.weight"], inits[f"{prefix}.{i}.bias"]
+    gemms = [n for n in model.graph.node if n.op_type == "Gemm"]
+    query = [n for n in gemms if n.input[0] == C.ONNX_INPUT and list(n.input[2:]) == [f"{prefix}.0.bias"]]
+    texture = [n for n in gemms if query and list(n.input[2:]) == [query[0].output[0]]]
+    if len(query) != 1 or len(texture) != 1:
+        raise ModelLayoutError(f"{prefix}.0: not the two Gemms of an older export")
+    rows, w_tex = inits[query[0].input[1]], inits[texture[0].input[1]]  # (7, hidden), (C, hidden)
+    return np.concatenate([w_tex.T, rows[columns].T], axis=1), inits[f"{prefix}.0.bias"]
+
+
 def _unfold_depth(folded: dict, config: MaterialConfig) -> dict:
     """The offset MLP's last layer as stored (2 rows, times offset_scale) -> weights of one output
     that `export._depth_weights` folds to the same bits (of the float32 neighbours of w / scale)."""
@@ -88,14 +107,16 @@ def read_model(model: onnx.ModelProto) -> tuple[MaterialConfig, dict[str, np.nda
     inits = _initializers(model)
     textures = ["pyramid"] + (["offset_texture"] if config.offset else [])
     prefixes = ["decoder"] + (["offset_mlp"] if config.offset else [])
+    previous = "decoder.0.half_weight.texture" not in inits  # the layout before issue 12
     try:
         weights = {name: inits[name] for name in textures}
         for prefix in prefixes:
             for i in range(config.layers):
-                weights[f"{prefix}.{i}.weight"], weights[f"{prefix}.{i}.bias"] = _layer(
-                    inits, prefix, i, QUERY_COLUMNS[prefix])
+                layer = (_previous_layer(model, inits, prefix, i, QUERY_COLUMNS[prefix]) if previous
+                         else _layer(inits, prefix, i, QUERY_COLUMNS[prefix]))
+                weights[f"{prefix}.{i}.weight"], weights[f"{prefix}.{i}.bias"] = layer
     except KeyError as exc:
-        raise ModelLayoutError(f"no initializer {exc}: not a graph of this export") from exc
+        raise ModelLayoutError(f"no initializer {exc}: not a graph of this export or the one before") from exc
     if config.offset:
         weights = _unfold_depth(weights, config)
     return config, weights, meta, finest

@@ -14,7 +14,7 @@ import pytest
 from neumip.client.cli import main
 from neumip.training.config import MaterialConfig
 from neumip.training.export import build_onnx, random_weights, save_onnx
-from neumip.training.export_read import ModelLayoutError, read_model, reexport
+from neumip.training.export_read import ModelLayoutError, answer_difference, read_model, reexport
 from neumip.training.trim import trim_model
 
 BASE = MaterialConfig(resolution=16)
@@ -86,3 +86,19 @@ def test_cli_rewrites_a_model_and_refuses_bad_input(tmp_path, capsys):
     assert main(["export", str(broken), "-o", str(tmp_path / "x.onnx")]) != 0
     assert "cannot re-export" in capsys.readouterr().err
     assert not (tmp_path / "x.onnx").exists()
+
+
+@pytest.mark.parametrize("name", ["offset", "nooffset"])
+def test_a_model_of_the_previous_layout_is_rewritten_bit_identically(name, tmp_path, capsys):
+    """Tiny models written by the export before issue 12 (commit 3a4acaa, kept as test data): `neumip
+    export OLD.onnx` rewrites them in this layout with the same answers, bit for bit."""
+    source = Path(__file__).parent / "data" / f"pre_issue12_{name}.onnx"
+    old = onnx.load(str(source))
+    assert "decoder.1.weight" in {i.name for i in old.graph.initializer}  # the older layer names
+    new = reexport(old)
+    assert answer_difference(old, new, n=1 << 15) == 0.0
+    assert reexport(new).SerializeToString() == new.SerializeToString()  # now in this layout
+    out = tmp_path / "new.onnx"
+    assert main(["export", str(source), "-o", str(out)]) == 0
+    assert capsys.readouterr().out.rstrip().endswith("random queries: 0")
+    trim_model(onnx.load(str(out)), 1)  # trim reads it now
