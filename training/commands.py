@@ -185,14 +185,14 @@ def _export(args: argparse.Namespace) -> int:
     if args.checkpoint.endswith(".onnx"):
         from google.protobuf.message import DecodeError
 
-        from .export_read import reexport_file
+        from .export_read import CHECK_QUERIES, reexport_file
 
         try:
             path, difference = reexport_file(args.checkpoint, args.output, args.description)
         except (OSError, ValueError, DecodeError) as exc:  # ModelLayoutError, unreadable or corrupt file
             raise CommandError(f"{args.checkpoint}: cannot re-export: {exc}") from exc
         print(f"wrote {path} ({path.stat().st_size / 1e6:.2f} MB); largest answer difference from "
-              f"{args.checkpoint} on 65 536 random queries: {difference:.3g}")
+              f"{args.checkpoint} on {CHECK_QUERIES:,} random queries: {difference:.3g}")
         return 0
     path = export_checkpoint(args.checkpoint, args.output, args.description)
     print(f"wrote {path} ({path.stat().st_size / 1e6:.2f} MB)")
@@ -241,7 +241,8 @@ def _library_jobs(args: argparse.Namespace) -> list:
         offset = name not in args.no_offset
         kind = "neural offset" if offset else "no neural offset"
         material = MaterialConfig(resolution=resolution, offset=offset, hidden=args.hidden)
-        description = f"{Path(data).name}, {resolution}^2, {kind}, MLP width {args.hidden}, {args.preset} preset"
+        width = f"MLP width {args.hidden}, " if args.hidden != MaterialConfig.hidden else ""
+        description = f"{Path(data).name}, {resolution}^2, {kind}, {width}{args.preset} preset"
         jobs.append(MaterialJob(name, data, material, description))
     unknown = set(args.no_offset) - {job.name for job in jobs}
     if unknown:

@@ -35,6 +35,7 @@ from neumip.client import contract as C
 
 from .config import MaterialConfig
 from .export import _depth_weights, build_onnx, save_onnx
+from .onnx_graph import COLUMN_ALPHA
 
 QUERY_COLUMNS = {"decoder": [C.WI_X, C.WI_Y, C.WO_X, C.WO_Y], "offset_mlp": [C.WO_X, C.WO_Y]}
 """The query columns each MLP's first layer reads after the texture features (`export.material_graph`)."""
@@ -51,9 +52,10 @@ def _initializers(model: onnx.ModelProto) -> dict[str, np.ndarray]:
 def _layer(inits: dict, prefix: str, i: int, columns: list[int]) -> tuple[np.ndarray, np.ndarray]:
     """Layer i of MLP `prefix`: weights (out, in), bias (out,)."""
     if i > 0:
-        weight = inits[f"{prefix}.{i}.half_weight"] * np.float32(2.0)
+        weight = inits[f"{prefix}.{i}.half_weight"] * np.float32(COLUMN_ALPHA)
     else:
-        texture, query = (inits[f"{prefix}.0.half_weight.{part}"] * np.float32(2.0) for part in ("texture", "query"))
+        texture, query = (inits[f"{prefix}.0.half_weight.{part}"] * np.float32(COLUMN_ALPHA)
+                          for part in ("texture", "query"))
         weight = np.concatenate([texture, query[:, columns]], axis=1)
     bias = inits[f"{prefix}.{i}.bias"]
     if bias.shape != (weight.shape[0], 1):
@@ -130,7 +132,12 @@ def reexport(model: onnx.ModelProto) -> onnx.ModelProto:
     return build_onnx(config, weights, meta.get(C.META_DESCRIPTION, ""), extra, finest)
 
 
-def answer_difference(old: onnx.ModelProto, new: onnx.ModelProto, n: int = 65536, seed: int = 0) -> float:
+CHECK_QUERIES = 65536
+"""Random queries on which a rewritten model is compared with the file it came from."""
+
+
+def answer_difference(old: onnx.ModelProto, new: onnx.ModelProto, n: int = CHECK_QUERIES,
+                      seed: int = 0) -> float:
     """Largest |old - new| answer of the two models on `n` random queries (one thread)."""
     import onnxruntime as ort
 

@@ -188,7 +188,8 @@ class SceneBudget:
     """Samples per pixel of the render whose footprints were traced."""
 
     def to_json(self) -> str:
-        return json.dumps({"spp": self.spp, "render_spp": self.render_spp, "materials": [m.to_dict() for m in self.materials]}, indent=2)
+        materials = [m.to_dict() for m in self.materials]
+        return json.dumps({"spp": self.spp, "render_spp": self.render_spp, "materials": materials}, indent=2)
 
 
 DEFAULT_RESOLUTION = 64
@@ -227,7 +228,8 @@ def format_budget(budget: SceneBudget, width: int = 40) -> str:
         if m.trimmed_bytes is not None:
             lines.append(f"  bytes: {m.model_bytes:,} now, {m.trimmed_bytes:,} trimmed to level {m.finest_level}")
         verdict = (f"the model ({m.resolution}^2) is too coarse for the closest views: "
-                   f"{100 * m.magnified:.2f} % of queries come from pixels finer than level 0" if m.too_coarse else "the model suffices")
+                   f"{100 * m.magnified:.2f} % of queries come from pixels finer than level 0"
+                   if m.too_coarse else "the model suffices")
         lines.append(f"  recommended finest training resolution: {m.recommended_resolution}^2 ({verdict})")
     return "\n".join(lines)
 

@@ -47,7 +47,8 @@ def register(sub: argparse._SubParsersAction) -> None:
     b.add_argument("--models", type=Path, default=Path(DEFAULT_MODELS), help="folder of the .onnx materials")
     b.add_argument("--spp", type=int, default=4, help="samples per pixel traced (default 4)")
     b.add_argument("--render-spp", type=int, default=None,
-                   help="spp of the render to budget for: it sets each sample's footprint (default: the scene's)")
+                   help="spp of the render to budget for: it sets each sample's footprint "
+                   "(default: the scene's)")
     b.add_argument("--coverage", type=float, default=0.999,
                    help="share of queries the finest level that matters must serve (default 0.999)")
     b.add_argument("--plot", type=Path, default=None, help="write the per-level histograms to this image")

@@ -23,8 +23,9 @@ pixel's ``n`` samples reads a share of it: ``filter_std * sample_footprint(n)``,
 1/sqrt(n) unclamped). The samples are spread over the filter and averaged, so the image is already
 the material filtered by the pixel; a query that read the whole pixel footprint would filter it a
 second time (a sqrt(2) wider blur: with the same models, `neumip report` measured 1.2-3.3x the
-image MSE at footprints of 4 texels; README, "Evidence report"). At 1 spp a sample reads the whole footprint (no aliasing); the 1/8 floor keeps
-the lookups prefiltered enough that high spp does not fall back to aliased finest-level reads.
+image MSE at footprints of 4 texels; README, "Evidence report"). At 1 spp a sample reads the whole
+footprint (no aliasing); the 1/8 floor keeps the lookups prefiltered enough that high spp does not
+fall back to aliased finest-level reads.
 ``n`` is the whole render's spp (`bind`), not one pass's.
 - first hit: ``filter_std * sample_footprint(n) * max(|duv/dx|, |duv/dy|)``, the derivatives being
   the pixel spacing in shape uv units (isotropic, larger axis; `mi.render` shrinks differentials by
