@@ -39,6 +39,8 @@ from pathlib import Path
 
 import numpy as np
 
+from neumip.client import contract as C
+
 ROOT = Path(__file__).resolve().parents[1]
 SCENE = ROOT / "scenes" / "demo.xml"
 DEMO_MATERIALS = {"yarn": (0.55, 0.2, 0.12), "rock": (0.4, 0.37, 0.33), "turtle": (0.2, 0.45, 0.2),
@@ -67,8 +69,9 @@ class ConstantEvaluator:
         return [self.material]
 
     def evaluate(self, material: str, queries: np.ndarray) -> np.ndarray:
-        if len(self.answers) < len(queries):
-            self.answers = np.full((2 * len(queries), 3), self.rgb, dtype=np.float32)
+        width = 3 * C.group_lights(queries.shape[1])
+        if self.answers.shape[0] < len(queries) or self.answers.shape[1] != width:
+            self.answers = np.full((2 * len(queries), width), self.rgb, dtype=np.float32)
         return self.answers[: len(queries)]
 
 

@@ -20,6 +20,14 @@ The answer is RGB float32 >= 0: the multi-resolution BTF under unit irradiance o
 plane, used like a BRDF (a flat Lambertian plane of albedo ``a`` answers ``a / pi``).
 
 Every value must be finite: NaN or Inf anywhere is an error, never a silent NaN answer.
+
+**Query groups.** A renderer asks two or more questions at each shading point: the same ``u, v,
+sigma, wo`` under several light directions (next-event estimation and the sampled direction). A group
+row carries them once: the 7 columns of its first query, then ``wi_x, wi_y`` of each further light,
+``5 + 2 K`` columns for ``K`` lights (:func:`group_width`). Its answer row holds the ``K`` RGB answers
+in the same order, ``3 K`` columns. A model answers light ``j`` of a group with the same bits as the
+single query ``(u, v, sigma, wi_j, wo)``; it evaluates the position's part (the neural offset and the
+texture lookups) once per group. A plain (N, 7) buffer is a buffer of groups of one light.
 """
 
 from __future__ import annotations
@@ -46,6 +54,9 @@ DTYPE = np.dtype("<f4")
 """Little-endian float32: the wire and in-memory type of queries and answers."""
 
 U, V, SIGMA, WI_X, WI_Y, WO_X, WO_Y = range(QUERY_DIM)
+
+MAX_LIGHTS = 64
+"""Most lights a query group may carry."""
 
 DIRECTION_TOLERANCE = 1e-3
 """How far ``x^2 + y^2`` of a direction may exceed 1 (rounding) before the query is rejected."""
@@ -91,8 +102,27 @@ def sample_footprint(spp: int) -> float:
     return max(MIN_SAMPLE_FOOTPRINT, 1 / math.sqrt(max(spp, 1)))
 
 
-def as_queries(data: object, *, copy: bool = False) -> np.ndarray:
-    """Check a buffer against the contract and return it as a C-contiguous (N, 7) float32 array.
+def group_width(lights: int) -> int:
+    """Columns of a query group of ``lights`` light directions: ``5 + 2 lights`` (7 for one)."""
+    if not 1 <= lights <= MAX_LIGHTS:
+        raise QueryError(f"a query group holds 1 to {MAX_LIGHTS} lights, got {lights}")
+    return QUERY_DIM + 2 * (lights - 1)
+
+
+def group_lights(width: int) -> int:
+    """Lights of a query group ``width`` columns wide (the inverse of :func:`group_width`)."""
+    lights = (width - QUERY_DIM) // 2 + 1
+    if width < QUERY_DIM or (width - QUERY_DIM) % 2 or lights > MAX_LIGHTS:
+        raise QueryError(
+            f"queries must have {QUERY_DIM} columns ({', '.join(QUERY_FIELDS)}), or 5 + 2 K for a group of "
+            f"K <= {MAX_LIGHTS} lights (wi_x, wi_y of each further light after them), got {width}"
+        )
+    return lights
+
+
+def as_queries(data: object, *, copy: bool = False, groups: bool = False) -> np.ndarray:
+    """Check a buffer against the contract and return it as a C-contiguous (N, 7) float32 array;
+    with ``groups``, (N, 5 + 2 K) query groups of any K (:func:`group_lights` reads K).
 
     Raises :class:`QueryError` saying what is wrong: not 2-D, wrong column count, non-numeric,
     non-finite values, or directions outside the unit disk. N = 0 is valid and gives an empty array.
@@ -100,10 +130,11 @@ def as_queries(data: object, *, copy: bool = False) -> np.ndarray:
     arr = np.asarray(data)
     if arr.dtype.kind not in "fiu":
         raise QueryError(f"queries must be numeric, got dtype {arr.dtype}")
-    if arr.ndim != 2 or arr.shape[1] != QUERY_DIM:
+    if arr.ndim != 2 or (arr.shape[1] != QUERY_DIM and not groups):
         raise QueryError(
             f"queries must have shape (N, {QUERY_DIM}) ({', '.join(QUERY_FIELDS)}), got {arr.shape}"
         )
+    group_lights(arr.shape[1])
     arr = np.ascontiguousarray(arr, dtype=DTYPE)
     if copy:
         arr = arr.copy()
@@ -112,16 +143,18 @@ def as_queries(data: object, *, copy: bool = False) -> np.ndarray:
 
 
 def check_values(queries: np.ndarray) -> None:
-    """Raise :class:`QueryError` if (N, 7) float32 ``queries`` hold non-finite values or bad directions."""
+    """Raise :class:`QueryError` if float32 ``queries`` (N, 7), or query groups (N, 5 + 2 K), hold
+    non-finite values or bad directions."""
     if queries.size == 0:
         return
     finite = np.isfinite(queries)
     if not finite.all():
         row, col = np.argwhere(~finite)[0]
-        raise QueryError(
-            f"queries must be finite: row {row} column {QUERY_FIELDS[col]} is {queries[row, col]}"
-        )
-    for name, (cx, cy) in (("wi", (WI_X, WI_Y)), ("wo", (WO_X, WO_Y))):
+        name = QUERY_FIELDS[col] if col < QUERY_DIM else f"wi_{'xy'[(col - QUERY_DIM) % 2]} of light {(col - QUERY_DIM) // 2 + 2}"
+        raise QueryError(f"queries must be finite: row {row} column {name} is {queries[row, col]}")
+    extra = [(f"wi of light {j + 2}", (QUERY_DIM + 2 * j, QUERY_DIM + 2 * j + 1))
+             for j in range(group_lights(queries.shape[1]) - 1)]
+    for name, (cx, cy) in [("wi", (WI_X, WI_Y)), ("wo", (WO_X, WO_Y))] + extra:
         r2 = queries[:, cx] ** 2 + queries[:, cy] ** 2
         bad = r2 > 1.0 + DIRECTION_TOLERANCE
         if bad.any():
@@ -130,6 +163,17 @@ def check_values(queries: np.ndarray) -> None:
                 f"{name} must be the (x, y) of a unit vector (x^2 + y^2 <= 1): row {row} has "
                 f"x^2 + y^2 = {r2[row]:.6g}"
             )
+
+
+def ungroup(groups: np.ndarray) -> np.ndarray:
+    """Query groups (N, 5 + 2 K) -> the (N K, 7) single queries they hold (row ``n K + j``: light j
+    of group n), whose (N K, 3) answers reshape to the groups' (N, 3 K)."""
+    n, lights = groups.shape[0], group_lights(groups.shape[1])
+    out = np.empty((n, lights, QUERY_DIM), DTYPE)
+    out[:] = groups[:, None, :QUERY_DIM]
+    for j in range(1, lights):
+        out[:, j, WI_X:WI_Y + 1] = groups[:, QUERY_DIM + 2 * (j - 1):QUERY_DIM + 2 * j]
+    return out.reshape(n * lights, QUERY_DIM)
 
 
 def pack_queries(
@@ -176,11 +220,11 @@ def direction_z(x: np.ndarray, y: np.ndarray) -> np.ndarray:
     return np.sqrt(np.maximum(1.0 - x * x - y * y, 0.0))
 
 
-def as_rgb(data: object, rows: int) -> np.ndarray:
-    """Check an answer buffer: (rows, 3) float32, finite. Raises :class:`QueryError` otherwise."""
+def as_rgb(data: object, rows: int, lights: int = 1) -> np.ndarray:
+    """Check an answer buffer: (rows, 3 lights) float32, finite. Raises :class:`QueryError` otherwise."""
     arr = np.asarray(data)
-    if arr.shape != (rows, RGB_DIM):
-        raise QueryError(f"answer must have shape ({rows}, {RGB_DIM}), got {arr.shape}")
+    if arr.shape != (rows, RGB_DIM * lights):
+        raise QueryError(f"answer must have shape ({rows}, {RGB_DIM * lights}), got {arr.shape}")
     arr = np.ascontiguousarray(arr, dtype=DTYPE)
     if not np.isfinite(arr).all():
         raise QueryError("answer holds non-finite values")
@@ -195,5 +239,6 @@ class Evaluator(Protocol):
         ...
 
     def evaluate(self, material: str, queries: np.ndarray) -> np.ndarray:
-        """(N, 7) float32 queries -> (N, 3) float32 RGB for ``material``."""
+        """(N, 7) float32 queries -> (N, 3) float32 RGB for ``material``; query groups (N, 5 + 2 K)
+        -> (N, 3 K)."""
         ...

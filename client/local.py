@@ -1,8 +1,8 @@
 """In-process evaluation of exported materials with ONNX Runtime (no torch).
 
 `LocalMaterials` loads every ``*.onnx`` in a folder (material name = file stem), checks each file's
-contract version, and evaluates (N, 7) query buffers in chunks that run concurrently on a small
-thread pool (``InferenceSession.run`` releases the GIL), each chunk on one ONNX Runtime thread.
+contract version, and evaluates (N, 7) query buffers, or query groups (N, 5 + 2 K) (`contract`), in
+chunks that run concurrently on a small thread pool (``InferenceSession.run`` releases the GIL), each chunk on one ONNX Runtime thread.
 How a batch is cut does not change the answers: the exported graph answers a query with the same
 bits in any call (`neumip.training.export`), so the thread count and chunk size only set the speed.
 Measured in ``benchmarks/bench_inference.py`` (sections session and chunk).
@@ -74,6 +74,11 @@ class Material:
     """Size of the model file it was loaded from."""
 
     @property
+    def groups(self) -> bool:
+        """Whether the graph takes query groups (models exported before them take (N, 7) only)."""
+        return accepts_groups(self.session)
+
+    @property
     def config(self) -> dict:
         return json.loads(self.metadata.get(C.META_CONFIG, "{}"))
 
@@ -122,15 +127,26 @@ def load_material(path: str | Path, threads: int = 0, data: bytes | None = None)
     return Material(path.stem, path, session, meta, len(source))
 
 
+def accepts_groups(session) -> bool:
+    """Whether an ONNX Runtime session's graph takes query groups: its input's width is not fixed."""
+    return not isinstance(session.get_inputs()[0].shape[1], int)
+
+
 def run_chunked(
     session, queries: np.ndarray, chunk: int = DEFAULT_CHUNK, executor: Executor | None = None
 ) -> np.ndarray:
-    """Evaluate validated (N, 7) float32 queries in chunks of `chunk` rows -> (N, 3) float32.
+    """Evaluate validated (N, 7) float32 queries in chunks of `chunk` answers -> (N, 3) float32, or
+    query groups (N, 5 + 2 K) -> (N, 3 K). A graph exported before query groups gets their single
+    queries (`contract.ungroup`).
 
     With an `executor` the chunks run concurrently on its threads.
     """
-    n = queries.shape[0]
-    out = np.empty((n, C.RGB_DIM), dtype=C.DTYPE)
+    lights = C.group_lights(queries.shape[1])
+    if lights > 1 and not accepts_groups(session):
+        n = queries.shape[0]
+        return run_chunked(session, C.ungroup(queries), chunk, executor).reshape(n, lights * C.RGB_DIM)
+    n, chunk = queries.shape[0], max(chunk // lights, 1)
+    out = np.empty((n, lights * C.RGB_DIM), dtype=C.DTYPE)
 
     def run(lo: int) -> None:
         hi = min(lo + chunk, n)
@@ -227,8 +243,10 @@ class LocalMaterials:
             return self._materials[name]
 
     def evaluate(self, material: str, queries: np.ndarray) -> np.ndarray:
-        """(N, 7) queries -> (N, 3) float32 RGB. Raises QueryError for a bad buffer."""
+        """(N, 7) queries -> (N, 3) float32 RGB; query groups (N, 5 + 2 K) -> (N, 3 K). Raises
+        QueryError for a bad buffer."""
         mat = self.get(material)
-        queries = C.as_queries(queries)
-        chunk = split_chunk(queries.shape[0], self.threads, self.chunk)
+        queries = C.as_queries(queries, groups=True)
+        lights = C.group_lights(queries.shape[1])
+        chunk = split_chunk(queries.shape[0] * lights, self.threads, self.chunk)
         return run_chunked(mat.session, queries, chunk, self._executor)

@@ -66,38 +66,48 @@ def weights_from_state(state: dict, config: MaterialConfig) -> dict[str, np.ndar
     return weights
 
 
-def _query_part(g: GraphWriter, weights: dict, prefix: str, columns: list[int]) -> str:
-    """First layer's weights on the query's own columns, plus its bias: (N, 7) queries -> (hidden, N).
+def _query_part(g: GraphWriter, q: str, weights: dict, prefix: str, columns: list[int],
+                weight_columns: slice) -> str:
+    """First layer's weights on the query's own `columns` (its weight columns `weight_columns`), plus
+    its bias: the group's first query (N, 7) -> (hidden, N).
 
-    The layer's last inputs are the query `columns`; their weights sit in a (hidden, 7) matrix with
-    zero columns elsewhere, so no Slice/Concat of the query is needed.
+    Their weights sit in a (hidden, 7) matrix with zero columns elsewhere, so no Slice/Concat of the
+    query is needed.
     """
-    w = weights[f"{prefix}.0.weight"]  # (hidden, C + len(columns))
+    w = weights[f"{prefix}.0.weight"]  # (hidden, C + query columns)
     matrix = np.zeros((w.shape[0], C.QUERY_DIM), np.float32)
-    matrix[:, columns] = w[:, -len(columns):]
+    matrix[:, columns] = w[:, weight_columns]
     bias = g.const(weights[f"{prefix}.0.bias"][:, None], name=f"{prefix}.0.bias")
-    return g.product(matrix, C.ONNX_INPUT, bias, rows=True, name=f"{prefix}.0.half_weight.query")
+    return g.product(matrix, q, bias, rows=True, name=f"{prefix}.0.half_weight.query")
 
 
-def _first_layer(g: GraphWriter, texels: str, tap_w: str, taps: int, columns: list[int], weights: dict,
-                 prefix: str, layers: int) -> str:
-    """texels (N, K C), tap weights (N, K), K = taps -> first layer's output (hidden, N) (column-
-    major, `GraphWriter.product`), the query `columns` being the layer's other inputs.
+def _first_layer(g: GraphWriter, q: str, texels: str, tap_w: str, taps: int, columns: list[int],
+                 weights: dict, prefix: str, inputs: int) -> str:
+    """texels (N, K C), tap weights (N, K), K = taps -> first layer's output (hidden, N) before its
+    activation (column-major, `GraphWriter.product`); the MLP's last `inputs` inputs are query
+    columns, of which this layer reads `columns` (the first ones; the others are the lights').
 
     A 0/1 matrix sums the weighted taps (in one order per query, unlike ReduceSum), then one Gemm
     applies the texture weights and adds the query part.
     """
-    w = weights[f"{prefix}.0.weight"]  # (hidden, C + D): texture part, then the query columns
-    w_tex = w[:, : -len(columns)]
+    w = weights[f"{prefix}.0.weight"]  # (hidden, C + inputs): texture part, then the query columns
+    w_tex = w[:, :-inputs]
     width = w_tex.shape[1]
     spread = np.kron(np.eye(taps, dtype=np.float32), np.ones((1, width), np.float32))  # (K, K C)
     weighted = g.op("Mul", texels, g.op("MatMul", tap_w, g.const(spread)))  # (N, K C)
-    rest = _query_part(g, weights, prefix, columns)  # (hidden, N)
+    rest = _query_part(g, q, weights, prefix, columns, slice(w.shape[1] - len(columns), None))  # (hidden, N)
     summed = g.product(np.tile(np.eye(width, dtype=np.float32), (1, taps)), weighted, rows=True)  # (C, N)
-    x = g.product(w_tex, summed, rest, name=f"{prefix}.0.half_weight.texture")
-    return g.op("Relu", x) if layers > 1 else x
+    return g.product(w_tex, summed, rest, name=f"{prefix}.0.half_weight.texture")
 
 
+def _lights(g: GraphWriter, q: str) -> tuple[str, str]:
+    """The groups' light directions, one per row, light-major: (K N, 2), row ``j N + n`` is light j
+    of group n; and the shape [K, N] of that order."""
+    first = g.pick(q, C.QUERY_DIM, [C.WI_X, C.WI_Y])  # (N, 2)
+    more = g.op("Slice", C.ONNX_INPUT, g.const([C.QUERY_DIM], np.int64), g.const([2**62], np.int64),
+                g.const([1], np.int64))  # (N, 2 K - 2)
+    wi = g.op("Transpose", g.shape(g.op("Concat", first, more, axis=1), [0, -1, 2]), perm=[1, 0, 2])  # (K, N, 2)
+    return g.shape(wi, [-1, 2]), g.op("Shape", wi, end=2)
 def _depth_weights(weights: dict, config: MaterialConfig) -> dict:
     """Offset MLP with offset_scale folded into its last layer, whose one output is repeated twice
     (the depth beside each of wo_x, wo_y)."""
@@ -120,35 +130,53 @@ def _parallax(g: GraphWriter, depth: str, wo: str, min_cos: float) -> str:
     return g.op("Mul", g.op("Div", depth, wo_z), wo)
 
 
-def _query_columns(g: GraphWriter) -> tuple[str, str, str]:
+def _query_columns(g: GraphWriter, q: str) -> tuple[str, str, str]:
     """The query's uv (N, 2), sigma (N, 1) and wo (N, 2)."""
-    q = C.ONNX_INPUT
     return (g.pick(q, C.QUERY_DIM, [C.U, C.V]), g.pick(q, C.QUERY_DIM, [C.SIGMA]),
             g.pick(q, C.QUERY_DIM, [C.WO_X, C.WO_Y]))
 
 
 def material_graph(g: GraphWriter, config: MaterialConfig, weights: dict, finest_level: int = 0) -> str:
-    """Queries (N, 7) (graph input) -> decoder output (N, 3) before the final Relu.
+    """Query groups (N, 5 + 2 K) (graph input) -> decoder output (N K, O) before the head, row
+    ``n K + j`` answering light j of group n.
 
-    ``weights["pyramid"]`` holds levels ``finest_level``..L (all of them unless trimmed).
+    The offset and the lookups run once per group (on its first query's u, v, sigma, wo); the decoder's
+    first layer adds each light's wi part to the group's texture-and-wo part, and the rest of the
+    decoder runs once per light. ``weights["pyramid"]`` holds levels ``finest_level``..L (all of them
+    unless trimmed).
     """
-    uv, sigma, wo = _query_columns(g)
+    q = g.op("Slice", C.ONNX_INPUT, g.const([0], np.int64), g.const([C.QUERY_DIM], np.int64),
+             g.const([1], np.int64))  # (N, 7): each group's first query
+    uv, sigma, wo = _query_columns(g, q)
 
     # --- neural offset: uv += r * wo_xy / max(wo_z, min_cos) -----------------------------------
     if config.offset:
         texture = g.const(weights["offset_texture"], name="offset_texture")
         texels, tap_w = texture_texels(g, texture, config.resolution, config.offset_channels, g.wrap(uv))
         mlp = _depth_weights(weights, config)
-        hidden = _first_layer(g, texels, tap_w, 4, [C.WO_X, C.WO_Y], mlp, "offset_mlp", config.layers)
+        hidden = _first_layer(g, q, texels, tap_w, 4, [C.WO_X, C.WO_Y], mlp, "offset_mlp", 2)
+        if config.layers > 1:
+            hidden = g.op("Relu", hidden)
         depth = g.op("Transpose", g.mlp(hidden, mlp, "offset_mlp", config.layers, first=1), perm=[1, 0])  # (N, 2)
         uv = g.op("Add", uv, _parallax(g, depth, wo, config.offset_min_cos))
 
-    # --- trilinear pyramid lookup, then the decoder ----------------------------------------------
+    # --- trilinear pyramid lookup, then the decoder once per light -------------------------------
     atlas = g.const(weights["pyramid"], name="pyramid")
     texels, tap_w = pyramid_texels(g, config, atlas, config.channels, g.wrap(uv), sigma, finest_level)
-    dirs = [C.WI_X, C.WI_Y, C.WO_X, C.WO_Y]
-    hidden = _first_layer(g, texels, tap_w, 8, dirs, weights, "decoder", config.layers)
-    return g.op("Transpose", g.mlp(hidden, weights, "decoder", config.layers, first=1), perm=[1, 0])
+    shared = _first_layer(g, q, texels, tap_w, 8, [C.WO_X, C.WO_Y], weights, "decoder", 4)  # (hidden, N)
+    wi, order = _lights(g, q)  # (2, K N), [K, N]
+    w = weights["decoder.0.weight"]
+    light = g.product(w[:, -4:-2], wi, rows=True, name="decoder.0.half_weight.light")  # (hidden, K N)
+    repeats = g.op("Concat", g.const([1], np.int64), g.op("Slice", order, g.const([0], np.int64),
+                                                         g.const([1], np.int64)), axis=0)  # [1, K]
+    hidden = g.op("Add", g.op("Tile", shared, repeats), light)
+    if config.layers > 1:
+        hidden = g.op("Relu", hidden)
+    out = g.mlp(hidden, weights, "decoder", config.layers, first=1)  # (O, K N)
+    outputs = head.outputs(config.head)
+    rows = g.op("Transpose", out, perm=[1, 0])  # (K N, O)
+    rows = g.op("Reshape", rows, g.op("Concat", order, g.const([outputs], np.int64), axis=0))  # (K, N, O)
+    return g.shape(g.op("Transpose", rows, perm=[1, 0, 2]), [-1, outputs])  # (N K, O)
 
 
 def _yuv_head(g: GraphWriter, out: str) -> str:
@@ -169,7 +197,8 @@ def build_onnx(
     extra_metadata: dict[str, str] | None = None,
     finest_level: int = 0,
 ) -> onnx.ModelProto:
-    """The material's inference graph: (N, 7) float32 queries -> (N, 3) float32 RGB.
+    """The material's inference graph: (N, 7) float32 queries -> (N, 3) float32 RGB, and query groups
+    (N, 5 + 2 K) -> (N, 3 K) (`contract.group_width`).
 
     With ``finest_level`` K > 0 the pyramid holds levels K..L only (`trim.trim_model` makes such a
     model from an exported one) and finer queries read level K.
@@ -178,8 +207,10 @@ def build_onnx(
     rgb = material_graph(g, config, weights, finest_level)
     if config.head == "yuv":
         rgb = _yuv_head(g, rgb)
-    g.nodes.append(helper.make_node("Relu", [rgb], [C.ONNX_OUTPUT]))
-    model = g.model(C.ONNX_INPUT, C.QUERY_DIM, C.ONNX_OUTPUT, C.RGB_DIM, OPSET, IR_VERSION)
+    groups = g.op("Slice", g.op("Shape", C.ONNX_INPUT), g.const([0], np.int64), g.const([1], np.int64))  # [N]
+    g.nodes.append(helper.make_node("Reshape", [g.op("Relu", rgb), g.op("Concat", groups, g.const([-1], np.int64),
+                                                                      axis=0)], [C.ONNX_OUTPUT]))  # (N, 3 K)
+    model = g.model(C.ONNX_INPUT, "width", C.ONNX_OUTPUT, "answers", OPSET, IR_VERSION)
     meta = {
         C.META_CONTRACT: C.CONTRACT_VERSION,
         C.META_CONFIG: config.to_json(),

@@ -3,7 +3,8 @@
 Shipped materials are ONNX files only (no checkpoint). Reading their weights back lets `neumip
 export MODEL.onnx -o NEW.onnx` rewrite a model with this version's graph: same weights, same
 metadata (config, description, validation, trim record), and - when the graphs compute the same
-function in the same float order, as every graph change so far - the same answer bits
+function in the same float order - the same answer bits (query groups changed the order of the
+decoder's first sum: models from before them change by rounding)
 (`reexport_file` checks that on random queries and reports the largest difference).
 
 What the graph keeps, by initializer name (the writer is `export.py`; matrices are stored halved,
@@ -13,7 +14,9 @@ What the graph keeps, by initializer name (the writer is `export.py`; matrices a
 - every layer but the first of each MLP: ``{prefix}.{i}.half_weight`` (out, in) and ``.bias``
   (out, 1); the first layer's bias ``{prefix}.0.bias``, its weights on the texture features
   ``{prefix}.0.half_weight.texture`` (hidden, C) and on the query ``{prefix}.0.half_weight.query``
-  (hidden, 7: the columns it reads, zeros elsewhere);
+  (hidden, 7: the columns it reads, zeros elsewhere); the decoder's weights on a light's wi are
+  ``decoder.0.half_weight.light`` (hidden, 2) (models written before query groups hold them in the
+  query matrix);
 - the offset MLP's last layer is stored folded (`export._depth_weights`: its one output repeated
   twice, times ``offset_scale``); it is unfolded to weights that fold to the same bits.
 
@@ -56,6 +59,10 @@ def _layer(inits: dict, prefix: str, i: int, columns: list[int]) -> tuple[np.nda
     else:
         texture, query = (inits[f"{prefix}.0.half_weight.{part}"] * np.float32(COLUMN_ALPHA)
                           for part in ("texture", "query"))
+        light = inits.get(f"{prefix}.0.half_weight.light")  # absent before query groups
+        if light is not None:
+            query = query.copy()
+            query[:, [C.WI_X, C.WI_Y]] = light * np.float32(COLUMN_ALPHA)
         weight = np.concatenate([texture, query[:, columns]], axis=1)
     bias = inits[f"{prefix}.{i}.bias"]
     if bias.shape != (weight.shape[0], 1):

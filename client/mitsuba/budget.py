@@ -52,9 +52,11 @@ class PreviewRecorder:
         return sorted(self.albedo)
 
     def evaluate(self, material: str, queries: np.ndarray) -> np.ndarray:
-        """(N, 7) queries -> (N, 3) preview answers; keeps a copy of the sigma column."""
+        """Query groups (N, 5 + 2 K) -> (N, 3 K) preview answers; keeps a copy of the sigma column
+        (one footprint per group: a group reads the textures once)."""
         self.sigmas[material].append(np.array(queries[:, C.SIGMA], dtype=np.float32))
-        return np.full((queries.shape[0], C.RGB_DIM), self.albedo[material] / math.pi, dtype=C.DTYPE)
+        answers = C.RGB_DIM * C.group_lights(queries.shape[1])
+        return np.full((queries.shape[0], answers), self.albedo[material] / math.pi, dtype=C.DTYPE)
 
     def footprints(self, material: str) -> np.ndarray:
         """(N,) float32 sigma of every query recorded for ``material``."""

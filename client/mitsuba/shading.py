@@ -4,8 +4,8 @@
 that lands on them (all lanes of the wavefront), evaluates them through the bound evaluator
 (`contract.Evaluator`: in-process `LocalMaterials` or the HTTP `MaterialClient`), and hands the RGB
 answers back as per-lane drjit arrays. The data moves in bulk: the query columns come out of the
-integrator's one kernel per bounce, one more kernel writes each material's (n, 7) rows straight into
-a drjit buffer that numpy reads without a copy, and the answers are copied into drjit once and read
+integrator's one kernel per bounce, one more kernel writes each material's query groups (n, 5 + 2 K
+rows: one per shading point, its K light directions together, `contract`) straight into a drjit buffer that numpy reads without a copy, and the answers are copied into drjit once and read
 per lane with gathers that run inside the integrator's next kernel. The answers are checked here
 (`contract.as_rgb`: shape and finiteness), once, whatever the evaluator.
 """
@@ -32,13 +32,13 @@ class ShadingStats:
     """What the neural evaluation cost over a render."""
 
     queries: int = 0
-    """Query rows sent to the evaluator."""
+    """Queries answered by the evaluator (a group of K lights counts K; `contract`)."""
     calls: int = 0
     """Evaluator calls made (one per material per bounce with neural hits)."""
     seconds: float = 0.0
     """Wall time inside the evaluator, including (for HTTP) encoding and transfer."""
     per_material: dict[str, int] = field(default_factory=dict)
-    """Query rows per material name."""
+    """Queries answered per material name."""
 
     def add(self, material: str, rows: int, seconds: float) -> None:
         self.queries += rows
@@ -157,43 +157,50 @@ class NeuralShading:
         wo: mi.Vector3f,
         lights: list[tuple[mi.Vector3f, mi.Bool]],
     ) -> NeuralQueries:
-        """This bounce's queries for each (wi, valid) in ``lights`` at every neural lane, scheduled.
+        """This bounce's query group (`contract`: one shading point, every wi of ``lights``) at every
+        neural lane where at least one (wi, valid) of ``lights`` is valid, scheduled.
 
         ``uv`` (shape uv), ``sigma`` (footprint std in shape uv units), ``wo`` (towards the viewer)
-        and each ``wi`` (towards the light) are per-lane, directions in the `query_frame`. The
-        columns and masks are only scheduled (`dr.schedule`): they are computed in the kernel that
-        evaluates the caller's other per-bounce state, so the intersection is traced once.
+        and each ``wi`` (towards the light) are per-lane, directions in the `query_frame`; an invalid
+        wi is sent as (0, 0) and its answer dropped. The columns and masks are only scheduled
+        (`dr.schedule`): they are computed in the kernel that evaluates the caller's other per-bounce
+        state, so the intersection is traced once.
         """
         u, v = uv.x * hits.uv_scale, uv.y * hits.uv_scale
         sigma = sigma * hits.uv_scale
         sigma = dr.select(dr.isfinite(sigma), dr.clip(sigma, 0.0, MAX_SIGMA), MAX_SIGMA)
-        columns = [[u, v, sigma, wi.x, wi.y, wo.x, wo.y] for wi, _ in lights]
-        masks = {material: [mask & ok for _, ok in lights] for material, mask in hits.mask.items()}
-        dr.schedule(columns, list(masks.values()))
+        wis = [(dr.select(ok, wi.x, 0.0), dr.select(ok, wi.y, 0.0)) for wi, ok in lights]
+        columns = [u, v, sigma, *wis[0], wo.x, wo.y] + [c for wi in wis[1:] for c in wi]
+        any_ok = lights[0][1]
+        for _, ok in lights[1:]:
+            any_ok = any_ok | ok
+        masks = {material: (mask & any_ok, [mask & ok for _, ok in lights]) for material, mask in hits.mask.items()}
+        dr.schedule(columns, [m for group, per_light in masks.values() for m in [group, *per_light]])
         return NeuralQueries(columns, masks)
 
     def evaluate(self, queries: NeuralQueries) -> list[mi.Color3f]:
         """Evaluate ``queries`` in one evaluator call per material -> one Color3f per entry of its
         ``lights``: the answer on lanes whose mask is set, zero elsewhere.
 
-        Each material's rows are written by drjit into one (n, 7) buffer that numpy reads without a
-        copy (entry 0's lanes in lane order, then entry 1's...); the answers are read back with a
-        gather per lane that runs in the caller's next kernel.
+        Each material's groups are written by drjit into one (n, 5 + 2 K) buffer that numpy reads
+        without a copy (its lanes in lane order); the answers are read back with a gather per lane
+        that runs in the caller's next kernel.
         """
-        width = dr.width(queries.columns[0][0])
-        out = [dr.zeros(mi.Color3f, width) for _ in queries.columns]
-        for material, masks in queries.masks.items():
-            rows, total = _row_numbers(masks)
+        width = dr.width(queries.columns[0])
+        lights = C.group_lights(len(queries.columns))
+        out = [dr.zeros(mi.Color3f, width) for _ in range(lights)]
+        for material, (group, per_light) in queries.masks.items():
+            row, total = _row_numbers(group)
             if total == 0:
                 continue
-            buffer = _query_buffer(queries.columns, rows, masks, total)
+            buffer = _query_buffer(queries.columns, row, group, total)
             start = time.perf_counter()
-            rows_in = buffer.numpy().reshape(total, C.QUERY_DIM)  # a view of drjit's memory
-            rgb = C.as_rgb(self.evaluator.evaluate(material, rows_in), total)
-            self.stats.add(material, total, time.perf_counter() - start)
+            rows_in = buffer.numpy().reshape(total, len(queries.columns))  # a view of drjit's memory
+            rgb = C.as_rgb(self.evaluator.evaluate(material, rows_in), total, lights)
+            self.stats.add(material, total * lights, time.perf_counter() - start)
             answers = mi.Float(rgb.reshape(-1))
-            for k, (row, mask) in enumerate(zip(rows, masks)):
-                rgb_k = mi.Color3f(*(dr.gather(mi.Float, answers, row * C.RGB_DIM + ch, mask)
+            for k, mask in enumerate(per_light):
+                rgb_k = mi.Color3f(*(dr.gather(mi.Float, answers, (row * lights + k) * C.RGB_DIM + ch, mask)
                                      for ch in range(C.RGB_DIM)))
                 out[k] = dr.select(mask, rgb_k, out[k])
         return out
@@ -201,43 +208,41 @@ class NeuralShading:
 
 @dataclass
 class NeuralQueries:
-    """One bounce's neural queries, per entry of the integrator's ``lights`` (lazy drjit arrays)."""
+    """One bounce's neural query groups (lazy drjit arrays)."""
 
-    columns: list[list[mi.Float]]
-    """Per entry: the 7 query columns in contract order, for every lane of the wavefront."""
-    masks: dict[str, list[mi.Bool]]
-    """Material name -> per entry: the lanes whose query goes to that material."""
+    columns: list[mi.Float]
+    """The group's 5 + 2 K columns in contract order, for every lane of the wavefront."""
+    masks: dict[str, tuple[mi.Bool, list[mi.Bool]]]
+    """Material name -> the lanes whose group goes to that material, and per light the lanes whose
+    answer is used."""
 
 
-def _query_buffer(columns: list[list[mi.Float]], rows: list[mi.UInt32], masks: list[mi.Bool], total: int):
-    """A (total * 7) Float: row ``rows[k][lane]`` holds ``columns[k]`` of each lane set in ``masks[k]``.
+def _query_buffer(columns: list[mi.Float], row: mi.UInt32, mask: mi.Bool, total: int):
+    """A (total * W) Float, W = len(columns): row ``row[lane]`` holds the columns of each lane set in
+    ``mask``.
 
-    One kernel: a symbolic loop over the 7 columns scatters one value per entry and lane each turn
-    (separate `dr.scatter` calls into one array would each launch a kernel of their own).
+    One kernel: a symbolic loop over the W columns scatters one value per lane each turn (separate
+    `dr.scatter` calls into one array would each launch a kernel of their own).
     """
-    buffer = dr.empty(mi.Float, total * C.QUERY_DIM)
+    width = len(columns)
+    buffer = dr.empty(mi.Float, total * width)
 
     def scatter_column(col: mi.UInt32) -> tuple[mi.UInt32]:
-        for entry, row, mask in zip(columns, rows, masks):
-            value = entry[-1]
-            for k in range(C.QUERY_DIM - 2, -1, -1):
-                value = dr.select(col == k, entry[k], value)
-            dr.scatter(buffer, value, row * C.QUERY_DIM + col, mask)
+        value = columns[-1]
+        for k in range(width - 2, -1, -1):
+            value = dr.select(col == k, columns[k], value)
+        dr.scatter(buffer, value, row * width + col, mask)
         return (col + 1,)
 
-    dr.while_loop((mi.UInt32(0),), lambda col: col < C.QUERY_DIM, scatter_column)
+    dr.while_loop((mi.UInt32(0),), lambda col: col < width, scatter_column)
     dr.eval(buffer)
     return buffer
 
 
-def _row_numbers(masks: list[mi.Bool]) -> tuple[list[mi.UInt32], int]:
-    """Rows of a buffer that holds the set lanes of each mask in turn (lane order): per mask, each
-    lane's row (meaningful where the mask is set), and the total row count."""
-    rows, total = [], 0
-    for mask in masks:
-        count = mi.UInt32(mask)
-        before = dr.prefix_sum(count)  # exclusive
-        n = int(before.numpy()[-1]) + int(mask.numpy()[-1]) if dr.width(mask) else 0  # mask: evaluated
-        rows.append(before + total)
-        total += n
-    return rows, total
+def _row_numbers(mask: mi.Bool) -> tuple[mi.UInt32, int]:
+    """Rows of a buffer that holds the set lanes of ``mask`` (lane order): each lane's row
+    (meaningful where the mask is set), and the row count."""
+    if not dr.width(mask):
+        return mi.UInt32(), 0
+    before = dr.prefix_sum(mi.UInt32(mask))  # exclusive
+    return before, int(before.numpy()[-1]) + int(mask.numpy()[-1])  # mask: evaluated
