@@ -114,8 +114,8 @@ def group_lights(width: int) -> int:
     lights = (width - QUERY_DIM) // 2 + 1
     if width < QUERY_DIM or (width - QUERY_DIM) % 2 or lights > MAX_LIGHTS:
         raise QueryError(
-            f"queries must have {QUERY_DIM} columns ({', '.join(QUERY_FIELDS)}), or 5 + 2 K for a group of "
-            f"K <= {MAX_LIGHTS} lights (wi_x, wi_y of each further light after them), got {width}"
+            f"queries must have shape (N, {QUERY_DIM}) ({', '.join(QUERY_FIELDS)}), or (N, 5 + 2 K) for a "
+            f"group of K <= {MAX_LIGHTS} lights (wi_x, wi_y of each further light after them), got {width} columns"
         )
     return lights
 
@@ -150,7 +150,8 @@ def check_values(queries: np.ndarray) -> None:
     finite = np.isfinite(queries)
     if not finite.all():
         row, col = np.argwhere(~finite)[0]
-        name = QUERY_FIELDS[col] if col < QUERY_DIM else f"wi_{'xy'[(col - QUERY_DIM) % 2]} of light {(col - QUERY_DIM) // 2 + 2}"
+        extra = col - QUERY_DIM
+        name = QUERY_FIELDS[col] if extra < 0 else f"wi_{'xy'[extra % 2]} of light {extra // 2 + 2}"
         raise QueryError(f"queries must be finite: row {row} column {name} is {queries[row, col]}")
     extra = [(f"wi of light {j + 2}", (QUERY_DIM + 2 * j, QUERY_DIM + 2 * j + 1))
              for j in range(group_lights(queries.shape[1]) - 1)]

@@ -100,14 +100,22 @@ def _first_layer(g: GraphWriter, q: str, texels: str, tap_w: str, taps: int, col
     return g.product(w_tex, summed, rest, name=f"{prefix}.0.half_weight.texture")
 
 
-def _lights(g: GraphWriter, q: str) -> tuple[str, str]:
+def _lights(g: GraphWriter, q: str) -> tuple[str, str, str, str]:
     """The groups' light directions, one per row, light-major: (K N, 2), row ``j N + n`` is light j
-    of group n; and the shape [K, N] of that order."""
+    of group n; and the 1-element shapes [N], [K], [K N] (explicit: Reshape cannot infer a -1 of an
+    empty batch, and the Reshapes take them with allowzero: a 0 is a size, not "copy this dimension")."""
     first = g.pick(q, C.QUERY_DIM, [C.WI_X, C.WI_Y])  # (N, 2)
     more = g.op("Slice", C.ONNX_INPUT, g.const([C.QUERY_DIM], np.int64), g.const([2**62], np.int64),
                 g.const([1], np.int64))  # (N, 2 K - 2)
-    wi = g.op("Transpose", g.shape(g.op("Concat", first, more, axis=1), [0, -1, 2]), perm=[1, 0, 2])  # (K, N, 2)
-    return g.shape(wi, [-1, 2]), g.op("Shape", wi, end=2)
+    wi = g.op("Concat", first, more, axis=1)  # (N, 2 K)
+    n = g.op("Shape", C.ONNX_INPUT, end=1)
+    k = g.op("Div", g.op("Sub", g.op("Shape", C.ONNX_INPUT, start=1), g.const([5], np.int64)), g.const([2], np.int64))
+    kn = g.op("Mul", k, n)
+    wi = g.op("Reshape", wi, g.op("Concat", n, k, g.const([2], np.int64), axis=0), allowzero=1)  # (N, K, 2)
+    wi = g.op("Transpose", wi, perm=[1, 0, 2])  # (K, N, 2)
+    return g.op("Reshape", wi, g.op("Concat", kn, g.const([2], np.int64), axis=0), allowzero=1), n, k, kn
+
+
 def _depth_weights(weights: dict, config: MaterialConfig) -> dict:
     """Offset MLP with offset_scale folded into its last layer, whose one output is repeated twice
     (the depth beside each of wo_x, wo_y)."""
@@ -136,9 +144,9 @@ def _query_columns(g: GraphWriter, q: str) -> tuple[str, str, str]:
             g.pick(q, C.QUERY_DIM, [C.WO_X, C.WO_Y]))
 
 
-def material_graph(g: GraphWriter, config: MaterialConfig, weights: dict, finest_level: int = 0) -> str:
+def material_graph(g: GraphWriter, config: MaterialConfig, weights: dict, finest_level: int = 0) -> tuple[str, str]:
     """Query groups (N, 5 + 2 K) (graph input) -> decoder output (N K, O) before the head, row
-    ``n K + j`` answering light j of group n.
+    ``n K + j`` answering light j of group n, and the answer's shape [N, 3 K].
 
     The offset and the lookups run once per group (on its first query's u, v, sigma, wo); the decoder's
     first layer adds each light's wi part to the group's texture-and-wo part, and the rest of the
@@ -164,19 +172,19 @@ def material_graph(g: GraphWriter, config: MaterialConfig, weights: dict, finest
     atlas = g.const(weights["pyramid"], name="pyramid")
     texels, tap_w = pyramid_texels(g, config, atlas, config.channels, g.wrap(uv), sigma, finest_level)
     shared = _first_layer(g, q, texels, tap_w, 8, [C.WO_X, C.WO_Y], weights, "decoder", 4)  # (hidden, N)
-    wi, order = _lights(g, q)  # (2, K N), [K, N]
+    wi, n, k, kn = _lights(g, q)  # (K N, 2)
     w = weights["decoder.0.weight"]
     light = g.product(w[:, -4:-2], wi, rows=True, name="decoder.0.half_weight.light")  # (hidden, K N)
-    repeats = g.op("Concat", g.const([1], np.int64), g.op("Slice", order, g.const([0], np.int64),
-                                                         g.const([1], np.int64)), axis=0)  # [1, K]
-    hidden = g.op("Add", g.op("Tile", shared, repeats), light)
+    hidden = g.op("Add", g.op("Tile", shared, g.op("Concat", g.const([1], np.int64), k, axis=0)), light)
     if config.layers > 1:
         hidden = g.op("Relu", hidden)
     out = g.mlp(hidden, weights, "decoder", config.layers, first=1)  # (O, K N)
-    outputs = head.outputs(config.head)
-    rows = g.op("Transpose", out, perm=[1, 0])  # (K N, O)
-    rows = g.op("Reshape", rows, g.op("Concat", order, g.const([outputs], np.int64), axis=0))  # (K, N, O)
-    return g.shape(g.op("Transpose", rows, perm=[1, 0, 2]), [-1, outputs])  # (N K, O)
+    size = g.const([head.outputs(config.head)], np.int64)
+    rows = g.op("Reshape", g.op("Transpose", out, perm=[1, 0]), g.op("Concat", k, n, size, axis=0),
+                allowzero=1)  # (K, N, O)
+    rows = g.op("Reshape", g.op("Transpose", rows, perm=[1, 0, 2]), g.op("Concat", kn, size, axis=0),
+                allowzero=1)  # (N K, O)
+    return rows, g.op("Concat", n, g.op("Mul", k, g.const([C.RGB_DIM], np.int64)), axis=0)
 
 
 def _yuv_head(g: GraphWriter, out: str) -> str:
@@ -204,12 +212,10 @@ def build_onnx(
     model from an exported one) and finer queries read level K.
     """
     g = GraphWriter()
-    rgb = material_graph(g, config, weights, finest_level)
+    rgb, shape = material_graph(g, config, weights, finest_level)
     if config.head == "yuv":
         rgb = _yuv_head(g, rgb)
-    groups = g.op("Slice", g.op("Shape", C.ONNX_INPUT), g.const([0], np.int64), g.const([1], np.int64))  # [N]
-    g.nodes.append(helper.make_node("Reshape", [g.op("Relu", rgb), g.op("Concat", groups, g.const([-1], np.int64),
-                                                                      axis=0)], [C.ONNX_OUTPUT]))  # (N, 3 K)
+    g.nodes.append(helper.make_node("Reshape", [g.op("Relu", rgb), shape], [C.ONNX_OUTPUT], allowzero=1))  # (N, 3 K)
     model = g.model(C.ONNX_INPUT, "width", C.ONNX_OUTPUT, "answers", OPSET, IR_VERSION)
     meta = {
         C.META_CONTRACT: C.CONTRACT_VERSION,

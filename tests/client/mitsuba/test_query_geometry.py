@@ -1,8 +1,8 @@
 """Every field of a first-hit query against geometry worked out independently of the integrator.
 
 A point light and a camera at known places, one neural shape (rectangle, sphere, or one face of a
-cube seen head-on), `max_depth` 2: the evaluator gets one buffer, the light block (one row per lit
-hit) then the sampled block (one row per hit). From each row's (u, v) the test rebuilds the surface
+cube seen head-on), `max_depth` 2: the evaluator gets one buffer of query groups, one row per hit:
+the light's direction (where the hit is lit) and the sampled direction. From each row's (u, v) the test rebuilds the surface
 point and the contract's frame (x along +u, y along +v, z the outward normal) - analytically for the
 sphere, from three ray casts for a planar face - and checks that ``wo`` points at the camera, ``wi``
 of the light block at the light, exactly the hits whose tangent plane faces the light are lit, and
@@ -106,16 +106,19 @@ def check_first_hit_queries(model_dir, shape, camera, up, light, geometry):
     assert np.all(wo[:, 2] > 0)
     np.testing.assert_allclose(rows[:, [C.WO_X, C.WO_Y]], wo[:, :2], atol=TOL)
 
-    # wi: the light block (leading rows) points at the light; lit = tangent plane faces the light
+    # wi: each row is a query group (`contract`): the light's wi first (0, 0 where the hit is not lit),
+    # then the sampled direction's; lit = the tangent plane faces the light
+    assert rows.shape[1] == C.group_width(2)
     wi = local(_unit(np.asarray(light) - p), x, y, z)
-    match = np.all(np.abs(rows[:, [C.WI_X, C.WI_Y]] - wi[:, :2]) < TOL, axis=1)
-    lit = int(np.argmin(match)) if not match.all() else len(rows)
-    sampled = rows[lit:]
-    assert 0.2 * len(rows) < lit <= len(sampled)
-    assert np.all(wi[:lit, 2] > 0)
-    faces_light = wi[lit:, 2] > 0.01
-    assert abs(lit - faces_light.sum()) <= 0.01 * lit + 2 + np.sum(np.abs(wi[lit:, 2]) <= 0.01)
-    assert match[lit:].mean() < 0.05  # sampled directions are not the light's
+    lit = np.all(np.abs(rows[:, [C.WI_X, C.WI_Y]] - wi[:, :2]) < TOL, axis=1)
+    assert not rows[~lit][:, [C.WI_X, C.WI_Y]].any()  # an unlit hit's light wi is (0, 0)
+    assert lit.sum() > 0.2 * len(rows)
+    assert np.all(wi[lit, 2] > 0)
+    near = np.abs(wi[:, 2]) <= 0.01  # grazing the tangent plane: either way
+    assert np.array_equal(lit[~near], wi[~near, 2] > 0)
+    sampled = rows[:, C.QUERY_DIM:C.QUERY_DIM + 2]
+    assert np.all(np.abs(sampled - wi[:, :2]) >= TOL, axis=1).mean() > 0.95  # not the light's
+    assert np.all((sampled**2).sum(1) <= 1 + C.DIRECTION_TOLERANCE)
 
     # sigma: one sample's share of the std of the pixel's footprint on the surface, in tiles: between the head-on size on
     # the longer uv axis and the foreshortened size on the shorter one (an off-axis pixel subtends
