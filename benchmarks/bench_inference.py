@@ -14,7 +14,8 @@ one table, and read the load average printed with it. Sections:
 
 - graphs:  the shipped graph (`neumip.training.export`), the first export's graph (`export_modulo.py`,
            int64 Mod on single texels), `LocalMaterials.evaluate` and torch eager, one call per batch
-           of 2^10 ... 2^20 queries; and each ``--model NAME=FILE``, a model of the same material
+           of 2^10 ... 2^20 queries; and `LocalMaterials.evaluate` on query groups of two lights (what
+           the renderer sends: 2^(k-1) groups, counted as 2^k answers); and each ``--model NAME=FILE``, a model of the same material
            written elsewhere (an older version of the export: in its checkout, ``python -c "from
            bench_inference import *; m = material(256, 0); open('/tmp/before.onnx', 'wb').write(
            build_onnx(m.config, weights_from_state(m.state_dict(), m.config)).SerializeToString())"``
@@ -213,7 +214,10 @@ def graphs_section(mat, models: dict[str, bytes], args) -> None:
         for i, model in enumerate(evaluated.values()):
             (Path(folder) / f"m{i}.onnx").write_bytes(model)
         local = LocalMaterials(folder, threads=args.threads)
-        names = [*sessions, "shipped, coherent queries", *evaluated, "torch eager"]
+        grouped = f"LocalMaterials.evaluate, {args.threads} workers, groups of 2"
+        names = [*sessions, "shipped, coherent queries", *evaluated, grouped, "torch eager"]
+        # query groups of two lights (what the renderer sends): the pool's rows plus another wi
+        group_pool = np.ascontiguousarray(np.concatenate([pool[: len(pool) // 2], pool[len(pool) // 2:, 3:5]], 1))
         columns, table = [], {name: [] for name in names}
         for log2 in args.batches:
             q, tq = Batches(pool, 1 << log2), Batches(tpool, 1 << log2)
@@ -222,6 +226,8 @@ def graphs_section(mat, models: dict[str, bytes], args) -> None:
             fns["shipped, coherent queries"] = lambda: shipped.run(None, {C.ONNX_INPUT: cq.next()})
             for i, name in enumerate(evaluated):
                 fns[name] = lambda m=f"m{i}": local.evaluate(m, q.next())
+            gq = Batches(group_pool, 1 << (log2 - 1))  # 2^log2 answers per call
+            fns[grouped] = lambda: local.evaluate("m0", gq.next())
             fns["torch eager"] = lambda: torch_eval(mat, tq.next())
             for name, value in interleaved(fns, 1 << log2, args.seconds, args.rounds).items():
                 table[name].append(value)

@@ -52,3 +52,30 @@ def test_level_of_detail_convention():
     lod = C.level_of_detail(np.array([0.0, -5, 1 / 512, 1 / 256, 4 / 256, 1.0, 1e20]), 256)
     np.testing.assert_allclose(lod, [0, 0, 0, 0, 2, 8, 8])
     assert C.sigma_for_level(3, 256) == 8 / 256
+
+
+def test_query_groups_widths_values_and_ungroup():
+    assert [C.group_width(k) for k in (1, 2, 3)] == [7, 9, 11]
+    assert [C.group_lights(w) for w in (7, 9, 11)] == [1, 2, 3]
+    for width in (5, 6, 8, C.group_width(C.MAX_LIGHTS) + 2):
+        with pytest.raises(C.QueryError, match="5 \\+ 2 K"):
+            C.group_lights(width)
+    q = C.random_queries(4, seed=3)
+    groups = np.concatenate([q, q[::-1, 3:5]], axis=1)
+    with pytest.raises(C.QueryError, match="shape"):
+        C.as_queries(groups)  # single queries only unless groups are allowed
+    assert C.as_queries(groups, groups=True).shape == (4, 9)
+    singles = C.ungroup(groups)
+    np.testing.assert_array_equal(singles[0::2], q)
+    np.testing.assert_array_equal(singles[1::2, [C.WI_X, C.WI_Y]], q[::-1, 3:5])
+    np.testing.assert_array_equal(singles[1::2, [C.U, C.V, C.SIGMA, C.WO_X, C.WO_Y]], q[:, [0, 1, 2, 5, 6]])
+    bad = groups.copy()
+    bad[2, 8] = np.inf
+    with pytest.raises(C.QueryError, match="row 2 column wi_y of light 2"):
+        C.as_queries(bad, groups=True)
+    bad[2, 7:9] = 0.9
+    with pytest.raises(C.QueryError, match="wi of light 2 .* row 2"):
+        C.as_queries(bad, groups=True)
+    assert C.as_rgb(np.zeros((4, 6)), 4, lights=2).shape == (4, 6)
+    with pytest.raises(C.QueryError, match="shape"):
+        C.as_rgb(np.zeros((4, 3)), 4, lights=2)

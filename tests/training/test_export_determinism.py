@@ -62,6 +62,26 @@ def test_answers_do_not_depend_on_the_batch(config, edge_queries):
     _same_bits(_session(model, threads=2).run(None, {C.ONNX_INPUT: q})[0], whole)
 
 
+def _groups(q: np.ndarray, lights: int, seed: int) -> np.ndarray:
+    """Query groups of `lights` lights: each row of `q` plus the wi of other random queries."""
+    more = [random_queries(len(q), seed=seed + j)[:, [C.WI_X, C.WI_Y]] for j in range(lights - 1)]
+    return np.ascontiguousarray(np.concatenate([q, *more], axis=1))
+
+
+@pytest.mark.parametrize("lights", [1, 2, 5])
+def test_a_group_answers_each_light_as_its_single_query(config, edge_queries, lights):
+    """Light j of a group gets the bits of the single query (u, v, sigma, wi_j, wo), in any split."""
+    session = _session(build_onnx(config, random_weights(config, seed=4)))
+    groups = _groups(_queries(config.resolution, edge_queries), lights, seed=40)
+    assert groups.shape[1] == C.group_width(lights)
+    whole = session.run(None, {C.ONNX_INPUT: groups})[0]
+    assert whole.shape == (len(groups), 3 * lights)
+    singles = session.run(None, {C.ONNX_INPUT: C.ungroup(groups)})[0]
+    _same_bits(whole.reshape(-1, 3), singles)
+    _same_bits(_in_pieces(session, groups, SPLITS), whole)
+    _same_bits(session.run(None, {C.ONNX_INPUT: groups[:0]})[0], whole[:0])
+
+
 def test_local_materials_answer_the_same_bits_for_any_threads_and_chunk(tmp_path, edge_queries):
     cfg = MaterialConfig(resolution=64)
     save_onnx(build_onnx(cfg, random_weights(cfg, seed=9)), tmp_path / "m.onnx")
@@ -71,6 +91,10 @@ def test_local_materials_answer_the_same_bits_for_any_threads_and_chunk(tmp_path
         _same_bits(LocalMaterials(tmp_path, threads=threads, chunk=chunk).evaluate("m", q), want)
     for n in (1, 5, 4097):  # a row alone or among few answers as it does among many
         _same_bits(LocalMaterials(tmp_path, threads=2).evaluate("m", q[:n]), want[:n])
+    groups = _groups(q, 2, seed=50)  # groups: chunks are cut by groups, answers as their single queries
+    want = LocalMaterials(tmp_path, threads=1).evaluate("m", C.ungroup(groups)).reshape(len(q), 6)
+    for threads, chunk in [(2, 4096), (3, 17), (1, 1)]:
+        _same_bits(LocalMaterials(tmp_path, threads=threads, chunk=chunk).evaluate("m", groups), want)
 
 
 def _log2_session() -> ort.InferenceSession:
