@@ -115,7 +115,8 @@ def group_lights(width: int) -> int:
     if width < QUERY_DIM or (width - QUERY_DIM) % 2 or lights > MAX_LIGHTS:
         raise QueryError(
             f"queries must have shape (N, {QUERY_DIM}) ({', '.join(QUERY_FIELDS)}), or (N, 5 + 2 K) for a "
-            f"group of K <= {MAX_LIGHTS} lights (wi_x, wi_y of each further light after them), got {width} columns"
+            f"group of K <= {MAX_LIGHTS} lights (wi_x, wi_y of each further light after them), "
+            f"got {width} columns"
         )
     return lights
 

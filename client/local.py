@@ -2,7 +2,8 @@
 
 `LocalMaterials` loads every ``*.onnx`` in a folder (material name = file stem), checks each file's
 contract version, and evaluates (N, 7) query buffers, or query groups (N, 5 + 2 K) (`contract`), in
-chunks that run concurrently on a small thread pool (``InferenceSession.run`` releases the GIL), each chunk on one ONNX Runtime thread.
+chunks that run concurrently on a small thread pool (``InferenceSession.run`` releases the GIL), each
+chunk on one ONNX Runtime thread.
 How a batch is cut does not change the answers: the exported graph answers a query with the same
 bits in any call (`neumip.training.export`), so the thread count and chunk size only set the speed.
 Measured in ``benchmarks/bench_inference.py`` (sections session and chunk).

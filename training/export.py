@@ -100,20 +100,30 @@ def _first_layer(g: GraphWriter, q: str, texels: str, tap_w: str, taps: int, col
     return g.product(w_tex, summed, rest, name=f"{prefix}.0.half_weight.texture")
 
 
+def _reshape(g: GraphWriter, x: str, *dims: str | int, output: str | None = None) -> str:
+    """Reshape `x` to `dims`: 1-element int64 shape tensors (by name) or constants. Sizes computed in
+    the graph, never -1 (Reshape cannot infer it for an empty batch), taken with allowzero (a 0 is a
+    size, not "copy this dimension"). `output` names the result (default: a new name)."""
+    parts = [d if isinstance(d, str) else g.const([d], np.int64) for d in dims]
+    shape = g.op("Concat", *parts, axis=0)
+    if output is None:
+        return g.op("Reshape", x, shape, allowzero=1)
+    g.nodes.append(helper.make_node("Reshape", [x, shape], [output], allowzero=1))
+    return output
+
+
 def _lights(g: GraphWriter, q: str) -> tuple[str, str, str, str]:
     """The groups' light directions, one per row, light-major: (K N, 2), row ``j N + n`` is light j
-    of group n; and the 1-element shapes [N], [K], [K N] (explicit: Reshape cannot infer a -1 of an
-    empty batch, and the Reshapes take them with allowzero: a 0 is a size, not "copy this dimension")."""
+    of group n; and the 1-element shapes [N], [K], [K N]."""
     first = g.pick(q, C.QUERY_DIM, [C.WI_X, C.WI_Y])  # (N, 2)
     more = g.op("Slice", C.ONNX_INPUT, g.const([C.QUERY_DIM], np.int64), g.const([2**62], np.int64),
                 g.const([1], np.int64))  # (N, 2 K - 2)
-    wi = g.op("Concat", first, more, axis=1)  # (N, 2 K)
     n = g.op("Shape", C.ONNX_INPUT, end=1)
-    k = g.op("Div", g.op("Sub", g.op("Shape", C.ONNX_INPUT, start=1), g.const([5], np.int64)), g.const([2], np.int64))
+    width = g.op("Shape", C.ONNX_INPUT, start=1)
+    k = g.op("Div", g.op("Sub", width, g.const([5], np.int64)), g.const([2], np.int64))  # width 5 + 2 K
     kn = g.op("Mul", k, n)
-    wi = g.op("Reshape", wi, g.op("Concat", n, k, g.const([2], np.int64), axis=0), allowzero=1)  # (N, K, 2)
-    wi = g.op("Transpose", wi, perm=[1, 0, 2])  # (K, N, 2)
-    return g.op("Reshape", wi, g.op("Concat", kn, g.const([2], np.int64), axis=0), allowzero=1), n, k, kn
+    wi = _reshape(g, g.op("Concat", first, more, axis=1), n, k, 2)  # (N, K, 2)
+    return _reshape(g, g.op("Transpose", wi, perm=[1, 0, 2]), kn, 2), n, k, kn
 
 
 def _depth_weights(weights: dict, config: MaterialConfig) -> dict:
@@ -144,9 +154,10 @@ def _query_columns(g: GraphWriter, q: str) -> tuple[str, str, str]:
             g.pick(q, C.QUERY_DIM, [C.WO_X, C.WO_Y]))
 
 
-def material_graph(g: GraphWriter, config: MaterialConfig, weights: dict, finest_level: int = 0) -> tuple[str, str]:
+def material_graph(g: GraphWriter, config: MaterialConfig, weights: dict,
+                   finest_level: int = 0) -> tuple[str, list[str]]:
     """Query groups (N, 5 + 2 K) (graph input) -> decoder output (N K, O) before the head, row
-    ``n K + j`` answering light j of group n, and the answer's shape [N, 3 K].
+    ``n K + j`` answering light j of group n, and the answer's shape ([N], [3 K]).
 
     The offset and the lookups run once per group (on its first query's u, v, sigma, wo); the decoder's
     first layer adds each light's wi part to the group's texture-and-wo part, and the rest of the
@@ -179,12 +190,10 @@ def material_graph(g: GraphWriter, config: MaterialConfig, weights: dict, finest
     if config.layers > 1:
         hidden = g.op("Relu", hidden)
     out = g.mlp(hidden, weights, "decoder", config.layers, first=1)  # (O, K N)
-    size = g.const([head.outputs(config.head)], np.int64)
-    rows = g.op("Reshape", g.op("Transpose", out, perm=[1, 0]), g.op("Concat", k, n, size, axis=0),
-                allowzero=1)  # (K, N, O)
-    rows = g.op("Reshape", g.op("Transpose", rows, perm=[1, 0, 2]), g.op("Concat", kn, size, axis=0),
-                allowzero=1)  # (N K, O)
-    return rows, g.op("Concat", n, g.op("Mul", k, g.const([C.RGB_DIM], np.int64)), axis=0)
+    size = head.outputs(config.head)
+    rows = _reshape(g, g.op("Transpose", out, perm=[1, 0]), k, n, size)  # (K, N, O)
+    rows = _reshape(g, g.op("Transpose", rows, perm=[1, 0, 2]), kn, size)  # (N K, O)
+    return rows, [n, g.op("Mul", k, g.const([C.RGB_DIM], np.int64))]
 
 
 def _yuv_head(g: GraphWriter, out: str) -> str:
@@ -215,7 +224,7 @@ def build_onnx(
     rgb, shape = material_graph(g, config, weights, finest_level)
     if config.head == "yuv":
         rgb = _yuv_head(g, rgb)
-    g.nodes.append(helper.make_node("Reshape", [g.op("Relu", rgb), shape], [C.ONNX_OUTPUT], allowzero=1))  # (N, 3 K)
+    _reshape(g, g.op("Relu", rgb), *shape, output=C.ONNX_OUTPUT)  # (N, 3 K)
     model = g.model(C.ONNX_INPUT, "width", C.ONNX_OUTPUT, "answers", OPSET, IR_VERSION)
     meta = {
         C.META_CONTRACT: C.CONTRACT_VERSION,

@@ -88,8 +88,8 @@ class GraphWriter:
                 x = self.op("Relu", x)
         return x
 
-    def model(self, input_name: str, input_dim: int | str, output_name: str, output_dim: int | str, opset: int,
-              ir_version: int) -> onnx.ModelProto:
+    def model(self, input_name: str, input_dim: int | str, output_name: str, output_dim: int | str,
+              opset: int, ir_version: int) -> onnx.ModelProto:
         """The finished model: one float32 (N, input_dim) input, one (N, output_dim) output (a str
         dimension is a named dynamic one)."""
         graph = helper.make_graph(

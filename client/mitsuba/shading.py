@@ -5,7 +5,8 @@ that lands on them (all lanes of the wavefront), evaluates them through the boun
 (`contract.Evaluator`: in-process `LocalMaterials` or the HTTP `MaterialClient`), and hands the RGB
 answers back as per-lane drjit arrays. The data moves in bulk: the query columns come out of the
 integrator's one kernel per bounce, one more kernel writes each material's query groups (n, 5 + 2 K
-rows: one per shading point, its K light directions together, `contract`) straight into a drjit buffer that numpy reads without a copy, and the answers are copied into drjit once and read
+rows: one per shading point, its K light directions together, `contract`) straight into a drjit
+buffer that numpy reads without a copy, and the answers are copied into drjit once and read
 per lane with gathers that run inside the integrator's next kernel. The answers are checked here
 (`contract.as_rgb`: shape and finiteness), once, whatever the evaluator.
 """
@@ -174,7 +175,8 @@ class NeuralShading:
         any_ok = lights[0][1]
         for _, ok in lights[1:]:
             any_ok = any_ok | ok
-        masks = {material: (mask & any_ok, [mask & ok for _, ok in lights]) for material, mask in hits.mask.items()}
+        masks = {material: (mask & any_ok, [mask & ok for _, ok in lights])
+                 for material, mask in hits.mask.items()}
         dr.schedule(columns, [m for group, per_light in masks.values() for m in [group, *per_light]])
         return NeuralQueries(columns, masks)
 
