@@ -7,8 +7,8 @@ timeouts; 503 (queue full, honouring ``Retry-After``) and connection failures ar
 number of times with exponential backoff; anything else fails at once with an error that says what
 the server answered. Large buffers are sent as several requests of at most ``ClientConfig.max_rows``
 rows. Query groups (N, 5 + 2 K) travel as they are (`neumip.client.contract`) and answer (N, 3 K);
-a row is a group, so a split never cuts one. A material name goes into the URL path, so a name that is not a material name
-(`neumip.client.local.NAME_PATTERN`) is refused before anything is sent.
+a row is a group, so a split never cuts one. A material name goes into the URL path, so a name that
+is not a material name (`neumip.client.local.NAME_PATTERN`) is refused before anything is sent.
 
 How queries and answers travel is a `Codec` (`PROTOCOLS`): the msgpack ``/v1`` format by default, or
 the Open Inference Protocol's ``/v2`` binary tensors (``protocol="v2"``), both laid out in

@@ -48,7 +48,8 @@ INFER_DATATYPE = "FP32"
 
 
 def _prefix(key: str, n: int, width: int) -> bytes:
-    """The bytes `msgpack.packb` writes before the raw rows of ``{"n": n, key: <n rows of width float32>}``."""
+    """The bytes `msgpack.packb` writes before the raw rows of ``{"n": n, key: <rows>}``, `n` rows of
+    `width` float32."""
     import msgpack
 
     nbytes = n * width * DTYPE.itemsize
@@ -118,8 +119,8 @@ def _width(key: str, n: int, nbytes: int, unit: int, empty: int) -> int:
         return empty
     width, rest = divmod(nbytes, n * DTYPE.itemsize)
     if rest or not width or width % unit:
-        need = (f"n x 28 bytes for (N, 7) queries, or n x (5 + 2 K) x 4 for groups of K lights" if key == "queries"
-                else f"a multiple of n x {unit * DTYPE.itemsize} bytes")
+        need = (f"a multiple of n x {unit * DTYPE.itemsize} bytes" if key != "queries"
+                else "n x 28 bytes for (N, 7) queries, or n x (5 + 2 K) x 4 for groups of K lights")
         raise QueryError(f"'{key}' holds {nbytes} bytes, which is not n={n} rows of float32: it needs {need}")
     return width
 
@@ -177,8 +178,8 @@ def decode_response(body) -> np.ndarray:
 
 
 def encode_infer_request(queries: np.ndarray) -> tuple[dict[str, str], list]:
-    """(N, 7) queries or (N, 5 + 2 K) groups -> (headers, body parts) of a v2 infer request with a binary input and output:
-    the JSON header, then the rows without a copy."""
+    """(N, 7) queries or (N, 5 + 2 K) groups -> (headers, body parts) of a v2 infer request with a
+    binary input and output: the JSON header, then the rows without a copy."""
     q = np.ascontiguousarray(queries, dtype=DTYPE)
     tensor = {"name": ONNX_INPUT, "datatype": INFER_DATATYPE, "shape": list(q.shape),
               "parameters": {"binary_data_size": q.nbytes}}
@@ -207,7 +208,8 @@ def decode_infer_response(body, header_length: str | None) -> np.ndarray:
         raise QueryError(f"v2 answer header is not an infer response with a binary '{ONNX_OUTPUT}': {exc}") from None
     if (output.get("datatype") != INFER_DATATYPE or len(shape) != 2
             or not all(isinstance(d, int) and d >= 0 for d in shape) or not shape[1] or shape[1] % RGB_DIM):
-        raise QueryError(f"v2 answer '{ONNX_OUTPUT}' is {output.get('datatype')} {shape}, not {INFER_DATATYPE} [N, 3 K]")
+        raise QueryError(f"v2 answer '{ONNX_OUTPUT}' is {output.get('datatype')} {shape}, "
+                         f"not {INFER_DATATYPE} [N, 3 K]")
     if size != shape[0] * shape[1] * DTYPE.itemsize or len(body) - length != size:
         raise QueryError(f"v2 answer holds {len(body) - length} bytes of '{ONNX_OUTPUT}', shape {shape} needs "
                          f"{shape[0] * shape[1] * DTYPE.itemsize}")

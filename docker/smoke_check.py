@@ -50,7 +50,8 @@ def check(url: str, folder: Path) -> None:
                     content=wire.encode_request(sent),
                     headers={"content-type": wire.MSGPACK_MEDIA_TYPE},
                 ).raise_for_status()
-                assert np.array_equal(wire.decode_response(resp.content), ref), f"{name} {sent.shape}: msgpack answer differs"
+                answer = wire.decode_response(resp.content)
+                assert np.array_equal(answer, ref), f"{name} {sent.shape}: msgpack answer differs"
                 tensor = triton.InferInput(C.ONNX_INPUT, list(sent.shape), "FP32")
                 tensor.set_data_from_numpy(sent, binary_data=True)
                 out = client.infer(name, [tensor]).as_numpy(C.ONNX_OUTPUT)

@@ -47,7 +47,8 @@ class Settings(BaseSettings):
     ort_threads: int = Field(1, ge=0)
     """Intra-op threads of each ONNX Runtime call (keep workers x threads <= cores); 0 = all cores."""
     chunk_rows: int = Field(8192, ge=1)
-    """Most answers in one ONNX Runtime call (chunk_rows // K groups of K lights): large requests are split, small ones merged."""
+    """Most answers in one ONNX Runtime call (chunk_rows // K groups of K lights): large requests are
+    split, small ones merged."""
     max_wait_ms: float = Field(2.0, ge=0)
     """How long a batch that is not yet full waits for more rows while other requests are being decoded."""
     max_rows: int = Field(2_000_000, ge=1)

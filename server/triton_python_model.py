@@ -5,8 +5,9 @@
 (PyPI's nvidia-pytriton). It runs inside Triton's python stub and needs only numpy and onnxruntime
 there (not neumip). Dynamic batching hands `execute` several requests: their rows go into one ONNX
 Runtime call and are split back, which gives every row the same bits as a call of its own (the
-exported graph is batch-invariant); requests of different widths (query groups of K lights, ``5 + 2 K``
-columns, answered ``3 K``) go into one call per width. The session options come from the config's ``parameters``
+exported graph is batch-invariant); requests of different widths (query groups of K lights,
+``5 + 2 K`` columns, answered ``3 K``) go into one call per width. The session options come from the
+config's ``parameters``
 (``intra_op_thread_count``, ``inter_op_thread_count``), as for Triton's onnxruntime backend.
 
 Checked with the tritonserver 2.51 that nvidia-pytriton 0.7.0 bundles: its python stub needs numpy
@@ -24,7 +25,8 @@ MAX_LIGHTS = 64
 
 
 class TritonPythonModel:
-    """One material: (N, 7) FP32 ``queries`` -> (N, 3) FP32 ``rgb``, or query groups (N, 5 + 2 K) -> (N, 3 K)."""
+    """One material: (N, 7) FP32 ``queries`` -> (N, 3) FP32 ``rgb``, or query groups (N, 5 + 2 K) ->
+    (N, 3 K)."""
 
     def initialize(self, args):
         import onnxruntime as ort
@@ -54,7 +56,7 @@ class TritonPythonModel:
         queries = pb_utils.get_input_tensor_by_name(request, self.input).as_numpy()
         widths = range(7, 5 + 2 * MAX_LIGHTS + 1, 2) if self.width < 0 else (self.width,)
         if queries.ndim != 2 or queries.shape[1] not in widths:
-            groups = f" or (N, 5 + 2 K) for query groups of K <= {MAX_LIGHTS} lights" if self.width < 0 else ""
+            groups = "" if self.width > 0 else f" or (N, 5 + 2 K) for query groups of K <= {MAX_LIGHTS} lights"
             return f"{self.input} must be (N, 7){groups}, got {queries.shape}"
         bad = np.flatnonzero(~np.isfinite(queries).all(axis=1))
         if bad.size:

@@ -41,8 +41,9 @@ def decode_json(body: bytes) -> np.ndarray:
     rows = msg["queries"]
     width = len(rows[0]) if rows and isinstance(rows[0], list) else C.QUERY_DIM
     if any(not isinstance(row, list) or len(row) != width for row in rows):
-        raise ApiError(400, f"every entry of 'queries' must be a list of {C.QUERY_DIM} numbers ({', '.join(C.QUERY_FIELDS)}), "
-                       "or of 5 + 2 K numbers for query groups of K lights, the same in every row")
+        raise ApiError(400, f"every entry of 'queries' must be a list of {C.QUERY_DIM} numbers "
+                       f"({', '.join(C.QUERY_FIELDS)}), or of 5 + 2 K numbers for query groups of K lights, "
+                       "the same in every row")
     C.group_lights(width)  # QueryError (400) for a width no group has
     if any(isinstance(x, bool) or not isinstance(x, (int, float)) for row in rows for x in row):
         raise ApiError(400, "'queries' must hold only numbers")
@@ -93,7 +94,8 @@ async def material_info(name: str, state: ServerState = Depends(serving)) -> dic
 
 @router.post(
     wire.EVALUATE_PATH,
-    summary="Evaluate (N, 7) queries -> (N, 3) RGB, or (N, 5 + 2 K) query groups -> (N, 3 K) (msgpack or JSON)",
+    summary="Evaluate (N, 7) queries -> (N, 3) RGB, or (N, 5 + 2 K) query groups -> (N, 3 K) "
+    "(msgpack or JSON)",
     openapi_extra={"requestBody": EVALUATE_BODY},
     responses={200: EVALUATE_RESPONSE, **ERROR_RESPONSES},
     response_class=Response,
@@ -112,8 +114,9 @@ async def evaluate(name: str, request: Request, state: ServerState = Depends(ser
                 state.admission.resize(ticket, ticket.memory, queries.shape[0])
                 timer.mark("decode")
                 # msgpack: the workers write the answer straight into the response body (out: a view of it)
-                lights = C.group_lights(queries.shape[1])
-                content, out = wire.response_buffer(queries.shape[0], lights) if kind == "msgpack" else (None, None)
+                content, out = None, None
+                if kind == "msgpack":
+                    content, out = wire.response_buffer(queries.shape[0], C.group_lights(queries.shape[1]))
                 ticket.until = arrival.submit(name, queries, out=out, material=material)
             rgb = await asyncio.shield(ticket.until)  # (N, 3 K) float32
         timer.mark("evaluate")

@@ -2,8 +2,9 @@
 
 Each material is a model with one version, ``"1"``, one input ``queries`` FP32 [-1, -1] and one output
 ``rgb`` FP32 [-1, -1] (the protocol's -1: a dimension of variable size): [N, 7] queries answer [N, 3],
-[N, 5 + 2 K] query groups of K lights answer [N, 3 K] (`neumip.client.contract`). Infer bodies are read raw (tritonclient sends no Content-Type) and split by the
-``Inference-Header-Content-Length`` header into the JSON header and the binary tensor bytes.
+[N, 5 + 2 K] query groups of K lights answer [N, 3 K] (`neumip.client.contract`). Infer bodies are
+read raw (tritonclient sends no Content-Type) and split by the ``Inference-Header-Content-Length``
+header into the JSON header and the binary tensor bytes.
 """
 
 from __future__ import annotations
@@ -104,8 +105,8 @@ def _input_tensor(inputs: object, binary: memoryview) -> np.ndarray:
         or len(shape) != 2
         or not all(isinstance(d, int) and not isinstance(d, bool) and d >= 0 for d in shape)
     ):
-        raise ApiError(400, f"input '{C.ONNX_INPUT}' must have shape [N, {C.QUERY_DIM}] or [N, 5 + 2 K] for query "
-                       f"groups, got {str(shape)[:60]}")
+        raise ApiError(400, f"input '{C.ONNX_INPUT}' must have shape [N, {C.QUERY_DIM}] or [N, 5 + 2 K] "
+                       f"for query groups, got {str(shape)[:60]}")
     n, width = shape
     try:
         C.group_lights(width)
@@ -134,7 +135,8 @@ def _json_data(data: object, n: int, width: int) -> np.ndarray:
     if arr.size and arr.dtype.kind not in "fiu":
         raise ApiError(400, f"input '{C.ONNX_INPUT}' data must hold only numbers (FP32), got {arr.dtype.kind!r} values")
     if arr.size != n * width:
-        raise ApiError(400, f"input '{C.ONNX_INPUT}' data holds {arr.size} values, shape [{n}, {width}] needs {n * width}")
+        raise ApiError(400, f"input '{C.ONNX_INPUT}' data holds {arr.size} values, shape [{n}, {width}] "
+                       f"needs {n * width}")
     with np.errstate(over="ignore"):  # out-of-range values become Inf and are rejected as such
         return arr.astype(C.DTYPE).reshape(n, width)
 
