@@ -1,5 +1,6 @@
 """Inference server speed over loopback: msgpack (/v1) and Open Inference Protocol binary (/v2)
-throughput against in-process ONNX Runtime, latency under 1/4/16 concurrent clients, 16-row latency
+throughput against in-process ONNX Runtime, for plain queries and for query groups of two lights (what
+the renderer sends: (N, 9) in, (N, 6) out), latency under 1/4/16 concurrent clients, 16-row latency
 with and without a slow uploader, a 10^6-query request, and the server's resident memory before and
 after the load.
 
@@ -119,31 +120,46 @@ def v2_call(triton_client, name: str, q: np.ndarray) -> np.ndarray:
     return triton_client.infer(name, [tensor], outputs=[out]).as_numpy(C.ONNX_OUTPUT)
 
 
+def pairs(pool: np.ndarray) -> np.ndarray:
+    """(N, 9) query groups of two lights: each query of `pool` and the wi of another one."""
+    other = np.roll(pool, len(pool) // 2, axis=0)[:, C.WI_X:C.WI_Y + 1]
+    return np.ascontiguousarray(np.hstack([pool, other]))
+
+
 def throughput(args, name, local, client, v2_client, triton_client, pool) -> None:
+    """Plain queries and groups of two lights, in the same interleaved rounds; each path's ratio is to
+    in-process evaluation of the same buffers."""
     n = args.rows
     batches = [pool[i * n : (i + 1) * n] for i in range(len(pool) // n)]
+    groups = [pairs(b) for b in batches]  # n shading points, 2 n answers a request
     stages: dict[str, list[float]] = {}
-    kinds = {
-        "in-process (LocalMaterials)": lambda q: local.evaluate(name, q),
-        "msgpack /v1 (MaterialClient)": lambda q: msgpack_call(client, name, q, stages),
-        "v2 binary (MaterialClient)": lambda q: v2_client.evaluate(name, q),
-        "v2 binary (tritonclient)": lambda q: v2_call(triton_client, name, q),
+    kinds = {  # label: (evaluate, buffers, label of its in-process base)
+        "in-process (LocalMaterials)": (lambda q: local.evaluate(name, q), batches, None),
+        "msgpack /v1 (MaterialClient)": (lambda q: msgpack_call(client, name, q, stages), batches, None),
+        "v2 binary (MaterialClient)": (lambda q: v2_client.evaluate(name, q), batches, None),
+        "v2 binary (tritonclient)": (lambda q: v2_call(triton_client, name, q), batches, None),
+        "in-process, groups of 2": (lambda q: local.evaluate(name, q), groups, "in-process, groups of 2"),
+        "msgpack /v1, groups of 2": (lambda q: msgpack_call(client, name, q), groups,
+                                     "in-process, groups of 2"),
     }
-    for fn in kinds.values():  # warm-up
-        fn(batches[0])
+    for fn, buffers, _ in kinds.values():  # warm-up
+        fn(buffers[0])
     times = {k: [] for k in kinds}
     for r in range(args.rounds):
-        for kind, fn in kinds.items():
-            q = batches[(r + 1) % len(batches)]
+        for kind, (fn, buffers, _) in kinds.items():
+            q = buffers[(r + 1) % len(buffers)]
             start = time.perf_counter()
             fn(q)
             times[kind].append(time.perf_counter() - start)
-    base = times["in-process (LocalMaterials)"]
-    print(f"\n## Throughput, {n} queries per request ({args.rounds} interleaved rounds; load avg {os.getloadavg()[0]:.2f})")
-    print(f"{'path':32s} {'median ms':>10s} {'Mq/s':>7s} {'vs in-process':>14s}")
-    for kind, ts in times.items():
+    print(f"\n## Throughput, {n} queries (or groups of two lights: {2 * n} answers) per request "
+          f"({args.rounds} interleaved rounds; load avg {os.getloadavg()[0]:.2f})")
+    print(f"{'path':32s} {'median ms':>10s} {'M answers/s':>12s} {'vs in-process':>14s}")
+    for kind, (_, buffers, base_kind) in kinds.items():
+        ts, base = times[kind], times[base_kind or "in-process (LocalMaterials)"]
+        answers = n * C.group_lights(buffers[0].shape[1])
         ratio = statistics.median(b / t for b, t in zip(base, ts))
-        print(f"{kind:32s} {statistics.median(ts) * 1e3:10.1f} {n / statistics.median(ts) / 1e6:7.3f} {ratio:13.0%}")
+        median = statistics.median(ts)
+        print(f"{kind:32s} {median * 1e3:10.1f} {answers / median / 1e6:12.3f} {ratio:13.0%}")
     parts = ", ".join(f"{stage} {statistics.median(ms):.1f}" for stage, ms in stages.items())
     print(f"MaterialClient server-side stages, median ms (Server-Timing): {parts}; the rest is HTTP and the client")
 

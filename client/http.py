@@ -6,8 +6,9 @@ kept-alive HTTP/1.1 connection, the query rows handed to the socket without a co
 timeouts; 503 (queue full, honouring ``Retry-After``) and connection failures are retried a bounded
 number of times with exponential backoff; anything else fails at once with an error that says what
 the server answered. Large buffers are sent as several requests of at most ``ClientConfig.max_rows``
-rows. A material name goes into the URL path, so a name that is not a material name
-(`neumip.client.local.NAME_PATTERN`) is refused before anything is sent.
+rows. Query groups (N, 5 + 2 K) travel as they are (`neumip.client.contract`) and answer (N, 3 K);
+a row is a group, so a split never cuts one. A material name goes into the URL path, so a name that
+is not a material name (`neumip.client.local.NAME_PATTERN`) is refused before anything is sent.
 
 How queries and answers travel is a `Codec` (`PROTOCOLS`): the msgpack ``/v1`` format by default, or
 the Open Inference Protocol's ``/v2`` binary tensors (``protocol="v2"``), both laid out in
@@ -67,7 +68,8 @@ class ClientConfig:
     max_backoff_s: float = 5.0
     """Longest wait between two attempts."""
     max_rows: int = 1_000_000
-    """Most query rows per request; larger buffers are split (server default limit: 2M rows)."""
+    """Most query rows (a query group is one row) per request; larger buffers are split (server
+    default limit: 2M rows)."""
 
 
 class Codec(Protocol):
@@ -78,11 +80,13 @@ class Codec(Protocol):
         ...
 
     def encode(self, queries: np.ndarray) -> tuple[dict[str, str], list]:
-        """Validated (n, 7) float32 queries -> (request headers, body as a list of buffers)."""
+        """Validated (n, 7) float32 queries or (n, 5 + 2 K) groups -> (request headers, body as a list
+        of buffers)."""
         ...
 
-    def decode(self, response, rows: int) -> np.ndarray:
-        """The answer (an ``httpx.Response``) to a request of `rows` queries -> (rows, 3) float32 RGB."""
+    def decode(self, response, rows: int, lights: int) -> np.ndarray:
+        """The answer (an ``httpx.Response``) to a request of `rows` groups of `lights` lights ->
+        (rows, 3 lights) float32 RGB."""
         ...
 
 
@@ -101,8 +105,8 @@ class MsgpackCodec:
         }
         return headers, [header, rows]
 
-    def decode(self, response, rows: int) -> np.ndarray:
-        return C.as_rgb(wire.decode_response(response.content), rows)
+    def decode(self, response, rows: int, lights: int) -> np.ndarray:
+        return C.as_rgb(wire.decode_response(response.content), rows, lights)
 
 
 class InferCodec:
@@ -114,9 +118,9 @@ class InferCodec:
     def encode(self, queries: np.ndarray) -> tuple[dict[str, str], list]:
         return wire.encode_infer_request(queries)
 
-    def decode(self, response, rows: int) -> np.ndarray:
+    def decode(self, response, rows: int, lights: int) -> np.ndarray:
         rgb = wire.decode_infer_response(response.content, response.headers.get(wire.INFER_HEADER_LENGTH))
-        return C.as_rgb(rgb, rows)
+        return C.as_rgb(rgb, rows, lights)
 
 
 PROTOCOLS: dict[str, Codec] = {"msgpack": MsgpackCodec(), "v2": InferCodec()}
@@ -165,34 +169,36 @@ class MaterialClient:
         return list(self._names)
 
     def evaluate(self, material: str, queries: np.ndarray) -> np.ndarray:
-        """(N, 7) float32 queries -> (N, 3) float32 RGB, in requests of at most `max_rows` rows."""
+        """(N, 7) float32 queries -> (N, 3) float32 RGB, or query groups (N, 5 + 2 K) -> (N, 3 K), in
+        requests of at most `max_rows` rows."""
         if not NAME_PATTERN.match(material):  # it goes into the URL path: only safe names
             raise UnknownMaterial(
                 f"{material!r} is not a material name (a letter or digit, then letters, digits, '_', "
                 "'.', '-'; at most 128 characters)"
             )
-        queries = C.as_queries(queries)
-        n = queries.shape[0]
+        queries = C.as_queries(queries, groups=True)
+        n, lights = queries.shape[0], C.group_lights(queries.shape[1])
         if n == 0:
-            return np.empty((0, C.RGB_DIM), dtype=C.DTYPE)
+            return np.empty((0, C.RGB_DIM * lights), dtype=C.DTYPE)
         if n <= self.config.max_rows:
             rgb = self._evaluate_once(material, queries)
-            return rgb if rgb.flags.writeable else rgb.copy()  # (N, 3) view of the answer body
-        out = np.empty((n, C.RGB_DIM), dtype=C.DTYPE)
+            return rgb if rgb.flags.writeable else rgb.copy()  # (N, 3 K) view of the answer body
+        out = np.empty((n, C.RGB_DIM * lights), dtype=C.DTYPE)
         for lo in range(0, n, self.config.max_rows):
             hi = min(lo + self.config.max_rows, n)
             out[lo:hi] = self._evaluate_once(material, queries[lo:hi])
         return out
 
     def _evaluate_once(self, material: str, queries: np.ndarray) -> np.ndarray:
-        """One request: validated (n, 7) queries -> (n, 3) RGB (a view of the answer's body)."""
-        n = queries.shape[0]
+        """One request: validated (n, 7) queries or (n, 5 + 2 K) groups -> (n, 3 K) RGB (a view of the
+        answer's body)."""
+        n, lights = queries.shape[0], C.group_lights(queries.shape[1])
         headers, body = self.codec.encode(queries)
         response = self._request(
             "POST", self.codec.path(material), what=f"evaluate {n} queries on {material!r}", body=body, headers=headers
         )
         self.server_timing = _server_timing(response.headers.get("Server-Timing", ""))
-        return self.codec.decode(response, n)
+        return self.codec.decode(response, n, lights)
 
     # --- plumbing -------------------------------------------------------------------------------
     def refresh(self) -> None:

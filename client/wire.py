@@ -1,8 +1,16 @@
 """The wire formats the server and `MaterialClient` exchange: msgpack (``/v1``) and the Open Inference
 Protocol's binary tensors (``/v2``).
 
-msgpack request body:  map ``{"n": N, "queries": <N*7*4 bytes, little-endian float32, row-major>}``
-msgpack response body: map ``{"n": N, "rgb": <N*3*4 bytes, little-endian float32, row-major>}``
+msgpack request body:  map ``{"n": N, "queries": <N*W*4 bytes, little-endian float32, row-major>}``
+msgpack response body: map ``{"n": N, "rgb": <N*3K*4 bytes, little-endian float32, row-major>}``
+
+``W`` is 7 for plain queries, ``5 + 2 K`` for query groups of ``K`` lights (`contract.group_width`),
+and the answer holds ``3 K`` values a row. The width is read from the byte count: with ``n`` given,
+``bytes / (4 n)`` has one value, so a body cannot be read two ways, and a count that is no valid width
+(8 columns, or bytes that are not ``n`` whole rows) is a QueryError naming the count. There is no
+``"lights"`` field: it would be a second statement of what ``n`` and the byte count already fix (and
+a way for the two to disagree), and bodies of old clients, (N, 7), read as they always did. ``N = 0``
+with no bytes is valid for any ``K`` and answers no rows.
 
 The rows travel as raw float32 bytes, so neither side copies them: a body laid out exactly as
 `msgpack.packb` writes it is read as a view (`_fast_rows`), and the server writes its answer straight
@@ -21,7 +29,7 @@ import json
 
 import numpy as np
 
-from .contract import DTYPE, ONNX_INPUT, ONNX_OUTPUT, QUERY_DIM, RGB_DIM, QueryError, as_queries
+from .contract import DTYPE, ONNX_INPUT, ONNX_OUTPUT, QUERY_DIM, RGB_DIM, QueryError, as_queries, group_lights
 
 MSGPACK_MEDIA_TYPE = "application/msgpack"
 """Content type of the request and response bodies."""
@@ -39,11 +47,12 @@ INFER_DATATYPE = "FP32"
 """The Open Inference Protocol datatype of queries and answers."""
 
 
-def _prefix(key: str, n: int) -> bytes:
-    """The bytes `msgpack.packb` writes before the raw rows of ``{"n": n, key: <rows>}``."""
+def _prefix(key: str, n: int, width: int) -> bytes:
+    """The bytes `msgpack.packb` writes before the raw rows of ``{"n": n, key: <rows>}``, `n` rows of
+    `width` float32."""
     import msgpack
 
-    nbytes = n * (QUERY_DIM if key == "queries" else RGB_DIM) * DTYPE.itemsize
+    nbytes = n * width * DTYPE.itemsize
     if nbytes < 1 << 8:
         bin_header = b"\xc4" + nbytes.to_bytes(1, "big")
     elif nbytes < 1 << 16:
@@ -53,9 +62,11 @@ def _prefix(key: str, n: int) -> bytes:
     return msgpack.packb({"n": n, key: b""})[:-2] + bin_header  # [:-2]: the empty bin's header
 
 
-def _fast_rows(body, key: str, width: int) -> np.ndarray | None:
-    """The (n, width) rows of a body laid out exactly as `msgpack.packb` writes ``{"n": n, key: <rows>}``,
-    as a view without copying; None for any other layout (the msgpack decoder takes those)."""
+def _fast_rows(body, key: str) -> tuple[int, memoryview] | None:
+    """(n, the raw row bytes) of a body laid out exactly as `msgpack.packb` writes ``{"n": n, key:
+    <rows>}``, a view without copying; None for any other layout (the msgpack decoder takes those)."""
+    import msgpack
+
     view = memoryview(body)
     # 0x82: map of 2; 0xa1 'n'; then n as msgpack writes a non-negative int (fixint or uint 8..64)
     if len(view) < 4 or view[:3] != b"\x82\xa1n":
@@ -65,83 +76,110 @@ def _fast_rows(body, key: str, width: int) -> np.ndarray | None:
     if size < 0 or len(view) < 4 + size:
         return None
     n = tag if size == 0 else int.from_bytes(view[4 : 4 + size], "big")
-    if n > len(view):  # cannot be right
+    head = msgpack.packb({"n": n, key: b""})[:-2]  # up to the rows' bin header
+    lengths = {0xC4: 1, 0xC5: 2, 0xC6: 4}  # bin 8, 16, 32: bytes of the length that follows
+    if view[: len(head)] != head or len(view) < len(head) + 1 or view[len(head)] not in lengths:
         return None
-    prefix = _prefix(key, n)
-    if view[: len(prefix)] != prefix or len(view) != len(prefix) + n * width * DTYPE.itemsize:
+    start = len(head) + 1 + lengths[view[len(head)]]
+    if len(view) < start or int.from_bytes(view[len(head) + 1 : start], "big") != len(view) - start:
         return None
-    return np.frombuffer(body, dtype=DTYPE, offset=len(prefix), count=n * width).reshape(n, width)
+    return n, view[start:]
 
 
-def _unpack_rows(body, key: str, width: int) -> np.ndarray:
+def _unpack_rows(body, key: str, unit: int, empty: int) -> np.ndarray:
+    """The (n, width) float32 rows under `key` (a view of `body` where its layout allows); the width
+    is read from the byte count and must be a multiple of `unit` (`empty` for no rows). Raises QueryError."""
     import msgpack
 
-    fast = _fast_rows(body, key, width)  # the layout this module writes: a view, no copy
+    fast = _fast_rows(body, key)  # the layout this module writes: a view, no copy
     if fast is not None:
-        return fast
-    try:
-        msg = msgpack.unpackb(body, raw=False)
-    except Exception as exc:  # msgpack raises several types for malformed input
-        raise QueryError(f"body is not valid msgpack: {exc}") from None
-    if not isinstance(msg, dict) or key not in msg or "n" not in msg:
-        raise QueryError(f"msgpack body must be a map with keys 'n' and '{key}'")
-    n, raw = msg["n"], msg[key]
-    if not isinstance(n, int) or isinstance(n, bool) or n < 0:
-        raise QueryError(f"'n' must be a non-negative integer, got {n!r}")
-    if not isinstance(raw, (bytes, bytearray)):
-        raise QueryError(f"'{key}' must be binary (raw little-endian float32 bytes)")
-    if len(raw) != n * width * DTYPE.itemsize:
-        raise QueryError(
-            f"'{key}' holds {len(raw)} bytes; n={n} rows of {width} float32 need {n * width * 4}"
-        )
+        n, raw = fast
+    else:
+        try:
+            msg = msgpack.unpackb(body, raw=False)
+        except Exception as exc:  # msgpack raises several types for malformed input
+            raise QueryError(f"body is not valid msgpack: {exc}") from None
+        if not isinstance(msg, dict) or key not in msg or "n" not in msg:
+            raise QueryError(f"msgpack body must be a map with keys 'n' and '{key}'")
+        n, raw = msg["n"], msg[key]
+        if not isinstance(n, int) or isinstance(n, bool) or n < 0:
+            raise QueryError(f"'n' must be a non-negative integer, got {n!r}")
+        if not isinstance(raw, (bytes, bytearray)):
+            raise QueryError(f"'{key}' must be binary (raw little-endian float32 bytes)")
+    width = _width(key, n, len(raw), unit, empty)
     return np.frombuffer(raw, dtype=DTYPE).reshape(n, width)
 
 
+def _width(key: str, n: int, nbytes: int, unit: int, empty: int) -> int:
+    """Float32 values per row of `n` rows held in `nbytes` bytes (`empty` for no rows); QueryError
+    unless the bytes are `n` whole rows whose width is a multiple of `unit`."""
+    if n == 0:
+        if nbytes:
+            raise QueryError(f"'{key}' holds {nbytes} bytes; n=0 rows need 0")
+        return empty
+    width, rest = divmod(nbytes, n * DTYPE.itemsize)
+    if rest or not width or width % unit:
+        need = (f"a multiple of n x {unit * DTYPE.itemsize} bytes" if key != "queries"
+                else "n x 28 bytes for (N, 7) queries, or n x (5 + 2 K) x 4 for groups of K lights")
+        raise QueryError(f"'{key}' holds {nbytes} bytes, which is not n={n} rows of float32: it needs {need}")
+    return width
+
+
 def encode_request(queries: np.ndarray) -> bytes:
-    """(N, 7) queries -> msgpack request body."""
+    """(N, 7) queries, or query groups (N, 5 + 2 K) -> msgpack request body."""
     header, rows = encode_request_parts(queries)
     return header + bytes(rows)
 
 
 def encode_request_parts(queries: np.ndarray) -> tuple[bytes, memoryview]:
-    """(N, 7) queries -> the msgpack request body as (header, rows): ``header + rows`` is
-    `encode_request`'s body, for sending the rows without copying them."""
+    """(N, 7) queries or (N, 5 + 2 K) groups -> the msgpack request body as (header, rows): ``header +
+    rows`` is `encode_request`'s body, for sending the rows without copying them."""
     q = np.ascontiguousarray(queries, dtype=DTYPE)
-    return _prefix("queries", int(q.shape[0])), memoryview(q.reshape(-1)).cast("B")
+    return _prefix("queries", int(q.shape[0]), int(q.shape[1])), memoryview(q.reshape(-1)).cast("B")
 
 
 def decode_request(body) -> np.ndarray:
-    """msgpack request body -> validated (N, 7) float32 queries (a view of `body`). Raises QueryError."""
-    return as_queries(_unpack_rows(body, "queries", QUERY_DIM))
+    """msgpack request body -> validated (N, 7) float32 queries, or (N, 5 + 2 K) query groups (the
+    width read from the byte count; a view of `body`). Raises QueryError."""
+    rows = _unpack_rows(body, "queries", 1, QUERY_DIM)
+    try:
+        group_lights(rows.shape[1])
+    except QueryError as exc:
+        raise QueryError(f"'queries' holds {rows.nbytes} bytes, {rows.shape[1]} float32 per row for "
+                         f"n={rows.shape[0]}: {exc}") from None
+    return as_queries(rows, groups=True)
 
 
-def response_buffer(rows: int) -> tuple[bytearray, np.ndarray]:
-    """An msgpack response body to fill in place: (body, its (rows, 3) float32 RGB view).
+def response_buffer(rows: int, lights: int = 1) -> tuple[bytearray, np.ndarray]:
+    """An msgpack response body to fill in place: (body, its (rows, 3 lights) float32 RGB view).
 
     Once the view holds the answer, ``body`` equals `encode_response` of it.
     """
-    prefix = _prefix("rgb", rows)
-    body = bytearray(len(prefix) + rows * RGB_DIM * DTYPE.itemsize)
+    width = RGB_DIM * lights
+    prefix = _prefix("rgb", rows, width)
+    body = bytearray(len(prefix) + rows * width * DTYPE.itemsize)
     body[: len(prefix)] = prefix
-    rgb = np.frombuffer(body, dtype=DTYPE, offset=len(prefix)).reshape(rows, RGB_DIM)  # (rows, 3)
+    rgb = np.frombuffer(body, dtype=DTYPE, offset=len(prefix)).reshape(rows, width)  # (rows, 3 lights)
     return body, rgb
 
 
 def encode_response(rgb: np.ndarray) -> bytes:
-    """(N, 3) RGB -> msgpack response body."""
-    body, view = response_buffer(int(np.shape(rgb)[0]))
+    """(N, 3) RGB, or (N, 3 K) answers of query groups -> msgpack response body."""
+    rows, width = np.shape(rgb)
+    body, view = response_buffer(int(rows), width // RGB_DIM)
     view[...] = rgb
     return bytes(body)
 
 
 def decode_response(body) -> np.ndarray:
-    """msgpack response body -> (N, 3) float32 RGB (a view of `body`). Raises QueryError."""
-    return _unpack_rows(body, "rgb", RGB_DIM)
+    """msgpack response body -> (N, 3) float32 RGB, or (N, 3 K) for query groups (a view of `body`).
+    Raises QueryError."""
+    return _unpack_rows(body, "rgb", RGB_DIM, RGB_DIM)
 
 
 def encode_infer_request(queries: np.ndarray) -> tuple[dict[str, str], list]:
-    """(N, 7) queries -> (headers, body parts) of a v2 infer request with a binary input and output:
-    the JSON header, then the rows without a copy."""
+    """(N, 7) queries or (N, 5 + 2 K) groups -> (headers, body parts) of a v2 infer request with a
+    binary input and output: the JSON header, then the rows without a copy."""
     q = np.ascontiguousarray(queries, dtype=DTYPE)
     tensor = {"name": ONNX_INPUT, "datatype": INFER_DATATYPE, "shape": list(q.shape),
               "parameters": {"binary_data_size": q.nbytes}}
@@ -157,7 +195,8 @@ def encode_infer_request(queries: np.ndarray) -> tuple[dict[str, str], list]:
 
 def decode_infer_response(body, header_length: str | None) -> np.ndarray:
     """A v2 infer answer with a binary ``rgb`` output (and `header_length`, its
-    Inference-Header-Content-Length) -> (N, 3) float32 RGB, a view of `body`. Raises QueryError."""
+    Inference-Header-Content-Length) -> (N, 3) float32 RGB, or (N, 3 K) answers of query groups, a view
+    of `body`. Raises QueryError."""
     if header_length is None or not header_length.isdigit() or int(header_length) > len(body):
         raise QueryError(f"v2 answer has no valid {INFER_HEADER_LENGTH} ({header_length!r}): no binary output")
     length = int(header_length)
@@ -167,9 +206,11 @@ def decode_infer_response(body, header_length: str | None) -> np.ndarray:
         shape, size = output["shape"], output["parameters"]["binary_data_size"]
     except (ValueError, KeyError, TypeError) as exc:
         raise QueryError(f"v2 answer header is not an infer response with a binary '{ONNX_OUTPUT}': {exc}") from None
-    if output.get("datatype") != INFER_DATATYPE or len(shape) != 2 or shape[1] != RGB_DIM:
-        raise QueryError(f"v2 answer '{ONNX_OUTPUT}' is {output.get('datatype')} {shape}, not {INFER_DATATYPE} [N, 3]")
-    if size != shape[0] * RGB_DIM * DTYPE.itemsize or len(body) - length != size:
+    if (output.get("datatype") != INFER_DATATYPE or len(shape) != 2
+            or not all(isinstance(d, int) and d >= 0 for d in shape) or not shape[1] or shape[1] % RGB_DIM):
+        raise QueryError(f"v2 answer '{ONNX_OUTPUT}' is {output.get('datatype')} {shape}, "
+                         f"not {INFER_DATATYPE} [N, 3 K]")
+    if size != shape[0] * shape[1] * DTYPE.itemsize or len(body) - length != size:
         raise QueryError(f"v2 answer holds {len(body) - length} bytes of '{ONNX_OUTPUT}', shape {shape} needs "
-                         f"{shape[0] * RGB_DIM * DTYPE.itemsize}")
-    return np.frombuffer(body, dtype=DTYPE, offset=length).reshape(shape[0], RGB_DIM)
+                         f"{shape[0] * shape[1] * DTYPE.itemsize}")
+    return np.frombuffer(body, dtype=DTYPE, offset=length).reshape(shape)

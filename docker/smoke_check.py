@@ -24,7 +24,8 @@ def make_models(folder: Path) -> None:
 
 
 def check(url: str, folder: Path) -> None:
-    """Every served material answers msgpack and v2 binary queries bit-identically to ONNX Runtime here."""
+    """Every served material answers msgpack and v2 binary queries, plain and in query groups of two
+    lights, bit-identically to ONNX Runtime here."""
     import httpx
     import tritonclient.http as triton
 
@@ -41,18 +42,22 @@ def check(url: str, folder: Path) -> None:
         assert listed == local.materials(), f"server lists {listed}, folder holds {local.materials()}"
         for i, name in enumerate(listed):
             q = C.random_queries(50_000, seed=i)
-            ref = local.evaluate(name, q)
-            resp = http.post(
-                wire.EVALUATE_PATH.format(name=name),
-                content=wire.encode_request(q),
-                headers={"content-type": wire.MSGPACK_MEDIA_TYPE},
-            ).raise_for_status()
-            assert np.array_equal(wire.decode_response(resp.content), ref), f"{name}: msgpack answer differs"
-            tensor = triton.InferInput(C.ONNX_INPUT, list(q.shape), "FP32")
-            tensor.set_data_from_numpy(q, binary_data=True)
-            out = client.infer(name, [tensor]).as_numpy(C.ONNX_OUTPUT)
-            assert np.array_equal(out, ref), f"{name}: v2 binary answer differs"
-            print(f"smoke: {name}: 50000 queries, msgpack and v2 answers bit-identical to in-process")
+            groups = np.hstack([q[:20_000], C.random_queries(20_000, seed=100 + i)[:, C.WI_X:C.WI_Y + 1]])
+            for sent in (q, groups):  # (N, 7) -> (N, 3); (N, 9) -> (N, 6)
+                ref = local.evaluate(name, sent)
+                resp = http.post(
+                    wire.EVALUATE_PATH.format(name=name),
+                    content=wire.encode_request(sent),
+                    headers={"content-type": wire.MSGPACK_MEDIA_TYPE},
+                ).raise_for_status()
+                answer = wire.decode_response(resp.content)
+                assert np.array_equal(answer, ref), f"{name} {sent.shape}: msgpack answer differs"
+                tensor = triton.InferInput(C.ONNX_INPUT, list(sent.shape), "FP32")
+                tensor.set_data_from_numpy(sent, binary_data=True)
+                out = client.infer(name, [tensor]).as_numpy(C.ONNX_OUTPUT)
+                assert np.array_equal(out, ref), f"{name} {sent.shape}: v2 binary answer differs"
+            print(f"smoke: {name}: 50000 queries and 20000 groups of two lights, msgpack and v2 answers "
+                  "bit-identical to in-process")
         bad = http.post(wire.EVALUATE_PATH.format(name=listed[0]), content=b"\x00garbage",
                         headers={"content-type": wire.MSGPACK_MEDIA_TYPE})
         assert bad.status_code == 400 and "error" in bad.json(), bad.text
@@ -61,9 +66,9 @@ def check(url: str, folder: Path) -> None:
     # Triton's extensions: configuration, statistics (both requests above went through the batcher)
     # and the repository index
     config = client.get_model_config(listed[0])
-    assert config["max_batch_size"] > 0 and config["input"][0]["dims"] == [C.QUERY_DIM], config
+    assert config["max_batch_size"] > 0 and config["input"][0]["dims"] == [-1], config  # -1: any group width
     stats = client.get_inference_statistics(listed[0])["model_stats"][0]
-    assert stats["inference_count"] == 100_000 and stats["inference_stats"]["success"]["count"] == 2, stats
+    assert stats["inference_count"] == 140_000 and stats["inference_stats"]["success"]["count"] == 4, stats
     assert {m["name"]: m["state"] for m in client.get_model_repository_index()} == dict.fromkeys(listed, "READY")
     print(f"smoke: {listed[0]}: config, statistics ({stats['execution_count']} ONNX Runtime calls) and repository index")
 

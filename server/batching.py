@@ -1,10 +1,11 @@
 """Dynamic batching: decode -> **batch** -> **predict** -> **unbatch** -> encode.
 
-Handlers decode and validate a request, then `Batcher.evaluate` cuts its (N, 7) queries into pieces of
-at most ``chunk_rows`` rows (large requests are split: one ONNX Runtime call on 10^6 rows is several
-times slower than the same rows in cache-sized chunks) and queues them. A pool of worker threads, one
-per ONNX Runtime worker (default: one per core), is the executor: each worker takes the oldest queued
-pieces of one material, merging consecutive small ones into one call of up to ``chunk_rows`` rows and
+Handlers decode and validate a request, then `Batcher.evaluate` cuts its (N, 7) queries, or (N, 5 + 2 K)
+query groups, into pieces of at most ``chunk_rows`` answers (``chunk_rows // K`` groups; large requests
+are split: one ONNX Runtime call on 10^6 rows is several times slower than the same rows in cache-sized
+chunks) and queues them. A pool of worker threads, one per ONNX Runtime worker (default: one per core),
+is the executor: each worker takes the oldest queued pieces of one material and width, merging
+consecutive small ones into one call of up to ``chunk_rows`` answers and
 waiting at most ``max_wait_ms`` (counted from the oldest piece's arrival) for a call to fill - only
 while other requests are being decoded (`Batcher.receiving`), never for a body still arriving: a lone
 request, or the tail of a lone large one, runs at once - then runs the call and copies each piece's
@@ -14,6 +15,10 @@ only function that touches ONNX Runtime.
 
 Answers are checked: a model that answers NaN or Inf for some row fails that request with a 500
 naming the material (counted in ``neumip_nonfinite_answers_total``), never a silent NaN.
+
+Only pieces of the same width share a call (one queue per material and width). A model exported
+before query groups (input width fixed to 7) gets the single queries of a group
+(`neumip.client.local.run_chunked`), with the same bits.
 
 Merging and splitting keep answers bit-identical to evaluating each request on its own, in one call or
 in process (`neumip.client.local`): the exported graph answers a row with the same bits wherever it
@@ -38,7 +43,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from neumip.client import contract as C
-from neumip.client.local import Material
+from neumip.client.local import Material, run_chunked
 
 from .errors import ApiError
 from .metrics import Metrics
@@ -49,8 +54,9 @@ log = logging.getLogger(__name__)
 
 
 def predict(session, queries: np.ndarray) -> np.ndarray:
-    """One ONNX Runtime call: (n, 7) float32 contiguous queries -> (n, 3) float32 RGB."""
-    return session.run([C.ONNX_OUTPUT], {C.ONNX_INPUT: queries})[0]
+    """One ONNX Runtime call: (n, 5 + 2 K) float32 contiguous queries -> (n, 3 K) float32 RGB (a graph
+    exported before query groups gets the n K single queries, `run_chunked`)."""
+    return run_chunked(session, queries, chunk=max(queries.shape[0], 1) * C.group_lights(queries.shape[1]))
 
 
 @dataclass
@@ -58,18 +64,18 @@ class _Job:
     """One request being evaluated: its answer buffer and how many of its rows are not answered yet."""
 
     future: asyncio.Future
-    out: np.ndarray  # (N, 3) float32, filled piece by piece
+    out: np.ndarray  # (N, 3 K) float32, filled piece by piece
     rows_left: int  # rows not yet answered (changed under the batcher's lock)
     error: ApiError | None = None
 
 
 @dataclass
 class _Piece:
-    """At most ``chunk_rows`` consecutive rows of one job."""
+    """At most ``chunk_rows`` answers' worth of consecutive rows of one job."""
 
     job: _Job
-    queries: np.ndarray  # (n, 7) float32 view into the request's queries
-    out: np.ndarray  # (n, 3) float32 view into the job's answer buffer
+    queries: np.ndarray  # (n, 5 + 2 K) float32 view into the request's queries
+    out: np.ndarray  # (n, 3 K) float32 view into the job's answer buffer
     start: int = 0  # index of the piece's first row in the request
     arrived: float = 0.0  # time.monotonic() when queued
     order: int = 0  # global arrival order (first in, first out across materials)
@@ -81,15 +87,22 @@ class _Piece:
 
 @dataclass
 class _MaterialQueue:
-    """Pieces waiting for one material, oldest first."""
+    """Pieces of one width waiting for one material, oldest first."""
 
     material: Material
+    chunk: int
+    """Most rows of one call: ``chunk_rows // K`` groups of K lights."""
     pieces: deque = field(default_factory=deque)
     rows: int = 0
 
 
+def group_chunk(chunk_rows: int, width: int) -> int:
+    """Rows of `width` columns in a call of at most `chunk_rows` answers (at least one)."""
+    return max(chunk_rows // C.group_lights(width), 1)
+
+
 def split(queries: np.ndarray, out: np.ndarray, chunk: int, job: _Job) -> list[_Piece]:
-    """Cut (N, 7) queries and their (N, 3) answer buffer into pieces of at most `chunk` rows."""
+    """Cut (N, 5 + 2 K) queries and their (N, 3 K) answer buffer into pieces of at most `chunk` rows."""
     n = queries.shape[0]
     return [_Piece(job, queries[lo : lo + chunk], out[lo : lo + chunk], lo) for lo in range(0, n, chunk)]
 
@@ -110,10 +123,10 @@ def run_batch(session, pieces: list[_Piece]) -> int:
     Runs in a worker thread; returns the rows evaluated. Check the answers with `first_nonfinite`.
     """
     if len(pieces) == 1:
-        queries = pieces[0].queries  # (n, 7): a row slice of a C-contiguous buffer, no copy
+        queries = pieces[0].queries  # (n, 5 + 2 K): a row slice of a C-contiguous buffer, no copy
     else:
-        queries = np.concatenate([p.queries for p in pieces])  # (sum n, 7)
-    rgb = predict(session, queries)  # (sum n, 3)
+        queries = np.concatenate([p.queries for p in pieces])  # (sum n, 5 + 2 K): one width per queue
+    rgb = predict(session, queries)  # (sum n, 3 K)
     lo = 0
     for piece in pieces:
         piece.out[...] = rgb[lo : lo + piece.rows]
@@ -136,11 +149,13 @@ class _Arrival:
 
 def first_nonfinite(piece: _Piece) -> str | None:
     """Where the piece's answer holds NaN or Inf ("row i of the request is nan"), None if nowhere."""
-    finite = np.isfinite(piece.out)  # (n, 3)
+    finite = np.isfinite(piece.out)  # (n, 3 K)
     if finite.all():
         return None
     row, col = np.argwhere(~finite)[0]
-    return f"query row {piece.start + row} of the request answered {piece.out[row, col]} ({C.RGB_FIELDS[col]})"
+    light = f" of light {col // C.RGB_DIM + 1}" if piece.out.shape[1] > C.RGB_DIM else ""
+    return (f"query row {piece.start + row} of the request answered {piece.out[row, col]} "
+            f"({C.RGB_FIELDS[col % C.RGB_DIM]}{light})")
 
 
 class Batcher:
@@ -152,9 +167,10 @@ class Batcher:
         self.stats = ModelStats()  # per-material statistics in Triton's shape (GET /v2/models/{name}/stats)
         self.workers = settings.workers()
         self._materials = materials  # name -> Material, read at submit (a registry may change it)
-        # one queue per loaded model object while it has pieces: a swapped model's queued pieces still
-        # run on the model they were submitted to, and a drained queue lets its model go
-        self._queues: dict[int, _MaterialQueue] = {}
+        # one queue per loaded model object and query width while it has pieces: a swapped model's
+        # queued pieces still run on the model they were submitted to, a drained queue lets its model
+        # go, and a call holds rows of one width
+        self._queues: dict[tuple[int, int], _MaterialQueue] = {}
         self._cond = threading.Condition()
         self._order = itertools.count()
         self._closing = False
@@ -214,26 +230,28 @@ class Batcher:
         self, name: str, queries: np.ndarray, out: np.ndarray | None = None, arrival: _Arrival | None = None,
         material: Material | None = None,
     ) -> asyncio.Future:
-        """Queue validated (N, 7) float32 queries for material `name` (the loaded `material`, default:
-        the one `name` maps to now); the future's result is their
-        (N, 3) float32 RGB, written into `out` ((N, 3) float32, e.g. a view into the response body)
+        """Queue validated (N, 7) float32 queries, or (N, 5 + 2 K) query groups, for material `name`
+        (the loaded `material`, default: the one `name` maps to now); the future's result is their
+        (N, 3 K) float32 RGB, written into `out` ((N, 3 K) float32, e.g. a view into the response body)
         when given, else into a new array; its exception an ApiError (500) if the model failed.
         `arrival`: the request's `receiving` (use ``arrival.submit``)."""
-        n = queries.shape[0]
+        n, width = queries.shape
+        answers = C.RGB_DIM * C.group_lights(width)
         if out is None:
-            out = np.empty((n, C.RGB_DIM), dtype=C.DTYPE)
-        elif out.shape != (n, C.RGB_DIM) or out.dtype != C.DTYPE:
-            raise ValueError(f"answer buffer must be ({n}, {C.RGB_DIM}) {C.DTYPE}, got {out.shape} {out.dtype}")
+            out = np.empty((n, answers), dtype=C.DTYPE)
+        elif out.shape != (n, answers) or out.dtype != C.DTYPE:
+            raise ValueError(f"answer buffer must be ({n}, {answers}) {C.DTYPE}, got {out.shape} {out.dtype}")
         job = _Job(self._loop.create_future(), out, n)
         self.stats.track(name, job.future, n)
         self.metrics.request_rows.observe(n)
         if n == 0:
             job.future.set_result(out)
         material = material or self._materials[name]
-        pieces = split(queries, out, self.settings.chunk_rows, job)
+        chunk = group_chunk(self.settings.chunk_rows, width)
+        pieces = split(queries, out, chunk, job)
         now = time.monotonic()
         with self._cond:
-            queue = self._queues.setdefault(id(material), _MaterialQueue(material))
+            queue = self._queues.setdefault((id(material), width), _MaterialQueue(material, chunk))
             for piece in pieces:
                 piece.arrived, piece.order = now, next(self._order)
                 queue.pieces.append(piece)
@@ -259,20 +277,20 @@ class Batcher:
     # --- predict and unbatch (worker threads) --------------------------------------------------
     def _next_batch(self) -> tuple[Material, list[_Piece]] | None:
         """Under the lock: wait for work, then the batch to run; None once closing and drained."""
-        chunk, wait_s = self.settings.chunk_rows, self.settings.max_wait_ms / 1000.0
+        wait_s = self.settings.max_wait_ms / 1000.0
         while True:
-            ready = [(q.pieces[0], q) for q in self._queues.values() if q.pieces]
+            ready = [(q.pieces[0], key, q) for key, q in self._queues.items() if q.pieces]
             if not ready:
                 if self._closing:
                     return None
                 self._cond.wait()
                 continue
-            first, queue = min(ready, key=lambda pq: pq[0].order)
+            first, key, queue = min(ready, key=lambda pkq: pkq[0].order)
             remaining = first.arrived + wait_s - time.monotonic()
-            if queue.rows >= chunk or remaining <= 0 or not self._receiving or self._closing:
-                batch = take(queue, chunk)
+            if queue.rows >= queue.chunk or remaining <= 0 or not self._receiving or self._closing:
+                batch = take(queue, queue.chunk)
                 if not queue.pieces:
-                    del self._queues[id(queue.material)]
+                    del self._queues[key]
                 return queue.material, batch
             self._cond.wait(remaining)  # more pieces may arrive to fill the call
 

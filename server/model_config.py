@@ -64,13 +64,20 @@ class TritonOptions:
         return cls(**{**values, **overrides})
 
 
+VARIABLE = -1
+"""Triton's dimension of variable size."""
+
+
 def tensor(name: str, dim: int) -> dict:
-    """A batched FP32 tensor of `dim` values per row (Triton adds the batch dimension)."""
+    """A batched FP32 tensor of `dim` values per row, -1 for a variable count (Triton adds the batch
+    dimension)."""
     return {"name": name, "data_type": ProtoEnum("TYPE_FP32"), "dims": [dim]}
 
 
-def model_config(name: str, options: TritonOptions) -> dict:
-    """Triton's ModelConfig of material `name`: (N, 7) FP32 queries -> (N, 3) FP32 rgb."""
+def model_config(name: str, options: TritonOptions, groups: bool = True) -> dict:
+    """Triton's ModelConfig of material `name`: (N, 5 + 2 K) FP32 query groups -> (N, 3 K) FP32 rgb,
+    both widths variable (Triton batches only requests of the same width together); with ``groups``
+    false, for a model file exported before query groups, (N, 7) -> (N, 3)."""
     config = {"name": name}
     if options.backend == "onnxruntime":
         config |= {"platform": ONNX_PLATFORM, "backend": "onnxruntime"}
@@ -80,8 +87,8 @@ def model_config(name: str, options: TritonOptions) -> dict:
     return config | {
         "version_policy": {"specific": {"versions": [int(MODEL_VERSION)]}},
         "max_batch_size": options.max_batch_size,
-        "input": [tensor(C.ONNX_INPUT, C.QUERY_DIM)],
-        "output": [tensor(C.ONNX_OUTPUT, C.RGB_DIM)],
+        "input": [tensor(C.ONNX_INPUT, VARIABLE if groups else C.QUERY_DIM)],
+        "output": [tensor(C.ONNX_OUTPUT, VARIABLE if groups else C.RGB_DIM)],
         "dynamic_batching": {
             "preferred_batch_size": [options.preferred_batch_size],
             "max_queue_delay_microseconds": options.max_queue_delay_us,

@@ -31,8 +31,9 @@ _ROW = {
     "type": "array",
     "items": {"type": "number"},
     "minItems": C.QUERY_DIM,
-    "maxItems": C.QUERY_DIM,
-    "description": ", ".join(C.QUERY_FIELDS),
+    "maxItems": C.group_width(C.MAX_LIGHTS),
+    "description": f"{', '.join(C.QUERY_FIELDS)}; a query group of K lights adds wi_x, wi_y of each further "
+    "light (5 + 2 K numbers, the same in every row)",
 }
 _BINARY = {"type": "string", "format": "binary"}
 
@@ -48,12 +49,13 @@ EVALUATE_BODY = {
         },
         wire.MSGPACK_MEDIA_TYPE: {
             "schema": _BINARY,
-            "description": 'msgpack map {"n": N, "queries": N*7 little-endian float32 bytes}',
+            "description": 'msgpack map {"n": N, "queries": N*7 little-endian float32 bytes}, or N*(5 + 2 K) '
+            "for query groups of K lights (the width is read from the byte count)",
         },
     },
 }
 EVALUATE_RESPONSE = {
-    "description": "RGB per query, in the request's format",
+    "description": "RGB per query (3 K values a row for groups of K lights), in the request's format",
     "content": {
         "application/json": {
             "schema": {

@@ -47,11 +47,12 @@ class Settings(BaseSettings):
     ort_threads: int = Field(1, ge=0)
     """Intra-op threads of each ONNX Runtime call (keep workers x threads <= cores); 0 = all cores."""
     chunk_rows: int = Field(8192, ge=1)
-    """Most rows in one ONNX Runtime call: large requests are split, small ones merged."""
+    """Most answers in one ONNX Runtime call (chunk_rows // K groups of K lights): large requests are
+    split, small ones merged."""
     max_wait_ms: float = Field(2.0, ge=0)
     """How long a batch that is not yet full waits for more rows while other requests are being decoded."""
     max_rows: int = Field(2_000_000, ge=1)
-    """Most query rows one request may carry (more is rejected with 413)."""
+    """Most query rows one request may carry, a query group being one row (more is rejected with 413)."""
     max_queue_rows: int = Field(8_000_000, ge=1)
     """Most rows admitted and not yet answered; beyond it requests get 503 with Retry-After."""
     max_body_bytes: int = Field(128 * 1024 * 1024, ge=1024)

@@ -3,7 +3,9 @@
 ``POST /v1/materials/{name}/evaluate`` with ``Content-Type: application/msgpack`` takes the
 `wire.encode_request` body and answers `wire.encode_response`; with ``application/json`` it
 takes ``{"queries": [[u, v, sigma, wi_x, wi_y, wo_x, wo_y], ...]}`` and answers
-``{"n": N, "rgb": [[r, g, b], ...]}``. ``GET /v1/materials`` lists the materials with their metadata.
+``{"n": N, "rgb": [[r, g, b], ...]}``. Query groups (`neumip.client.contract`) go the same way: rows of
+``5 + 2 K`` values in (msgpack: the width read from the byte count, `neumip.client.wire`), ``3 K`` out.
+``GET /v1/materials`` lists the materials with their metadata.
 """
 
 from __future__ import annotations
@@ -31,27 +33,33 @@ OFFLOAD_BYTES = 1 << 20
 
 
 def decode_json(body: bytes) -> np.ndarray:
-    """``{"queries": [[7 numbers], ...]}`` -> validated (N, 7) float32. Raises ApiError/QueryError."""
+    """``{"queries": [[7 numbers], ...]}`` -> validated (N, 7) float32, or rows of 5 + 2 K numbers ->
+    (N, 5 + 2 K) query groups. Raises ApiError/QueryError."""
     msg = parse_json(body)
     if not isinstance(msg, dict) or not isinstance(msg.get("queries"), list):
         raise ApiError(400, 'JSON body must be an object {"queries": [[u, v, sigma, wi_x, wi_y, wo_x, wo_y], ...]}')
     rows = msg["queries"]
-    if any(not isinstance(row, list) or len(row) != C.QUERY_DIM for row in rows):
-        raise ApiError(400, f"every entry of 'queries' must be a list of {C.QUERY_DIM} numbers ({', '.join(C.QUERY_FIELDS)})")
+    width = len(rows[0]) if rows and isinstance(rows[0], list) else C.QUERY_DIM
+    if any(not isinstance(row, list) or len(row) != width for row in rows):
+        raise ApiError(400, f"every entry of 'queries' must be a list of {C.QUERY_DIM} numbers "
+                       f"({', '.join(C.QUERY_FIELDS)}), or of 5 + 2 K numbers for query groups of K lights, "
+                       "the same in every row")
+    C.group_lights(width)  # QueryError (400) for a width no group has
     if any(isinstance(x, bool) or not isinstance(x, (int, float)) for row in rows for x in row):
         raise ApiError(400, "'queries' must hold only numbers")
     if "n" in msg and msg["n"] != len(rows):
         raise ApiError(400, f"'n' is {msg['n']!r} but 'queries' holds {len(rows)} rows")
     try:
         with np.errstate(over="ignore"):  # out-of-range floats become Inf and are rejected as such
-            arr = np.array(rows, dtype=np.float64).reshape(len(rows), C.QUERY_DIM).astype(C.DTYPE)
+            arr = np.array(rows, dtype=np.float64).reshape(len(rows), width).astype(C.DTYPE)
     except OverflowError:  # an integer literal beyond float64
         raise ApiError(400, "'queries' holds a number outside the float range; values must be finite") from None
-    return C.as_queries(arr)
+    return C.as_queries(arr, groups=True)
 
 
 async def decode(body: bytes | bytearray, kind: str) -> np.ndarray:
-    """Body -> validated (N, 7) float32 queries; a large JSON body is parsed in a thread.
+    """Body -> validated (N, 7) float32 queries or (N, 5 + 2 K) groups; a large JSON body is parsed in a
+    thread.
 
     msgpack is decoded on the event loop whatever its size: the rows are a view of the body (no
     copy), leaving only the value checks, cheaper than a hop to a thread and back.
@@ -86,7 +94,8 @@ async def material_info(name: str, state: ServerState = Depends(serving)) -> dic
 
 @router.post(
     wire.EVALUATE_PATH,
-    summary="Evaluate (N, 7) queries -> (N, 3) RGB (msgpack or JSON)",
+    summary="Evaluate (N, 7) queries -> (N, 3) RGB, or (N, 5 + 2 K) query groups -> (N, 3 K) "
+    "(msgpack or JSON)",
     openapi_extra={"requestBody": EVALUATE_BODY},
     responses={200: EVALUATE_RESPONSE, **ERROR_RESPONSES},
     response_class=Response,
@@ -100,14 +109,16 @@ async def evaluate(name: str, request: Request, state: ServerState = Depends(ser
             body = await read_body(request, body_plan, ticket, state.admission)  # 408 if too slow
             timer.mark("read")
             with state.batcher.receiving() as arrival:  # batches not yet full wait for this request's rows
-                queries = await decode(body, kind)  # (N, 7) float32
+                queries = await decode(body, kind)  # (N, 5 + 2 K) float32, K = 1: (N, 7)
                 check_rows(queries.shape[0], state.settings.max_rows)
                 state.admission.resize(ticket, ticket.memory, queries.shape[0])
                 timer.mark("decode")
                 # msgpack: the workers write the answer straight into the response body (out: a view of it)
-                content, out = wire.response_buffer(queries.shape[0]) if kind == "msgpack" else (None, None)
+                content, out = None, None
+                if kind == "msgpack":
+                    content, out = wire.response_buffer(queries.shape[0], C.group_lights(queries.shape[1]))
                 ticket.until = arrival.submit(name, queries, out=out, material=material)
-            rgb = await asyncio.shield(ticket.until)  # (N, 3) float32
+            rgb = await asyncio.shield(ticket.until)  # (N, 3 K) float32
         timer.mark("evaluate")
         if kind == "msgpack":
             content, media = memoryview(content), wire.MSGPACK_MEDIA_TYPE  # Response takes no bytearray

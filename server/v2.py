@@ -1,8 +1,10 @@
 """The Open Inference Protocol v2 (KServe / Triton REST) with Triton's binary tensor extension.
 
-Each material is a model with one version, ``"1"``, one input ``queries`` FP32 [-1, 7] and one output
-``rgb`` FP32 [-1, 3]. Infer bodies are read raw (tritonclient sends no Content-Type) and split by the
-``Inference-Header-Content-Length`` header into the JSON header and the binary tensor bytes.
+Each material is a model with one version, ``"1"``, one input ``queries`` FP32 [-1, -1] and one output
+``rgb`` FP32 [-1, -1] (the protocol's -1: a dimension of variable size): [N, 7] queries answer [N, 3],
+[N, 5 + 2 K] query groups of K lights answer [N, 3 K] (`neumip.client.contract`). Infer bodies are
+read raw (tritonclient sends no Content-Type) and split by the ``Inference-Header-Content-Length``
+header into the JSON header and the binary tensor bytes.
 """
 
 from __future__ import annotations
@@ -41,7 +43,7 @@ class InferRequest:
     """A parsed infer request: queries and how to send the output back."""
 
     id: str | None
-    queries: np.ndarray  # (N, 7) float32, validated
+    queries: np.ndarray  # (N, 5 + 2 K) float32, validated; K = 1: (N, 7)
     binary_output: bool
 
 
@@ -50,8 +52,8 @@ def model_metadata(name: str) -> dict:
         "name": name,
         "versions": [MODEL_VERSION],
         "platform": PLATFORM,
-        "inputs": [{"name": C.ONNX_INPUT, "datatype": DATATYPE, "shape": [-1, C.QUERY_DIM]}],
-        "outputs": [{"name": C.ONNX_OUTPUT, "datatype": DATATYPE, "shape": [-1, C.RGB_DIM]}],
+        "inputs": [{"name": C.ONNX_INPUT, "datatype": DATATYPE, "shape": [-1, -1]}],  # (N, 5 + 2 K)
+        "outputs": [{"name": C.ONNX_OUTPUT, "datatype": DATATYPE, "shape": [-1, -1]}],  # (N, 3 K)
     }
 
 
@@ -89,7 +91,7 @@ def _parameters(obj: dict, where: str) -> dict:
 
 
 def _input_tensor(inputs: object, binary: memoryview) -> np.ndarray:
-    """The one input tensor -> (N, 7) float32 (unvalidated values). Raises ApiError."""
+    """The one input tensor -> (N, 5 + 2 K) float32 (unvalidated values). Raises ApiError/QueryError."""
     if not isinstance(inputs, list) or len(inputs) != 1 or not isinstance(inputs[0], dict):
         raise ApiError(400, f"'inputs' must be a list holding exactly one tensor, '{C.ONNX_INPUT}'")
     tensor = inputs[0]
@@ -102,24 +104,28 @@ def _input_tensor(inputs: object, binary: memoryview) -> np.ndarray:
         not isinstance(shape, list)
         or len(shape) != 2
         or not all(isinstance(d, int) and not isinstance(d, bool) and d >= 0 for d in shape)
-        or shape[1] != C.QUERY_DIM
     ):
-        raise ApiError(400, f"input '{C.ONNX_INPUT}' must have shape [N, {C.QUERY_DIM}], got {str(shape)[:60]}")
-    n = shape[0]
+        raise ApiError(400, f"input '{C.ONNX_INPUT}' must have shape [N, {C.QUERY_DIM}] or [N, 5 + 2 K] "
+                       f"for query groups, got {str(shape)[:60]}")
+    n, width = shape
+    try:
+        C.group_lights(width)
+    except C.QueryError as exc:
+        raise ApiError(400, f"input '{C.ONNX_INPUT}' has shape {shape}: {exc}") from None
     size = _parameters(tensor, "input ").get("binary_data_size")
     if size is not None:
-        expected = n * C.QUERY_DIM * C.DTYPE.itemsize
+        expected = n * width * C.DTYPE.itemsize
         if not isinstance(size, int) or size != expected:
             raise ApiError(400, f"binary_data_size is {size!r} but shape {shape} of FP32 needs {expected} bytes")
         if len(binary) != size:
             raise ApiError(400, f"binary part holds {len(binary)} bytes, binary_data_size says {size}")
-        return np.frombuffer(binary, dtype=C.DTYPE).reshape(n, C.QUERY_DIM)
+        return np.frombuffer(binary, dtype=C.DTYPE).reshape(n, width)
     if len(binary):
         raise ApiError(400, f"{len(binary)} bytes follow the JSON header but no input has binary_data_size")
-    return _json_data(tensor.get("data"), n)
+    return _json_data(tensor.get("data"), n, width)
 
 
-def _json_data(data: object, n: int) -> np.ndarray:
+def _json_data(data: object, n: int, width: int) -> np.ndarray:
     if not isinstance(data, list):
         raise ApiError(400, f"input '{C.ONNX_INPUT}' needs 'data' (a list of numbers) or binary_data_size")
     try:
@@ -128,13 +134,11 @@ def _json_data(data: object, n: int) -> np.ndarray:
         raise ApiError(400, f"input '{C.ONNX_INPUT}' data must be a flat or evenly nested list of numbers") from None
     if arr.size and arr.dtype.kind not in "fiu":
         raise ApiError(400, f"input '{C.ONNX_INPUT}' data must hold only numbers (FP32), got {arr.dtype.kind!r} values")
-    if arr.size != n * C.QUERY_DIM:
-        raise ApiError(
-            400,
-            f"input '{C.ONNX_INPUT}' data holds {arr.size} values, shape [{n}, {C.QUERY_DIM}] needs {n * C.QUERY_DIM}",
-        )
+    if arr.size != n * width:
+        raise ApiError(400, f"input '{C.ONNX_INPUT}' data holds {arr.size} values, shape [{n}, {width}] "
+                       f"needs {n * width}")
     with np.errstate(over="ignore"):  # out-of-range values become Inf and are rejected as such
-        return arr.astype(C.DTYPE).reshape(n, C.QUERY_DIM)
+        return arr.astype(C.DTYPE).reshape(n, width)
 
 
 def _binary_output(msg: dict) -> bool:
@@ -169,12 +173,12 @@ def parse_infer(body: bytes, header_length: int | None) -> InferRequest:
     if request_id is not None and not isinstance(request_id, str):
         raise ApiError(400, "'id' must be a string")
     raw = _input_tensor(msg.get("inputs"), binary)
-    return InferRequest(request_id, C.as_queries(raw), _binary_output(msg))
+    return InferRequest(request_id, C.as_queries(raw, groups=True), _binary_output(msg))
 
 
 # --- encode -----------------------------------------------------------------------------------
 def infer_response(name: str, request: InferRequest, rgb: np.ndarray) -> Response:
-    """(N, 3) RGB -> the infer response, JSON or JSON + binary tail."""
+    """(N, 3 K) RGB -> the infer response, JSON or JSON + binary tail."""
     output = {"name": C.ONNX_OUTPUT, "datatype": DATATYPE, "shape": list(rgb.shape)}
     head = {"model_name": name, "model_version": MODEL_VERSION, "outputs": [output]}
     if request.id is not None:
@@ -262,7 +266,7 @@ async def infer(name: str, request: Request, version: str | None = None, state: 
                 state.admission.resize(ticket, ticket.memory, parsed.queries.shape[0])
                 timer.mark("decode")
                 ticket.until = arrival.submit(name, parsed.queries, material=material)
-            rgb = await asyncio.shield(ticket.until)  # (N, 3) float32
+            rgb = await asyncio.shield(ticket.until)  # (N, 3 K) float32
         timer.mark("evaluate")
         response = infer_response(name, parsed, rgb)
         timer.mark("encode")

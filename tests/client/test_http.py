@@ -60,6 +60,27 @@ def test_evaluate_matches_in_process_and_splits_large_buffers(model_dir):
     assert posts[0].headers["content-type"] == wire.MSGPACK_MEDIA_TYPE
 
 
+def test_query_groups_are_sent_whole_and_answer_three_values_a_light(model_dir):
+    """(N, 9) groups go out as they are, split by groups (never inside one), and answer (N, 6); the
+    fallback passes them on the same way."""
+    from neumip.client.http import FallbackEvaluator
+
+    server = FakeServer(model_dir)
+    groups = np.ascontiguousarray(np.hstack([random_queries(2500, seed=3), random_queries(2500, seed=4)[:, 3:5]]))
+    with client_for(server, max_rows=1000) as client:
+        rgb = client.evaluate("rand16", groups)
+        assert client.evaluate("rand16", np.zeros((0, 9), np.float32)).shape == (0, 6)
+        with pytest.raises(C.QueryError, match="5 \\+ 2 K"):
+            client.evaluate("rand16", np.zeros((2, 8), np.float32))
+    np.testing.assert_array_equal(rgb, server.local.evaluate("rand16", groups))
+    np.testing.assert_array_equal(rgb.reshape(-1, 3), server.local.evaluate("rand16", C.ungroup(groups)))
+    assert [wire.decode_request(r.content).shape for r in server.requests] == [(1000, 9), (1000, 9), (500, 9)]
+    evaluator = FallbackEvaluator(client_for(server, retries=0), LocalMaterials(model_dir))
+    server.failures = [httpx.ConnectError("refused")]
+    np.testing.assert_array_equal(evaluator.evaluate("rand16", groups), rgb)
+    assert evaluator.switched
+
+
 def test_materials_lists_the_server(model_dir):
     client = client_for(FakeServer(model_dir))
     assert client.materials() == ["flat16", "lambert", "rand16"]

@@ -17,6 +17,33 @@ def test_wire_roundtrip_is_bit_exact():
     np.testing.assert_array_equal(wire.decode_response(wire.encode_response(rgb)), rgb)
 
 
+def test_query_groups_travel_with_their_width_read_from_the_byte_count():
+    """(N, 5 + 2 K) groups and (N, 3 K) answers, as packb writes them or not; bad counts are named."""
+    for lights, n in ((2, 1), (2, 37), (3, 70000), (64, 3)):
+        extra = [random_queries(n, seed=j)[:, C.WI_X:C.WI_Y + 1] for j in range(1, lights)]
+        q = np.ascontiguousarray(np.hstack([random_queries(n, seed=0), *extra]))
+        packed = msgpack.packb({"n": n, "queries": q.tobytes()})
+        assert wire.encode_request(q) == packed
+        for body in (packed, msgpack.packb({"queries": q.tobytes(), "n": n})):
+            np.testing.assert_array_equal(wire.decode_request(body), q)
+        rgb = np.random.default_rng(n).random((n, 3 * lights), dtype=np.float32)
+        body, view = wire.response_buffer(n, lights)
+        view[...] = rgb
+        assert bytes(body) == wire.encode_response(rgb) == msgpack.packb({"n": n, "rgb": rgb.tobytes()})
+        np.testing.assert_array_equal(wire.decode_response(body), rgb)
+    assert wire.decode_request(wire.encode_request(np.zeros((0, 9), np.float32))).shape == (0, 7)
+    for body, message in (
+        (msgpack.packb({"n": 2, "queries": b"\0" * 2 * 8 * 4}), "8 float32 per row for n=2"),
+        (msgpack.packb({"n": 2, "queries": b"\0" * (2 * 9 * 4 + 4)}), "not n=2 rows"),
+        (msgpack.packb({"n": 0, "queries": b"\0" * 4}), "n=0 rows need 0"),
+        (msgpack.packb({"n": 1, "queries": np.zeros((1, 5 + 2 * 65), np.float32).tobytes()}), "K <= 64"),
+    ):
+        with pytest.raises(C.QueryError, match=message):
+            wire.decode_request(body)
+    with pytest.raises(C.QueryError, match="multiple of n x 12 bytes"):
+        wire.decode_response(msgpack.packb({"n": 2, "rgb": b"\0" * 2 * 4 * 4}))
+
+
 @pytest.mark.parametrize(
     "body, message",
     [
@@ -74,7 +101,15 @@ def test_v2_binary_request_and_answer():
     answer_head = json.dumps({"model_name": "m", "outputs": [out]}).encode()
     answer = answer_head + rgb.tobytes()
     np.testing.assert_array_equal(wire.decode_infer_response(answer, str(len(answer_head))), rgb)
+    groups = np.hstack([q, q[:, C.WI_X:C.WI_Y + 1]])  # (5, 9) -> (5, 6)
+    headers, parts = wire.encode_infer_request(groups)
+    assert json.loads(bytes(parts[0]))["inputs"][0]["shape"] == [5, 9]
+    rgb6 = np.hstack([rgb, rgb])
+    out6 = {**out, "shape": [5, 6], "parameters": {"binary_data_size": rgb6.nbytes}}
+    head6 = json.dumps({"model_name": "m", "outputs": [out6]}).encode()
+    np.testing.assert_array_equal(wire.decode_infer_response(head6 + rgb6.tobytes(), str(len(head6))), rgb6)
     for broken, length_header, message in (
+        (head6.replace(b"[5, 6]", b"[5, 5]") + rgb6.tobytes()[:-20], str(len(head6)), "N, 3 K"),
         (answer, None, "no valid"),
         (answer[:-4], str(len(answer_head)), "holds 56 bytes"),
         (b"{}" + rgb.tobytes(), "2", "not an infer response"),

@@ -70,6 +70,27 @@ def test_small_concurrent_requests_are_merged_and_keep_their_bits(model_dir, ref
     assert sample(metrics, "neumip_batch_rows_sum") == sum(sizes)
 
 
+def test_query_groups_merge_only_with_their_own_width(model_dir, reference):
+    """Concurrent requests of 1, 2 and 3 lights: one call per width (a call never mixes widths), each
+    answer (N, 3 K) with the bits of in-process evaluation; large groups split by answers."""
+    batcher, metrics = make_batcher(model_dir, ort_workers=1, chunk_rows=4096, max_wait_ms=200)
+    requests = []
+    for i, lights in enumerate([1, 2, 3, 2, 1, 3]):
+        q = random_queries(50 + i, seed=i)
+        extra = [random_queries(50 + i, seed=100 + 10 * i + j)[:, 3:5] for j in range(1, lights)]
+        requests.append(("rand16", np.ascontiguousarray(np.hstack([q, *extra]))))
+    answers = asyncio.run(run_all(batcher, requests, arriving=True))
+    for (name, q), rgb in zip(requests, answers):
+        assert rgb.shape == (q.shape[0], 3 * (q.shape[1] - 5) // 2)
+        np.testing.assert_array_equal(rgb, reference.evaluate(name, q))
+    assert sample(metrics, "neumip_batch_rows_count") == 3
+    big = np.hstack([random_queries(5000, seed=1), random_queries(5000, seed=2)[:, 3:5]])  # 10 000 answers
+    batcher, metrics = make_batcher(model_dir, chunk_rows=4096, max_wait_ms=0)
+    [rgb] = asyncio.run(run_all(batcher, [("rand16", big)]))
+    np.testing.assert_array_equal(rgb, reference.evaluate("rand16", big))
+    assert sample(metrics, "neumip_batch_rows_count") == 3  # 2048 groups (4096 answers) a call
+
+
 def test_lone_requests_do_not_wait_to_be_merged(model_dir, reference):
     """With nothing else being received, a small request and the tail of a split one run at once,
     not after max_wait_ms (here a minute: waiting would fail the 30 s bound)."""
@@ -92,7 +113,7 @@ def test_lone_requests_do_not_wait_to_be_merged(model_dir, reference):
 
 def test_model_failure_fails_the_batch_not_the_batcher(model_dir):
     batcher, _ = make_batcher(model_dir, max_wait_ms=0)
-    bad = np.zeros((4, 5), np.float32)  # bypasses validation: ONNX Runtime rejects the shape
+    bad = np.zeros((4, 7), np.float64)  # bypasses validation: ONNX Runtime rejects the dtype
 
     async def scenario():
         batcher.start()

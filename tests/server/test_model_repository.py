@@ -4,6 +4,8 @@ ONNX files travel unchanged, and bad input is refused without writing anything."
 from __future__ import annotations
 
 import importlib.metadata
+import shutil
+from pathlib import Path
 
 import pytest
 
@@ -37,8 +39,9 @@ def test_onnxruntime_repository_is_a_valid_triton_repository(repositories, model
         config = parse(repo / name / "config.pbtxt")
         assert config.name == name and config.platform == "onnxruntime_onnx" and config.backend == "onnxruntime"
         assert config.max_batch_size > 0
-        assert [(t.name, list(t.dims), t.data_type) for t in config.input] == [("queries", [7], pb.TYPE_FP32)]
-        assert [(t.name, list(t.dims), t.data_type) for t in config.output] == [("rgb", [3], pb.TYPE_FP32)]
+        # any width: (N, 7) queries or (N, 5 + 2 K) query groups -> (N, 3 K)
+        assert [(t.name, list(t.dims), t.data_type) for t in config.input] == [("queries", [-1], pb.TYPE_FP32)]
+        assert [(t.name, list(t.dims), t.data_type) for t in config.output] == [("rgb", [-1], pb.TYPE_FP32)]
         batching = config.dynamic_batching
         assert list(batching.preferred_batch_size) and batching.max_queue_delay_microseconds > 0
         assert max(batching.preferred_batch_size) <= config.max_batch_size
@@ -61,6 +64,16 @@ def test_python_backend_repository(repositories, model_dir):
         model_py = repo / path.stem / "1" / "model.py"
         assert model_py.read_text() == open(triton_python_model.__file__).read()
     assert "backend `python`" in (repo / "README.md").read_text()
+
+
+def test_a_model_exported_before_query_groups_keeps_its_fixed_width(tmp_path):
+    """Its graph takes (N, 7) only, and its config says so."""
+    models = tmp_path / "models"
+    models.mkdir()
+    shutil.copy(Path(__file__).parents[1] / "training" / "data" / "pre_issue12_offset.onnx", models / "old.onnx")
+    assert main(["export-repository", str(models), "-o", str(tmp_path / "repo")]) == 0
+    config = parse(tmp_path / "repo" / "old" / "config.pbtxt")
+    assert [list(t.dims) for t in config.input] == [[7]] and [list(t.dims) for t in config.output] == [[3]]
 
 
 def test_batching_follows_the_server_settings(model_dir, tmp_path, monkeypatch):

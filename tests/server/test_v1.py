@@ -35,6 +35,20 @@ def test_json_answer_matches_msgpack(client):
     np.testing.assert_array_equal(np.asarray(body["rgb"], dtype=np.float32), wire.decode_response(packed.content))
 
 
+def test_query_groups_answer_like_their_single_queries(client, reference):
+    """(N, 9) groups of two lights, msgpack and JSON -> (N, 6): light j with the bits of single query j."""
+    groups = np.ascontiguousarray(np.hstack([random_queries(300, seed=6), random_queries(300, seed=7)[:, 3:5]]))
+    resp = client.post(evaluate_path(), content=wire.encode_request(groups), headers=MSGPACK)
+    assert resp.status_code == 200, resp.text
+    rgb = wire.decode_response(resp.content)
+    assert rgb.shape == (300, 6)
+    np.testing.assert_array_equal(rgb, reference.evaluate("rand16", groups))
+    np.testing.assert_array_equal(rgb.reshape(-1, 3), reference.evaluate("rand16", C.ungroup(groups)))
+    resp = client.post(evaluate_path(), json={"queries": groups[:5].tolist()})
+    assert resp.status_code == 200 and resp.json()["n"] == 5, resp.text
+    np.testing.assert_array_equal(np.asarray(resp.json()["rgb"], np.float32), rgb[:5])
+
+
 def test_zero_rows_answer_zero_rows(client):
     """N = 0 is valid (the contract): msgpack and JSON both answer an empty (0, 3)."""
     resp = client.post(evaluate_path(), content=wire.encode_request(np.zeros((0, 7), np.float32)), headers=MSGPACK)
@@ -98,7 +112,15 @@ BAD_REQUESTS = [
     ("oversized body", evaluate_path(), b"\x00" * (4 << 20 | 1), MSGPACK, 413, "limit"),
     ("malformed JSON", evaluate_path(), b'{"queries": [[1,2', {"content-type": "application/json"}, 400, "JSON"),
     ("JSON not an object", evaluate_path(), b"[1, 2]", {"content-type": "application/json"}, 400, "queries"),
-    ("JSON short row", evaluate_path(), b'{"queries": [[0, 0, 0, 0, 0, 0]]}', {"content-type": "application/json"}, 400, "7 numbers"),
+    ("JSON short row", evaluate_path(), b'{"queries": [[0, 0, 0, 0, 0, 0]]}', {"content-type": "application/json"}, 400, "7 columns"),
+    ("JSON rows of 8", evaluate_path(), b'{"queries": [[0, 0, 0, 0, 0, 0, 0, 0]]}', {"content-type": "application/json"}, 400, "5 + 2 K"),
+    ("JSON ragged groups", evaluate_path(), b'{"queries": [[0, 0, 0, 0, 0, 0, 0], [0, 0, 0, 0, 0, 0, 0, 0, 0]]}',
+     {"content-type": "application/json"}, 400, "same in every row"),
+    ("8 columns", evaluate_path(), _msgpack(n=4, queries=np.zeros((4, 8), np.float32).tobytes()), MSGPACK, 400, "8 float32 per row"),
+    ("bytes of no width", evaluate_path(), _msgpack(n=4, queries=b"\0" * 4 * 4 * 9 + b"\0" * 8), MSGPACK, 400, "not n=4 rows"),
+    ("group light outside disk", evaluate_path(), wire.encode_request(np.hstack([GOOD, [[1.5, 0]] * 4]).astype(np.float32)),
+     MSGPACK, 400, "wi of light 2"),
+    ("group of 65 lights", evaluate_path(), wire.encode_request(np.zeros((1, 5 + 2 * 65), np.float32)), MSGPACK, 400, "K <= 64"),
     ("JSON strings", evaluate_path(), b'{"queries": [["a", 0, 0, 0, 0, 0, 0]]}', {"content-type": "application/json"}, 400, "numbers"),
     ("JSON booleans", evaluate_path(), b'{"queries": [[true, 0, 0, 0, 0, 0, 0]]}', {"content-type": "application/json"}, 400, "numbers"),
     ("JSON NaN", evaluate_path(), b'{"queries": [[NaN, 0, 0, 0, 0, 0, 0]]}', {"content-type": "application/json"}, 400, "finite"),

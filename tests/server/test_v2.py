@@ -8,6 +8,7 @@ import json
 import numpy as np
 import pytest
 
+from neumip.client import contract as C
 from neumip.client.contract import random_queries
 
 HEADER = "Inference-Header-Content-Length"
@@ -42,8 +43,8 @@ def test_server_and_model_metadata(client):
     meta = client.get("/v2").json()
     assert meta["name"] == "neumip" and "binary_tensor_data" in meta["extensions"]
     model = client.get("/v2/models/rand16").json()
-    assert model["inputs"] == [{"name": "queries", "datatype": "FP32", "shape": [-1, 7]}]
-    assert model["outputs"] == [{"name": "rgb", "datatype": "FP32", "shape": [-1, 3]}]
+    assert model["inputs"] == [{"name": "queries", "datatype": "FP32", "shape": [-1, -1]}]  # (N, 5 + 2 K)
+    assert model["outputs"] == [{"name": "rgb", "datatype": "FP32", "shape": [-1, -1]}]  # (N, 3 K)
     assert client.get("/v2/models/rand16/versions/1").json() == model
     assert client.get("/v2/models/rand16/versions/2").status_code == 404
 
@@ -63,6 +64,19 @@ def test_infer_matches_in_process(client, reference, binary_in, binary_out):
     np.testing.assert_array_equal(read_output(resp), reference.evaluate("rand16", Q))
     head = resp.content[: int(resp.headers[HEADER])] if binary_out else resp.content
     assert json.loads(head)["id"] == "req-7" and json.loads(head)["model_name"] == "rand16"
+
+
+@pytest.mark.parametrize("binary", [False, True])
+def test_query_groups_answer_like_their_single_queries(client, reference, binary):
+    """[N, 9] groups of two lights -> [N, 6], light j with the bits of single query j (`contract.ungroup`)."""
+    groups = np.hstack([Q, random_queries(37, seed=5)[:, C.WI_X:C.WI_Y + 1]])
+    body, headers = infer_body(groups, binary, binary)
+    resp = client.post("/v2/models/rand16/infer", content=body, headers=headers)
+    assert resp.status_code == 200, resp.text
+    rgb = read_output(resp)
+    assert rgb.shape == (37, 6)
+    np.testing.assert_array_equal(rgb, reference.evaluate("rand16", groups))
+    np.testing.assert_array_equal(rgb.reshape(-1, 3), reference.evaluate("rand16", C.ungroup(groups)))
 
 
 @pytest.mark.parametrize("binary", [False, True])
@@ -96,6 +110,12 @@ BAD_INFER = [
     ("binary flag as a string", json.dumps({"inputs": [json.loads(_bad())["inputs"][0]],
                                             "parameters": {"binary_data_output": "false"}}).encode(), {}, 400, "true or false"),
     ("wrong shape", _bad(shape=[7, 1]), {}, 400, "shape"),
+    ("width of no group", _bad(shape=[1, 8], data=[0.0] * 8), {}, 400, "5 + 2 K"),
+    ("group data length", _bad(shape=[1, 9]), {}, 400, "needs 9"),
+    ("binary size of another width", json.dumps({"inputs": [{"name": "queries", "datatype": "FP32", "shape": [37, 9],
+                                                  "parameters": {"binary_data_size": Q.nbytes}}]}).encode() + Q.tobytes(),
+     {HEADER: str(len(json.dumps({"inputs": [{"name": "queries", "datatype": "FP32", "shape": [37, 9],
+                                              "parameters": {"binary_data_size": Q.nbytes}}]})))}, 400, "binary_data_size"),
     ("3-d shape", _bad(shape=[1, 1, 7]), {}, 400, "shape"),
     ("negative shape", _bad(shape=[-1, 7]), {}, 400, "shape"),
     ("data length", _bad(data=[0.0] * 6), {}, 400, "needs 7"),
@@ -141,7 +161,7 @@ def test_tritonclient_against_a_real_server(live_server, reference):
 
     client = triton.InferenceServerClient(live_server.host_port)
     assert client.is_server_live() and client.is_server_ready() and client.is_model_ready("rand16")
-    assert client.get_model_metadata("rand16")["inputs"][0]["shape"] == [-1, 7]
+    assert client.get_model_metadata("rand16")["inputs"][0]["shape"] == [-1, -1]
     q = random_queries(100_003, seed=9)
     expected = reference.evaluate("rand16", q)
     for binary in (True, False):
@@ -149,6 +169,15 @@ def test_tritonclient_against_a_real_server(live_server, reference):
         tensor.set_data_from_numpy(q, binary_data=binary)
         result = client.infer("rand16", [tensor], outputs=[triton.InferRequestedOutput("rgb", binary_data=binary)])
         np.testing.assert_array_equal(result.as_numpy("rgb"), expected)
+    groups = np.hstack([q[:5000], q[5000:10000, C.WI_X:C.WI_Y + 1]])  # [N, 9]: two lights -> [N, 6]
+    tensor = triton.InferInput("queries", list(groups.shape), "FP32")
+    tensor.set_data_from_numpy(groups)
+    rgb = client.infer("rand16", [tensor]).as_numpy("rgb")
+    np.testing.assert_array_equal(rgb.reshape(-1, 3), reference.evaluate("rand16", C.ungroup(groups)))
+    bad = triton.InferInput("queries", [2, 8], "FP32")
+    bad.set_data_from_numpy(np.zeros((2, 8), np.float32))
+    with pytest.raises(InferenceServerException, match="5 \\+ 2 K"):
+        client.infer("rand16", [bad])
     bad = triton.InferInput("queries", [2, 7], "FP32")
     bad.set_data_from_numpy(np.full((2, 7), np.nan, np.float32))
     with pytest.raises(InferenceServerException, match="finite"):

@@ -40,8 +40,9 @@ def test_model_config_is_a_valid_triton_config_with_the_server_settings(tc):
     config = json_format.ParseDict(raw, model_config_pb2.ModelConfig())  # unknown field or type: error
     assert config.name == "rand16" and config.platform == "onnxruntime_onnx"
     assert config.max_batch_size == SETTINGS["max_rows"]
-    assert [(t.name, list(t.dims), t.data_type) for t in config.input] == [("queries", [7], model_config_pb2.TYPE_FP32)]
-    assert [(t.name, list(t.dims), t.data_type) for t in config.output] == [("rgb", [3], model_config_pb2.TYPE_FP32)]
+    # -1: any width, (N, 7) queries or (N, 5 + 2 K) query groups -> (N, 3 K)
+    assert [(t.name, list(t.dims), t.data_type) for t in config.input] == [("queries", [-1], model_config_pb2.TYPE_FP32)]
+    assert [(t.name, list(t.dims), t.data_type) for t in config.output] == [("rgb", [-1], model_config_pb2.TYPE_FP32)]
     assert list(config.dynamic_batching.preferred_batch_size) == [SETTINGS["chunk_rows"]]
     assert config.dynamic_batching.max_queue_delay_microseconds == 3000
     assert [(g.count, g.kind) for g in config.instance_group] == [(2, model_config_pb2.ModelInstanceGroup.KIND_CPU)]

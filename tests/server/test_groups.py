@@ -1,0 +1,111 @@
+"""Query groups (N, 5 + 2 K) through a real `neumip serve` process: msgpack /v1 and OIP /v2 answer
+(N, 3 K) with the bits of in-process evaluation and of the single queries; bad widths are 400s; a batch
+never mixes widths; a model exported before groups (input width fixed to 7) answers them too."""
+
+from __future__ import annotations
+
+import shutil
+import threading
+from pathlib import Path
+
+import httpx
+import msgpack
+import numpy as np
+import pytest
+
+from neumip.client import contract as C
+from neumip.client import wire
+from neumip.client.contract import random_queries
+from neumip.client.http import ClientConfig, MaterialClient
+from neumip.client.local import LocalMaterials
+
+OLD_MODEL = Path(__file__).parents[1] / "training" / "data" / "pre_issue12_offset.onnx"
+
+
+def groups_of(n: int, lights: int, seed: int) -> np.ndarray:
+    """(n, 5 + 2 lights) valid query groups: random queries plus the wi of further random queries."""
+    extra = [random_queries(n, seed=seed * 100 + j)[:, C.WI_X:C.WI_Y + 1] for j in range(1, lights)]
+    return np.ascontiguousarray(np.hstack([random_queries(n, seed=seed), *extra]))
+
+
+@pytest.fixture(scope="module")
+def folder(model_dir, tmp_path_factory):
+    """The test materials and `old`, a model file exported before query groups."""
+    out = tmp_path_factory.mktemp("groups")
+    for path in model_dir.glob("*.onnx"):
+        shutil.copy(path, out)
+    shutil.copy(OLD_MODEL, out / "old.onnx")
+    return out
+
+
+@pytest.fixture(scope="module")
+def server(serve_module, folder):
+    # a long merge wait: concurrent requests of several widths sit in the queue together
+    return serve_module(folder, max_rows=5000, max_wait_ms=50)
+
+
+@pytest.fixture(scope="module")
+def local(folder):
+    return LocalMaterials(folder)
+
+
+@pytest.mark.parametrize("protocol", ["msgpack", "v2"])
+@pytest.mark.parametrize("material", ["rand16", "old"])
+def test_groups_answer_with_the_bits_of_in_process_and_of_single_queries(server, local, protocol, material):
+    assert local.get(material).groups == (material != "old")
+    groups = groups_of(7000, 2, seed=1)  # (N, 9); 7000 > max_rows of the client: split by groups
+    with MaterialClient(server.url, ClientConfig(max_rows=3000), protocol=protocol) as client:
+        rgb = client.evaluate(material, groups)
+        assert rgb.shape == (7000, 6)
+        np.testing.assert_array_equal(rgb, local.evaluate(material, groups))
+        np.testing.assert_array_equal(rgb.reshape(-1, 3), local.evaluate(material, C.ungroup(groups)))
+        assert client.evaluate(material, np.zeros((0, 9), np.float32)).shape == (0, 6)
+
+
+def test_bad_widths_are_400_and_the_server_keeps_serving(server, local):
+    path = wire.EVALUATE_PATH.format(name="rand16")
+    msgpack_type = {"content-type": wire.MSGPACK_MEDIA_TYPE}
+    with httpx.Client(base_url=server.url, timeout=30) as http:
+        for body, words in (
+            (msgpack.packb({"n": 3, "queries": np.zeros((3, 8), np.float32).tobytes()}), "8 float32 per row"),
+            (msgpack.packb({"n": 3, "queries": b"\0" * (3 * 36 + 4)}), "not n=3 rows"),
+        ):
+            resp = http.post(path, content=body, headers=msgpack_type)
+            assert resp.status_code == 400 and words in resp.json()["error"], resp.text
+        resp = http.post(path, json={"queries": np.zeros((2, 8)).tolist()})
+        assert resp.status_code == 400 and "5 + 2 K" in resp.json()["error"], resp.text
+        head = {"inputs": [{"name": "queries", "datatype": "FP32", "shape": [2, 8], "data": [0.0] * 16}]}
+        resp = http.post("/v2/models/rand16/infer", json=head)
+        assert resp.status_code == 400 and "5 + 2 K" in resp.json()["error"], resp.text
+        groups = groups_of(5, 3, seed=2)  # (5, 11): JSON rows of 11 numbers
+        resp = http.post(path, json={"queries": groups.tolist()})
+        assert resp.status_code == 200, resp.text
+        np.testing.assert_array_equal(np.asarray(resp.json()["rgb"], np.float32), local.evaluate("rand16", groups))
+
+
+def test_concurrent_clients_of_mixed_widths_each_get_their_answers(server, local):
+    """Threads send 1, 2 and 3 lights at once to two materials; the server merges what it can (only
+    rows of one width share a call) and every answer keeps its bits."""
+    jobs = [(material, lights, seed) for material in ("rand16", "old") for lights in (1, 2, 3) for seed in range(2)]
+    answers, errors = {}, []
+
+    def run(job):
+        material, lights, seed = job
+        try:
+            with MaterialClient(server.url) as client:
+                for round_ in range(4):
+                    groups = groups_of(200 + 37 * seed, lights, seed=10 * seed + round_)
+                    answers[job + (round_,)] = (groups, client.evaluate(material, groups))
+        except Exception as exc:  # reported below, with the job
+            errors.append((job, exc))
+
+    threads = [threading.Thread(target=run, args=(job,)) for job in jobs]
+    for thread in threads:
+        thread.start()
+    for thread in threads:
+        thread.join(60)
+    assert not errors, errors
+    assert len(answers) == 4 * len(jobs)
+    for (material, lights, *_), (groups, rgb) in answers.items():
+        assert rgb.shape == (groups.shape[0], 3 * lights)
+        np.testing.assert_array_equal(rgb, local.evaluate(material, groups))
