@@ -112,7 +112,7 @@ BAD_REQUESTS = [
     ("oversized body", evaluate_path(), b"\x00" * (4 << 20 | 1), MSGPACK, 413, "limit"),
     ("malformed JSON", evaluate_path(), b'{"queries": [[1,2', {"content-type": "application/json"}, 400, "JSON"),
     ("JSON not an object", evaluate_path(), b"[1, 2]", {"content-type": "application/json"}, 400, "queries"),
-    ("JSON short row", evaluate_path(), b'{"queries": [[0, 0, 0, 0, 0, 0]]}', {"content-type": "application/json"}, 400, "7 columns"),
+    ("JSON short row", evaluate_path(), b'{"queries": [[0, 0, 0, 0, 0, 0]]}', {"content-type": "application/json"}, 400, "(N, 7)"),
     ("JSON rows of 8", evaluate_path(), b'{"queries": [[0, 0, 0, 0, 0, 0, 0, 0]]}', {"content-type": "application/json"}, 400, "5 + 2 K"),
     ("JSON ragged groups", evaluate_path(), b'{"queries": [[0, 0, 0, 0, 0, 0, 0], [0, 0, 0, 0, 0, 0, 0, 0, 0]]}',
      {"content-type": "application/json"}, 400, "same in every row"),
