@@ -164,10 +164,15 @@ def run_chunked(
 
 
 def split_chunk(rows: int, workers: int, chunk: int = DEFAULT_CHUNK) -> int:
-    """Rows per call for `rows` rows on `workers` threads: a share per worker, at most `chunk`, and
-    not below MIN_SPLIT unless `chunk` is (splitting small batches costs more than it saves)."""
-    share = -(-rows // max(workers, 1))
-    return min(chunk, max(share, MIN_SPLIT))
+    """Rows per call for `rows` rows on `workers` threads: at most `chunk`, in a number of calls that
+    is a multiple of `workers` (no worker idles while another runs the last call: 9 calls on 2 threads
+    took 5 rounds of calls, 10 take 5 too), and not below MIN_SPLIT unless `chunk` is (splitting small
+    batches costs more than it saves)."""
+    if workers <= 1:
+        return min(chunk, max(rows, MIN_SPLIT))
+    calls = -(-max(rows, 1) // chunk)
+    calls = -(-calls // workers) * workers
+    return max(-(-rows // calls), min(MIN_SPLIT, chunk))
 
 
 def load_folder(folder: Path, threads: int = 1) -> tuple[dict[str, Material], dict[str, str]]:
@@ -249,5 +254,5 @@ class LocalMaterials:
         mat = self.get(material)
         queries = C.as_queries(queries, groups=True)
         lights = C.group_lights(queries.shape[1])
-        chunk = split_chunk(queries.shape[0] * lights, self.threads, self.chunk)
-        return run_chunked(mat.session, queries, chunk, self._executor)
+        groups = split_chunk(queries.shape[0], self.threads, max(self.chunk // lights, 1))  # per call
+        return run_chunked(mat.session, queries, groups * lights, self._executor)

@@ -1,12 +1,14 @@
-"""Buffered neural shading: one evaluation call per material per bounce for a whole wavefront.
+"""Buffered neural shading: at most two evaluation calls per material per bounce for a whole wavefront.
 
 `NeuralShading` finds the scene's `neumip` surfaces and, per bounce, collects every shading query
 that lands on them (all lanes of the wavefront), evaluates them through the bound evaluator
 (`contract.Evaluator`: in-process `LocalMaterials` or the HTTP `MaterialClient`), and hands the RGB
-answers back as per-lane drjit arrays. The data moves in bulk: the query columns come out of the
-integrator's one kernel per bounce, one more kernel writes each material's query groups (n, 5 + 2 K
-rows: one per shading point, its K light directions together, `contract`) straight into a drjit
-buffer that numpy reads without a copy, and the answers are copied into drjit once and read
+answers back as per-lane drjit arrays. A shading point whose K light directions are all valid goes
+as one query group (`contract`: the offset and the lookups run once for its K answers); where only
+some are valid, their single queries go instead. The data moves in bulk: the query columns come out
+of the integrator's one kernel per bounce, one more kernel per call writes a material's groups
+((n, 5 + 2 K) rows) or its single queries ((n, 7)) straight into a drjit buffer that numpy reads
+without a copy, and the answers are copied into drjit once and read
 per lane with gathers that run inside the integrator's next kernel. The answers are checked here
 (`contract.as_rgb`: shape and finiteness), once, whatever the evaluator.
 """
@@ -158,82 +160,99 @@ class NeuralShading:
         wo: mi.Vector3f,
         lights: list[tuple[mi.Vector3f, mi.Bool]],
     ) -> NeuralQueries:
-        """This bounce's query group (`contract`: one shading point, every wi of ``lights``) at every
-        neural lane where at least one (wi, valid) of ``lights`` is valid, scheduled.
+        """This bounce's queries for each (wi, valid) in ``lights`` at every neural lane, scheduled:
+        a query group (`contract`: the shading point once, every wi) where every light is valid, the
+        single queries of the valid lights elsewhere (a group would evaluate an unused light).
 
         ``uv`` (shape uv), ``sigma`` (footprint std in shape uv units), ``wo`` (towards the viewer)
-        and each ``wi`` (towards the light) are per-lane, directions in the `query_frame`; an invalid
-        wi is sent as (0, 0) and its answer dropped. The columns and masks are only scheduled
-        (`dr.schedule`): they are computed in the kernel that evaluates the caller's other per-bounce
-        state, so the intersection is traced once.
+        and each ``wi`` (towards the light) are per-lane, directions in the `query_frame`. The columns
+        and masks are only scheduled (`dr.schedule`): they are computed in the kernel that evaluates
+        the caller's other per-bounce state, so the intersection is traced once.
         """
         u, v = uv.x * hits.uv_scale, uv.y * hits.uv_scale
         sigma = sigma * hits.uv_scale
         sigma = dr.select(dr.isfinite(sigma), dr.clip(sigma, 0.0, MAX_SIGMA), MAX_SIGMA)
-        wis = [(dr.select(ok, wi.x, 0.0), dr.select(ok, wi.y, 0.0)) for wi, ok in lights]
-        columns = [u, v, sigma, *wis[0], wo.x, wo.y] + [c for wi in wis[1:] for c in wi]
-        any_ok = lights[0][1]
+        columns = [u, v, sigma, lights[0][0].x, lights[0][0].y, wo.x, wo.y]
+        columns += [c for wi, _ in lights[1:] for c in (wi.x, wi.y)]
+        every = lights[0][1]
         for _, ok in lights[1:]:
-            any_ok = any_ok | ok
-        masks = {material: (mask & any_ok, [mask & ok for _, ok in lights])
+            every = every & ok
+        masks = {material: (mask & every, [mask & ok & ~every for _, ok in lights])
                  for material, mask in hits.mask.items()}
-        dr.schedule(columns, [m for group, per_light in masks.values() for m in [group, *per_light]])
+        dr.schedule(columns, [m for group, singles in masks.values() for m in [group, *singles]])
         return NeuralQueries(columns, masks)
 
     def evaluate(self, queries: NeuralQueries) -> list[mi.Color3f]:
-        """Evaluate ``queries`` in one evaluator call per material -> one Color3f per entry of its
-        ``lights``: the answer on lanes whose mask is set, zero elsewhere.
+        """Evaluate ``queries`` in at most two evaluator calls per material (its groups, its single
+        queries) -> one Color3f per light: the answer on lanes whose light is valid, zero elsewhere.
 
-        Each material's groups are written by drjit into one (n, 5 + 2 K) buffer that numpy reads
-        without a copy (its lanes in lane order); the answers are read back with a gather per lane
-        that runs in the caller's next kernel.
+        Each call's rows are written by drjit into one buffer that numpy reads without a copy
+        (groups: (n, 5 + 2 K), lanes in order; single queries: (n, 7), light by light, lanes in
+        order); the answers are read back with a gather per lane that runs in the caller's next
+        kernel.
         """
         width = dr.width(queries.columns[0])
-        lights = C.group_lights(len(queries.columns))
+        lights = queries.lights
         out = [dr.zeros(mi.Color3f, width) for _ in range(lights)]
-        for material, (group, per_light) in queries.masks.items():
-            row, total = _row_numbers(group)
-            if total == 0:
-                continue
-            buffer = _query_buffer(queries.columns, row, group, total)
-            start = time.perf_counter()
-            rows_in = buffer.numpy().reshape(total, len(queries.columns))  # a view of drjit's memory
-            rgb = C.as_rgb(self.evaluator.evaluate(material, rows_in), total, lights)
-            self.stats.add(material, total * lights, time.perf_counter() - start)
-            answers = mi.Float(rgb.reshape(-1))
-            for k, mask in enumerate(per_light):
-                rgb_k = mi.Color3f(*(dr.gather(mi.Float, answers, (row * lights + k) * C.RGB_DIM + ch, mask)
-                                     for ch in range(C.RGB_DIM)))
-                out[k] = dr.select(mask, rgb_k, out[k])
+        for material, (group, singles) in queries.masks.items():
+            for entries, masks, k in (([queries.columns], [group], lights), (queries.singles(), singles, 1)):
+                rows, total = _row_numbers(masks)
+                if total == 0:
+                    continue
+                answers = self._answer(material, _query_buffer(entries, rows, masks, total), total, k)
+                for j in range(lights):  # light j: a group's answer j, or the single query of entry j
+                    index, mask = ((rows[0] * k + j, masks[0]) if k > 1 else (rows[j], masks[j]))
+                    rgb = mi.Color3f(*(dr.gather(mi.Float, answers, index * C.RGB_DIM + ch, mask)
+                                       for ch in range(C.RGB_DIM)))
+                    out[j] = dr.select(mask, rgb, out[j])
         return out
+
+    def _answer(self, material: str, buffer: mi.Float, rows: int, lights: int) -> mi.Float:
+        """The evaluator's checked answers to ``rows`` rows of ``buffer`` (groups of ``lights``), flat."""
+        start = time.perf_counter()
+        queries = buffer.numpy().reshape(rows, C.group_width(lights))  # a view of drjit's memory
+        rgb = C.as_rgb(self.evaluator.evaluate(material, queries), rows, lights)
+        self.stats.add(material, rows * lights, time.perf_counter() - start)
+        return mi.Float(rgb.reshape(-1))
 
 
 @dataclass
 class NeuralQueries:
-    """One bounce's neural query groups (lazy drjit arrays)."""
+    """One bounce's neural queries (lazy drjit arrays)."""
 
     columns: list[mi.Float]
-    """The group's 5 + 2 K columns in contract order, for every lane of the wavefront."""
+    """A query group's 5 + 2 K columns in contract order, for every lane of the wavefront."""
     masks: dict[str, tuple[mi.Bool, list[mi.Bool]]]
-    """Material name -> the lanes whose group goes to that material, and per light the lanes whose
-    answer is used."""
+    """Material name -> the lanes whose group goes to that material (every light valid), and per
+    light the lanes whose single query goes to it (that light valid, not every light)."""
+
+    @property
+    def lights(self) -> int:
+        return C.group_lights(len(self.columns))
+
+    def singles(self) -> list[list[mi.Float]]:
+        """Per light, the 7 columns of its single query (`contract.ungroup`, lazily)."""
+        c = self.columns
+        wis = [c[C.WI_X:C.WI_Y + 1]] + [c[C.QUERY_DIM + 2 * j:C.QUERY_DIM + 2 * j + 2] for j in range(self.lights - 1)]
+        return [c[:C.WI_X] + wi + c[C.WO_X:C.QUERY_DIM] for wi in wis]
 
 
-def _query_buffer(columns: list[mi.Float], row: mi.UInt32, mask: mi.Bool, total: int):
-    """A (total * W) Float, W = len(columns): row ``row[lane]`` holds the columns of each lane set in
-    ``mask``.
+def _query_buffer(entries: list[list[mi.Float]], rows: list[mi.UInt32], masks: list[mi.Bool], total: int):
+    """A (total * W) Float, W the width of each entry: row ``rows[k][lane]`` holds the columns
+    ``entries[k]`` of each lane set in ``masks[k]``.
 
-    One kernel: a symbolic loop over the W columns scatters one value per lane each turn (separate
-    `dr.scatter` calls into one array would each launch a kernel of their own).
+    One kernel: a symbolic loop over the W columns scatters one value per entry and lane each turn
+    (separate `dr.scatter` calls into one array would each launch a kernel of their own).
     """
-    width = len(columns)
+    width = len(entries[0])
     buffer = dr.empty(mi.Float, total * width)
 
     def scatter_column(col: mi.UInt32) -> tuple[mi.UInt32]:
-        value = columns[-1]
-        for k in range(width - 2, -1, -1):
-            value = dr.select(col == k, columns[k], value)
-        dr.scatter(buffer, value, row * width + col, mask)
+        for columns, row, mask in zip(entries, rows, masks):
+            value = columns[-1]
+            for k in range(width - 2, -1, -1):
+                value = dr.select(col == k, columns[k], value)
+            dr.scatter(buffer, value, row * width + col, mask)
         return (col + 1,)
 
     dr.while_loop((mi.UInt32(0),), lambda col: col < width, scatter_column)
@@ -241,10 +260,13 @@ def _query_buffer(columns: list[mi.Float], row: mi.UInt32, mask: mi.Bool, total:
     return buffer
 
 
-def _row_numbers(mask: mi.Bool) -> tuple[mi.UInt32, int]:
-    """Rows of a buffer that holds the set lanes of ``mask`` (lane order): each lane's row
-    (meaningful where the mask is set), and the row count."""
-    if not dr.width(mask):
-        return mi.UInt32(), 0
-    before = dr.prefix_sum(mi.UInt32(mask))  # exclusive
-    return before, int(before.numpy()[-1]) + int(mask.numpy()[-1])  # mask: evaluated
+def _row_numbers(masks: list[mi.Bool]) -> tuple[list[mi.UInt32], int]:
+    """Rows of a buffer that holds the set lanes of each mask in turn (lane order): per mask, each
+    lane's row (meaningful where the mask is set), and the total row count."""
+    rows, total = [], 0
+    for mask in masks:
+        before = dr.prefix_sum(mi.UInt32(mask))  # exclusive
+        n = int(before.numpy()[-1]) + int(mask.numpy()[-1]) if dr.width(mask) else 0  # mask: evaluated
+        rows.append(before + total)
+        total += n
+    return rows, total

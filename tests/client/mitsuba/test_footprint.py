@@ -125,5 +125,5 @@ def test_secondary_hits_read_coarser_footprints(model_dir):
     }
     evaluator = Recording(model_dir)
     render_scene(mi.load_dict(scene), evaluator, RenderConfig(spp=4))
-    assert len(evaluator.calls) >= 2
-    assert np.median(evaluator.calls[1][:, 2]) > 10 * np.median(evaluator.calls[0][:, 2])
+    assert len(evaluator.calls) >= 3  # the first hits (at most two calls: groups, single queries), then more
+    assert np.median(evaluator.calls[-1][:, 2]) > 10 * np.median(evaluator.calls[0][:, 2])

@@ -1,8 +1,9 @@
 """Every field of a first-hit query against geometry worked out independently of the integrator.
 
 A point light and a camera at known places, one neural shape (rectangle, sphere, or one face of a
-cube seen head-on), `max_depth` 2: the evaluator gets one buffer of query groups, one row per hit:
-the light's direction (where the hit is lit) and the sampled direction. From each row's (u, v) the test rebuilds the surface
+cube seen head-on), `max_depth` 2: the evaluator gets one buffer of query groups (the light's
+direction and the sampled direction, at hits where both count) and one of single queries (the one
+that counts, elsewhere): one row per hit in all. From each row's (u, v) the test rebuilds the surface
 point and the contract's frame (x along +u, y along +v, z the outward normal) - analytically for the
 sphere, from three ray casts for a planar face - and checks that ``wo`` points at the camera, ``wi``
 of the light block at the light, exactly the hits whose tangent plane faces the light are lit, and
@@ -96,8 +97,12 @@ def check_first_hit_queries(model_dir, shape, camera, up, light, geometry):
         geometry = planar_geometry(scene, camera, [axis, axis + side, axis + np.cross(axis, side) / 0.999])
     evaluator = Recording(model_dir)
     render_scene(scene, evaluator, RenderConfig(spp=SPP, seed=3))
-    assert len(evaluator.calls) == 1
-    rows = evaluator.calls[0]
+    # one call of query groups (hits where the light and the sampled direction both count), and one
+    # of single queries (hits where one of them does) if there are such hits
+    groups = [c for c in evaluator.calls if c.shape[1] == C.group_width(2)]
+    singles = [c for c in evaluator.calls if c.shape[1] == C.QUERY_DIM]
+    assert len(groups) == 1 and len(singles) <= 1 and len(evaluator.calls) == len(groups) + len(singles)
+    rows = np.concatenate([groups[0][:, :C.QUERY_DIM], *singles])  # one row per hit
     u, v = rows[:, C.U] / UV_SCALE, rows[:, C.V] / UV_SCALE
     p, x, y, z, len_u, len_v = geometry(u.astype(np.float64), v.astype(np.float64))
 
@@ -106,18 +111,17 @@ def check_first_hit_queries(model_dir, shape, camera, up, light, geometry):
     assert np.all(wo[:, 2] > 0)
     np.testing.assert_allclose(rows[:, [C.WO_X, C.WO_Y]], wo[:, :2], atol=TOL)
 
-    # wi: each row is a query group (`contract`): the light's wi first (0, 0 where the hit is not lit),
-    # then the sampled direction's; lit = the tangent plane faces the light
-    assert rows.shape[1] == C.group_width(2)
+    # wi: a group's first wi points at the light, and so does a single query's where the hit is lit;
+    # lit = the tangent plane faces the light
     wi = local(_unit(np.asarray(light) - p), x, y, z)
     lit = np.all(np.abs(rows[:, [C.WI_X, C.WI_Y]] - wi[:, :2]) < TOL, axis=1)
-    assert not rows[~lit][:, [C.WI_X, C.WI_Y]].any()  # an unlit hit's light wi is (0, 0)
-    assert lit.sum() > 0.2 * len(rows)
+    assert lit[: len(groups[0])].all() and lit.sum() > 0.2 * len(rows)
     assert np.all(wi[lit, 2] > 0)
     near = np.abs(wi[:, 2]) <= 0.01  # grazing the tangent plane: either way
     assert np.array_equal(lit[~near], wi[~near, 2] > 0)
-    sampled = rows[:, C.QUERY_DIM:C.QUERY_DIM + 2]
-    assert np.all(np.abs(sampled - wi[:, :2]) >= TOL, axis=1).mean() > 0.95  # not the light's
+    sampled = np.concatenate([groups[0][:, C.QUERY_DIM:], rows[~lit][:, [C.WI_X, C.WI_Y]]])
+    assert np.all(np.abs(sampled - np.concatenate([wi[: len(groups[0])], wi[~lit]])[:, :2]) >= TOL,
+                  axis=1).mean() > 0.95  # the sampled directions are not the light's
     assert np.all((sampled**2).sum(1) <= 1 + C.DIRECTION_TOLERANCE)
 
     # sigma: one sample's share of the std of the pixel's footprint on the surface, in tiles: between the head-on size on

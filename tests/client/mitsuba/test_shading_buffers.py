@@ -1,6 +1,7 @@
-"""`NeuralShading.evaluate` moves queries and answers in bulk: each material's query groups reach its
-evaluator in one (n, 9) buffer (lanes in order), and every answer comes back to the lane and light
-that asked, zero elsewhere, with one evaluator call per material."""
+"""`NeuralShading.evaluate` moves queries and answers in bulk: per material, the lanes whose two
+lights both count reach its evaluator as one (n, 9) buffer of query groups (lanes in order), the
+others' valid lights as one (n, 7) buffer of single queries (light by light, lanes in order), and
+every answer comes back to the lane and light that asked, zero elsewhere."""
 
 from __future__ import annotations
 
@@ -15,7 +16,7 @@ WIDTH = 1000
 
 
 class Echo:
-    """Answers light j of each group with (u, v, sigma) + 1 + j and keeps the buffers it was sent."""
+    """Answers each light with (u + wi_x, v + wi_y, sigma) + 1 and keeps the buffers it was sent."""
 
     def __init__(self) -> None:
         self.calls: list[tuple[str, np.ndarray]] = []
@@ -25,8 +26,10 @@ class Echo:
 
     def evaluate(self, material: str, queries: np.ndarray) -> np.ndarray:
         self.calls.append((material, np.array(queries)))
-        lights = C.group_lights(queries.shape[1])
-        return np.concatenate([queries[:, :3] + 1.0 + j for j in range(lights)], axis=1)
+        singles = C.ungroup(queries)
+        answers = singles[:, [C.U, C.V, C.SIGMA]] + 1.0
+        answers[:, :2] += singles[:, [C.WI_X, C.WI_Y]]
+        return answers.reshape(len(queries), -1)
 
 
 def shading(evaluator) -> NeuralShading:
@@ -42,46 +45,59 @@ def shading(evaluator) -> NeuralShading:
 def lanes():
     rng = np.random.default_rng(0)
     columns = rng.uniform(-0.7, 0.7, (C.group_width(2), WIDTH)).astype(np.float32)  # (column, lane)
-    masks = {"a": rng.random((2, WIDTH)) < 0.4, "b": rng.random((2, WIDTH)) < 0.3}  # (light, lane)
-    masks["b"] &= ~(masks["a"][0] | masks["a"][1])  # a lane hits one material
-    masks["b"][1] = False  # material b: only light 0 asks
-    return columns, masks
+    ok = rng.random((2, WIDTH)) < 0.6  # (light, lane): that light counts
+    material = rng.choice(["a", "b", "-"], WIDTH, p=[0.4, 0.3, 0.3])
+    return columns, ok, {m: material == m for m in ("a", "b")}
 
 
-def queries(columns, masks) -> NeuralQueries:
-    return NeuralQueries([mi.Float(c) for c in columns],
-                         {m: (mi.Bool(k[0] | k[1]), [mi.Bool(x) for x in k]) for m, k in masks.items()})
+def queries(columns, ok, hit) -> NeuralQueries:
+    every = ok[0] & ok[1]
+    masks = {m: (mi.Bool(h & every), [mi.Bool(h & k & ~every) for k in ok]) for m, h in hit.items()}
+    return NeuralQueries([mi.Float(c) for c in columns], masks)
+
+
+def single_rows(columns, light: int) -> np.ndarray:
+    """(7, lanes): the single query of `light` at every lane."""
+    wi = [C.WI_X, C.WI_Y] if light == 0 else [C.QUERY_DIM, C.QUERY_DIM + 1]
+    return columns[[C.U, C.V, C.SIGMA, *wi, C.WO_X, C.WO_Y]]
 
 
 def test_rows_and_answers_land_on_their_lanes(lanes):
-    columns, masks = lanes
+    columns, ok, hit = lanes
     evaluator = Echo()
-    out = shading(evaluator).evaluate(queries(columns, masks))
+    out = shading(evaluator).evaluate(queries(columns, ok, hit))
 
-    assert [m for m, _ in evaluator.calls] == ["a", "b"]  # one call per material
-    for material, rows in evaluator.calls:
-        np.testing.assert_array_equal(rows, columns[:, masks[material][0] | masks[material][1]].T)
-    for k in range(2):
-        got = np.stack([np.asarray(c) for c in (out[k].x, out[k].y, out[k].z)], axis=1)
-        asked = masks["a"][k] | masks["b"][k]
-        np.testing.assert_array_equal(got[asked], columns[:3, asked].T + 1.0 + k)
+    every = ok[0] & ok[1]
+    # per material: its groups, then its single queries (light 0's lanes, then light 1's)
+    assert [(m, q.shape[1]) for m, q in evaluator.calls] == [("a", 9), ("a", 7), ("b", 9), ("b", 7)]
+    for i, m in enumerate(("a", "b")):
+        groups, singles = evaluator.calls[2 * i][1], evaluator.calls[2 * i + 1][1]
+        np.testing.assert_array_equal(groups, columns[:, hit[m] & every].T)
+        want = [single_rows(columns, j)[:, hit[m] & ok[j] & ~every].T for j in range(2)]
+        np.testing.assert_array_equal(singles, np.concatenate(want))
+    for j in range(2):
+        got = np.stack([np.asarray(c) for c in (out[j].x, out[j].y, out[j].z)], axis=1)
+        asked = (hit["a"] | hit["b"]) & ok[j]
+        want = single_rows(columns, j)[:3].T + 1.0
+        want[:, :2] += single_rows(columns, j)[3:5].T
+        np.testing.assert_array_equal(got[asked], want[asked])
         assert not got[~asked].any()
 
 
 def test_no_rows_no_call(lanes):
-    columns, _ = lanes
+    columns, ok, _ = lanes
     evaluator = Echo()
-    out = shading(evaluator).evaluate(queries(columns, {"a": np.zeros((2, WIDTH), bool)}))
+    out = shading(evaluator).evaluate(queries(columns, ok, {"a": np.zeros(WIDTH, bool)}))
     assert evaluator.calls == []
     assert dr.all(out[0] == 0, axis=None) and dr.all(out[1] == 0, axis=None)
 
 
 def test_bad_answers_are_refused(lanes):
-    columns, masks = lanes
+    columns, ok, hit = lanes
 
     class Short(Echo):
         def evaluate(self, material, queries):
             return super().evaluate(material, queries)[:, :-1]
 
     with pytest.raises(C.QueryError, match="shape"):
-        shading(Short()).evaluate(queries(columns, {"a": masks["a"]}))
+        shading(Short()).evaluate(queries(columns, ok, {"a": hit["a"]}))
