@@ -59,20 +59,23 @@ def load_avg() -> str:
 
 class ConstantEvaluator:
     """An evaluator that answers every query with one colour, at no cost (a view of a buffer filled
-    once): what is left of a `neumip_path` render with it is the integrator's own overhead."""
+    once per query width): what is left of a `neumip_path` render with it is the integrator's own
+    overhead."""
 
     def __init__(self, material: str, rgb: float = 0.1) -> None:
         self.material, self.rgb = material, rgb
-        self.answers = np.empty((0, 3), np.float32)
+        self.answers: dict[int, np.ndarray] = {}
+        """Answer columns (3 K for groups of K lights) -> a buffer of that width."""
 
     def materials(self) -> list[str]:
         return [self.material]
 
     def evaluate(self, material: str, queries: np.ndarray) -> np.ndarray:
         width = 3 * C.group_lights(queries.shape[1])
-        if self.answers.shape[0] < len(queries) or self.answers.shape[1] != width:
-            self.answers = np.full((2 * len(queries), width), self.rgb, dtype=np.float32)
-        return self.answers[: len(queries)]
+        answers = self.answers.get(width)
+        if answers is None or len(answers) < len(queries):
+            answers = self.answers[width] = np.full((2 * len(queries), width), self.rgb, dtype=np.float32)
+        return answers[: len(queries)]
 
 
 def view(mi, surface, integrator: dict, size: int, spp: int) -> dict:
