@@ -19,6 +19,8 @@ import logging
 import time
 from dataclasses import dataclass, field
 
+import numpy as np
+
 from neumip.client import contract as C
 from neumip.client.errors import NeumipError
 
@@ -161,8 +163,8 @@ class NeuralShading:
         lights: list[tuple[mi.Vector3f, mi.Bool]],
     ) -> NeuralQueries:
         """This bounce's queries for each (wi, valid) in ``lights`` at every neural lane, scheduled:
-        a query group (`contract`: the shading point once, every wi) where every light is valid, the
-        single queries of the valid lights elsewhere (a group would evaluate an unused light).
+        a query group (`contract`: the shading point once, every wi) where two or more lights are
+        valid, a single query where one is (a group would evaluate an unused light).
 
         ``uv`` (shape uv), ``sigma`` (footprint std in shape uv units), ``wo`` (towards the viewer)
         and each ``wi`` (towards the light) are per-lane, directions in the `query_frame`. The columns
@@ -172,101 +174,112 @@ class NeuralShading:
         u, v = uv.x * hits.uv_scale, uv.y * hits.uv_scale
         sigma = sigma * hits.uv_scale
         sigma = dr.select(dr.isfinite(sigma), dr.clip(sigma, 0.0, MAX_SIGMA), MAX_SIGMA)
+        valid = [ok for _, ok in lights]
+        count = sum((mi.UInt32(ok) for ok in valid[1:]), mi.UInt32(valid[0]))
+        single_wi = lights[-1][0]
+        for wi, ok in reversed(lights[:-1]):  # the one valid light's wi where there is one
+            single_wi = dr.select(ok, wi, single_wi)
         columns = [u, v, sigma, lights[0][0].x, lights[0][0].y, wo.x, wo.y]
         columns += [c for wi, _ in lights[1:] for c in (wi.x, wi.y)]
-        every = lights[0][1]
-        for _, ok in lights[1:]:
-            every = every & ok
-        masks = {material: (mask & every, [mask & ok & ~every for _, ok in lights])
-                 for material, mask in hits.mask.items()}
-        dr.schedule(columns, [m for group, singles in masks.values() for m in [group, *singles]])
-        return NeuralQueries(columns, masks)
+        single = [u, v, sigma, single_wi.x, single_wi.y, wo.x, wo.y]
+        masks = {material: (mask & (count > 1), mask & (count == 1)) for material, mask in hits.mask.items()}
+        dr.schedule(columns, single[C.WI_X:C.WI_Y + 1], valid, list(masks.values()))
+        return NeuralQueries(columns, single, valid, masks)
 
     def evaluate(self, queries: NeuralQueries) -> list[mi.Color3f]:
         """Evaluate ``queries`` in at most two evaluator calls per material (its groups, its single
         queries) -> one Color3f per light: the answer on lanes whose light is valid, zero elsewhere.
 
         Each call's rows are written by drjit into one buffer that numpy reads without a copy
-        (groups: (n, 5 + 2 K), lanes in order; single queries: (n, 7), light by light, lanes in
-        order); the answers are read back with a gather per lane that runs in the caller's next
-        kernel.
+        (groups: (n, 5 + 2 K), single queries: (n, 7), lanes in order); a material's answers are
+        copied into drjit once and read back with one gather per light and channel that runs in the
+        caller's next kernel.
         """
         width = dr.width(queries.columns[0])
         lights = queries.lights
         out = [dr.zeros(mi.Color3f, width) for _ in range(lights)]
-        for material, (group, singles) in queries.masks.items():
-            for entries, masks, k in (([queries.columns], [group], lights), (queries.singles(), singles, 1)):
-                rows, total = _row_numbers(masks)
-                if total == 0:
-                    continue
-                answers = self._answer(material, _query_buffer(entries, rows, masks, total), total, k)
-                for j in range(lights):  # light j: a group's answer j, or the single query of entry j
-                    index, mask = ((rows[0] * k + j, masks[0]) if k > 1 else (rows[j], masks[j]))
-                    rgb = mi.Color3f(*(dr.gather(mi.Float, answers, index * C.RGB_DIM + ch, mask)
-                                       for ch in range(C.RGB_DIM)))
-                    out[j] = dr.select(mask, rgb, out[j])
+        for material, (group, single) in queries.masks.items():
+            groups, singles = Call(queries.columns, group, lights), Call(queries.single, single, 1)
+            if not groups.total + singles.total:
+                continue
+            answers = mi.Float(np.concatenate([self._answer(material, call) for call in (groups, singles)]))
+            for j, ok in enumerate(queries.valid):  # light j: answer j of a group, or the single answer
+                index = dr.select(group, groups.rows * lights + j, groups.total * lights + singles.rows)
+                mask = (group | single) & ok
+                rgb = mi.Color3f(*(dr.gather(mi.Float, answers, index * C.RGB_DIM + ch, mask)
+                                   for ch in range(C.RGB_DIM)))
+                out[j] = dr.select(mask, rgb, out[j])
         return out
 
-    def _answer(self, material: str, buffer: mi.Float, rows: int, lights: int) -> mi.Float:
-        """The evaluator's checked answers to ``rows`` rows of ``buffer`` (groups of ``lights``), flat."""
+    def _answer(self, material: str, call: Call) -> np.ndarray:
+        """The evaluator's checked answers to the rows of ``call``, flat ((total * 3 K,) float32)."""
+        if not call.total:
+            return np.zeros(0, C.DTYPE)
+        buffer = call.buffer()
         start = time.perf_counter()
-        queries = buffer.numpy().reshape(rows, C.group_width(lights))  # a view of drjit's memory
-        rgb = C.as_rgb(self.evaluator.evaluate(material, queries), rows, lights)
-        self.stats.add(material, rows * lights, time.perf_counter() - start)
-        return mi.Float(rgb.reshape(-1))
+        queries = buffer.numpy().reshape(call.total, C.group_width(call.lights))  # a view of drjit's memory
+        rgb = C.as_rgb(self.evaluator.evaluate(material, queries), call.total, call.lights)
+        self.stats.add(material, call.total * call.lights, time.perf_counter() - start)
+        return rgb.reshape(-1)
 
 
 @dataclass
 class NeuralQueries:
-    """One bounce's neural queries (lazy drjit arrays)."""
+    """One bounce's neural queries (lazy drjit arrays, one entry per lane of the wavefront)."""
 
     columns: list[mi.Float]
-    """A query group's 5 + 2 K columns in contract order, for every lane of the wavefront."""
-    masks: dict[str, tuple[mi.Bool, list[mi.Bool]]]
-    """Material name -> the lanes whose group goes to that material (every light valid), and per
-    light the lanes whose single query goes to it (that light valid, not every light)."""
+    """A query group's 5 + 2 K columns in contract order."""
+    single: list[mi.Float]
+    """The 7 columns of the single query of the one valid light (where there is one)."""
+    valid: list[mi.Bool]
+    """Per light, the lanes where it counts."""
+    masks: dict[str, tuple[mi.Bool, mi.Bool]]
+    """Material name -> the lanes whose group (two or more valid lights) goes to it, and those whose
+    single query (one valid light) does."""
 
     @property
     def lights(self) -> int:
         return C.group_lights(len(self.columns))
 
-    def singles(self) -> list[list[mi.Float]]:
-        """Per light, the 7 columns of its single query (`contract.ungroup`, lazily)."""
-        c = self.columns
-        wis = [c[C.WI_X:C.WI_Y + 1]] + [c[C.QUERY_DIM + 2 * j:C.QUERY_DIM + 2 * j + 2] for j in range(self.lights - 1)]
-        return [c[:C.WI_X] + wi + c[C.WO_X:C.QUERY_DIM] for wi in wis]
 
+class Call:
+    """One evaluator call's rows: the set lanes of ``mask`` in lane order, each its ``columns`` (the
+    5 + 2 K of a group of ``lights``, or the 7 of a single query)."""
 
-def _query_buffer(entries: list[list[mi.Float]], rows: list[mi.UInt32], masks: list[mi.Bool], total: int):
-    """A (total * W) Float, W the width of each entry: row ``rows[k][lane]`` holds the columns
-    ``entries[k]`` of each lane set in ``masks[k]``.
+    def __init__(self, columns: list[mi.Float], mask: mi.Bool, lights: int) -> None:
+        self.columns, self.mask, self.lights = columns, mask, lights
+        self.rows, self.total = _row_numbers(mask)
 
-    One kernel: a symbolic loop over the W columns scatters one value per entry and lane each turn
-    (separate `dr.scatter` calls into one array would each launch a kernel of their own).
-    """
-    width = len(entries[0])
-    buffer = dr.empty(mi.Float, total * width)
+    def buffer(self) -> mi.Float:
+        """A (total * W) Float, W = len(columns): the columns of each set lane, one row per lane.
 
-    def scatter_column(col: mi.UInt32) -> tuple[mi.UInt32]:
-        for columns, row, mask in zip(entries, rows, masks):
-            value = columns[-1]
+        The set lanes are few (one material's hits, often a small part of the wavefront), so their
+        indices are taken first (`dr.compress`) and one kernel over them alone gathers the columns:
+        a symbolic loop over the columns writes one value per row each turn (separate `dr.scatter`
+        calls would each launch a kernel of their own).
+        """
+        width = len(self.columns)
+        lanes = dr.compress(self.mask)
+        row = dr.arange(mi.UInt32, self.total)
+        buffer = dr.empty(mi.Float, self.total * width)
+
+        def scatter_column(col: mi.UInt32) -> tuple[mi.UInt32]:
+            value = dr.gather(mi.Float, self.columns[-1], lanes)
             for k in range(width - 2, -1, -1):
-                value = dr.select(col == k, columns[k], value)
-            dr.scatter(buffer, value, row * width + col, mask)
-        return (col + 1,)
+                value = dr.select(col == k, dr.gather(mi.Float, self.columns[k], lanes), value)
+            dr.scatter(buffer, value, row * width + col)
+            return (col + 1,)
 
-    dr.while_loop((mi.UInt32(0),), lambda col: col < width, scatter_column)
-    dr.eval(buffer)
-    return buffer
+        dr.while_loop((mi.UInt32(0),), lambda col: col < width, scatter_column)
+        dr.eval(buffer)
+        return buffer
 
 
-def _row_numbers(masks: list[mi.Bool]) -> tuple[list[mi.UInt32], int]:
-    """Rows of a buffer that holds the set lanes of each mask in turn (lane order): per mask, each
-    lane's row (meaningful where the mask is set), and the total row count."""
-    rows, total = [], 0
-    for mask in masks:
-        before = dr.prefix_sum(mi.UInt32(mask))  # exclusive
-        n = int(before.numpy()[-1]) + int(mask.numpy()[-1]) if dr.width(mask) else 0  # mask: evaluated
-        rows.append(before + total)
-        total += n
-    return rows, total
+def _row_numbers(mask: mi.Bool) -> tuple[mi.UInt32, int]:
+    """Rows of a buffer that holds the set lanes of ``mask`` (lane order): each lane's row
+    (meaningful where the mask is set), and the row count."""
+    last = dr.width(mask) - 1
+    if last < 0:
+        return mi.UInt32(), 0
+    before = dr.prefix_sum(mi.UInt32(mask))  # exclusive
+    return before, int(before[last]) + int(mask[last])  # one element read each

@@ -1,7 +1,7 @@
 """`NeuralShading.evaluate` moves queries and answers in bulk: per material, the lanes whose two
-lights both count reach its evaluator as one (n, 9) buffer of query groups (lanes in order), the
-others' valid lights as one (n, 7) buffer of single queries (light by light, lanes in order), and
-every answer comes back to the lane and light that asked, zero elsewhere."""
+lights both count reach its evaluator as one (n, 9) buffer of query groups, the lanes where one
+counts as one (n, 7) buffer of its single queries (lanes in order in both), and every answer comes
+back to the lane and light that asked, zero elsewhere."""
 
 from __future__ import annotations
 
@@ -51,9 +51,10 @@ def lanes():
 
 
 def queries(columns, ok, hit) -> NeuralQueries:
-    every = ok[0] & ok[1]
-    masks = {m: (mi.Bool(h & every), [mi.Bool(h & k & ~every) for k in ok]) for m, h in hit.items()}
-    return NeuralQueries([mi.Float(c) for c in columns], masks)
+    every, one = ok[0] & ok[1], ok[0] ^ ok[1]
+    single = np.where(ok[0], single_rows(columns, 0), single_rows(columns, 1))  # the valid light's
+    masks = {m: (mi.Bool(h & every), mi.Bool(h & one)) for m, h in hit.items()}
+    return NeuralQueries([mi.Float(c) for c in columns], [mi.Float(c) for c in single], [mi.Bool(k) for k in ok], masks)
 
 
 def single_rows(columns, light: int) -> np.ndarray:
@@ -67,14 +68,14 @@ def test_rows_and_answers_land_on_their_lanes(lanes):
     evaluator = Echo()
     out = shading(evaluator).evaluate(queries(columns, ok, hit))
 
-    every = ok[0] & ok[1]
-    # per material: its groups, then its single queries (light 0's lanes, then light 1's)
+    every, one = ok[0] & ok[1], ok[0] ^ ok[1]
+    # per material: its groups, then its single queries (lanes in order)
     assert [(m, q.shape[1]) for m, q in evaluator.calls] == [("a", 9), ("a", 7), ("b", 9), ("b", 7)]
     for i, m in enumerate(("a", "b")):
         groups, singles = evaluator.calls[2 * i][1], evaluator.calls[2 * i + 1][1]
         np.testing.assert_array_equal(groups, columns[:, hit[m] & every].T)
-        want = [single_rows(columns, j)[:, hit[m] & ok[j] & ~every].T for j in range(2)]
-        np.testing.assert_array_equal(singles, np.concatenate(want))
+        single = np.where(ok[0], single_rows(columns, 0), single_rows(columns, 1))
+        np.testing.assert_array_equal(singles, single[:, hit[m] & one].T)
     for j in range(2):
         got = np.stack([np.asarray(c) for c in (out[j].x, out[j].y, out[j].z)], axis=1)
         asked = (hit["a"] | hit["b"]) & ok[j]
