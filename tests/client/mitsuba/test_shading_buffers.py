@@ -54,7 +54,8 @@ def queries(columns, ok, hit) -> NeuralQueries:
     every, one = ok[0] & ok[1], ok[0] ^ ok[1]
     single = np.where(ok[0], single_rows(columns, 0), single_rows(columns, 1))  # the valid light's
     masks = {m: (mi.Bool(h & every), mi.Bool(h & one)) for m, h in hit.items()}
-    return NeuralQueries([mi.Float(c) for c in columns], [mi.Float(c) for c in single], [mi.Bool(k) for k in ok], masks)
+    return NeuralQueries([mi.Float(c) for c in columns], [mi.Float(c) for c in single],
+                         [mi.Bool(k) for k in ok], masks)
 
 
 def single_rows(columns, light: int) -> np.ndarray:
