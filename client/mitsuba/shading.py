@@ -253,20 +253,22 @@ class Call:
     def buffer(self) -> mi.Float:
         """A (total * W) Float, W = len(columns): the columns of each set lane, one row per lane.
 
-        The set lanes are few (one material's hits, often a small part of the wavefront), so their
-        indices are taken first (`dr.compress`) and one kernel over them alone gathers the columns:
-        a symbolic loop over the columns writes one value per row each turn (separate `dr.scatter`
-        calls would each launch a kernel of their own).
+        The set lanes are often few (one material's hits, a small part of the wavefront), so their
+        indices are taken first (`dr.compress`), one kernel over them alone gathers the columns, and
+        one more interleaves them: a symbolic loop over the columns writes one value per row each
+        turn (separate `dr.scatter` calls would each launch a kernel of their own).
         """
         width = len(self.columns)
         lanes = dr.compress(self.mask)
+        columns = [dr.gather(mi.Float, column, lanes) for column in self.columns]
+        dr.eval(columns)  # one kernel over the set lanes
         row = dr.arange(mi.UInt32, self.total)
         buffer = dr.empty(mi.Float, self.total * width)
 
         def scatter_column(col: mi.UInt32) -> tuple[mi.UInt32]:
-            value = dr.gather(mi.Float, self.columns[-1], lanes)
+            value = columns[-1]
             for k in range(width - 2, -1, -1):
-                value = dr.select(col == k, dr.gather(mi.Float, self.columns[k], lanes), value)
+                value = dr.select(col == k, columns[k], value)
             dr.scatter(buffer, value, row * width + col)
             return (col + 1,)
 
