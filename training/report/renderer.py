@@ -22,8 +22,9 @@ log = logging.getLogger(__name__)
 
 CACHE_VERSION = 3
 """Bump when a change in this package changes what a cached render would hold."""
-NEURAL_VERSION = 2
-"""Bump when `neumip_path` renders a neural material differently (2: per-sample footprints)."""
+NEURAL_VERSION = 3
+"""Bump when `neumip_path` renders a neural material differently (2: per-sample footprints; 3: query
+groups, whose graph rounds the decoder's first sum in another order)."""
 
 
 def file_digest(path: Path) -> str:
