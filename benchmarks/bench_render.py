@@ -15,7 +15,8 @@ Both integrators run at the same spp, ``max_depth`` and ``rr_depth``. Section ``
 demo scene in-process and through a real `neumip serve` process and prints the HTTP / in-process
 ratio; both renders use the same seed, so their largest image difference is printed too. CPU
 seconds (this process, plus the server process for HTTP) are printed beside wall time: on a shared
-machine they are the steadier figure. A warm-up render first compiles the kernels.
+machine they are the steadier figure. A warm-up render first compiles the kernels (for the demo, one
+whole in-process render: a smaller one left kernels to compile inside the timed in-process render).
 
     .venv/bin/python benchmarks/bench_render.py                         # ratios, rock from models/
     .venv/bin/python benchmarks/bench_render.py --sections ratios,demo  # and the demo in-process vs HTTP
@@ -221,7 +222,7 @@ def demo(args) -> None:
         local = LocalMaterials(models)
         print(f"## demo scene {SCENE.name}, {args.demo_size}^2, {args.demo_spp} spp; materials from {models}: "
               f"{', '.join(local.materials())}   [{load_avg()}]", flush=True)
-        render_demo(local, args, 64, 2)  # warm-up
+        render_demo(local, args, args.demo_size, args.demo_spp)  # warm-up: compiles every kernel
         in_process, cpu_local = render_demo(local, args, args.demo_size, args.demo_spp)
         report("in-process", in_process, cpu_local)
         server = Server(Path(models), Path(tmp) / "server.log")
