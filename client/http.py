@@ -68,8 +68,8 @@ class ClientConfig:
     max_backoff_s: float = 5.0
     """Longest wait between two attempts."""
     max_rows: int = 1_000_000
-    """Most query rows (a query group is one row) per request; larger buffers are split (server
-    default limit: 2M rows)."""
+    """Most queries per request, a query group of K lights counting K; larger buffers are split
+    (between groups; server default limit: 2M)."""
 
 
 class Codec(Protocol):
@@ -170,7 +170,7 @@ class MaterialClient:
 
     def evaluate(self, material: str, queries: np.ndarray) -> np.ndarray:
         """(N, 7) float32 queries -> (N, 3) float32 RGB, or query groups (N, 5 + 2 K) -> (N, 3 K), in
-        requests of at most `max_rows` rows."""
+        requests of at most `max_rows` queries (a group of K lights counting K)."""
         if not NAME_PATTERN.match(material):  # it goes into the URL path: only safe names
             raise UnknownMaterial(
                 f"{material!r} is not a material name (a letter or digit, then letters, digits, '_', "
@@ -180,12 +180,13 @@ class MaterialClient:
         n, lights = queries.shape[0], C.group_lights(queries.shape[1])
         if n == 0:
             return np.empty((0, C.RGB_DIM * lights), dtype=C.DTYPE)
-        if n <= self.config.max_rows:
+        rows = max(self.config.max_rows // lights, 1)  # per request
+        if n <= rows:
             rgb = self._evaluate_once(material, queries)
             return rgb if rgb.flags.writeable else rgb.copy()  # (N, 3 K) view of the answer body
         out = np.empty((n, C.RGB_DIM * lights), dtype=C.DTYPE)
-        for lo in range(0, n, self.config.max_rows):
-            hi = min(lo + self.config.max_rows, n)
+        for lo in range(0, n, rows):
+            hi = min(lo + rows, n)
             out[lo:hi] = self._evaluate_once(material, queries[lo:hi])
         return out
 

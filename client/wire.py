@@ -120,7 +120,7 @@ def _width(key: str, n: int, nbytes: int, unit: int, empty: int) -> int:
     width, rest = divmod(nbytes, n * DTYPE.itemsize)
     if rest or not width or width % unit:
         need = (f"a multiple of n x {unit * DTYPE.itemsize} bytes" if key != "queries"
-                else "n x 28 bytes for (N, 7) queries, or n x (5 + 2 K) x 4 for groups of K lights")
+                else f"n x {ROW_BYTES} bytes for (N, 7) queries, or n x (5 + 2 K) x 4 for groups of K lights")
         raise QueryError(f"'{key}' holds {nbytes} bytes, which is not n={n} rows of float32: it needs {need}")
     return width
 

@@ -6,8 +6,9 @@ query **rows** admitted and not yet answered (``max_queue_rows``). As soon as a 
 in, `Admission.admit` reserves its declared length and an upper bound of its rows (`plan`), or refuses
 it at once: 413 above the per-request limits, 503 + ``Retry-After`` when either budget is spent - never
 after the client has uploaded everything. Once the body is decoded, the reservation shrinks to the
-true row count (a query group of K lights is one row, wider than 28 bytes, so the bound from the
-length holds for groups too); it is released when the answer is complete (or, for a handler cancelled
+true count of queries (a query group of K lights counts K: what the work and the answer's memory
+grow with; a group takes at least 8 bytes a light, so the true count can exceed the bound from the
+length, and the server refuses it then); it is released when the answer is complete (or, for a handler cancelled
 by a client that went away, when its queued rows have run).
 
 Bodies then grow with the bytes that actually arrive (`read_body`), within the body timeout: a client

@@ -67,7 +67,8 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     metrics = Metrics()
     app = FastAPI(
         title="neumip inference server",
-        summary="NeuMIP neural materials: (N, 7) shading queries -> (N, 3) RGB",
+        summary="NeuMIP neural materials: (N, 7) shading queries -> (N, 3) RGB, or query groups "
+                "(N, 5 + 2K) -> (N, 3K)",
         lifespan=lifespan,
     )
     app.state.neumip = ServerState(settings, metrics, Admission(settings, metrics))

@@ -4,7 +4,10 @@ from __future__ import annotations
 
 import json
 
+import numpy as np
 from fastapi import Request
+
+from neumip.client import contract as C
 
 from .errors import ApiError
 
@@ -31,7 +34,11 @@ def parse_json(raw: bytes | memoryview, what: str = "body") -> object:
         raise ApiError(400, f"{what} nests too deep to be a query request") from None
 
 
-def check_rows(n: int, limit: int) -> None:
-    """413 for a request over the row limit (N = 0 is valid: it answers no rows)."""
-    if n > limit:
-        raise ApiError(413, f"{n} query rows is more than the limit of {limit} rows per request")
+def check_rows(queries: np.ndarray, limit: int) -> int:
+    """The answers (N K) a request of queries or query groups asks for; 413 over the limit (N = 0 is
+    valid: it answers nothing)."""
+    answers = queries.shape[0] * C.group_lights(queries.shape[1])
+    if answers > limit:
+        raise ApiError(413, f"{answers} queries (a group of K lights counts K) is more than the limit of "
+                            f"{limit} per request")
+    return answers

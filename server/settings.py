@@ -52,9 +52,11 @@ class Settings(BaseSettings):
     max_wait_ms: float = Field(2.0, ge=0)
     """How long a batch that is not yet full waits for more rows while other requests are being decoded."""
     max_rows: int = Field(2_000_000, ge=1)
-    """Most query rows one request may carry, a query group being one row (more is rejected with 413)."""
+    """Most queries one request may carry, a query group of K lights counting K (more is rejected with
+    413): it bounds the work and the answer's memory whatever the width."""
     max_queue_rows: int = Field(8_000_000, ge=1)
-    """Most rows admitted and not yet answered; beyond it requests get 503 with Retry-After."""
+    """Most queries (a group of K lights counting K) admitted and not yet answered; beyond it requests
+    get 503 with Retry-After."""
     max_body_bytes: int = Field(128 * 1024 * 1024, ge=1024)
     """Largest request body accepted, in bytes (more is rejected with 413)."""
     max_json_body_bytes: int = Field(16 * 1024 * 1024, ge=1024)

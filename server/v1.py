@@ -110,8 +110,8 @@ async def evaluate(name: str, request: Request, state: ServerState = Depends(ser
             timer.mark("read")
             with state.batcher.receiving() as arrival:  # batches not yet full wait for this request's rows
                 queries = await decode(body, kind)  # (N, 5 + 2 K) float32, K = 1: (N, 7)
-                check_rows(queries.shape[0], state.settings.max_rows)
-                state.admission.resize(ticket, ticket.memory, queries.shape[0])
+                answers = check_rows(queries, state.settings.max_rows)
+                state.admission.resize(ticket, ticket.memory, answers)
                 timer.mark("decode")
                 # msgpack: the workers write the answer straight into the response body (out: a view of it)
                 content, out = None, None

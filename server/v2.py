@@ -262,8 +262,8 @@ async def infer(name: str, request: Request, version: str | None = None, state: 
                     parsed = await asyncio.to_thread(parse_infer, body, header_length)
                 else:
                     parsed = parse_infer(body, header_length)
-                check_rows(parsed.queries.shape[0], state.settings.max_rows)
-                state.admission.resize(ticket, ticket.memory, parsed.queries.shape[0])
+                answers = check_rows(parsed.queries, state.settings.max_rows)
+                state.admission.resize(ticket, ticket.memory, answers)
                 timer.mark("decode")
                 ticket.until = arrival.submit(name, parsed.queries, material=material)
             rgb = await asyncio.shield(ticket.until)  # (N, 3 K) float32

@@ -4,7 +4,9 @@ model configuration, statistics, the repository index and explicit model control
 `unload_model`).
 
 The configuration is the same `ModelConfig` that `neumip export-repository` writes as
-``config.pbtxt`` (`neumip.server.model_config`), filled in with this server's settings; the statistics
+``config.pbtxt`` (`neumip.server.model_config`), filled in with this server's settings; it always
+states variable widths, since this server answers query groups for every file (it sends a file
+exported before them its single queries), where the exported config of such a file says [7]. The statistics
 are what the batcher records (`neumip.server.model_stats`).
 """
 

@@ -1,16 +1,17 @@
 """ONNX export: the material as one graph, textures stored as initializers.
 
-The graph takes ``queries`` (N, 7) float32 and returns ``rgb`` (N, 3) float32, N dynamic, and
-computes what `material.NeuMIPMaterial.forward` computes, in three stages read top to bottom in
-`material_graph`: the neural offset (a bilinear lookup of the offset texture, the offset MLP, the
-parallax shift), a trilinear lookup of the two nearest pyramid levels, then the decoder MLP. The
-lookups work on one query per row; the MLPs on one query per column (`GraphWriter.product`: the
-first layers read the weighted texels and the queries transposed, one Transpose after each MLP). The
-file stores the textures once, in the layout `weights_from_state` gives (flat atlas "pyramid"
-(T, C), "offset_texture" (R * R, C)); a constant subgraph that ONNX Runtime folds at session load
-expands them into wrap-padded quad tables (`export_lookup.py`), so each query reads one table row per
-level footprint with float row arithmetic and no modulo. The model config, contract version and a
-description travel in the ONNX metadata.
+The graph takes ``queries`` (N, 7) float32 and returns ``rgb`` (N, 3) float32, or query groups (N, 5
++ 2 K) -> (N, 3 K) (`contract`: the offset and the lookups run once per group, the decoder once per
+light), both dimensions dynamic, and computes what `material.NeuMIPMaterial.forward` computes, in
+three stages read top to bottom in `material_graph`: the neural offset (a bilinear lookup of the
+offset texture, the offset MLP, the parallax shift), a trilinear lookup of the two nearest pyramid
+levels, then the decoder MLP. The lookups work on one query per row; the MLPs on one query per
+column (`GraphWriter.product`: the first layers read the weighted texels and the queries transposed,
+one Transpose after each MLP). The file stores the textures once, in the layout `weights_from_state`
+gives (flat atlas "pyramid" (T, C), "offset_texture" (R * R, C)); a constant subgraph that ONNX
+Runtime folds at session load expands them into wrap-padded quad tables (`export_lookup.py`), so
+each query reads one table row per level footprint with float row arithmetic and no modulo. The
+model config, contract version and a description travel in the ONNX metadata.
 
 The graph answers a query with the same bits whatever the batch it sits in (its position, the call's
 row count, the thread count): it uses only ops that round per element - Mul, Add, Sub, Div, Sqrt,

@@ -2,8 +2,8 @@
 
 Scenes say ``<bsdf type="neumip"><string name="material" value="yarn"/><float name="uv_scale"
 value="4"/></bsdf>`` (or the same as a dict). The plugin itself holds no network: the integrator
-collects every shading query that lands on a `neumip` surface and sends them to the evaluator in one
-buffer per bounce. What the plugin's own `eval`/`sample` compute is a plain Lambertian preview of
+collects every shading query that lands on a `neumip` surface and sends them to the evaluator in bulk
+once per bounce (`shading.py`). What the plugin's own `eval`/`sample` compute is a plain Lambertian preview of
 albedo `preview_albedo` written in pure drjit, so that stock integrators (which trace BSDF calls
 symbolically) can still render a scene that contains it; `neumip_path` uses only its cosine sampling
 and replaces the value with the neural answer.

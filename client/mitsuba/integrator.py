@@ -109,7 +109,7 @@ class EvaluatorNotBound(RuntimeError):
 
 
 class NeuMIPPathIntegrator(mi.SamplingIntegrator):
-    """Path tracer whose neural-surface shading is evaluated in one buffer per bounce."""
+    """Path tracer whose neural-surface shading is evaluated in bulk, per material, once per bounce."""
 
     def __init__(self, props: mi.Properties) -> None:
         mi.SamplingIntegrator.__init__(self, props)

@@ -3,14 +3,15 @@
 `NeuralShading` finds the scene's `neumip` surfaces and, per bounce, collects every shading query
 that lands on them (all lanes of the wavefront), evaluates them through the bound evaluator
 (`contract.Evaluator`: in-process `LocalMaterials` or the HTTP `MaterialClient`), and hands the RGB
-answers back as per-lane drjit arrays. A shading point whose K light directions are all valid goes
-as one query group (`contract`: the offset and the lookups run once for its K answers); where only
-some are valid, their single queries go instead. The data moves in bulk: the query columns come out
-of the integrator's one kernel per bounce, one more kernel per call writes a material's groups
-((n, 5 + 2 K) rows) or its single queries ((n, 7)) straight into a drjit buffer that numpy reads
-without a copy, and the answers are copied into drjit once and read
-per lane with gathers that run inside the integrator's next kernel. The answers are checked here
-(`contract.as_rgb`: shape and finiteness), once, whatever the evaluator.
+answers back as per-lane drjit arrays. A shading point with two or more valid light directions goes
+as one query group (`contract`: the offset and the lookups run once for its K answers); one with a
+single valid direction sends that single query. The data moves in bulk: the query columns come out
+of the integrator's one kernel per bounce; per material and call, its lanes are compressed
+(`dr.compress`) and two small kernels over them write its groups ((n, 5 + 2 K) rows) or its single
+queries ((n, 7)) into a drjit buffer that numpy reads without a copy; a material's answers are
+copied into drjit once and read per lane with gathers that run inside the integrator's next kernel.
+The answers are checked here (`contract.as_rgb`: shape and finiteness), once, whatever the
+evaluator.
 """
 
 from __future__ import annotations
@@ -39,7 +40,8 @@ class ShadingStats:
     queries: int = 0
     """Queries answered by the evaluator (a group of K lights counts K; `contract`)."""
     calls: int = 0
-    """Evaluator calls made (one per material per bounce with neural hits)."""
+    """Evaluator calls made (per material and bounce with neural hits: one for its query groups, one
+    for its single queries)."""
     seconds: float = 0.0
     """Wall time inside the evaluator, including (for HTTP) encoding and transfer."""
     per_material: dict[str, int] = field(default_factory=dict)
@@ -163,8 +165,9 @@ class NeuralShading:
         lights: list[tuple[mi.Vector3f, mi.Bool]],
     ) -> NeuralQueries:
         """This bounce's queries for each (wi, valid) in ``lights`` at every neural lane, scheduled:
-        a query group (`contract`: the shading point once, every wi) where two or more lights are
-        valid, a single query where one is (a group would evaluate an unused light).
+        a query group (`contract`: the shading point once, every wi; an invalid one as (0, 0), its
+        answer unused) where two or more lights are valid, a single query where one is (a group would
+        evaluate an unused light).
 
         ``uv`` (shape uv), ``sigma`` (footprint std in shape uv units), ``wo`` (towards the viewer)
         and each ``wi`` (towards the light) are per-lane, directions in the `query_frame`. The columns
@@ -179,8 +182,8 @@ class NeuralShading:
         single_wi = lights[-1][0]
         for wi, ok in reversed(lights[:-1]):  # the one valid light's wi where there is one
             single_wi = dr.select(ok, wi, single_wi)
-        columns = [u, v, sigma, lights[0][0].x, lights[0][0].y, wo.x, wo.y]
-        columns += [c for wi, _ in lights[1:] for c in (wi.x, wi.y)]
+        wis = [(dr.select(ok, wi.x, 0.0), dr.select(ok, wi.y, 0.0)) for wi, ok in lights]  # (0, 0) if not
+        columns = [u, v, sigma, *wis[0], wo.x, wo.y] + [c for wi in wis[1:] for c in wi]
         single = [u, v, sigma, single_wi.x, single_wi.y, wo.x, wo.y]
         masks = {material: (mask & (count > 1), mask & (count == 1)) for material, mask in hits.mask.items()}
         dr.schedule(columns, single[C.WI_X:C.WI_Y + 1], valid, list(masks.values()))

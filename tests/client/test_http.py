@@ -61,13 +61,13 @@ def test_evaluate_matches_in_process_and_splits_large_buffers(model_dir):
 
 
 def test_query_groups_are_sent_whole_and_answer_three_values_a_light(model_dir):
-    """(N, 9) groups go out as they are, split by groups (never inside one), and answer (N, 6); the
-    fallback passes them on the same way."""
+    """(N, 9) groups go out as they are, split by groups (never inside one; `max_rows` counts a group
+    of two lights twice), and answer (N, 6); the fallback passes them on the same way."""
     from neumip.client.http import FallbackEvaluator
 
     server = FakeServer(model_dir)
     groups = np.ascontiguousarray(np.hstack([random_queries(2500, seed=3), random_queries(2500, seed=4)[:, 3:5]]))
-    with client_for(server, max_rows=1000) as client:
+    with client_for(server, max_rows=2001) as client:  # 1000 groups of two a request
         rgb = client.evaluate("rand16", groups)
         assert client.evaluate("rand16", np.zeros((0, 9), np.float32)).shape == (0, 6)
         with pytest.raises(C.QueryError, match="5 \\+ 2 K"):
@@ -271,7 +271,7 @@ def test_real_server_answers_bit_identical_on_one_kept_alive_connection(serve, m
             client._evaluate_once("rand16", np.full((2, 7), np.nan, np.float32))  # past the client's own check
         assert client.evaluate("lambert", np.zeros((0, 7), np.float32)).shape == (0, 3)
     with MaterialClient(server.url, ClientConfig(max_rows=6000), protocol=protocol) as client:
-        with pytest.raises(ServerError, match="answered 413: 6000 query rows is more than the limit of 5000"):
+        with pytest.raises(ServerError, match="answered 413: 6000 queries .* is more than the limit of 5000"):
             client.evaluate("rand16", random_queries(6000))
 
 

@@ -109,3 +109,14 @@ def test_concurrent_clients_of_mixed_widths_each_get_their_answers(server, local
     for (material, lights, *_), (groups, rgb) in answers.items():
         assert rgb.shape == (groups.shape[0], 3 * lights)
         np.testing.assert_array_equal(rgb, local.evaluate(material, groups))
+
+
+def test_the_row_limit_counts_each_light_of_a_group(server, local):
+    """max_rows (5000 here) bounds the queries a request asks for: 2600 groups of two lights are 5200."""
+    groups = groups_of(2600, 2, seed=9)
+    with MaterialClient(server.url, ClientConfig(max_rows=10_000)) as client:  # one request: refused
+        with pytest.raises(Exception, match="5200 queries"):
+            client.evaluate("rand16", groups)
+    with MaterialClient(server.url, ClientConfig(max_rows=5000)) as client:  # split: 2500 groups a request
+        np.testing.assert_array_equal(client.evaluate("rand16", groups).reshape(-1, 3),
+                                      local.evaluate("rand16", C.ungroup(groups)))

@@ -74,3 +74,10 @@ def test_a_config_of_fixed_width_takes_plain_queries_only(pb_utils, tmp_path, mo
     groups = np.hstack([random_queries(3), random_queries(3)[:, 3:5]])
     [response] = model.execute([{"queries": groups}])
     assert response.error == "queries must be (N, 7), got (3, 9)"
+
+
+def test_its_copy_of_the_contract_agrees():
+    """model.py runs inside Triton without neumip, so it repeats MAX_LIGHTS: the copies must agree."""
+    from neumip.server import triton_python_model
+
+    assert triton_python_model.MAX_LIGHTS == C.MAX_LIGHTS

@@ -103,3 +103,31 @@ def test_bad_answers_are_refused(lanes):
 
     with pytest.raises(C.QueryError, match="shape"):
         shading(Short()).evaluate(queries(columns, ok, {"a": hit["a"]}))
+
+
+def test_queries_group_two_or_more_valid_lights_and_send_one_alone():
+    """`NeuralShading.queries` with three lights: a lane with two or more valid lights is a group (the
+    invalid light's wi sent as (0, 0), NaN or not), a lane with one is that light's single query, a
+    lane with none or off the material sends nothing."""
+    from neumip.client.mitsuba.shading import NeuralHits
+
+    nan = float("nan")
+    ok = np.array([[1, 1, 0, 0, 1], [1, 0, 1, 0, 1], [0, 0, 0, 0, 1]], bool)  # (light, lane)
+    hit = np.array([1, 1, 1, 1, 0], bool)  # lane 4 is not on the material
+    wis = [mi.Vector3f([0.1 * j + 0.01] * 5, [0.2] * 5, [0.9] * 5) for j in range(3)]
+    wis[2] = mi.Vector3f([nan] * 5, [nan] * 5, [nan] * 5)  # light 2 counts nowhere on the material
+    hits = NeuralHits({"a": mi.Bool(hit)}, mi.Bool(hit), mi.Float([2.0] * 5))
+    q = shading(Echo()).queries(hits, mi.Point2f([0.25] * 5, [0.5] * 5), mi.Float([0.01] * 5),
+                                mi.Vector3f([0.3] * 5, [0.0] * 5, [0.95] * 5),
+                                [(wi, mi.Bool(k)) for wi, k in zip(wis, ok)])
+    group, single = (np.asarray(m) for m in q.masks["a"])
+    np.testing.assert_array_equal(group, [1, 0, 0, 0, 0])
+    np.testing.assert_array_equal(single, [0, 1, 1, 0, 0])
+    columns = np.array([np.asarray(c) for c in q.columns])
+    singles = np.array([np.asarray(c) for c in q.single])
+    assert columns.shape == (C.group_width(3), 5)
+    np.testing.assert_allclose(columns[[C.U, C.V, C.SIGMA], 0], [0.5, 1.0, 0.02])  # times uv_scale
+    np.testing.assert_allclose(columns[[C.WI_X, C.QUERY_DIM, C.QUERY_DIM + 2], 0], [0.01, 0.11, 0.0])
+    np.testing.assert_allclose(singles[[C.WI_X, C.WI_Y], 1], [0.01, 0.2])  # lane 1: light 0 alone
+    np.testing.assert_allclose(singles[[C.WI_X, C.WI_Y], 2], [0.11, 0.2])  # lane 2: light 1 alone
+    np.testing.assert_allclose(singles[[C.WO_X, C.WO_Y], 2], [0.3, 0.0])
