@@ -162,8 +162,8 @@ def check_values(queries: np.ndarray) -> None:
         if bad.any():
             row = int(np.argmax(bad))
             raise QueryError(
-                f"{name} must be the (x, y) of a unit vector (x^2 + y^2 <= 1): row {row} has "
-                f"x^2 + y^2 = {r2[row]:.6g}"
+                f"{name} must be the (x, y) of a unit vector (x^2 + y^2 <= 1, up to "
+                f"{1 + DIRECTION_TOLERANCE:g} for rounding): row {row} has x^2 + y^2 = {r2[row]:.9g}"
             )
 
 

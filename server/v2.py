@@ -133,7 +133,8 @@ def _json_data(data: object, n: int, width: int) -> np.ndarray:
     except (TypeError, ValueError):  # ragged nesting
         raise ApiError(400, f"input '{C.ONNX_INPUT}' data must be a flat or evenly nested list of numbers") from None
     if arr.size and arr.dtype.kind not in "fiu":
-        raise ApiError(400, f"input '{C.ONNX_INPUT}' data must hold only numbers (FP32), got {arr.dtype.kind!r} values")
+        kind = {"U": "strings", "b": "booleans", "O": "other values"}.get(arr.dtype.kind, f"{arr.dtype} values")
+        raise ApiError(400, f"input '{C.ONNX_INPUT}' data must hold only numbers (FP32), got {kind}")
     if arr.size != n * width:
         raise ApiError(400, f"input '{C.ONNX_INPUT}' data holds {arr.size} values, shape [{n}, {width}] "
                        f"needs {n * width}")
