@@ -28,7 +28,8 @@ from .errors import NeumipError
 log = logging.getLogger(__name__)
 
 DEFAULT_CHUNK = 4096
-"""Rows per ONNX Runtime call. With the default export graph, chunks of 2^11 to 2^12 rows ran about
+"""Answers per ONNX Runtime call of `LocalMaterials` (rows of single queries; a group of K lights
+counts K). With the default export graph, chunks of 2^11 to 2^12 rows ran about
 10 % more queries per CPU second than chunks of 2^14 to 2^16 (the intermediates stay in cache), and a
 single call on 2^20 rows was slowest (benchmarks/bench_inference.py, section chunk)."""
 
@@ -133,25 +134,30 @@ def accepts_groups(session) -> bool:
     return not isinstance(session.get_inputs()[0].shape[1], int)
 
 
+def run_call(session, queries: np.ndarray) -> np.ndarray:
+    """One ONNX Runtime call: validated (n, 7) float32 queries -> (n, 3), or query groups (n, 5 + 2 K)
+    -> (n, 3 K). A graph exported before query groups gets their single queries (`contract.ungroup`)."""
+    lights = C.group_lights(queries.shape[1])
+    if lights > 1 and not accepts_groups(session):
+        rgb = session.run([C.ONNX_OUTPUT], {C.ONNX_INPUT: C.ungroup(queries)})[0]
+        return rgb.reshape(queries.shape[0], lights * C.RGB_DIM)
+    return session.run([C.ONNX_OUTPUT], {C.ONNX_INPUT: queries})[0]
+
+
 def run_chunked(
     session, queries: np.ndarray, chunk: int = DEFAULT_CHUNK, executor: Executor | None = None
 ) -> np.ndarray:
-    """Evaluate validated (N, 7) float32 queries in chunks of `chunk` answers -> (N, 3) float32, or
-    query groups (N, 5 + 2 K) -> (N, 3 K). A graph exported before query groups gets their single
-    queries (`contract.ungroup`).
+    """Evaluate validated (N, 7) float32 queries, or query groups (N, 5 + 2 K), in calls of `chunk`
+    rows (`run_call`) -> (N, 3 K) float32.
 
     With an `executor` the chunks run concurrently on its threads.
     """
-    lights = C.group_lights(queries.shape[1])
-    if lights > 1 and not accepts_groups(session):
-        n = queries.shape[0]
-        return run_chunked(session, C.ungroup(queries), chunk, executor).reshape(n, lights * C.RGB_DIM)
-    n, chunk = queries.shape[0], max(chunk // lights, 1)
-    out = np.empty((n, lights * C.RGB_DIM), dtype=C.DTYPE)
+    n = queries.shape[0]
+    out = np.empty((n, C.RGB_DIM * C.group_lights(queries.shape[1])), dtype=C.DTYPE)
 
     def run(lo: int) -> None:
         hi = min(lo + chunk, n)
-        out[lo:hi] = session.run([C.ONNX_OUTPUT], {C.ONNX_INPUT: queries[lo:hi]})[0]
+        out[lo:hi] = run_call(session, queries[lo:hi])
 
     starts = range(0, n, chunk)
     if executor is None or len(starts) < 2:
@@ -253,6 +259,6 @@ class LocalMaterials:
         QueryError for a bad buffer."""
         mat = self.get(material)
         queries = C.as_queries(queries, groups=True)
-        lights = C.group_lights(queries.shape[1])
-        groups = split_chunk(queries.shape[0], self.threads, max(self.chunk // lights, 1))  # per call
-        return run_chunked(mat.session, queries, groups * lights, self._executor)
+        per_call = max(self.chunk // C.group_lights(queries.shape[1]), 1)  # `chunk` counts answers
+        return run_chunked(mat.session, queries, split_chunk(queries.shape[0], self.threads, per_call),
+                           self._executor)

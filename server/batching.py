@@ -18,7 +18,7 @@ naming the material (counted in ``neumip_nonfinite_answers_total``), never a sil
 
 Only pieces of the same width share a call (one queue per material and width). A model exported
 before query groups (input width fixed to 7) gets the single queries of a group
-(`neumip.client.local.run_chunked`), with the same bits.
+(`neumip.client.local.run_call`), with the same bits.
 
 Merging and splitting keep answers bit-identical to evaluating each request on its own, in one call or
 in process (`neumip.client.local`): the exported graph answers a row with the same bits wherever it
@@ -43,7 +43,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from neumip.client import contract as C
-from neumip.client.local import Material, run_chunked
+from neumip.client.local import Material, run_call
 
 from .errors import ApiError
 from .metrics import Metrics
@@ -55,8 +55,8 @@ log = logging.getLogger(__name__)
 
 def predict(session, queries: np.ndarray) -> np.ndarray:
     """One ONNX Runtime call: (n, 5 + 2 K) float32 contiguous queries -> (n, 3 K) float32 RGB (a graph
-    exported before query groups gets the n K single queries, `run_chunked`)."""
-    return run_chunked(session, queries, chunk=max(queries.shape[0], 1) * C.group_lights(queries.shape[1]))
+    exported before query groups gets the n K single queries, `run_call`)."""
+    return run_call(session, queries)
 
 
 @dataclass

@@ -13,7 +13,7 @@ interrupted export never leaves a half-written repository under the target's nam
 Each config states what its model file takes: dims [-1] in and out (queries (N, 7) or query groups
 (N, 5 + 2 K) -> (N, 3 K), `neumip.client.contract`), or [7] and [3] for a file exported before query
 groups, whose graph fixes the width (a config states what its graph takes). neumip's
-own server answers groups for both (`neumip.client.local.run_chunked`); Triton serves such a file
+own server answers groups for both (`neumip.client.local.run_call`); Triton serves such a file
 single queries only until it is re-exported (`neumip export OLD.onnx -o NEW.onnx`).
 """
 
