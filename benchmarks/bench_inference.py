@@ -215,9 +215,13 @@ def graphs_section(mat, models: dict[str, bytes], args) -> None:
             (Path(folder) / f"m{i}.onnx").write_bytes(model)
         local = LocalMaterials(folder, threads=args.threads)
         grouped = f"LocalMaterials.evaluate, {args.threads} workers, groups of 2"
-        names = [*sessions, "shipped, coherent queries", *evaluated, grouped, "torch eager"]
+        grouped_coherent = f"{grouped}, coherent"
+        names = [*sessions, "shipped, coherent queries", *evaluated, grouped, grouped_coherent, "torch eager"]
         # query groups of two lights (what the renderer sends): the pool's rows plus another wi
         group_pool = np.ascontiguousarray(np.concatenate([pool[: len(pool) // 2], pool[len(pool) // 2:, 3:5]], 1))
+        # and in a renderer's order: the coherent queries' first half, each with a second light
+        coherent_groups = np.ascontiguousarray(
+            np.concatenate([coherent[: len(pool) // 2], pool[len(pool) // 2:, 3:5]], 1))
         columns, table = [], {name: [] for name in names}
         for log2 in args.batches:
             q, tq = Batches(pool, 1 << log2), Batches(tpool, 1 << log2)
@@ -228,6 +232,8 @@ def graphs_section(mat, models: dict[str, bytes], args) -> None:
                 fns[name] = lambda m=f"m{i}": local.evaluate(m, q.next())
             gq = Batches(group_pool, 1 << (log2 - 1))  # 2^log2 answers per call
             fns[grouped] = lambda: local.evaluate("m0", gq.next())
+            cgq = Batches(coherent_groups, 1 << (log2 - 1))
+            fns[grouped_coherent] = lambda: local.evaluate("m0", cgq.next())
             fns["torch eager"] = lambda: torch_eval(mat, tq.next())
             for name, value in interleaved(fns, 1 << log2, args.seconds, args.rounds).items():
                 table[name].append(value)

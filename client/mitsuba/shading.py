@@ -128,6 +128,8 @@ class NeuralShading:
     def __init__(self, scene: mi.Scene, evaluator: C.Evaluator) -> None:
         self.bsdfs = neural_bsdfs(scene)
         self.evaluator = evaluator
+        self.in_kernel = callable(getattr(evaluator, "kernel", None))
+        """Whether the answers are computed inside drjit's kernels (`kernel.KernelMaterials`)."""
         self.stats = ShadingStats()
         missing = sorted({b.material for b in self.bsdfs} - set(evaluator.materials()))
         if missing:
@@ -190,8 +192,47 @@ class NeuralShading:
         return NeuralQueries(columns, single, valid, masks)
 
     def evaluate(self, queries: NeuralQueries) -> list[mi.Color3f]:
-        """Evaluate ``queries`` in at most two evaluator calls per material (its groups, its single
-        queries) -> one Color3f per light: the answer on lanes whose light is valid, zero elsewhere.
+        """Evaluate ``queries`` -> one Color3f per light: the answer on lanes whose light is valid,
+        zero elsewhere. In the kernel where the evaluator offers it (`kernel.KernelMaterials`),
+        otherwise through the evaluator in at most two calls per material."""
+        if self.in_kernel:
+            return self._evaluate_in_kernel(queries)
+        return self._evaluate_buffered(queries)
+
+    def _evaluate_in_kernel(self, queries: NeuralQueries) -> list[mi.Color3f]:
+        """Per material, the lanes with a valid light are taken (`dr.compress`) and one kernel over
+        them gathers their columns, computes every light's answer (the material's arithmetic traced
+        by `KernelMaterial.answers`) and scatters the answers back to their lanes."""
+        width = dr.width(queries.columns[0])
+        cols = queries.columns
+        out = [[dr.zeros(mi.Float, width) for _ in range(C.RGB_DIM)] for _ in range(queries.lights)]
+        start, computed = time.perf_counter(), {}
+        for material, (group, single) in queries.masks.items():
+            lanes = dr.compress(group | single)
+            if not dr.width(lanes):
+                continue
+            take = [dr.gather(mi.Float, column, lanes) for column in cols]
+            lights = [(take[C.WI_X], take[C.WI_Y])] + [(take[i], take[i + 1]) for i in range(C.QUERY_DIM, len(cols), 2)]
+            answers = self.evaluator.kernel(material).answers(
+                take[C.U], take[C.V], take[C.SIGMA], (take[C.WO_X], take[C.WO_Y]), lights)
+            for j, rgb in enumerate(answers):
+                for ch in range(C.RGB_DIM):
+                    dr.scatter(out[j][ch], rgb[ch], lanes)
+            computed[material] = dr.width(lanes) * queries.lights
+        if not computed:
+            return [dr.zeros(mi.Color3f, width) for _ in range(queries.lights)]
+        dr.eval(out)
+        dr.sync_thread()
+        seconds = (time.perf_counter() - start) / len(computed)
+        for material, answers in computed.items():
+            self.stats.add(material, answers, seconds)
+        neural = dr.zeros(mi.Bool, width)
+        for group, single in queries.masks.values():
+            neural |= group | single
+        return [dr.select(neural & ok, mi.Color3f(*rgb), 0.0) for rgb, ok in zip(out, queries.valid)]
+
+    def _evaluate_buffered(self, queries: NeuralQueries) -> list[mi.Color3f]:
+        """At most two evaluator calls per material (its groups, its single queries).
 
         Each call's rows are written by drjit into one buffer that numpy reads without a copy
         (groups: (n, 5 + 2 K), single queries: (n, 7), lanes in order); a material's answers are
