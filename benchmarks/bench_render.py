@@ -1,19 +1,22 @@
 """Benchmark: what a neural material costs to render, against the geometry it replaces.
 
 Section ``ratios`` (default) renders one view - a plane seen at 55 degrees from its normal, lit by a
-directional light and a dim constant environment - four ways in one process, in interleaved rounds,
-and prints the median seconds of each and two ratios:
+directional light and a dim constant environment - six ways in one process, in interleaved rounds,
+and prints the median seconds of each and two ratios for each in-process engine (the material in the
+render's own kernels, `KernelMaterials`, the default; and its ONNX graph in ONNX Runtime,
+`LocalMaterials`, buffered per bounce):
 
 - **neural / reference**: `neumip_path` with the material on a flat rectangle, against Mitsuba's stock
   `path` on the material's real displaced microgeometry (`training.microgeometry.mesh.reference_surface`,
   at the resolution the model was trained at) filling the same rectangle. Target: <= 1.0.
-- **overhead / diffuse**: `neumip_path` with an evaluator that answers a constant at no cost (so
-  everything but evaluation: the wavefront loop, the query buffers, the scatter of the answers),
-  against stock `path` with a `diffuse` BSDF on the same plane. Target: <= 1.5.
+- **overhead / diffuse**: `neumip_path` with a material that answers a constant at no cost (so
+  everything but evaluation: the wavefront loop, the lanes' compaction, the query buffers or gathers,
+  the scatter of the answers), against stock `path` with a `diffuse` BSDF on the same plane. Target:
+  <= 1.5.
 
 Both integrators run at the same spp, ``max_depth`` and ``rr_depth``. Section ``demo`` renders the
-demo scene in-process and through a real `neumip serve` process and prints the HTTP / in-process
-ratio; both renders use the same seed, so their largest image difference is printed too. CPU
+demo scene in-process (both engines) and through a real `neumip serve` process and prints the HTTP /
+in-process ratio; the renders use the same seed, so their largest image difference is printed too. CPU
 seconds (this process, plus the server process for HTTP) are printed beside wall time: on a shared
 machine they are the steadier figure. A warm-up render first compiles the kernels (for the demo, one
 whole in-process render: a smaller one left kernels to compile inside the timed in-process render).
@@ -56,6 +59,26 @@ def load_avg() -> str:
 
 
 # --- ratios: neural plane vs displaced reference geometry, overhead vs diffuse ------------------------
+
+
+class ConstantKernel:
+    """The in-kernel counterpart of `ConstantEvaluator`: a `KernelMaterials` whose material answers one
+    colour with no arithmetic (what is left is the in-kernel path's own cost: the lanes' compaction,
+    gathers and scatters)."""
+
+    def __init__(self, material: str, rgb: float = 0.1) -> None:
+        self.material, self.rgb = material, rgb
+
+    def materials(self) -> list[str]:
+        return [self.material]
+
+    def kernel(self, material: str) -> "ConstantKernel":
+        return self
+
+    def answers(self, u, v, sigma, wo, lights) -> list:
+        from neumip.client.mitsuba.render import dr, mi
+
+        return [[dr.full(mi.Float, self.rgb, dr.width(u))] * C.RGB_DIM for _ in lights]
 
 
 class ConstantEvaluator:
@@ -114,12 +137,13 @@ def ratio_scenes(mi, material, args) -> dict:
         return {"type": "rectangle", "to_world": to_world, "bsdf": bsdf}
 
     reference = mesh.reference_surface(mi, resolve(desc), args.tiles, to_world)
+    neural = view(mi, plane(neural_bsdf), {"type": "neumip_path", **depth}, args.size, args.spp)
     return {
         "reference (path)": (view(mi, reference, {"type": "path", **depth}, args.size, args.spp), None),
-        "neural (neumip_path)": (view(mi, plane(neural_bsdf), {"type": "neumip_path", **depth}, args.size,
-                                      args.spp), "local"),
-        "constant (neumip_path)": (view(mi, plane(neural_bsdf), {"type": "neumip_path", **depth}, args.size,
-                                        args.spp), "constant"),
+        "neural (neumip_path)": (neural, "kernel"),
+        "neural, ONNX Runtime": (neural, "local"),
+        "constant (neumip_path)": (neural, "constant kernel"),
+        "constant, buffered": (neural, "constant"),
         "diffuse (path)": (view(mi, plane({"type": "diffuse"}), {"type": "path", **depth}, args.size,
                                 args.spp), None),
     }
@@ -140,10 +164,12 @@ def time_render(mi, scene, evaluator, spp: int, seed: int) -> tuple[float, float
 
 def ratios(args) -> None:
     from neumip.client.local import LocalMaterials
+    from neumip.client.mitsuba.kernel import KernelMaterials
     from neumip.client.mitsuba.render import mi
 
     local = LocalMaterials(args.models)
-    evaluators = {"local": local, "constant": ConstantEvaluator(args.material), None: None}
+    evaluators = {"kernel": KernelMaterials(args.models), "local": local, "constant": ConstantEvaluator(args.material),
+                  "constant kernel": ConstantKernel(args.material), None: None}
     scenes = {name: (mi.load_dict(scene), evaluators[ev])
               for name, (scene, ev) in ratio_scenes(mi, local.get(args.material), args).items()}
     print(f"## ratios: {args.material} on a plane at {ZENITH_DEG:g} deg, {args.tiles} x {args.tiles} tiles, "
@@ -152,20 +178,24 @@ def ratios(args) -> None:
     for scene, evaluator in scenes.values():  # warm-up: compile (or load cached) kernels
         time_render(mi, scene, evaluator, args.spp, 0)
     times = {name: [] for name in scenes}  # (wall, CPU) per round
-    evaluation = []
+    evaluation = {"kernel": [], "local": []}
     for r in range(args.rounds):
         for name, (scene, evaluator) in scenes.items():
             wall, cpu, inside = time_render(mi, scene, evaluator, args.spp, r + 1)
             times[name].append((wall, cpu))
-            if evaluator is local:
-                evaluation.append(inside)
+            for key, values in evaluation.items():
+                if evaluator is evaluators[key]:
+                    values.append(inside)
     wall = {name: statistics.median(t[0] for t in v) for name, v in times.items()}
     cpu = {name: statistics.median(t[1] for t in v) for name, v in times.items()}
     for name in scenes:
         print(f"  {name:<24} {wall[name]:7.3f} s wall   {cpu[name]:7.3f} CPU s")
-    print(f"  (neural evaluation inside the neural render: {statistics.median(evaluation):.3f} s wall)")
+    print(f"  (neural evaluation inside the neural renders: {statistics.median(evaluation['kernel']):.3f} s in "
+          f"kernel, {statistics.median(evaluation['local']):.3f} s with ONNX Runtime, wall)")
     for label, a, b, target in (("neural / reference", "neural (neumip_path)", "reference (path)", 1.0),
-                                ("overhead / diffuse", "constant (neumip_path)", "diffuse (path)", 1.5)):
+                                ("overhead / diffuse", "constant (neumip_path)", "diffuse (path)", 1.5),
+                                ("ONNX Runtime: neural / reference", "neural, ONNX Runtime", "reference (path)", 1.0),
+                                ("ONNX Runtime: overhead / diffuse", "constant, buffered", "diffuse (path)", 1.5)):
         print(f"{label}: {wall[a] / wall[b]:.2f}x wall, {cpu[a] / cpu[b]:.2f}x CPU (target <= {target})")
     print(f"[{load_avg()}]", flush=True)
 
@@ -215,6 +245,7 @@ def report(label: str, result, cpu: float) -> None:
 def demo(args) -> None:
     from neumip.client.http import MaterialClient
     from neumip.client.local import LocalMaterials
+    from neumip.client.mitsuba.kernel import KernelMaterials
     from bench_server import Server  # this folder is on sys.path when run as a script
 
     with tempfile.TemporaryDirectory() as tmp:
@@ -222,9 +253,17 @@ def demo(args) -> None:
         local = LocalMaterials(models)
         print(f"## demo scene {SCENE.name}, {args.demo_size}^2, {args.demo_spp} spp; materials from {models}: "
               f"{', '.join(local.materials())}   [{load_avg()}]", flush=True)
-        render_demo(local, args, args.demo_size, args.demo_spp)  # warm-up: compiles every kernel
+        kernel = KernelMaterials(models)
+        render_demo(kernel, args, args.demo_size, args.demo_spp)  # warm-up: compiles every kernel
+        in_kernel, cpu_kernel = render_demo(kernel, args, args.demo_size, args.demo_spp)
+        report("in-kernel", in_kernel, cpu_kernel)
+        render_demo(local, args, args.demo_size, args.demo_spp)
         in_process, cpu_local = render_demo(local, args, args.demo_size, args.demo_spp)
         report("in-process", in_process, cpu_local)
+        diff = np.abs(in_kernel.image - in_process.image)
+        print(f"in-kernel / in-process ONNX Runtime: {in_kernel.seconds / in_process.seconds:.2f}x wall time, "
+              f"{cpu_kernel / cpu_local:.2f}x CPU time; image difference max {diff.max():.2e}, "
+              f"mean {diff.mean():.2e}", flush=True)
         server = Server(Path(models), Path(tmp) / "server.log")
         try:
             for protocol in ("msgpack", "v2"):
@@ -234,7 +273,7 @@ def demo(args) -> None:
                                                      server.process.pid)
                 report(f"HTTP {protocol}", remote, cpu_remote)
                 diff = np.abs(remote.image - in_process.image)
-                print(f"HTTP {protocol} / in-process: {remote.seconds / in_process.seconds:.2f}x wall time, "
+                print(f"HTTP {protocol} / in-process ONNX Runtime: {remote.seconds / in_process.seconds:.2f}x wall time, "
                       f"{cpu_remote / cpu_local:.2f}x CPU time (client + server); "
                       f"image difference max {diff.max():.2e}, mean {diff.mean():.2e}", flush=True)
         finally:

@@ -14,7 +14,7 @@ def register(sub: argparse._SubParsersAction) -> None:
         help="render a Mitsuba scene with neural materials (in-process, or through a server)",
         description="Render SCENE (Mitsuba 3 XML using <bsdf type=\"neumip\"> and the neumip_path "
         "integrator) to OUT (.png or .exr). Neural materials are evaluated in this process from "
-        "--models unless --server is given.",
+        "--models (inside the render's own kernels, or with --engine onnxruntime) unless --server is given.",
     )
     p.add_argument("scene", type=Path, help="Mitsuba 3 XML scene")
     p.add_argument("-o", "--output", type=Path, required=True, help="image to write (.png or .exr)")
@@ -32,7 +32,11 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--max-lanes", type=int, default=None, help="most pixels x samples per pass (memory bound)")
     _scene_params(p)
     p.add_argument("--seed", type=int, default=0, help="seed of the first pass")
-    p.add_argument("--threads", type=int, default=0, help="evaluation threads in-process (0: all cores)")
+    p.add_argument("--engine", choices=("kernel", "onnxruntime"), default="kernel",
+                   help="in-process evaluation: the material's weights traced into the render's drjit "
+                   "kernels (default), or its ONNX graph in ONNX Runtime (the server's engine)")
+    p.add_argument("--threads", type=int, default=0,
+                   help="ONNX Runtime evaluation threads in-process (0: all cores)")
     p.set_defaults(func=_render)
 
     b = sub.add_parser(
@@ -173,9 +177,13 @@ def _render(args: argparse.Namespace) -> int:
 
 
 def _evaluator(args: argparse.Namespace):
-    """The in-process evaluator over --models, or a MaterialClient for --server."""
+    """The in-process evaluator over --models (--engine), or a MaterialClient for --server."""
     from neumip.client.local import LocalMaterials
 
+    if not args.server and args.engine == "kernel":
+        from .kernel import KernelMaterials
+
+        return KernelMaterials(args.models)
     if not args.server:  # lazy: only the scene's materials load
         return LocalMaterials(args.models, threads=args.threads, lazy=True)
     from neumip.client.http import FallbackEvaluator, MaterialClient

@@ -1,0 +1,140 @@
+"""In-kernel evaluation (`client/mitsuba/kernel.py`): the same answers as the ONNX graph in ONNX
+Runtime, within the export's parity tolerance, for every layout a model file can have; bad files
+refused with a clear error; and a render with it matching the buffered render."""
+
+from __future__ import annotations
+
+import shutil
+from pathlib import Path
+
+import numpy as np
+import onnx
+import pytest
+
+from neumip.client import contract as C
+from neumip.client.local import LocalMaterials, ModelError, UnknownMaterial
+
+pytest.importorskip("mitsuba")
+
+from neumip.client.mitsuba.kernel import KernelMaterials  # noqa: E402
+from neumip.client.mitsuba.render import RenderConfig, render_scene  # noqa: E402
+from neumip.training.config import MaterialConfig  # noqa: E402
+from neumip.training.export import build_onnx, random_weights, save_onnx  # noqa: E402
+from neumip.training.trim import trim_model  # noqa: E402
+
+from .scenes import simple  # noqa: E402
+
+DATA = Path(__file__).resolve().parents[2] / "training" / "data"
+
+
+def parity(a: np.ndarray, b: np.ndarray) -> float:
+    """Worst |a - b| over the export's parity tolerance (1e-5 absolute plus 1e-4 relative): <= 1 passes."""
+    return float((np.abs(a - b) / (1e-5 + 1e-4 * np.abs(b))).max())
+
+
+def random_queries(n: int, seed: int, lights: int = 1) -> np.ndarray:
+    """Queries over several tiles, all footprints (finer than the finest level to coarser than the
+    coarsest), directions up to 84 degrees; with ``lights`` > 1, query groups."""
+    rng = np.random.default_rng(seed)
+
+    def direction(count):
+        phi = rng.uniform(0, 2 * np.pi, count)
+        s = np.sin(rng.uniform(0, np.radians(84), count))
+        return np.stack([s * np.cos(phi), s * np.sin(phi)], 1)
+
+    uv = rng.uniform(-3, 3, (n, 2))
+    sigma = 10.0 ** rng.uniform(-4, 0.5, n)
+    q = C.pack_queries(uv[:, 0], uv[:, 1], sigma, direction(n), direction(n))
+    return np.concatenate([q] + [direction(n) for _ in range(lights - 1)], 1).astype(np.float32)
+
+
+@pytest.fixture(scope="module")
+def layouts(tmp_path_factory):
+    """One file per layout: offset (64^2 and 16^2), no offset, YUV head, two-layer MLPs, trimmed, and
+    the two older graphs a model folder may still hold."""
+    folder = tmp_path_factory.mktemp("kernel_models")
+    configs = {
+        "offset64": MaterialConfig(resolution=64),
+        "offset16": MaterialConfig(resolution=16, offset_min_cos=0.3),
+        "nooffset": MaterialConfig(resolution=32, offset=False),
+        "yuv": MaterialConfig(resolution=16, head="yuv"),
+        "layers2": MaterialConfig(resolution=16, layers=2, hidden=12),
+    }
+    for seed, (name, cfg) in enumerate(configs.items()):
+        save_onnx(build_onnx(cfg, random_weights(cfg, seed=seed)), folder / f"{name}.onnx")
+    save_onnx(trim_model(onnx.load(folder / "offset64.onnx"), 2), folder / "trimmed.onnx")
+    for old in ("pre_groups_offset", "pre_issue12_nooffset"):
+        shutil.copy(DATA / f"{old}.onnx", folder / f"{old}.onnx")
+    return folder
+
+
+def test_answers_match_onnx_runtime_for_every_layout(layouts):
+    kernel, local = KernelMaterials(layouts), LocalMaterials(layouts, threads=1)
+    assert kernel.materials() == local.materials()
+    for name in kernel.materials():
+        for lights in (1, 3):
+            q = random_queries(4096, seed=lights, lights=lights)
+            got, want = kernel.evaluate(name, q), local.evaluate(name, q)
+            assert got.shape == want.shape == (4096, 3 * lights)
+            assert parity(got, want) <= 1.0, name
+
+
+def test_a_group_answers_each_light_as_its_single_query(layouts):
+    kernel = KernelMaterials(layouts)
+    q = random_queries(1000, seed=5, lights=3)
+    grouped = kernel.evaluate("offset16", q)
+    singles = kernel.evaluate("offset16", C.ungroup(q)).reshape(1000, 9)
+    np.testing.assert_array_equal(grouped, singles)
+
+
+def test_answers_do_not_depend_on_the_batch(layouts):
+    kernel = KernelMaterials(layouts)
+    q = random_queries(3000, seed=7)
+    whole = kernel.evaluate("offset64", q)
+    cuts = [0, 1, 2, 3, 1000, 1997, 2994, 3000]
+    parts = np.concatenate([kernel.evaluate("offset64", q[a:b]) for a, b in zip(cuts, cuts[1:])])
+    np.testing.assert_array_equal(whole, parts)
+    assert kernel.evaluate("offset64", q[:0]).shape == (0, 3)
+
+
+def test_bad_files_and_names_get_clear_errors(layouts, tmp_path):
+    (tmp_path / "corrupt.onnx").write_bytes(b"not an onnx file")
+    model = onnx.load(layouts / "offset16.onnx")
+    for init in model.graph.initializer:
+        if init.name == "pyramid":
+            values = onnx.numpy_helper.to_array(init).copy()
+            values[3, 1] = np.nan
+            init.CopyFrom(onnx.numpy_helper.from_array(values, "pyramid"))
+    onnx.save(model, tmp_path / "nan.onnx")
+    shutil.copy(layouts / "nooffset.onnx", tmp_path / "good.onnx")
+    kernel = KernelMaterials(tmp_path)
+    with pytest.raises(ModelError, match="corrupt.onnx: cannot load"):
+        kernel.kernel("corrupt")
+    with pytest.raises(ModelError, match="nan.onnx: non-finite weights in pyramid"):
+        kernel.kernel("nan")
+    with pytest.raises(UnknownMaterial, match="unknown material 'nope'"):
+        kernel.evaluate("nope", random_queries(4, seed=0))
+    assert kernel.materials() == ["good"]  # the failed files are no longer offered
+    bad = random_queries(4, seed=0)
+    bad[2, C.SIGMA] = np.nan
+    with pytest.raises(C.QueryError):
+        kernel.evaluate("good", bad)
+    with pytest.raises(FileNotFoundError):
+        KernelMaterials(tmp_path / "missing")
+
+
+def test_a_render_in_kernel_matches_the_buffered_render(model_dir):
+    """The same scene (two neural materials, several bounces), seed and spp rendered with the answers
+    computed in the kernel and by ONNX Runtime: the images agree to the answers' own difference."""
+    from neumip.client.mitsuba.render import mi
+
+    images, stats = {}, {}
+    for name, evaluator in (("kernel", KernelMaterials(model_dir)), ("onnxruntime", LocalMaterials(model_dir))):
+        scene = simple({"type": "neumip", "material": "rand16", "uv_scale": 2.0}, {"type": "neumip_path"}, 24, 4)
+        scene["floor"]["bsdf"] = {"type": "neumip", "material": "flat16", "uv_scale": 3.0}
+        result = render_scene(mi.load_dict(scene), evaluator, RenderConfig(spp=4, seed=3))
+        images[name], stats[name] = result.image[..., :3], result.stats
+    assert images["onnxruntime"].mean() > 0.01
+    np.testing.assert_allclose(images["kernel"], images["onnxruntime"], rtol=1e-4, atol=1e-5)
+    assert stats["kernel"].queries >= stats["onnxruntime"].queries > 0  # every light of a lane is computed
+    assert stats["kernel"].per_material.keys() == {"rand16", "flat16"}
