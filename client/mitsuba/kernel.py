@@ -24,6 +24,7 @@ from __future__ import annotations
 
 import logging
 import threading
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -36,6 +37,20 @@ from .bsdf import dr, mi
 log = logging.getLogger(__name__)
 
 Rgb = list  # three mi.Float: one answer per lane
+
+
+@dataclass
+class Textures:
+    """A material's tables in drjit memory (a PyTree: the frozen function's inputs)."""
+
+    pyramid: mi.Float
+    """The levels' texels, (T, C) flat, levels from the file's finest to 1 x 1."""
+    offset: mi.Float
+    """The offset texture, (R * R, C_offset) flat (one unused element without an offset)."""
+    sizes: mi.UInt32
+    """Texels per side of each level."""
+    starts: mi.UInt32
+    """Each level's first row in `pyramid` (levels finer than the file's finest are not stored)."""
 
 
 class KernelMaterial:
@@ -66,25 +81,45 @@ class KernelMaterial:
         self.head = self.config.head
         self.yuv_to_rgb = head.YUV_TO_RGB
         self.shadow_floor = head.SHADOW_FLOOR
-        self.pyramid = mi.Float(self.weights["pyramid"].ravel())
-        self.offset_texture = mi.Float(self.weights["offset_texture"].ravel()) if self.config.offset else None
-
-    # --- the material's stages (drjit arrays in, drjit arrays out) --------------------------------
+        first = self.config.level_starts()[self.finest]
+        self.textures = Textures(
+            mi.Float(self.weights["pyramid"].ravel()),
+            mi.Float(self.weights["offset_texture"].ravel() if self.config.offset else [0.0]),
+            mi.UInt32(self.config.level_sizes()),
+            mi.UInt32([max(s - first, 0) for s in self.config.level_starts()]),
+        )
+        self._frozen = dr.freeze(self._trace)
 
     def answers(self, u: mi.Float, v: mi.Float, sigma: mi.Float, wo: tuple[mi.Float, mi.Float],
                 lights: list[tuple[mi.Float, mi.Float]]) -> list[Rgb]:
         """RGB for each light direction ``(wi_x, wi_y)`` in ``lights`` of the shading points (u, v,
-        sigma, wo): a query group (`contract`): the offset and the lookup run once, the decoder once
-        per light."""
+        sigma, wo), evaluated: a query group (`contract`): the offset and the lookup run once, the
+        decoder once per light.
+
+        The arithmetic is traced once per number of lights and replayed after (`dr.freeze`): a traced
+        material is thousands of operations, whose tracing and code generation cost several
+        milliseconds a call (a multi-bounce, multi-material render makes hundreds of calls)."""
+        columns = [u, v, sigma, *wo] + [c for wi in lights for c in wi]
+        flat = self._frozen(self.textures, columns)
+        return [flat[j * C.RGB_DIM:(j + 1) * C.RGB_DIM] for j in range(len(lights))]
+
+    # --- the material's stages (drjit arrays in, drjit arrays out) --------------------------------
+
+    def _trace(self, textures: Textures, columns: list[mi.Float]) -> list[mi.Float]:
+        """columns (u, v, sigma, wo_x, wo_y, then wi_x, wi_y of each light) -> the lights' RGB, flat.
+        Reads the textures only from ``textures`` (a frozen function's inputs)."""
         cfg = self.config
+        u, v, sigma = columns[:3]
+        wo = (columns[3], columns[4])
+        lights = [(columns[i], columns[i + 1]) for i in range(5, len(columns), 2)]
         if cfg.offset:
-            features = _blend(self.offset_texture, cfg.offset_channels,
+            features = _blend(textures.offset, cfg.offset_channels,
                               *_taps(_wrap(u), _wrap(v), cfg.resolution, 0))
             depth = self._mlp(features + list(wo), "offset_mlp")[0]  # offset_scale folded in
             wo_z = dr.maximum(dr.sqrt(dr.maximum(1.0 - wo[0] * wo[0] - wo[1] * wo[1], 0.0)), cfg.offset_min_cos)
             shift = depth / wo_z
             u, v = u + shift * wo[0], v + shift * wo[1]
-        features = self._lookup(_wrap(u), _wrap(v), sigma)
+        features = self._lookup(textures, _wrap(u), _wrap(v), sigma)
         # decoder: inputs (features, wi_x, wi_y, wo_x, wo_y); the wi-free part of layer 0 is shared
         w0, b0 = self.weights["decoder.0.weight"], self.weights["decoder.0.bias"]
         shared = _dense(features + list(wo), np.delete(w0, [cfg.channels, cfg.channels + 1], 1), b0)
@@ -93,10 +128,10 @@ class KernelMaterial:
             first = _dense(list(wi), w0[:, cfg.channels:cfg.channels + 2], None, shared)
             if cfg.layers > 1:
                 first = [dr.maximum(x, 0.0) for x in first]
-            out.append(self._head(self._mlp(first, "decoder", start=1)))
+            out += self._head(self._mlp(first, "decoder", start=1))
         return out
 
-    def _lookup(self, u: mi.Float, v: mi.Float, sigma: mi.Float) -> list[mi.Float]:
+    def _lookup(self, textures: Textures, u: mi.Float, v: mi.Float, sigma: mi.Float) -> list[mi.Float]:
         """Trilinear lookup of wrapped (u, v) at footprint sigma: the two nearest levels' bilinear taps
         (levels below the file's finest level read that level)."""
         cfg = self.config
@@ -105,16 +140,13 @@ class KernelMaterial:
         t = lod - lo
         lo_level = mi.UInt32(lo)
         hi_level = dr.minimum(lo_level + 1, cfg.levels)
-        first = cfg.level_starts()[self.finest]
-        sizes = mi.UInt32(cfg.level_sizes())
-        starts = mi.UInt32([s - first if s >= first else 0 for s in cfg.level_starts()])
         rows, weights = [], []
         for level, share in ((lo_level, 1.0 - t), (hi_level, t)):
-            size = dr.gather(mi.UInt32, sizes, level)
-            r, w = _taps(u, v, size, dr.gather(mi.UInt32, starts, level))
+            size = dr.gather(mi.UInt32, textures.sizes, level)
+            r, w = _taps(u, v, size, dr.gather(mi.UInt32, textures.starts, level))
             rows += r
             weights += [x * share for x in w]
-        return _blend(self.pyramid, cfg.channels, rows, weights)
+        return _blend(textures.pyramid, cfg.channels, rows, weights)
 
     def _mlp(self, x: list[mi.Float], prefix: str, start: int = 0) -> list[mi.Float]:
         """Layers start.. of MLP `prefix`: ReLU after every layer but the last."""

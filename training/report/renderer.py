@@ -22,9 +22,10 @@ log = logging.getLogger(__name__)
 
 CACHE_VERSION = 3
 """Bump when a change in this package changes what a cached render would hold."""
-NEURAL_VERSION = 3
+NEURAL_VERSION = 4
 """Bump when `neumip_path` renders a neural material differently (2: per-sample footprints; 3: query
-groups, whose graph rounds the decoder's first sum in another order)."""
+groups, whose graph rounds the decoder's first sum in another order; 4: answers computed in the
+render's kernels, `client.mitsuba.kernel`, which round in their own order)."""
 
 
 def file_digest(path: Path) -> str:
@@ -46,7 +47,7 @@ class MaterialRenderer:
                         if (models / f"{model}.onnx").exists()}
         if "N" not in self.digests:
             raise FileNotFoundError(f"no model {models / (name + '.onnx')}")
-        self.resolution = int(evaluator.get(name).config["resolution"])
+        self.resolution = evaluator.kernel(name).config.resolution
         self._scenes: dict = {}
         self._warm: set = set()
 

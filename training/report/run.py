@@ -55,6 +55,7 @@ def run_report(out: Path, materials: list[str], config: ReportConfig, models: Pa
                progress: Progress | None = None, stages: tuple[str, ...] = ("images", "stability", "tradeoff"),
                views: tuple[View, ...] = VIEWS) -> dict:
     from neumip.client.local import LocalMaterials
+    from neumip.client.mitsuba.kernel import KernelMaterials
     from neumip.training.microgeometry.description import find_description, resolve
 
     from .renderer import MaterialRenderer
@@ -62,13 +63,14 @@ def run_report(out: Path, materials: list[str], config: ReportConfig, models: Pa
     progress = progress or Progress()
     out.mkdir(parents=True, exist_ok=True)
     cache = RenderCache(cache_dir / "renders")
-    evaluator = LocalMaterials(models, threads=config.threads)
+    evaluator = LocalMaterials(models, threads=config.threads)  # query sweeps: the ONNX graph
+    renders = KernelMaterials(models)  # neural renders: in the render's kernels, as `neumip render`
     start = time.perf_counter()
     results: dict = {"config": asdict(config), "materials": {}, "notes": {}}
     renderers = {}
     for name in materials:
         desc = find_description(name)
-        renderers[name] = MaterialRenderer(name, desc, resolve(desc), models, evaluator, config, cache)
+        renderers[name] = MaterialRenderer(name, desc, resolve(desc), models, renders, config, cache)
         if "N0" not in renderers[name].methods:
             results["notes"][name] = f"no {name}_nooffset model in {models}: N0 not shown"
     images: dict = {}
@@ -85,7 +87,7 @@ def run_report(out: Path, materials: list[str], config: ReportConfig, models: Pa
             results["materials"][name]["headline"] = headline(images[name], config.spp)
             results["materials"][name]["close_up"] = close_up_checks(images[name], config.spp)
     if "stability" in stages:
-        results["stability"] = run_stability(out, materials, config, models, evaluator, cache, progress)
+        results["stability"] = run_stability(out, materials, config, evaluator, renders, cache, progress)
     if "tradeoff" in stages and TRADEOFF_MATERIAL in renderers:
         results["tradeoff"] = run_tradeoff(out, renderers[TRADEOFF_MATERIAL], config, cache_dir, progress)
     results["seconds"] = time.perf_counter() - start
@@ -98,7 +100,7 @@ def run_report(out: Path, materials: list[str], config: ReportConfig, models: Pa
     return results
 
 
-def run_stability(out, materials, config, models, evaluator, cache, progress) -> dict:
+def run_stability(out, materials, config, evaluator, renders, cache, progress) -> dict:
     names = [n for n in evaluator.materials() if n.split("_nooffset")[0] in materials]
     progress.stage("stability", len(names) + 2)
     sweeps = {}
@@ -109,7 +111,7 @@ def run_stability(out, materials, config, models, evaluator, cache, progress) ->
     charts.sweeps(sweeps, out / "stability_sweeps.png")
     result = {"sweeps": {n: _summary(s) for n, s in sweeps.items()}}
     if HORIZON_MATERIAL in materials:
-        result["horizon"] = horizon(out, config, evaluator, cache, progress)
+        result["horizon"] = horizon(out, config, evaluator, renders, cache, progress)
     return result
 
 
@@ -119,7 +121,7 @@ def _summary(sweep: dict) -> dict:
             for kind, r in sweep.items()}
 
 
-def horizon(out, config, evaluator, cache, progress) -> dict:
+def horizon(out, config, evaluator, renders, cache, progress) -> dict:
     from neumip.client.mitsuba import render as R
     from neumip.training.microgeometry.description import find_description, resolve
 
@@ -140,7 +142,7 @@ def horizon(out, config, evaluator, cache, progress) -> dict:
         if cached is None:
             integrator = "neumip_path" if method == "N" else "path"
             scene = mi.load_dict(stability.horizon_scene(mi, config.horizon_film, make, integrator))
-            result = R.render_scene(scene, evaluator, R.RenderConfig(spp=config.spp, max_lanes=config.max_lanes))
+            result = R.render_scene(scene, renders, R.RenderConfig(spp=config.spp, max_lanes=config.max_lanes))
             cache.put(key, result.image[..., :3], result.seconds)
             images[method] = result.image[..., :3]
         else:
@@ -154,6 +156,7 @@ def horizon(out, config, evaluator, cache, progress) -> dict:
 
 def run_tradeoff(out, renderer, config, cache_dir, progress) -> dict:
     from neumip.client.local import LocalMaterials
+    from neumip.client.mitsuba.kernel import KernelMaterials
 
     folder = cache_dir / "tradeoff"
     variants = tradeoff.variants(config)
@@ -165,6 +168,7 @@ def run_tradeoff(out, renderer, config, cache_dir, progress) -> dict:
         tradeoff.train_variant(v, train, folder / "models", config)
         progress.tick()
     evaluator = LocalMaterials(folder / "models", threads=config.threads)
+    renders = KernelMaterials(folder / "models")
     names = [v.name for v in variants]
     qps = tradeoff.queries_per_second(evaluator, names)
     view = DISTANCE_VIEWS[0]
@@ -174,7 +178,7 @@ def run_tradeoff(out, renderer, config, cache_dir, progress) -> dict:
     points = {}
     progress.stage("trade-off: measure", len(variants))
     for v in variants:
-        image = _render_variant(renderer, spec, evaluator, v.name, folder / "models" / f"{v.name}.onnx", config, view)
+        image = _render_variant(renderer, spec, renders, v.name, folder / "models" / f"{v.name}.onnx", config, view)
         points[v.name] = {**tradeoff.describe(v), "queries_per_second": qps[v.name],
                           "validation_mse": tradeoff.validation_mse(evaluator, v.name, ref),
                           "image_mse": Q.mse(reference, image), "image_view": view.name}
@@ -184,7 +188,7 @@ def run_tradeoff(out, renderer, config, cache_dir, progress) -> dict:
             "steps": config.tradeoff_steps, "batch": config.tradeoff_batch}
 
 
-def _render_variant(renderer, spec, evaluator, name, onnx, config, view) -> np.ndarray:
+def _render_variant(renderer, spec, renders, name, onnx, config, view) -> np.ndarray:
     from neumip.client.mitsuba import render as R
 
     from .methods import neural_scene
@@ -195,6 +199,6 @@ def _render_variant(renderer, spec, evaluator, name, onnx, config, view) -> np.n
     if cached is not None:
         return cached.image
     scene = R.mi.load_dict(neural_scene(R.mi, spec, name))
-    result = R.render_scene(scene, evaluator, R.RenderConfig(spp=config.spp, max_lanes=config.max_lanes))
+    result = R.render_scene(scene, renders, R.RenderConfig(spp=config.spp, max_lanes=config.max_lanes))
     renderer.cache.put(key, result.image[..., :3], result.seconds)
     return result.image[..., :3]
