@@ -10,8 +10,9 @@ rows. Query groups (N, 5 + 2 K) travel as they are (`neumip.client.contract`) an
 a row is a group, so a split never cuts one. Whether the server takes groups for a material is read
 from its metadata once (`MaterialClient.takes_groups`); where it does not (a server from before
 groups, or Triton serving a model file exported before them) their single queries (`contract.ungroup`)
-go instead, and the answers come back in the same (N, 3 K) shape with the same bits. A material name goes into the URL path, so a name that
-is not a material name (`neumip.client.local.NAME_PATTERN`) is refused before anything is sent.
+go instead, and the answers come back in the same (N, 3 K) shape with the same bits. A material name
+goes into the URL path, so a name that is not a material name (`neumip.client.local.NAME_PATTERN`) is
+refused before anything is sent.
 
 How queries and answers travel is a `Codec` (`PROTOCOLS`): the msgpack ``/v1`` format by default, or
 the Open Inference Protocol's ``/v2`` binary tensors (``protocol="v2"``), both laid out in
@@ -195,7 +196,13 @@ class MaterialClient:
         if n == 0:
             return np.empty((0, C.RGB_DIM * lights), dtype=C.DTYPE)
         if lights > 1 and not self.takes_groups(material):  # (N K, 3) answers of the single queries
-            return self.evaluate(material, C.ungroup(queries)).reshape(n, C.RGB_DIM * lights)
+            return self._evaluate_split(material, C.ungroup(queries)).reshape(n, C.RGB_DIM * lights)
+        return self._evaluate_split(material, queries)
+
+    def _evaluate_split(self, material: str, queries: np.ndarray) -> np.ndarray:
+        """Validated (N > 0, 7) queries or (N, 5 + 2 K) groups -> (N, 3 K) RGB, in requests of at most
+        `max_rows` queries."""
+        n, lights = queries.shape[0], C.group_lights(queries.shape[1])
         rows = max(self.config.max_rows // lights, 1)  # per request
         if n <= rows:
             rgb = self._evaluate_once(material, queries)

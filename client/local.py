@@ -95,7 +95,7 @@ class Material:
             "validation": json.loads(validation) if validation else None,
             "trim": json.loads(trim) if trim else None,
             "bytes": self.bytes,
-            GROUPS_KEY: self.groups,  # what the evaluate endpoint takes (`wire.takes_groups`)
+            GROUPS_KEY: self.groups,  # clients send single queries where false (`wire.takes_groups`)
         }
 
 

@@ -11,7 +11,8 @@ both counts), so a wrong ``n`` cannot be read as groups of another width. A body
 before it) has its width read from the byte count: with ``n`` given, ``bytes / (4 n)`` has one value,
 and a count that is no valid width (8 columns, or bytes that are not ``n`` whole rows) is a QueryError
 naming the count; (N, 7) bodies read as they always did. ``N = 0`` with no bytes answers no rows (of
-``3 K`` values with ``"lights"``; else of 3). Servers from before the key ignore it.
+``3 K`` values with ``"lights"``; else of 3). Servers from before the key ignore it (they read such a
+body through msgpack's decoder, one copy of the rows).
 
 Whether a server takes query groups for a material is stated in its metadata (`takes_groups`): on
 ``/v1`` by the field ``"groups": true`` of ``GET /v1/materials/{name}`` (absent on servers from before
