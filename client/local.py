@@ -24,6 +24,7 @@ import numpy as np
 
 from . import contract as C
 from .errors import NeumipError
+from .wire import GROUPS_KEY
 
 log = logging.getLogger(__name__)
 
@@ -74,11 +75,9 @@ class Material:
     metadata: dict[str, str]
     bytes: int = 0
     """Size of the model file it was loaded from."""
-
-    @property
-    def groups(self) -> bool:
-        """Whether the graph takes query groups (models exported before them take (N, 7) only)."""
-        return accepts_groups(self.session)
+    groups: bool = True
+    """Whether the graph takes query groups (models exported before them take (N, 7) only); read once
+    from the graph when it loads (`accepts_groups`)."""
 
     @property
     def config(self) -> dict:
@@ -96,6 +95,7 @@ class Material:
             "validation": json.loads(validation) if validation else None,
             "trim": json.loads(trim) if trim else None,
             "bytes": self.bytes,
+            GROUPS_KEY: self.groups,  # clients send single queries where false (`wire.takes_groups`)
         }
 
 
@@ -126,7 +126,7 @@ def load_material(path: str | Path, threads: int = 0, data: bytes | None = None)
     inputs, outputs = session.get_inputs(), session.get_outputs()
     if [i.name for i in inputs] != [C.ONNX_INPUT] or [o.name for o in outputs] != [C.ONNX_OUTPUT]:
         raise ModelError(f"{path.name}: graph must map '{C.ONNX_INPUT}' to '{C.ONNX_OUTPUT}'")
-    return Material(path.stem, path, session, meta, len(source))
+    return Material(path.stem, path, session, meta, len(source), accepts_groups(session))
 
 
 def accepts_groups(session) -> bool:
@@ -134,21 +134,23 @@ def accepts_groups(session) -> bool:
     return not isinstance(session.get_inputs()[0].shape[1], int)
 
 
-def run_call(session, queries: np.ndarray) -> np.ndarray:
+def run_call(session, queries: np.ndarray, groups: bool = True) -> np.ndarray:
     """One ONNX Runtime call: validated (n, 7) float32 queries -> (n, 3), or query groups (n, 5 + 2 K)
-    -> (n, 3 K). A graph exported before query groups gets their single queries (`contract.ungroup`)."""
+    -> (n, 3 K). `groups`: whether the graph takes query groups (`Material.groups`); a graph exported
+    before them (False) gets their single queries (`contract.ungroup`), answered with the same bits."""
     lights = C.group_lights(queries.shape[1])
-    if lights > 1 and not accepts_groups(session):
+    if lights > 1 and not groups:
         rgb = session.run([C.ONNX_OUTPUT], {C.ONNX_INPUT: C.ungroup(queries)})[0]
         return rgb.reshape(queries.shape[0], lights * C.RGB_DIM)
     return session.run([C.ONNX_OUTPUT], {C.ONNX_INPUT: queries})[0]
 
 
 def run_chunked(
-    session, queries: np.ndarray, chunk: int = DEFAULT_CHUNK, executor: Executor | None = None
+    session, queries: np.ndarray, chunk: int = DEFAULT_CHUNK, executor: Executor | None = None,
+    groups: bool = True,
 ) -> np.ndarray:
     """Evaluate validated (N, 7) float32 queries, or query groups (N, 5 + 2 K), in calls of `chunk`
-    rows (`run_call`) -> (N, 3 K) float32.
+    rows (`run_call`; `groups` as there) -> (N, 3 K) float32.
 
     With an `executor` the chunks run concurrently on its threads.
     """
@@ -157,7 +159,7 @@ def run_chunked(
 
     def run(lo: int) -> None:
         hi = min(lo + chunk, n)
-        out[lo:hi] = run_call(session, queries[lo:hi])
+        out[lo:hi] = run_call(session, queries[lo:hi], groups)
 
     starts = range(0, n, chunk)
     if executor is None or len(starts) < 2:
@@ -261,4 +263,4 @@ class LocalMaterials:
         queries = C.as_queries(queries, groups=True)
         per_call = max(self.chunk // C.group_lights(queries.shape[1]), 1)  # `chunk` counts answers
         return run_chunked(mat.session, queries, split_chunk(queries.shape[0], self.threads, per_call),
-                           self._executor)
+                           self._executor, mat.groups)

@@ -1,16 +1,23 @@
 """The wire formats the server and `MaterialClient` exchange: msgpack (``/v1``) and the Open Inference
 Protocol's binary tensors (``/v2``).
 
-msgpack request body:  map ``{"n": N, "queries": <N*W*4 bytes, little-endian float32, row-major>}``
+msgpack request body:  map ``{"n": N, "lights": K, "queries": <N*W*4 bytes, little-endian float32, row-major>}``
 msgpack response body: map ``{"n": N, "rgb": <N*3K*4 bytes, little-endian float32, row-major>}``
 
 ``W`` is 7 for plain queries, ``5 + 2 K`` for query groups of ``K`` lights (`contract.group_width`),
-and the answer holds ``3 K`` values a row. The width is read from the byte count: with ``n`` given,
-``bytes / (4 n)`` has one value, so a body cannot be read two ways, and a count that is no valid width
-(8 columns, or bytes that are not ``n`` whole rows) is a QueryError naming the count. There is no
-``"lights"`` field: it would be a second statement of what ``n`` and the byte count already fix (and
-a way for the two to disagree), and bodies of old clients, (N, 7), read as they always did. ``N = 0``
-with no bytes is valid for any ``K`` and answers no rows.
+and the answer holds ``3 K`` values a row. ``"lights"`` is optional: `MaterialClient` always sends it,
+and a body that has it must hold exactly ``n`` rows of ``5 + 2 K`` values (else a QueryError naming
+both counts), so a wrong ``n`` cannot be read as groups of another width. A body without it (clients
+before it) has its width read from the byte count: with ``n`` given, ``bytes / (4 n)`` has one value,
+and a count that is no valid width (8 columns, or bytes that are not ``n`` whole rows) is a QueryError
+naming the count; (N, 7) bodies read as they always did. ``N = 0`` with no bytes answers no rows (of
+``3 K`` values with ``"lights"``; else of 3). Servers from before the key ignore it (they read such a
+body through msgpack's decoder, one copy of the rows).
+
+Whether a server takes query groups for a material is stated in its metadata (`takes_groups`): on
+``/v1`` by the field ``"groups": true`` of ``GET /v1/materials/{name}`` (absent on servers from before
+groups: single queries only), on ``/v2`` by the model metadata's input shape (``[-1, -1]``: any width;
+``[-1, 7]``: single queries only, e.g. Triton serving a model file exported before groups).
 
 The rows travel as raw float32 bytes, so neither side copies them: a body laid out exactly as
 `msgpack.packb` writes it is read as a view (`_fast_rows`), and the server writes its answer straight
@@ -29,7 +36,8 @@ import json
 
 import numpy as np
 
-from .contract import DTYPE, ONNX_INPUT, ONNX_OUTPUT, QUERY_DIM, RGB_DIM, QueryError, as_queries, group_lights
+from .contract import (DTYPE, MAX_LIGHTS, ONNX_INPUT, ONNX_OUTPUT, QUERY_DIM, RGB_DIM, QueryError, as_queries,
+                       group_lights, group_width)
 
 MSGPACK_MEDIA_TYPE = "application/msgpack"
 """Content type of the request and response bodies."""
@@ -37,21 +45,37 @@ EVALUATE_PATH = "/v1/materials/{name}/evaluate"
 """POST here (msgpack or JSON) to evaluate queries on material `name`."""
 MATERIALS_PATH = "/v1/materials"
 """GET here to list the served materials with their metadata."""
+MATERIAL_PATH = "/v1/materials/{name}"
+"""GET here for the metadata of material `name`, with `GROUPS_KEY`."""
+GROUPS_KEY = "groups"
+"""Field of a material's ``/v1`` metadata: true when its model file takes query groups (false: send it
+single queries; absent: a server from before groups, which takes none)."""
+LIGHTS_KEY = "lights"
+"""Optional field of a msgpack request body: the lights K of its query groups (1: plain queries)."""
 ROW_BYTES = QUERY_DIM * DTYPE.itemsize
 """Bytes of one query row on the wire."""
 INFER_PATH = "/v2/models/{name}/infer"
 """POST here (Open Inference Protocol) to evaluate queries on material `name`."""
+MODEL_PATH = "/v2/models/{name}"
+"""GET here (Open Inference Protocol) for the model metadata of material `name`."""
 INFER_HEADER_LENGTH = "Inference-Header-Content-Length"
 """Header giving the length of the JSON part of a v2 body with binary tensors."""
 INFER_DATATYPE = "FP32"
 """The Open Inference Protocol datatype of queries and answers."""
 
 
-def _prefix(key: str, n: int, width: int) -> bytes:
-    """The bytes `msgpack.packb` writes before the raw rows of ``{"n": n, key: <rows>}``, `n` rows of
-    `width` float32."""
+def _head(key: str, n: int, lights: int | None = None) -> bytes:
+    """The bytes `msgpack.packb` writes for ``{"n": n, key: <rows>}`` (``{"n": n, "lights": lights, key:
+    <rows>}`` with `lights`) up to the rows' bin header."""
     import msgpack
 
+    fields = {"n": n} if lights is None else {"n": n, LIGHTS_KEY: lights}
+    return msgpack.packb({**fields, key: b""})[:-2]  # [:-2]: the empty bin's header
+
+
+def _prefix(key: str, n: int, width: int, lights: int | None = None) -> bytes:
+    """The bytes `msgpack.packb` writes before the raw rows of ``{"n": n, ["lights": lights,] key:
+    <rows>}``, `n` rows of `width` float32."""
     nbytes = n * width * DTYPE.itemsize
     if nbytes < 1 << 8:
         bin_header = b"\xc4" + nbytes.to_bytes(1, "big")
@@ -59,55 +83,74 @@ def _prefix(key: str, n: int, width: int) -> bytes:
         bin_header = b"\xc5" + nbytes.to_bytes(2, "big")
     else:
         bin_header = b"\xc6" + nbytes.to_bytes(4, "big")
-    return msgpack.packb({"n": n, key: b""})[:-2] + bin_header  # [:-2]: the empty bin's header
+    return _head(key, n, lights) + bin_header
 
 
-def _fast_rows(body, key: str) -> tuple[int, memoryview] | None:
-    """(n, the raw row bytes) of a body laid out exactly as `msgpack.packb` writes ``{"n": n, key:
-    <rows>}``, a view without copying; None for any other layout (the msgpack decoder takes those)."""
-    import msgpack
-
-    view = memoryview(body)
-    # 0x82: map of 2; 0xa1 'n'; then n as msgpack writes a non-negative int (fixint or uint 8..64)
-    if len(view) < 4 or view[:3] != b"\x82\xa1n":
+def _uint(view: memoryview, pos: int) -> tuple[int, int] | None:
+    """A non-negative int as msgpack writes it (fixint or uint 8..64) at `pos` -> (value, position
+    after it); None if there is none."""
+    if len(view) <= pos:
         return None
-    tag = view[3]
+    tag = view[pos]
     size = {0xCC: 1, 0xCD: 2, 0xCE: 4, 0xCF: 8}.get(tag, 0 if tag < 0x80 else -1)
-    if size < 0 or len(view) < 4 + size:
+    if size < 0 or len(view) < pos + 1 + size:
         return None
-    n = tag if size == 0 else int.from_bytes(view[4 : 4 + size], "big")
-    head = msgpack.packb({"n": n, key: b""})[:-2]  # up to the rows' bin header
+    return (tag if size == 0 else int.from_bytes(view[pos + 1 : pos + 1 + size], "big")), pos + 1 + size
+
+
+_LIGHTS_TAG = b"\xa6" + LIGHTS_KEY.encode()  # "lights" as msgpack writes the key
+
+
+def _fast_rows(body, key: str) -> tuple[int, int | None, memoryview] | None:
+    """(n, lights or None, the raw row bytes) of a body laid out exactly as `msgpack.packb` writes
+    ``{"n": n, key: <rows>}`` or ``{"n": n, "lights": lights, key: <rows>}``, a view without copying;
+    None for any other layout (the msgpack decoder takes those)."""
+    view = memoryview(body)
+    # 0x82 / 0x83: map of 2 / 3; 0xa1 'n'; then n (and lights) as msgpack writes a non-negative int
+    if len(view) < 3 or view[0] not in (0x82, 0x83) or view[1:3] != b"\xa1n":
+        return None
+    parsed = _uint(view, 3)
+    if parsed is None:
+        return None
+    n, pos = parsed
+    lights = None
+    if view[0] == 0x83:  # {"n", "lights", key}
+        parsed = _uint(view, pos + len(_LIGHTS_TAG))
+        if view[pos : pos + len(_LIGHTS_TAG)] != _LIGHTS_TAG or parsed is None:
+            return None
+        lights = parsed[0]
+    head = _head(key, n, lights)  # up to the rows' bin header
     lengths = {0xC4: 1, 0xC5: 2, 0xC6: 4}  # bin 8, 16, 32: bytes of the length that follows
     if view[: len(head)] != head or len(view) < len(head) + 1 or view[len(head)] not in lengths:
         return None
     start = len(head) + 1 + lengths[view[len(head)]]
     if len(view) < start or int.from_bytes(view[len(head) + 1 : start], "big") != len(view) - start:
         return None
-    return n, view[start:]
+    return n, lights, view[start:]
 
 
-def _unpack_rows(body, key: str, unit: int, empty: int) -> np.ndarray:
-    """The (n, width) float32 rows under `key` (a view of `body` where its layout allows); the width
-    is read from the byte count and must be a multiple of `unit` (`empty` for no rows). Raises QueryError."""
+def _unpack(body, key: str) -> tuple[int, object, memoryview | bytes]:
+    """(n, the ``"lights"`` value or None if absent, the raw bytes under `key`) of a msgpack body (a view
+    of `body` where its layout allows). Raises QueryError."""
     import msgpack
 
     fast = _fast_rows(body, key)  # the layout this module writes: a view, no copy
     if fast is not None:
-        n, raw = fast
-    else:
-        try:
-            msg = msgpack.unpackb(body, raw=False)
-        except Exception as exc:  # msgpack raises several types for malformed input
-            raise QueryError(f"body is not valid msgpack: {exc}") from None
-        if not isinstance(msg, dict) or key not in msg or "n" not in msg:
-            raise QueryError(f"msgpack body must be a map with keys 'n' and '{key}'")
-        n, raw = msg["n"], msg[key]
-        if not isinstance(n, int) or isinstance(n, bool) or n < 0:
-            raise QueryError(f"'n' must be a non-negative integer, got {n!r}")
-        if not isinstance(raw, (bytes, bytearray)):
-            raise QueryError(f"'{key}' must be binary (raw little-endian float32 bytes)")
-    width = _width(key, n, len(raw), unit, empty)
-    return np.frombuffer(raw, dtype=DTYPE).reshape(n, width)
+        return fast
+    try:
+        msg = msgpack.unpackb(body, raw=False)
+    except Exception as exc:  # msgpack raises several types for malformed input
+        raise QueryError(f"body is not valid msgpack: {exc}") from None
+    if not isinstance(msg, dict) or key not in msg or "n" not in msg:
+        raise QueryError(f"msgpack body must be a map with keys 'n' and '{key}'")
+    n, raw = msg["n"], msg[key]
+    if not isinstance(n, int) or isinstance(n, bool) or n < 0:
+        raise QueryError(f"'n' must be a non-negative integer, got {n!r}")
+    if not isinstance(raw, (bytes, bytearray)):
+        raise QueryError(f"'{key}' must be binary (raw little-endian float32 bytes)")
+    if LIGHTS_KEY in msg and msg[LIGHTS_KEY] is None:
+        raise QueryError(f"'{LIGHTS_KEY}' must be an integer from 1 to {MAX_LIGHTS}, got nil")
+    return n, msg.get(LIGHTS_KEY), raw
 
 
 def _width(key: str, n: int, nbytes: int, unit: int, empty: int) -> int:
@@ -125,6 +168,18 @@ def _width(key: str, n: int, nbytes: int, unit: int, empty: int) -> int:
     return width
 
 
+def _stated_width(n: int, lights: object, nbytes: int) -> int:
+    """The query width of a body that states its ``"lights"``; QueryError unless `lights` is a light
+    count and the bytes are exactly `n` rows of its groups."""
+    if isinstance(lights, bool) or not isinstance(lights, int) or not 1 <= lights <= MAX_LIGHTS:
+        raise QueryError(f"'{LIGHTS_KEY}' must be an integer from 1 to {MAX_LIGHTS}, got {str(lights)[:40]}")
+    width = group_width(lights)
+    if nbytes != n * width * DTYPE.itemsize:
+        raise QueryError(f"'queries' holds {nbytes} bytes, but n={n} rows of {lights} light(s) ({width} float32 "
+                         f"each) need {n * width * DTYPE.itemsize}")
+    return width
+
+
 def encode_request(queries: np.ndarray) -> bytes:
     """(N, 7) queries, or query groups (N, 5 + 2 K) -> msgpack request body."""
     header, rows = encode_request_parts(queries)
@@ -135,19 +190,24 @@ def encode_request_parts(queries: np.ndarray) -> tuple[bytes, memoryview]:
     """(N, 7) queries or (N, 5 + 2 K) groups -> the msgpack request body as (header, rows): ``header +
     rows`` is `encode_request`'s body, for sending the rows without copying them."""
     q = np.ascontiguousarray(queries, dtype=DTYPE)
-    return _prefix("queries", int(q.shape[0]), int(q.shape[1])), memoryview(q.reshape(-1)).cast("B")
+    n, width = int(q.shape[0]), int(q.shape[1])
+    return _prefix("queries", n, width, group_lights(width)), memoryview(q.reshape(-1)).cast("B")
 
 
 def decode_request(body) -> np.ndarray:
-    """msgpack request body -> validated (N, 7) float32 queries, or (N, 5 + 2 K) query groups (the
-    width read from the byte count; a view of `body`). Raises QueryError."""
-    rows = _unpack_rows(body, "queries", 1, QUERY_DIM)
-    try:
-        group_lights(rows.shape[1])
-    except QueryError as exc:
-        raise QueryError(f"'queries' holds {rows.nbytes} bytes, {rows.shape[1]} float32 per row for "
-                         f"n={rows.shape[0]}: {exc}") from None
-    return as_queries(rows, groups=True)
+    """msgpack request body -> validated (N, 7) float32 queries, or (N, 5 + 2 K) query groups (a view
+    of `body`): the width from ``"lights"`` if the body states it, else from the byte count. Raises
+    QueryError."""
+    n, lights, raw = _unpack(body, "queries")
+    if lights is not None:
+        width = _stated_width(n, lights, len(raw))
+    else:
+        width = _width("queries", n, len(raw), 1, QUERY_DIM)
+        try:
+            group_lights(width)
+        except QueryError as exc:
+            raise QueryError(f"'queries' holds {len(raw)} bytes, {width} float32 per row for n={n}: {exc}") from None
+    return as_queries(np.frombuffer(raw, dtype=DTYPE).reshape(n, width), groups=True)
 
 
 def response_buffer(rows: int, lights: int = 1) -> tuple[bytearray, np.ndarray]:
@@ -174,7 +234,8 @@ def encode_response(rgb: np.ndarray) -> bytes:
 def decode_response(body) -> np.ndarray:
     """msgpack response body -> (N, 3) float32 RGB, or (N, 3 K) for query groups (a view of `body`).
     Raises QueryError."""
-    return _unpack_rows(body, "rgb", RGB_DIM, RGB_DIM)
+    n, _, raw = _unpack(body, "rgb")
+    return np.frombuffer(raw, dtype=DTYPE).reshape(n, _width("rgb", n, len(raw), RGB_DIM, RGB_DIM))
 
 
 def encode_infer_request(queries: np.ndarray) -> tuple[dict[str, str], list]:
@@ -214,3 +275,17 @@ def decode_infer_response(body, header_length: str | None) -> np.ndarray:
         raise QueryError(f"v2 answer holds {len(body) - length} bytes of '{ONNX_OUTPUT}', shape {shape} needs "
                          f"{shape[0] * shape[1] * DTYPE.itemsize}")
     return np.frombuffer(body, dtype=DTYPE, offset=length).reshape(shape)
+
+
+def takes_groups(metadata: object) -> bool:
+    """Whether a material's metadata says it takes query groups: ``"groups": true`` (``/v1``,
+    `MATERIAL_PATH`) or an input whose last dimension is variable, ``[-1, -1]`` (``/v2``, `MODEL_PATH`).
+    Anything else says single queries only: a server from before groups (no such field), or a model
+    of fixed width ``[-1, 7]`` (Triton serving a file exported before groups)."""
+    if not isinstance(metadata, dict):
+        return False
+    if metadata.get(GROUPS_KEY) is True:
+        return True
+    inputs = metadata.get("inputs")
+    shape = inputs[0].get("shape") if isinstance(inputs, list) and inputs and isinstance(inputs[0], dict) else None
+    return isinstance(shape, list) and len(shape) == 2 and shape[-1] == -1

@@ -53,10 +53,10 @@ from .settings import Settings
 log = logging.getLogger(__name__)
 
 
-def predict(session, queries: np.ndarray) -> np.ndarray:
+def predict(material: Material, queries: np.ndarray) -> np.ndarray:
     """One ONNX Runtime call: (n, 5 + 2 K) float32 contiguous queries -> (n, 3 K) float32 RGB (a graph
     exported before query groups gets the n K single queries, `run_call`)."""
-    return run_call(session, queries)
+    return run_call(material.session, queries, material.groups)
 
 
 @dataclass
@@ -117,7 +117,7 @@ def take(queue: _MaterialQueue, chunk: int) -> list[_Piece]:
     return batch
 
 
-def run_batch(session, pieces: list[_Piece]) -> int:
+def run_batch(material: Material, pieces: list[_Piece]) -> int:
     """Merge pieces, predict once, and copy each piece's rows of the answer back (unbatch).
 
     Runs in a worker thread; returns the rows evaluated. Check the answers with `first_nonfinite`.
@@ -126,7 +126,7 @@ def run_batch(session, pieces: list[_Piece]) -> int:
         queries = pieces[0].queries  # (n, 5 + 2 K): a row slice of a C-contiguous buffer, no copy
     else:
         queries = np.concatenate([p.queries for p in pieces])  # (sum n, 5 + 2 K): one width per queue
-    rgb = predict(session, queries)  # (sum n, 3 K)
+    rgb = predict(material, queries)  # (sum n, 3 K)
     lo = 0
     for piece in pieces:
         piece.out[...] = rgb[lo : lo + piece.rows]
@@ -318,7 +318,7 @@ class Batcher:
             start = time.perf_counter()
             error = None
             try:
-                rows = run_batch(material.session, batch)
+                rows = run_batch(material, batch)
             except Exception as exc:  # a model fault: every request in the batch fails with it
                 log.exception("ONNX Runtime failed on material %s", material.name)
                 error = ApiError(500, f"evaluating material {material.name!r} failed: {exc}")

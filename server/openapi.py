@@ -49,8 +49,9 @@ EVALUATE_BODY = {
         },
         wire.MSGPACK_MEDIA_TYPE: {
             "schema": _BINARY,
-            "description": 'msgpack map {"n": N, "queries": N*7 little-endian float32 bytes}, or N*(5 + 2 K) '
-            "for query groups of K lights (the width is read from the byte count)",
+            "description": 'msgpack map {"n": N, "lights": K, "queries": N*7 little-endian float32 bytes}, or '
+            "N*(5 + 2 K) for query groups of K lights. \"lights\" is optional: with it the bytes must be exactly "
+            "N rows of 5 + 2 K values (400 otherwise); without it the width is read from the byte count",
         },
     },
 }

@@ -4,8 +4,9 @@
 `wire.encode_request` body and answers `wire.encode_response`; with ``application/json`` it
 takes ``{"queries": [[u, v, sigma, wi_x, wi_y, wo_x, wo_y], ...]}`` and answers
 ``{"n": N, "rgb": [[r, g, b], ...]}``. Query groups (`neumip.client.contract`) go the same way: rows of
-``5 + 2 K`` values in (msgpack: the width read from the byte count, `neumip.client.wire`), ``3 K`` out.
-``GET /v1/materials`` lists the materials with their metadata.
+``5 + 2 K`` values in (msgpack: the width stated by ``"lights": K``, or read from the byte count,
+`neumip.client.wire`), ``3 K`` out. ``GET /v1/materials`` lists the materials with their metadata;
+``"groups"`` says whether a material's model file takes query groups (`wire.takes_groups`).
 """
 
 from __future__ import annotations

@@ -4,9 +4,9 @@ model configuration, statistics, the repository index and explicit model control
 `unload_model`).
 
 The configuration is the same `ModelConfig` that `neumip export-repository` writes as
-``config.pbtxt`` (`neumip.server.model_config`), filled in with this server's settings; it always
-states variable widths, since this server answers query groups for every file (it sends a file
-exported before them its single queries), where the exported config of such a file says [7]. The statistics
+``config.pbtxt`` (`neumip.server.model_config`), filled in with this server's settings; like it, it
+states what the model file takes: variable widths, or [7] and [3] for a file exported before query
+groups (as does the v2 model metadata; this server still answers groups sent to such a file). The statistics
 are what the batcher records (`neumip.server.model_stats`).
 """
 
@@ -45,8 +45,8 @@ async def read_small_body(request: Request, state: ServerState, limit: int) -> b
 @router.get("/models/{name}/versions/{version}/config", include_in_schema=False)
 async def config(name: str, version: str | None = None, state: ServerState = Depends(serving)) -> dict:
     check_version(version)
-    state.registry.check(name)
-    return model_config(name, TritonOptions.from_settings(state.settings))
+    material = await asyncio.to_thread(state.registry.get, name)  # loads a lazily listed one: its graph says
+    return model_config(name, TritonOptions.from_settings(state.settings), material.groups)
 
 
 @router.get("/models/stats", summary="Inference statistics of every model (Triton's shape)")

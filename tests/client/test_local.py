@@ -3,13 +3,14 @@
 import shutil
 import subprocess
 import sys
+from pathlib import Path
 
 import numpy as np
 import onnxruntime as ort
 import pytest
 
 from neumip.client import contract as C
-from neumip.client.local import LocalMaterials, ModelError, UnknownMaterial, load_material
+from neumip.client.local import LocalMaterials, ModelError, UnknownMaterial, load_material, run_call
 from neumip.client.contract import random_queries
 
 
@@ -92,3 +93,33 @@ def test_cli_query_bad_direction_is_a_clear_error(model_dir):
         capture_output=True, text=True,
     )
     assert res.returncode == 2 and "wi must be" in res.stderr
+
+
+class RunOnly:
+    """An ONNX Runtime session that can only run: reading its input shape fails the test."""
+
+    def __init__(self, session):
+        self._session = session
+
+    def run(self, *args, **kwargs):
+        return self._session.run(*args, **kwargs)
+
+
+def test_group_support_is_read_once_when_a_material_loads(model_dir, tmp_path):
+    """`Material.groups` comes from the graph at load; evaluations never read the input shape again
+    (their sessions here can only run), and a file exported before groups still answers a group with
+    the bits of its single queries, the same bits as a graph that takes groups."""
+    old = Path(__file__).parents[1] / "training" / "data" / "pre_groups_offset.onnx"
+    shutil.copy(old, tmp_path / "old.onnx")
+    shutil.copy(model_dir / "rand16.onnx", tmp_path / "rand16.onnx")
+    mats = LocalMaterials(tmp_path, threads=2)
+    assert (mats.get("old").groups, mats.get("rand16").groups) == (False, True)
+    assert mats.get("old").info()["groups"] is False
+    groups = np.ascontiguousarray(np.hstack([random_queries(5000, seed=1), random_queries(5000, seed=2)[:, 3:5]]))
+    singles = {name: mats.evaluate(name, C.ungroup(groups)).reshape(5000, 6) for name in ("old", "rand16")}
+    for name in ("old", "rand16"):
+        mats.get(name).session = RunOnly(mats.get(name).session)
+        np.testing.assert_array_equal(mats.evaluate(name, groups), singles[name])
+    with pytest.raises(Exception, match="queries"):  # told it takes groups, the old graph refuses (N, 9)
+        run_call(mats.get("old").session, groups[:4], groups=True)
+    np.testing.assert_array_equal(run_call(mats.get("rand16").session, groups[:4], groups=False), singles["rand16"][:4])

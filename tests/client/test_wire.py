@@ -17,21 +17,24 @@ def test_wire_roundtrip_is_bit_exact():
     np.testing.assert_array_equal(wire.decode_response(wire.encode_response(rgb)), rgb)
 
 
-def test_query_groups_travel_with_their_width_read_from_the_byte_count():
-    """(N, 5 + 2 K) groups and (N, 3 K) answers, as packb writes them or not; bad counts are named."""
+def test_query_groups_travel_with_their_width_stated_or_read_from_the_byte_count():
+    """(N, 5 + 2 K) groups and (N, 3 K) answers, as packb writes them or not, with "lights" (what the
+    client sends) or without (older clients: the width from the byte count); bad counts are named."""
     for lights, n in ((2, 1), (2, 37), (3, 70000), (64, 3)):
         extra = [random_queries(n, seed=j)[:, C.WI_X:C.WI_Y + 1] for j in range(1, lights)]
         q = np.ascontiguousarray(np.hstack([random_queries(n, seed=0), *extra]))
-        packed = msgpack.packb({"n": n, "queries": q.tobytes()})
+        packed = msgpack.packb({"n": n, "lights": lights, "queries": q.tobytes()})
         assert wire.encode_request(q) == packed
-        for body in (packed, msgpack.packb({"queries": q.tobytes(), "n": n})):
+        for body in (packed, msgpack.packb({"queries": q.tobytes(), "n": n}), msgpack.packb({"n": n, "queries": q.tobytes()}),
+                     msgpack.packb({"queries": q.tobytes(), "lights": lights, "n": n})):
             np.testing.assert_array_equal(wire.decode_request(body), q)
         rgb = np.random.default_rng(n).random((n, 3 * lights), dtype=np.float32)
         body, view = wire.response_buffer(n, lights)
         view[...] = rgb
         assert bytes(body) == wire.encode_response(rgb) == msgpack.packb({"n": n, "rgb": rgb.tobytes()})
         np.testing.assert_array_equal(wire.decode_response(body), rgb)
-    assert wire.decode_request(wire.encode_request(np.zeros((0, 9), np.float32))).shape == (0, 7)
+    assert wire.decode_request(wire.encode_request(np.zeros((0, 9), np.float32))).shape == (0, 9)
+    assert wire.decode_request(msgpack.packb({"n": 0, "queries": b""})).shape == (0, 7)
     for body, message in (
         (msgpack.packb({"n": 2, "queries": b"\0" * 2 * 8 * 4}), "8 float32 per row for n=2"),
         (msgpack.packb({"n": 2, "queries": b"\0" * (2 * 9 * 4 + 4)}), "not n=2 rows"),
@@ -64,10 +67,12 @@ def test_wire_parts_are_the_msgpack_bodies():
     across the bin8/bin16/bin32 and fixint/uint8/uint16/uint32 boundaries of the header."""
     for n in (0, 1, 9, 36, 37, 127, 128, 2340, 2341, 9362, 9363, 65536, 70000):
         q = random_queries(n, seed=n)
-        packed = msgpack.packb({"n": n, "queries": q.tobytes()})
+        packed = msgpack.packb({"n": n, "lights": 1, "queries": q.tobytes()})
         header, rows = wire.encode_request_parts(q)
         assert header + bytes(rows) == wire.encode_request(q) == packed
         np.testing.assert_array_equal(wire.decode_request(packed), q)
+        if n:  # a view of the body, not a copy: read by the fast path
+            assert np.shares_memory(wire.decode_request(packed), np.frombuffer(packed, np.uint8))
         rgb = np.random.default_rng(n).random((n, 3), dtype=np.float32)
         body, view = wire.response_buffer(n)
         view[...] = rgb
@@ -117,3 +122,32 @@ def test_v2_binary_request_and_answer():
     ):
         with pytest.raises(C.QueryError, match=message):
             wire.decode_infer_response(broken, length_header)
+
+
+def test_a_body_that_states_its_lights_must_hold_exactly_n_rows_of_them():
+    """With "lights", a wrong n is an error naming both counts, where the byte count alone reads another
+    width: 9 plain queries (63 float32) with n = 7 read as 7 groups of two lights."""
+    nine = np.random.default_rng(5).uniform(-0.5, 0.5, (9, 7)).astype(np.float32)  # 63 float32, any 2 in the disk
+    misread = msgpack.packb({"n": 7, "queries": nine.tobytes()})  # no "lights": read as 7 groups of 2
+    assert wire.decode_request(misread).shape == (7, 9)
+    for body in (wire.encode_request(nine).replace(b"\xa1n\x09", b"\xa1n\x07"),  # the client's layout
+                 msgpack.packb({"lights": 1, "n": 7, "queries": nine.tobytes()})):  # another layout
+        with pytest.raises(C.QueryError, match=r"holds 252 bytes, but n=7 rows of 1 light\(s\) \(7 float32 each\) need 196"):
+            wire.decode_request(body)
+    groups = np.hstack([nine, nine[:, C.WI_X:C.WI_Y + 1]])  # (9, 9)
+    with pytest.raises(C.QueryError, match="n=9 rows of 3 light"):
+        wire.decode_request(msgpack.packb({"n": 9, "lights": 3, "queries": groups.tobytes()}))
+    for lights in (0, 65, -1, True, 2.0, "2", None):
+        body = msgpack.packb({"n": 9, "lights": lights, "queries": groups.tobytes()})
+        with pytest.raises(C.QueryError, match="'lights' must be an integer from 1 to 64"):
+            wire.decode_request(body)
+
+
+def test_takes_groups_reads_either_protocols_metadata_and_says_no_when_unsure():
+    def v2(shape):
+        return {"name": "m", "inputs": [{"name": "queries", "datatype": "FP32", "shape": shape}]}
+
+    assert wire.takes_groups({"name": "m", "groups": True}) and wire.takes_groups(v2([-1, -1]))
+    for metadata in ({"name": "m"}, {"groups": False}, {"groups": "true"}, v2([-1, 7]), v2([-1]), v2("x"),
+                     {"inputs": []}, {"inputs": ["queries"]}, [], None, "groups"):
+        assert not wire.takes_groups(metadata), metadata

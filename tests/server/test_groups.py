@@ -62,6 +62,29 @@ def test_groups_answer_with_the_bits_of_in_process_and_of_single_queries(server,
         assert client.evaluate(material, np.zeros((0, 9), np.float32)).shape == (0, 6)
 
 
+def test_the_server_states_which_materials_take_groups_and_answers_groups_for_all(server, local):
+    """/v1 metadata ("groups"), the v2 model metadata and the v2 config state what each file's graph
+    takes, as Triton states the exported repository; groups sent anyway to a file exported before them
+    are still answered, with the bits of its single queries."""
+    groups = groups_of(300, 2, seed=4)
+    with httpx.Client(base_url=server.url, timeout=30) as http:
+        listing = {m["name"]: m for m in http.get(wire.MATERIALS_PATH).json()["materials"]}
+        for name, takes in (("rand16", True), ("old", False)):
+            assert listing[name][wire.GROUPS_KEY] is takes
+            assert http.get(wire.MATERIAL_PATH.format(name=name)).json()[wire.GROUPS_KEY] is takes
+            metadata = http.get(wire.MODEL_PATH.format(name=name)).json()
+            assert wire.takes_groups(metadata) is takes
+            assert [metadata["inputs"][0]["shape"], metadata["outputs"][0]["shape"]] == (
+                [[-1, -1], [-1, -1]] if takes else [[-1, 7], [-1, 3]])
+            config = http.get(f"/v2/models/{name}/config").json()
+            assert [config["input"][0]["dims"], config["output"][0]["dims"]] == ([[-1], [-1]] if takes else [[7], [3]])
+            resp = http.post(wire.EVALUATE_PATH.format(name=name), content=wire.encode_request(groups),
+                             headers={"content-type": wire.MSGPACK_MEDIA_TYPE})
+            assert resp.status_code == 200, resp.text
+            np.testing.assert_array_equal(wire.decode_response(resp.content).reshape(-1, 3),
+                                          local.evaluate(name, C.ungroup(groups)))
+
+
 def test_bad_widths_are_400_and_the_server_keeps_serving(server, local):
     path = wire.EVALUATE_PATH.format(name="rand16")
     msgpack_type = {"content-type": wire.MSGPACK_MEDIA_TYPE}
@@ -69,6 +92,13 @@ def test_bad_widths_are_400_and_the_server_keeps_serving(server, local):
         for body, words in (
             (msgpack.packb({"n": 3, "queries": np.zeros((3, 8), np.float32).tobytes()}), "8 float32 per row"),
             (msgpack.packb({"n": 3, "queries": b"\0" * (3 * 36 + 4)}), "not n=3 rows"),
+            # "lights" states the width: the bytes of 3 rows of 9 are neither 3 rows of 1 light nor of 3
+            (msgpack.packb({"n": 3, "lights": 1, "queries": np.zeros((3, 9), np.float32).tobytes()}),
+             "holds 108 bytes, but n=3 rows of 1 light(s) (7 float32 each) need 84"),
+            (wire.encode_request(np.zeros((3, 9), np.float32)).replace(b"lights\x02", b"lights\x03"),
+             "n=3 rows of 3 light(s) (11 float32 each) need 132"),
+            (msgpack.packb({"n": 3, "lights": "2", "queries": np.zeros((3, 9), np.float32).tobytes()}),
+             "'lights' must be an integer from 1 to 64"),
         ):
             resp = http.post(path, content=body, headers=msgpack_type)
             assert resp.status_code == 400 and words in resp.json()["error"], resp.text
