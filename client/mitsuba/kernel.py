@@ -129,7 +129,11 @@ class KernelMaterial:
             if cfg.layers > 1:
                 first = [dr.maximum(x, 0.0) for x in first]
             out += self._head(self._mlp(first, "decoder", start=1))
-        return out
+        # Tie every answer to its lane: where the weights make an answer independent of the query
+        # (a constant material), drjit folds it to a literal, which a frozen function would replay at
+        # its first call's width. (The queries are finite: `contract.as_queries`, the integrator.)
+        lane = dr.isfinite(u)
+        return [dr.select(lane, x, 0.0) for x in out]
 
     def _lookup(self, textures: Textures, u: mi.Float, v: mi.Float, sigma: mi.Float) -> list[mi.Float]:
         """Trilinear lookup of wrapped (u, v) at footprint sigma: the two nearest levels' bilinear taps

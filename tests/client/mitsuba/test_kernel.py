@@ -138,3 +138,20 @@ def test_a_render_in_kernel_matches_the_buffered_render(model_dir):
     np.testing.assert_allclose(images["kernel"], images["onnxruntime"], rtol=1e-4, atol=1e-5)
     assert stats["kernel"].queries >= stats["onnxruntime"].queries > 0  # every light of a lane is computed
     assert stats["kernel"].per_material.keys() == {"rand16", "flat16"}
+
+
+def test_a_constant_material_answers_every_lane_whatever_the_batch(model_dir):
+    """`lambert` answers 0.5 / pi whatever the query, so its traced arithmetic does not depend on the
+    lanes; calls of other widths after the first (which replay the frozen trace) still answer one
+    value per lane. The lanes are gathered from a wider array, as the renderer takes them."""
+    from neumip.client.mitsuba.render import dr, mi
+
+    material = KernelMaterials(model_dir).kernel("lambert")
+    wide = dr.arange(mi.Float, 186) / 186.0
+    for n in (54, 3, 1, 100):
+        x = dr.gather(mi.Float, wide, dr.arange(mi.UInt32, n) * 2)
+        answers = material.answers(x, x, x * 0.01, (x * 0.1, x * 0.2), [(x * 0.3, x), (x, x * 0.1)])
+        for rgb in answers:
+            for channel in rgb:
+                assert dr.width(channel) == n
+                np.testing.assert_allclose(np.asarray(channel), 0.5 / np.pi, rtol=1e-6)
