@@ -15,7 +15,10 @@ one table, and read the load average printed with it. Sections:
 - graphs:  the shipped graph (`neumip.training.export`), the first export's graph (`export_modulo.py`,
            int64 Mod on single texels), `LocalMaterials.evaluate` and torch eager, one call per batch
            of 2^10 ... 2^20 queries; and `LocalMaterials.evaluate` on query groups of two lights (what
-           the renderer sends: 2^(k-1) groups, counted as 2^k answers); and each ``--model NAME=FILE``, a model of the same material
+           the renderer sends: 2^(k-1) groups, counted as 2^k answers), random and coherent; the same
+           groups through `KernelMaterials.evaluate` (the renderer's in-kernel engine: the material's
+           arithmetic compiled by drjit, not the ONNX graph; numpy in and out, with the `render`
+           extra); and each ``--model NAME=FILE``, a model of the same material
            written elsewhere (an older version of the export: in its checkout, ``python -c "from
            bench_inference import *; m = material(256, 0); open('/tmp/before.onnx', 'wb').write(
            build_onnx(m.config, weights_from_state(m.state_dict(), m.config)).SerializeToString())"``
@@ -216,7 +219,11 @@ def graphs_section(mat, models: dict[str, bytes], args) -> None:
         local = LocalMaterials(folder, threads=args.threads)
         grouped = f"LocalMaterials.evaluate, {args.threads} workers, groups of 2"
         grouped_coherent = f"{grouped}, coherent"
-        names = [*sessions, "shipped, coherent queries", *evaluated, grouped, grouped_coherent, "torch eager"]
+        kernel_name = "drjit kernel (KernelMaterials.evaluate), groups of 2"
+        kernel = kernel_materials(folder)
+        names = [*sessions, "shipped, coherent queries", *evaluated, grouped, grouped_coherent]
+        names += [kernel_name] if kernel else []
+        names += ["torch eager"]
         # query groups of two lights (what the renderer sends): the pool's rows plus another wi
         group_pool = np.ascontiguousarray(np.concatenate([pool[: len(pool) // 2], pool[len(pool) // 2:, 3:5]], 1))
         # and in a renderer's order: the coherent queries' first half, each with a second light
@@ -234,12 +241,25 @@ def graphs_section(mat, models: dict[str, bytes], args) -> None:
             fns[grouped] = lambda: local.evaluate("m0", gq.next())
             cgq = Batches(coherent_groups, 1 << (log2 - 1))
             fns[grouped_coherent] = lambda: local.evaluate("m0", cgq.next())
+            if kernel:
+                kq = Batches(group_pool, 1 << (log2 - 1))
+                fns[kernel_name] = lambda: kernel.evaluate("m0", kq.next())
             fns["torch eager"] = lambda: torch_eval(mat, tq.next())
             for name, value in interleaved(fns, 1 << log2, args.seconds, args.rounds).items():
                 table[name].append(value)
             columns.append(f"2^{log2}")
         print_table(f"graphs, sessions of {args.threads} intra-op threads (no spinning), one run() "
                     "per batch", columns, table)
+
+
+def kernel_materials(folder: str):
+    """The renderer's in-kernel evaluator over `folder` (the material's arithmetic compiled by drjit,
+    numpy in and out: not the ONNX graph), or None without the `render` extra."""
+    try:
+        from neumip.client.mitsuba.kernel import KernelMaterials
+    except ImportError:
+        return None
+    return KernelMaterials(folder)
 
 
 def torch_eval(mat, queries: torch.Tensor) -> torch.Tensor:

@@ -90,6 +90,12 @@ class KernelMaterial:
         )
         self._frozen = dr.freeze(self._trace)
 
+    @property
+    def traces(self) -> int:
+        """How often the arithmetic was traced: once per number of lights, unless a call's inputs
+        changed the frozen function's layout (see `dr.freeze`)."""
+        return self._frozen.n_recordings
+
     def answers(self, u: mi.Float, v: mi.Float, sigma: mi.Float, wo: tuple[mi.Float, mi.Float],
                 lights: list[tuple[mi.Float, mi.Float]]) -> list[Rgb]:
         """RGB for each light direction ``(wi_x, wi_y)`` in ``lights`` of the shading points (u, v,
@@ -256,7 +262,11 @@ class KernelMaterials:
         queries = C.as_queries(queries, groups=True)
         if not len(queries):
             return np.zeros((0, C.RGB_DIM * C.group_lights(queries.shape[1])), C.DTYPE)
-        columns = [mi.Float(np.ascontiguousarray(queries[:, i])) for i in range(queries.shape[1])]
+        # one upload, then the columns gathered in drjit memory (columns made from numpy arrays each
+        # made the frozen trace record again, call after call)
+        flat, width = mi.Float(queries.reshape(-1)), queries.shape[1]
+        row = dr.arange(mi.UInt32, len(queries)) * width
+        columns = [dr.gather(mi.Float, flat, row + i) for i in range(width)]
         lights = [(columns[C.WI_X], columns[C.WI_Y])]
         lights += [(columns[i], columns[i + 1]) for i in range(C.QUERY_DIM, queries.shape[1], 2)]
         rgb = [c for answer in mat.answers(columns[C.U], columns[C.V], columns[C.SIGMA],

@@ -128,8 +128,8 @@ def test_a_render_in_kernel_matches_the_buffered_render(model_dir):
     computed in the kernel and by ONNX Runtime: the images agree to the answers' own difference."""
     from neumip.client.mitsuba.render import mi
 
-    images, stats = {}, {}
-    for name, evaluator in (("kernel", KernelMaterials(model_dir)), ("onnxruntime", LocalMaterials(model_dir))):
+    images, stats, kernel = {}, {}, KernelMaterials(model_dir)
+    for name, evaluator in (("kernel", kernel), ("onnxruntime", LocalMaterials(model_dir))):
         scene = simple({"type": "neumip", "material": "rand16", "uv_scale": 2.0}, {"type": "neumip_path"}, 24, 4)
         scene["floor"]["bsdf"] = {"type": "neumip", "material": "flat16", "uv_scale": 3.0}
         result = render_scene(mi.load_dict(scene), evaluator, RenderConfig(spp=4, seed=3))
@@ -138,6 +138,7 @@ def test_a_render_in_kernel_matches_the_buffered_render(model_dir):
     np.testing.assert_allclose(images["kernel"], images["onnxruntime"], rtol=1e-4, atol=1e-5)
     assert stats["kernel"].queries >= stats["onnxruntime"].queries > 0  # every light of a lane is computed
     assert stats["kernel"].per_material.keys() == {"rand16", "flat16"}
+    assert [kernel.kernel(m).traces for m in ("rand16", "flat16")] == [1, 1]  # every bounce replays it
 
 
 def test_a_constant_material_answers_every_lane_whatever_the_batch(model_dir):
@@ -155,3 +156,13 @@ def test_a_constant_material_answers_every_lane_whatever_the_batch(model_dir):
             for channel in rgb:
                 assert dr.width(channel) == n
                 np.testing.assert_allclose(np.asarray(channel), 0.5 / np.pi, rtol=1e-6)
+
+
+def test_the_arithmetic_is_traced_once_per_number_of_lights(model_dir):
+    """Later calls of other sizes replay the frozen trace (tracing a material costs milliseconds,
+    and a render makes a call per material and bounce)."""
+    kernel = KernelMaterials(model_dir)
+    for n in (500, 1500, 40, 3000):
+        kernel.evaluate("rand16", random_queries(n, seed=n))
+        kernel.evaluate("rand16", random_queries(n, seed=n, lights=2))
+    assert kernel.kernel("rand16").traces == 2
