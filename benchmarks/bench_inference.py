@@ -219,10 +219,10 @@ def graphs_section(mat, models: dict[str, bytes], args) -> None:
         local = LocalMaterials(folder, threads=args.threads)
         grouped = f"LocalMaterials.evaluate, {args.threads} workers, groups of 2"
         grouped_coherent = f"{grouped}, coherent"
-        kernel_name = "drjit kernel (KernelMaterials.evaluate), groups of 2"
+        kernel_names = ["drjit kernel (KernelMaterials.evaluate)", "drjit kernel (KernelMaterials.evaluate), groups of 2"]
         kernel = kernel_materials(folder)
         names = [*sessions, "shipped, coherent queries", *evaluated, grouped, grouped_coherent]
-        names += [kernel_name] if kernel else []
+        names += kernel_names if kernel else []
         names += ["torch eager"]
         # query groups of two lights (what the renderer sends): the pool's rows plus another wi
         group_pool = np.ascontiguousarray(np.concatenate([pool[: len(pool) // 2], pool[len(pool) // 2:, 3:5]], 1))
@@ -242,8 +242,9 @@ def graphs_section(mat, models: dict[str, bytes], args) -> None:
             cgq = Batches(coherent_groups, 1 << (log2 - 1))
             fns[grouped_coherent] = lambda: local.evaluate("m0", cgq.next())
             if kernel:
-                kq = Batches(group_pool, 1 << (log2 - 1))
-                fns[kernel_name] = lambda: kernel.evaluate("m0", kq.next())
+                kq, kgq = Batches(pool, 1 << log2), Batches(group_pool, 1 << (log2 - 1))
+                fns[kernel_names[0]] = lambda: kernel.evaluate("m0", kq.next())
+                fns[kernel_names[1]] = lambda: kernel.evaluate("m0", kgq.next())
             fns["torch eager"] = lambda: torch_eval(mat, tq.next())
             for name, value in interleaved(fns, 1 << log2, args.seconds, args.rounds).items():
                 table[name].append(value)
