@@ -122,6 +122,11 @@ def view(mi, surface, integrator: dict, size: int, spp: int) -> dict:
     }
 
 
+def material_name(args) -> str:
+    """The model's name: ``--material`` itself, or the stem of a description file (``x/stones.toml``)."""
+    return Path(args.material).stem
+
+
 def ratio_scenes(mi, material, args) -> dict:
     """name -> (scene, evaluator or None) of the four renders the ratios section times."""
     from neumip.training.microgeometry import mesh
@@ -131,7 +136,7 @@ def ratio_scenes(mi, material, args) -> dict:
     desc.resolution = int(material.config["resolution"])  # the geometry the model was trained on
     to_world = mi.ScalarTransform4f().scale([2.0, 2.0, 2.0])
     depth = {"max_depth": args.max_depth, "rr_depth": args.rr_depth}
-    neural_bsdf = {"type": "neumip", "material": args.material, "uv_scale": float(args.tiles)}
+    neural_bsdf = {"type": "neumip", "material": material_name(args), "uv_scale": float(args.tiles)}
 
     def plane(bsdf: dict) -> dict:
         return {"type": "rectangle", "to_world": to_world, "bsdf": bsdf}
@@ -168,10 +173,11 @@ def ratios(args) -> None:
     from neumip.client.mitsuba.render import mi
 
     local = LocalMaterials(args.models)
-    evaluators = {"kernel": KernelMaterials(args.models), "local": local, "constant": ConstantEvaluator(args.material),
-                  "constant kernel": ConstantKernel(args.material), None: None}
+    material = material_name(args)
+    evaluators = {"kernel": KernelMaterials(args.models), "local": local, "constant": ConstantEvaluator(material),
+                  "constant kernel": ConstantKernel(material), None: None}
     scenes = {name: (mi.load_dict(scene), evaluators[ev])
-              for name, (scene, ev) in ratio_scenes(mi, local.get(args.material), args).items()}
+              for name, (scene, ev) in ratio_scenes(mi, local.get(material), args).items()}
     print(f"## ratios: {args.material} on a plane at {ZENITH_DEG:g} deg, {args.tiles} x {args.tiles} tiles, "
           f"{args.size}^2 px, {args.spp} spp, max_depth {args.max_depth}, rr_depth {args.rr_depth}; "
           f"median of {args.rounds} interleaved rounds   [{load_avg()}]", flush=True)
@@ -284,7 +290,8 @@ def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--sections", default="ratios", help="comma-separated: ratios, demo")
     parser.add_argument("--models", type=Path, default=ROOT / "models", help="model folder")
-    parser.add_argument("--material", default="rock", help="ratios: a shipped material with a library description")
+    parser.add_argument("--material", default="rock",
+                        help="ratios: a shipped material, or a description file NAME.toml with NAME.onnx in --models")
     parser.add_argument("--tiles", type=int, default=8, help="ratios: material tiles across the plane")
     parser.add_argument("--size", type=int, default=256, help="ratios: image width and height")
     parser.add_argument("--spp", type=int, default=64, help="ratios: samples per pixel")

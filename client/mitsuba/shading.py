@@ -1,17 +1,24 @@
-"""Buffered neural shading: at most two evaluation calls per material per bounce for a whole wavefront.
+"""Neural shading in bulk: per material and bounce, one kernel or at most two evaluation calls for a
+whole wavefront.
 
 `NeuralShading` finds the scene's `neumip` surfaces and, per bounce, collects every shading query
-that lands on them (all lanes of the wavefront), evaluates them through the bound evaluator
-(`contract.Evaluator`: in-process `LocalMaterials` or the HTTP `MaterialClient`), and hands the RGB
-answers back as per-lane drjit arrays. A shading point with two or more valid light directions goes
-as one query group (`contract`: the offset and the lookups run once for its K answers); one with a
-single valid direction sends that single query. The data moves in bulk: the query columns come out
-of the integrator's one kernel per bounce; per material and call, its lanes are compressed
-(`dr.compress`) and two small kernels over them write its groups ((n, 5 + 2 K) rows) or its single
-queries ((n, 7)) into a drjit buffer that numpy reads without a copy; a material's answers are
-copied into drjit once and read per lane with gathers that run inside the integrator's next kernel.
-The answers are checked here (`contract.as_rgb`: shape and finiteness), once, whatever the
-evaluator.
+that lands on them (all lanes of the wavefront) and hands the RGB answers back as per-lane drjit
+arrays. Two ways, by the evaluator bound:
+
+- **In the kernel** (`kernel.KernelMaterials`, the in-process default): per material, its lanes are
+  compressed (`dr.compress`) and one kernel over them gathers their columns and computes every light's
+  answer from the material's weights (`KernelMaterial.answers`); each lane reads its answers back with
+  gathers that run in the integrator's next kernel. Nothing leaves drjit.
+- **Buffered** (`contract.Evaluator`: in-process `LocalMaterials`, the ONNX graph in ONNX Runtime, or
+  the HTTP `MaterialClient`). A shading point with two or more valid light directions goes as one
+  query group (`contract`: the offset and the lookups run once for its K answers); one with a single
+  valid direction sends that single query. Per material and call, its lanes are compressed and two
+  small kernels over them write its groups ((n, 5 + 2 K) rows) or its single queries ((n, 7)) into a
+  drjit buffer that numpy reads without a copy; a material's answers are copied into drjit once and
+  read per lane with gathers that run inside the integrator's next kernel. The answers are checked
+  here (`contract.as_rgb`: shape and finiteness), once, whatever the evaluator.
+
+The query columns come out of the integrator's one kernel per bounce either way.
 """
 
 from __future__ import annotations
@@ -38,12 +45,14 @@ class ShadingStats:
     """What the neural evaluation cost over a render."""
 
     queries: int = 0
-    """Queries answered by the evaluator (a group of K lights counts K; `contract`)."""
+    """Queries answered by the evaluator (a group of K lights counts K; `contract`). In the kernel, every
+    light of a lane with any valid light is computed, so this counts K per such lane."""
     calls: int = 0
     """Evaluator calls made (per material and bounce with neural hits: one for its query groups, one
-    for its single queries)."""
+    for its single queries; in the kernel, one kernel per material and bounce)."""
     seconds: float = 0.0
-    """Wall time inside the evaluator, including (for HTTP) encoding and transfer."""
+    """Wall time inside the evaluator, including (for HTTP) encoding and transfer; in the kernel, the
+    material kernels' (lane compaction, column gathers, the material's arithmetic)."""
     per_material: dict[str, int] = field(default_factory=dict)
     """Queries answered per material name."""
 
@@ -169,7 +178,8 @@ class NeuralShading:
         """This bounce's queries for each (wi, valid) in ``lights`` at every neural lane, scheduled:
         a query group (`contract`: the shading point once, every wi; an invalid one as (0, 0), its
         answer unused) where two or more lights are valid, a single query where one is (a group would
-        evaluate an unused light).
+        evaluate an unused light); in the kernel, a group wherever any light is valid (the kernel
+        computes them all).
 
         ``uv`` (shape uv), ``sigma`` (footprint std in shape uv units), ``wo`` (towards the viewer)
         and each ``wi`` (towards the light) are per-lane, directions in the `query_frame`. The columns
@@ -186,6 +196,10 @@ class NeuralShading:
             single_wi = dr.select(ok, wi, single_wi)
         wis = [(dr.select(ok, wi.x, 0.0), dr.select(ok, wi.y, 0.0)) for wi, ok in lights]  # (0, 0) if not
         columns = [u, v, sigma, *wis[0], wo.x, wo.y] + [c for wi in wis[1:] for c in wi]
+        if self.in_kernel:  # one kernel computes every light of a lane: no single queries
+            masks = {material: (mask & (count > 0), mi.Bool(False)) for material, mask in hits.mask.items()}
+            dr.schedule(columns, valid, [group for group, _ in masks.values()])
+            return NeuralQueries(columns, [], valid, masks)
         single = [u, v, sigma, single_wi.x, single_wi.y, wo.x, wo.y]
         masks = {material: (mask & (count > 1), mask & (count == 1)) for material, mask in hits.mask.items()}
         dr.schedule(columns, single[C.WI_X:C.WI_Y + 1], valid, list(masks.values()))
@@ -267,12 +281,12 @@ class NeuralQueries:
     columns: list[mi.Float]
     """A query group's 5 + 2 K columns in contract order."""
     single: list[mi.Float]
-    """The 7 columns of the single query of the one valid light (where there is one)."""
+    """The 7 columns of the single query of the one valid light (where there is one; none in the kernel)."""
     valid: list[mi.Bool]
     """Per light, the lanes where it counts."""
     masks: dict[str, tuple[mi.Bool, mi.Bool]]
     """Material name -> the lanes whose group (two or more valid lights) goes to it, and those whose
-    single query (one valid light) does."""
+    single query (one valid light) does (in the kernel: every lane with a valid light, and none)."""
 
     @property
     def lights(self) -> int:
