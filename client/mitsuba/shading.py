@@ -214,29 +214,36 @@ class NeuralShading:
         return self._evaluate_buffered(queries)
 
     def _evaluate_in_kernel(self, queries: NeuralQueries) -> list[mi.Color3f]:
-        """Per material, the lanes with a valid light are taken (`dr.compress`); one kernel over them
-        gathers their columns and computes every light's answer (the material's arithmetic traced by
-        `KernelMaterial.answers`); each lane reads its answers back with gathers that run in the
-        caller's next kernel."""
+        """Per material, the lanes with a valid light are taken (`dr.compress`) and one kernel over
+        them gathers their columns, computes every light's answer (the material's arithmetic traced
+        by `KernelMaterial.answers`) and scatters the answers back to their lanes."""
         width = dr.width(queries.columns[0])
         cols = queries.columns
-        out = [dr.zeros(mi.Color3f, width) for _ in range(queries.lights)]
+        out = [[dr.zeros(mi.Float, width) for _ in range(C.RGB_DIM)] for _ in range(queries.lights)]
+        start, computed = time.perf_counter(), {}
         for material, (group, single) in queries.masks.items():
-            mask = group | single
-            rows, total = _row_numbers(mask)
-            if not total:
+            lanes = dr.compress(group | single)
+            if not dr.width(lanes):
                 continue
-            start = time.perf_counter()
-            take = [dr.gather(mi.Float, column, dr.compress(mask)) for column in cols]
+            take = [dr.gather(mi.Float, column, lanes) for column in cols]
             lights = [(take[C.WI_X], take[C.WI_Y])] + [(take[i], take[i + 1]) for i in range(C.QUERY_DIM, len(cols), 2)]
             answers = self.evaluator.kernel(material).answers(
                 take[C.U], take[C.V], take[C.SIGMA], (take[C.WO_X], take[C.WO_Y]), lights)
-            dr.sync_thread()
-            self.stats.add(material, total * queries.lights, time.perf_counter() - start)
-            for j, (rgb, ok) in enumerate(zip(answers, queries.valid)):
-                lane = mask & ok
-                out[j] = dr.select(lane, mi.Color3f(*(dr.gather(mi.Float, c, rows, lane) for c in rgb)), out[j])
-        return out
+            for j, rgb in enumerate(answers):
+                for ch in range(C.RGB_DIM):
+                    dr.scatter(out[j][ch], rgb[ch], lanes)
+            computed[material] = dr.width(lanes) * queries.lights
+        if not computed:
+            return [dr.zeros(mi.Color3f, width) for _ in range(queries.lights)]
+        dr.eval(out)
+        dr.sync_thread()
+        seconds = (time.perf_counter() - start) / len(computed)
+        for material, answers in computed.items():
+            self.stats.add(material, answers, seconds)
+        neural = dr.zeros(mi.Bool, width)
+        for group, single in queries.masks.values():
+            neural |= group | single
+        return [dr.select(neural & ok, mi.Color3f(*rgb), 0.0) for rgb, ok in zip(out, queries.valid)]
 
     def _evaluate_buffered(self, queries: NeuralQueries) -> list[mi.Color3f]:
         """At most two evaluator calls per material (its groups, its single queries).
