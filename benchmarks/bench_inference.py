@@ -221,6 +221,8 @@ def graphs_section(mat, models: dict[str, bytes], args) -> None:
         grouped_coherent = f"{grouped}, coherent"
         kernel_names = ["drjit kernel (KernelMaterials.evaluate)", "drjit kernel (KernelMaterials.evaluate), groups of 2"]
         kernel = kernel_materials(folder)
+        if kernel:  # the in-kernel engine computes the shipped graph's model: same parity contract
+            print(f"  {'drjit kernel (shipped)':28s} {np.abs(kernel.evaluate('m0', check) - want).max():.2e}")
         names = [*sessions, "shipped, coherent queries", *evaluated, grouped, grouped_coherent]
         names += kernel_names if kernel else []
         names += ["torch eager"]
