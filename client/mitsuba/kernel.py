@@ -122,7 +122,10 @@ class KernelMaterial:
             features = _blend(textures.offset, cfg.offset_channels,
                               *_taps(_wrap(u), _wrap(v), cfg.resolution, 0))
             depth = self._mlp(features + list(wo), "offset_mlp")[0]  # offset_scale folded in
-            wo_z = dr.maximum(dr.sqrt(dr.maximum(1.0 - wo[0] * wo[0] - wo[1] * wo[1], 0.0)), cfg.offset_min_cos)
+            # sqrt(max(1 - (x^2 + y^2), min_cos^2)), the graph's order (`export._parallax`): near the
+            # horizon wo_z is a small difference, whose rounding the shift multiplies
+            r2 = wo[0] * wo[0] + wo[1] * wo[1]
+            wo_z = dr.sqrt(dr.maximum(1.0 - r2, float(np.float32(cfg.offset_min_cos) ** 2)))
             shift = depth / wo_z
             u, v = u + shift * wo[0], v + shift * wo[1]
         features = self._lookup(textures, _wrap(u), _wrap(v), sigma)

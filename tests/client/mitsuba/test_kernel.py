@@ -34,12 +34,15 @@ def parity(a: np.ndarray, b: np.ndarray) -> float:
 
 def random_queries(n: int, seed: int, lights: int = 1) -> np.ndarray:
     """Queries over several tiles, all footprints (finer than the finest level to coarser than the
-    coarsest), directions up to 84 degrees; with ``lights`` > 1, query groups."""
+    coarsest), directions up to the horizon (a third of them within a degree of it); with ``lights``
+    > 1, query groups."""
     rng = np.random.default_rng(seed)
 
     def direction(count):
         phi = rng.uniform(0, 2 * np.pi, count)
-        s = np.sin(rng.uniform(0, np.radians(84), count))
+        theta = rng.uniform(0, np.radians(90), count)
+        theta[::3] = np.radians(90) - rng.uniform(0, np.radians(1), len(theta[::3]))
+        s = np.sin(theta)
         return np.stack([s * np.cos(phi), s * np.sin(phi)], 1)
 
     uv = rng.uniform(-3, 3, (n, 2))
@@ -50,8 +53,8 @@ def random_queries(n: int, seed: int, lights: int = 1) -> np.ndarray:
 
 @pytest.fixture(scope="module")
 def layouts(tmp_path_factory):
-    """One file per layout: offset (64^2 and 16^2), no offset, YUV head, two-layer MLPs, trimmed, and
-    the two older graphs a model folder may still hold."""
+    """One file per layout: offset (64^2 and 16^2, and one clamped only at grazing angles), no offset,
+    YUV head, one- and two-layer MLPs, trimmed, and the two older graphs a model folder may still hold."""
     folder = tmp_path_factory.mktemp("kernel_models")
     configs = {
         "offset64": MaterialConfig(resolution=64),
@@ -59,6 +62,8 @@ def layouts(tmp_path_factory):
         "nooffset": MaterialConfig(resolution=32, offset=False),
         "yuv": MaterialConfig(resolution=16, head="yuv"),
         "layers2": MaterialConfig(resolution=16, layers=2, hidden=12),
+        "layers1": MaterialConfig(resolution=16, layers=1, head="yuv"),
+        "grazing": MaterialConfig(resolution=16, offset_min_cos=0.05),
     }
     for seed, (name, cfg) in enumerate(configs.items()):
         save_onnx(build_onnx(cfg, random_weights(cfg, seed=seed)), folder / f"{name}.onnx")
