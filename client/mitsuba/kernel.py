@@ -22,6 +22,7 @@ groups, which is how its answers are compared with ONNX Runtime's.
 
 from __future__ import annotations
 
+import gc
 import logging
 import threading
 from dataclasses import dataclass
@@ -37,6 +38,10 @@ from .bsdf import dr, mi
 log = logging.getLogger(__name__)
 
 Rgb = list  # three mi.Float: one answer per lane
+
+_FROZEN_CALLS = threading.Lock()
+"""One frozen call at a time in this process: concurrent frozen calls deadlock or crash drjit 1.5
+(four threads calling two materials hung or crashed in 2 runs of 3)."""
 
 
 @dataclass
@@ -104,9 +109,20 @@ class KernelMaterial:
 
         The arithmetic is traced once per number of lights and replayed after (`dr.freeze`): a traced
         material is thousands of operations, whose tracing and code generation cost several
-        milliseconds a call (a multi-bounce, multi-material render makes hundreds of calls)."""
+        milliseconds a call (a multi-bounce, multi-material render makes hundreds of calls).
+
+        Calls run one at a time (`_FROZEN_CALLS`), without Python's cyclic garbage collector: drjit
+        aborts the process when an array made from numpy memory (this class's textures are) is freed
+        while a frozen function records, as a collection of unreachable materials did."""
         columns = [u, v, sigma, *wo] + [c for wi in lights for c in wi]
-        flat = self._frozen(self.textures, columns)
+        with _FROZEN_CALLS:
+            collecting = gc.isenabled()
+            gc.disable()
+            try:
+                flat = self._frozen(self.textures, columns)
+            finally:
+                if collecting:
+                    gc.enable()
         return [flat[j * C.RGB_DIM:(j + 1) * C.RGB_DIM] for j in range(len(lights))]
 
     # --- the material's stages (drjit arrays in, drjit arrays out) --------------------------------

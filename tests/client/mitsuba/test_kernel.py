@@ -171,3 +171,67 @@ def test_the_arithmetic_is_traced_once_per_number_of_lights(model_dir):
         kernel.evaluate("rand16", random_queries(n, seed=n))
         kernel.evaluate("rand16", random_queries(n, seed=n, lights=2))
     assert kernel.kernel("rand16").traces == 2
+
+
+def test_concurrent_calls_answer_as_one_thread_does(model_dir):
+    """Threads calling the same evaluator (two materials, several widths and light counts) get the
+    answers of a single thread; concurrent frozen calls deadlocked or crashed drjit (2 runs in 3)
+    before they were serialised."""
+    import threading
+
+    sizes = ((300, 1), (2000, 2), (37, 1), (500, 3), (1, 2), (4000, 1), (64, 2), (1, 3))  # 1 lane: traced anew
+    queries = [random_queries(n, seed=n, lights=lights) for n, lights in sizes]
+    materials = ("rand16", "flat16")
+    single = KernelMaterials(model_dir)
+    want = {(m, j): single.evaluate(m, q) for m in materials for j, q in enumerate(queries)}
+    shared, wrong = KernelMaterials(model_dir), []
+
+    def work(offset: int) -> None:
+        for j, q in enumerate(queries * 3):
+            material = materials[(offset + j) % 2]
+            if not np.array_equal(shared.evaluate(material, q), want[material, j % len(queries)]):
+                wrong.append((offset, j))
+
+    threads = [threading.Thread(target=work, args=(i,), daemon=True) for i in range(4)]
+    for thread in threads:
+        thread.start()
+    for thread in threads:
+        thread.join(timeout=60)
+    assert not any(thread.is_alive() for thread in threads), "deadlocked"
+    assert wrong == []
+
+
+def test_no_garbage_collection_while_the_arithmetic_is_traced(model_dir, monkeypatch):
+    """drjit aborts the process when an array made from numpy memory (a material's textures) is freed
+    while a frozen function records; Python's cyclic collector freed unreachable materials at any
+    allocation, tracing included (a test run that made and dropped many materials died so). So no
+    automatic collection may run inside a frozen call, however often the collector is due."""
+    import gc
+
+    from neumip.client.mitsuba.kernel import KernelMaterial
+
+    tracing, during = [], []
+    trace = KernelMaterial._trace
+
+    def traced(self, *args):
+        tracing.append(True)
+        try:
+            return trace(self, *args)
+        finally:
+            tracing.pop()
+
+    def collected(phase, info):
+        if phase == "start":
+            during.append(bool(tracing))
+
+    monkeypatch.setattr(KernelMaterial, "_trace", traced)
+    kernel, q, threshold = KernelMaterials(model_dir), random_queries(100, seed=2, lights=2), gc.get_threshold()
+    gc.callbacks.append(collected)
+    gc.set_threshold(1)  # a collection due at nearly every allocation
+    try:
+        got = kernel.evaluate("rand16", q)
+    finally:
+        gc.set_threshold(*threshold)
+        gc.callbacks.remove(collected)
+    assert kernel.kernel("rand16").traces == 1 and during and not any(during)
+    assert parity(got, LocalMaterials(model_dir, threads=1).evaluate("rand16", q)) <= 1.0
