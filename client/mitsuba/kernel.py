@@ -156,8 +156,9 @@ class KernelMaterial:
             out += self._head(self._mlp(first, "decoder", start=1))
         # Tie every answer to its lane: where the weights make an answer independent of the query
         # (a constant material), drjit folds it to a literal, which a frozen function would replay at
-        # its first call's width. (The queries are finite: `contract.as_queries`, the integrator.)
-        lane = dr.isfinite(u)
+        # its first call's width. A lane whose position is not finite (`evaluate` refuses such
+        # queries; a mesh's uv may hold them) answers 0.
+        lane = dr.isfinite(u) & dr.isfinite(v)
         return [dr.select(lane, x, 0.0) for x in out]
 
     def _lookup(self, textures: Textures, u: mi.Float, v: mi.Float, sigma: mi.Float) -> list[mi.Float]:
@@ -196,7 +197,10 @@ class KernelMaterial:
 
 
 def _wrap(u: mi.Float) -> mi.Float:
-    return u - dr.floor(u)
+    """Position -> position in [0, 1] (period 1); a non-finite one -> 0, so that its taps stay in
+    their table (its lane answers 0: `KernelMaterial._trace`)."""
+    wrapped = u - dr.floor(u)
+    return dr.select(dr.isfinite(wrapped), wrapped, 0.0)
 
 
 def _taps(u: mi.Float, v: mi.Float, size, start) -> tuple[list[mi.UInt32], list[mi.Float]]:

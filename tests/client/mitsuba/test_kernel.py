@@ -235,3 +235,24 @@ def test_no_garbage_collection_while_the_arithmetic_is_traced(model_dir, monkeyp
         gc.callbacks.remove(collected)
     assert kernel.kernel("rand16").traces == 1 and during and not any(during)
     assert parity(got, LocalMaterials(model_dir, threads=1).evaluate("rand16", q)) <= 1.0
+
+
+def test_a_lane_at_a_non_finite_position_answers_zero(model_dir):
+    """A render's uv may hold inf or NaN (a mesh's bad texture coordinates): those lanes answer 0 and
+    the others what they answer alone (their taps read out of the tables and crashed the process)."""
+    from neumip.client.mitsuba.render import mi
+
+    material, q = KernelMaterials(model_dir).kernel("rand16"), random_queries(4000, seed=3)
+    want = KernelMaterials(model_dir).evaluate("rand16", q)
+    bad = np.zeros(len(q), bool)
+    bad[::7] = True
+    for value in (np.nan, np.inf, -np.inf):
+        u = q[:, C.U].copy()
+        u[bad] = value
+        v = np.where(bad[::-1], value, q[:, C.V]).astype(np.float32)  # other lanes' v
+        cols = [mi.Float(c) for c in (u, v, q[:, C.SIGMA], q[:, C.WO_X], q[:, C.WO_Y], q[:, C.WI_X], q[:, C.WI_Y])]
+        (rgb,) = material.answers(*cols[:3], (cols[3], cols[4]), [(cols[5], cols[6])])
+        got = np.stack([np.asarray(c) for c in rgb], 1)
+        finite = ~(bad | bad[::-1])
+        np.testing.assert_array_equal(got[finite], want[finite])
+        assert (got[~finite] == 0).all()
