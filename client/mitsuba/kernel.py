@@ -22,6 +22,7 @@ groups, which is how its answers are compared with ONNX Runtime's.
 
 from __future__ import annotations
 
+import gc
 import logging
 import threading
 from dataclasses import dataclass
@@ -37,6 +38,10 @@ from .bsdf import dr, mi
 log = logging.getLogger(__name__)
 
 Rgb = list  # three mi.Float: one answer per lane
+
+_FROZEN_CALLS = threading.Lock()
+"""One frozen call at a time in this process: concurrent frozen calls deadlock or crash drjit 1.5
+(four threads calling two materials hung or crashed in 2 runs of 3)."""
 
 
 @dataclass
@@ -104,9 +109,20 @@ class KernelMaterial:
 
         The arithmetic is traced once per number of lights and replayed after (`dr.freeze`): a traced
         material is thousands of operations, whose tracing and code generation cost several
-        milliseconds a call (a multi-bounce, multi-material render makes hundreds of calls)."""
+        milliseconds a call (a multi-bounce, multi-material render makes hundreds of calls).
+
+        Calls run one at a time (`_FROZEN_CALLS`), without Python's cyclic garbage collector: drjit
+        aborts the process when an array made from numpy memory (this class's textures are) is freed
+        while a frozen function records, as a collection of unreachable materials did."""
         columns = [u, v, sigma, *wo] + [c for wi in lights for c in wi]
-        flat = self._frozen(self.textures, columns)
+        with _FROZEN_CALLS:
+            collecting = gc.isenabled()
+            gc.disable()
+            try:
+                flat = self._frozen(self.textures, columns)
+            finally:
+                if collecting:
+                    gc.enable()
         return [flat[j * C.RGB_DIM:(j + 1) * C.RGB_DIM] for j in range(len(lights))]
 
     # --- the material's stages (drjit arrays in, drjit arrays out) --------------------------------
@@ -122,7 +138,10 @@ class KernelMaterial:
             features = _blend(textures.offset, cfg.offset_channels,
                               *_taps(_wrap(u), _wrap(v), cfg.resolution, 0))
             depth = self._mlp(features + list(wo), "offset_mlp")[0]  # offset_scale folded in
-            wo_z = dr.maximum(dr.sqrt(dr.maximum(1.0 - wo[0] * wo[0] - wo[1] * wo[1], 0.0)), cfg.offset_min_cos)
+            # sqrt(max(1 - (x^2 + y^2), min_cos^2)), the graph's order (`export._parallax`): near the
+            # horizon wo_z is a small difference, whose rounding the shift multiplies
+            r2 = wo[0] * wo[0] + wo[1] * wo[1]
+            wo_z = dr.sqrt(dr.maximum(1.0 - r2, float(np.float32(cfg.offset_min_cos) ** 2)))
             shift = depth / wo_z
             u, v = u + shift * wo[0], v + shift * wo[1]
         features = self._lookup(textures, _wrap(u), _wrap(v), sigma)
@@ -137,8 +156,9 @@ class KernelMaterial:
             out += self._head(self._mlp(first, "decoder", start=1))
         # Tie every answer to its lane: where the weights make an answer independent of the query
         # (a constant material), drjit folds it to a literal, which a frozen function would replay at
-        # its first call's width. (The queries are finite: `contract.as_queries`, the integrator.)
-        lane = dr.isfinite(u)
+        # its first call's width. A lane whose position is not finite (`evaluate` refuses such
+        # queries; a mesh's uv may hold them) answers 0.
+        lane = dr.isfinite(u) & dr.isfinite(v)
         return [dr.select(lane, x, 0.0) for x in out]
 
     def _lookup(self, textures: Textures, u: mi.Float, v: mi.Float, sigma: mi.Float) -> list[mi.Float]:
@@ -177,7 +197,10 @@ class KernelMaterial:
 
 
 def _wrap(u: mi.Float) -> mi.Float:
-    return u - dr.floor(u)
+    """Position -> position in [0, 1] (period 1); a non-finite one -> 0, so that its taps stay in
+    their table (its lane answers 0: `KernelMaterial._trace`)."""
+    wrapped = u - dr.floor(u)
+    return dr.select(dr.isfinite(wrapped), wrapped, 0.0)
 
 
 def _taps(u: mi.Float, v: mi.Float, size, start) -> tuple[list[mi.UInt32], list[mi.Float]]:

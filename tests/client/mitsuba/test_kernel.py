@@ -34,12 +34,15 @@ def parity(a: np.ndarray, b: np.ndarray) -> float:
 
 def random_queries(n: int, seed: int, lights: int = 1) -> np.ndarray:
     """Queries over several tiles, all footprints (finer than the finest level to coarser than the
-    coarsest), directions up to 84 degrees; with ``lights`` > 1, query groups."""
+    coarsest), directions up to the horizon (a third of them within a degree of it); with ``lights``
+    > 1, query groups."""
     rng = np.random.default_rng(seed)
 
     def direction(count):
         phi = rng.uniform(0, 2 * np.pi, count)
-        s = np.sin(rng.uniform(0, np.radians(84), count))
+        theta = rng.uniform(0, np.radians(90), count)
+        theta[::3] = np.radians(90) - rng.uniform(0, np.radians(1), len(theta[::3]))
+        s = np.sin(theta)
         return np.stack([s * np.cos(phi), s * np.sin(phi)], 1)
 
     uv = rng.uniform(-3, 3, (n, 2))
@@ -50,8 +53,8 @@ def random_queries(n: int, seed: int, lights: int = 1) -> np.ndarray:
 
 @pytest.fixture(scope="module")
 def layouts(tmp_path_factory):
-    """One file per layout: offset (64^2 and 16^2), no offset, YUV head, two-layer MLPs, trimmed, and
-    the two older graphs a model folder may still hold."""
+    """One file per layout: offset (64^2 and 16^2, and one clamped only at grazing angles), no offset,
+    YUV head, one- and two-layer MLPs, trimmed, and the two older graphs a model folder may still hold."""
     folder = tmp_path_factory.mktemp("kernel_models")
     configs = {
         "offset64": MaterialConfig(resolution=64),
@@ -59,6 +62,8 @@ def layouts(tmp_path_factory):
         "nooffset": MaterialConfig(resolution=32, offset=False),
         "yuv": MaterialConfig(resolution=16, head="yuv"),
         "layers2": MaterialConfig(resolution=16, layers=2, hidden=12),
+        "layers1": MaterialConfig(resolution=16, layers=1, head="yuv"),
+        "grazing": MaterialConfig(resolution=16, offset_min_cos=0.05),
     }
     for seed, (name, cfg) in enumerate(configs.items()):
         save_onnx(build_onnx(cfg, random_weights(cfg, seed=seed)), folder / f"{name}.onnx")
@@ -166,3 +171,88 @@ def test_the_arithmetic_is_traced_once_per_number_of_lights(model_dir):
         kernel.evaluate("rand16", random_queries(n, seed=n))
         kernel.evaluate("rand16", random_queries(n, seed=n, lights=2))
     assert kernel.kernel("rand16").traces == 2
+
+
+def test_concurrent_calls_answer_as_one_thread_does(model_dir):
+    """Threads calling the same evaluator (two materials, several widths and light counts) get the
+    answers of a single thread; concurrent frozen calls deadlocked or crashed drjit (2 runs in 3)
+    before they were serialised."""
+    import threading
+
+    sizes = ((300, 1), (2000, 2), (37, 1), (500, 3), (1, 2), (4000, 1), (64, 2), (1, 3))  # 1 lane: traced anew
+    queries = [random_queries(n, seed=n, lights=lights) for n, lights in sizes]
+    materials = ("rand16", "flat16")
+    single = KernelMaterials(model_dir)
+    want = {(m, j): single.evaluate(m, q) for m in materials for j, q in enumerate(queries)}
+    shared, wrong = KernelMaterials(model_dir), []
+
+    def work(offset: int) -> None:
+        for j, q in enumerate(queries * 3):
+            material = materials[(offset + j) % 2]
+            if not np.array_equal(shared.evaluate(material, q), want[material, j % len(queries)]):
+                wrong.append((offset, j))
+
+    threads = [threading.Thread(target=work, args=(i,), daemon=True) for i in range(4)]
+    for thread in threads:
+        thread.start()
+    for thread in threads:
+        thread.join(timeout=60)
+    assert not any(thread.is_alive() for thread in threads), "deadlocked"
+    assert wrong == []
+
+
+def test_no_garbage_collection_while_the_arithmetic_is_traced(model_dir, monkeypatch):
+    """drjit aborts the process when an array made from numpy memory (a material's textures) is freed
+    while a frozen function records; Python's cyclic collector freed unreachable materials at any
+    allocation, tracing included (a test run that made and dropped many materials died so). So no
+    automatic collection may run inside a frozen call, however often the collector is due."""
+    import gc
+
+    from neumip.client.mitsuba.kernel import KernelMaterial
+
+    tracing, during = [], []
+    trace = KernelMaterial._trace
+
+    def traced(self, *args):
+        tracing.append(True)
+        try:
+            return trace(self, *args)
+        finally:
+            tracing.pop()
+
+    def collected(phase, info):
+        if phase == "start":
+            during.append(bool(tracing))
+
+    monkeypatch.setattr(KernelMaterial, "_trace", traced)
+    kernel, q, threshold = KernelMaterials(model_dir), random_queries(100, seed=2, lights=2), gc.get_threshold()
+    gc.callbacks.append(collected)
+    gc.set_threshold(1)  # a collection due at nearly every allocation
+    try:
+        got = kernel.evaluate("rand16", q)
+    finally:
+        gc.set_threshold(*threshold)
+        gc.callbacks.remove(collected)
+    assert kernel.kernel("rand16").traces == 1 and during and not any(during)
+    assert parity(got, LocalMaterials(model_dir, threads=1).evaluate("rand16", q)) <= 1.0
+
+
+def test_a_lane_at_a_non_finite_position_answers_zero(model_dir):
+    """A render's uv may hold inf or NaN (a mesh's bad texture coordinates): those lanes answer 0 and
+    the others what they answer alone (their taps read out of the tables and crashed the process)."""
+    from neumip.client.mitsuba.render import mi
+
+    material, q = KernelMaterials(model_dir).kernel("rand16"), random_queries(4000, seed=3)
+    want = KernelMaterials(model_dir).evaluate("rand16", q)
+    bad = np.zeros(len(q), bool)
+    bad[::7] = True
+    for value in (np.nan, np.inf, -np.inf):
+        u = q[:, C.U].copy()
+        u[bad] = value
+        v = np.where(bad[::-1], value, q[:, C.V]).astype(np.float32)  # other lanes' v
+        cols = [mi.Float(c) for c in (u, v, q[:, C.SIGMA], q[:, C.WO_X], q[:, C.WO_Y], q[:, C.WI_X], q[:, C.WI_Y])]
+        (rgb,) = material.answers(*cols[:3], (cols[3], cols[4]), [(cols[5], cols[6])])
+        got = np.stack([np.asarray(c) for c in rgb], 1)
+        finite = ~(bad | bad[::-1])
+        np.testing.assert_array_equal(got[finite], want[finite])
+        assert (got[~finite] == 0).all()
