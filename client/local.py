@@ -19,6 +19,7 @@ import threading
 from concurrent.futures import Executor, ThreadPoolExecutor
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Callable, Generic, TypeVar
 
 import numpy as np
 
@@ -41,6 +42,8 @@ SESSION_CONFIG = {"session.intra_op.allow_spinning": "0"}
 """Session config entries: pool threads sleep instead of spinning between ops. On a machine shared
 with other jobs spinning threads take cores the other threads need (2 intra-op threads ran at about
 half the speed with spinning on under load)."""
+
+T = TypeVar("T")
 
 NAME_PATTERN = re.compile(r"^[A-Za-z0-9][A-Za-z0-9_.-]{0,127}$")
 """What a material name may look like (also guards paths built from names)."""
@@ -184,24 +187,77 @@ def split_chunk(rows: int, workers: int, chunk: int = DEFAULT_CHUNK) -> int:
 
 
 def load_folder(folder: Path, threads: int = 1) -> tuple[dict[str, Material], dict[str, str]]:
-    """Open every ``*.onnx`` in `folder` -> (materials by name, {name: reason} of files that failed).
+    """Open every ``*.onnx`` in `folder` -> (materials by name, {name: reason} of files that failed)
+    (`open_folder` with `load_material`)."""
+    return open_folder(folder, lambda path: load_material(path, threads))
 
-    A file fails when it cannot be loaded (corrupt, another contract version, wrong graph) or when
-    its stem is not a material name (`NAME_PATTERN`); failures are logged, the others still load.
+
+def open_folder(folder: Path, load: Callable[[Path], T]) -> tuple[dict[str, T], dict[str, str]]:
+    """``load`` every ``*.onnx`` in `folder` -> (loaded by name, {name: reason} of files that failed).
+
+    A file fails when it cannot be loaded (`load` raises ModelError: corrupt, another contract
+    version, wrong graph) or when its stem is not a material name (`NAME_PATTERN`); failures are
+    logged, the others still load.
     """
-    materials: dict[str, Material] = {}
+    loaded: dict[str, T] = {}
     failed: dict[str, str] = {}
     for path in sorted(Path(folder).glob("*.onnx")):
         if not NAME_PATTERN.match(path.stem):
             failed[path.stem] = "file name is not a valid material name"
         else:
             try:
-                materials[path.stem] = load_material(path, threads)
+                loaded[path.stem] = load(path)
                 continue
             except ModelError as exc:
                 failed[path.stem] = str(exc)
         log.error("skipping %s: %s", path.name, failed[path.stem])
-    return materials, failed
+    return loaded, failed
+
+
+class ModelFolder(Generic[T]):
+    """The materials of a model folder (``NAME.onnx``), each opened once by ``load(path)``: every file
+    at once (those that fail are logged and listed in `errors`), or with ``lazy=True`` each on its
+    first `get` (a file that fails then raises ModelError there, and is listed in `errors`). Shared by
+    the evaluators of a folder (`LocalMaterials`, the renderer's `KernelMaterials`)."""
+
+    def __init__(self, folder: str | Path, load: Callable[[Path], T], lazy: bool = False) -> None:
+        self.folder = Path(folder)
+        if not self.folder.is_dir():
+            raise FileNotFoundError(f"model folder {self.folder} does not exist")
+        self._load = load
+        self._lock = threading.Lock()
+        if lazy:
+            self._loaded, self.errors = {}, {}
+            self._listed = sorted(p.stem for p in self.folder.glob("*.onnx") if NAME_PATTERN.match(p.stem))
+        else:
+            self._loaded, self.errors = open_folder(self.folder, load)
+            self._listed = sorted(self._loaded)
+
+    def names(self) -> list[str]:
+        """Names served: loaded ones (lazy: every listed file that has not failed)."""
+        return sorted(set(self._listed) - set(self.errors))
+
+    def loaded(self) -> list[str]:
+        """Names of the materials loaded so far."""
+        return sorted(self._loaded)
+
+    def get(self, name: str) -> T:
+        """Material `name`, loaded on first use; raises UnknownMaterial or ModelError."""
+        material = self._loaded.get(name)
+        if material is not None:
+            return material
+        if name not in self.names():
+            known = ", ".join(self.names()) or "none"
+            raise UnknownMaterial(f"unknown material {name!r} (served: {known})")
+        with self._lock:  # lazy: load once, whichever thread asks first
+            if name not in self._loaded:
+                try:
+                    self._loaded[name] = self._load(self.folder / f"{name}.onnx")
+                except ModelError as exc:
+                    self.errors[name] = str(exc)
+                    raise
+                log.info("loaded %s on first use", name)
+            return self._loaded[name]
 
 
 class LocalMaterials:
@@ -215,46 +271,26 @@ class LocalMaterials:
     """
 
     def __init__(self, folder: str | Path, threads: int = 0, chunk: int = DEFAULT_CHUNK, lazy: bool = False) -> None:
-        self.folder = Path(folder)
-        if not self.folder.is_dir():
-            raise FileNotFoundError(f"model folder {self.folder} does not exist")
         if chunk < 1:
             raise ValueError(f"chunk must be at least 1 row, got {chunk}")
+        self._models = ModelFolder(folder, lambda path: load_material(path, threads=1), lazy)
+        self.folder = self._models.folder
+        self.errors = self._models.errors
+        """{name: reason} of the files that failed to load."""
         self.chunk = chunk
         self.threads = threads or os.cpu_count() or 1
         self._executor = ThreadPoolExecutor(self.threads, "neumip-ort") if self.threads > 1 else None
-        self._lock = threading.Lock()
-        if lazy:
-            self._materials, self.errors = {}, {}
-            self._listed = sorted(p.stem for p in self.folder.glob("*.onnx") if NAME_PATTERN.match(p.stem))
-        else:
-            self._materials, self.errors = load_folder(self.folder, threads=1)
-            self._listed = sorted(self._materials)
 
     def materials(self) -> list[str]:
         """Names served: loaded ones (lazy: every listed file that has not failed)."""
-        return sorted(set(self._listed) - set(self.errors))
+        return self._models.names()
 
     def loaded(self) -> list[str]:
         """Names of the materials loaded so far."""
-        return sorted(self._materials)
+        return self._models.loaded()
 
     def get(self, name: str) -> Material:
-        material = self._materials.get(name)
-        if material is not None:
-            return material
-        if name not in self.materials():
-            known = ", ".join(self.materials()) or "none"
-            raise UnknownMaterial(f"unknown material {name!r} (served: {known})")
-        with self._lock:  # lazy: load once, whichever thread asks first
-            if name not in self._materials:
-                try:
-                    self._materials[name] = load_material(self.folder / f"{name}.onnx", threads=1)
-                except ModelError as exc:
-                    self.errors[name] = str(exc)
-                    raise
-                log.info("loaded %s on first use", name)
-            return self._materials[name]
+        return self._models.get(name)
 
     def evaluate(self, material: str, queries: np.ndarray) -> np.ndarray:
         """(N, 7) queries -> (N, 3) float32 RGB; query groups (N, 5 + 2 K) -> (N, 3 K). Raises

@@ -31,7 +31,7 @@ from pathlib import Path
 import numpy as np
 
 from neumip.client import contract as C
-from neumip.client.local import NAME_PATTERN, ModelError, UnknownMaterial
+from neumip.client.local import ModelError, ModelFolder
 
 from .bsdf import dr, mi
 
@@ -251,33 +251,17 @@ class KernelMaterials:
     """
 
     def __init__(self, folder: str | Path) -> None:
-        self.folder = Path(folder)
-        if not self.folder.is_dir():
-            raise FileNotFoundError(f"model folder {self.folder} does not exist")
-        self._listed = sorted(p.stem for p in self.folder.glob("*.onnx") if NAME_PATTERN.match(p.stem))
-        self._loaded: dict[str, KernelMaterial] = {}
-        self.errors: dict[str, str] = {}
-        self._lock = threading.Lock()
+        self._models = ModelFolder(folder, KernelMaterial, lazy=True)
+        self.folder = self._models.folder
+        self.errors = self._models.errors
+        """{name: reason} of the files that failed to load."""
 
     def materials(self) -> list[str]:
-        return sorted(set(self._listed) - set(self.errors))
+        return self._models.names()
 
     def kernel(self, name: str) -> KernelMaterial:
         """The material `name` (loaded on first use); raises UnknownMaterial or ModelError."""
-        with self._lock:
-            material = self._loaded.get(name)
-            if material is not None:
-                return material
-            if name not in self.materials():
-                known = ", ".join(self.materials()) or "none"
-                raise UnknownMaterial(f"unknown material {name!r} (served: {known})")
-            try:
-                material = self._loaded[name] = KernelMaterial(self.folder / f"{name}.onnx")
-            except ModelError as exc:
-                self.errors[name] = str(exc)
-                raise
-            log.info("loaded %s for in-kernel evaluation", name)
-            return material
+        return self._models.get(name)
 
     def evaluate(self, material: str, queries: np.ndarray) -> np.ndarray:
         """(N, 7) queries -> (N, 3) float32 RGB; query groups (N, 5 + 2 K) -> (N, 3 K)."""

@@ -7,8 +7,8 @@ arrays. Two ways, by the evaluator bound:
 
 - **In the kernel** (`kernel.KernelMaterials`, the in-process default): per material, its lanes are
   compressed (`dr.compress`) and one kernel over them gathers their columns and computes every light's
-  answer from the material's weights (`KernelMaterial.answers`); each lane reads its answers back with
-  gathers that run in the integrator's next kernel. Nothing leaves drjit.
+  answer from the material's weights (`KernelMaterial.answers`); the answers are scattered back to
+  their lanes, one evaluation a bounce for all materials. Nothing leaves drjit.
 - **Buffered** (`contract.Evaluator`: in-process `LocalMaterials`, the ONNX graph in ONNX Runtime, or
   the HTTP `MaterialClient`). A shading point with two or more valid light directions goes as one
   query group (`contract`: the offset and the lookups run once for its K answers); one with a single
@@ -191,15 +191,15 @@ class NeuralShading:
         sigma = dr.select(dr.isfinite(sigma), dr.clip(sigma, 0.0, MAX_SIGMA), MAX_SIGMA)
         valid = [ok for _, ok in lights]
         count = sum((mi.UInt32(ok) for ok in valid[1:]), mi.UInt32(valid[0]))
-        single_wi = lights[-1][0]
-        for wi, ok in reversed(lights[:-1]):  # the one valid light's wi where there is one
-            single_wi = dr.select(ok, wi, single_wi)
         wis = [(dr.select(ok, wi.x, 0.0), dr.select(ok, wi.y, 0.0)) for wi, ok in lights]  # (0, 0) if not
         columns = [u, v, sigma, *wis[0], wo.x, wo.y] + [c for wi in wis[1:] for c in wi]
         if self.in_kernel:  # one kernel computes every light of a lane: no single queries
             masks = {material: (mask & (count > 0), mi.Bool(False)) for material, mask in hits.mask.items()}
             dr.schedule(columns, valid, [group for group, _ in masks.values()])
             return NeuralQueries(columns, [], valid, masks)
+        single_wi = lights[-1][0]
+        for wi, ok in reversed(lights[:-1]):  # the one valid light's wi where there is one
+            single_wi = dr.select(ok, wi, single_wi)
         single = [u, v, sigma, single_wi.x, single_wi.y, wo.x, wo.y]
         masks = {material: (mask & (count > 1), mask & (count == 1)) for material, mask in hits.mask.items()}
         dr.schedule(columns, single[C.WI_X:C.WI_Y + 1], valid, list(masks.values()))
@@ -240,10 +240,8 @@ class NeuralShading:
         seconds = (time.perf_counter() - start) / len(computed)
         for material, answers in computed.items():
             self.stats.add(material, answers, seconds)
-        neural = dr.zeros(mi.Bool, width)
-        for group, single in queries.masks.values():
-            neural |= group | single
-        return [dr.select(neural & ok, mi.Color3f(*rgb), 0.0) for rgb, ok in zip(out, queries.valid)]
+        # lanes of no material kept their zeros; a computed lane's invalid light is dropped here
+        return [dr.select(ok, mi.Color3f(*rgb), 0.0) for rgb, ok in zip(out, queries.valid)]
 
     def _evaluate_buffered(self, queries: NeuralQueries) -> list[mi.Color3f]:
         """At most two evaluator calls per material (its groups, its single queries).
