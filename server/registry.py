@@ -19,7 +19,7 @@ its reason, so its ready endpoint can say no. A file that changes while it is re
 Memory. With ``NEUMIP_MEMORY_BUDGET_MB`` the least recently used materials are unloaded (they load
 again when asked for) while the loaded models' bytes exceed it; a material with a request in flight
 (`Registry.using`) is never unloaded, so the budget may be exceeded while every loaded material is
-busy. A model's bytes are its file's size.
+busy; the excess is unloaded when their requests finish. A model's bytes are its file's size.
 
 Material names from requests are only ever looked up in dicts, never joined into a path before
 `check_name` accepted them.
@@ -298,8 +298,9 @@ class Registry:
             self.unloaded.add(name)
         self._drop(name, "request")
 
-    def _evict(self, keep: str) -> None:
-        """Unload least recently used materials with no request in flight while over the budget."""
+    def _evict(self, keep: str | None = None) -> None:
+        """Unload least recently used materials with no request in flight (but `keep`) while over the
+        budget."""
         budget = self.config.memory_budget_bytes
         if not budget:
             return
@@ -330,6 +331,9 @@ class Registry:
         finally:
             with self._lock:
                 self._in_flight[name] -= 1
+                idle = not self._in_flight[name]
+            if idle:  # a material kept over the budget while busy may go now
+                self._evict()
 
     def _servable(self, name: str) -> None:
         """Raise unless `name` is loaded or can be loaded on request: 400 if it failed or was unloaded,

@@ -71,3 +71,25 @@ def test_server_without_models_is_live_but_not_ready(tmp_path):
         assert client.get("/v2/health/live").status_code == 200
         assert client.get("/v2/health/ready").status_code == 400
         assert client.get(wire.MATERIALS_PATH).json()["materials"] == []
+
+
+def test_a_material_kept_over_the_budget_while_busy_goes_when_its_request_ends(model_dir, tmp_path):
+    """Budget for one model: a second one loading while the first has a request in flight exceeds it
+    (the busy one is never unloaded); when that request ends, the registry is back within budget at
+    once, not only at the next load."""
+    import asyncio
+
+    for name in ("a", "b"):
+        shutil.copy(model_dir / "rand16.onnx", tmp_path / f"{name}.onnx")
+    size = (tmp_path / "a.onnx").stat().st_size
+    registry = Registry.load(tmp_path, threads=1, warmup_rows=0, lazy=True, memory_budget_bytes=int(1.5 * size))
+
+    async def run() -> tuple[int, int]:
+        async with registry.using("a"):
+            async with registry.using("b"):
+                busy = registry.resident_bytes()
+        return busy, registry.resident_bytes()
+
+    busy, idle = asyncio.run(run())
+    assert busy == 2 * size  # both in flight: over the budget
+    assert idle <= 1.5 * size and registry.names() == ["a", "b"]  # one unloaded, both still servable
