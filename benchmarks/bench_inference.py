@@ -529,7 +529,13 @@ def main() -> None:
     parser.add_argument("--rounds", type=int, default=3)
     parser.add_argument("--model", type=lambda t: tuple(t.split("=", 1)), action="append", default=[],
                         metavar="NAME=FILE", help="another model file of the same material for the graphs section")
+    parser.add_argument("--variant", help="Mitsuba variant of the drjit kernel rows (default llvm_ad_rgb; cuda_ad_rgb "
+                        "on an NVIDIA GPU)")
     args = parser.parse_args()
+    if args.variant:  # before the renderer is imported: it keeps a JIT variant already set
+        import mitsuba
+
+        mitsuba.set_variant(args.variant)
     torch.set_num_threads(args.threads)
 
     mat = material(args.resolution, seed=0)

@@ -286,6 +286,15 @@ def demo(args) -> None:
             server.stop()
 
 
+def set_variant(variant: str | None) -> None:
+    """Select a Mitsuba variant before the renderer is imported (it keeps a JIT variant already set)."""
+    if variant:
+        import mitsuba
+
+        mitsuba.set_variant(variant)
+        print(f"# Mitsuba variant {variant}")
+
+
 def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--sections", default="ratios", help="comma-separated: ratios, demo")
@@ -303,7 +312,10 @@ def main() -> int:
     parser.add_argument("--demo-spp", type=int, default=64, help="demo: samples per pixel")
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--max-lanes", type=int, default=2**21, help="demo: lanes per render pass")
+    parser.add_argument("--variant", help="Mitsuba variant of every render (default: the renderer's, llvm_ad_rgb; "
+                        "cuda_ad_rgb on an NVIDIA GPU)")
     args = parser.parse_args()
+    set_variant(args.variant)
 
     sys.path.insert(0, str(ROOT))
     sections = args.sections.split(",")
