@@ -8,7 +8,8 @@ arrays. Two ways, by the evaluator bound:
 - **In the kernel** (`kernel.KernelMaterials`, the in-process default): per material, its lanes are
   compressed (`dr.compress`) and one kernel over them gathers their columns and computes every light's
   answer from the material's weights (`KernelMaterial.answers`); the answers are scattered back to
-  their lanes, one evaluation a bounce for all materials. Nothing leaves drjit.
+  their lanes, one evaluation a bounce for all materials (a material on nearly every lane is computed
+  on all of them, without the compaction). Nothing leaves drjit.
 - **Buffered** (`contract.Evaluator`: in-process `LocalMaterials`, the ONNX graph in ONNX Runtime, or
   the HTTP `MaterialClient`). A shading point with two or more valid light directions goes as one
   query group (`contract`: the offset and the lookups run once for its K answers); one with a single
@@ -35,6 +36,12 @@ from neumip.client.errors import NeumipError
 from .bsdf import NeuMIPBSDF, dr, mi
 
 log = logging.getLogger(__name__)
+
+DENSE_LANES = 0.95
+"""In the kernel, a material whose lanes are at least this share of the wavefront is computed on every
+lane instead of its lanes compacted. Compaction (compress, gathers, scatters) costs a few ns a lane; a
+trained material's arithmetic tens of times more (`benchmarks/bench_render.py` prints both), so the
+lanes computed in vain must be few."""
 
 MAX_SIGMA = 1.0e3
 """Footprints (tile units) are clamped here; a non-finite footprint reads the coarsest level."""
@@ -214,25 +221,31 @@ class NeuralShading:
         return self._evaluate_buffered(queries)
 
     def _evaluate_in_kernel(self, queries: NeuralQueries) -> list[mi.Color3f]:
-        """Per material, the lanes with a valid light are taken (`dr.compress`) and one kernel over
-        them gathers their columns, computes every light's answer (the material's arithmetic traced
-        by `KernelMaterial.answers`) and scatters the answers back to their lanes."""
+        """Per material, one kernel computes every light's answer (the material's arithmetic traced by
+        `KernelMaterial.answers`) on its lanes with a valid light. Where they are a small part of the
+        wavefront, they are taken first (`dr.compress`): the kernel gathers their columns and scatters
+        the answers back. Where they are nearly all of it (`DENSE_LANES`: a first hit on a surface
+        that fills the view), the kernel runs over the whole wavefront and the other lanes' answers are
+        dropped, which costs less than the compaction."""
         width = dr.width(queries.columns[0])
         cols = queries.columns
         out = [[dr.zeros(mi.Float, width) for _ in range(C.RGB_DIM)] for _ in range(queries.lights)]
         start, computed = time.perf_counter(), {}
         for material, (group, single) in queries.masks.items():
-            lanes = dr.compress(group | single)
-            if not dr.width(lanes):
+            mask = group | single
+            count = dr.count(mask)[0]
+            if not count:
                 continue
-            take = [dr.gather(mi.Float, column, lanes) for column in cols]
-            lights = [(take[C.WI_X], take[C.WI_Y])] + [(take[i], take[i + 1]) for i in range(C.QUERY_DIM, len(cols), 2)]
-            answers = self.evaluator.kernel(material).answers(
-                take[C.U], take[C.V], take[C.SIGMA], (take[C.WO_X], take[C.WO_Y]), lights)
-            for j, rgb in enumerate(answers):
-                for ch in range(C.RGB_DIM):
-                    dr.scatter(out[j][ch], rgb[ch], lanes)
-            computed[material] = dr.width(lanes) * queries.lights
+            kernel = self.evaluator.kernel(material)
+            if count >= DENSE_LANES * width:
+                for j, rgb in enumerate(_answers(kernel, cols)):
+                    out[j] = [dr.select(mask, x, o) for x, o in zip(rgb, out[j])]
+            else:
+                lanes = dr.compress(mask)
+                for j, rgb in enumerate(_answers(kernel, [dr.gather(mi.Float, c, lanes) for c in cols])):
+                    for ch in range(C.RGB_DIM):
+                        dr.scatter(out[j][ch], rgb[ch], lanes)
+            computed[material] = count * queries.lights
         if not computed:
             return [dr.zeros(mi.Color3f, width) for _ in range(queries.lights)]
         dr.eval(out)
@@ -277,6 +290,13 @@ class NeuralShading:
         rgb = C.as_rgb(self.evaluator.evaluate(material, queries), call.total, call.lights)
         self.stats.add(material, call.total * call.lights, time.perf_counter() - start)
         return rgb.reshape(-1)
+
+
+def _answers(kernel, columns: list[mi.Float]) -> list[list[mi.Float]]:
+    """`KernelMaterial.answers` of query-group columns (contract order): per light, its RGB."""
+    lights = [(columns[C.WI_X], columns[C.WI_Y])]
+    lights += [(columns[i], columns[i + 1]) for i in range(C.QUERY_DIM, len(columns), 2)]
+    return kernel.answers(columns[C.U], columns[C.V], columns[C.SIGMA], (columns[C.WO_X], columns[C.WO_Y]), lights)
 
 
 @dataclass

@@ -131,3 +131,47 @@ def test_queries_group_two_or_more_valid_lights_and_send_one_alone():
     np.testing.assert_allclose(singles[[C.WI_X, C.WI_Y], 1], [0.01, 0.2])  # lane 1: light 0 alone
     np.testing.assert_allclose(singles[[C.WI_X, C.WI_Y], 2], [0.11, 0.2])  # lane 2: light 1 alone
     np.testing.assert_allclose(singles[[C.WO_X, C.WO_Y], 2], [0.3, 0.0])
+
+
+class EchoKernel(Echo):
+    """`Echo`'s answers as drjit arithmetic on the lanes (an in-kernel evaluator, as `KernelMaterials`);
+    records the lane count of each material's kernel."""
+
+    def __init__(self) -> None:
+        super().__init__()
+        self.widths: list[tuple[str, int]] = []
+
+    def kernel(self, material: str) -> "EchoKernel.Material":
+        return EchoKernel.Material(material, self.widths)
+
+    class Material:
+        def __init__(self, name, widths):
+            self.name, self.widths = name, widths
+
+        def answers(self, u, v, sigma, wo, lights):
+            self.widths.append((self.name, dr.width(u)))
+            return [[u + 1.0 + wi[0], v + 1.0 + wi[1], sigma + 1.0] for wi in lights]
+
+
+@pytest.mark.parametrize("dense", [False, True])
+def test_in_kernel_answers_land_on_their_lanes(lanes, dense):
+    """In the kernel, every light of a lane with any valid light is computed; the answers land on their
+    lane and light, zero elsewhere. A material on a small share of the wavefront runs over its own
+    lanes only (compacted); one on nearly every lane (`DENSE_LANES`) over the whole wavefront."""
+    columns, ok, hit = lanes
+    if dense:  # material a on 98 % of the lanes, each with a valid light
+        hit, ok = {"a": np.arange(WIDTH) % 50 != 0}, np.stack([ok[0] | ~ok[1], ok[1]])
+    evaluator = EchoKernel()
+    out = shading(evaluator).evaluate(queries(columns, ok, hit))
+
+    anyok = ok[0] | ok[1]
+    want_widths = [(m, WIDTH if dense else int((h & anyok).sum())) for m, h in hit.items()]
+    assert evaluator.widths == want_widths
+    assert evaluator.calls == []  # nothing left drjit
+    for j in range(2):
+        got = np.stack([np.asarray(c) for c in (out[j].x, out[j].y, out[j].z)], axis=1)
+        asked = np.any(list(hit.values()), axis=0) & ok[j]
+        want = single_rows(columns, j)[:3].T + 1.0
+        want[:, :2] += single_rows(columns, j)[3:5].T
+        np.testing.assert_array_equal(got[asked], want[asked])
+        assert not got[~asked].any()
