@@ -257,9 +257,9 @@ def graphs_section(mat, models: dict[str, bytes], args) -> None:
 
 def kernel_materials(folder: str):
     """The renderer's in-kernel evaluator over `folder` (the material's arithmetic compiled by drjit,
-    numpy in and out: not the ONNX graph), or None without the `render` extra."""
+    numpy in and out: not the ONNX graph), or None without the `kernel` extra."""
     try:
-        from neumip.client.mitsuba.kernel import KernelMaterials
+        from neumip.client.kernel import KernelMaterials
     except ImportError:
         return None
     return KernelMaterials(folder)

@@ -169,7 +169,7 @@ def time_render(mi, scene, evaluator, spp: int, seed: int) -> tuple[float, float
 
 def ratios(args) -> None:
     from neumip.client.local import LocalMaterials
-    from neumip.client.mitsuba.kernel import KernelMaterials
+    from neumip.client.kernel import KernelMaterials
     from neumip.client.mitsuba.render import mi
 
     local = LocalMaterials(args.models)
@@ -251,7 +251,7 @@ def report(label: str, result, cpu: float) -> None:
 def demo(args) -> None:
     from neumip.client.http import MaterialClient
     from neumip.client.local import LocalMaterials
-    from neumip.client.mitsuba.kernel import KernelMaterials
+    from neumip.client.kernel import KernelMaterials
     from bench_server import Server  # this folder is on sys.path when run as a script
 
     with tempfile.TemporaryDirectory() as tmp:

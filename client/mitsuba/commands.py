@@ -181,9 +181,11 @@ def _evaluator(args: argparse.Namespace):
     from neumip.client.local import LocalMaterials
 
     if not args.server and args.engine == "kernel":
-        from .kernel import KernelMaterials
+        from neumip.client.kernel import KernelMaterials, namespace_of
 
-        return KernelMaterials(args.models)
+        from .render import mi
+
+        return KernelMaterials(args.models, backend=namespace_of(mi.Float))  # the variant's arrays
     if not args.server:  # lazy: only the scene's materials load
         return LocalMaterials(args.models, threads=args.threads, lazy=True)
     from neumip.client.http import FallbackEvaluator, MaterialClient

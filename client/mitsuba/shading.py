@@ -5,7 +5,7 @@ whole wavefront.
 that lands on them (all lanes of the wavefront) and hands the RGB answers back as per-lane drjit
 arrays. Two ways, by the evaluator bound:
 
-- **In the kernel** (`kernel.KernelMaterials`, the in-process default): per material, its lanes are
+- **In the kernel** (`client.kernel.KernelMaterials`, the in-process default): per material, its lanes are
   compressed (`dr.compress`) and one kernel over them gathers their columns and computes every light's
   answer from the material's weights (`KernelMaterial.answers`); the answers are scattered back to
   their lanes, one evaluation a bounce for all materials (a material on nearly every lane is computed
@@ -145,7 +145,7 @@ class NeuralShading:
         self.bsdfs = neural_bsdfs(scene)
         self.evaluator = evaluator
         self.in_kernel = callable(getattr(evaluator, "kernel", None))
-        """Whether the answers are computed inside drjit's kernels (`kernel.KernelMaterials`)."""
+        """Whether the answers are computed inside drjit's kernels (`client.kernel.KernelMaterials`)."""
         self.stats = ShadingStats()
         missing = sorted({b.material for b in self.bsdfs} - set(evaluator.materials()))
         if missing:
@@ -214,7 +214,7 @@ class NeuralShading:
 
     def evaluate(self, queries: NeuralQueries) -> list[mi.Color3f]:
         """Evaluate ``queries`` -> one Color3f per light: the answer on lanes whose light is valid,
-        zero elsewhere. In the kernel where the evaluator offers it (`kernel.KernelMaterials`),
+        zero elsewhere. In the kernel where the evaluator offers it (`client.kernel.KernelMaterials`),
         otherwise through the evaluator in at most two calls per material."""
         if self.in_kernel:
             return self._evaluate_in_kernel(queries)

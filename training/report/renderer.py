@@ -25,7 +25,7 @@ CACHE_VERSION = 3
 NEURAL_VERSION = 5
 """Bump when `neumip_path` renders a neural material differently (2: per-sample footprints; 3: query
 groups, whose graph rounds the decoder's first sum in another order; 4: answers computed in the
-render's kernels, `client.mitsuba.kernel`, which round in their own order; 5: their parallax in the
+render's kernels, `client.kernel`, which round in their own order; 5: their parallax in the
 graph's order)."""
 
 

@@ -55,7 +55,7 @@ def run_report(out: Path, materials: list[str], config: ReportConfig, models: Pa
                progress: Progress | None = None, stages: tuple[str, ...] = ("images", "stability", "tradeoff"),
                views: tuple[View, ...] = VIEWS) -> dict:
     from neumip.client.local import LocalMaterials
-    from neumip.client.mitsuba.kernel import KernelMaterials
+    from neumip.client.kernel import KernelMaterials
     from neumip.training.microgeometry.description import find_description, resolve
 
     from .renderer import MaterialRenderer
@@ -156,7 +156,7 @@ def horizon(out, config, evaluator, renders, cache, progress) -> dict:
 
 def run_tradeoff(out, renderer, config, cache_dir, progress) -> dict:
     from neumip.client.local import LocalMaterials
-    from neumip.client.mitsuba.kernel import KernelMaterials
+    from neumip.client.kernel import KernelMaterials
 
     folder = cache_dir / "tradeoff"
     variants = tradeoff.variants(config)

@@ -1,4 +1,4 @@
-"""In-kernel evaluation: a material's exported weights traced as drjit arithmetic inside the render.
+"""In-kernel evaluation: a material's exported weights traced as drjit arithmetic.
 
 The buffered path (`shading.NeuralShading` with `LocalMaterials` or a server) copies each bounce's
 queries out of drjit, runs the ONNX graph, and copies the answers back. `KernelMaterials` instead
@@ -12,32 +12,56 @@ copies, no separate inference engine.
 
 It computes what the ONNX graph computes, in another order of float operations: answers agree with
 ONNX Runtime's to about 5e-6 (the parity tolerance of the export is 1e-5;
-tests/client/mitsuba/test_kernel.py checks it on random queries of several model layouts). Each lane
+tests/client/test_kernel.py checks it on random queries of several model layouts). Each lane
 is computed alone, so an answer does not depend on the batch it is in. The ONNX file stays the one
-artifact: servers run it with ONNX Runtime, the renderer reads its weights.
+artifact: ONNX Runtime runs its graph, this module reads its weights.
 
 As an `Evaluator` (`evaluate(material, queries)`), it also answers numpy query buffers and query
-groups, which is how its answers are compared with ONNX Runtime's.
+groups: how the server's ``kernel`` engine answers, and how its answers are compared with ONNX
+Runtime's.
+
+Needs drjit and onnx (the ``kernel`` extra), not Mitsuba. The arrays are those of a drjit backend
+namespace chosen at construction: ``drjit.llvm.ad`` by default, the renderer passes its Mitsuba
+variant's (`namespace_of(mi.Float)`; ``mi.Float`` in ``llvm_ad_rgb`` is ``drjit.llvm.ad.Float``).
 """
 
 from __future__ import annotations
 
+import functools
 import gc
+import importlib
 import logging
 import threading
 from dataclasses import dataclass
 from pathlib import Path
+from types import ModuleType
 
 import numpy as np
 
 from neumip.client import contract as C
 from neumip.client.local import ModelError, ModelFolder
+from neumip.client.mitsuba.runtime import ensure_llvm
 
-from .bsdf import dr, mi
+ensure_llvm()  # importing drjit loads libLLVM, and an LLVM older than 16 aborts the process
+try:
+    import drjit as dr
+except ImportError as exc:
+    raise ImportError("drjit is not installed: pip install 'neumip[kernel]'") from exc
 
 log = logging.getLogger(__name__)
 
-Rgb = list  # three mi.Float: one answer per lane
+Rgb = list  # three Floats: one answer per lane
+Float = object
+"""A drjit Float array type of the material's backend (`KernelMaterial.backend.Float`)."""
+
+DEFAULT_BACKEND = "drjit.llvm.ad"
+
+
+def namespace_of(array_type: type) -> ModuleType:
+    """The drjit backend namespace of an array type: ``drjit.llvm.ad`` for ``mi.Float`` in
+    ``llvm_ad_rgb``, ``drjit.cuda.ad`` in ``cuda_ad_rgb``."""
+    return importlib.import_module(array_type.__module__)
+
 
 _FROZEN_CALLS = threading.Lock()
 """One frozen call at a time in this process: concurrent frozen calls deadlock or crash drjit 1.5
@@ -48,21 +72,21 @@ _FROZEN_CALLS = threading.Lock()
 class Textures:
     """A material's tables in drjit memory (a PyTree: the frozen function's inputs)."""
 
-    pyramid: mi.Float
+    pyramid: Float
     """The levels' texels, (T, C) flat, levels from the file's finest to 1 x 1."""
-    offset: mi.Float
+    offset: Float
     """The offset texture, (R * R, C_offset) flat (one unused element without an offset)."""
-    sizes: mi.UInt32
-    """Texels per side of each level."""
-    starts: mi.UInt32
+    sizes: object
+    """Texels per side of each level (UInt32)."""
+    starts: object
     """Each level's first row in `pyramid` (levels finer than the file's finest are not stored)."""
 
 
 class KernelMaterial:
     """One material's weights, ready to be traced: `answers` writes its arithmetic on drjit arrays."""
 
-    def __init__(self, path: str | Path) -> None:
-        import onnx  # the `render` extra
+    def __init__(self, path: str | Path, backend: ModuleType | None = None) -> None:
+        import onnx  # the `kernel` extra
 
         from neumip.training import head
         from neumip.training.export import _depth_weights
@@ -82,16 +106,19 @@ class KernelMaterial:
             raise ModelError(f"{path.name}: non-finite weights in {', '.join(sorted(bad))}")
         if self.config.offset:  # offset_scale folded into the offset MLP's last layer, as in the graph
             self.weights = _depth_weights(self.weights, self.config)
+        self.backend = backend or importlib.import_module(DEFAULT_BACKEND)
+        """The drjit namespace whose arrays `answers` takes and gives (``drjit.llvm.ad``)."""
+        jit = self.backend
         self.name = path.stem
         self.head = self.config.head
         self.yuv_to_rgb = head.YUV_TO_RGB
         self.shadow_floor = head.SHADOW_FLOOR
         first = self.config.level_starts()[self.finest]
         self.textures = Textures(
-            mi.Float(self.weights["pyramid"].ravel()),
-            mi.Float(self.weights["offset_texture"].ravel() if self.config.offset else [0.0]),
-            mi.UInt32(self.config.level_sizes()),
-            mi.UInt32([max(s - first, 0) for s in self.config.level_starts()]),
+            jit.Float(self.weights["pyramid"].ravel()),
+            jit.Float(self.weights["offset_texture"].ravel() if self.config.offset else [0.0]),
+            jit.UInt32(self.config.level_sizes()),
+            jit.UInt32([max(s - first, 0) for s in self.config.level_starts()]),
         )
         self._frozen = dr.freeze(self._trace)
 
@@ -101,8 +128,8 @@ class KernelMaterial:
         changed the frozen function's layout (see `dr.freeze`)."""
         return self._frozen.n_recordings
 
-    def answers(self, u: mi.Float, v: mi.Float, sigma: mi.Float, wo: tuple[mi.Float, mi.Float],
-                lights: list[tuple[mi.Float, mi.Float]]) -> list[Rgb]:
+    def answers(self, u: Float, v: Float, sigma: Float, wo: tuple[Float, Float],
+                lights: list[tuple[Float, Float]]) -> list[Rgb]:
         """RGB for each light direction ``(wi_x, wi_y)`` in ``lights`` of the shading points (u, v,
         sigma, wo), evaluated: a query group (`contract`): the offset and the lookup run once, the
         decoder once per light.
@@ -127,7 +154,7 @@ class KernelMaterial:
 
     # --- the material's stages (drjit arrays in, drjit arrays out) --------------------------------
 
-    def _trace(self, textures: Textures, columns: list[mi.Float]) -> list[mi.Float]:
+    def _trace(self, textures: Textures, columns: list[Float]) -> list[Float]:
         """columns (u, v, sigma, wo_x, wo_y, then wi_x, wi_y of each light) -> the lights' RGB, flat.
         Reads the textures only from ``textures`` (a frozen function's inputs)."""
         cfg = self.config
@@ -136,7 +163,7 @@ class KernelMaterial:
         lights = [(columns[i], columns[i + 1]) for i in range(5, len(columns), 2)]
         if cfg.offset:
             features = _blend(textures.offset, cfg.offset_channels,
-                              *_taps(_wrap(u), _wrap(v), cfg.resolution, 0))
+                              *_taps(self.backend, _wrap(u), _wrap(v), cfg.resolution, 0))
             depth = self._mlp(features + list(wo), "offset_mlp")[0]  # offset_scale folded in
             # sqrt(max(1 - (x^2 + y^2), min_cos^2)), the graph's order (`export._parallax`): near the
             # horizon wo_z is a small difference, whose rounding the shift multiplies
@@ -161,24 +188,24 @@ class KernelMaterial:
         lane = dr.isfinite(u) & dr.isfinite(v)
         return [dr.select(lane, x, 0.0) for x in out]
 
-    def _lookup(self, textures: Textures, u: mi.Float, v: mi.Float, sigma: mi.Float) -> list[mi.Float]:
+    def _lookup(self, textures: Textures, u: Float, v: Float, sigma: Float) -> list[Float]:
         """Trilinear lookup of wrapped (u, v) at footprint sigma: the two nearest levels' bilinear taps
         (levels below the file's finest level read that level)."""
-        cfg = self.config
+        cfg, jit = self.config, self.backend
         lod = dr.clip(dr.log2(dr.maximum(sigma, 1e-38) * cfg.resolution), float(self.finest), float(cfg.levels))
         lo = dr.floor(lod)
         t = lod - lo
-        lo_level = mi.UInt32(lo)
+        lo_level = jit.UInt32(lo)
         hi_level = dr.minimum(lo_level + 1, cfg.levels)
         rows, weights = [], []
         for level, share in ((lo_level, 1.0 - t), (hi_level, t)):
-            size = dr.gather(mi.UInt32, textures.sizes, level)
-            r, w = _taps(u, v, size, dr.gather(mi.UInt32, textures.starts, level))
+            size = dr.gather(jit.UInt32, textures.sizes, level)
+            r, w = _taps(jit, u, v, size, dr.gather(jit.UInt32, textures.starts, level))
             rows += r
             weights += [x * share for x in w]
         return _blend(textures.pyramid, cfg.channels, rows, weights)
 
-    def _mlp(self, x: list[mi.Float], prefix: str, start: int = 0) -> list[mi.Float]:
+    def _mlp(self, x: list[Float], prefix: str, start: int = 0) -> list[Float]:
         """Layers start.. of MLP `prefix`: ReLU after every layer but the last."""
         layers = self.config.layers
         for i in range(start, layers):
@@ -187,7 +214,7 @@ class KernelMaterial:
                 x = [dr.maximum(value, 0.0) for value in x]
         return x
 
-    def _head(self, out: list[mi.Float]) -> Rgb:
+    def _head(self, out: list[Float]) -> Rgb:
         """The decoder's outputs -> RGB >= 0 (`training.head`)."""
         if self.head == "yuv":
             shadow = [self.shadow_floor + dr.rcp(1.0 + dr.exp(-s)) for s in out[3:]]
@@ -196,47 +223,49 @@ class KernelMaterial:
         return [dr.maximum(x, 0.0) for x in out]
 
 
-def _wrap(u: mi.Float) -> mi.Float:
+def _wrap(u: Float) -> Float:
     """Position -> position in [0, 1] (period 1); a non-finite one -> 0, so that its taps stay in
     their table (its lane answers 0: `KernelMaterial._trace`)."""
     wrapped = u - dr.floor(u)
     return dr.select(dr.isfinite(wrapped), wrapped, 0.0)
 
 
-def _taps(u: mi.Float, v: mi.Float, size, start) -> tuple[list[mi.UInt32], list[mi.Float]]:
-    """Rows and weights of the 4 bilinear taps of wrapped (u, v) on a ``size`` x ``size`` level whose
-    first row is ``start``; texel centres at (i + 0.5) / size, wrapping around."""
-    sizef = mi.Float(size)
+def _taps(jit: ModuleType, u: Float, v: Float, size, start) -> tuple[list, list[Float]]:
+    """Rows (UInt32) and weights of the 4 bilinear taps of wrapped (u, v) on a ``size`` x ``size``
+    level whose first row is ``start``; texel centres at (i + 0.5) / size, wrapping around. ``jit``:
+    the arrays' drjit namespace."""
+    sizef = jit.Float(size)
     x, y = u * sizef - 0.5, v * sizef - 0.5
     x0f, y0f = dr.floor(x), dr.floor(y)
     fx, fy = x - x0f, y - y0f
-    size_i = mi.Int32(size)
-    x0, y0 = mi.Int32(x0f), mi.Int32(y0f)
+    size_i = jit.Int32(size)
+    x0, y0 = jit.Int32(x0f), jit.Int32(y0f)
     x0, y0 = dr.select(x0 < 0, x0 + size_i, x0), dr.select(y0 < 0, y0 + size_i, y0)  # x0 >= -1
     x1 = dr.select(x0 + 1 >= size_i, 0, x0 + 1)
     y1 = dr.select(y0 + 1 >= size_i, 0, y0 + 1)
-    start_i = mi.Int32(start)
-    rows = [mi.UInt32(start_i + y * size_i + x) for y in (y0, y1) for x in (x0, x1)]
+    start_i = jit.Int32(start)
+    rows = [jit.UInt32(start_i + y * size_i + x) for y in (y0, y1) for x in (x0, x1)]
     weights = [wy * wx for wy in (1.0 - fy, fy) for wx in (1.0 - fx, fx)]
     return rows, weights
 
 
-def _blend(table: mi.Float, channels: int, rows: list[mi.UInt32], weights: list[mi.Float]) -> list[mi.Float]:
+def _blend(table: Float, channels: int, rows: list, weights: list[Float]) -> list[Float]:
     """sum_k weights[k] * table row rows[k] -> `channels` Floats (the table is (T, channels) flat)."""
-    out = [mi.Float(0.0)] * channels
+    array = type(table)
+    out = [array(0.0)] * channels
     for row, weight in zip(rows, weights):
         index = row * channels
         for c in range(channels):
-            out[c] = dr.fma(weight, dr.gather(mi.Float, table, index + c), out[c])
+            out[c] = dr.fma(weight, dr.gather(array, table, index + c), out[c])
     return out
 
 
-def _dense(x: list[mi.Float], weight: np.ndarray, bias: np.ndarray | None,
-           start: list[mi.Float] | None = None) -> list[mi.Float]:
+def _dense(x: list[Float], weight: np.ndarray, bias: np.ndarray | None,
+           start: list[Float] | None = None) -> list[Float]:
     """weight (out, in) @ x + bias (or + ``start``), the weights as kernel literals."""
-    out = []
+    array, out = type(x[0]), []
     for j in range(weight.shape[0]):
-        acc = start[j] if start is not None else mi.Float(float(bias[j]) if bias is not None else 0.0)
+        acc = start[j] if start is not None else array(float(bias[j]) if bias is not None else 0.0)
         for k, value in enumerate(x):
             acc = dr.fma(value, float(weight[j, k]), acc)
         out.append(acc)
@@ -247,11 +276,13 @@ class KernelMaterials:
     """The materials of a model folder (``NAME.onnx``), evaluated as drjit kernels.
 
     Loads each file on first use. `kernel(name)` gives the `KernelMaterial` the renderer traces into
-    its bounce; `evaluate` answers numpy queries (`contract.Evaluator`).
+    its bounce; `evaluate` answers numpy queries (`contract.Evaluator`). ``backend``: the drjit
+    namespace of the arrays (default ``drjit.llvm.ad``; a renderer passes its variant's).
     """
 
-    def __init__(self, folder: str | Path) -> None:
-        self._models = ModelFolder(folder, KernelMaterial, lazy=True)
+    def __init__(self, folder: str | Path, backend: ModuleType | None = None) -> None:
+        self.backend = backend or importlib.import_module(DEFAULT_BACKEND)
+        self._models = ModelFolder(folder, functools.partial(KernelMaterial, backend=self.backend), lazy=True)
         self.folder = self._models.folder
         self.errors = self._models.errors
         """{name: reason} of the files that failed to load."""
@@ -265,15 +296,15 @@ class KernelMaterials:
 
     def evaluate(self, material: str, queries: np.ndarray) -> np.ndarray:
         """(N, 7) queries -> (N, 3) float32 RGB; query groups (N, 5 + 2 K) -> (N, 3 K)."""
-        mat = self.kernel(material)
+        mat, jit = self.kernel(material), self.backend
         queries = C.as_queries(queries, groups=True)
         if not len(queries):
             return np.zeros((0, C.RGB_DIM * C.group_lights(queries.shape[1])), C.DTYPE)
         # one upload, then the columns gathered in drjit memory (columns made from numpy arrays each
         # made the frozen trace record again, call after call)
-        flat, width = mi.Float(queries.reshape(-1)), queries.shape[1]
-        row = dr.arange(mi.UInt32, len(queries)) * width
-        columns = [dr.gather(mi.Float, flat, row + i) for i in range(width)]
+        flat, width = jit.Float(queries.reshape(-1)), queries.shape[1]
+        row = dr.arange(jit.UInt32, len(queries)) * width
+        columns = [dr.gather(jit.Float, flat, row + i) for i in range(width)]
         lights = [(columns[C.WI_X], columns[C.WI_Y])]
         lights += [(columns[i], columns[i + 1]) for i in range(C.QUERY_DIM, queries.shape[1], 2)]
         rgb = [c for answer in mat.answers(columns[C.U], columns[C.V], columns[C.SIGMA],

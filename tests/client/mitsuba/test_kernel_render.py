@@ -1,0 +1,32 @@
+"""The render with in-kernel evaluation (`client/kernel.py`) matches the buffered render (ONNX
+Runtime); the evaluation itself is tested in tests/client/test_kernel.py."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from neumip.client.local import LocalMaterials
+
+pytest.importorskip("mitsuba")
+
+from neumip.client.kernel import KernelMaterials, namespace_of  # noqa: E402
+from neumip.client.mitsuba.render import RenderConfig, mi, render_scene  # noqa: E402
+
+from .scenes import simple  # noqa: E402
+
+
+def test_a_render_in_kernel_matches_the_buffered_render(model_dir):
+    """The same scene (two neural materials, several bounces), seed and spp rendered with the answers
+    computed in the kernel and by ONNX Runtime: the images agree to the answers' own difference."""
+    images, stats, kernel = {}, {}, KernelMaterials(model_dir, backend=namespace_of(mi.Float))
+    for name, evaluator in (("kernel", kernel), ("onnxruntime", LocalMaterials(model_dir))):
+        scene = simple({"type": "neumip", "material": "rand16", "uv_scale": 2.0}, {"type": "neumip_path"}, 24, 4)
+        scene["floor"]["bsdf"] = {"type": "neumip", "material": "flat16", "uv_scale": 3.0}
+        result = render_scene(mi.load_dict(scene), evaluator, RenderConfig(spp=4, seed=3))
+        images[name], stats[name] = result.image[..., :3], result.stats
+    assert images["onnxruntime"].mean() > 0.01
+    np.testing.assert_allclose(images["kernel"], images["onnxruntime"], rtol=1e-4, atol=1e-5)
+    assert stats["kernel"].queries >= stats["onnxruntime"].queries > 0  # every light of a lane is computed
+    assert stats["kernel"].per_material.keys() == {"rand16", "flat16"}
+    assert [kernel.kernel(m).traces for m in ("rand16", "flat16")] == [1, 1]  # every bounce replays it
