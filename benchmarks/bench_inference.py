@@ -207,9 +207,10 @@ def graphs_section(mat, models: dict[str, bytes], args) -> None:
         got = sess.run(None, {C.ONNX_INPUT: check})[0]
         print(f"  {name:28s} {np.abs(got - want).max():.2e}")
 
-    pool = random_queries(1 << 20, seed=20)
+    pool_rows = max(1 << 20, 2 << max(args.batches))  # two batches at least: calls read fresh rows
+    pool = random_queries(pool_rows, seed=20)
     tpool = torch.from_numpy(pool)
-    coherent = coherent_queries(1 << 20, args.resolution)
+    coherent = coherent_queries(pool_rows, args.resolution)
     shipped = sessions[SHIPPED]
     with tempfile.TemporaryDirectory() as folder:
         evaluated = {f"LocalMaterials.evaluate, {args.threads} workers": models[SHIPPED]}
@@ -220,7 +221,7 @@ def graphs_section(mat, models: dict[str, bytes], args) -> None:
         grouped = f"LocalMaterials.evaluate, {args.threads} workers, groups of 2"
         grouped_coherent = f"{grouped}, coherent"
         kernel_names = ["drjit kernel (KernelMaterials.evaluate)", "drjit kernel (KernelMaterials.evaluate), groups of 2"]
-        kernel = kernel_materials(folder)
+        kernel = kernel_materials(folder, args.variant)
         if kernel:  # the in-kernel engine computes the shipped graph's model: same parity contract
             print(f"  {'drjit kernel (shipped)':28s} {np.abs(kernel.evaluate('m0', check) - want).max():.2e}")
         names = [*sessions, "shipped, coherent queries", *evaluated, grouped, grouped_coherent]
@@ -255,13 +256,17 @@ def graphs_section(mat, models: dict[str, bytes], args) -> None:
                     "per batch", columns, table)
 
 
-def kernel_materials(folder: str):
+def kernel_materials(folder: str, variant: str | None = None):
     """The renderer's in-kernel evaluator over `folder` (the material's arithmetic compiled by drjit,
     numpy in and out: not the ONNX graph), or None without the `kernel` extra."""
     try:
-        from neumip.client.kernel import KernelMaterials
+        from neumip.client.kernel import KernelMaterials, namespace_of
     except ImportError:
         return None
+    if variant:  # that Mitsuba variant's arrays (drjit.cuda.ad for cuda_ad_rgb)
+        import mitsuba
+
+        return KernelMaterials(folder, namespace_of(mitsuba.Float))
     return KernelMaterials(folder)
 
 

@@ -154,7 +154,7 @@ def ratio_scenes(mi, material, args) -> dict:
     }
 
 
-def time_render(mi, scene, evaluator, spp: int, seed: int) -> tuple[float, float, float]:
+def time_render(mi, scene, evaluator, spp: int, seed: int, max_lanes: int) -> tuple[float, float, float]:
     """(wall seconds, CPU seconds of this process, seconds inside neural evaluation) of one render."""
     from neumip.client.mitsuba.render import RenderConfig, render_scene
 
@@ -163,18 +163,18 @@ def time_render(mi, scene, evaluator, spp: int, seed: int) -> tuple[float, float
         np.array(mi.render(scene, spp=spp, seed=seed))
         inside = 0.0
     else:
-        inside = render_scene(scene, evaluator, RenderConfig(spp=spp, seed=seed)).stats.seconds
+        inside = render_scene(scene, evaluator, RenderConfig(spp=spp, seed=seed, max_lanes=max_lanes)).stats.seconds
     return time.perf_counter() - start, time.process_time() - cpu, inside
 
 
 def ratios(args) -> None:
     from neumip.client.local import LocalMaterials
-    from neumip.client.kernel import KernelMaterials
+    from neumip.client.kernel import KernelMaterials, namespace_of
     from neumip.client.mitsuba.render import mi
 
     local = LocalMaterials(args.models)
     material = material_name(args)
-    evaluators = {"kernel": KernelMaterials(args.models), "local": local, "constant": ConstantEvaluator(material),
+    evaluators = {"kernel": KernelMaterials(args.models, namespace_of(mi.Float)), "local": local, "constant": ConstantEvaluator(material),
                   "constant kernel": ConstantKernel(material), None: None}
     scenes = {name: (mi.load_dict(scene), evaluators[ev])
               for name, (scene, ev) in ratio_scenes(mi, local.get(material), args).items()}
@@ -182,12 +182,12 @@ def ratios(args) -> None:
           f"{args.size}^2 px, {args.spp} spp, max_depth {args.max_depth}, rr_depth {args.rr_depth}; "
           f"median of {args.rounds} interleaved rounds   [{load_avg()}]", flush=True)
     for scene, evaluator in scenes.values():  # warm-up: compile (or load cached) kernels
-        time_render(mi, scene, evaluator, args.spp, 0)
+        time_render(mi, scene, evaluator, args.spp, 0, args.max_lanes)
     times = {name: [] for name in scenes}  # (wall, CPU) per round
     evaluation = {"kernel": [], "local": []}
     for r in range(args.rounds):
         for name, (scene, evaluator) in scenes.items():
-            wall, cpu, inside = time_render(mi, scene, evaluator, args.spp, r + 1)
+            wall, cpu, inside = time_render(mi, scene, evaluator, args.spp, r + 1, args.max_lanes)
             times[name].append((wall, cpu))
             for key, values in evaluation.items():
                 if evaluator is evaluators[key]:
@@ -251,7 +251,8 @@ def report(label: str, result, cpu: float) -> None:
 def demo(args) -> None:
     from neumip.client.http import MaterialClient
     from neumip.client.local import LocalMaterials
-    from neumip.client.kernel import KernelMaterials
+    from neumip.client.kernel import KernelMaterials, namespace_of
+    from neumip.client.mitsuba.render import mi
     from bench_server import Server  # this folder is on sys.path when run as a script
 
     with tempfile.TemporaryDirectory() as tmp:
@@ -259,7 +260,7 @@ def demo(args) -> None:
         local = LocalMaterials(models)
         print(f"## demo scene {SCENE.name}, {args.demo_size}^2, {args.demo_spp} spp; materials from {models}: "
               f"{', '.join(local.materials())}   [{load_avg()}]", flush=True)
-        kernel = KernelMaterials(models)
+        kernel = KernelMaterials(models, namespace_of(mi.Float))
         render_demo(kernel, args, args.demo_size, args.demo_spp)  # warm-up: compiles every kernel
         in_kernel, cpu_kernel = render_demo(kernel, args, args.demo_size, args.demo_spp)
         report("in-kernel", in_kernel, cpu_kernel)
@@ -311,7 +312,9 @@ def main() -> int:
     parser.add_argument("--demo-size", type=int, default=512, help="demo: image width and height")
     parser.add_argument("--demo-spp", type=int, default=64, help="demo: samples per pixel")
     parser.add_argument("--seed", type=int, default=0)
-    parser.add_argument("--max-lanes", type=int, default=2**21, help="demo: lanes per render pass")
+    parser.add_argument("--max-lanes", type=int, default=2**21,
+                        help="lanes per render pass of neumip_path (stock path renders in one pass); on a GPU, "
+                        "passes of 2^21 lanes leave it idle between them")
     parser.add_argument("--variant", help="Mitsuba variant of every render (default: the renderer's, llvm_ad_rgb; "
                         "cuda_ad_rgb on an NVIDIA GPU)")
     args = parser.parse_args()

@@ -40,9 +40,14 @@ import numpy as np
 
 from neumip.client import contract as C
 from neumip.client.local import ModelError, ModelFolder
-from neumip.client.mitsuba.runtime import ensure_llvm
+from neumip.client.mitsuba.runtime import MitsubaUnavailable, ensure_llvm, find_libllvm
 
-ensure_llvm()  # importing drjit loads libLLVM, and an LLVM older than 16 aborts the process
+try:
+    ensure_llvm()  # drjit's LLVM backend loads libLLVM, and one older than 16 aborts the process
+except MitsubaUnavailable:
+    if find_libllvm():  # only older ones here
+        raise
+    # none at all: drjit has no LLVM backend here (a CUDA one may still serve); an LLVM array says so
 try:
     import drjit as dr
 except ImportError as exc:
