@@ -170,12 +170,13 @@ class KernelMaterial:
             features = _blend(textures.offset, cfg.offset_channels,
                               *_taps(self.backend, _wrap(u), _wrap(v), cfg.resolution, 0))
             depth = self._mlp(features + list(wo), "offset_mlp")[0]  # offset_scale folded in
-            # sqrt(max(1 - (x^2 + y^2), min_cos^2)), the graph's order (`export._parallax`): near the
-            # horizon wo_z is a small difference, whose rounding the shift multiplies
-            r2 = wo[0] * wo[0] + wo[1] * wo[1]
-            wo_z = dr.sqrt(dr.maximum(1.0 - r2, float(np.float32(cfg.offset_min_cos) ** 2)))
-            shift = depth / wo_z
-            u, v = u + shift * wo[0], v + shift * wo[1]
+            # sqrt(max(1 - (x^2 + y^2), min_cos^2)), the graph's order and rounding (`export._parallax`):
+            # near the horizon wo_z is a small difference, whose rounding the shift multiplies
+            with dr.scoped_set_flag(dr.JitFlag.FastMath, False):  # GPU: sqrt.rn, div.rn, not approx
+                r2 = _product(wo[0], wo[0]) + _product(wo[1], wo[1])
+                wo_z = dr.sqrt(dr.maximum(1.0 - r2, float(np.float32(cfg.offset_min_cos) ** 2)))
+                shift = depth / wo_z
+            u, v = u + _product(shift, wo[0]), v + _product(shift, wo[1])
         features = self._lookup(textures, _wrap(u), _wrap(v), sigma)
         # decoder: inputs (features, wi_x, wi_y, wo_x, wo_y); the wi-free part of layer 0 is shared
         w0, b0 = self.weights["decoder.0.weight"], self.weights["decoder.0.bias"]
@@ -226,6 +227,17 @@ class KernelMaterial:
             yuv = _dense(out[:3], self.yuv_to_rgb.astype(np.float32), None)
             out = [(dr.exp(x) - 1.0) * m for x, m in zip(yuv, shadow)]
         return [dr.maximum(x, 0.0) for x in out]
+
+
+def _product(a: Float, b: Float) -> Float:
+    """a * b rounded on its own, as the ONNX graph rounds it, also where it is added to something next:
+    on the CUDA backend ptxas fuses a product and a following sum into one fma (drjit emits them
+    without a rounding mode), whose single rounding differs from ONNX Runtime's two. There the product
+    is an fma with 0 (kept: constant propagation off), which rounds like a product and is not fused."""
+    if dr.backend_v(a) != dr.JitBackend.CUDA:
+        return a * b
+    with dr.scoped_set_flag(dr.JitFlag.ConstantPropagation, False):
+        return dr.fma(a, b, 0.0)
 
 
 def _wrap(u: Float) -> Float:

@@ -5,6 +5,7 @@ render with it: tests/client/mitsuba/test_kernel_render.py)."""
 
 from __future__ import annotations
 
+import importlib
 import shutil
 from pathlib import Path
 
@@ -26,6 +27,14 @@ from neumip.training.export import build_onnx, random_weights, save_onnx  # noqa
 from neumip.training.trim import trim_model  # noqa: E402
 
 DATA = Path(__file__).resolve().parents[1] / "training" / "data"
+
+BACKENDS = [
+    pytest.param("drjit.llvm.ad", marks=pytest.mark.skipif(not dr.has_backend(dr.JitBackend.LLVM),
+                                                           reason="no drjit LLVM backend")),
+    pytest.param("drjit.cuda.ad", marks=pytest.mark.skipif(not dr.has_backend(dr.JitBackend.CUDA),
+                                                           reason="no CUDA device")),
+]
+"""The drjit backends the kernel may run on (the CUDA one where a GPU is: the renderer's cuda variants)."""
 
 
 def parity(a: np.ndarray, b: np.ndarray) -> float:
@@ -74,8 +83,10 @@ def layouts(tmp_path_factory):
     return folder
 
 
-def test_answers_match_onnx_runtime_for_every_layout(layouts):
-    kernel, local = KernelMaterials(layouts), LocalMaterials(layouts, threads=1)
+@pytest.mark.parametrize("backend", BACKENDS)
+def test_answers_match_onnx_runtime_for_every_layout(layouts, backend):
+    kernel = KernelMaterials(layouts, importlib.import_module(backend))
+    local = LocalMaterials(layouts, threads=1)
     assert kernel.materials() == local.materials()
     for name in kernel.materials():
         for lights in (1, 3):
@@ -93,8 +104,9 @@ def test_a_group_answers_each_light_as_its_single_query(layouts):
     np.testing.assert_array_equal(grouped, singles)
 
 
-def test_answers_do_not_depend_on_the_batch(layouts):
-    kernel = KernelMaterials(layouts)
+@pytest.mark.parametrize("backend", BACKENDS)
+def test_answers_do_not_depend_on_the_batch(layouts, backend):
+    kernel = KernelMaterials(layouts, importlib.import_module(backend))
     q = random_queries(3000, seed=7)
     whole = kernel.evaluate("offset64", q)
     cuts = [0, 1, 2, 3, 1000, 1997, 2994, 3000]
