@@ -7,6 +7,9 @@ from pathlib import Path
 
 from neumip.client.commands import DEFAULT_MODELS
 
+VARIANTS = ("llvm_ad_rgb", "cuda_ad_rgb")
+"""Mitsuba variants `neumip render` runs (`neumip_path` needs a JIT variant; the answers are RGB)."""
+
 
 def register(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser(
@@ -37,6 +40,9 @@ def register(sub: argparse._SubParsersAction) -> None:
                    "kernels (default), or its ONNX graph in ONNX Runtime (the server's engine)")
     p.add_argument("--threads", type=int, default=0,
                    help="ONNX Runtime evaluation threads in-process (0: all cores)")
+    p.add_argument("--variant", choices=VARIANTS, default=None,
+                   help="Mitsuba variant: llvm_ad_rgb (CPU, the default) or cuda_ad_rgb (an NVIDIA GPU; there "
+                   "larger passes keep it busy, e.g. --max-lanes 16777216, ~11 GB)")
     p.set_defaults(func=_render)
 
     b = sub.add_parser(
@@ -136,6 +142,8 @@ def _render(args: argparse.Namespace) -> int:
     if args.spp is not None and args.spp < 1:
         raise CommandError(f"--spp must be >= 1, got {args.spp}")
     try:
+        if args.variant:
+            _select_variant(args.variant)
         from . import render as R
     except MitsubaUnavailable as exc:
         raise CommandError(str(exc)) from exc
@@ -174,6 +182,23 @@ def _render(args: argparse.Namespace) -> int:
         f"{result.seconds:.1f} s total, {s.seconds:.1f} s neural evaluation, {s.queries:,} queries"
     )
     return 0
+
+
+def _select_variant(variant: str) -> None:
+    """Render with Mitsuba `variant` (before the renderer's plugins load, which keep a JIT variant
+    already set); raises MitsubaUnavailable if it cannot run here, CommandError if this process
+    already renders with another one."""
+    import sys
+
+    from neumip.client.cli import CommandError
+
+    from .runtime import import_mitsuba
+
+    loaded = sys.modules.get("neumip.client.mitsuba.bsdf")
+    if loaded is not None and loaded.mi.variant() != variant:
+        raise CommandError(f"this process already renders with Mitsuba variant {loaded.mi.variant()}, "
+                           f"not {variant}: run the command in a new process")
+    import_mitsuba(variant)
 
 
 def _evaluator(args: argparse.Namespace):

@@ -82,13 +82,20 @@ def ensure_llvm() -> str:
 
 
 def import_mitsuba(variant: str = DEFAULT_VARIANT):
-    """Check LLVM (for llvm variants), import mitsuba, set `variant`, return the module."""
+    """Check LLVM (for llvm variants) or a CUDA device (cuda variants), import mitsuba, set `variant`,
+    return the module."""
     if variant.startswith("llvm"):
         ensure_llvm()
     try:
         import mitsuba as mi
     except ImportError as exc:
         raise MitsubaUnavailable("mitsuba is not installed: pip install 'neumip[render]'") from exc
+    if variant.startswith("cuda"):
+        import drjit as dr
+
+        if not dr.has_backend(dr.JitBackend.CUDA):
+            raise MitsubaUnavailable(f"Mitsuba variant {variant} needs an NVIDIA GPU and its driver (libcuda): "
+                                     "drjit found no CUDA device here")
     if mi.variant() != variant:
         mi.set_variant(variant)
     return mi

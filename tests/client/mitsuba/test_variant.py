@@ -25,3 +25,25 @@ def test_plugins_keep_a_set_jit_variant(variant, expected):
     )
     assert out.returncode == 0, out.stderr[-2000:]
     assert out.stdout.split()[-1] == expected
+
+
+def test_render_variant_is_checked_before_it_is_set(tmp_path, capsys):
+    """`neumip render --variant`: a CUDA variant without a CUDA device is one clear line (a fresh
+    process, nothing set); another variant than the one this process already renders with is refused."""
+    import drjit as dr
+
+    from neumip.client import cli
+    from neumip.client.mitsuba.bsdf import mi
+
+    from .scenes import write_xml
+
+    if not dr.has_backend(dr.JitBackend.CUDA):
+        out = subprocess.run(
+            [sys.executable, "-m", "neumip.client.cli", "render", write_xml(tmp_path), "-o", str(tmp_path / "a.png"),
+             "--variant", "cuda_ad_rgb"], capture_output=True, text=True, timeout=120)
+        assert out.returncode == 2, out.stderr[-2000:]
+        assert "cuda_ad_rgb needs an NVIDIA GPU and its driver" in out.stderr
+        assert not (tmp_path / "a.png").exists()
+    other = "cuda_ad_rgb" if mi.variant() != "cuda_ad_rgb" else "llvm_ad_rgb"
+    assert cli.main(["render", write_xml(tmp_path), "-o", str(tmp_path / "b.png"), "--variant", other]) == 2
+    assert f"already renders with Mitsuba variant {mi.variant()}" in capsys.readouterr().err
