@@ -16,6 +16,9 @@ load (corrupt, half-written, another contract) never replaces a working model: t
 serving and the failure is logged; a material with no working model is kept in :attr:`failed` with
 its reason, so its ready endpoint can say no. A file that changes while it is read is not loaded.
 
+Engines. The materials load into the engine of ``NEUMIP_ENGINE`` (`neumip.server.engine`): ONNX
+Runtime sessions or drjit kernels; everything here holds for both.
+
 Memory. With ``NEUMIP_MEMORY_BUDGET_MB`` the least recently used materials are unloaded (they load
 again when asked for) while the loaded models' bytes exceed it; a material with a request in flight
 (`Registry.using`) is never unloaded, so the budget may be exceeded while every loaded material is
@@ -40,8 +43,9 @@ from pathlib import Path
 import numpy as np
 
 from neumip.client import contract as C
-from neumip.client.local import NAME_PATTERN, Material, ModelError, UnknownMaterial, load_material, run_chunked
+from neumip.client.local import NAME_PATTERN, Material, ModelError, UnknownMaterial
 
+from .engine import Engine
 from .errors import ApiError
 from .metrics import Metrics
 
@@ -105,8 +109,8 @@ class FileStamp:
 class RegistryConfig:
     """How the registry loads and keeps materials (from the server settings)."""
 
-    threads: int = 1
-    """Intra-op threads of each ONNX Runtime session."""
+    engine: Engine = field(default_factory=Engine.onnxruntime)
+    """What loads and evaluates the materials."""
     warmup_rows: int = 1024
     """Rows each material evaluates when it loads, before it serves."""
     lazy: bool = False
@@ -142,14 +146,15 @@ class Registry:
         self._failed_at: dict[str, FileStamp] = {}  # the file a failed material failed with
 
     @classmethod
-    def load(cls, folder: Path, threads: int = 1, warmup_rows: int = 1024, lazy: bool = False,
+    def load(cls, folder: Path, engine: Engine | None = None, warmup_rows: int = 1024, lazy: bool = False,
              memory_budget_bytes: int = 0, metrics: Metrics | None = None) -> "Registry":
         """List `folder` and (unless lazy) load and warm up every ``*.onnx`` in it (raises
         FileNotFoundError if the folder is missing)."""
         folder = Path(folder)
         if not folder.is_dir():
             raise FileNotFoundError(f"model folder {folder} does not exist")
-        registry = cls(folder, RegistryConfig(threads, warmup_rows, lazy, memory_budget_bytes), metrics)
+        config = RegistryConfig(engine or Engine.onnxruntime(), warmup_rows, lazy, memory_budget_bytes)
+        registry = cls(folder, config, metrics)
         registry._seen = registry._list()
         registry.files = {n: s for n, s in registry._seen.items() if s is not None}
         if not lazy:
@@ -256,10 +261,9 @@ class Registry:
             data = path.read_bytes()
             if FileStamp.of(path) != stamp or len(data) != stamp.size:
                 raise ModelError(f"{path.name} changed while it was read (still being written?)")
-            material = load_material(path, self.config.threads, data=data)
+            material = self.config.engine.load(path, data)
             if self.config.warmup_rows:
-                C.as_rgb(run_chunked(material.session, warmup_queries(self.config.warmup_rows)),
-                         self.config.warmup_rows)
+                C.as_rgb(material.run(warmup_queries(self.config.warmup_rows)), self.config.warmup_rows)
         except (ModelError, OSError) as exc:
             reason = str(exc)
         except Exception as exc:  # a model that loads but fails to run (bad graph, wrong shapes)
