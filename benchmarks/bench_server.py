@@ -23,7 +23,10 @@ base is the same engine, `KernelMaterials.evaluate` (one call at a time: drjit s
 every core). It prints only the throughput table, at ``--kernel-rows`` queries a request, for 1 and
 ``--clients-kernel`` concurrent clients (each its own kept-alive `MaterialClient`, as a renderer's
 evaluation threads would send); in process, the same queries are evaluated one request after another
-in this process. Server and client share this machine's cores.
+in this process. Server and client share this machine's cores; each measurement starts after a pause
+(`SETTLE_S`) in which both processes' drjit workers stop spinning. Beside each figure: the CPU time per
+request of this process (the client, or in-process evaluation) and of the server process (10 ms ticks:
+read them as medians of coarse samples), which says where the time goes.
 """
 
 from __future__ import annotations
@@ -108,6 +111,11 @@ class Server:
             if line.startswith("VmRSS:"):
                 return int(line.split()[1]) / 1024
         return float("nan")
+
+    def cpu_s(self) -> float:
+        """CPU seconds (user + system) the server process has used."""
+        fields = Path(f"/proc/{self.process.pid}/stat").read_text().rsplit(")", 1)[1].split()
+        return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
 
     def stop(self) -> int:
         self.process.send_signal(signal.SIGTERM)
@@ -273,6 +281,18 @@ def big_request(args, name, local, client, triton_client) -> None:
         print(f"{kind:12s} {statistics.median(ts):9.2f} {max(ts):6.2f}  {identical[kind]}")
 
 
+def process_cpu_s() -> float:
+    """CPU seconds (user + system) this process has used."""
+    times = os.times()
+    return times.user + times.system
+
+
+SETTLE_S = 0.1
+"""Pause before each kernel-engine measurement: drjit's worker threads spin for tens of milliseconds after
+a call before they sleep, so without it the in-process run would take CPU from the server run after it
+(this process's workers) and the server from the in-process run (the server's)."""
+
+
 def kernel_throughput(args, name, folder, server, pool) -> None:
     """The kernel engine: msgpack /v1 and v2 against in-process `KernelMaterials.evaluate`, plain queries
     and groups of two lights, 1 and ``--clients-kernel`` clients, in the same interleaved rounds."""
@@ -315,22 +335,27 @@ def kernel_throughput(args, name, folder, server, pool) -> None:
         for kind, (fn, clients, groups, _) in kinds.items():  # warm-up (traces the frozen calls)
             cached[clients, groups] = {r: requests(r, clients, groups) for r in range(-1, args.rounds)}
             fn(cached[clients, groups][-1])
-        times = {k: [] for k in kinds}
+        times, cpu = {k: [] for k in kinds}, {k: [] for k in kinds}
         for r in range(args.rounds):
             for kind, (fn, clients, groups, _) in kinds.items():
                 q = cached[clients, groups][r]
-                start = time.perf_counter()
+                time.sleep(SETTLE_S)
+                start, own, served = time.perf_counter(), process_cpu_s(), server.cpu_s()
                 fn(q)
                 times[kind].append(time.perf_counter() - start)
+                cpu[kind].append((process_cpu_s() - own, server.cpu_s() - served))
         print(f"\n## Kernel engine throughput, {n} queries (or groups of two lights: {2 * n} answers) per request, "
               f"xC: C clients at once ({args.rounds} interleaved rounds; load avg {os.getloadavg()[0]:.2f})")
-        print(f"{'path':34s} {'median ms':>10s} {'M answers/s':>12s} {'vs in-process':>14s}")
+        print(f"{'path':34s} {'median ms':>10s} {'M answers/s':>12s} {'vs in-process':>14s} "
+              f"{'CPU ms/request: client':>23s} {'server':>7s}")
         for kind, (_, clients, groups, base) in kinds.items():
             ts = times[kind]
             answers = n * clients * (2 if groups else 1)
             ratio = statistics.median(b / t for b, t in zip(times[base], ts))
             median = statistics.median(ts)
-            print(f"{kind:34s} {median * 1e3:10.1f} {answers / median / 1e6:12.3f} {ratio:13.0%}")
+            own, served = (statistics.median(c[i] for c in cpu[kind]) * 1e3 / clients for i in (0, 1))
+            print(f"{kind:34s} {median * 1e3:10.1f} {answers / median / 1e6:12.3f} {ratio:13.0%} "
+                  f"{own:23.1f} {served:7.1f}")
     for client in msgpack + v2:
         client.close()
     pool_threads.shutdown()
