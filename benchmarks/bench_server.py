@@ -20,13 +20,15 @@ ratio; read the load average printed with it.
 
 With ``--engine kernel`` the server runs ``NEUMIP_ENGINE=kernel`` (drjit LLVM kernels) and the in-process
 base is the same engine, `KernelMaterials.evaluate` (one call at a time: drjit spreads each call over
-every core). It prints only the throughput table, at ``--kernel-rows`` queries a request, for 1 and
+every core; in-process ONNX Runtime, `LocalMaterials`, is printed beside it for scale). It prints only
+the throughput table, at ``--kernel-rows`` queries a request, for 1 and
 ``--clients-kernel`` concurrent clients (each its own kept-alive `MaterialClient`, as a renderer's
 evaluation threads would send); in process, the same queries are evaluated one request after another
 in this process. Server and client share this machine's cores; each measurement starts after a pause
 (`SETTLE_S`) in which both processes' drjit workers stop spinning. Beside each figure: the CPU time per
-request of this process (the client, or in-process evaluation) and of the server process (10 ms ticks:
-read them as medians of coarse samples), which says where the time goes.
+request of this process (the client, or in-process evaluation) and of the server process, split into its
+main thread (the event loop: HTTP, decoding, encoding) and the others (the batcher's worker and drjit's
+pool); in 10 ms ticks, so read them as medians of coarse samples. They say where the time goes.
 """
 
 from __future__ import annotations
@@ -112,10 +114,21 @@ class Server:
                 return int(line.split()[1]) / 1024
         return float("nan")
 
-    def cpu_s(self) -> float:
-        """CPU seconds (user + system) the server process has used."""
-        fields = Path(f"/proc/{self.process.pid}/stat").read_text().rsplit(")", 1)[1].split()
-        return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
+    def cpu_s(self) -> tuple[float, float]:
+        """CPU seconds (user + system) the server's main thread (the event loop: HTTP, decoding,
+        encoding) and its other threads (the engine's workers, drjit's pool) have used."""
+        loop = other = 0.0
+        for task in Path(f"/proc/{self.process.pid}/task").iterdir():
+            try:
+                fields = (task / "stat").read_text().rsplit(")", 1)[1].split()
+            except OSError:  # a thread that ended meanwhile
+                continue
+            seconds = (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
+            if task.name == str(self.process.pid):
+                loop += seconds
+            else:
+                other += seconds
+        return loop, other
 
     def stop(self) -> int:
         self.process.send_signal(signal.SIGTERM)
@@ -287,6 +300,9 @@ def process_cpu_s() -> float:
     return times.user + times.system
 
 
+MEASURED_QUERIES = 1 << 20
+"""Queries per client in one kernel-engine measurement: smaller requests are sent several times back to
+back (a renderer's stream of bounces), so a measurement is not one cold call after the pause."""
 SETTLE_S = 0.1
 """Pause before each kernel-engine measurement: drjit's worker threads spin for tens of milliseconds after
 a call before they sleep, so without it the in-process run would take CPU from the server run after it
@@ -316,6 +332,12 @@ def kernel_throughput(args, name, folder, server, pool) -> None:
         for q in requests:
             kernel.evaluate(name, q)
 
+    local = LocalMaterials(folder)
+
+    def onnxruntime(requests) -> None:
+        for q in requests:
+            local.evaluate(name, q)
+
     for n in (int(r) for r in args.kernel_rows.split(",")):
         batches = [pool[i * n : (i + 1) * n] for i in range(len(pool) // n)]
         kinds = {}  # label: (evaluate a list of requests, how many at once, groups?, its in-process base)
@@ -324,6 +346,8 @@ def kernel_throughput(args, name, folder, server, pool) -> None:
             for clients in sorted({1, width}):
                 base = f"in-process x{clients}{tag}"
                 kinds[base] = (in_process, clients, groups, base)
+                if clients == 1:  # the ONNX Runtime engine in process, for scale
+                    kinds[f"in-process ONNX Runtime x1{tag}"] = (onnxruntime, 1, groups, base)
                 kinds[f"msgpack /v1 x{clients}{tag}"] = (lambda r, c=clients: at_once(msgpack[:c], r), clients, groups, base)
                 kinds[f"v2 binary x{clients}{tag}"] = (lambda r, c=clients: at_once(v2[:c], r), clients, groups, base)
 
@@ -331,31 +355,34 @@ def kernel_throughput(args, name, folder, server, pool) -> None:
             picked = [batches[(round_ + j) % len(batches)] for j in range(clients)]
             return [pairs(b) for b in picked] if groups else picked
 
+        repeat = max(1, MEASURED_QUERIES // n)  # request sets back to back in one measurement
         cached = {}
         for kind, (fn, clients, groups, _) in kinds.items():  # warm-up (traces the frozen calls)
-            cached[clients, groups] = {r: requests(r, clients, groups) for r in range(-1, args.rounds)}
+            cached[clients, groups] = {r: requests(r, clients, groups) for r in range(-1, repeat)}
             fn(cached[clients, groups][-1])
         times, cpu = {k: [] for k in kinds}, {k: [] for k in kinds}
         for r in range(args.rounds):
             for kind, (fn, clients, groups, _) in kinds.items():
-                q = cached[clients, groups][r]
                 time.sleep(SETTLE_S)
                 start, own, served = time.perf_counter(), process_cpu_s(), server.cpu_s()
-                fn(q)
-                times[kind].append(time.perf_counter() - start)
-                cpu[kind].append((process_cpu_s() - own, server.cpu_s() - served))
+                for j in range(repeat):
+                    fn(cached[clients, groups][(r + j) % repeat])
+                times[kind].append((time.perf_counter() - start) / repeat)
+                now = server.cpu_s()
+                cpu[kind].append([(process_cpu_s() - own) / repeat] + [(b - a) / repeat for a, b in zip(served, now)])
         print(f"\n## Kernel engine throughput, {n} queries (or groups of two lights: {2 * n} answers) per request, "
-              f"xC: C clients at once ({args.rounds} interleaved rounds; load avg {os.getloadavg()[0]:.2f})")
-        print(f"{'path':34s} {'median ms':>10s} {'M answers/s':>12s} {'vs in-process':>14s} "
-              f"{'CPU ms/request: client':>23s} {'server':>7s}")
+              f"xC: C clients at once, each sending {repeat} back to back per measurement ({args.rounds} interleaved "
+              f"rounds; load avg {os.getloadavg()[0]:.2f}); times per request set")
+        print(f"{'path':40s} {'median ms':>10s} {'M answers/s':>12s} {'vs in-process':>14s} "
+              f"{'CPU ms/request: client':>23s} {'server loop':>12s} {'engine':>7s}")
         for kind, (_, clients, groups, base) in kinds.items():
             ts = times[kind]
             answers = n * clients * (2 if groups else 1)
             ratio = statistics.median(b / t for b, t in zip(times[base], ts))
             median = statistics.median(ts)
-            own, served = (statistics.median(c[i] for c in cpu[kind]) * 1e3 / clients for i in (0, 1))
-            print(f"{kind:34s} {median * 1e3:10.1f} {answers / median / 1e6:12.3f} {ratio:13.0%} "
-                  f"{own:23.1f} {served:7.1f}")
+            own, loop, engine = (statistics.median(c[i] for c in cpu[kind]) * 1e3 / clients for i in range(3))
+            print(f"{kind:40s} {median * 1e3:10.1f} {answers / median / 1e6:12.3f} {ratio:13.0%} "
+                  f"{own:23.1f} {loop:12.1f} {engine:7.1f}")
     for client in msgpack + v2:
         client.close()
     pool_threads.shutdown()

@@ -53,7 +53,7 @@ class Settings(BaseSettings):
     chunk_rows: int = Field(8192, ge=1)
     """Most answers in one ONNX Runtime call (chunk_rows // K groups of K lights): large requests are
     split, small ones merged."""
-    kernel_chunk_rows: int = Field(65536, ge=1)
+    kernel_chunk_rows: int = Field(262144, ge=1)
     """Most answers in one call of the kernel engine (NEUMIP_ENGINE=kernel)."""
     max_wait_ms: float = Field(2.0, ge=0)
     """How long a batch that is not yet full waits for more rows while other requests are being decoded."""
