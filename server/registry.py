@@ -55,8 +55,9 @@ MODEL_VERSION = "1"
 """The one version of each material the server exposes (Open Inference Protocol model version)."""
 
 
-def warmup_queries(rows: int) -> np.ndarray:
-    """(rows, 7) float32 valid queries spread over the tile, all levels and a cone of directions."""
+def warmup_queries(rows: int, lights: int = 1) -> np.ndarray:
+    """(rows, 7) float32 valid queries spread over the tile, all levels and a cone of directions; with
+    ``lights`` > 1, (rows, 5 + 2 lights) query groups whose further lights are other rows' wi."""
     t = np.linspace(0.0, 1.0, rows, dtype=np.float32)
     queries = np.zeros((rows, C.QUERY_DIM), dtype=C.DTYPE)
     queries[:, C.U] = t
@@ -66,7 +67,8 @@ def warmup_queries(rows: int) -> np.ndarray:
     queries[:, C.WI_Y] = 0.7 * np.sin(7 * t)
     queries[:, C.WO_X] = 0.5 * np.sin(3 * t)
     queries[:, C.WO_Y] = 0.5 * np.cos(3 * t)
-    return queries
+    others = [np.roll(queries[:, C.WI_X:C.WI_Y + 1], j, axis=0) for j in range(1, lights)]
+    return np.ascontiguousarray(np.hstack([queries, *others])) if others else queries
 
 
 def without_folder(message: str, folder: Path) -> str:
@@ -112,7 +114,7 @@ class RegistryConfig:
     engine: Engine = field(default_factory=Engine.onnxruntime)
     """What loads and evaluates the materials."""
     warmup_rows: int = 1024
-    """Rows each material evaluates when it loads, before it serves."""
+    """Rows each material evaluates when it loads, before it serves (single queries, then groups of two)."""
     lazy: bool = False
     """Load a material on its first request instead of at start-up."""
     memory_budget_bytes: int = 0
@@ -262,8 +264,9 @@ class Registry:
             if FileStamp.of(path) != stamp or len(data) != stamp.size:
                 raise ModelError(f"{path.name} changed while it was read (still being written?)")
             material = self.config.engine.load(path, data)
-            if self.config.warmup_rows:
-                C.as_rgb(material.run(warmup_queries(self.config.warmup_rows)), self.config.warmup_rows)
+            rows = self.config.warmup_rows
+            for lights in (1, 2) if rows else ():  # the renderer's two shapes (the kernel engine traces each)
+                C.as_rgb(material.run(warmup_queries(rows, lights)), rows, lights)
         except (ModelError, OSError) as exc:
             reason = str(exc)
         except Exception as exc:  # a model that loads but fails to run (bad graph, wrong shapes)

@@ -86,7 +86,8 @@ class Settings(BaseSettings):
     poll_s: float = Field(2.0, ge=0)
     """Seconds between listings of the model folder (new, changed, deleted files); 0: only on request."""
     warmup_rows: int = Field(1024, ge=0)
-    """Rows each material evaluates at start-up, before the server reports ready."""
+    """Rows each material evaluates at start-up, before the server reports ready: as single queries and as
+    query groups of two lights, the shapes a renderer sends (the kernel engine compiles each once)."""
     graceful_shutdown_s: float = Field(10.0, ge=0)
     """Seconds uvicorn lets running requests finish after SIGTERM."""
 

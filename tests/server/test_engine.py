@@ -157,3 +157,16 @@ def test_the_memory_budget_unloads_the_least_recently_used(folder, tmp_path):
         registry.load_material(name).run(q)
     assert sorted(registry.materials) == ["a", "c"] and registry.resident_bytes() == 2 * size
     np.testing.assert_array_equal(registry.get("b").run(q), KernelMaterials(folder).evaluate("rand16", q))
+
+
+def test_loading_warms_up_the_shapes_a_renderer_sends(folder):
+    """A material is traced (and compiled) for single queries and groups of two lights when it loads,
+    so a renderer's first requests do not pay for it; other widths are traced on first use."""
+    registry = Registry.load(folder, Engine.kernel(), warmup_rows=16)
+    material = registry.materials["rand16"].session
+    assert material.traces == 2
+    for lights in (1, 2):
+        registry.materials["rand16"].run(groups_of(100, lights, seed=lights))
+    assert material.traces == 2
+    registry.materials["rand16"].run(groups_of(100, 3, seed=3))
+    assert material.traces == 3
