@@ -6,6 +6,7 @@ after the load.
 
     .venv/bin/python benchmarks/bench_server.py                    # about 2 minutes
     .venv/bin/python benchmarks/bench_server.py --model models/foo.onnx --rows 65536 --rounds 9
+    .venv/bin/python benchmarks/bench_server.py --engine kernel    # the kernel engine, throughput only
 
 Starts a real `neumip serve` process on 127.0.0.1 (default settings unless NEUMIP_* variables say
 otherwise) and talks to it from this process, so client-side encoding and decoding are part of every
@@ -16,6 +17,18 @@ exported file, e.g. one of `models/`. In-process = `LocalMaterials`
 with its defaults (a worker per core). Other jobs share this machine's cores: the throughput table
 interleaves in-process, msgpack and v2 round by round and reports medians and the median per-round
 ratio; read the load average printed with it.
+
+With ``--engine kernel`` the server runs ``NEUMIP_ENGINE=kernel`` (drjit LLVM kernels) and the in-process
+base is the same engine, `KernelMaterials.evaluate` (one call at a time: drjit spreads each call over
+every core; in-process ONNX Runtime, `LocalMaterials`, is printed beside it for scale). It prints only
+the throughput table, at ``--kernel-rows`` queries a request, for 1 and
+``--clients-kernel`` concurrent clients (each its own kept-alive `MaterialClient`, as a renderer's
+evaluation threads would send); in process, the same queries are evaluated one request after another
+in this process. Server and client share this machine's cores; each measurement starts after a pause
+(`SETTLE_S`) in which both processes' drjit workers stop spinning. Beside each figure: the CPU time per
+request of this process (the client, or in-process evaluation) and of the server process, split into its
+main thread (the event loop: HTTP, decoding, encoding) and the others (the batcher's worker and drjit's
+pool); in 10 ms ticks, so read them as medians of coarse samples. They say where the time goes.
 """
 
 from __future__ import annotations
@@ -50,6 +63,9 @@ def parse_args() -> argparse.Namespace:
     p.add_argument("--clients", default="1,4,16", help="concurrent clients of the latency runs")
     p.add_argument("--big", type=int, default=1_000_000, help="queries of the single large request")
     p.add_argument("--big-rounds", type=int, default=3, help="interleaved rounds of the large request")
+    p.add_argument("--engine", choices=("onnxruntime", "kernel"), default="onnxruntime", help="the server's engine")
+    p.add_argument("--kernel-rows", default="65536,262144", help="queries per request with --engine kernel")
+    p.add_argument("--clients-kernel", type=int, default=2, help="concurrent clients with --engine kernel")
     return p.parse_args()
 
 
@@ -73,13 +89,14 @@ def model_folder(args: argparse.Namespace, scratch: Path) -> tuple[Path, str]:
 class Server:
     """A `neumip serve` process on a free loopback port."""
 
-    def __init__(self, folder: Path, log: Path) -> None:
+    def __init__(self, folder: Path, log: Path, engine: str = "onnxruntime") -> None:
         with socket.socket() as s:
             s.bind(("127.0.0.1", 0))
             port = s.getsockname()[1]
         self.url = f"http://127.0.0.1:{port}"
         cmd = [sys.executable, "-m", "neumip.client.cli", "serve", "--port", str(port), "--model-dir", str(folder)]
-        self.process = subprocess.Popen(cmd, stdout=log.open("w"), stderr=subprocess.STDOUT)
+        env = {**os.environ, "NEUMIP_ENGINE": engine}
+        self.process = subprocess.Popen(cmd, stdout=log.open("w"), stderr=subprocess.STDOUT, env=env)
         deadline = time.monotonic() + 120
         while time.monotonic() < deadline:
             if self.process.poll() is not None:
@@ -96,6 +113,22 @@ class Server:
             if line.startswith("VmRSS:"):
                 return int(line.split()[1]) / 1024
         return float("nan")
+
+    def cpu_s(self) -> tuple[float, float]:
+        """CPU seconds (user + system) the server's main thread (the event loop: HTTP, decoding,
+        encoding) and its other threads (the engine's workers, drjit's pool) have used."""
+        loop = other = 0.0
+        for task in Path(f"/proc/{self.process.pid}/task").iterdir():
+            try:
+                fields = (task / "stat").read_text().rsplit(")", 1)[1].split()
+            except OSError:  # a thread that ended meanwhile
+                continue
+            seconds = (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
+            if task.name == str(self.process.pid):
+                loop += seconds
+            else:
+                other += seconds
+        return loop, other
 
     def stop(self) -> int:
         self.process.send_signal(signal.SIGTERM)
@@ -261,8 +294,113 @@ def big_request(args, name, local, client, triton_client) -> None:
         print(f"{kind:12s} {statistics.median(ts):9.2f} {max(ts):6.2f}  {identical[kind]}")
 
 
+def process_cpu_s() -> float:
+    """CPU seconds (user + system) this process has used."""
+    times = os.times()
+    return times.user + times.system
+
+
+MEASURED_QUERIES = 1 << 20
+"""Queries per client in one kernel-engine measurement: smaller requests are sent several times back to
+back (a renderer's stream of bounces), so a measurement is not one cold call after the pause."""
+SETTLE_S = 0.1
+"""Pause before each kernel-engine measurement: drjit's worker threads spin for tens of milliseconds after
+a call before they sleep, so without it the in-process run would take CPU from the server run after it
+(this process's workers) and the server from the in-process run (the server's)."""
+
+
+def kernel_throughput(args, name, folder, server, pool) -> None:
+    """The kernel engine: msgpack /v1 and v2 against in-process `KernelMaterials.evaluate`, plain queries
+    and groups of two lights, 1 and ``--clients-kernel`` clients, in the same interleaved rounds."""
+    from concurrent.futures import ThreadPoolExecutor
+
+    from neumip.client.kernel import KernelMaterials
+
+    kernel = KernelMaterials(folder)
+    config = ClientConfig(timeout_s=120)
+    width = args.clients_kernel
+    msgpack = [MaterialClient(server.url, config) for _ in range(width)]
+    v2 = [MaterialClient(server.url, config, protocol="v2") for _ in range(width)]
+    pool_threads = ThreadPoolExecutor(width)
+
+    def at_once(clients, requests) -> None:
+        """Each client sends its request; all at the same time."""
+        for future in [pool_threads.submit(c.evaluate, name, q) for c, q in zip(clients, requests)]:
+            future.result()
+
+    def in_process(requests) -> None:
+        for q in requests:
+            kernel.evaluate(name, q)
+
+    local = LocalMaterials(folder)
+
+    def onnxruntime(requests) -> None:
+        for q in requests:
+            local.evaluate(name, q)
+
+    for n in (int(r) for r in args.kernel_rows.split(",")):
+        batches = [pool[i * n : (i + 1) * n] for i in range(len(pool) // n)]
+        kinds = {}  # label: (evaluate a list of requests, how many at once, groups?, its in-process base)
+        for groups in (False, True):
+            tag = ", groups of 2" if groups else ""
+            for clients in sorted({1, width}):
+                base = f"in-process x{clients}{tag}"
+                kinds[base] = (in_process, clients, groups, base)
+                if clients == 1:  # the ONNX Runtime engine in process, for scale
+                    kinds[f"in-process ONNX Runtime x1{tag}"] = (onnxruntime, 1, groups, base)
+                kinds[f"msgpack /v1 x{clients}{tag}"] = (lambda r, c=clients: at_once(msgpack[:c], r), clients, groups, base)
+                kinds[f"v2 binary x{clients}{tag}"] = (lambda r, c=clients: at_once(v2[:c], r), clients, groups, base)
+
+        def requests(round_: int, clients: int, groups: bool) -> list[np.ndarray]:
+            picked = [batches[(round_ + j) % len(batches)] for j in range(clients)]
+            return [pairs(b) for b in picked] if groups else picked
+
+        repeat = max(1, MEASURED_QUERIES // n)  # request sets back to back in one measurement
+        cached = {}
+        for kind, (fn, clients, groups, _) in kinds.items():  # warm-up (traces the frozen calls)
+            cached[clients, groups] = {r: requests(r, clients, groups) for r in range(-1, repeat)}
+            fn(cached[clients, groups][-1])
+        times, cpu = {k: [] for k in kinds}, {k: [] for k in kinds}
+        for r in range(args.rounds):
+            for kind, (fn, clients, groups, _) in kinds.items():
+                time.sleep(SETTLE_S)
+                start, own, served = time.perf_counter(), process_cpu_s(), server.cpu_s()
+                for j in range(repeat):
+                    fn(cached[clients, groups][(r + j) % repeat])
+                times[kind].append((time.perf_counter() - start) / repeat)
+                now = server.cpu_s()
+                cpu[kind].append([(process_cpu_s() - own) / repeat] + [(b - a) / repeat for a, b in zip(served, now)])
+        print(f"\n## Kernel engine throughput, {n} queries (or groups of two lights: {2 * n} answers) per request, "
+              f"xC: C clients at once, each sending {repeat} back to back per measurement ({args.rounds} interleaved "
+              f"rounds; load avg {os.getloadavg()[0]:.2f}); times per request set")
+        print(f"{'path':40s} {'median ms':>10s} {'M answers/s':>12s} {'vs in-process':>14s} "
+              f"{'CPU ms/request: client':>23s} {'server loop':>12s} {'engine':>7s}")
+        for kind, (_, clients, groups, base) in kinds.items():
+            ts = times[kind]
+            answers = n * clients * (2 if groups else 1)
+            ratio = statistics.median(b / t for b, t in zip(times[base], ts))
+            median = statistics.median(ts)
+            own, loop, engine = (statistics.median(c[i] for c in cpu[kind]) * 1e3 / clients for i in range(3))
+            print(f"{kind:40s} {median * 1e3:10.1f} {answers / median / 1e6:12.3f} {ratio:13.0%} "
+                  f"{own:23.1f} {loop:12.1f} {engine:7.1f}")
+    for client in msgpack + v2:
+        client.close()
+    pool_threads.shutdown()
+
+
 def main() -> None:
     args = parse_args()
+    if args.engine == "kernel":
+        with tempfile.TemporaryDirectory() as scratch:
+            folder, name = model_folder(args, Path(scratch))
+            print(f"model {name} ({folder / (name + '.onnx')}), {os.cpu_count()} CPUs, server engine kernel")
+            server = Server(folder, Path(scratch) / "server.log", engine="kernel")
+            try:
+                pool = C.random_queries(max(max(int(r) for r in args.kernel_rows.split(",")) * 4, 1 << 18))
+                kernel_throughput(args, name, folder, server, pool)
+            finally:
+                print(f"server stopped with SIGTERM, exit status {server.stop()}")
+        return
     import tritonclient.http as triton
 
     with tempfile.TemporaryDirectory() as scratch:

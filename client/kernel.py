@@ -50,8 +50,9 @@ except MitsubaUnavailable:
     # none at all: drjit has no LLVM backend here (a CUDA one may still serve); an LLVM array says so
 try:
     import drjit as dr
+    import onnx
 except ImportError as exc:
-    raise ImportError("drjit is not installed: pip install 'neumip[kernel]'") from exc
+    raise ImportError(f"{exc.name or exc} is not installed: pip install 'neumip[kernel]'") from exc
 
 log = logging.getLogger(__name__)
 
@@ -90,16 +91,18 @@ class Textures:
 class KernelMaterial:
     """One material's weights, ready to be traced: `answers` writes its arithmetic on drjit arrays."""
 
-    def __init__(self, path: str | Path, backend: ModuleType | None = None) -> None:
-        import onnx  # the `kernel` extra
-
+    def __init__(self, path: str | Path, backend: ModuleType | None = None, data: bytes | None = None) -> None:
+        """Read the model file `path` (from `data`, its bytes already read, if given); raises
+        ModelError if it cannot be served. `backend`: drjit namespace of the arrays (default
+        ``drjit.llvm.ad``)."""
         from neumip.training import head
         from neumip.training.export import _depth_weights
         from neumip.training.export_read import ModelLayoutError, read_model
 
         path = Path(path)
         try:
-            self.config, self.weights, self.metadata, self.finest = read_model(onnx.load(str(path)))
+            model = onnx.load_model_from_string(data) if data is not None else onnx.load(str(path))
+            self.config, self.weights, self.metadata, self.finest = read_model(model)
         except OSError as exc:
             raise ModelError(f"{path.name}: cannot read: {exc.strerror or exc}") from exc
         except ModelLayoutError as exc:
@@ -156,6 +159,25 @@ class KernelMaterial:
                 if collecting:
                     gc.enable()
         return [flat[j * C.RGB_DIM:(j + 1) * C.RGB_DIM] for j in range(len(lights))]
+
+    def evaluate(self, queries: np.ndarray) -> np.ndarray:
+        """(N, 7) queries -> (N, 3) float32 RGB; query groups (N, 5 + 2 K) -> (N, 3 K) (checked:
+        `contract.as_queries`)."""
+        jit = self.backend
+        queries = C.as_queries(queries, groups=True)
+        if not len(queries):
+            return np.zeros((0, C.RGB_DIM * C.group_lights(queries.shape[1])), C.DTYPE)
+        # one upload, then the columns gathered in drjit memory (columns made from numpy arrays each
+        # made the frozen trace record again, call after call)
+        flat, width = jit.Float(queries.reshape(-1)), queries.shape[1]
+        row = dr.arange(jit.UInt32, len(queries)) * width
+        columns = [dr.gather(jit.Float, flat, row + i) for i in range(width)]
+        lights = [(columns[C.WI_X], columns[C.WI_Y])]
+        lights += [(columns[i], columns[i + 1]) for i in range(C.QUERY_DIM, queries.shape[1], 2)]
+        rgb = [c for answer in self.answers(columns[C.U], columns[C.V], columns[C.SIGMA],
+                                            (columns[C.WO_X], columns[C.WO_Y]), lights) for c in answer]
+        dr.eval(rgb)
+        return np.stack([np.asarray(c) for c in rgb], axis=1)
 
     # --- the material's stages (drjit arrays in, drjit arrays out) --------------------------------
 
@@ -313,18 +335,4 @@ class KernelMaterials:
 
     def evaluate(self, material: str, queries: np.ndarray) -> np.ndarray:
         """(N, 7) queries -> (N, 3) float32 RGB; query groups (N, 5 + 2 K) -> (N, 3 K)."""
-        mat, jit = self.kernel(material), self.backend
-        queries = C.as_queries(queries, groups=True)
-        if not len(queries):
-            return np.zeros((0, C.RGB_DIM * C.group_lights(queries.shape[1])), C.DTYPE)
-        # one upload, then the columns gathered in drjit memory (columns made from numpy arrays each
-        # made the frozen trace record again, call after call)
-        flat, width = jit.Float(queries.reshape(-1)), queries.shape[1]
-        row = dr.arange(jit.UInt32, len(queries)) * width
-        columns = [dr.gather(jit.Float, flat, row + i) for i in range(width)]
-        lights = [(columns[C.WI_X], columns[C.WI_Y])]
-        lights += [(columns[i], columns[i + 1]) for i in range(C.QUERY_DIM, queries.shape[1], 2)]
-        rgb = [c for answer in mat.answers(columns[C.U], columns[C.V], columns[C.SIGMA],
-                                           (columns[C.WO_X], columns[C.WO_Y]), lights) for c in answer]
-        dr.eval(rgb)
-        return np.stack([np.asarray(c) for c in rgb], axis=1)
+        return self.kernel(material).evaluate(queries)

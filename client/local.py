@@ -86,6 +86,10 @@ class Material:
     def config(self) -> dict:
         return json.loads(self.metadata.get(C.META_CONFIG, "{}"))
 
+    def run(self, queries: np.ndarray) -> np.ndarray:
+        """One call: validated (n, 5 + 2 K) float32 queries -> (n, 3 K) float32 RGB (`run_call`)."""
+        return run_call(self.session, queries, self.groups)
+
     def info(self) -> dict:
         """What a listing shows of this material."""
         validation = self.metadata.get(C.META_VALIDATION)

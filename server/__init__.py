@@ -1,1 +1,1 @@
-"""neumip.server: the FastAPI + ONNX Runtime batch-inference service."""
+"""neumip.server: the FastAPI batch-inference service (ONNX Runtime, or drjit kernels: `engine`)."""

@@ -16,6 +16,7 @@ from fastapi import Depends, FastAPI, Response
 
 from .admission import Admission
 from .batching import Batcher
+from .engine import Engine
 from .errors import install_error_handlers
 from .metrics import Metrics, MetricsMiddleware
 from .registry import Registry
@@ -32,10 +33,10 @@ async def lifespan(app: FastAPI):
     state: ServerState = app.state.neumip
     settings = state.settings
     registry = await asyncio.to_thread(
-        Registry.load, settings.model_dir, settings.ort_threads, settings.warmup_rows, settings.load == "lazy",
+        Registry.load, settings.model_dir, state.engine, settings.warmup_rows, settings.load == "lazy",
         int(settings.memory_budget_mb * 2**20), state.metrics,
     )
-    batcher = Batcher(registry.materials, settings, state.metrics)
+    batcher = Batcher(registry.materials, settings, state.metrics, state.engine)
     batcher.start()
     state.registry, state.batcher, state.started = registry, batcher, True
     if not registry.names():
@@ -62,8 +63,10 @@ async def follow_folder(registry: Registry, interval_s: float) -> None:
 
 
 def create_app(settings: Settings | None = None) -> FastAPI:
-    """A new server app; `settings` default to the ``NEUMIP_*`` environment."""
+    """A new server app; `settings` default to the ``NEUMIP_*`` environment. Raises EngineUnavailable
+    if ``NEUMIP_ENGINE`` cannot run here."""
     settings = settings or Settings()
+    engine = Engine.from_settings(settings)
     metrics = Metrics()
     app = FastAPI(
         title="neumip inference server",
@@ -71,7 +74,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
                 "(N, 5 + 2K) -> (N, 3K)",
         lifespan=lifespan,
     )
-    app.state.neumip = ServerState(settings, metrics, Admission(settings, metrics))
+    app.state.neumip = ServerState(settings, metrics, Admission(settings, metrics), engine)
     install_error_handlers(app)
     app.add_middleware(MetricsMiddleware, metrics=metrics)
     app.include_router(v1.router)

@@ -1,17 +1,18 @@
 """Dynamic batching: decode -> **batch** -> **predict** -> **unbatch** -> encode.
 
 Handlers decode and validate a request, then `Batcher.evaluate` cuts its (N, 7) queries, or (N, 5 + 2 K)
-query groups, into pieces of at most ``chunk_rows`` answers (``chunk_rows // K`` groups; large requests
-are split: one ONNX Runtime call on 10^6 rows is several times slower than the same rows in cache-sized
-chunks) and queues them. A pool of worker threads, one per ONNX Runtime worker (default: one per core),
-is the executor: each worker takes the oldest queued pieces of one material and width, merging
+query groups, into pieces of at most the engine's ``chunk_rows`` answers (``chunk_rows // K`` groups;
+large requests are split: one ONNX Runtime call on 10^6 rows is several times slower than the same rows
+in cache-sized chunks) and queues them. A pool of worker threads, the engine's ``workers`` (ONNX
+Runtime: one per core by default; the drjit kernel engine: one, each call using every core), is the
+executor: each worker takes the oldest queued pieces of one material and width, merging
 consecutive small ones into one call of up to ``chunk_rows`` answers and
 waiting at most ``max_wait_ms`` (counted from the oldest piece's arrival) for a call to fill - only
 while other requests are being decoded (`Batcher.receiving`), never for a body still arriving: a lone
 request, or the tail of a lone large one, runs at once - then runs the call and copies each piece's
 rows back. Workers pull work themselves, so consecutive chunks of a large request run back to back
 without a round trip through the event loop; the loop hears back once per request. `predict` is the
-only function that touches ONNX Runtime.
+only function that touches the engine (`neumip.server.engine`).
 
 Answers are checked: a model that answers NaN or Inf for some row fails that request with a 500
 naming the material (counted in ``neumip_nonfinite_answers_total``), never a silent NaN.
@@ -22,8 +23,8 @@ before query groups (input width fixed to 7) gets the single queries of a group
 
 Merging and splitting keep answers bit-identical to evaluating each request on its own, in one call or
 in process (`neumip.client.local`): the exported graph answers a row with the same bits wherever it
-sits in a call and however many rows the call has (`neumip.training.export`), so pieces go into
-calls in any cut.
+sits in a call and however many rows the call has (`neumip.training.export`), and so does the kernel
+engine (each row is computed alone), so pieces go into calls in any cut.
 
 How many rows may be queued is decided before a request gets here (`neumip.server.admission`).
 """
@@ -43,8 +44,9 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from neumip.client import contract as C
-from neumip.client.local import Material, run_call
+from neumip.client.local import Material
 
+from .engine import Engine
 from .errors import ApiError
 from .metrics import Metrics
 from .model_stats import ModelStats
@@ -54,9 +56,9 @@ log = logging.getLogger(__name__)
 
 
 def predict(material: Material, queries: np.ndarray) -> np.ndarray:
-    """One ONNX Runtime call: (n, 5 + 2 K) float32 contiguous queries -> (n, 3 K) float32 RGB (a graph
-    exported before query groups gets the n K single queries, `run_call`)."""
-    return run_call(material.session, queries, material.groups)
+    """One engine call: (n, 5 + 2 K) float32 contiguous queries -> (n, 3 K) float32 RGB (`Material.run`:
+    an ONNX graph exported before query groups gets the n K single queries, `run_call`)."""
+    return material.run(queries)
 
 
 @dataclass
@@ -159,13 +161,16 @@ def first_nonfinite(piece: _Piece) -> str | None:
 
 
 class Batcher:
-    """Batches evaluation requests onto ONNX Runtime sessions (see the module docstring)."""
+    """Batches evaluation requests onto the engine's materials (see the module docstring)."""
 
-    def __init__(self, materials: dict[str, Material], settings: Settings, metrics: Metrics) -> None:
+    def __init__(self, materials: dict[str, Material], settings: Settings, metrics: Metrics,
+                 engine: Engine | None = None) -> None:
         self.settings = settings
         self.metrics = metrics
+        self.engine = engine or Engine.from_settings(settings)
         self.stats = ModelStats()  # per-material statistics in Triton's shape (GET /v2/models/{name}/stats)
-        self.workers = settings.workers()
+        self.workers = self.engine.workers
+        self.chunk_rows = self.engine.chunk_rows
         self._materials = materials  # name -> Material, read at submit (a registry may change it)
         # one queue per loaded model object and query width while it has pieces: a swapped model's
         # queued pieces still run on the model they were submitted to, a drained queue lets its model
@@ -183,13 +188,14 @@ class Batcher:
         """Start the worker threads (call inside the running event loop that awaits answers)."""
         self._loop = asyncio.get_running_loop()
         self._threads = [
-            threading.Thread(target=self._work, name=f"onnxruntime-{i}", daemon=True) for i in range(self.workers)
+            threading.Thread(target=self._work, name=f"{self.engine.name}-{i}", daemon=True)
+            for i in range(self.workers)
         ]
         for thread in self._threads:
             thread.start()
         log.info(
-            "batcher: %d ONNX Runtime worker(s), chunks of %d rows, merge wait %.1f ms",
-            self.workers, self.settings.chunk_rows, self.settings.max_wait_ms,
+            "batcher: %d %s worker(s), chunks of %d rows, merge wait %.1f ms",
+            self.workers, self.engine.name, self.chunk_rows, self.settings.max_wait_ms,
         )
 
     async def close(self) -> None:
@@ -247,7 +253,7 @@ class Batcher:
         if n == 0:
             job.future.set_result(out)
         material = material or self._materials[name]
-        chunk = group_chunk(self.settings.chunk_rows, width)
+        chunk = group_chunk(self.chunk_rows, width)
         pieces = split(queries, out, chunk, job)
         now = time.monotonic()
         with self._cond:
@@ -320,7 +326,7 @@ class Batcher:
             try:
                 rows = run_batch(material, batch)
             except Exception as exc:  # a model fault: every request in the batch fails with it
-                log.exception("ONNX Runtime failed on material %s", material.name)
+                log.exception("%s failed on material %s", self.engine.name, material.name)
                 error = ApiError(500, f"evaluating material {material.name!r} failed: {exc}")
             else:
                 self.metrics.predict_seconds.observe(time.perf_counter() - start)

@@ -15,6 +15,10 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--host", help="address to bind (NEUMIP_HOST, default 127.0.0.1)")
     p.add_argument("--port", type=int, help="TCP port (NEUMIP_PORT, default 8000)")
     p.add_argument("--model-dir", help="folder of .onnx materials (NEUMIP_MODEL_DIR, default models)")
+    p.add_argument("--engine", choices=("onnxruntime", "kernel"),
+                   help="what evaluates the materials (NEUMIP_ENGINE, default onnxruntime): the file's graph in "
+                   "ONNX Runtime, or its weights as drjit LLVM kernels, the renderer's in-process engine "
+                   "(pip install 'neumip[kernel]')")
     p.add_argument("--list-settings", action="store_true", help="print every NEUMIP_* setting and exit")
     p.set_defaults(func=serve)
     register_export_repository(sub)
@@ -28,7 +32,7 @@ def serve(args: argparse.Namespace) -> int:
 
         print(Settings.describe())
         return 0
-    overrides = {"host": args.host, "port": args.port, "model_dir": args.model_dir}
+    overrides = {"host": args.host, "port": args.port, "model_dir": args.model_dir, "engine": args.engine}
     return run({k: v for k, v in overrides.items() if v is not None})
 
 

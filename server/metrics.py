@@ -40,14 +40,14 @@ class Metrics:
             "neumip_request_rows", "Query rows per evaluation request", buckets=ROW_BUCKETS, registry=r
         )
         self.batch_rows = Histogram(
-            "neumip_batch_rows", "Rows per ONNX Runtime call", buckets=ROW_BUCKETS, registry=r
+            "neumip_batch_rows", "Rows per engine call", buckets=ROW_BUCKETS, registry=r
         )
         self.batch_requests = Histogram(
-            "neumip_batch_requests", "Request pieces merged into one ONNX Runtime call",
+            "neumip_batch_requests", "Request pieces merged into one engine call",
             buckets=(1, 2, 4, 8, 16, 32, 64, 128), registry=r,
         )
         self.predict_seconds = Histogram(
-            "neumip_predict_seconds", "Time of one ONNX Runtime call", buckets=LATENCY_BUCKETS, registry=r
+            "neumip_predict_seconds", "Time of one engine call", buckets=LATENCY_BUCKETS, registry=r
         )
         self.queue_rows = Gauge("neumip_queue_rows", "Rows admitted and not yet answered", registry=r)
         self.queue_requests = Gauge(

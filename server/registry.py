@@ -16,6 +16,9 @@ load (corrupt, half-written, another contract) never replaces a working model: t
 serving and the failure is logged; a material with no working model is kept in :attr:`failed` with
 its reason, so its ready endpoint can say no. A file that changes while it is read is not loaded.
 
+Engines. The materials load into the engine of ``NEUMIP_ENGINE`` (`neumip.server.engine`): ONNX
+Runtime sessions or drjit kernels; everything here holds for both.
+
 Memory. With ``NEUMIP_MEMORY_BUDGET_MB`` the least recently used materials are unloaded (they load
 again when asked for) while the loaded models' bytes exceed it; a material with a request in flight
 (`Registry.using`) is never unloaded, so the budget may be exceeded while every loaded material is
@@ -40,8 +43,9 @@ from pathlib import Path
 import numpy as np
 
 from neumip.client import contract as C
-from neumip.client.local import NAME_PATTERN, Material, ModelError, UnknownMaterial, load_material, run_chunked
+from neumip.client.local import NAME_PATTERN, Material, ModelError, UnknownMaterial
 
+from .engine import Engine
 from .errors import ApiError
 from .metrics import Metrics
 
@@ -51,8 +55,9 @@ MODEL_VERSION = "1"
 """The one version of each material the server exposes (Open Inference Protocol model version)."""
 
 
-def warmup_queries(rows: int) -> np.ndarray:
-    """(rows, 7) float32 valid queries spread over the tile, all levels and a cone of directions."""
+def warmup_queries(rows: int, lights: int = 1) -> np.ndarray:
+    """(rows, 7) float32 valid queries spread over the tile, all levels and a cone of directions; with
+    ``lights`` > 1, (rows, 5 + 2 lights) query groups whose further lights are other rows' wi."""
     t = np.linspace(0.0, 1.0, rows, dtype=np.float32)
     queries = np.zeros((rows, C.QUERY_DIM), dtype=C.DTYPE)
     queries[:, C.U] = t
@@ -62,7 +67,8 @@ def warmup_queries(rows: int) -> np.ndarray:
     queries[:, C.WI_Y] = 0.7 * np.sin(7 * t)
     queries[:, C.WO_X] = 0.5 * np.sin(3 * t)
     queries[:, C.WO_Y] = 0.5 * np.cos(3 * t)
-    return queries
+    others = [np.roll(queries[:, C.WI_X:C.WI_Y + 1], j, axis=0) for j in range(1, lights)]
+    return np.ascontiguousarray(np.hstack([queries, *others])) if others else queries
 
 
 def without_folder(message: str, folder: Path) -> str:
@@ -105,10 +111,10 @@ class FileStamp:
 class RegistryConfig:
     """How the registry loads and keeps materials (from the server settings)."""
 
-    threads: int = 1
-    """Intra-op threads of each ONNX Runtime session."""
+    engine: Engine = field(default_factory=Engine.onnxruntime)
+    """What loads and evaluates the materials."""
     warmup_rows: int = 1024
-    """Rows each material evaluates when it loads, before it serves."""
+    """Rows each material evaluates when it loads, before it serves (single queries, then groups of two)."""
     lazy: bool = False
     """Load a material on its first request instead of at start-up."""
     memory_budget_bytes: int = 0
@@ -142,14 +148,15 @@ class Registry:
         self._failed_at: dict[str, FileStamp] = {}  # the file a failed material failed with
 
     @classmethod
-    def load(cls, folder: Path, threads: int = 1, warmup_rows: int = 1024, lazy: bool = False,
+    def load(cls, folder: Path, engine: Engine | None = None, warmup_rows: int = 1024, lazy: bool = False,
              memory_budget_bytes: int = 0, metrics: Metrics | None = None) -> "Registry":
         """List `folder` and (unless lazy) load and warm up every ``*.onnx`` in it (raises
         FileNotFoundError if the folder is missing)."""
         folder = Path(folder)
         if not folder.is_dir():
             raise FileNotFoundError(f"model folder {folder} does not exist")
-        registry = cls(folder, RegistryConfig(threads, warmup_rows, lazy, memory_budget_bytes), metrics)
+        config = RegistryConfig(engine or Engine.onnxruntime(), warmup_rows, lazy, memory_budget_bytes)
+        registry = cls(folder, config, metrics)
         registry._seen = registry._list()
         registry.files = {n: s for n, s in registry._seen.items() if s is not None}
         if not lazy:
@@ -256,10 +263,10 @@ class Registry:
             data = path.read_bytes()
             if FileStamp.of(path) != stamp or len(data) != stamp.size:
                 raise ModelError(f"{path.name} changed while it was read (still being written?)")
-            material = load_material(path, self.config.threads, data=data)
-            if self.config.warmup_rows:
-                C.as_rgb(run_chunked(material.session, warmup_queries(self.config.warmup_rows)),
-                         self.config.warmup_rows)
+            material = self.config.engine.load(path, data)
+            rows = self.config.warmup_rows
+            for lights in (1, 2) if rows else ():  # the renderer's two shapes (the kernel engine traces each)
+                C.as_rgb(material.run(warmup_queries(rows, lights)), rows, lights)
         except (ModelError, OSError) as exc:
             reason = str(exc)
         except Exception as exc:  # a model that loads but fails to run (bad graph, wrong shapes)

@@ -42,6 +42,10 @@ class Settings(BaseSettings):
     log_level: str = "info"
     """Log level of the server and uvicorn (debug, info, warning, error)."""
 
+    engine: Literal["onnxruntime", "kernel"] = "onnxruntime"
+    """What evaluates the materials: onnxruntime (the file's graph in ONNX Runtime sessions) or kernel (the
+    file's weights as drjit LLVM kernels, the renderer's in-process engine: one call at a time over every
+    core; needs pip install 'neumip[kernel]')."""
     ort_workers: int = Field(0, ge=0)
     """Concurrent ONNX Runtime calls (threads of the dedicated executor); 0 = one per core."""
     ort_threads: int = Field(1, ge=0)
@@ -49,6 +53,8 @@ class Settings(BaseSettings):
     chunk_rows: int = Field(8192, ge=1)
     """Most answers in one ONNX Runtime call (chunk_rows // K groups of K lights): large requests are
     split, small ones merged."""
+    kernel_chunk_rows: int = Field(262144, ge=1)
+    """Most answers in one call of the kernel engine (NEUMIP_ENGINE=kernel)."""
     max_wait_ms: float = Field(2.0, ge=0)
     """How long a batch that is not yet full waits for more rows while other requests are being decoded."""
     max_rows: int = Field(2_000_000, ge=1)
@@ -80,7 +86,8 @@ class Settings(BaseSettings):
     poll_s: float = Field(2.0, ge=0)
     """Seconds between listings of the model folder (new, changed, deleted files); 0: only on request."""
     warmup_rows: int = Field(1024, ge=0)
-    """Rows each material evaluates at start-up, before the server reports ready."""
+    """Rows each material evaluates at start-up, before the server reports ready: as single queries and as
+    query groups of two lights, the shapes a renderer sends (the kernel engine compiles each once)."""
     graceful_shutdown_s: float = Field(10.0, ge=0)
     """Seconds uvicorn lets running requests finish after SIGTERM."""
 

@@ -11,6 +11,7 @@ from fastapi import Request
 
 from .admission import Admission
 from .batching import Batcher
+from .engine import Engine
 from .errors import ApiError
 from .metrics import Metrics
 from .registry import Registry
@@ -27,10 +28,12 @@ class ServerState:
     """Prometheus collectors of this app."""
     admission: Admission
     """The budgets of body memory and queued rows that requests reserve from."""
+    engine: Engine
+    """What loads and evaluates the materials (``NEUMIP_ENGINE``)."""
     registry: Registry | None = None
     """Loaded materials; None until start-up has loaded them."""
     batcher: Batcher | None = None
-    """The batching queue in front of ONNX Runtime; None until start-up."""
+    """The batching queue in front of the engine; None until start-up."""
     started: bool = False
     """Start-up (load and warm-up) finished and shutdown has not begun."""
 

@@ -49,10 +49,11 @@ def run(overrides: dict) -> int:
         raise ServeError(f"invalid server settings: {exc}") from exc
     if not settings.model_dir.is_dir():
         raise ServeError(f"model folder {settings.model_dir} does not exist (set --model-dir or NEUMIP_MODEL_DIR)")
+    app = create_app(settings)  # EngineUnavailable (one line) if NEUMIP_ENGINE cannot run here
     sock = listen(settings.host, settings.port)
     logging.getLogger().setLevel(settings.log_level.upper())
     config = uvicorn.Config(
-        create_app(settings),
+        app,
         host=settings.host,
         port=settings.port,
         http=protocol_class(settings),

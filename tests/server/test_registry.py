@@ -33,7 +33,7 @@ def mixed_dir(model_dir, tmp_path_factory):
 
 
 def test_registry_reports_failures_and_keeps_the_rest(mixed_dir):
-    registry = Registry.load(mixed_dir, threads=1, warmup_rows=32)
+    registry = Registry.load(mixed_dir, warmup_rows=32)
     assert registry.names() == ["rand16"]
     assert set(registry.failed) == {"corrupt", "future", ".hidden"}
     assert "contract version '99'" in registry.failed["future"]
@@ -44,7 +44,7 @@ def test_registry_reports_failures_and_keeps_the_rest(mixed_dir):
 
 def test_missing_folder_is_a_clear_error(tmp_path):
     with pytest.raises(FileNotFoundError, match="does not exist"):
-        Registry.load(tmp_path / "nope", threads=1, warmup_rows=0)
+        Registry.load(tmp_path / "nope", warmup_rows=0)
 
 
 def test_server_with_a_bad_model_serves_the_others(mixed_dir):
@@ -82,7 +82,7 @@ def test_a_material_kept_over_the_budget_while_busy_goes_when_its_request_ends(m
     for name in ("a", "b"):
         shutil.copy(model_dir / "rand16.onnx", tmp_path / f"{name}.onnx")
     size = (tmp_path / "a.onnx").stat().st_size
-    registry = Registry.load(tmp_path, threads=1, warmup_rows=0, lazy=True, memory_budget_bytes=int(1.5 * size))
+    registry = Registry.load(tmp_path, warmup_rows=0, lazy=True, memory_budget_bytes=int(1.5 * size))
 
     async def run() -> tuple[int, int]:
         async with registry.using("a"):

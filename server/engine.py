@@ -1,0 +1,86 @@
+"""The engine: what evaluates the server's materials (``NEUMIP_ENGINE``).
+
+- ``onnxruntime`` (default): each material is an ONNX Runtime session running the file's graph
+  (`neumip.client.local.load_material`); ``NEUMIP_ORT_WORKERS`` calls run at once (default one per
+  core), each of at most ``NEUMIP_CHUNK_ROWS`` answers on ``NEUMIP_ORT_THREADS`` threads.
+- ``kernel``: each material's weights are read from the same file and its arithmetic runs as drjit
+  LLVM kernels (`neumip.client.kernel.KernelMaterial`, the renderer's in-process engine; needs the
+  ``kernel`` extra). One call runs at a time: drjit runs one frozen call at a time per process and
+  spreads each call over every core itself. Calls hold up to ``NEUMIP_KERNEL_CHUNK_ROWS`` answers
+  (default 2^18: fewer, larger calls than ONNX Runtime's, so the batcher's work between calls, while
+  drjit's workers wait, is paid less often). Answers agree with ONNX Runtime's within the
+  export's parity tolerance, and each row is computed alone, so they do not depend on the batch.
+
+Either way the registry and the batcher see one thing per material: a `Material` whose
+``run(queries) -> answers`` evaluates one call and whose ``bytes`` count against the memory budget
+(the file's size).
+"""
+
+from __future__ import annotations
+
+import logging
+from collections.abc import Callable
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from neumip.client.errors import NeumipError
+from neumip.client.local import Material, load_material
+
+from .settings import Settings
+
+log = logging.getLogger(__name__)
+
+
+class EngineUnavailable(NeumipError, ImportError):
+    """The engine asked for cannot run here (a missing extra or library); the message says how to fix it."""
+
+
+@dataclass
+class KernelModel(Material):
+    """A material of the ``kernel`` engine: ``session`` is its `neumip.client.kernel.KernelMaterial`.
+    It answers query groups whatever graph the file holds (the weights are the same)."""
+
+    def run(self, queries: np.ndarray) -> np.ndarray:
+        """One call: validated (n, 5 + 2 K) float32 queries -> (n, 3 K) float32 RGB."""
+        return self.session.evaluate(queries)
+
+
+@dataclass(frozen=True)
+class Engine:
+    """How materials are loaded and how many rows, and calls at once, one evaluation takes."""
+
+    name: str
+    """``onnxruntime`` or ``kernel`` (`Settings.engine`)."""
+    load: Callable[[Path, bytes], Material]
+    """A model file's path and bytes -> the material, warmed up by its first call; raises ModelError."""
+    workers: int = 1
+    """Calls that run at once (the batcher's worker threads)."""
+    chunk_rows: int = 8192
+    """Most answers in one call."""
+
+    @classmethod
+    def onnxruntime(cls, threads: int = 1, workers: int = 1, chunk_rows: int = 8192) -> "Engine":
+        """ONNX Runtime sessions of `threads` intra-op threads each."""
+        return cls("onnxruntime", lambda path, data: load_material(path, threads, data=data), workers, chunk_rows)
+
+    @classmethod
+    def kernel(cls, chunk_rows: int = 262144) -> "Engine":
+        """drjit LLVM kernels, one call at a time; EngineUnavailable without drjit or a usable LLVM."""
+        try:
+            from neumip.client.kernel import KernelMaterial
+        except ImportError as exc:  # drjit or onnx missing, or no libLLVM >= 16: the message says which
+            raise EngineUnavailable(f"NEUMIP_ENGINE=kernel cannot run: {exc}") from None
+
+        def load(path: Path, data: bytes) -> Material:
+            kernel = KernelMaterial(path, data=data)
+            return KernelModel(path.stem, path, kernel, kernel.metadata, len(data), groups=True)
+
+        return cls("kernel", load, 1, chunk_rows)
+
+    @classmethod
+    def from_settings(cls, settings: Settings) -> "Engine":
+        if settings.engine == "kernel":
+            return cls.kernel(settings.kernel_chunk_rows)
+        return cls.onnxruntime(settings.ort_threads, settings.workers(), settings.chunk_rows)

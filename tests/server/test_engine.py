@@ -1,0 +1,172 @@
+"""The kernel engine (``NEUMIP_ENGINE=kernel``, `neumip.server.engine`) through a real `neumip serve`
+process: msgpack /v1 and OIP /v2 answer with the bits of in-process `KernelMaterials.evaluate` however
+the server cuts and merges the rows, and within the export's parity tolerance of ONNX Runtime; groups;
+bad files, names and queries get the same errors as with ONNX Runtime; a missing drjit is one line at
+start-up; the registry's memory budget holds."""
+
+from __future__ import annotations
+
+import shutil
+import sys
+import threading
+
+import httpx
+import numpy as np
+import onnx
+import pytest
+
+from neumip.client import contract as C
+from neumip.client import wire
+from neumip.client.contract import random_queries
+from neumip.client.http import MaterialClient
+from neumip.client.local import LocalMaterials
+
+pytest.importorskip("neumip.client.kernel")  # drjit, after the libLLVM check
+
+from neumip.client.kernel import KernelMaterials  # noqa: E402
+from neumip.server.engine import Engine, EngineUnavailable  # noqa: E402
+from neumip.server.registry import Registry  # noqa: E402
+
+from .test_groups import groups_of  # noqa: E402
+
+MATERIALS = ("rand16", "flat16", "lambert")
+CHUNK = 1000
+"""The server's kernel_chunk_rows: requests of several thousand rows run as several calls."""
+
+
+def parity(a: np.ndarray, b: np.ndarray) -> float:
+    """Worst |a - b| over the export's parity tolerance (1e-5 absolute plus 1e-4 relative): <= 1 passes."""
+    return float((np.abs(a - b) / (1e-5 + 1e-4 * np.abs(b))).max())
+
+
+@pytest.fixture(scope="module")
+def folder(model_dir, tmp_path_factory):
+    """The test materials, a corrupt file and a file with a NaN weight."""
+    out = tmp_path_factory.mktemp("kernel_engine")
+    for name in MATERIALS:
+        shutil.copy(model_dir / f"{name}.onnx", out)
+    (out / "corrupt.onnx").write_bytes(b"not an onnx file")
+    model = onnx.load(model_dir / "rand16.onnx")
+    for init in model.graph.initializer:
+        if init.name == "pyramid":
+            values = onnx.numpy_helper.to_array(init).copy()
+            values[3, 1] = np.nan
+            init.CopyFrom(onnx.numpy_helper.from_array(values, "pyramid"))
+    onnx.save(model, out / "nan.onnx")
+    return out
+
+
+@pytest.fixture(scope="module")
+def server(serve_module, folder):
+    # small calls and a merge wait: requests are cut into several calls, and concurrent ones merged
+    return serve_module(folder, engine="kernel", kernel_chunk_rows=CHUNK, max_wait_ms=20)
+
+
+@pytest.fixture(scope="module")
+def kernel(folder):
+    return KernelMaterials(folder)
+
+
+@pytest.mark.parametrize("protocol", ["msgpack", "v2"])
+@pytest.mark.parametrize("lights", [1, 2, 3])
+def test_answers_are_the_bits_of_in_process_kernels_and_near_onnx_runtime(server, kernel, folder, protocol, lights):
+    queries = groups_of(4321, lights, seed=lights)  # > CHUNK answers: several calls, the last one short
+    local = LocalMaterials(folder, threads=1)
+    with MaterialClient(server.url, protocol=protocol) as client:
+        for name in MATERIALS:
+            rgb = client.evaluate(name, queries)
+            assert rgb.shape == (4321, 3 * lights)
+            np.testing.assert_array_equal(rgb, kernel.evaluate(name, queries))
+            assert parity(rgb, local.evaluate(name, queries)) <= 1.0, name
+    if lights > 1:  # light j of a group: the bits of single query j
+        np.testing.assert_array_equal(rgb.reshape(-1, 3), kernel.evaluate(name, C.ungroup(queries)))
+
+
+def test_concurrent_requests_merged_or_cut_keep_their_bits(server, kernel):
+    """Requests of several sizes and widths from several threads at once: whatever calls the batcher
+    made of them (metrics: more than one request piece per call), each gets its in-process answer."""
+    requests = [groups_of(n, lights, seed=n) for n, lights in ((17, 1), (2500, 2), (300, 1), (999, 3), (1, 1))]
+    want = {(m, j): kernel.evaluate(m, q) for m in MATERIALS[:2] for j, q in enumerate(requests)}
+    wrong = []
+
+    def work(offset: int) -> None:
+        with MaterialClient(server.url) as client:
+            for j, q in enumerate(requests * 2):
+                material = MATERIALS[(offset + j) % 2]
+                if not np.array_equal(client.evaluate(material, q), want[material, j % len(requests)]):
+                    wrong.append((offset, j))
+
+    threads = [threading.Thread(target=work, args=(i,)) for i in range(4)]
+    for thread in threads:
+        thread.start()
+    for thread in threads:
+        thread.join(timeout=60)
+    assert wrong == []
+    metrics = httpx.get(server.url + "/metrics").text
+    merged = [line for line in metrics.splitlines() if line.startswith("neumip_batch_requests_sum")]
+    calls = [line for line in metrics.splitlines() if line.startswith("neumip_batch_requests_count")]
+    assert float(merged[0].split()[-1]) > float(calls[0].split()[-1])  # some call held several pieces
+    assert 'neumip_query_rows_total{material="flat16"}' in metrics
+
+
+def test_bad_files_names_and_queries_get_clear_errors(server):
+    listing = httpx.get(server.url + "/v1/materials").json()
+    assert sorted(m["name"] for m in listing["materials"]) == sorted(MATERIALS)
+    failed = {f["name"]: f["error"] for f in listing["failed"]}
+    assert "cannot load ONNX model" in failed["corrupt"]
+    assert "non-finite weights in pyramid" in failed["nan"]
+    q = random_queries(10, seed=3)
+
+    def post(name: str, body: bytes) -> httpx.Response:
+        return httpx.post(server.url + wire.EVALUATE_PATH.format(name=name), content=body,
+                          headers={"content-type": wire.MSGPACK_MEDIA_TYPE})
+
+    reply = post("corrupt", wire.encode_request(q))
+    assert reply.status_code == 400 and "cannot load ONNX model" in reply.json()["error"]
+    reply = post("nope", wire.encode_request(q))
+    assert reply.status_code == 404 and "unknown material 'nope'" in reply.json()["error"]
+    bad = q.copy()
+    bad[4, C.SIGMA] = np.nan
+    reply = post("rand16", wire.encode_request(bad))
+    assert reply.status_code == 400 and "row 4" in reply.json()["error"]
+    reply = post("rand16", wire.encode_request(q)[:-4])  # a row short of its stated count
+    assert reply.status_code == 400
+    assert post("rand16", wire.encode_request(q)).status_code == 200  # still serving
+
+
+def test_a_missing_drjit_is_one_line_at_start_up(monkeypatch, folder, capsys):
+    from neumip.client.cli import main
+
+    monkeypatch.setitem(sys.modules, "drjit", None)  # import drjit raises ImportError
+    monkeypatch.delitem(sys.modules, "neumip.client.kernel")
+    with pytest.raises(EngineUnavailable, match=r"drjit is not installed: pip install 'neumip\[kernel\]'"):
+        Engine.kernel()
+    assert main(["serve", "--engine", "kernel", "--model-dir", str(folder), "--port", "0"]) == 2
+    err = capsys.readouterr().err.strip()
+    assert err.count("\n") == 0 and "NEUMIP_ENGINE=kernel cannot run: drjit is not installed" in err
+
+
+def test_the_memory_budget_unloads_the_least_recently_used(folder, tmp_path):
+    for name in ("a", "b", "c"):
+        shutil.copy(folder / "rand16.onnx", tmp_path / f"{name}.onnx")
+    size = (tmp_path / "a.onnx").stat().st_size
+    registry = Registry.load(tmp_path, Engine.kernel(), warmup_rows=64, lazy=True,
+                             memory_budget_bytes=int(2.5 * size))
+    q = random_queries(100, seed=1)
+    for name in ("a", "b", "a", "c"):  # as requests use them
+        registry.load_material(name).run(q)
+    assert sorted(registry.materials) == ["a", "c"] and registry.resident_bytes() == 2 * size
+    np.testing.assert_array_equal(registry.get("b").run(q), KernelMaterials(folder).evaluate("rand16", q))
+
+
+def test_loading_warms_up_the_shapes_a_renderer_sends(folder):
+    """A material is traced (and compiled) for single queries and groups of two lights when it loads,
+    so a renderer's first requests do not pay for it; other widths are traced on first use."""
+    registry = Registry.load(folder, Engine.kernel(), warmup_rows=16)
+    material = registry.materials["rand16"].session
+    assert material.traces == 2
+    for lights in (1, 2):
+        registry.materials["rand16"].run(groups_of(100, lights, seed=lights))
+    assert material.traces == 2
+    registry.materials["rand16"].run(groups_of(100, 3, seed=3))
+    assert material.traces == 3
