@@ -162,9 +162,13 @@ class KernelMaterial:
 
     def evaluate(self, queries: np.ndarray) -> np.ndarray:
         """(N, 7) queries -> (N, 3) float32 RGB; query groups (N, 5 + 2 K) -> (N, 3 K) (checked:
-        `contract.as_queries`)."""
+        `contract.as_queries`, then `run`)."""
+        return self.run(C.as_queries(queries, groups=True))
+
+    def run(self, queries: np.ndarray) -> np.ndarray:
+        """`evaluate` of queries already checked (`contract.as_queries`: a C-contiguous (N, 5 + 2 K)
+        float32 array of finite values), as a server's are when they reach the engine."""
         jit = self.backend
-        queries = C.as_queries(queries, groups=True)
         if not len(queries):
             return np.zeros((0, C.RGB_DIM * C.group_lights(queries.shape[1])), C.DTYPE)
         # one upload, then the columns gathered in drjit memory (columns made from numpy arrays each

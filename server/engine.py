@@ -44,7 +44,7 @@ class KernelModel(Material):
 
     def run(self, queries: np.ndarray) -> np.ndarray:
         """One call: validated (n, 5 + 2 K) float32 queries -> (n, 3 K) float32 RGB."""
-        return self.session.evaluate(queries)
+        return self.session.run(queries)
 
 
 @dataclass(frozen=True)
@@ -70,8 +70,13 @@ class Engine:
         """drjit LLVM kernels, one call at a time; EngineUnavailable without drjit or a usable LLVM."""
         try:
             from neumip.client.kernel import KernelMaterial
-        except ImportError as exc:  # drjit or onnx missing, or no libLLVM >= 16: the message says which
+        except ImportError as exc:  # drjit or onnx missing, or only a libLLVM < 16: the message says which
             raise EngineUnavailable(f"NEUMIP_ENGINE=kernel cannot run: {exc}") from None
+        import drjit as dr
+
+        if not dr.has_backend(dr.JitBackend.LLVM):
+            raise EngineUnavailable("NEUMIP_ENGINE=kernel cannot run: drjit found no libLLVM >= 16 (Debian: "
+                                    "apt-get install libllvm19, or set DRJIT_LIBLLVM_PATH)")
 
         def load(path: Path, data: bytes) -> Material:
             kernel = KernelMaterial(path, data=data)
