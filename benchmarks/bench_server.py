@@ -18,6 +18,10 @@ with its defaults (a worker per core). Other jobs share this machine's cores: th
 interleaves in-process, msgpack and v2 round by round and reports medians and the median per-round
 ratio; read the load average printed with it.
 
+``--split-cores`` (kernel engine) puts the server on half of the cores and this process on the other half,
+so that the in-process base and the server have as many cores each and the clients' work is not the
+server's: the server's own cost, as where it has a machine or container of its own.
+
 With ``--engine kernel`` the server runs ``NEUMIP_ENGINE=kernel`` (drjit LLVM kernels) and the in-process
 base is the same engine, `KernelMaterials.evaluate` (one call at a time: drjit spreads each call over
 every core; in-process ONNX Runtime, `LocalMaterials`, is printed beside it for scale). It prints only
@@ -66,6 +70,9 @@ def parse_args() -> argparse.Namespace:
     p.add_argument("--engine", choices=("onnxruntime", "kernel"), default="onnxruntime", help="the server's engine")
     p.add_argument("--kernel-rows", default="65536,262144", help="queries per request with --engine kernel")
     p.add_argument("--clients-kernel", type=int, default=2, help="concurrent clients with --engine kernel")
+    p.add_argument("--split-cores", action="store_true",
+                   help="with --engine kernel: the server on the second half of this machine's cores, the clients "
+                   "and the in-process base on the first half (as on a server with cores of its own)")
     return p.parse_args()
 
 
@@ -89,14 +96,15 @@ def model_folder(args: argparse.Namespace, scratch: Path) -> tuple[Path, str]:
 class Server:
     """A `neumip serve` process on a free loopback port."""
 
-    def __init__(self, folder: Path, log: Path, engine: str = "onnxruntime") -> None:
+    def __init__(self, folder: Path, log: Path, engine: str = "onnxruntime", cores: set[int] | None = None) -> None:
         with socket.socket() as s:
             s.bind(("127.0.0.1", 0))
             port = s.getsockname()[1]
         self.url = f"http://127.0.0.1:{port}"
         cmd = [sys.executable, "-m", "neumip.client.cli", "serve", "--port", str(port), "--model-dir", str(folder)]
         env = {**os.environ, "NEUMIP_ENGINE": engine}
-        self.process = subprocess.Popen(cmd, stdout=log.open("w"), stderr=subprocess.STDOUT, env=env)
+        pin = (lambda: os.sched_setaffinity(0, cores)) if cores else None  # the server's CPU cores
+        self.process = subprocess.Popen(cmd, stdout=log.open("w"), stderr=subprocess.STDOUT, env=env, preexec_fn=pin)
         deadline = time.monotonic() + 120
         while time.monotonic() < deadline:
             if self.process.poll() is not None:
@@ -394,7 +402,17 @@ def main() -> None:
         with tempfile.TemporaryDirectory() as scratch:
             folder, name = model_folder(args, Path(scratch))
             print(f"model {name} ({folder / (name + '.onnx')}), {os.cpu_count()} CPUs, server engine kernel")
-            server = Server(folder, Path(scratch) / "server.log", engine="kernel")
+            cores = sorted(os.sched_getaffinity(0))
+            server_cores = set(cores[len(cores) // 2:]) if args.split_cores else None
+            server = Server(folder, Path(scratch) / "server.log", engine="kernel", cores=server_cores)
+            if server_cores:
+                import drjit as dr
+
+                mine = set(cores) - server_cores
+                os.sched_setaffinity(0, mine)
+                dr.set_thread_count(len(mine))  # as the server sizes its pool (drjit counts every core)
+                print(f"split cores: the server on {sorted(server_cores)}, this process (clients and in-process "
+                      f"evaluation) on {sorted(mine)}")
             try:
                 pool = C.random_queries(max(max(int(r) for r in args.kernel_rows.split(",")) * 4, 1 << 18))
                 kernel_throughput(args, name, folder, server, pool)

@@ -28,7 +28,7 @@ import numpy as np
 from neumip.client.errors import NeumipError
 from neumip.client.local import Material, load_material
 
-from .settings import Settings
+from .settings import Settings, available_cores
 
 log = logging.getLogger(__name__)
 
@@ -66,8 +66,11 @@ class Engine:
         return cls("onnxruntime", lambda path, data: load_material(path, threads, data=data), workers, chunk_rows)
 
     @classmethod
-    def kernel(cls, chunk_rows: int = 262144) -> "Engine":
-        """drjit LLVM kernels, one call at a time; EngineUnavailable without drjit or a usable LLVM."""
+    def kernel(cls, chunk_rows: int = 262144, threads: int | None = None) -> "Engine":
+        """drjit LLVM kernels, one call at a time, on a pool of `threads` (default: the cores this process
+        may run on; drjit's own default counts every core of the machine, whatever the process's CPU
+        affinity, and a pinned server's extra workers would only take turns). The pool is the process's.
+        EngineUnavailable without drjit or a usable LLVM."""
         try:
             from neumip.client.kernel import KernelMaterial
         except ImportError as exc:  # drjit or onnx missing, or only a libLLVM < 16: the message says which
@@ -77,6 +80,7 @@ class Engine:
         if not dr.has_backend(dr.JitBackend.LLVM):
             raise EngineUnavailable("NEUMIP_ENGINE=kernel cannot run: drjit found no libLLVM >= 16 (Debian: "
                                     "apt-get install libllvm19, or set DRJIT_LIBLLVM_PATH)")
+        dr.set_thread_count(threads or available_cores())
 
         def load(path: Path, data: bytes) -> Material:
             kernel = KernelMaterial(path, data=data)
