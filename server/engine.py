@@ -47,6 +47,14 @@ class KernelModel(Material):
         return self.session.run(queries)
 
 
+def drjit_threads(cores: int) -> int:
+    """drjit's pool for `cores` cores. Its workers run the kernels while the calling thread waits, and
+    spin for 20 ms after each call before they sleep (nanothread's ``NANOTHREAD_MAX_IDLE_MS``). On one
+    core a pool of none makes the calling thread run them itself: no worker spins on the core that
+    the event loop needs between calls."""
+    return cores if cores > 1 else 0
+
+
 @dataclass(frozen=True)
 class Engine:
     """How materials are loaded and how many rows, and calls at once, one evaluation takes."""
@@ -80,7 +88,7 @@ class Engine:
         if not dr.has_backend(dr.JitBackend.LLVM):
             raise EngineUnavailable("NEUMIP_ENGINE=kernel cannot run: drjit found no libLLVM >= 16 (Debian: "
                                     "apt-get install libllvm19, or set DRJIT_LIBLLVM_PATH)")
-        dr.set_thread_count(threads or available_cores())
+        dr.set_thread_count(drjit_threads(threads or available_cores()))
 
         def load(path: Path, data: bytes) -> Material:
             kernel = KernelMaterial(path, data=data)

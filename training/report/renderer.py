@@ -22,11 +22,12 @@ log = logging.getLogger(__name__)
 
 CACHE_VERSION = 3
 """Bump when a change in this package changes what a cached render would hold."""
-NEURAL_VERSION = 5
-"""Bump when `neumip_path` renders a neural material differently (2: per-sample footprints; 3: query
-groups, whose graph rounds the decoder's first sum in another order; 4: answers computed in the
-render's kernels, `client.kernel`, which round in their own order; 5: their parallax in the
-graph's order)."""
+NEURAL_VERSION = 6
+"""Bump when `neumip_path` renders a neural material differently, or at another cost: the cached
+renders hold their times (2: per-sample footprints; 3: query groups, whose graph rounds the decoder's
+first sum in another order; 4: answers computed in the render's kernels, `client.kernel`, which round
+in their own order; 5: their parallax in the graph's order; 6: a material on nearly every lane
+computed without compaction, the same images sooner)."""
 
 
 def file_digest(path: Path) -> str:
