@@ -38,6 +38,14 @@ def model_dir(tmp_path_factory):
     return folder
 
 
+@pytest.fixture
+def default_sigint():
+    """A `preexec_fn` that gives a child process the default SIGINT disposition, as in a terminal, so that
+    the Ctrl-C a test sends it interrupts it: a test run started in the background (a shell's ``&`` job
+    ignores SIGINT, and children inherit that) would otherwise make Python in the child ignore it."""
+    return lambda: signal.signal(signal.SIGINT, signal.SIG_DFL)
+
+
 def free_port() -> int:
     with socket.socket() as s:
         s.bind(("127.0.0.1", 0))

@@ -97,7 +97,7 @@ def test_import_queries_from_npz_and_npy(tmp_path, capsys):
     assert "cannot import" in capsys.readouterr().err
 
 
-def test_interrupted_process_resumes_to_the_same_data(tmp_path):
+def test_interrupted_process_resumes_to_the_same_data(tmp_path, default_sigint):
     """A real `neumip generate` process stopped by Ctrl-C mid-run, then the same command again."""
     import json
     import signal
@@ -106,7 +106,8 @@ def test_interrupted_process_resumes_to_the_same_data(tmp_path):
     (tmp_path / "plates.toml").write_text('resolution = 16\nheight_scale = 0.05\n[procedural]\ngenerator = "turtle"\n')
     command = [sys.executable, "-m", "neumip.client.cli", "generate", str(tmp_path / "plates.toml"),
                "--queries", "40000", "--chunk", "1000", "--spp", "4", "--seed", "5", "-o"]
-    proc = subprocess.Popen(command + [str(tmp_path / "a")], stdout=subprocess.PIPE, stderr=subprocess.PIPE)
+    proc = subprocess.Popen(command + [str(tmp_path / "a")], stdout=subprocess.PIPE, stderr=subprocess.PIPE,
+                            preexec_fn=default_sigint)
     progress = tmp_path / "a" / "progress.json"
     deadline = time.monotonic() + 300  # a cold drjit kernel cache on a busy 2-core machine is slow
     while proc.poll() is None:

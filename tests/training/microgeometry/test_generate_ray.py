@@ -107,7 +107,7 @@ def test_ray_address_swallowing_the_material_is_explained(capsys):
 
 
 @pytest.mark.slow  # starts a local Ray twice in child processes (~10 s each on 2 cores)
-def test_interrupted_ray_process_resumes_to_the_same_data(tmp_path):
+def test_interrupted_ray_process_resumes_to_the_same_data(tmp_path, default_sigint):
     """A real `neumip generate --ray` stopped by Ctrl-C mid-run, then the same command again."""
     import json
     import subprocess
@@ -115,7 +115,7 @@ def test_interrupted_ray_process_resumes_to_the_same_data(tmp_path):
 
     command = [sys.executable, "-m", "neumip.client.cli", "generate", "turtle", "--resolution", "16", "--queries",
                "40000", "--chunk", "1000", "--spp", "4", "--seed", "5", "-o", str(tmp_path / "a"), "--ray"]
-    proc = subprocess.Popen(command, stdout=subprocess.PIPE, stderr=subprocess.PIPE)
+    proc = subprocess.Popen(command, stdout=subprocess.PIPE, stderr=subprocess.PIPE, preexec_fn=default_sigint)
     progress = tmp_path / "a" / "progress.json"
     deadline = time.monotonic() + 300
     while proc.poll() is None and time.monotonic() < deadline:
