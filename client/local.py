@@ -260,7 +260,7 @@ class ModelFolder(Generic[T]):
                 except ModelError as exc:
                     self.errors[name] = str(exc)
                     raise
-                log.info("loaded %s on first use", name)
+                log.info("loaded %s on first use (as %s)", name, type(self._loaded[name]).__name__)
             return self._loaded[name]
 
 

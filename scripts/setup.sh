@@ -20,7 +20,9 @@ if [ ! -x .venv/bin/python ] && ! "$PY" -m venv .venv; then
   "$PY" -m venv .venv
 fi
 .venv/bin/python -m pip install -q --upgrade pip
-# The pinned CPU wheel first: an unpinned torch would pull several GB of CUDA packages.
-.venv/bin/python -c "import torch" 2>/dev/null || .venv/bin/pip install -q torch==2.13.0
+# The pinned torch first, its CPU build: from PyPI it pulls several GB of CUDA packages. Where pip
+# finds a local CPU wheel (this project's CI machines) the pin alone does; elsewhere set
+# TORCH_INDEX_URL=https://download.pytorch.org/whl/cpu.
+.venv/bin/python -c "import torch" 2>/dev/null || .venv/bin/pip install -q torch==2.13.0 ${TORCH_INDEX_URL:+--index-url "$TORCH_INDEX_URL"}
 .venv/bin/pip install -q -e '.[all,test]'
 echo "setup: ready (.venv)"
