@@ -69,9 +69,13 @@ def namespace_of(array_type: type) -> ModuleType:
     return importlib.import_module(array_type.__module__)
 
 
-_FROZEN_CALLS = threading.Lock()
-"""One frozen call at a time in this process: concurrent frozen calls deadlock or crash drjit 1.5
-(four threads calling two materials hung or crashed in 2 runs of 3)."""
+DRJIT_LOCK = threading.RLock()
+"""Held around every drjit operation of this module's materials - building one, evaluating it,
+recording or replaying its frozen call, freeing its arrays - so that they run one at a time in this
+process. drjit 1.5 deadlocks (holding the GIL: the whole process stops) or aborts when one thread
+records a frozen function while another does other drjit work: four threads calling two materials
+hung or crashed in 2 runs of 3, and a server thread loading a material while its engine thread
+answered hung in 1 run of 3 (`tests/server/test_engine.py`). Re-entrant: `answers` runs inside `run`."""
 
 
 @dataclass
@@ -122,13 +126,23 @@ class KernelMaterial:
         self.yuv_to_rgb = head.YUV_TO_RGB
         self.shadow_floor = head.SHADOW_FLOOR
         first = self.config.level_starts()[self.finest]
-        self.textures = Textures(
-            jit.Float(self.weights["pyramid"].ravel()),
-            jit.Float(self.weights["offset_texture"].ravel() if self.config.offset else [0.0]),
-            jit.UInt32(self.config.level_sizes()),
-            jit.UInt32([max(s - first, 0) for s in self.config.level_starts()]),
-        )
-        self._frozen = dr.freeze(self._trace)
+        with DRJIT_LOCK:
+            self.textures = Textures(
+                jit.Float(self.weights["pyramid"].ravel()),
+                jit.Float(self.weights["offset_texture"].ravel() if self.config.offset else [0.0]),
+                jit.UInt32(self.config.level_sizes()),
+                jit.UInt32([max(s - first, 0) for s in self.config.level_starts()]),
+            )
+            self._frozen = dr.freeze(self._trace)
+
+    def __del__(self) -> None:
+        """Free the drjit arrays under `DRJIT_LOCK`, whichever thread drops the material last (at
+        interpreter exit the lock may already be gone: drjit frees them then)."""
+        if DRJIT_LOCK is None:
+            return
+        with DRJIT_LOCK:
+            self.__dict__.pop("textures", None)
+            self.__dict__.pop("_frozen", None)
 
     @property
     def traces(self) -> int:
@@ -146,11 +160,11 @@ class KernelMaterial:
         material is thousands of operations, whose tracing and code generation cost several
         milliseconds a call (a multi-bounce, multi-material render makes hundreds of calls).
 
-        Calls run one at a time (`_FROZEN_CALLS`), without Python's cyclic garbage collector: drjit
+        Calls run one at a time (`DRJIT_LOCK`), without Python's cyclic garbage collector: drjit
         aborts the process when an array made from numpy memory (this class's textures are) is freed
         while a frozen function records, as a collection of unreachable materials did."""
         columns = [u, v, sigma, *wo] + [c for wi in lights for c in wi]
-        with _FROZEN_CALLS:
+        with DRJIT_LOCK:
             collecting = gc.isenabled()
             gc.disable()
             try:
@@ -167,21 +181,25 @@ class KernelMaterial:
 
     def run(self, queries: np.ndarray) -> np.ndarray:
         """`evaluate` of queries already checked (`contract.as_queries`: a C-contiguous (N, 5 + 2 K)
-        float32 array of finite values), as a server's are when they reach the engine."""
+        float32 array of finite values), as a server's are when they reach the engine. All of it holds
+        `DRJIT_LOCK`: the upload, the gathers and the read-back are drjit work too."""
         jit = self.backend
         if not len(queries):
             return np.zeros((0, C.RGB_DIM * C.group_lights(queries.shape[1])), C.DTYPE)
-        # one upload, then the columns gathered in drjit memory (columns made from numpy arrays each
-        # made the frozen trace record again, call after call)
-        flat, width = jit.Float(queries.reshape(-1)), queries.shape[1]
-        row = dr.arange(jit.UInt32, len(queries)) * width
-        columns = [dr.gather(jit.Float, flat, row + i) for i in range(width)]
-        lights = [(columns[C.WI_X], columns[C.WI_Y])]
-        lights += [(columns[i], columns[i + 1]) for i in range(C.QUERY_DIM, queries.shape[1], 2)]
-        rgb = [c for answer in self.answers(columns[C.U], columns[C.V], columns[C.SIGMA],
-                                            (columns[C.WO_X], columns[C.WO_Y]), lights) for c in answer]
-        dr.eval(rgb)
-        return np.stack([np.asarray(c) for c in rgb], axis=1)
+        with DRJIT_LOCK:
+            # one upload, then the columns gathered in drjit memory (columns made from numpy arrays
+            # each made the frozen trace record again, call after call)
+            flat, width = jit.Float(queries.reshape(-1)), queries.shape[1]
+            row = dr.arange(jit.UInt32, len(queries)) * width
+            columns = [dr.gather(jit.Float, flat, row + i) for i in range(width)]
+            lights = [(columns[C.WI_X], columns[C.WI_Y])]
+            lights += [(columns[i], columns[i + 1]) for i in range(C.QUERY_DIM, queries.shape[1], 2)]
+            rgb = [c for answer in self.answers(columns[C.U], columns[C.V], columns[C.SIGMA],
+                                                (columns[C.WO_X], columns[C.WO_Y]), lights) for c in answer]
+            dr.eval(rgb)
+            answers = np.stack([np.asarray(c) for c in rgb], axis=1)
+            del flat, row, columns, lights, rgb  # freed under the lock too
+        return answers
 
     # --- the material's stages (drjit arrays in, drjit arrays out) --------------------------------
 

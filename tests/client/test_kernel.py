@@ -194,6 +194,48 @@ def test_concurrent_calls_answer_as_one_thread_does(model_dir):
     assert wrong == []
 
 
+LOAD_WHILE_ANSWERING = """
+import sys, threading, time
+from neumip.client.kernel import KernelMaterial
+from neumip.server.registry import warmup_queries
+path, seconds = sys.argv[1], float(sys.argv[2])
+done, counts = threading.Event(), {"calls": 0, "loads": 0}
+material, kept = KernelMaterial(path), []
+queries = {k: warmup_queries(4096, k) for k in (1, 2)}
+def answer():  # the server's engine thread
+    while not done.is_set():
+        material.run(queries[1 + counts["calls"] % 2]); counts["calls"] += 1
+def load():  # the registry's thread: build, warm up (records), keep a few, drop the older ones
+    while not done.is_set():
+        new = KernelMaterial(path)
+        for k in (1, 2):
+            new.run(warmup_queries(512, k))
+        kept[:] = kept[-2:] + [new]; counts["loads"] += 1
+threads = [threading.Thread(target=f, daemon=True) for f in (answer, load)]
+[t.start() for t in threads]
+time.sleep(seconds); done.set()
+[t.join() for t in threads]
+print("ok", counts["calls"], counts["loads"])
+"""
+
+
+def test_a_material_loads_while_another_answers(layouts):
+    """The server loads (builds, warms up: records frozen calls) and drops materials on one thread while
+    its engine answers on another. Unserialised, drjit 1.5 hung the whole process (holding the GIL) in
+    seconds; in a subprocess, so that a hang fails the test instead of stopping the run."""
+    import subprocess
+    import sys
+
+    try:
+        out = subprocess.run([sys.executable, "-c", LOAD_WHILE_ANSWERING, str(layouts / "offset64.onnx"), "6"],
+                             capture_output=True, text=True, timeout=90)
+    except subprocess.TimeoutExpired:
+        pytest.fail("loading a material while another answered hung the process")
+    assert out.returncode == 0, out.stderr[-2000:]
+    ok, calls, loads = out.stdout.split()
+    assert ok == "ok" and int(calls) > 10 and int(loads) > 2
+
+
 def test_no_garbage_collection_while_the_arithmetic_is_traced(model_dir, monkeypatch):
     """drjit aborts the process when an array made from numpy memory (a material's textures) is freed
     while a frozen function records; Python's cyclic collector freed unreachable materials at any
