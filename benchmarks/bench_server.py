@@ -408,11 +408,9 @@ def main() -> None:
             if server_cores:
                 import drjit as dr
 
-                from neumip.server.engine import drjit_threads
-
                 mine = set(cores) - server_cores
                 os.sched_setaffinity(0, mine)
-                dr.set_thread_count(drjit_threads(len(mine)))  # as the server sizes its pool
+                dr.set_thread_count(len(mine))  # as the server sizes its pool
                 print(f"split cores: the server on {sorted(server_cores)}, this process (clients and in-process "
                       f"evaluation) on {sorted(mine)}")
             try:

@@ -31,6 +31,7 @@ import functools
 import gc
 import importlib
 import logging
+import os
 import threading
 from dataclasses import dataclass
 from pathlib import Path
@@ -45,7 +46,7 @@ from neumip.client.mitsuba.runtime import MitsubaUnavailable, ensure_llvm, find_
 try:
     ensure_llvm()  # drjit's LLVM backend loads libLLVM, and one older than 16 aborts the process
 except MitsubaUnavailable:
-    if find_libllvm():  # only older ones here
+    if find_libllvm() or os.environ.get("DRJIT_LIBLLVM_PATH"):  # an older one here, or a bad choice
         raise
     # none at all: drjit has no LLVM backend here (a CUDA one may still serve); an LLVM array says so
 try:

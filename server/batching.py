@@ -187,6 +187,7 @@ class Batcher:
     def start(self) -> None:
         """Start the worker threads (call inside the running event loop that awaits answers)."""
         self._loop = asyncio.get_running_loop()
+        self.engine.start()
         self._threads = [
             threading.Thread(target=self._work, name=f"{self.engine.name}-{i}", daemon=True)
             for i in range(self.workers)

@@ -47,14 +47,6 @@ class KernelModel(Material):
         return self.session.run(queries)
 
 
-def drjit_threads(cores: int) -> int:
-    """drjit's pool for `cores` cores. Its workers run the kernels while the calling thread waits, and
-    spin for 20 ms after each call before they sleep (nanothread's ``NANOTHREAD_MAX_IDLE_MS``). On one
-    core a pool of none makes the calling thread run them itself: no worker spins on the core that
-    the event loop needs between calls."""
-    return cores if cores > 1 else 0
-
-
 @dataclass(frozen=True)
 class Engine:
     """How materials are loaded and how many rows, and calls at once, one evaluation takes."""
@@ -67,6 +59,9 @@ class Engine:
     """Calls that run at once (the batcher's worker threads)."""
     chunk_rows: int = 8192
     """Most answers in one call."""
+    start: Callable[[], None] = lambda: None
+    """Process-wide set-up before the first call, run once by the batcher when it starts (the kernel
+    engine: drjit's pool size). Building an engine changes nothing else in the process."""
 
     @classmethod
     def onnxruntime(cls, threads: int = 1, workers: int = 1, chunk_rows: int = 8192) -> "Engine":
@@ -74,11 +69,13 @@ class Engine:
         return cls("onnxruntime", lambda path, data: load_material(path, threads, data=data), workers, chunk_rows)
 
     @classmethod
-    def kernel(cls, chunk_rows: int = 262144, threads: int | None = None) -> "Engine":
-        """drjit LLVM kernels, one call at a time, on a pool of `threads` (default: the cores this process
-        may run on; drjit's own default counts every core of the machine, whatever the process's CPU
-        affinity, and a pinned server's extra workers would only take turns). The pool is the process's.
-        EngineUnavailable without drjit or a usable LLVM."""
+    def kernel(cls, chunk_rows: int = 262144) -> "Engine":
+        """drjit LLVM kernels, one call at a time; EngineUnavailable without drjit or a usable LLVM. Its
+        `start` sizes drjit's pool, the process's, to the cores this process may run on, the calling
+        thread counted (on one core: no worker thread). drjit's own default counts every core of the
+        machine, whatever the process's CPU affinity; a pinned server's extra workers would only take
+        turns, and each spins for 20 ms after a call (nanothread's ``NANOTHREAD_MAX_IDLE_MS``) on the
+        cores the event loop needs."""
         try:
             from neumip.client.kernel import KernelMaterial
         except ImportError as exc:  # drjit or onnx missing, or only a libLLVM < 16: the message says which
@@ -88,13 +85,12 @@ class Engine:
         if not dr.has_backend(dr.JitBackend.LLVM):
             raise EngineUnavailable("NEUMIP_ENGINE=kernel cannot run: drjit found no libLLVM >= 16 (Debian: "
                                     "apt-get install libllvm19, or set DRJIT_LIBLLVM_PATH)")
-        dr.set_thread_count(drjit_threads(threads or available_cores()))
 
         def load(path: Path, data: bytes) -> Material:
             kernel = KernelMaterial(path, data=data)
             return KernelModel(path.stem, path, kernel, kernel.metadata, len(data), groups=True)
 
-        return cls("kernel", load, 1, chunk_rows)
+        return cls("kernel", load, 1, chunk_rows, lambda: dr.set_thread_count(available_cores()))
 
     @classmethod
     def from_settings(cls, settings: Settings) -> "Engine":

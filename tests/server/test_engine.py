@@ -87,21 +87,25 @@ def test_concurrent_requests_merged_or_cut_keep_their_bits(server, kernel):
     made of them (metrics: more than one request piece per call), each gets its in-process answer."""
     requests = [groups_of(n, lights, seed=n) for n, lights in ((17, 1), (2500, 2), (300, 1), (999, 3), (1, 1))]
     want = {(m, j): kernel.evaluate(m, q) for m in MATERIALS[:2] for j, q in enumerate(requests)}
-    wrong = []
+    wrong, failed = [], []
 
     def work(offset: int) -> None:
-        with MaterialClient(server.url) as client:
-            for j, q in enumerate(requests * 2):
-                material = MATERIALS[(offset + j) % 2]
-                if not np.array_equal(client.evaluate(material, q), want[material, j % len(requests)]):
-                    wrong.append((offset, j))
+        try:
+            with MaterialClient(server.url) as client:
+                for j, q in enumerate(requests * 2):
+                    material = MATERIALS[(offset + j) % 2]
+                    if not np.array_equal(client.evaluate(material, q), want[material, j % len(requests)]):
+                        wrong.append((offset, j))
+        except BaseException as exc:  # a thread's failure must fail the test, not only warn
+            failed.append(repr(exc))
 
     threads = [threading.Thread(target=work, args=(i,)) for i in range(4)]
     for thread in threads:
         thread.start()
     for thread in threads:
         thread.join(timeout=60)
-    assert wrong == []
+    assert not any(thread.is_alive() for thread in threads), "a request did not come back (server hung?)"
+    assert failed == [] and wrong == []
     metrics = httpx.get(server.url + "/metrics").text
     merged = [line for line in metrics.splitlines() if line.startswith("neumip_batch_requests_sum")]
     calls = [line for line in metrics.splitlines() if line.startswith("neumip_batch_requests_count")]
@@ -170,3 +174,22 @@ def test_loading_warms_up_the_shapes_a_renderer_sends(folder):
     assert material.traces == 2
     registry.materials["rand16"].run(groups_of(100, 3, seed=3))
     assert material.traces == 3
+
+
+def test_the_kernel_engine_sizes_drjits_pool_only_when_it_starts(monkeypatch):
+    """Building the engine changes nothing in the process; its `start` sizes drjit's pool to the cores
+    the process may run on (drjit counts the calling thread: on one core, no worker thread)."""
+    import drjit as dr
+
+    from neumip.server import engine as E
+
+    before = dr.thread_count()
+    kernel = Engine.kernel()
+    assert dr.thread_count() == before
+    try:
+        for cores, pool in ((1, 1), (3, 3)):
+            monkeypatch.setattr(E, "available_cores", lambda cores=cores: cores)
+            kernel.start()
+            assert dr.thread_count() == pool
+    finally:
+        dr.set_thread_count(before)

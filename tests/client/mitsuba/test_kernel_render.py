@@ -30,3 +30,30 @@ def test_a_render_in_kernel_matches_the_buffered_render(model_dir):
     assert stats["kernel"].queries >= stats["onnxruntime"].queries > 0  # every light of a lane is computed
     assert stats["kernel"].per_material.keys() == {"rand16", "flat16"}
     assert [kernel.kernel(m).traces for m in ("rand16", "flat16")] == [1, 1]  # every bounce replays it
+
+
+def test_a_material_on_nearly_every_lane_is_computed_without_compaction(model_dir, monkeypatch):
+    """A neural floor that fills the view around a small diffuse ball: the first bounce's kernel runs
+    over the whole wavefront, the ball's lanes included (`shading.DENSE_LANES`, here a half), a later
+    bounce's over its few compacted lanes, with one trace; the image still matches the buffered render."""
+    import drjit as dr
+
+    from neumip.client.mitsuba import shading
+
+    from .scenes import DIFFUSE, _look_at
+
+    monkeypatch.setattr(shading, "DENSE_LANES", 0.5)
+    widths, answers = [], shading._answers
+    monkeypatch.setattr(shading, "_answers", lambda kernel, cols: widths.append(dr.width(cols[0])) or answers(kernel, cols))
+    images, kernel = {}, KernelMaterials(model_dir, backend=namespace_of(mi.Float))
+    for name, evaluator in (("kernel", kernel), ("onnxruntime", LocalMaterials(model_dir))):
+        scene = simple({"type": "neumip", "material": "rand16", "uv_scale": 2.0},
+                       {"type": "neumip_path", "max_depth": 3}, 32, 2)
+        scene["sensor"]["to_world"] = _look_at([0, 1.0, 0.01], [0, 0, 0])  # straight down: the floor fills the view
+        scene["ball"].update(center=[0, 0.4, 0.0], radius=0.1, bsdf=DIFFUSE)  # a few per cent of it
+        images[name] = render_scene(mi.load_dict(scene), evaluator, RenderConfig(spp=2, seed=1)).image[..., :3]
+    assert widths[0] == 32 * 32 * 2  # the whole wavefront, not only the floor's lanes
+    assert 0 < min(widths) < widths[0] // 2  # a later bounce: compacted
+    assert kernel.kernel("rand16").traces == 1
+    assert images["onnxruntime"].mean() > 0.01
+    np.testing.assert_allclose(images["kernel"], images["onnxruntime"], rtol=1e-4, atol=1e-5)
