@@ -38,6 +38,24 @@ def model_dir(tmp_path_factory):
     return folder
 
 
+@pytest.fixture(scope="session")
+def write_nan_weight():
+    """``write(src, dst)``: the model file `src` saved as `dst` with one texel of its pyramid NaN (a file
+    every engine must refuse to serve, with a clear error)."""
+    import onnx
+
+    def write(src: Path, dst: Path) -> None:
+        model = onnx.load(src)
+        for init in model.graph.initializer:
+            if init.name == "pyramid":
+                values = onnx.numpy_helper.to_array(init).copy()
+                values[3, 1] = np.nan
+                init.CopyFrom(onnx.numpy_helper.from_array(values, "pyramid"))
+        onnx.save(model, dst)
+
+    return write
+
+
 @pytest.fixture
 def default_sigint():
     """A `preexec_fn` that gives a child process the default SIGINT disposition, as in a terminal, so that

@@ -115,15 +115,9 @@ def test_answers_do_not_depend_on_the_batch(layouts, backend):
     assert kernel.evaluate("offset64", q[:0]).shape == (0, 3)
 
 
-def test_bad_files_and_names_get_clear_errors(layouts, tmp_path):
+def test_bad_files_and_names_get_clear_errors(layouts, tmp_path, write_nan_weight):
     (tmp_path / "corrupt.onnx").write_bytes(b"not an onnx file")
-    model = onnx.load(layouts / "offset16.onnx")
-    for init in model.graph.initializer:
-        if init.name == "pyramid":
-            values = onnx.numpy_helper.to_array(init).copy()
-            values[3, 1] = np.nan
-            init.CopyFrom(onnx.numpy_helper.from_array(values, "pyramid"))
-    onnx.save(model, tmp_path / "nan.onnx")
+    write_nan_weight(layouts / "offset16.onnx", tmp_path / "nan.onnx")
     shutil.copy(layouts / "nooffset.onnx", tmp_path / "good.onnx")
     kernel = KernelMaterials(tmp_path)
     with pytest.raises(ModelError, match="corrupt.onnx: cannot load"):

@@ -12,7 +12,6 @@ import threading
 
 import httpx
 import numpy as np
-import onnx
 import pytest
 
 from neumip.client import contract as C
@@ -40,19 +39,13 @@ def parity(a: np.ndarray, b: np.ndarray) -> float:
 
 
 @pytest.fixture(scope="module")
-def folder(model_dir, tmp_path_factory):
+def folder(model_dir, tmp_path_factory, write_nan_weight):
     """The test materials, a corrupt file and a file with a NaN weight."""
     out = tmp_path_factory.mktemp("kernel_engine")
     for name in MATERIALS:
         shutil.copy(model_dir / f"{name}.onnx", out)
     (out / "corrupt.onnx").write_bytes(b"not an onnx file")
-    model = onnx.load(model_dir / "rand16.onnx")
-    for init in model.graph.initializer:
-        if init.name == "pyramid":
-            values = onnx.numpy_helper.to_array(init).copy()
-            values[3, 1] = np.nan
-            init.CopyFrom(onnx.numpy_helper.from_array(values, "pyramid"))
-    onnx.save(model, out / "nan.onnx")
+    write_nan_weight(model_dir / "rand16.onnx", out / "nan.onnx")
     return out
 
 
