@@ -31,7 +31,6 @@ import functools
 import gc
 import importlib
 import logging
-import os
 import threading
 from dataclasses import dataclass
 from pathlib import Path
@@ -41,14 +40,9 @@ import numpy as np
 
 from neumip.client import contract as C
 from neumip.client.local import ModelError, ModelFolder
-from neumip.client.mitsuba.runtime import MitsubaUnavailable, ensure_llvm, find_libllvm
+from neumip.client.mitsuba.runtime import ensure_llvm
 
-try:
-    ensure_llvm()  # drjit's LLVM backend loads libLLVM, and one older than 16 aborts the process
-except MitsubaUnavailable:
-    if find_libllvm() or os.environ.get("DRJIT_LIBLLVM_PATH"):  # an older one here, or a bad choice
-        raise
-    # none at all: drjit has no LLVM backend here (a CUDA one may still serve); an LLVM array says so
+ensure_llvm(required=False)  # drjit's LLVM backend loads libLLVM, and one older than 16 aborts the process
 try:
     import drjit as dr
     import onnx

@@ -163,11 +163,10 @@ def first_nonfinite(piece: _Piece) -> str | None:
 class Batcher:
     """Batches evaluation requests onto the engine's materials (see the module docstring)."""
 
-    def __init__(self, materials: dict[str, Material], settings: Settings, metrics: Metrics,
-                 engine: Engine | None = None) -> None:
+    def __init__(self, materials: dict[str, Material], settings: Settings, metrics: Metrics, engine: Engine) -> None:
         self.settings = settings
         self.metrics = metrics
-        self.engine = engine or Engine.from_settings(settings)
+        self.engine = engine
         self.stats = ModelStats()  # per-material statistics in Triton's shape (GET /v2/models/{name}/stats)
         self.workers = self.engine.workers
         self.chunk_rows = self.engine.chunk_rows

@@ -53,8 +53,11 @@ def find_libllvm() -> list[tuple[int, str]]:
     return sorted(found.values(), reverse=True)
 
 
-def ensure_llvm() -> str:
-    """Make sure drjit will load libLLVM >= 16; returns its path. Raises MitsubaUnavailable."""
+def ensure_llvm(required: bool = True) -> str | None:
+    """Make sure drjit will load libLLVM >= 16; returns its path. Raises MitsubaUnavailable. With
+    ``required=False`` (drjit without Mitsuba's llvm variants: a CUDA backend may serve) a machine with
+    no libLLVM at all passes (None); only an older one, which would abort the process, or a bad
+    ``DRJIT_LIBLLVM_PATH`` raises."""
     chosen = os.environ.get("DRJIT_LIBLLVM_PATH")
     if chosen:
         version = llvm_version(os.path.realpath(chosen)) or llvm_version(chosen)
@@ -68,6 +71,8 @@ def ensure_llvm() -> str:
         return chosen
     candidates = find_libllvm()
     good = [(v, p) for v, p in candidates if v >= MIN_LLVM]
+    if not candidates and not required:
+        return None
     if not good:
         have = ", ".join(f"LLVM {v}" for v, _ in candidates) or "none"
         raise MitsubaUnavailable(

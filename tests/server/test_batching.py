@@ -9,6 +9,7 @@ import pytest
 
 from neumip.client.local import LocalMaterials, load_material
 from neumip.server.batching import Batcher, split
+from neumip.server.engine import Engine
 from neumip.server.metrics import Metrics
 from neumip.server.settings import Settings
 from neumip.client.contract import random_queries
@@ -18,7 +19,7 @@ def make_batcher(model_dir, **settings) -> tuple[Batcher, Metrics]:
     config = Settings(model_dir=model_dir, **settings)
     metrics = Metrics()
     materials = {name: load_material(model_dir / f"{name}.onnx", config.ort_threads) for name in ("rand16", "flat16")}
-    return Batcher(materials, config, metrics), metrics
+    return Batcher(materials, config, metrics, Engine.from_settings(config)), metrics
 
 
 def sample(metrics: Metrics, name: str) -> float:
