@@ -72,7 +72,8 @@ from neumip.training.config import MaterialConfig  # noqa: E402
 from neumip.training.export import build_onnx, weights_from_state  # noqa: E402
 from neumip.training.material import NeuMIPMaterial  # noqa: E402
 
-from export_modulo import modulo_onnx  # noqa: E402  (benchmarks/, beside this script)
+from bench_render import set_variant  # noqa: E402  (benchmarks/, beside this script)
+from export_modulo import modulo_onnx  # noqa: E402
 
 SHIPPED = "shipped (quad tables)"
 GRAPHS = {"modulo (first export)": modulo_onnx, SHIPPED: build_onnx}
@@ -537,10 +538,7 @@ def main() -> None:
     parser.add_argument("--variant", help="Mitsuba variant of the drjit kernel rows (default llvm_ad_rgb; cuda_ad_rgb "
                         "on an NVIDIA GPU)")
     args = parser.parse_args()
-    if args.variant:  # before the renderer is imported: it keeps a JIT variant already set
-        import mitsuba
-
-        mitsuba.set_variant(args.variant)
+    set_variant(args.variant)
     torch.set_num_threads(args.threads)
 
     mat = material(args.resolution, seed=0)
