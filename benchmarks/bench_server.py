@@ -20,7 +20,8 @@ ratio; read the load average printed with it.
 
 ``--split-cores`` (kernel engine) puts the server on half of the cores and this process on the other half,
 so that the in-process base and the server have as many cores each and the clients' work is not the
-server's: the server's own cost, as where it has a machine or container of its own.
+server's: the server's own cost, as where it has a machine or container of its own. The halves swap
+every other round, so that a core slower than the other for a while counts against both sides alike.
 
 With ``--engine kernel`` the server runs ``NEUMIP_ENGINE=kernel`` (drjit LLVM kernels) and the in-process
 base is the same engine, `KernelMaterials.evaluate` (one call at a time: drjit spreads each call over
@@ -71,8 +72,8 @@ def parse_args() -> argparse.Namespace:
     p.add_argument("--kernel-rows", default="65536,262144", help="queries per request with --engine kernel")
     p.add_argument("--clients-kernel", type=int, default=2, help="concurrent clients with --engine kernel")
     p.add_argument("--split-cores", action="store_true",
-                   help="with --engine kernel: the server on the second half of this machine's cores, the clients "
-                   "and the in-process base on the first half (as on a server with cores of its own)")
+                   help="with --engine kernel: the server on one half of this machine's cores, the clients and the "
+                   "in-process base on the other (as on a server with cores of its own); the halves swap every other round")
     return p.parse_args()
 
 
@@ -96,12 +97,18 @@ def model_folder(args: argparse.Namespace, scratch: Path) -> tuple[Path, str]:
 class Server:
     """A `neumip serve` process on a free loopback port."""
 
-    def __init__(self, folder: Path, log: Path, engine: str = "onnxruntime", cores: set[int] | None = None) -> None:
+    def __init__(self, folder: Path, log: Path, engine: str = "onnxruntime", cores: set[int] | None = None,
+                 bare: bool = False) -> None:
+        """`bare`: not `neumip serve` but the HTTP floor, `bare_server` (evaluates nothing)."""
         with socket.socket() as s:
             s.bind(("127.0.0.1", 0))
             port = s.getsockname()[1]
         self.url = f"http://127.0.0.1:{port}"
         cmd = [sys.executable, "-m", "neumip.client.cli", "serve", "--port", str(port), "--model-dir", str(folder)]
+        if bare:
+            cmd = [sys.executable, "-m", "uvicorn", "bare_server:app", "--app-dir", str(Path(__file__).parent),
+                   "--port", str(port), "--loop", "uvloop", "--http", "httptools", "--log-level", "warning",
+                   "--no-access-log"]
         env = {**os.environ, "NEUMIP_ENGINE": engine}
         pin = (lambda: os.sched_setaffinity(0, cores)) if cores else None  # the server's CPU cores
         self.process = subprocess.Popen(cmd, stdout=log.open("w"), stderr=subprocess.STDOUT, env=env, preexec_fn=pin)
@@ -115,6 +122,14 @@ class Server:
             except httpx.TransportError:
                 time.sleep(0.2)
         sys.exit("server not ready within 120 s")
+
+    def pin(self, cores: set[int]) -> None:
+        """Move every thread of the process onto `cores`."""
+        for task in Path(f"/proc/{self.process.pid}/task").iterdir():
+            try:
+                os.sched_setaffinity(int(task.name), cores)
+            except (ProcessLookupError, OSError):  # a thread that ended meanwhile
+                pass
 
     def rss_mib(self) -> float:
         for line in Path(f"/proc/{self.process.pid}/status").read_text().splitlines():
@@ -317,9 +332,11 @@ a call before they sleep, so without it the in-process run would take CPU from t
 (this process's workers) and the server from the in-process run (the server's)."""
 
 
-def kernel_throughput(args, name, folder, server, pool) -> None:
+def kernel_throughput(args, name, folder, server, bare, pool, swap=None) -> None:
     """The kernel engine: msgpack /v1 and v2 against in-process `KernelMaterials.evaluate`, plain queries
-    and groups of two lights, 1 and ``--clients-kernel`` clients, in the same interleaved rounds."""
+    and groups of two lights, 1 and ``--clients-kernel`` clients, in the same interleaved rounds; and the
+    HTTP floor, `bare` (`bare_server`), sent the same msgpack requests. `swap(round)`, if given, places
+    the processes on their cores before each round."""
     from concurrent.futures import ThreadPoolExecutor
 
     from neumip.client.kernel import KernelMaterials
@@ -329,6 +346,7 @@ def kernel_throughput(args, name, folder, server, pool) -> None:
     width = args.clients_kernel
     msgpack = [MaterialClient(server.url, config) for _ in range(width)]
     v2 = [MaterialClient(server.url, config, protocol="v2") for _ in range(width)]
+    floor = [MaterialClient(bare.url, config) for _ in range(width)]
     pool_threads = ThreadPoolExecutor(width)
 
     def at_once(clients, requests) -> None:
@@ -348,16 +366,22 @@ def kernel_throughput(args, name, folder, server, pool) -> None:
 
     for n in (int(r) for r in args.kernel_rows.split(",")):
         batches = [pool[i * n : (i + 1) * n] for i in range(len(pool) // n)]
-        kinds = {}  # label: (evaluate a list of requests, how many at once, groups?, its in-process base)
+        # label: (evaluate a list of requests, how many at once, groups?, its in-process base (None: no
+        # ratio), the server process whose CPU time is read)
+        kinds = {}
         for groups in (False, True):
             tag = ", groups of 2" if groups else ""
             for clients in sorted({1, width}):
                 base = f"in-process x{clients}{tag}"
-                kinds[base] = (in_process, clients, groups, base)
+                kinds[base] = (in_process, clients, groups, base, server)
                 if clients == 1:  # the ONNX Runtime engine in process, for scale
-                    kinds[f"in-process ONNX Runtime x1{tag}"] = (onnxruntime, 1, groups, base)
-                kinds[f"msgpack /v1 x{clients}{tag}"] = (lambda r, c=clients: at_once(msgpack[:c], r), clients, groups, base)
-                kinds[f"v2 binary x{clients}{tag}"] = (lambda r, c=clients: at_once(v2[:c], r), clients, groups, base)
+                    kinds[f"in-process ONNX Runtime x1{tag}"] = (onnxruntime, 1, groups, base, server)
+                kinds[f"msgpack /v1 x{clients}{tag}"] = (lambda r, c=clients: at_once(msgpack[:c], r), clients, groups,
+                                                         base, server)
+                kinds[f"v2 binary x{clients}{tag}"] = (lambda r, c=clients: at_once(v2[:c], r), clients, groups, base,
+                                                       server)
+                kinds[f"bare uvicorn /v1 x{clients}{tag}"] = (lambda r, c=clients: at_once(floor[:c], r), clients,
+                                                              groups, None, bare)
 
         def requests(round_: int, clients: int, groups: bool) -> list[np.ndarray]:
             picked = [batches[(round_ + j) % len(batches)] for j in range(clients)]
@@ -365,33 +389,45 @@ def kernel_throughput(args, name, folder, server, pool) -> None:
 
         repeat = max(1, MEASURED_QUERIES // n)  # request sets back to back in one measurement
         cached = {}
-        for kind, (fn, clients, groups, _) in kinds.items():  # warm-up (traces the frozen calls)
+        for kind, (fn, clients, groups, *_) in kinds.items():  # warm-up (traces the frozen calls)
             cached[clients, groups] = {r: requests(r, clients, groups) for r in range(-1, repeat)}
             fn(cached[clients, groups][-1])
         times, cpu = {k: [] for k in kinds}, {k: [] for k in kinds}
         for r in range(args.rounds):
-            for kind, (fn, clients, groups, _) in kinds.items():
+            if swap is not None:
+                swap(r)
+            for kind, (fn, clients, groups, _, process) in kinds.items():
                 time.sleep(SETTLE_S)
-                start, own, served = time.perf_counter(), process_cpu_s(), server.cpu_s()
+                start, own, served = time.perf_counter(), process_cpu_s(), process.cpu_s()
                 for j in range(repeat):
                     fn(cached[clients, groups][(r + j) % repeat])
                 times[kind].append((time.perf_counter() - start) / repeat)
-                now = server.cpu_s()
+                now = process.cpu_s()
                 cpu[kind].append([(process_cpu_s() - own) / repeat] + [(b - a) / repeat for a, b in zip(served, now)])
         print(f"\n## Kernel engine throughput, {n} queries (or groups of two lights: {2 * n} answers) per request, "
               f"xC: C clients at once, each sending {repeat} back to back per measurement ({args.rounds} interleaved "
               f"rounds; load avg {os.getloadavg()[0]:.2f}); times per request set")
         print(f"{'path':40s} {'median ms':>10s} {'M answers/s':>12s} {'vs in-process':>14s} "
               f"{'CPU ms/request: client':>23s} {'server loop':>12s} {'engine':>7s}")
-        for kind, (_, clients, groups, base) in kinds.items():
+        for kind, (_, clients, groups, base, _) in kinds.items():
             ts = times[kind]
             answers = n * clients * (2 if groups else 1)
-            ratio = statistics.median(b / t for b, t in zip(times[base], ts))
+            ratio = f"{statistics.median(b / t for b, t in zip(times[base], ts)):13.0%}" if base else f"{'-':>13s}"
             median = statistics.median(ts)
             own, loop, engine = (statistics.median(c[i] for c in cpu[kind]) * 1e3 / clients for i in range(3))
-            print(f"{kind:40s} {median * 1e3:10.1f} {answers / median / 1e6:12.3f} {ratio:13.0%} "
+            print(f"{kind:40s} {median * 1e3:10.1f} {answers / median / 1e6:12.3f} {ratio} "
                   f"{own:23.1f} {loop:12.1f} {engine:7.1f}")
-    for client in msgpack + v2:
+        print("bare uvicorn: the HTTP floor (bare_server.py: read, decode and check each request, answer zeros; no "
+              "evaluation). A server whose event loop cost only that, with the engine's CPU above, would be at most "
+              "in-process / (engine + bare loop) of in-process:")
+        for groups in (False, True):
+            tag = ", groups of 2" if groups else ""
+            cpu_of = lambda kind, i: statistics.median(c[i] for c in cpu[kind])  # noqa: E731
+            base, served, floor_kind = f"in-process x1{tag}", f"msgpack /v1 x1{tag}", f"bare uvicorn /v1 x1{tag}"
+            bound = cpu_of(base, 0) / (cpu_of(served, 2) + cpu_of(floor_kind, 1))
+            now = cpu_of(base, 0) / (cpu_of(served, 2) + cpu_of(served, 1))
+            print(f"  x1{tag}: at most {bound:.0%} (with the server's own event loop: {now:.0%})")
+    for client in msgpack + v2 + floor:
         client.close()
     pool_threads.shutdown()
 
@@ -403,20 +439,34 @@ def main() -> None:
             folder, name = model_folder(args, Path(scratch))
             print(f"model {name} ({folder / (name + '.onnx')}), {os.cpu_count()} CPUs, server engine kernel")
             cores = sorted(os.sched_getaffinity(0))
-            server_cores = set(cores[len(cores) // 2:]) if args.split_cores else None
+            half = len(cores) // 2
+            halves = (set(cores[:half]), set(cores[half : 2 * half]))  # this process's, the servers'
+            server_cores = halves[1] if args.split_cores else None
             server = Server(folder, Path(scratch) / "server.log", engine="kernel", cores=server_cores)
+            bare = Server(folder, Path(scratch) / "bare.log", cores=server_cores, bare=True)
+            swap = None
             if server_cores:
                 import drjit as dr
 
-                mine = set(cores) - server_cores
-                os.sched_setaffinity(0, mine)
-                dr.set_thread_count(len(mine))  # as the server sizes its pool
-                print(f"split cores: the server on {sorted(server_cores)}, this process (clients and in-process "
-                      f"evaluation) on {sorted(mine)}")
+                os.sched_setaffinity(0, halves[0])
+                dr.set_thread_count(half)  # as the servers size their pools
+
+                def swap(round_: int) -> None:
+                    """Even rounds as at the start, odd ones with the halves swapped: one core can be slower
+                    than another for a while (another tenant on its sibling), which must not count against
+                    one side."""
+                    mine, theirs = halves if round_ % 2 == 0 else halves[::-1]
+                    os.sched_setaffinity(0, mine)
+                    server.pin(theirs)
+                    bare.pin(theirs)
+
+                print(f"split cores: the servers on {sorted(halves[1])}, this process (clients and in-process "
+                      f"evaluation) on {sorted(halves[0])}; swapped every other round")
             try:
                 pool = C.random_queries(max(max(int(r) for r in args.kernel_rows.split(",")) * 4, 1 << 18))
-                kernel_throughput(args, name, folder, server, pool)
+                kernel_throughput(args, name, folder, server, bare, pool, swap)
             finally:
+                bare.stop()
                 print(f"server stopped with SIGTERM, exit status {server.stop()}")
         return
     import tritonclient.http as triton

@@ -33,6 +33,11 @@ from .settings import Settings, available_cores
 log = logging.getLogger(__name__)
 
 
+ONNX_PLATFORM = "onnxruntime_onnx"
+"""Triton's platform name of an ONNX model run by ONNX Runtime (its onnxruntime backend), which the
+``onnxruntime`` engine is too."""
+
+
 class EngineUnavailable(NeumipError, ImportError):
     """The engine asked for cannot run here (a missing extra or library); the message says how to fix it."""
 
@@ -62,6 +67,9 @@ class Engine:
     start: Callable[[], None] = lambda: None
     """Process-wide set-up before the first call, run once by the batcher when it starts (the kernel
     engine: drjit's pool size). Building an engine changes nothing else in the process."""
+    platform: str = ONNX_PLATFORM
+    """What runs the model files, as the Open Inference Protocol's model metadata names it (``platform``;
+    ``onnxruntime_onnx`` is Triton's name for ONNX files run by ONNX Runtime)."""
 
     @classmethod
     def onnxruntime(cls, threads: int = 1, workers: int = 1, chunk_rows: int = 8192) -> "Engine":
@@ -90,7 +98,7 @@ class Engine:
             kernel = KernelMaterial(path, data=data)
             return KernelModel(path.stem, path, kernel, kernel.metadata, len(data), groups=True)
 
-        return cls("kernel", load, 1, chunk_rows, lambda: dr.set_thread_count(available_cores()))
+        return cls("kernel", load, 1, chunk_rows, lambda: dr.set_thread_count(available_cores()), "neumip_drjit_llvm")
 
     @classmethod
     def from_settings(cls, settings: Settings) -> "Engine":

@@ -13,10 +13,9 @@ from dataclasses import dataclass
 
 from neumip.client import contract as C
 
+from .engine import ONNX_PLATFORM
 from .registry import MODEL_VERSION
 
-ONNX_PLATFORM = "onnxruntime_onnx"
-"""Triton's platform name of an ONNX model run by its onnxruntime backend."""
 BACKENDS = ("onnxruntime", "python")
 """Triton backends a material can be served by: ONNX Runtime itself, or the python backend running a
 ``model.py`` that calls ONNX Runtime (`neumip.server.triton_python_model`)."""

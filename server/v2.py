@@ -37,7 +37,6 @@ router = APIRouter(prefix="/v2", tags=["v2 (Open Inference Protocol)"])
 
 HEADER_LENGTH = wire.INFER_HEADER_LENGTH
 DATATYPE = wire.INFER_DATATYPE
-PLATFORM = "onnxruntime_onnx"
 INFER_TYPES = (None, JSON_TYPE, "application/octet-stream")
 """Content types an infer request may carry (tritonclient sends none)."""
 
@@ -51,15 +50,15 @@ class InferRequest:
     binary_output: bool
 
 
-def model_metadata(name: str, groups: bool = True) -> dict:
-    """The model metadata of material `name`: shapes [-1, -1] in and out (queries (N, 5 + 2 K) ->
-    (N, 3 K)) if its graph takes query groups (`Material.groups`), else [-1, 7] -> [-1, 3], as Triton
-    states the file's exported config (`model_config.row_dims`)."""
+def model_metadata(name: str, platform: str, groups: bool = True) -> dict:
+    """The model metadata of material `name` run by `platform` (`Engine.platform`): shapes [-1, -1] in
+    and out (queries (N, 5 + 2 K) -> (N, 3 K)) if its graph takes query groups (`Material.groups`), else
+    [-1, 7] -> [-1, 3], as Triton states the file's exported config (`model_config.row_dims`)."""
     width, answers = row_dims(groups)
     return {
         "name": name,
         "versions": [MODEL_VERSION],
-        "platform": PLATFORM,
+        "platform": platform,
         "inputs": [{"name": C.ONNX_INPUT, "datatype": DATATYPE, "shape": [-1, width]}],
         "outputs": [{"name": C.ONNX_OUTPUT, "datatype": DATATYPE, "shape": [-1, answers]}],
     }
@@ -231,7 +230,7 @@ async def ready(state: ServerState = Depends(get_state)) -> Response:
 async def metadata(name: str, version: str | None = None, state: ServerState = Depends(serving)) -> dict:
     check_version(version)
     material = await asyncio.to_thread(state.registry.get, name)  # loads a lazily listed one: its graph says
-    return model_metadata(name, material.groups)
+    return model_metadata(name, state.engine.platform, material.groups)
 
 
 @router.get("/models/{name}/ready", summary="Model readiness (200, else 400; 404 if unknown)")

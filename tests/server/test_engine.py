@@ -75,6 +75,11 @@ def test_answers_are_the_bits_of_in_process_kernels_and_near_onnx_runtime(server
         np.testing.assert_array_equal(rgb.reshape(-1, 3), kernel.evaluate(name, C.ungroup(queries)))
 
 
+def test_model_metadata_names_the_engine(server):
+    model = httpx.get(f"{server.url}/v2/models/{MATERIALS[0]}").json()
+    assert model["platform"] == "neumip_drjit_llvm" and model["inputs"][0]["shape"] == [-1, -1]
+
+
 def test_concurrent_requests_merged_or_cut_keep_their_bits(server, kernel):
     """Requests of several sizes and widths from several threads at once: whatever calls the batcher
     made of them (metrics: more than one request piece per call), each gets its in-process answer."""

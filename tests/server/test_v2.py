@@ -43,6 +43,7 @@ def test_server_and_model_metadata(client):
     meta = client.get("/v2").json()
     assert meta["name"] == "neumip" and "binary_tensor_data" in meta["extensions"]
     model = client.get("/v2/models/rand16").json()
+    assert model["platform"] == "onnxruntime_onnx"  # the default engine
     assert model["inputs"] == [{"name": "queries", "datatype": "FP32", "shape": [-1, -1]}]  # (N, 5 + 2 K)
     assert model["outputs"] == [{"name": "rgb", "datatype": "FP32", "shape": [-1, -1]}]  # (N, 3 K)
     assert client.get("/v2/models/rand16/versions/1").json() == model
