@@ -104,6 +104,10 @@ class Admission:
         self.memory = 0  # touched on the event loop only, like everything here
         self.rows = 0
         self.requests = 0
+        # the gauges read the books when /metrics is scraped, not on every change
+        metrics.body_bytes.set_function(lambda: self.memory)
+        metrics.queue_rows.set_function(lambda: self.rows)
+        metrics.queue_requests.set_function(lambda: self.requests)
 
     @contextmanager
     def admit(self, plan: BodyPlan) -> Iterator[Ticket]:
@@ -112,7 +116,6 @@ class Admission:
         ticket = Ticket(0, 0)
         self.resize(ticket, plan.memory(), plan.rows)
         self.requests += 1
-        self._publish()
         try:
             yield ticket
         finally:
@@ -132,7 +135,6 @@ class Admission:
         self.memory += memory - ticket.memory
         self.rows += rows - ticket.rows
         ticket.memory, ticket.rows = memory, rows
-        self._publish()
 
     def _refuse(self, why: str) -> None:
         self.metrics.rejected.inc()
@@ -145,13 +147,7 @@ class Admission:
             self.memory -= ticket.memory
             self.rows -= ticket.rows
             self.requests -= 1
-            self._publish()
-
-    def _publish(self) -> None:
-        self.metrics.body_bytes.set(self.memory)
-        self.metrics.queue_rows.set(self.rows)
-        self.metrics.queue_requests.set(self.requests)
-
+    
 
 async def read_body(request: Request, plan: BodyPlan, ticket: Ticket, admission: Admission) -> bytearray:
     """The whole body, grown with the bytes that arrive (nothing is reserved in memory up front).

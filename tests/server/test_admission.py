@@ -57,11 +57,15 @@ def test_budgets_refuse_at_once_and_release_when_the_answer_is_done():
             admission.resize(ticket, ticket.memory, 10)  # decoded: 10 rows after all
             with admission.admit(first):
                 assert admission.rows == 2010
+                gauge = metrics.registry.get_sample_value  # what /metrics shows now
+                assert (gauge("neumip_queue_rows"), gauge("neumip_queue_requests")) == (2010, 2)
+                assert gauge("neumip_body_bytes") == 2 * 28 * 2000
             ticket.until = asyncio.get_running_loop().create_future()  # still running when the handler leaves
         assert admission.rows == 10 and admission.requests == 1
         ticket.until.set_result(None)
         await asyncio.sleep(0)  # done callbacks run on the loop
         assert (admission.rows, admission.memory, admission.requests) == (0, 0, 0)
+        assert metrics.registry.get_sample_value("neumip_queue_requests") == 0
         roomy = settings.model_copy(update={"max_queue_rows": 100_000})  # rows to spare: memory binds
         memory = Admission(roomy, metrics)
         big = plan(request(content_length=str(900_000)), roomy, json=False)
