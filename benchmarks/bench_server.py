@@ -34,11 +34,15 @@ in this process. Server and client share this machine's cores; each measurement 
 request of this process (the client, or in-process evaluation) and of the server process, split into its
 main thread (the event loop: HTTP, decoding, encoding) and the others (the batcher's worker and drjit's
 pool); in 10 ms ticks, so read them as medians of coarse samples. They say where the time goes.
+Beside the server runs `bare_server.py`, the HTTP floor: a bare uvicorn app that reads, decodes and
+checks each request and answers zeros, without evaluating (rows ``bare uvicorn``); with ``--split-cores``
+the table ends with the bound that floor sets: in-process CPU / (engine CPU + bare loop CPU).
 """
 
 from __future__ import annotations
 
 import argparse
+import functools
 import os
 import signal
 import socket
@@ -72,8 +76,9 @@ def parse_args() -> argparse.Namespace:
     p.add_argument("--kernel-rows", default="65536,262144", help="queries per request with --engine kernel")
     p.add_argument("--clients-kernel", type=int, default=2, help="concurrent clients with --engine kernel")
     p.add_argument("--split-cores", action="store_true",
-                   help="with --engine kernel: the server on one half of this machine's cores, the clients and the "
-                   "in-process base on the other (as on a server with cores of its own); the halves swap every other round")
+                   help="with --engine kernel: the server on one half of this machine's cores, the clients "
+                   "and the in-process base on the other (as on a server with cores of its own); the halves "
+                   "swap every other round")
     return p.parse_args()
 
 
@@ -94,6 +99,15 @@ def model_folder(args: argparse.Namespace, scratch: Path) -> tuple[Path, str]:
     return folder, "bench256"
 
 
+def pin(pid: int, cores: set[int]) -> None:
+    """Move every thread of process `pid` onto `cores` (threads it starts later inherit them)."""
+    for task in Path(f"/proc/{pid}/task").iterdir():
+        try:
+            os.sched_setaffinity(int(task.name), cores)
+        except OSError:  # a thread that ended meanwhile
+            pass
+
+
 class Server:
     """A `neumip serve` process on a free loopback port."""
 
@@ -106,9 +120,9 @@ class Server:
         self.url = f"http://127.0.0.1:{port}"
         cmd = [sys.executable, "-m", "neumip.client.cli", "serve", "--port", str(port), "--model-dir", str(folder)]
         if bare:
-            cmd = [sys.executable, "-m", "uvicorn", "bare_server:app", "--app-dir", str(Path(__file__).parent),
-                   "--port", str(port), "--loop", "uvloop", "--http", "httptools", "--log-level", "warning",
-                   "--no-access-log"]
+            here = str(Path(__file__).parent)
+            cmd = [sys.executable, "-m", "uvicorn", "bare_server:app", "--app-dir", here, "--port", str(port),
+                   "--loop", "uvloop", "--http", "httptools", "--log-level", "warning", "--no-access-log"]
         env = {**os.environ, "NEUMIP_ENGINE": engine}
         pin = (lambda: os.sched_setaffinity(0, cores)) if cores else None  # the server's CPU cores
         self.process = subprocess.Popen(cmd, stdout=log.open("w"), stderr=subprocess.STDOUT, env=env, preexec_fn=pin)
@@ -124,12 +138,7 @@ class Server:
         sys.exit("server not ready within 120 s")
 
     def pin(self, cores: set[int]) -> None:
-        """Move every thread of the process onto `cores`."""
-        for task in Path(f"/proc/{self.process.pid}/task").iterdir():
-            try:
-                os.sched_setaffinity(int(task.name), cores)
-            except (ProcessLookupError, OSError):  # a thread that ended meanwhile
-                pass
+        pin(self.process.pid, cores)
 
     def rss_mib(self) -> float:
         for line in Path(f"/proc/{self.process.pid}/status").read_text().splitlines():
@@ -376,12 +385,11 @@ def kernel_throughput(args, name, folder, server, bare, pool, swap=None) -> None
                 kinds[base] = (in_process, clients, groups, base, server)
                 if clients == 1:  # the ONNX Runtime engine in process, for scale
                     kinds[f"in-process ONNX Runtime x1{tag}"] = (onnxruntime, 1, groups, base, server)
-                kinds[f"msgpack /v1 x{clients}{tag}"] = (lambda r, c=clients: at_once(msgpack[:c], r), clients, groups,
-                                                         base, server)
-                kinds[f"v2 binary x{clients}{tag}"] = (lambda r, c=clients: at_once(v2[:c], r), clients, groups, base,
-                                                       server)
-                kinds[f"bare uvicorn /v1 x{clients}{tag}"] = (lambda r, c=clients: at_once(floor[:c], r), clients,
-                                                              groups, None, bare)
+                for path, senders, process in (("msgpack /v1", msgpack, server), ("v2 binary", v2, server),
+                                               ("bare uvicorn /v1", floor, bare)):  # the floor: no ratio
+                    send = functools.partial(at_once, senders[:clients])
+                    ratio_to = base if process is server else None
+                    kinds[f"{path} x{clients}{tag}"] = (send, clients, groups, ratio_to, process)
 
         def requests(round_: int, clients: int, groups: bool) -> list[np.ndarray]:
             picked = [batches[(round_ + j) % len(batches)] for j in range(clients)]
@@ -412,19 +420,24 @@ def kernel_throughput(args, name, folder, server, bare, pool, swap=None) -> None
         for kind, (_, clients, groups, base, _) in kinds.items():
             ts = times[kind]
             answers = n * clients * (2 if groups else 1)
-            ratio = f"{statistics.median(b / t for b, t in zip(times[base], ts)):13.0%}" if base else f"{'-':>13s}"
+            ratio = " " * 12 + "-"
+            if base:
+                ratio = f"{statistics.median(b / t for b, t in zip(times[base], ts)):13.0%}"
             median = statistics.median(ts)
             own, loop, engine = (statistics.median(c[i] for c in cpu[kind]) * 1e3 / clients for i in range(3))
             print(f"{kind:40s} {median * 1e3:10.1f} {answers / median / 1e6:12.3f} {ratio} "
                   f"{own:23.1f} {loop:12.1f} {engine:7.1f}")
-        print("bare uvicorn: the HTTP floor (bare_server.py: read, decode and check each request, answer zeros; no "
-              "evaluation). A server whose event loop cost only that, with the engine's CPU above, would be at most "
-              "in-process / (engine + bare loop) of in-process:")
+        print("bare uvicorn: the HTTP floor (bare_server.py: read, decode and check each request, answer "
+              "zeros; no evaluation).")
+        if swap is None:  # on shared cores CPU time is not wall time (drjit's workers spin): no bound from it
+            continue
+        print("A server whose event loop cost only that, with the engine's CPU above, would be at most "
+              "in-process CPU / (engine CPU + bare loop CPU) of in-process (CPU medians, a core a side):")
         for groups in (False, True):
             tag = ", groups of 2" if groups else ""
             cpu_of = lambda kind, i: statistics.median(c[i] for c in cpu[kind])  # noqa: E731
-            base, served, floor_kind = f"in-process x1{tag}", f"msgpack /v1 x1{tag}", f"bare uvicorn /v1 x1{tag}"
-            bound = cpu_of(base, 0) / (cpu_of(served, 2) + cpu_of(floor_kind, 1))
+            base, served = f"in-process x1{tag}", f"msgpack /v1 x1{tag}"
+            bound = cpu_of(base, 0) / (cpu_of(served, 2) + cpu_of(f"bare uvicorn /v1 x1{tag}", 1))
             now = cpu_of(base, 0) / (cpu_of(served, 2) + cpu_of(served, 1))
             print(f"  x1{tag}: at most {bound:.0%} (with the server's own event loop: {now:.0%})")
     for client in msgpack + v2 + floor:
@@ -443,12 +456,16 @@ def main() -> None:
             halves = (set(cores[:half]), set(cores[half : 2 * half]))  # this process's, the servers'
             server_cores = halves[1] if args.split_cores else None
             server = Server(folder, Path(scratch) / "server.log", engine="kernel", cores=server_cores)
-            bare = Server(folder, Path(scratch) / "bare.log", cores=server_cores, bare=True)
+            try:
+                bare = Server(folder, Path(scratch) / "bare.log", cores=server_cores, bare=True)
+            except SystemExit:
+                server.stop()
+                raise
             swap = None
             if server_cores:
                 import drjit as dr
 
-                os.sched_setaffinity(0, halves[0])
+                pin(os.getpid(), halves[0])
                 dr.set_thread_count(half)  # as the servers size their pools
 
                 def swap(round_: int) -> None:
@@ -456,17 +473,17 @@ def main() -> None:
                     than another for a while (another tenant on its sibling), which must not count against
                     one side."""
                     mine, theirs = halves if round_ % 2 == 0 else halves[::-1]
-                    os.sched_setaffinity(0, mine)
+                    pin(os.getpid(), mine)  # every thread: the clients' pool, ONNX Runtime's, drjit's
                     server.pin(theirs)
                     bare.pin(theirs)
 
-                print(f"split cores: the servers on {sorted(halves[1])}, this process (clients and in-process "
-                      f"evaluation) on {sorted(halves[0])}; swapped every other round")
+                print(f"split cores: the servers on {sorted(halves[1])}, this process (clients and "
+                      f"in-process evaluation) on {sorted(halves[0])}; swapped every other round")
             try:
                 pool = C.random_queries(max(max(int(r) for r in args.kernel_rows.split(",")) * 4, 1 << 18))
                 kernel_throughput(args, name, folder, server, bare, pool, swap)
             finally:
-                bare.stop()
+                bare.stop()  # uvicorn itself: it ends by re-raising SIGTERM
                 print(f"server stopped with SIGTERM, exit status {server.stop()}")
         return
     import tritonclient.http as triton

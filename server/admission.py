@@ -147,7 +147,6 @@ class Admission:
             self.memory -= ticket.memory
             self.rows -= ticket.rows
             self.requests -= 1
-    
 
 async def read_body(request: Request, plan: BodyPlan, ticket: Ticket, admission: Admission) -> bytearray:
     """The whole body, grown with the bytes that arrive (nothing is reserved in memory up front).

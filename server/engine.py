@@ -36,6 +36,9 @@ log = logging.getLogger(__name__)
 ONNX_PLATFORM = "onnxruntime_onnx"
 """Triton's platform name of an ONNX model run by ONNX Runtime (its onnxruntime backend), which the
 ``onnxruntime`` engine is too."""
+KERNEL_PLATFORM = "neumip_drjit_llvm"
+"""The platform the model metadata names under the ``kernel`` engine: the file's weights as drjit LLVM
+kernels."""
 
 
 class EngineUnavailable(NeumipError, ImportError):
@@ -98,7 +101,8 @@ class Engine:
             kernel = KernelMaterial(path, data=data)
             return KernelModel(path.stem, path, kernel, kernel.metadata, len(data), groups=True)
 
-        return cls("kernel", load, 1, chunk_rows, lambda: dr.set_thread_count(available_cores()), "neumip_drjit_llvm")
+        return cls("kernel", load, 1, chunk_rows, lambda: dr.set_thread_count(available_cores()),
+                   platform=KERNEL_PLATFORM)
 
     @classmethod
     def from_settings(cls, settings: Settings) -> "Engine":

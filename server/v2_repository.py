@@ -44,6 +44,8 @@ async def read_small_body(request: Request, state: ServerState, limit: int) -> b
 @router.get("/models/{name}/config", summary="Model configuration (Triton's ModelConfig)", responses=ERROR_RESPONSES)
 @router.get("/models/{name}/versions/{version}/config", include_in_schema=False)
 async def config(name: str, version: str | None = None, state: ServerState = Depends(serving)) -> dict:
+    """The config Triton would serve the file with (what `export-repository` writes), whatever engine this
+    server runs (its model metadata names that: `Engine.platform`)."""
     check_version(version)
     material = await asyncio.to_thread(state.registry.get, name)  # loads a lazily listed one: its graph says
     return model_config(name, TritonOptions.from_settings(state.settings), material.groups)
