@@ -124,8 +124,9 @@ class Server:
             cmd = [sys.executable, "-m", "uvicorn", "bare_server:app", "--app-dir", here, "--port", str(port),
                    "--loop", "uvloop", "--http", "httptools", "--log-level", "warning", "--no-access-log"]
         env = {**os.environ, "NEUMIP_ENGINE": engine}
-        pin = (lambda: os.sched_setaffinity(0, cores)) if cores else None  # the server's CPU cores
-        self.process = subprocess.Popen(cmd, stdout=log.open("w"), stderr=subprocess.STDOUT, env=env, preexec_fn=pin)
+        place = (lambda: os.sched_setaffinity(0, cores)) if cores else None  # the child, one thread before exec
+        self.process = subprocess.Popen(cmd, stdout=log.open("w"), stderr=subprocess.STDOUT, env=env,
+                                        preexec_fn=place)
         deadline = time.monotonic() + 120
         while time.monotonic() < deadline:
             if self.process.poll() is not None:

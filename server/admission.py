@@ -148,6 +148,7 @@ class Admission:
             self.rows -= ticket.rows
             self.requests -= 1
 
+
 async def read_body(request: Request, plan: BodyPlan, ticket: Ticket, admission: Admission) -> bytearray:
     """The whole body, grown with the bytes that arrive (nothing is reserved in memory up front).
 
