@@ -15,7 +15,7 @@ from __future__ import annotations
 
 import json
 
-from neumip.client import contract as C
+from neumip.core import contract as C
 from neumip.client import wire
 
 

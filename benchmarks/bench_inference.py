@@ -65,10 +65,10 @@ import numpy as np  # noqa: E402
 import onnxruntime as ort  # noqa: E402
 import torch  # noqa: E402
 
-from neumip.client import contract as C  # noqa: E402
-from neumip.client.contract import random_queries  # noqa: E402
+from neumip.core import contract as C  # noqa: E402
+from neumip.core.contract import random_queries  # noqa: E402
 from neumip.client.local import LocalMaterials, run_chunked, split_chunk  # noqa: E402
-from neumip.training.config import MaterialConfig  # noqa: E402
+from neumip.core.config import MaterialConfig  # noqa: E402
 from neumip.training.export import build_onnx, weights_from_state  # noqa: E402
 from neumip.training.material import NeuMIPMaterial  # noqa: E402
 

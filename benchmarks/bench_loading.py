@@ -31,7 +31,7 @@ import httpx
 import numpy as np
 
 from neumip.client import wire
-from neumip.client.contract import random_queries
+from neumip.core.contract import random_queries
 
 
 def free_port() -> int:

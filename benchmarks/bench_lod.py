@@ -29,10 +29,10 @@ import numpy as np
 import onnxruntime as ort
 from onnx import TensorProto
 
-from neumip.client import contract as C
-from neumip.client.contract import random_queries
+from neumip.core import contract as C
+from neumip.core.contract import random_queries
 from neumip.training import export_lookup
-from neumip.training.config import MaterialConfig
+from neumip.core.config import MaterialConfig
 from neumip.training.export import build_onnx, random_weights
 from neumip.training.export_lod import clip_min, log2_mantissa
 from neumip.training.onnx_graph import GraphWriter

@@ -43,7 +43,7 @@ from pathlib import Path
 
 import numpy as np
 
-from neumip.client import contract as C
+from neumip.core import contract as C
 
 ROOT = Path(__file__).resolve().parents[1]
 SCENE = ROOT / "scenes" / "demo.xml"
@@ -211,7 +211,7 @@ def ratios(args) -> None:
 
 def stand_in_models(folder: Path) -> Path:
     """Write constant-colour materials of the default architecture under the demo's names."""
-    from neumip.training.config import MaterialConfig
+    from neumip.core.config import MaterialConfig
     from neumip.training.export import build_onnx, constant_weights, save_onnx
 
     cfg = MaterialConfig()

@@ -57,7 +57,7 @@ from pathlib import Path
 import httpx
 import numpy as np
 
-from neumip.client import contract as C
+from neumip.core import contract as C
 from neumip.client import wire
 from neumip.client.http import ClientConfig, MaterialClient, ServerError
 from neumip.client.local import LocalMaterials
@@ -91,7 +91,7 @@ def model_folder(args: argparse.Namespace, scratch: Path) -> tuple[Path, str]:
     if args.model is not None:
         (folder / args.model.name).symlink_to(args.model.resolve())
         return folder, args.model.stem
-    from neumip.training.config import MaterialConfig
+    from neumip.core.config import MaterialConfig
     from neumip.training.export import build_onnx, random_weights, save_onnx
 
     config = MaterialConfig()

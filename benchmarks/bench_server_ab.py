@@ -29,7 +29,7 @@ from pathlib import Path
 
 import httpx
 
-from neumip.client import contract as C
+from neumip.core import contract as C
 from neumip.client.http import ClientConfig, MaterialClient
 from neumip.client.local import LocalMaterials
 
@@ -82,7 +82,7 @@ def start(folder: Path, pythonpath: Path | None, log: Path) -> tuple[subprocess.
 
 def main() -> None:
     args = parse_args()
-    from neumip.training.config import MaterialConfig
+    from neumip.core.config import MaterialConfig
     from neumip.training.export import build_onnx, random_weights, save_onnx
 
     with tempfile.TemporaryDirectory() as tmp:

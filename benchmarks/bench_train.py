@@ -32,8 +32,8 @@ import torch
 
 import neumip.training.blur as blur_mod
 import neumip.training.pyramid as pyramid_mod
-from neumip.client.contract import random_queries
-from neumip.training.config import MaterialConfig
+from neumip.core.contract import random_queries
+from neumip.core.config import MaterialConfig
 from neumip.training.dataset import write_dataset
 from neumip.training.train import Trainer
 from neumip.training.train_config import QUICK, SHIP

@@ -13,8 +13,8 @@ import numpy as np
 import onnx
 from onnx import TensorProto, helper
 
-from neumip.client import contract as C
-from neumip.training.config import MaterialConfig
+from neumip.core import contract as C
+from neumip.core.config import MaterialConfig
 from neumip.training.export import IR_VERSION, OPSET
 from neumip.training.export_lod import level_of_detail
 from neumip.training.onnx_graph import GraphWriter

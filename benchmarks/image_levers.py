@@ -38,7 +38,7 @@ os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
 
 import numpy as np  # noqa: E402
 
-from neumip.training.config import MaterialConfig  # noqa: E402
+from neumip.core.config import MaterialConfig  # noqa: E402
 from neumip.training.train_config import PRESETS  # noqa: E402
 
 SHIP = replace(PRESETS["ship"], validate_every=0)
@@ -172,7 +172,7 @@ def query_space(ref: str, models: list[str]) -> None:
     """MSE of each model file against a low-noise reference query set: overall, per level (64^2
     binning), views beyond 70 degrees (wo), lights beyond 75 degrees (wi) with their mean and
     99th-percentile luminance over the reference's."""
-    from neumip.client import contract as C
+    from neumip.core import contract as C
     from neumip.client.local import LocalMaterials
     from neumip.training.dataset import open_dataset
     from neumip.training.validation import validation_table
@@ -198,7 +198,7 @@ def query_space(ref: str, models: list[str]) -> None:
 def speed(models: list[str], rounds: int = 5, n: int = 1 << 18) -> None:
     """Seconds per n random queries of each model file on one ONNX Runtime thread, interleaved
     round by round, median of the rounds (the cost of a wider MLP per query)."""
-    from neumip.client.contract import random_queries
+    from neumip.core.contract import random_queries
     from neumip.client.local import LocalMaterials
 
     q = random_queries(n, seed=0, max_zenith_deg=80.0)

@@ -34,8 +34,8 @@ os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
 
 import numpy as np  # noqa: E402
 
-from neumip.client import contract as C  # noqa: E402
-from neumip.training.config import MaterialConfig  # noqa: E402
+from neumip.core import contract as C  # noqa: E402
+from neumip.core.config import MaterialConfig  # noqa: E402
 from neumip.training.train_config import PRESETS  # noqa: E402
 
 GRAZING_DEG = 70.0

@@ -23,8 +23,8 @@ from pathlib import Path
 
 import numpy as np
 
-from neumip.client import contract as C
-from neumip.client.contract import random_queries
+from neumip.core import contract as C
+from neumip.core.contract import random_queries
 from neumip.client.local import LocalMaterials
 from neumip.training.validation import format_table
 

@@ -8,7 +8,7 @@ import importlib.metadata
 import logging
 import sys
 
-from .errors import NeumipError
+from neumip.core.errors import NeumipError
 
 AREAS = (
     "neumip.client.commands",

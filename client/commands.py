@@ -5,7 +5,7 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-from . import contract as C
+from neumip.core import contract as C
 
 DEFAULT_MODELS = "models"
 """Folder `neumip query` and `neumip render` look material names up in."""

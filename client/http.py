@@ -6,7 +6,7 @@ kept-alive HTTP/1.1 connection, the query rows handed to the socket without a co
 timeouts; 503 (queue full, honouring ``Retry-After``) and connection failures are retried a bounded
 number of times with exponential backoff; anything else fails at once with an error that says what
 the server answered. Large buffers are sent as several requests of at most ``ClientConfig.max_rows``
-rows. Query groups (N, 5 + 2 K) travel as they are (`neumip.client.contract`) and answer (N, 3 K);
+rows. Query groups (N, 5 + 2 K) travel as they are (`neumip.core.contract`) and answer (N, 3 K);
 a row is a group, so a split never cuts one. Whether the server takes groups for a material is read
 from its metadata once (`MaterialClient.takes_groups`); where it does not (a server from before
 groups, or Triton serving a model file exported before them) their single queries (`contract.ungroup`)
@@ -29,9 +29,9 @@ from typing import Protocol
 
 import numpy as np
 
-from . import contract as C
+from neumip.core import contract as C
 from . import wire
-from .errors import NeumipError
+from neumip.core.errors import NeumipError
 from .local import NAME_PATTERN, UnknownMaterial
 
 log = logging.getLogger(__name__)

@@ -38,7 +38,7 @@ from types import ModuleType
 
 import numpy as np
 
-from neumip.client import contract as C
+from neumip.core import contract as C
 from neumip.client.local import ModelError, ModelFolder
 from neumip.client.mitsuba.runtime import ensure_llvm
 
@@ -94,7 +94,7 @@ class KernelMaterial:
         """Read the model file `path` (from `data`, its bytes already read, if given); raises
         ModelError if it cannot be served. `backend`: drjit namespace of the arrays (default
         ``drjit.llvm.ad``)."""
-        from neumip.training import head
+        from neumip.core import head
         from neumip.training.export import _depth_weights
         from neumip.training.export_read import ModelLayoutError, read_model
 
@@ -260,7 +260,7 @@ class KernelMaterial:
         return x
 
     def _head(self, out: list[Float]) -> Rgb:
-        """The decoder's outputs -> RGB >= 0 (`training.head`)."""
+        """The decoder's outputs -> RGB >= 0 (`core.head`)."""
         if self.head == "yuv":
             shadow = [self.shadow_floor + dr.rcp(1.0 + dr.exp(-s)) for s in out[3:]]
             yuv = _dense(out[:3], self.yuv_to_rgb.astype(np.float32), None)

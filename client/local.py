@@ -23,8 +23,8 @@ from typing import Callable, Generic, TypeVar
 
 import numpy as np
 
-from . import contract as C
-from .errors import NeumipError
+from neumip.core import contract as C
+from neumip.core.errors import NeumipError
 from .wire import GROUPS_KEY
 
 log = logging.getLogger(__name__)

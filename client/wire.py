@@ -22,7 +22,7 @@ groups: single queries only), on ``/v2`` by the model metadata's input shape (``
 The rows travel as raw float32 bytes, so neither side copies them: a body laid out exactly as
 `msgpack.packb` writes it is read as a view (`_fast_rows`), and the server writes its answer straight
 into a response body (`response_buffer`). Any other valid msgpack layout of the same map is still
-decoded, by msgpack itself. What a query *means* is `neumip.client.contract`; this module is only
+decoded, by msgpack itself. What a query *means* is `neumip.core.contract`; this module is only
 how its rows travel.
 
 The v2 binary layout (Triton's binary tensor extension) is a JSON header of
@@ -36,7 +36,7 @@ import json
 
 import numpy as np
 
-from .contract import (DTYPE, MAX_LIGHTS, ONNX_INPUT, ONNX_OUTPUT, QUERY_DIM, RGB_DIM, QueryError, as_queries,
+from neumip.core.contract import (DTYPE, MAX_LIGHTS, ONNX_INPUT, ONNX_OUTPUT, QUERY_DIM, RGB_DIM, QueryError, as_queries,
                        group_lights, group_width)
 
 MSGPACK_MEDIA_TYPE = "application/msgpack"

@@ -13,7 +13,7 @@ import numpy as np
 
 
 def make_models(folder: Path) -> None:
-    from neumip.training.config import MaterialConfig
+    from neumip.core.config import MaterialConfig
     from neumip.training.export import build_onnx, random_weights, save_onnx
 
     folder.mkdir(parents=True, exist_ok=True)
@@ -29,7 +29,7 @@ def check(url: str, folder: Path) -> None:
     import httpx
     import tritonclient.http as triton
 
-    from neumip.client import contract as C
+    from neumip.core import contract as C
     from neumip.client import wire
     from neumip.client.local import LocalMaterials
 

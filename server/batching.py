@@ -43,7 +43,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from neumip.client import contract as C
+from neumip.core import contract as C
 from neumip.client.local import Material
 
 from .engine import Engine

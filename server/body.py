@@ -7,7 +7,7 @@ import json
 import numpy as np
 from fastapi import Request
 
-from neumip.client import contract as C
+from neumip.core import contract as C
 
 from .errors import ApiError
 

@@ -25,7 +25,7 @@ from pathlib import Path
 
 import numpy as np
 
-from neumip.client.errors import NeumipError
+from neumip.core.errors import NeumipError
 from neumip.client.local import Material, load_material
 
 from .settings import Settings, available_cores

@@ -13,7 +13,7 @@ from fastapi.exceptions import RequestValidationError
 from fastapi.responses import JSONResponse
 from starlette.exceptions import HTTPException as StarletteHTTPException
 
-from neumip.client.contract import QueryError
+from neumip.core.contract import QueryError
 from neumip.client.local import UnknownMaterial
 
 log = logging.getLogger(__name__)

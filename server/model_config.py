@@ -11,7 +11,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-from neumip.client import contract as C
+from neumip.core import contract as C
 
 from .engine import ONNX_PLATFORM
 from .registry import MODEL_VERSION

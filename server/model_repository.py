@@ -11,7 +11,7 @@ repository is built in a temporary folder beside the target and renamed into pla
 interrupted export never leaves a half-written repository under the target's name.
 
 Each config states what its model file takes: dims [-1] in and out (queries (N, 7) or query groups
-(N, 5 + 2 K) -> (N, 3 K), `neumip.client.contract`), or [7] and [3] for a file exported before query
+(N, 5 + 2 K) -> (N, 3 K), `neumip.core.contract`), or [7] and [3] for a file exported before query
 groups, whose graph fixes the width (a config states what its graph takes). neumip's
 own server answers groups for both (`neumip.client.local.run_call`); Triton serves such a file
 single queries only until it is re-exported (`neumip export OLD.onnx -o NEW.onnx`).
@@ -26,8 +26,8 @@ import shutil
 import tempfile
 from pathlib import Path
 
-from neumip.client import contract as C
-from neumip.client.errors import NeumipError
+from neumip.core import contract as C
+from neumip.core.errors import NeumipError
 from neumip.client.local import Material, load_folder
 
 from .model_config import TritonOptions, model_config, to_pbtxt

@@ -6,7 +6,7 @@ every body themselves.
 
 from __future__ import annotations
 
-from neumip.client import contract as C
+from neumip.core import contract as C
 from neumip.client import wire
 
 ERROR_SCHEMA = {

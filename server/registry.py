@@ -42,7 +42,7 @@ from pathlib import Path
 
 import numpy as np
 
-from neumip.client import contract as C
+from neumip.core import contract as C
 from neumip.client.local import NAME_PATTERN, Material, ModelError, UnknownMaterial
 
 from .engine import Engine

@@ -21,7 +21,7 @@ import os
 import numpy as np
 
 MAX_LIGHTS = 64
-"""Most lights of a query group (`neumip.client.contract.MAX_LIGHTS`; this file runs without neumip)."""
+"""Most lights of a query group (`neumip.core.contract.MAX_LIGHTS`; this file runs without neumip)."""
 
 
 class TritonPythonModel:

@@ -6,7 +6,7 @@ import logging
 import signal
 import socket
 
-from neumip.client.errors import NeumipError
+from neumip.core.errors import NeumipError
 
 log = logging.getLogger(__name__)
 

@@ -3,7 +3,7 @@
 ``POST /v1/materials/{name}/evaluate`` with ``Content-Type: application/msgpack`` takes the
 `wire.encode_request` body and answers `wire.encode_response`; with ``application/json`` it
 takes ``{"queries": [[u, v, sigma, wi_x, wi_y, wo_x, wo_y], ...]}`` and answers
-``{"n": N, "rgb": [[r, g, b], ...]}``. Query groups (`neumip.client.contract`) go the same way: rows of
+``{"n": N, "rgb": [[r, g, b], ...]}``. Query groups (`neumip.core.contract`) go the same way: rows of
 ``5 + 2 K`` values in (msgpack: the width stated by ``"lights": K``, or read from the byte count,
 `neumip.client.wire`), ``3 K`` out. ``GET /v1/materials`` lists the materials with their metadata;
 ``"groups"`` says whether a material's model file takes query groups (`wire.takes_groups`).
@@ -17,7 +17,7 @@ import numpy as np
 from fastapi import APIRouter, Depends, Request, Response
 from fastapi.responses import JSONResponse
 
-from neumip.client import contract as C
+from neumip.core import contract as C
 from neumip.client import wire
 
 from .admission import plan, read_body

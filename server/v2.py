@@ -2,7 +2,7 @@
 
 Each material is a model with one version, ``"1"``, one input ``queries`` FP32 [-1, -1] and one output
 ``rgb`` FP32 [-1, -1] (the protocol's -1: a dimension of variable size): [N, 7] queries answer [N, 3],
-[N, 5 + 2 K] query groups of K lights answer [N, 3 K] (`neumip.client.contract`). The metadata of a
+[N, 5 + 2 K] query groups of K lights answer [N, 3 K] (`neumip.core.contract`). The metadata of a
 model file exported before query groups says [-1, 7] and [-1, 3], what its graph takes and what Triton
 says of it, so clients that read it send single queries (`wire.takes_groups`); this server still answers
 groups sent to it (their single queries, `neumip.client.local.run_call`). Infer bodies are
@@ -20,7 +20,7 @@ import numpy as np
 from fastapi import APIRouter, Depends, Request, Response
 from fastapi.responses import JSONResponse
 
-from neumip.client import contract as C
+from neumip.core import contract as C
 from neumip.client import wire
 
 from .admission import plan, read_body

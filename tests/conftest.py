@@ -16,14 +16,14 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from neumip.client import contract as C
+from neumip.core import contract as C
 
 
 @pytest.fixture(scope="session")
 def model_dir(tmp_path_factory):
     """A folder with two small random materials (`rand16`, offset on; `flat16`, offset off) and a
     constant Lambertian `lambert` answering 0.5 / pi."""
-    from neumip.training.config import MaterialConfig
+    from neumip.core.config import MaterialConfig
     from neumip.training.export import build_onnx, constant_weights, random_weights, save_onnx
 
     folder = tmp_path_factory.mktemp("models")

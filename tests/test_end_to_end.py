@@ -19,9 +19,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from neumip.client import contract as C
+from neumip.core import contract as C
 from neumip.client.cli import main
-from neumip.client.contract import random_queries
+from neumip.core.contract import random_queries
 
 pytest.importorskip("mitsuba")
 pytest.importorskip("torch")

@@ -12,9 +12,9 @@ from typing import Any
 
 import torch
 
-from neumip.client.errors import NeumipError
+from neumip.core.errors import NeumipError
 
-from .config import MaterialConfig
+from neumip.core.config import MaterialConfig
 from .material import NeuMIPMaterial
 
 FORMAT = "neumip-checkpoint-1"

@@ -23,7 +23,7 @@ from contextlib import contextmanager
 from dataclasses import dataclass
 from typing import Any, Callable, Iterable, Iterator
 
-from neumip.client.errors import NeumipError
+from neumip.core.errors import NeumipError
 
 log = logging.getLogger(__name__)
 

@@ -7,7 +7,7 @@ import os
 from pathlib import Path
 
 from . import trim_command
-from .config import MaterialConfig  # torch-free
+from neumip.core.config import MaterialConfig  # torch-free
 from .train_config import PRESETS  # torch-free
 
 HIDDEN_HELP = (f"width of the hidden layers of both MLPs (default {MaterialConfig.hidden}, the paper's; "

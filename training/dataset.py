@@ -29,8 +29,8 @@ from typing import Any
 
 import numpy as np
 
-from neumip.client import contract as C
-from neumip.client.errors import NeumipError
+from neumip.core import contract as C
+from neumip.core.errors import NeumipError
 
 FORMAT = "neumip-mbtf-1"
 

@@ -36,10 +36,10 @@ import numpy as np
 import onnx
 from onnx import helper
 
-from neumip.client import contract as C
+from neumip.core import contract as C
 
-from . import head
-from .config import MaterialConfig
+from neumip.core import head
+from neumip.core.config import MaterialConfig
 from .export_lookup import pyramid_texels, texture_texels
 from .onnx_graph import GraphWriter
 
@@ -198,7 +198,7 @@ def material_graph(g: GraphWriter, config: MaterialConfig, weights: dict,
 
 
 def _yuv_head(g: GraphWriter, out: str) -> str:
-    """Decoder output (N, 6) -> (N, 3) exp(YUV_TO_RGB yuv) - 1 times the shadow mask (training/head.py)."""
+    """Decoder output (N, 6) -> (N, 3) exp(YUV_TO_RGB yuv) - 1 times the shadow mask (core/head.py)."""
     yuv = np.zeros((6, 3), np.float64)
     yuv[:3] = head.YUV_TO_RGB.T  # columns 0-2 -> RGB in log space, in one MatMul (no Slice)
     shadow = np.zeros((6, 3), np.float32)

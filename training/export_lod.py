@@ -23,7 +23,7 @@ in L1):
 from __future__ import annotations
 
 import numpy as np
-from .config import MaterialConfig
+from neumip.core.config import MaterialConfig
 from .onnx_graph import GraphWriter
 
 LOG2_POLYNOMIAL = (2.885390043258667, 0.9617878198623657, 0.5775499939918518, 0.40215760469436646,

@@ -23,7 +23,7 @@ from dataclasses import dataclass
 import numpy as np
 from onnx import TensorProto
 
-from .config import MaterialConfig
+from neumip.core.config import MaterialConfig
 from .export_lod import level_of_detail
 from .onnx_graph import GraphWriter
 

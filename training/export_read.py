@@ -34,9 +34,9 @@ import numpy as np
 import onnx
 from onnx import numpy_helper
 
-from neumip.client import contract as C
+from neumip.core import contract as C
 
-from .config import MaterialConfig
+from neumip.core.config import MaterialConfig
 from .export import _depth_weights, build_onnx, save_onnx
 from .onnx_graph import COLUMN_ALPHA
 

@@ -17,7 +17,7 @@ from pathlib import Path
 from typing import Callable
 
 from .cluster import RayConfig, as_completed
-from .config import MaterialConfig
+from neumip.core.config import MaterialConfig
 from .train_config import TrainConfig
 
 log = logging.getLogger(__name__)

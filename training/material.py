@@ -5,10 +5,10 @@ from __future__ import annotations
 import torch
 from torch import nn
 
-from neumip.client import contract as C
+from neumip.core import contract as C
 
-from . import head
-from .config import MaterialConfig
+from neumip.core import head
+from neumip.core.config import MaterialConfig
 from .offset import parallax_shift
 from .pyramid import pyramid_lookup, texture_lookup
 
@@ -68,7 +68,7 @@ class NeuMIPMaterial(nn.Module):
         atlas = torch.cat([lvl.reshape(-1, self.config.channels) for lvl in levels], dim=0)
         features = pyramid_lookup(atlas, self.config, u, v, sigma)
         out = self.decoder(torch.cat([features, queries[:, C.WI_X : C.WO_Y + 1]], dim=1))
-        if self.config.head == "yuv":  # exp(YUV) - 1 times the shadow mask (training/head.py)
+        if self.config.head == "yuv":  # exp(YUV) - 1 times the shadow mask (core/head.py)
             shadow = head.SHADOW_FLOOR + torch.sigmoid(out[:, 3:])
             out = torch.expm1(out[:, :3] @ self.yuv_to_rgb) * shadow
         return torch.relu(out)

@@ -11,13 +11,13 @@ import math
 
 import torch
 
-from .config import MaterialConfig
+from neumip.core.config import MaterialConfig
 
 
 def level_of_detail(sigma: torch.Tensor, resolution: int) -> torch.Tensor:
     """(N,) footprint sigma in tile units -> (N,) continuous level, clamp(log2(sigma * R), 0, log2 R).
 
-    Same convention as `neumip.client.contract.level_of_detail`; sigma <= 0 reads the finest level.
+    Same convention as `neumip.core.contract.level_of_detail`; sigma <= 0 reads the finest level.
     """
     tiny = torch.finfo(sigma.dtype).tiny
     lod = torch.log2(torch.clamp(sigma, min=tiny) * resolution)

@@ -19,14 +19,14 @@ from typing import Callable
 import numpy as np
 import torch
 
-from neumip.client import contract as C
-from neumip.client.errors import NeumipError
+from neumip.core import contract as C
+from neumip.core.errors import NeumipError
 
 from . import checkpoint
 from .blur import bake, blur_sigma, blur_texture, effective_textures, schedule_end
-from .config import MaterialConfig
+from neumip.core.config import MaterialConfig
 from .dataset import Dataset, open_dataset
-from .head import answer_bias
+from neumip.core.head import answer_bias
 from .losses import training_loss
 from .material import NeuMIPMaterial
 from .train_config import TrainConfig

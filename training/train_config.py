@@ -9,7 +9,7 @@ from __future__ import annotations
 
 from dataclasses import asdict, dataclass, replace
 
-from .config import dataclass_from_dict
+from neumip.core.config import dataclass_from_dict
 
 
 @dataclass(frozen=True)

@@ -32,9 +32,9 @@ import numpy as np
 import onnx
 from onnx import numpy_helper
 
-from neumip.client import contract as C
+from neumip.core import contract as C
 
-from .config import MaterialConfig
+from neumip.core.config import MaterialConfig
 from .export import save_onnx
 from .export_lod import clip_min, clip_node, stage_constants
 from .export_lookup import level_tables, texture_constants, trimmed_atlas

@@ -9,7 +9,7 @@ from __future__ import annotations
 import numpy as np
 import torch
 
-from neumip.client import contract as C
+from neumip.core import contract as C
 
 from .material import NeuMIPMaterial
 

@@ -13,7 +13,7 @@ from pathlib import Path
 
 import numpy as np
 
-from neumip.client import contract as C
+from neumip.core import contract as C
 
 log = logging.getLogger(__name__)
 

@@ -29,8 +29,8 @@ from pathlib import Path
 
 import numpy as np
 
-from neumip.client import contract as C
-from neumip.client.contract import sample_footprint
+from neumip.core import contract as C
+from neumip.core.contract import sample_footprint
 
 from .bsdf import mi
 from .render import RenderConfig, render_scene

@@ -45,7 +45,7 @@ import logging
 import math
 from dataclasses import dataclass
 
-from neumip.client.contract import sample_footprint
+from neumip.core.contract import sample_footprint
 
 from .bsdf import dr, mi
 from .shading import NeuralShading, query_frame, to_query

@@ -19,7 +19,7 @@ from pathlib import Path
 
 import numpy as np
 
-from neumip.client.errors import NeumipError
+from neumip.core.errors import NeumipError
 
 from .bsdf import dr, mi
 from .integrator import NeuMIPPathIntegrator

@@ -13,7 +13,7 @@ import os
 import re
 from pathlib import Path
 
-from neumip.client.errors import NeumipError
+from neumip.core.errors import NeumipError
 
 log = logging.getLogger(__name__)
 

@@ -30,8 +30,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from neumip.client import contract as C
-from neumip.client.errors import NeumipError
+from neumip.core import contract as C
+from neumip.core.errors import NeumipError
 
 from .bsdf import NeuMIPBSDF, dr, mi
 

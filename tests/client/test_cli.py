@@ -47,7 +47,7 @@ def test_query_errors_say_what_is_wrong(model_dir, tmp_path, capsys):
 
 
 def test_help_documents_the_query_values_and_the_defaults(capsys):
-    from neumip.client import contract as C
+    from neumip.core import contract as C
 
     with pytest.raises(SystemExit):
         cli.main(["query", "--help"])

@@ -3,7 +3,7 @@
 import numpy as np
 import pytest
 
-from neumip.client import contract as C
+from neumip.core import contract as C
 
 
 def good(n=4):

@@ -11,12 +11,12 @@ import httpx
 import numpy as np
 import pytest
 
-from neumip.client import contract as C
+from neumip.core import contract as C
 from neumip.client import wire
 from neumip.client.http import ClientConfig, MaterialClient, ServerError, ServerUnavailable
 from neumip.client.local import LocalMaterials, UnknownMaterial
 
-from neumip.client.contract import random_queries
+from neumip.core.contract import random_queries
 
 FAST = dict(backoff_s=0.001, max_backoff_s=0.01)
 PRE_GROUPS = Path(__file__).parents[1] / "training" / "data" / "pre_groups_offset.onnx"

@@ -13,7 +13,7 @@ import numpy as np
 import onnx
 import pytest
 
-from neumip.client import contract as C
+from neumip.core import contract as C
 from neumip.client.local import LocalMaterials, ModelError, UnknownMaterial
 
 pytest.importorskip("neumip.client.kernel")  # drjit, after the libLLVM check
@@ -22,7 +22,7 @@ import drjit as dr  # noqa: E402
 from drjit.llvm.ad import Float, UInt32  # noqa: E402
 
 from neumip.client.kernel import KernelMaterial, KernelMaterials  # noqa: E402
-from neumip.training.config import MaterialConfig  # noqa: E402
+from neumip.core.config import MaterialConfig  # noqa: E402
 from neumip.training.export import build_onnx, random_weights, save_onnx  # noqa: E402
 from neumip.training.trim import trim_model  # noqa: E402
 

@@ -9,9 +9,9 @@ import numpy as np
 import onnxruntime as ort
 import pytest
 
-from neumip.client import contract as C
+from neumip.core import contract as C
 from neumip.client.local import LocalMaterials, ModelError, UnknownMaterial, load_material, run_call
-from neumip.client.contract import random_queries
+from neumip.core.contract import random_queries
 
 
 def test_loads_folder_and_matches_direct_onnxruntime(model_dir):
@@ -56,7 +56,7 @@ def test_model_of_another_contract_version_is_refused(tmp_path):
     import onnx
     from onnx import helper
 
-    from neumip.training.config import MaterialConfig
+    from neumip.core.config import MaterialConfig
     from neumip.training.export import build_onnx, random_weights, save_onnx
 
     cfg = MaterialConfig(resolution=4)
@@ -70,7 +70,7 @@ def test_model_of_another_contract_version_is_refused(tmp_path):
 
 def test_import_client_does_not_import_torch():
     code = (
-        "import sys, neumip.client, neumip.client.contract, neumip.client.local, neumip.client.cli;"
+        "import sys, neumip.client, neumip.core.contract, neumip.client.local, neumip.client.cli;"
         "assert 'torch' not in sys.modules, 'torch imported';"
         "assert 'mitsuba' not in sys.modules, 'mitsuba imported'"
     )

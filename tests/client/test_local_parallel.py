@@ -6,9 +6,9 @@ import numpy as np
 import onnxruntime as ort
 import pytest
 
-from neumip.client import contract as C
+from neumip.core import contract as C
 from neumip.client.local import DEFAULT_CHUNK, MIN_SPLIT, LocalMaterials, load_material, run_chunked, split_chunk
-from neumip.client.contract import random_queries
+from neumip.core.contract import random_queries
 
 
 @pytest.mark.parametrize("rows", [0, 1, MIN_SPLIT * 2 + 3, 50_001])

@@ -5,9 +5,9 @@ import msgpack
 import numpy as np
 import pytest
 
-from neumip.client import contract as C
+from neumip.core import contract as C
 from neumip.client import wire
-from neumip.client.contract import random_queries
+from neumip.core.contract import random_queries
 
 
 def test_wire_roundtrip_is_bit_exact():

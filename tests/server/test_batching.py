@@ -12,7 +12,7 @@ from neumip.server.batching import Batcher, split
 from neumip.server.engine import Engine
 from neumip.server.metrics import Metrics
 from neumip.server.settings import Settings
-from neumip.client.contract import random_queries
+from neumip.core.contract import random_queries
 
 
 def make_batcher(model_dir, **settings) -> tuple[Batcher, Metrics]:

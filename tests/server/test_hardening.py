@@ -20,9 +20,9 @@ import httpx
 import numpy as np
 import pytest
 
-from neumip.client import contract as C
+from neumip.core import contract as C
 from neumip.client import wire
-from neumip.client.contract import random_queries
+from neumip.core.contract import random_queries
 from neumip.client.http import ClientConfig, MaterialClient, ServerUnavailable
 
 PATH = wire.EVALUATE_PATH.format(name="rand16")

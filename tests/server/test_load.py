@@ -14,9 +14,9 @@ import httpx
 import numpy as np
 import pytest
 
-from neumip.client import contract as C
+from neumip.core import contract as C
 from neumip.client import wire
-from neumip.client.contract import random_queries
+from neumip.core.contract import random_queries
 
 CLIENTS = 16
 MEMORY_BOUND = 64 << 20

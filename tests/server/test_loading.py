@@ -16,10 +16,10 @@ import numpy as np
 import pytest
 
 from neumip.client import wire
-from neumip.client.contract import random_queries
+from neumip.core.contract import random_queries
 from neumip.client.http import MaterialClient
 from neumip.client.local import LocalMaterials
-from neumip.training.config import MaterialConfig
+from neumip.core.config import MaterialConfig
 from neumip.training.export import build_onnx, random_weights, save_onnx
 
 

@@ -2,9 +2,9 @@
 
 from __future__ import annotations
 
-from neumip.client import contract as C
+from neumip.core import contract as C
 from neumip.client import wire
-from neumip.client.contract import random_queries
+from neumip.core.contract import random_queries
 
 
 def value(text: str, prefix: str) -> float:

@@ -8,12 +8,12 @@ import onnx
 import pytest
 from fastapi.testclient import TestClient
 
-from neumip.client import contract as C
+from neumip.core import contract as C
 from neumip.client import wire
 from neumip.server.app import create_app
 from neumip.server.registry import Registry
 from neumip.server.settings import Settings
-from neumip.client.contract import random_queries
+from neumip.core.contract import random_queries
 
 
 @pytest.fixture(scope="module")

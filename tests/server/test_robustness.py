@@ -9,7 +9,7 @@ import socket
 import httpx
 import pytest
 
-from neumip.client import contract as C
+from neumip.core import contract as C
 from neumip.client import wire
 
 PATH = wire.EVALUATE_PATH.format(name="rand16")

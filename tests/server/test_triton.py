@@ -22,7 +22,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from neumip.client.contract import random_queries
+from neumip.core.contract import random_queries
 from neumip.client.local import LocalMaterials
 
 pytestmark = pytest.mark.slow

@@ -13,8 +13,8 @@ from dataclasses import dataclass
 import numpy as np
 import pytest
 
-from neumip.client import contract as C
-from neumip.client.contract import random_queries
+from neumip.core import contract as C
+from neumip.core.contract import random_queries
 from neumip.server.model_config import TritonOptions, model_config
 from neumip.server.triton_python_model import TritonPythonModel
 

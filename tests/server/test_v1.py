@@ -6,9 +6,9 @@ import msgpack
 import numpy as np
 import pytest
 
-from neumip.client import contract as C
+from neumip.core import contract as C
 from neumip.client import wire
-from neumip.client.contract import random_queries
+from neumip.core.contract import random_queries
 
 MSGPACK = {"content-type": wire.MSGPACK_MEDIA_TYPE}
 

@@ -8,8 +8,8 @@ import json
 import numpy as np
 import pytest
 
-from neumip.client import contract as C
-from neumip.client.contract import random_queries
+from neumip.core import contract as C
+from neumip.core.contract import random_queries
 
 HEADER = "Inference-Header-Content-Length"
 Q = random_queries(37, seed=4)  # 37 = 2 * 16 + 5: a tail after two aligned blocks

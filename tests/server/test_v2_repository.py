@@ -9,7 +9,7 @@ from concurrent.futures import ThreadPoolExecutor
 import numpy as np
 import pytest
 
-from neumip.client.contract import random_queries
+from neumip.core.contract import random_queries
 
 pytest.importorskip("tritonclient.grpc", reason="needs tritonclient[grpc] (Triton's ModelConfig schema)")
 import tritonclient.http as triton  # noqa: E402

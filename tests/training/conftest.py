@@ -6,8 +6,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from neumip.client import contract as C
-from neumip.client.contract import random_queries
+from neumip.core import contract as C
+from neumip.core.contract import random_queries
 
 PARITY_ATOL, PARITY_RTOL = 1e-5, 1e-4
 """The export's parity contract: ONNX Runtime answers within 1e-5 abs or 1e-4 rel of torch."""

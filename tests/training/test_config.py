@@ -2,7 +2,7 @@
 
 import pytest
 
-from neumip.training.config import MaterialConfig
+from neumip.core.config import MaterialConfig
 from neumip.training.train_config import SHIP, TrainConfig
 
 

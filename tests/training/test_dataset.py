@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 
 from neumip.training.dataset import DatasetError, DatasetWriter, open_dataset, write_dataset
-from neumip.client.contract import random_queries
+from neumip.core.contract import random_queries
 
 
 def test_interrupted_write_is_never_complete_and_resumes(tmp_path):

@@ -8,12 +8,12 @@ import onnxruntime as ort
 import pytest
 import torch
 
-from neumip.client import contract as C
+from neumip.core import contract as C
 from neumip.training import checkpoint
-from neumip.training.config import MaterialConfig
+from neumip.core.config import MaterialConfig
 from neumip.training.export import build_onnx, constant_weights, export_checkpoint, random_weights, weights_from_state
 from neumip.training.material import NeuMIPMaterial
-from neumip.client.contract import random_queries
+from neumip.core.contract import random_queries
 
 def torch_eval(material: NeuMIPMaterial, q: np.ndarray) -> np.ndarray:
     with torch.no_grad():

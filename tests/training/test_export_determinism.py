@@ -6,13 +6,13 @@ import onnxruntime as ort
 import pytest
 from onnx import helper
 
-from neumip.client import contract as C
+from neumip.core import contract as C
 from neumip.client.local import LocalMaterials
-from neumip.training.config import MaterialConfig
+from neumip.core.config import MaterialConfig
 from neumip.training.export import build_onnx, random_weights, save_onnx
 from neumip.training.export_lod import log2_mantissa
 from neumip.training.onnx_graph import GraphWriter
-from neumip.client.contract import random_queries
+from neumip.core.contract import random_queries
 SPLITS = (1, 3, 17, 1000, 4099)
 """Chunk sizes the queries are cut into (cycled, so rows land at every offset of a call)."""
 

@@ -5,9 +5,9 @@ import onnxruntime as ort
 import pytest
 import torch
 
-from neumip.client import contract as C
-from neumip.client.contract import random_queries
-from neumip.training.config import MaterialConfig
+from neumip.core import contract as C
+from neumip.core.contract import random_queries
+from neumip.core.config import MaterialConfig
 from neumip.training.export import build_onnx, weights_from_state
 from neumip.training.export_lookup import quad_atlas, quad_table, wrap_pad
 from neumip.training.material import NeuMIPMaterial

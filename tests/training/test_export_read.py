@@ -11,10 +11,10 @@ import numpy as np
 import onnx
 import pytest
 
-from neumip.client import contract as C
+from neumip.core import contract as C
 from neumip.client.cli import main
 from neumip.client.local import accepts_groups, load_material, run_chunked
-from neumip.training.config import MaterialConfig
+from neumip.core.config import MaterialConfig
 from neumip.training.export import build_onnx, random_weights, save_onnx
 from neumip.training.export_read import ModelLayoutError, answer_difference, read_model, reexport
 from neumip.training.trim import trim_model

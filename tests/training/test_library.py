@@ -11,10 +11,10 @@ import numpy as np
 import pytest
 
 from neumip.client.cli import main
-from neumip.client.contract import random_queries
+from neumip.core.contract import random_queries
 from neumip.client.local import LocalMaterials
 from neumip.training.cluster import ClusterError, RayConfig
-from neumip.training.config import MaterialConfig
+from neumip.core.config import MaterialConfig
 from neumip.training.library import LibrarySettings, MaterialJob, finished, train_library, train_material
 from neumip.training.train_config import TEST
 from tests.training.ray_workers import killing_the_first_busy_worker

@@ -6,9 +6,9 @@ import numpy as np
 import pytest
 import torch
 
-from neumip.client.contract import random_queries
-from neumip.training import head
-from neumip.training.config import MaterialConfig
+from neumip.core.contract import random_queries
+from neumip.core import head
+from neumip.core.config import MaterialConfig
 from neumip.training.export import build_onnx, constant_weights, weights_from_state
 from neumip.training.material import NeuMIPMaterial
 from neumip.training.train import init_output

@@ -6,8 +6,8 @@ import numpy as np
 import pytest
 import torch
 
-from neumip.client import contract as C
-from neumip.training.config import MaterialConfig
+from neumip.core import contract as C
+from neumip.core.config import MaterialConfig
 from neumip.training.offset import parallax_shift
 from neumip.training.pyramid import level_of_detail, pyramid_lookup, texture_lookup
 

@@ -9,15 +9,15 @@ import onnxruntime as ort
 import pytest
 import torch
 
-from neumip.client import contract as C
+from neumip.core import contract as C
 from neumip.training import checkpoint
 from neumip.training import train as train_mod
 from neumip.training.blur import blur_sigma, effective_textures
-from neumip.training.config import MaterialConfig
+from neumip.core.config import MaterialConfig
 from neumip.training.outputs import write_outputs
 from neumip.training.train import Trainer, TrainingDiverged, TrainingError
 from neumip.training.train_config import TEST
-from neumip.client.contract import random_queries
+from neumip.core.contract import random_queries
 
 TINY = MaterialConfig(resolution=16)
 FAST = replace(TEST, steps=60, batch=1024, checkpoint_every=20, log_every=10)

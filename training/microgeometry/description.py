@@ -43,7 +43,7 @@ from typing import Any
 
 import numpy as np
 
-from neumip.client.errors import NeumipError
+from neumip.core.errors import NeumipError
 
 from . import images
 from .procedural import GENERATORS

@@ -11,7 +11,7 @@ from pathlib import Path
 
 import numpy as np
 
-from neumip.client.errors import NeumipError
+from neumip.core.errors import NeumipError
 
 
 class ImageError(NeumipError, ValueError):

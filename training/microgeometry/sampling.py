@@ -20,7 +20,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from neumip.client import contract as C
+from neumip.core import contract as C
 
 
 DIRECTIONS = ("disk", "solid_angle")

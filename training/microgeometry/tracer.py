@@ -23,7 +23,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from neumip.client import contract as C
+from neumip.core import contract as C
 from neumip.client.mitsuba.runtime import DEFAULT_VARIANT, import_mitsuba
 
 from .description import Microgeometry

@@ -15,7 +15,7 @@ import math
 
 import numpy as np
 
-from neumip.client import contract as C
+from neumip.core import contract as C
 
 POSITIONS = 64
 """Random positions each sweep point is averaged over."""

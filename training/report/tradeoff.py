@@ -20,7 +20,7 @@ from pathlib import Path
 
 import numpy as np
 
-from neumip.client import contract as C
+from neumip.core import contract as C
 
 from .config import ReportConfig
 
@@ -84,7 +84,7 @@ def train_variant(variant: Variant, data: Path, folder: Path, config: ReportConf
     """Train (or resume, or reuse) one configuration; returns its .onnx."""
     import torch
 
-    from neumip.training.config import MaterialConfig
+    from neumip.core.config import MaterialConfig
     from neumip.training.outputs import write_outputs
     from neumip.training.train import Trainer
     from neumip.training.train_config import QUICK

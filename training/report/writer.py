@@ -5,7 +5,7 @@ from __future__ import annotations
 import math
 from pathlib import Path
 
-from neumip.client.contract import sample_footprint
+from neumip.core.contract import sample_footprint
 
 from .analysis import COMPARED, OFFSET_VIEWS, winning_footprint
 from .config import ReportConfig

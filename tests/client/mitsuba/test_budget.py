@@ -9,7 +9,7 @@ import math
 import numpy as np
 import pytest
 
-from neumip.client import contract as C
+from neumip.core import contract as C
 from neumip.client.cli import main
 from neumip.client.mitsuba.budget import material_budget, trace_footprints
 from neumip.client.mitsuba.bsdf import mi

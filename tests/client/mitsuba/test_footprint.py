@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 
 from neumip.client.mitsuba.bsdf import mi
-from neumip.client.contract import sample_footprint
+from neumip.core.contract import sample_footprint
 from neumip.client.mitsuba.integrator import filter_std_px
 from neumip.client.mitsuba.render import RenderConfig, render_scene
 

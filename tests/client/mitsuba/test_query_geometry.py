@@ -18,9 +18,9 @@ import math
 import numpy as np
 import pytest
 
-from neumip.client import contract as C
+from neumip.core import contract as C
 from neumip.client.mitsuba.bsdf import mi
-from neumip.client.contract import sample_footprint
+from neumip.core.contract import sample_footprint
 from neumip.client.mitsuba.render import RenderConfig, render_scene
 
 from .recording import Recording

@@ -8,7 +8,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from neumip.client import contract as C
+from neumip.core import contract as C
 from neumip.client.mitsuba.bsdf import dr, mi
 from neumip.client.mitsuba.shading import NeuralQueries, NeuralShading
 

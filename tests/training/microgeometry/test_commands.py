@@ -12,7 +12,7 @@ import pytest
 
 from neumip.client.cli import main
 from neumip.training.dataset import open_dataset
-from neumip.client.contract import random_queries
+from neumip.core.contract import random_queries
 
 
 def test_generate_writes_a_data_set_with_progress(tmp_path, capsys):

@@ -8,7 +8,7 @@ import math
 import numpy as np
 import pytest
 
-from neumip.client import contract as C
+from neumip.core import contract as C
 from neumip.training.microgeometry import mesh
 from neumip.training.microgeometry.description import find_description, resolve
 from neumip.training.microgeometry.tracer import QueryTracer, TracerConfig

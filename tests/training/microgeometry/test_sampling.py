@@ -7,7 +7,7 @@ import math
 import numpy as np
 import pytest
 
-from neumip.client import contract as C
+from neumip.core import contract as C
 from neumip.training.microgeometry.sampling import QuerySampling, sample_queries
 
 N, RES = 200_000, 256

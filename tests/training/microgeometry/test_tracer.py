@@ -8,8 +8,8 @@ import math
 import numpy as np
 import pytest
 
-from neumip.client import contract as C
-from neumip.client.contract import random_queries
+from neumip.core import contract as C
+from neumip.core.contract import random_queries
 from neumip.training.microgeometry.description import MaterialDescription, find_description, resolve
 from neumip.training.microgeometry.tracer import QueryTracer, TracerConfig
 

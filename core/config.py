@@ -43,7 +43,7 @@ class MaterialConfig:
     authors' 0.6). 0.3 was measured in images: within the training-seed spread alone, better only
     together with 48-wide MLPs (models/README.md, "Quality levers")."""
     head: str = "relu"
-    """Decoder output head (training/head.py): "relu" (paper: RGB = max(out, 0)) or "yuv" (authors'
+    """Decoder output head (core/head.py): "relu" (paper: RGB = max(out, 0)) or "yuv" (authors'
     code: exp(YUV) - 1 times a shadow mask 0.1 + sigmoid, 6 outputs)."""
 
     def __post_init__(self) -> None:

@@ -1,0 +1,9 @@
+"""neumip.core: the ground floor every other area imports, and that imports none of them.
+
+- `contract`: the query contract (layout of queries, answers and groups; the model file's metadata keys);
+- `errors`: the root of neumip's user-facing errors;
+- `config`: `MaterialConfig`, the architecture of one neural material;
+- `head`: the decoder's output heads (their constants).
+
+Only numpy: importing `neumip.core` never imports torch, onnx, drjit or mitsuba.
+"""
