@@ -143,7 +143,7 @@ def test_a_constant_material_answers_every_lane_whatever_the_batch(model_dir):
     wide = dr.arange(Float, 186) / 186.0
     for n in (54, 3, 1, 100):
         x = dr.gather(Float, wide, dr.arange(UInt32, n) * 2)
-        answers = material.answers(x, x, x * 0.01, (x * 0.1, x * 0.2), [(x * 0.3, x), (x, x * 0.1)])
+        answers = material.answers([x, x, x * 0.01, x * 0.3, x, x * 0.1, x * 0.2, x, x * 0.1])  # 2 lights
         for rgb in answers:
             for channel in rgb:
                 assert dr.width(channel) == n
@@ -275,8 +275,7 @@ def test_a_lane_at_a_non_finite_position_answers_zero(model_dir):
         u = q[:, C.U].copy()
         u[bad] = value
         v = np.where(bad[::-1], value, q[:, C.V]).astype(np.float32)  # other lanes' v
-        cols = [Float(c) for c in (u, v, q[:, C.SIGMA], q[:, C.WO_X], q[:, C.WO_Y], q[:, C.WI_X], q[:, C.WI_Y])]
-        (rgb,) = material.answers(*cols[:3], (cols[3], cols[4]), [(cols[5], cols[6])])
+        (rgb,) = material.answers([Float(c) for c in (u, v, *q[:, C.SIGMA:].T)])
         got = np.stack([np.asarray(c) for c in rgb], 1)
         finite = ~(bad | bad[::-1])
         np.testing.assert_array_equal(got[finite], want[finite])
