@@ -75,10 +75,11 @@ class ConstantKernel:
     def kernel(self, material: str) -> "ConstantKernel":
         return self
 
-    def answers(self, u, v, sigma, wo, lights) -> list:
+    def answers(self, columns: list) -> list:
         from neumip.client.mitsuba.render import dr, mi
 
-        return [[dr.full(mi.Float, self.rgb, dr.width(u))] * C.RGB_DIM for _ in lights]
+        return [[dr.full(mi.Float, self.rgb, dr.width(columns[0]))] * C.RGB_DIM
+                for _ in range(C.group_lights(len(columns)))]
 
 
 class ConstantEvaluator:

@@ -17,7 +17,7 @@ def found(monkeypatch):
     monkeypatch.setattr(llvm.os, "environ", environ)
 
     def use(libraries: list[tuple[int, str]]) -> None:
-        monkeypatch.setattr(runtime, "find_libllvm", lambda: libraries)
+        monkeypatch.setattr(llvm, "find_libllvm", lambda: libraries)
 
     return use
 

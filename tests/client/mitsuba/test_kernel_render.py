@@ -10,7 +10,7 @@ from neumip.client.local import LocalMaterials
 
 pytest.importorskip("mitsuba")
 
-from neumip.client.kernel import KernelMaterials, namespace_of  # noqa: E402
+from neumip.client.kernel import KernelMaterial, KernelMaterials, namespace_of  # noqa: E402
 from neumip.client.mitsuba.render import RenderConfig, mi, render_scene  # noqa: E402
 
 from .scenes import simple  # noqa: E402
@@ -43,8 +43,8 @@ def test_a_material_on_nearly_every_lane_is_computed_without_compaction(model_di
     from .scenes import DIFFUSE, _look_at
 
     monkeypatch.setattr(shading, "DENSE_LANES", 0.5)
-    widths, answers = [], shading._answers
-    monkeypatch.setattr(shading, "_answers", lambda kernel, cols: widths.append(dr.width(cols[0])) or answers(kernel, cols))
+    widths, answers = [], KernelMaterial.answers
+    monkeypatch.setattr(KernelMaterial, "answers", lambda self, cols: widths.append(dr.width(cols[0])) or answers(self, cols))
     images, kernel = {}, KernelMaterials(model_dir, backend=namespace_of(mi.Float))
     for name, evaluator in (("kernel", kernel), ("onnxruntime", LocalMaterials(model_dir))):
         scene = simple({"type": "neumip", "material": "rand16", "uv_scale": 2.0},
