@@ -1,12 +1,15 @@
-"""In-kernel evaluation (`client/kernel.py`): the same answers as the ONNX graph in ONNX Runtime,
-within the export's parity tolerance, for every layout a model file can have; bad files refused with
-a clear error; answers that do not depend on the batch or the thread. Needs drjit, not Mitsuba (the
-render with it: tests/client/mitsuba/test_kernel_render.py)."""
+"""In-kernel evaluation (`client/kernel.py`, the graph interpreted by `client/onnx_kernel.py`): the
+same answers as the ONNX graph in ONNX Runtime, within the export's parity tolerance, for every layout
+a model file can have and for a graph written by another tool; bad files and unsupported operators
+refused with a clear error; answers that do not depend on the batch or the thread. Needs drjit, not
+Mitsuba (the render with it: tests/client/mitsuba/test_kernel_render.py)."""
 
 from __future__ import annotations
 
 import importlib
 import shutil
+import subprocess
+import sys
 from pathlib import Path
 
 import numpy as np
@@ -99,9 +102,51 @@ def test_answers_match_onnx_runtime_for_every_layout(layouts, backend):
 def test_a_group_answers_each_light_as_its_single_query(layouts):
     kernel = KernelMaterials(layouts)
     q = random_queries(1000, seed=5, lights=3)
-    grouped = kernel.evaluate("offset16", q)
-    singles = kernel.evaluate("offset16", C.ungroup(q)).reshape(1000, 9)
-    np.testing.assert_array_equal(grouped, singles)
+    for name in kernel.materials():
+        grouped = kernel.evaluate(name, q)
+        singles = kernel.evaluate(name, C.ungroup(q)).reshape(1000, 9)
+        np.testing.assert_array_equal(grouped, singles, err_msg=name)
+
+
+@pytest.mark.parametrize("backend", BACKENDS)
+def test_a_foreign_graph_answers_as_onnx_runtime_does(tmp_path, backend, checkerboard):
+    """A material written with onnx.helper (Slice, Floor, Sub, Greater, Cast, Equal, Where; no neumip
+    metadata, no query groups) is evaluated from its graph: ONNX Runtime's answers, single queries and
+    groups (each light as a single query)."""
+    import onnxruntime as ort
+
+    model = checkerboard()
+    save_onnx(model, tmp_path / "checker.onnx")
+    kernel = KernelMaterials(tmp_path, importlib.import_module(backend))
+    session = ort.InferenceSession(model.SerializeToString(), providers=["CPUExecutionProvider"])
+    q = random_queries(5000, seed=11, lights=2)
+    want = session.run([C.ONNX_OUTPUT], {C.ONNX_INPUT: C.ungroup(q)})[0]
+    assert len(np.unique(want, axis=0)) == 2  # both squares are read
+    np.testing.assert_array_equal(kernel.evaluate("checker", q[:, :C.QUERY_DIM]), want[::2])
+    np.testing.assert_array_equal(kernel.evaluate("checker", q), want.reshape(5000, 6))
+
+
+def test_an_unsupported_operator_or_another_contract_is_one_clear_error(tmp_path, checkerboard):
+    model = checkerboard()
+    next(n for n in model.graph.node if n.op_type == "Floor").op_type = "Round"
+    save_onnx(model, tmp_path / "rounded.onnx")
+    other = checkerboard()
+    onnx.helper.set_model_props(other, {C.META_CONTRACT: "0"})
+    save_onnx(other, tmp_path / "older.onnx")
+    kernel = KernelMaterials(tmp_path)
+    with pytest.raises(ModelError, match=r"rounded.onnx: operator\(s\) Round not supported in the kernel"):
+        kernel.kernel("rounded")
+    with pytest.raises(ModelError, match="older.onnx: query contract version '0'"):
+        kernel.kernel("older")
+
+
+def test_the_engine_imports_nothing_from_training_or_the_renderer():
+    """The in-kernel engine stands on core/ and client/ alone: training/ and client/mitsuba/ sit above it."""
+    code = ("import sys, neumip.client.kernel; print(' '.join(m for m in sys.modules "
+            "if m.startswith(('neumip.training', 'neumip.client.mitsuba', 'torch', 'mitsuba'))))")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=60)
+    assert out.returncode == 0, out.stderr[-2000:]
+    assert out.stdout.split() == []
 
 
 @pytest.mark.parametrize("backend", BACKENDS)
