@@ -100,6 +100,9 @@ class KernelMaterial:
         with DRJIT_LOCK:
             try:
                 self.graph = LaneGraph(model, self.backend)
+                # a trial trace on one literal lane (nothing runs): a graph the interpreter cannot
+                # follow is refused here, not in the middle of a render
+                self.graph.trace(self.graph.tables, [self.backend.Float(0.0)] * C.QUERY_DIM)
             except GraphError as exc:
                 raise ModelError(f"{path.name}: {exc}") from exc
             self._frozen = dr.freeze(self._trace)
@@ -137,6 +140,10 @@ class KernelMaterial:
             gc.disable()
             try:
                 flat = self._frozen(self.graph.tables, list(columns))
+            except RuntimeError as exc:  # drjit's, around what the trace raised
+                if isinstance(exc.__cause__, GraphError):
+                    raise ModelError(f"{self.name}: {exc.__cause__}") from exc
+                raise
             finally:
                 if collecting:
                     gc.enable()

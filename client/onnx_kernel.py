@@ -173,13 +173,7 @@ class LaneGraph:
         env[C.ONNX_INPUT] = Lanes(objects((1, 1, len(columns)), columns), 0)
         ops = Ops(self.backend, dict(zip(self.table_names, zip(tables, self.table_shapes))))
         for node in self.nodes:
-            args = [env[name] if name else None for name in node.input]
-            try:
-                out = ops.run(node, args)
-            except GraphError as exc:
-                raise GraphError(f"{node.op_type} node {node.name or node.output[0]!r}: {exc}") from None
-            for name, value in zip(node.output, out if isinstance(out, tuple) else (out,)):
-                env[name] = value
+            run_node(ops, node, env)
         out = env[C.ONNX_OUTPUT]
         if not isinstance(out, Lanes):  # a constant material: one row for every lane
             row = np.asarray(out, np.float32).reshape(-1, np.asarray(out).shape[-1])
@@ -197,15 +191,21 @@ def fold_constants(nodes, inits: dict) -> tuple[dict, list]:
     ops = Ops(None, {})
     for node in nodes:
         if all(not name or name in constants for name in node.input):
-            try:
-                out = ops.run(node, [constants[name] if name else None for name in node.input])
-            except GraphError as exc:
-                raise GraphError(f"{node.op_type} node {node.name or node.output[0]!r}: {exc}") from None
-            for name, value in zip(node.output, out if isinstance(out, tuple) else (out,)):
-                constants[name] = value
+            run_node(ops, node, constants)
         else:
             rest.append(node)
     return constants, rest
+
+
+def run_node(ops: "Ops", node, env: dict) -> None:
+    """Evaluate `node` on its inputs in `env` (by name), writing its outputs there; any failure is a
+    GraphError naming the node."""
+    try:
+        out = ops.run(node, [env[name] if name else None for name in node.input])
+    except (GraphError, ValueError, IndexError, TypeError, KeyError) as exc:
+        raise GraphError(f"{node.op_type} node {node.name or node.output[0]!r}: {exc}") from None
+    for name, value in zip(node.output, out if isinstance(out, tuple) else (out,)):
+        env[name] = value
 
 
 def lift(backend: ModuleType, value):
