@@ -570,7 +570,8 @@ def _product(a, b):
     on the CUDA backend ptxas fuses a product and a following sum into one fma (drjit emits them
     without a rounding mode), whose single rounding differs from ONNX Runtime's two. There the product
     is an fma with 0 (kept: constant propagation off), which rounds like a product and is not fused."""
-    if not (dr.is_array_v(a) and dr.backend_v(a) == dr.JitBackend.CUDA):
+    array = a if dr.is_array_v(a) else b
+    if not (dr.is_array_v(array) and dr.backend_v(array) == dr.JitBackend.CUDA):
         return a * b
     with dr.scoped_set_flag(dr.JitFlag.ConstantPropagation, False):
         return dr.fma(a, b, 0.0)
