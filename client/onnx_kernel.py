@@ -26,7 +26,7 @@ Needs numpy, onnx and drjit.
 from __future__ import annotations
 
 import logging
-import math
+import operator
 from dataclasses import dataclass
 from types import ModuleType
 
@@ -103,8 +103,10 @@ def objects(shape, values) -> np.ndarray:
 
 
 def elementwise(fn, *args) -> np.ndarray:
-    """`fn` over the cells of `args` (object arrays or numpy constants), numpy broadcasting."""
-    return np.frompyfunc(fn, len(args), 1)(*args)
+    """`fn` over the cells of `args` (object arrays or numpy constants), numpy broadcasting. (numpy
+    would report the CPU's floating-point flags that drjit's folding of literals raised: ignored.)"""
+    with np.errstate(all="ignore"):
+        return np.frompyfunc(fn, len(args), 1)(*args)
 
 
 # --- the interpreter -------------------------------------------------------------------------------
@@ -228,10 +230,6 @@ def scalars(value: np.ndarray) -> np.ndarray:
 # --- operators ---------------------------------------------------------------------------------------
 
 
-def _float_op(name):
-    return lambda self, node, x: self.unary(x, name)
-
-
 class Ops:
     """The operators, each on numpy constants (folded) or `Lanes` (traced); ``backend`` None while
     folding. ``tables``: {name: (flat drjit array, shape)} of the textures."""
@@ -240,15 +238,21 @@ class Ops:
         self.jit, self.tables = backend, tables
 
     def run(self, node, args):
+        op = node.op_type
+        if op in UNARY:
+            return self.unary(args[0], op)
+        if op in BINARY:
+            return _fold(args, lambda a, b: self.binary(a, b, *BINARY[op]))  # Max, Min, Sum: any count
         attrs = {a.name: onnx.helper.get_attribute_value(a) for a in node.attribute}
-        return OPERATORS[node.op_type](self, node, *args, **attrs)
+        return getattr(self, op)(node, *args, **attrs)
 
     # -- elementwise ------------------------------------------------------------------------------
 
     def unary(self, x, name: str):
+        numpy_fn, drjit_fn = UNARY[name]
         if not isinstance(x, Lanes):
-            return NUMPY_UNARY[name](np.asarray(x))
-        return x.with_cells(elementwise(DRJIT_UNARY[name], x.cells))
+            return numpy_fn(np.asarray(x))
+        return x.with_cells(elementwise(drjit_fn, x.cells))
 
     def binary(self, a, b, numpy_fn, drjit_fn):
         if not isinstance(a, Lanes) and not isinstance(b, Lanes):
@@ -276,15 +280,6 @@ class Ops:
                 out.append(scalars(c.reshape(c.shape[:axis + 1] + (1,) + c.shape[axis + 1:])))
         return out, axis
 
-    def Add(self, node, a, b):
-        return self.binary(a, b, np.add, lambda x, y: x + y)
-
-    def Sub(self, node, a, b):
-        return self.binary(a, b, np.subtract, lambda x, y: x - y)
-
-    def Mul(self, node, a, b):
-        return self.binary(a, b, np.multiply, _product)
-
     def Div(self, node, a, b):
         if not isinstance(a, Lanes) and not isinstance(b, Lanes):
             a, b = np.asarray(a), np.asarray(b)
@@ -292,56 +287,16 @@ class Ops:
         with dr.scoped_set_flag(dr.JitFlag.FastMath, False):  # GPU: div.rn, as ONNX Runtime rounds
             return self.binary(a, b, None, lambda x, y: x / y)
 
-    def Max(self, node, *xs):
-        return _fold(xs, lambda a, b: self.binary(a, b, np.maximum, dr.maximum))
-
-    def Min(self, node, *xs):
-        return _fold(xs, lambda a, b: self.binary(a, b, np.minimum, dr.minimum))
-
-    def Sum(self, node, *xs):
-        return _fold(xs, lambda a, b: self.Add(node, a, b))
-
-    def Pow(self, node, a, b):
-        return self.binary(a, b, np.power, dr.power)
-
     def Clip(self, node, x, lo=None, hi=None):
         if lo is not None:
             x = self.binary(x, lo, np.maximum, dr.maximum)
         return x if hi is None else self.binary(x, hi, np.minimum, dr.minimum)
-
-    def Greater(self, node, a, b):
-        return self.binary(a, b, np.greater, lambda x, y: x > y)
-
-    def Less(self, node, a, b):
-        return self.binary(a, b, np.less, lambda x, y: x < y)
-
-    def GreaterOrEqual(self, node, a, b):
-        return self.binary(a, b, np.greater_equal, lambda x, y: x >= y)
-
-    def LessOrEqual(self, node, a, b):
-        return self.binary(a, b, np.less_equal, lambda x, y: x <= y)
-
-    def Equal(self, node, a, b):
-        return self.binary(a, b, np.equal, lambda x, y: x == y)
-
-    def And(self, node, a, b):
-        return self.binary(a, b, np.logical_and, lambda x, y: x & y)
-
-    def Or(self, node, a, b):
-        return self.binary(a, b, np.logical_or, lambda x, y: x | y)
-
-    def Not(self, node, x):
-        return self.unary(x, "Not")
 
     def Where(self, node, cond, a, b):
         if not any(isinstance(v, Lanes) for v in (cond, a, b)):
             return np.where(cond, a, b)
         cells, axis = self.align(cond, a, b)
         return Lanes(elementwise(dr.select, *cells), axis)
-
-    Relu, Sqrt, Floor, Ceil, Exp, Log, Sigmoid, Tanh, Neg, Abs, Reciprocal, Sin, Cos = (
-        _float_op(n) for n in ("Relu", "Sqrt", "Floor", "Ceil", "Exp", "Log", "Sigmoid", "Tanh", "Neg", "Abs",
-                               "Reciprocal", "Sin", "Cos"))
 
     def Cast(self, node, x, to):
         if not isinstance(x, Lanes):
@@ -539,32 +494,6 @@ class Ops:
         return self.Reshape(node, x, objects((len(shape) - len(axes),), [d for i, d in enumerate(shape) if i not in axes]), allowzero=1)
 
 
-OPERATORS = {name: getattr(Ops, name) for name in (
-    "Add", "Sub", "Mul", "Div", "Max", "Min", "Sum", "Pow", "Clip", "Greater", "Less", "GreaterOrEqual",
-    "LessOrEqual", "Equal", "And", "Or", "Not", "Where", "Relu", "Sqrt", "Floor", "Ceil", "Exp", "Log", "Sigmoid",
-    "Tanh", "Neg", "Abs", "Reciprocal", "Sin", "Cos", "Cast", "Identity", "Constant", "MatMul", "Gemm", "Gather",
-    "Shape", "Reshape", "Flatten", "Transpose", "Concat", "Slice", "Tile", "Unsqueeze", "Squeeze")}
-"""The operators (ONNX's default domain) the kernel evaluates, by type."""
-
-
-def _sqrt(x):
-    with dr.scoped_set_flag(dr.JitFlag.FastMath, False):  # GPU: sqrt.rn, as ONNX Runtime rounds
-        return dr.sqrt(x)
-
-
-DRJIT_UNARY = {
-    "Relu": lambda x: dr.maximum(x, 0.0), "Sqrt": _sqrt, "Floor": dr.floor, "Ceil": dr.ceil, "Exp": dr.exp,
-    "Log": dr.log, "Sigmoid": lambda x: dr.rcp(1.0 + dr.exp(-x)), "Tanh": dr.tanh, "Neg": lambda x: -x,
-    "Abs": dr.abs, "Reciprocal": dr.rcp, "Sin": dr.sin, "Cos": dr.cos, "Not": lambda x: ~x,
-}
-NUMPY_UNARY = {
-    "Relu": lambda x: np.maximum(x, 0).astype(x.dtype), "Sqrt": np.sqrt, "Floor": np.floor, "Ceil": np.ceil,
-    "Exp": np.exp, "Log": np.log, "Sigmoid": lambda x: (1 / (1 + np.exp(-x))).astype(x.dtype), "Tanh": np.tanh,
-    "Neg": np.negative, "Abs": np.abs, "Reciprocal": lambda x: (1 / x).astype(x.dtype), "Sin": np.sin,
-    "Cos": np.cos, "Not": np.logical_not,
-}
-
-
 def _product(a, b):
     """a * b rounded on its own, as ONNX Runtime rounds it, also where it is added to something next:
     on the CUDA backend ptxas fuses a product and a following sum into one fma (drjit emits them
@@ -575,6 +504,37 @@ def _product(a, b):
         return a * b
     with dr.scoped_set_flag(dr.JitFlag.ConstantPropagation, False):
         return dr.fma(a, b, 0.0)
+
+
+def _sqrt(x):
+    with dr.scoped_set_flag(dr.JitFlag.FastMath, False):  # GPU: sqrt.rn, as ONNX Runtime rounds
+        return dr.sqrt(x)
+
+
+def _same_dtype(fn):
+    """A numpy function whose result keeps its argument's dtype (float32 stays float32)."""
+    return lambda x: fn(x).astype(x.dtype)
+
+
+UNARY = {  # name: (on numpy constants, on a drjit array)
+    "Relu": (_same_dtype(lambda x: np.maximum(x, 0)), lambda x: dr.maximum(x, 0.0)), "Sqrt": (np.sqrt, _sqrt),
+    "Floor": (np.floor, dr.floor), "Ceil": (np.ceil, dr.ceil), "Exp": (np.exp, dr.exp), "Log": (np.log, dr.log),
+    "Sigmoid": (_same_dtype(lambda x: 1 / (1 + np.exp(-x))), lambda x: dr.rcp(1.0 + dr.exp(-x))),
+    "Tanh": (np.tanh, dr.tanh), "Neg": (np.negative, operator.neg), "Abs": (np.abs, dr.abs),
+    "Reciprocal": (_same_dtype(lambda x: 1 / x), dr.rcp), "Sin": (np.sin, dr.sin), "Cos": (np.cos, dr.cos),
+    "Not": (np.logical_not, operator.invert),
+}
+BINARY = {  # name: (on numpy constants, on drjit arrays or a drjit array and a Python scalar)
+    "Add": (np.add, operator.add), "Sub": (np.subtract, operator.sub), "Mul": (np.multiply, _product),
+    "Pow": (np.power, dr.power), "Max": (np.maximum, dr.maximum), "Min": (np.minimum, dr.minimum),
+    "Sum": (np.add, operator.add), "Greater": (np.greater, operator.gt), "Less": (np.less, operator.lt),
+    "GreaterOrEqual": (np.greater_equal, operator.ge), "LessOrEqual": (np.less_equal, operator.le),
+    "Equal": (np.equal, operator.eq), "And": (np.logical_and, operator.and_), "Or": (np.logical_or, operator.or_),
+}
+OPERATORS = sorted({*UNARY, *BINARY, "Div", "Clip", "Where", "Cast", "Identity", "Constant", "MatMul", "Gemm",
+                    "Gather", "Shape", "Reshape", "Flatten", "Transpose", "Concat", "Slice", "Tile", "Unsqueeze",
+                    "Squeeze"})
+"""The operators (ONNX's default domain) the kernel evaluates."""
 
 
 def _fma(x, w: float, acc):
