@@ -126,6 +126,36 @@ def test_a_foreign_graph_answers_as_onnx_runtime_does(tmp_path, backend, checker
     np.testing.assert_array_equal(kernel.evaluate("checker", q), want.reshape(5000, 6))
 
 
+@pytest.mark.filterwarnings("ignore::DeprecationWarning")
+def test_a_graph_exported_by_torch_answers_as_onnx_runtime_does(tmp_path):
+    """Another tool's graph: a small MLP on the query (Gemm, Relu, Sigmoid, Mul, a Constant node)
+    written by torch.onnx.export, evaluated from its graph."""
+    torch = pytest.importorskip("torch")
+    import io
+
+    import onnxruntime as ort
+
+    class Material(torch.nn.Module):
+        def __init__(self) -> None:
+            super().__init__()
+            self.mlp = torch.nn.Sequential(torch.nn.Linear(7, 16), torch.nn.ReLU(), torch.nn.Linear(16, 3),
+                                           torch.nn.Sigmoid())
+
+        def forward(self, queries):  # (N, 7) -> (N, 3)
+            return self.mlp(queries) * 0.3
+
+    torch.manual_seed(0)
+    buffer = io.BytesIO()
+    torch.onnx.export(Material(), (torch.zeros(4, 7),), buffer, input_names=[C.ONNX_INPUT],
+                      output_names=[C.ONNX_OUTPUT], dynamic_axes={C.ONNX_INPUT: {0: "N"}, C.ONNX_OUTPUT: {0: "N"}},
+                      dynamo=False, opset_version=18)
+    (tmp_path / "mlp.onnx").write_bytes(buffer.getvalue())
+    session = ort.InferenceSession(buffer.getvalue(), providers=["CPUExecutionProvider"])
+    q = random_queries(3000, seed=12, lights=2)
+    want = session.run([C.ONNX_OUTPUT], {C.ONNX_INPUT: C.ungroup(q)})[0].reshape(3000, 6)
+    assert parity(KernelMaterials(tmp_path).evaluate("mlp", q), want) <= 1.0
+
+
 def test_an_unsupported_operator_or_another_contract_is_one_clear_error(tmp_path, checkerboard):
     model = checkerboard()
     next(n for n in model.graph.node if n.op_type == "Floor").op_type = "Round"
