@@ -10,7 +10,6 @@ import importlib
 import shutil
 import subprocess
 import sys
-from pathlib import Path
 
 import numpy as np
 import onnx
@@ -29,7 +28,6 @@ from neumip.core.config import MaterialConfig  # noqa: E402
 from neumip.training.export import build_onnx, random_weights, save_onnx  # noqa: E402
 from neumip.training.trim import trim_model  # noqa: E402
 
-DATA = Path(__file__).resolve().parents[1] / "training" / "data"
 
 BACKENDS = [
     pytest.param("drjit.llvm.ad", marks=pytest.mark.skipif(not dr.has_backend(dr.JitBackend.LLVM),
@@ -67,7 +65,8 @@ def random_queries(n: int, seed: int, lights: int = 1) -> np.ndarray:
 @pytest.fixture(scope="module")
 def layouts(tmp_path_factory):
     """One file per layout: offset (64^2 and 16^2, and one clamped only at grazing angles), no offset,
-    YUV head, one- and two-layer MLPs, trimmed, and the two older graphs a model folder may still hold."""
+    YUV head, one- and two-layer MLPs, trimmed (a file of another contract version is refused:
+    `test_an_unsupported_operator_or_another_contract_is_one_clear_error`)."""
     folder = tmp_path_factory.mktemp("kernel_models")
     configs = {
         "offset64": MaterialConfig(resolution=64),
@@ -81,8 +80,6 @@ def layouts(tmp_path_factory):
     for seed, (name, cfg) in enumerate(configs.items()):
         save_onnx(build_onnx(cfg, random_weights(cfg, seed=seed)), folder / f"{name}.onnx")
     save_onnx(trim_model(onnx.load(folder / "offset64.onnx"), 2), folder / "trimmed.onnx")
-    for old in ("pre_groups_offset", "pre_issue12_nooffset"):
-        shutil.copy(DATA / f"{old}.onnx", folder / f"{old}.onnx")
     return folder
 
 
