@@ -93,7 +93,8 @@ class KernelMaterial:
         """The model's metadata (a graph made by another tool may have none)."""
         version = self.metadata.get(C.META_CONTRACT)
         if version is not None and version != C.CONTRACT_VERSION:
-            raise ModelError(f"{path.name}: query contract version {version!r}, this build speaks {C.CONTRACT_VERSION!r}")
+            raise ModelError(f"{path.name}: query contract version {version!r}, this build speaks "
+                             f"{C.CONTRACT_VERSION!r}")
         self.backend = backend or importlib.import_module(DEFAULT_BACKEND)
         """The drjit namespace whose arrays `answers` takes and gives (``drjit.llvm.ad``)."""
         self.name = path.stem

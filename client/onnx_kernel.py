@@ -118,7 +118,8 @@ class LaneGraph:
     def __init__(self, model: onnx.ModelProto, backend: ModuleType) -> None:
         graph = model.graph
         self.backend = backend
-        unsupported = sorted({n.op_type for n in graph.node if n.op_type not in OPERATORS or n.domain not in ("", "ai.onnx")})
+        unsupported = sorted({n.op_type for n in graph.node
+                              if n.op_type not in OPERATORS or n.domain not in ("", "ai.onnx")})
         if unsupported:
             raise GraphError(f"operator(s) {', '.join(unsupported)} not supported in the kernel "
                              f"(supported: {', '.join(sorted(OPERATORS))})")
@@ -131,14 +132,17 @@ class LaneGraph:
             raise GraphError(f"'{C.ONNX_INPUT}' must be a 2-D float32 tensor")
         width = dims[1].dim_value if dims[1].HasField("dim_value") else None
         if width not in (None, C.QUERY_DIM):
-            raise GraphError(f"'{C.ONNX_INPUT}' must be (N, {C.QUERY_DIM}) or query groups (N, 5 + 2 K), not (N, {width})")
+            raise GraphError(f"'{C.ONNX_INPUT}' must be (N, {C.QUERY_DIM}) or query groups (N, 5 + 2 K), "
+                             f"not (N, {width})")
         self.groups = width is None
         """Whether the graph takes query groups (otherwise each light is evaluated as a single query)."""
-        bad = sorted(name for name, value in inits.items() if value.dtype.kind == "f" and not np.isfinite(value).all())
+        bad = sorted(name for name, value in inits.items()
+                     if value.dtype.kind == "f" and not np.isfinite(value).all())
         if bad:
             raise GraphError(f"non-finite weights in {', '.join(bad)}")
         constants, self.nodes = fold_constants(graph.node, inits)
-        self.table_names = sorted({n.input[0] for n in self.nodes if n.op_type == "Gather" and n.input[0] in constants})
+        self.table_names = sorted({n.input[0] for n in self.nodes
+                                   if n.op_type == "Gather" and n.input[0] in constants})
         self.tables = [backend.Float(np.ascontiguousarray(constants[name], np.float32).ravel())
                        for name in self.table_names]
         """The constants that computed indices read (textures), flat: the frozen function's inputs."""
@@ -156,11 +160,12 @@ class LaneGraph:
             rgb = self._run(tables, columns)
         else:
             rgb = []
-            for j in range(lights):
-                wi = columns[C.WI_X:C.WI_Y + 1] if j == 0 else columns[C.QUERY_DIM + 2 * j - 2:C.QUERY_DIM + 2 * j]
+            more = range(C.QUERY_DIM, len(columns), 2)
+            for wi in [columns[C.WI_X:C.WI_Y + 1]] + [columns[i:i + 2] for i in more]:
                 rgb += self._run(tables, columns[:C.WI_X] + list(wi) + columns[C.WO_X:C.QUERY_DIM])
         if len(rgb) != C.RGB_DIM * lights:
-            raise GraphError(f"'{C.ONNX_OUTPUT}' has {len(rgb)} columns for {lights} light(s), expected {C.RGB_DIM * lights}")
+            raise GraphError(f"'{C.ONNX_OUTPUT}' has {len(rgb)} columns for {lights} light(s), "
+                             f"expected {C.RGB_DIM * lights}")
         # Tie every answer to its lane: an answer that does not depend on the query (a constant
         # material) is a literal, which a frozen function would replay at its first call's width.
         finite = dr.isfinite(columns[0])
@@ -204,7 +209,7 @@ def run_node(ops: "Ops", node, env: dict) -> None:
     GraphError naming the node."""
     try:
         out = ops.run(node, [env[name] if name else None for name in node.input])
-    except (GraphError, ValueError, IndexError, TypeError, KeyError) as exc:
+    except (GraphError, ValueError, IndexError, TypeError, KeyError, ArithmeticError) as exc:
         raise GraphError(f"{node.op_type} node {node.name or node.output[0]!r}: {exc}") from None
     for name, value in zip(node.output, out if isinstance(out, tuple) else (out,)):
         env[name] = value
@@ -267,7 +272,8 @@ class Ops:
         axes = {rank - v.rank + v.axis for v in lanes}
         splits = {v.cells.shape[v.axis:v.axis + 2] for v in lanes}
         if len(axes) != 1 or len(splits) != 1:
-            raise GraphError(f"tensors batched differently: {[v.shape if isinstance(v, Lanes) else np.shape(v) for v in values]}")
+            shapes = [v.shape if isinstance(v, Lanes) else np.shape(v) for v in values]
+            raise GraphError(f"tensors batched differently: {shapes}")
         (axis,) = axes
         out = []
         for v in values:
@@ -334,9 +340,10 @@ class Ops:
             product = np.float32(alpha) * (a @ b)
             return product if c is None else product + np.float32(beta) * np.asarray(c)
         if isinstance(a, Lanes) and isinstance(b, Lanes):
-            raise GraphError("a product of two computed tensors (only products with a constant matrix are supported)")
+            raise GraphError("a product of two computed tensors (only products with a constant matrix)")
         if not matmul:
-            a, b = (self.Transpose(node, a, perm=[1, 0]) if transA else a), (self.Transpose(node, b, perm=[1, 0]) if transB else b)
+            a = self.Transpose(node, a, perm=[1, 0]) if transA else a
+            b = self.Transpose(node, b, perm=[1, 0]) if transB else b
         if c is not None and beta != 1.0:
             c = self.Mul(node, c, np.float32(beta))
         if isinstance(a, Lanes):
@@ -344,8 +351,10 @@ class Ops:
         # constant A on columns of B: (B^T A^T)^T, the batch on B's columns
         if b.rank != 2 or np.ndim(a) != 2:
             raise GraphError("a constant matrix times a batched tensor of rank other than 2")
-        ct = None if c is None else self.Transpose(node, c, perm=[1, 0]) if isinstance(c, Lanes) else np.asarray(c).T
-        out = self._rows(self.Transpose(node, b, perm=[1, 0]), np.asarray(a, np.float32).T * np.float32(alpha), ct)
+        if c is not None:
+            c = self.Transpose(node, c, perm=[1, 0]) if isinstance(c, Lanes) else np.asarray(c).T
+        w = np.asarray(a, np.float32).T * np.float32(alpha)
+        out = self._rows(self.Transpose(node, b, perm=[1, 0]), w, c)
         return self.Transpose(node, out, perm=[1, 0])
 
     def _rows(self, x: Lanes, w: np.ndarray, start) -> Lanes:
@@ -389,43 +398,39 @@ class Ops:
             start = jit.UInt32(dr.clip(jit.Int32(index), 0, rows - 1)) * width  # ONNX refuses others
             return [dr.gather(jit.Float, table, start + i) for i in range(width)]
 
-        cells = indices.cells
-        values = [read(i) for i in cells.ravel()]
-        return Lanes(objects(cells.shape + tuple(shape[1:]), [v for row in values for v in row]), indices.axis)
+        values = [value for index in indices.cells.ravel() for value in read(index)]
+        return Lanes(objects(indices.cells.shape + tuple(shape[1:]), values), indices.axis)
 
     # -- shapes ---------------------------------------------------------------------------------------
 
     def Shape(self, node, x, start=0, end=None):
-        shape = x.shape if isinstance(x, Lanes) else np.shape(x)
-        dims = shape[start:end]
-        return np.asarray(dims, np.int64) if not any(isinstance(d, Dim) for d in dims) else objects((len(dims),), dims)
+        dims = (x.shape if isinstance(x, Lanes) else np.shape(x))[start:end]
+        if any(isinstance(d, Dim) for d in dims):
+            return objects((len(dims),), dims)
+        return np.asarray(dims, np.int64)
 
     def Reshape(self, node, x, shape, allowzero=0):
-        target = list(np.asarray(shape).ravel())
         old = x.shape if isinstance(x, Lanes) else np.shape(x)
-        target = [old[i] if (d == 0 and not isinstance(d, Dim) and not allowzero) else d for i, d in enumerate(target)]
+        target = [old[i] if _is(d, 0) and not allowzero else d
+                  for i, d in enumerate(np.asarray(shape).ravel())]
         if not isinstance(x, Lanes):
             return np.reshape(x, [int(d) for d in target])
-        before = int(np.prod(x.cells.shape[:x.axis + 1]))
-        after = int(np.prod(x.cells.shape[x.axis + 1:]))
-        if any(isinstance(d, Dim) for d in target):
-            j = next(i for i, d in enumerate(target) if isinstance(d, Dim))
-            known = [int(d) for i, d in enumerate(target) if i != j and not (not isinstance(d, Dim) and d == -1)]
-            if -1 in [d for d in target if not isinstance(d, Dim)]:
-                fill = (before * after) // max(int(np.prod(known)) * target[j].count, 1)
-                target = [fill if (not isinstance(d, Dim) and d == -1) else d for d in target]
-        else:
-            if target.count(-1) != 1:
-                raise GraphError(f"reshape of batched {x.shape} to {target} loses the batch")
-            j = target.index(-1)
-            rest = int(np.prod([int(d) for i, d in enumerate(target) if i != j]))
-            if (before * after) % max(rest, 1):
-                raise GraphError(f"reshape of {x.shape} to {target}")
-            target[j] = Dim(before * after // max(rest, 1))
-        head, tail = int(np.prod([int(d) for d in target[:j]])), int(np.prod([int(d) for d in target[j + 1:]]))
-        if before % head or after % tail or (before // head) * (after // tail) != target[j].count:
+        # the cells hold the tensor in row-major order with N left out: `before` cells up to the
+        # batch axis's outer part, `after` from its inner part on
+        before, after = _size(x.cells.shape[:x.axis + 1]), _size(x.cells.shape[x.axis + 1:])
+        batch = [i for i, d in enumerate(target) if isinstance(d, Dim)]
+        free = [i for i, d in enumerate(target) if _is(d, -1)]
+        if len(batch) > 1 or len(free) > 1 or not batch + free:
+            raise GraphError(f"reshape of batched {x.shape} to {target}")
+        if batch and free:  # the -1 is an axis of its own
+            rest = _size(d for i, d in enumerate(target) if i not in (batch[0], free[0]))
+            target[free[0]] = before * after // (target[batch[0]].count * rest)
+        j = (batch or free)[0]
+        head, tail = _size(target[:j]), _size(target[j + 1:])
+        outer, inner = (before // head, after // tail) if head and tail else (0, 0)
+        if before % head or after % tail or (batch and outer * inner != target[j].count):
             raise GraphError(f"reshape of batched {x.shape} to {target}: the batch would mix with other axes")
-        dims = [int(d) for d in target[:j]] + [before // head, after // tail] + [int(d) for d in target[j + 1:]]
+        dims = [int(d) for d in target[:j]] + [outer, inner] + [int(d) for d in target[j + 1:]]
         return Lanes(x.cells.reshape(dims), j)
 
     def Flatten(self, node, x, axis=1):
@@ -467,7 +472,8 @@ class Ops:
                     raise GraphError("a Slice of the batch axis")
                 continue
             n = int(shape[a])
-            index[x.storage_axis(a) if isinstance(x, Lanes) else a] = slice(*slice(int(s), int(min(e, 2**62)), st).indices(n))
+            axis = x.storage_axis(a) if isinstance(x, Lanes) else a
+            index[axis] = slice(*slice(int(s), int(min(e, 2**62)), st).indices(n))
         if not isinstance(x, Lanes):
             return np.asarray(x)[tuple(index)]
         return x.with_cells(x.cells[tuple(index)])
@@ -490,8 +496,11 @@ class Ops:
 
     def Squeeze(self, node, x, axes=None):
         shape = list(x.shape if isinstance(x, Lanes) else np.shape(x))
-        axes = [i for i, d in enumerate(shape) if d == 1] if axes is None else [int(a) % len(shape) for a in np.asarray(axes).ravel()]
-        return self.Reshape(node, x, objects((len(shape) - len(axes),), [d for i, d in enumerate(shape) if i not in axes]), allowzero=1)
+        if axes is None:
+            axes = [i for i, d in enumerate(shape) if _is(d, 1)]
+        axes = [int(a) % len(shape) for a in np.asarray(axes).ravel()]
+        kept = [d for i, d in enumerate(shape) if i not in axes]
+        return self.Reshape(node, x, objects((len(kept),), kept), allowzero=1)
 
 
 def _product(a, b):
@@ -518,7 +527,8 @@ def _same_dtype(fn):
 
 UNARY = {  # name: (on numpy constants, on a drjit array)
     "Relu": (_same_dtype(lambda x: np.maximum(x, 0)), lambda x: dr.maximum(x, 0.0)), "Sqrt": (np.sqrt, _sqrt),
-    "Floor": (np.floor, dr.floor), "Ceil": (np.ceil, dr.ceil), "Exp": (np.exp, dr.exp), "Log": (np.log, dr.log),
+    "Floor": (np.floor, dr.floor), "Ceil": (np.ceil, dr.ceil), "Exp": (np.exp, dr.exp),
+    "Log": (np.log, dr.log),
     "Sigmoid": (_same_dtype(lambda x: 1 / (1 + np.exp(-x))), lambda x: dr.rcp(1.0 + dr.exp(-x))),
     "Tanh": (np.tanh, dr.tanh), "Neg": (np.negative, operator.neg), "Abs": (np.abs, dr.abs),
     "Reciprocal": (_same_dtype(lambda x: 1 / x), dr.rcp), "Sin": (np.sin, dr.sin), "Cos": (np.cos, dr.cos),
@@ -529,11 +539,12 @@ BINARY = {  # name: (on numpy constants, on drjit arrays or a drjit array and a 
     "Pow": (np.power, dr.power), "Max": (np.maximum, dr.maximum), "Min": (np.minimum, dr.minimum),
     "Sum": (np.add, operator.add), "Greater": (np.greater, operator.gt), "Less": (np.less, operator.lt),
     "GreaterOrEqual": (np.greater_equal, operator.ge), "LessOrEqual": (np.less_equal, operator.le),
-    "Equal": (np.equal, operator.eq), "And": (np.logical_and, operator.and_), "Or": (np.logical_or, operator.or_),
+    "Equal": (np.equal, operator.eq), "And": (np.logical_and, operator.and_),
+    "Or": (np.logical_or, operator.or_),
 }
-OPERATORS = sorted({*UNARY, *BINARY, "Div", "Clip", "Where", "Cast", "Identity", "Constant", "MatMul", "Gemm",
-                    "Gather", "Shape", "Reshape", "Flatten", "Transpose", "Concat", "Slice", "Tile", "Unsqueeze",
-                    "Squeeze"})
+OPERATORS = sorted({*UNARY, *BINARY, "Div", "Clip", "Where", "Cast", "Identity", "Constant", "MatMul",
+                    "Gemm", "Gather", "Shape", "Reshape", "Flatten", "Transpose", "Concat", "Slice", "Tile",
+                    "Unsqueeze", "Squeeze"})
 """The operators (ONNX's default domain) the kernel evaluates."""
 
 
@@ -557,6 +568,16 @@ def _int_divide(a: np.ndarray, b: np.ndarray) -> np.ndarray:
         return elementwise(lambda x, y: x // y, a, b)
     q = np.floor_divide(a, b)
     return q + ((q < 0) & (q * b != a))
+
+
+def _is(d, value: int) -> bool:
+    """Whether shape entry `d` (an int or a `Dim`) is the int `value`."""
+    return not isinstance(d, Dim) and d == value
+
+
+def _size(dims) -> int:
+    """The product of int shape entries (1 for none)."""
+    return int(np.prod([int(d) for d in dims], dtype=np.int64))
 
 
 def _prod(dims) -> object:
