@@ -458,7 +458,8 @@ class Ops:
         storage = axis if axis < lane else axis + 1
         full = np.broadcast_shapes(*(c.shape[:storage] + (1,) + c.shape[storage + 1:] for c in cells))
         parts = [np.broadcast_to(c, full[:storage] + (c.shape[storage],) + full[storage + 1:]) for c in cells]
-        return Lanes(np.concatenate(parts, axis=storage), lane)
+        joined = np.concatenate(parts, axis=storage)  # constants' cells as literals of the lanes' arrays
+        return Lanes(elementwise(lambda c: lift(self.jit, c), joined), lane)
 
     def Slice(self, node, x, starts, ends, axes=None, steps=None):
         rank = x.rank if isinstance(x, Lanes) else np.ndim(x)
