@@ -4,6 +4,8 @@ whole tensor. Each lane's cells hold the tensor's own values, so any misplaced r
 
 from __future__ import annotations
 
+import importlib
+
 import numpy as np
 import pytest
 
@@ -15,7 +17,7 @@ from onnx import helper  # noqa: E402
 from neumip.client.onnx_kernel import Dim, GraphError, Lanes, Ops, objects  # noqa: E402
 
 N = 3
-OPS = Ops(__import__("drjit.llvm.ad", fromlist=["Float"]), {})
+OPS = Ops(importlib.import_module("drjit.llvm.ad"), {})
 
 
 def batched(full: np.ndarray) -> Lanes:
