@@ -39,6 +39,7 @@ from types import ModuleType
 import numpy as np
 
 from neumip.core import contract as C
+from neumip.core.config import MaterialConfig
 from neumip.client.llvm import ensure_llvm
 from neumip.client.local import ModelError, ModelFolder
 
@@ -95,6 +96,9 @@ class KernelMaterial:
         if version is not None and version != C.CONTRACT_VERSION:
             raise ModelError(f"{path.name}: query contract version {version!r}, this build speaks "
                              f"{C.CONTRACT_VERSION!r}")
+        self.config = _config(path, self.metadata)
+        """The material's config from its metadata (resolution, levels...), for callers that need it
+        (a report's scenes); None for a graph without it. The kernel itself reads only the graph."""
         self.backend = backend or importlib.import_module(DEFAULT_BACKEND)
         """The drjit namespace whose arrays `answers` takes and gives (``drjit.llvm.ad``)."""
         self.name = path.stem
@@ -178,6 +182,15 @@ class KernelMaterial:
         """columns of query groups -> the lights' RGB, flat (`onnx_kernel.LaneGraph.trace`). Reads
         the tables only from ``tables`` (a frozen function's inputs)."""
         return self.graph.trace(tables, columns)
+
+
+def _config(path: Path, metadata: dict[str, str]) -> MaterialConfig | None:
+    """The `MaterialConfig` in a model's metadata, or None; raises ModelError if it is malformed."""
+    text = metadata.get(C.META_CONFIG)
+    try:
+        return MaterialConfig.from_json(text) if text is not None else None
+    except (ValueError, TypeError, KeyError) as exc:
+        raise ModelError(f"{path.name}: bad {C.META_CONFIG} metadata: {exc}") from exc
 
 
 class KernelMaterials:
