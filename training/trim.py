@@ -70,8 +70,9 @@ def metadata(model: onnx.ModelProto) -> dict[str, str]:
 
 def model_config(model: onnx.ModelProto) -> MaterialConfig:
     meta = metadata(model)
-    if meta.get(C.META_CONTRACT) != C.CONTRACT_VERSION or C.META_CONFIG not in meta:
-        raise TrimError("not a neumip material of this contract version (no neumip.config metadata)")
+    problem = C.version_problem(meta) or (None if C.META_CONFIG in meta else f"no {C.META_CONFIG} metadata")
+    if problem:
+        raise TrimError(f"not a neumip material of this contract version: {problem}")
     return MaterialConfig.from_json(meta[C.META_CONFIG])
 
 
