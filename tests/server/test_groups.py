@@ -15,17 +15,10 @@ import pytest
 
 from neumip.core import contract as C
 from neumip.client import wire
-from neumip.core.contract import random_queries
 from neumip.client.http import ClientConfig, MaterialClient
 from neumip.client.local import LocalMaterials
 
 OLD_MODEL = Path(__file__).parents[1] / "training" / "data" / "pre_issue12_offset.onnx"
-
-
-def groups_of(n: int, lights: int, seed: int) -> np.ndarray:
-    """(n, 5 + 2 lights) valid query groups: random queries plus the wi of further random queries."""
-    extra = [random_queries(n, seed=seed * 100 + j)[:, C.WI_X:C.WI_Y + 1] for j in range(1, lights)]
-    return np.ascontiguousarray(np.hstack([random_queries(n, seed=seed), *extra]))
 
 
 @pytest.fixture(scope="module")
@@ -51,7 +44,7 @@ def local(folder):
 
 @pytest.mark.parametrize("protocol", ["msgpack", "v2"])
 @pytest.mark.parametrize("material", ["rand16", "flat16"])
-def test_groups_answer_with_the_bits_of_in_process_and_of_single_queries(server, local, protocol, material):
+def test_groups_answer_with_the_bits_of_in_process_and_of_single_queries(server, local, protocol, material, groups_of):
     groups = groups_of(7000, 2, seed=1)  # (N, 9); 7000 > max_rows of the client: split by groups
     with MaterialClient(server.url, ClientConfig(max_rows=3000), protocol=protocol) as client:
         rgb = client.evaluate(material, groups)
@@ -61,7 +54,7 @@ def test_groups_answer_with_the_bits_of_in_process_and_of_single_queries(server,
         assert client.evaluate(material, np.zeros((0, 9), np.float32)).shape == (0, 6)
 
 
-def test_every_material_takes_groups_and_a_version_1_file_is_refused_with_its_upgrade(server, local):
+def test_every_material_takes_groups_and_a_version_1_file_is_refused_with_its_upgrade(server, local, groups_of):
     """The v2 model metadata and the v2 config state variable widths for every material, as Triton
     states the exported repository; the version-1 file is listed as failed, with the command that
     upgrades it, and evaluating it is a 400 that says so."""
@@ -85,7 +78,7 @@ def test_every_material_takes_groups_and_a_version_1_file_is_refused_with_its_up
                                           local.evaluate(name, C.ungroup(groups)))
 
 
-def test_bad_widths_are_400_and_the_server_keeps_serving(server, local):
+def test_bad_widths_are_400_and_the_server_keeps_serving(server, local, groups_of):
     path = wire.EVALUATE_PATH.format(name="rand16")
     msgpack_type = {"content-type": wire.MSGPACK_MEDIA_TYPE}
     with httpx.Client(base_url=server.url, timeout=30) as http:
@@ -113,7 +106,7 @@ def test_bad_widths_are_400_and_the_server_keeps_serving(server, local):
         np.testing.assert_array_equal(np.asarray(resp.json()["rgb"], np.float32), local.evaluate("rand16", groups))
 
 
-def test_concurrent_clients_of_mixed_widths_each_get_their_answers(server, local):
+def test_concurrent_clients_of_mixed_widths_each_get_their_answers(server, local, groups_of):
     """Threads send 1, 2 and 3 lights at once to two materials; the server merges what it can (only
     rows of one width share a call) and every answer keeps its bits."""
     jobs = [(material, lights, seed) for material in ("rand16", "flat16") for lights in (1, 2, 3) for seed in range(2)]
@@ -141,7 +134,7 @@ def test_concurrent_clients_of_mixed_widths_each_get_their_answers(server, local
         np.testing.assert_array_equal(rgb, local.evaluate(material, groups))
 
 
-def test_the_row_limit_counts_each_light_of_a_group(server, local):
+def test_the_row_limit_counts_each_light_of_a_group(server, local, groups_of):
     """max_rows (5000 here) bounds the queries a request asks for: 2600 groups of two lights are 5200."""
     groups = groups_of(2600, 2, seed=9)
     with MaterialClient(server.url, ClientConfig(max_rows=10_000)) as client:  # one request: refused
