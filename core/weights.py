@@ -24,7 +24,7 @@ from .config import MaterialConfig
 from .head import outputs
 
 PYRAMID = "pyramid"
-"""The neural texture pyramid: a flat atlas (rows of all levels, finest first, `MaterialConfig.level_starts`)."""
+"""The neural texture pyramid: the rows of every level, finest first (`MaterialConfig.level_starts`)."""
 OFFSET_TEXTURE = "offset_texture"
 """The neural offset texture: one level at the finest resolution."""
 DECODER = "decoder"
@@ -95,7 +95,8 @@ def initializer_shapes(config: MaterialConfig, finest_level: int = 0) -> dict[st
     initializers are constants of its arithmetic). ``finest_level`` K > 0: a trimmed model, whose
     pyramid holds levels K..L only."""
     starts = config.level_starts()
-    shapes: dict[str, tuple[int, ...]] = {PYRAMID: (config.atlas_rows() - starts[finest_level], config.channels)}
+    rows = config.atlas_rows() - starts[finest_level]
+    shapes: dict[str, tuple[int, ...]] = {PYRAMID: (rows, config.channels)}
     if config.offset:
         shapes[OFFSET_TEXTURE] = (config.resolution**2, config.offset_channels)
     for mlp, (inputs, answers) in mlps(config).items():

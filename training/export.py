@@ -173,23 +173,23 @@ def material_graph(g: GraphWriter, config: MaterialConfig, weights: dict,
         texture = g.const(weights[W.OFFSET_TEXTURE], name=W.OFFSET_TEXTURE)
         texels, tap_w = texture_texels(g, texture, config.resolution, config.offset_channels, g.wrap(uv))
         mlp = _depth_weights(weights, config)
-        hidden = _first_layer(g, q, texels, tap_w, 4, [C.WO_X, C.WO_Y], mlp, "offset_mlp", 2)
+        hidden = _first_layer(g, q, texels, tap_w, 4, [C.WO_X, C.WO_Y], mlp, W.OFFSET_MLP, 2)
         if config.layers > 1:
             hidden = g.op("Relu", hidden)
-        depth = g.op("Transpose", g.mlp(hidden, mlp, "offset_mlp", config.layers, first=1), perm=[1, 0])  # (N, 2)
+        depth = g.op("Transpose", g.mlp(hidden, mlp, W.OFFSET_MLP, config.layers, first=1), perm=[1, 0])  # (N, 2)
         uv = g.op("Add", uv, _parallax(g, depth, wo, config.offset_min_cos))
 
     # --- trilinear pyramid lookup, then the decoder once per light -------------------------------
     atlas = g.const(weights[W.PYRAMID], name=W.PYRAMID)
     texels, tap_w = pyramid_texels(g, config, atlas, config.channels, g.wrap(uv), sigma, finest_level)
-    shared = _first_layer(g, q, texels, tap_w, 8, [C.WO_X, C.WO_Y], weights, "decoder", 4)  # (hidden, N)
+    shared = _first_layer(g, q, texels, tap_w, 8, [C.WO_X, C.WO_Y], weights, W.DECODER, 4)  # (hidden, N)
     wi, n, k, kn = _lights(g, q)  # (K N, 2)
     w = weights[W.weight(W.DECODER, 0)]
     light = g.product(w[:, -4:-2], wi, rows=True, name=W.half_weight(W.DECODER, 0, "light"))  # (hidden, K N)
     hidden = g.op("Add", g.op("Tile", shared, g.op("Concat", g.const([1], np.int64), k, axis=0)), light)
     if config.layers > 1:
         hidden = g.op("Relu", hidden)
-    out = g.mlp(hidden, weights, "decoder", config.layers, first=1)  # (O, K N)
+    out = g.mlp(hidden, weights, W.DECODER, config.layers, first=1)  # (O, K N)
     size = head.outputs(config.head)
     rows = _reshape(g, g.op("Transpose", out, perm=[1, 0]), k, n, size)  # (K, N, O)
     rows = _reshape(g, g.op("Transpose", rows, perm=[1, 0, 2]), kn, size)  # (N K, O)
