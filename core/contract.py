@@ -98,7 +98,7 @@ def version_problem(metadata: dict[str, str], source: str = "OLD.onnx") -> str |
     if version is None:
         return f"not a neumip material (no {META_CONTRACT} in its ONNX metadata)"
     return (f"query contract version {version[:20]!r}, this build reads version {CONTRACT_VERSION} "
-            f"(a newer neumip may read it)")
+            f"(and upgrades version {', '.join(UPGRADABLE_VERSIONS)} with `neumip export`)")
 
 
 def level_of_detail(sigma: np.ndarray, resolution: int) -> np.ndarray:
