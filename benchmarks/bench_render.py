@@ -320,7 +320,6 @@ def main() -> int:
     args = parser.parse_args()
     set_variant(args.variant)
 
-    sys.path.insert(0, str(ROOT))
     sections = args.sections.split(",")
     if "ratios" in sections:
         ratios(args)

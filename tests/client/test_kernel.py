@@ -64,7 +64,7 @@ def random_queries(n: int, seed: int, lights: int = 1) -> np.ndarray:
 @pytest.fixture(scope="module")
 def layouts(tmp_path_factory):
     """One file per layout: offset (64^2 and 16^2, and one clamped only at grazing angles), no offset,
-    YUV head, one- and two-layer MLPs, trimmed, and the two older graphs a model folder may still hold."""
+    YUV head, one- and two-layer MLPs, and trimmed."""
     folder = tmp_path_factory.mktemp("kernel_models")
     configs = {
         "offset64": MaterialConfig(resolution=64),
@@ -78,8 +78,6 @@ def layouts(tmp_path_factory):
     for seed, (name, cfg) in enumerate(configs.items()):
         save_onnx(build_onnx(cfg, random_weights(cfg, seed=seed)), folder / f"{name}.onnx")
     save_onnx(trim_model(onnx.load(folder / "offset64.onnx"), 2), folder / "trimmed.onnx")
-    for old in ("pre_groups_offset", "pre_issue12_nooffset"):
-        shutil.copy(DATA / f"{old}.onnx", folder / f"{old}.onnx")
     return folder
 
 
@@ -119,9 +117,12 @@ def test_bad_files_and_names_get_clear_errors(layouts, tmp_path, write_nan_weigh
     (tmp_path / "corrupt.onnx").write_bytes(b"not an onnx file")
     write_nan_weight(layouts / "offset16.onnx", tmp_path / "nan.onnx")
     shutil.copy(layouts / "nooffset.onnx", tmp_path / "good.onnx")
+    shutil.copy(DATA / "pre_groups_offset.onnx", tmp_path / "old.onnx")  # query contract version 1
     kernel = KernelMaterials(tmp_path)
     with pytest.raises(ModelError, match="corrupt.onnx: cannot load"):
         kernel.kernel("corrupt")
+    with pytest.raises(ModelError, match="old.onnx: .*version 1.*`neumip export"):
+        kernel.kernel("old")
     with pytest.raises(ModelError, match="nan.onnx: non-finite weights in pyramid"):
         kernel.kernel("nan")
     with pytest.raises(UnknownMaterial, match="unknown material 'nope'"):
