@@ -92,10 +92,10 @@ class KernelMaterial:
             raise ModelError(f"{path.name}: cannot load ONNX model: {exc}") from exc
         self.metadata = {p.key: p.value for p in model.metadata_props}
         """The model's metadata (a graph made by another tool may have none)."""
-        version = self.metadata.get(C.META_CONTRACT)
-        if version is not None and version != C.CONTRACT_VERSION:
-            raise ModelError(f"{path.name}: query contract version {version!r}, this build speaks "
-                             f"{C.CONTRACT_VERSION!r}")
+        if C.META_CONTRACT in self.metadata:  # a graph made by another tool may say nothing of it
+            problem = C.version_problem(self.metadata, str(path))
+            if problem:
+                raise ModelError(f"{path.name}: {problem}")
         self.config = _config(path, self.metadata)
         """The material's config from its metadata (resolution, levels...), for callers that need it
         (a report's scenes); None for a graph without it. The kernel itself reads only the graph."""

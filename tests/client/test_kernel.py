@@ -10,6 +10,7 @@ import importlib
 import shutil
 import subprocess
 import sys
+from pathlib import Path
 
 import numpy as np
 import onnx
@@ -27,6 +28,8 @@ from neumip.client.kernel import KernelMaterial, KernelMaterials  # noqa: E402
 from neumip.core.config import MaterialConfig  # noqa: E402
 from neumip.training.export import build_onnx, random_weights, save_onnx  # noqa: E402
 from neumip.training.trim import trim_model  # noqa: E402
+
+DATA = Path(__file__).resolve().parents[1] / "training" / "data"
 
 
 BACKENDS = [
@@ -65,8 +68,7 @@ def random_queries(n: int, seed: int, lights: int = 1) -> np.ndarray:
 @pytest.fixture(scope="module")
 def layouts(tmp_path_factory):
     """One file per layout: offset (64^2 and 16^2, and one clamped only at grazing angles), no offset,
-    YUV head, one- and two-layer MLPs, trimmed (a file of another contract version is refused:
-    `test_an_unsupported_operator_or_another_contract_is_one_clear_error`)."""
+    YUV head, one- and two-layer MLPs, and trimmed."""
     folder = tmp_path_factory.mktemp("kernel_models")
     configs = {
         "offset64": MaterialConfig(resolution=64),
@@ -167,10 +169,12 @@ def test_an_unsupported_operator_or_another_contract_is_one_clear_error(tmp_path
         kernel.kernel("older")
 
 
-def test_the_engine_imports_nothing_from_training_or_the_renderer():
-    """The in-kernel engine stands on core/ and client/ alone: training/ and client/mitsuba/ sit above it."""
+def test_the_engine_imports_nothing_from_the_renderer():
+    """The in-kernel engine sits below the Mitsuba plugin (client/mitsuba/, which uses it): importing
+    it loads neither that package nor Mitsuba (the libLLVM check is `client/llvm.py`). Its imports
+    from training/ are checked statically by tests/test_layers.py."""
     code = ("import sys, neumip.client.kernel; print(' '.join(m for m in sys.modules "
-            "if m.startswith(('neumip.training', 'neumip.client.mitsuba', 'torch', 'mitsuba'))))")
+            "if m.startswith(('neumip.client.mitsuba', 'mitsuba'))))")
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=60)
     assert out.returncode == 0, out.stderr[-2000:]
     assert out.stdout.split() == []
@@ -192,9 +196,12 @@ def test_bad_files_and_names_get_clear_errors(layouts, tmp_path, write_nan_weigh
     (tmp_path / "corrupt.onnx").write_bytes(b"not an onnx file")
     write_nan_weight(layouts / "offset16.onnx", tmp_path / "nan.onnx")
     shutil.copy(layouts / "nooffset.onnx", tmp_path / "good.onnx")
+    shutil.copy(DATA / "pre_groups_offset.onnx", tmp_path / "old.onnx")  # query contract version 1
     kernel = KernelMaterials(tmp_path)
     with pytest.raises(ModelError, match="corrupt.onnx: cannot load"):
         kernel.kernel("corrupt")
+    with pytest.raises(ModelError, match="old.onnx: .*version 1.*`neumip export"):
+        kernel.kernel("old")
     with pytest.raises(ModelError, match="nan.onnx: non-finite weights in pyramid"):
         kernel.kernel("nan")
     with pytest.raises(UnknownMaterial, match="unknown material 'nope'"):
