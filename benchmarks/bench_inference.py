@@ -570,7 +570,7 @@ def main() -> None:
     parser.add_argument("--model", type=lambda t: tuple(t.split("=", 1)), action="append", default=[],
                         metavar="NAME=FILE", help="another model file of the same material for the graphs section")
     parser.add_argument("--kernel-before", metavar="FILE", help="kernel section: another checkout's client/kernel.py "
-                        "(git show main:client/kernel.py > FILE)")
+                        "(git show 906263c:client/kernel.py > FILE)")
     parser.add_argument("--variant", help="Mitsuba variant of the drjit kernel rows (default llvm_ad_rgb; cuda_ad_rgb "
                         "on an NVIDIA GPU)")
     args = parser.parse_args()

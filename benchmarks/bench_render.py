@@ -326,7 +326,7 @@ def main() -> int:
                         help="lanes per render pass of neumip_path (stock path renders in one pass); on a GPU, "
                         "passes of 2^21 lanes leave it idle between them")
     parser.add_argument("--kernel-before", metavar="FILE", help="ratios: also render in-kernel with another checkout's "
-                        "client/kernel.py (git show main:client/kernel.py > FILE), interleaved")
+                        "client/kernel.py (git show 906263c:client/kernel.py > FILE), interleaved")
     parser.add_argument("--variant", help="Mitsuba variant of every render (default: the renderer's, llvm_ad_rgb; "
                         "cuda_ad_rgb on an NVIDIA GPU)")
     args = parser.parse_args()

@@ -1,6 +1,6 @@
 """Another checkout's in-kernel engine, for before/after runs in one process (``--kernel-before``).
 
-    git show main:client/kernel.py > /tmp/kernel_before.py
+    git show 906263c:client/kernel.py > /tmp/kernel_before.py
     .venv/bin/python benchmarks/bench_inference.py --sections kernel --kernel-before /tmp/kernel_before.py
     .venv/bin/python benchmarks/bench_render.py --kernel-before /tmp/kernel_before.py
 
