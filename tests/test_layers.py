@@ -70,13 +70,6 @@ def engine_modules() -> list[str]:
     return sorted(seen)
 
 
-KERNEL_XFAIL = pytest.mark.xfail(
-    strict=True,
-    reason="client/kernel.py reads weights through neumip.training (export_read, export._depth_weights) "
-    "until D1's rewrite interprets the exported ONNX graph (issue 23); remove this mark after merging it",
-)
-
-
 def test_the_reader_sees_relative_and_function_level_imports():
     """The check below would pass vacuously if the reader missed imports: these are known ones."""
     assert "neumip.core.errors.NeumipError" in imported_names("neumip.core.contract")  # from .errors import ...
@@ -91,8 +84,7 @@ def test_core_imports_nothing_from_the_areas_above_it(module):
     assert not above, f"{module} imports {sorted(above)}"
 
 
-@pytest.mark.parametrize("module", [
-    pytest.param(m, marks=KERNEL_XFAIL) if m == "neumip.client.kernel" else m for m in engine_modules()])
+@pytest.mark.parametrize("module", engine_modules())
 def test_engines_import_nothing_from_training(module):
     training = {name for name in imported_names(module) if within(name, "neumip.training")}
     assert not training, f"{module} imports {sorted(training)}"
