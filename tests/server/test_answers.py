@@ -169,20 +169,29 @@ def test_a_stalled_upload_cut_off_by_shutdown_is_answered_in_json(serve):
     assert reply is not None and reply[0] == 503 and "shut down" in reply[1]["error"], reply
 
 
+TEXT_BYTES = [*range(0x20, 0x7F), *range(0x80, 0x100)]
+"""Bytes a header value may hold (RFC 9110's VCHAR, space and obs-text; control bytes get a 400 from the
+HTTP parser before the app sees them)."""
+
+
 def fuzzed_headers(rng: random.Random) -> bytes:
-    """A request to an infer or evaluate path with a few headers of fuzzed values (any byte but CR/LF)."""
-    names = [b"Inference-Header-Content-Length", b"Content-Length", b"Content-Type", b"Content-Encoding",
-             b"Authorization", b"Transfer-Encoding", b"Expect", b"X-" + bytes(rng.choice(b"abc-") for _ in range(5))]
-    values = [b"\xb2", b"\xb9", b"-1", b"1e3", b"0x10", b" 7 ", b"9" * 30, b"\x00", b"msgpack", b"chunked",
-              b"application/json", b"application/msgpack", b"100-continue", b"gzip", b""]
-    path = rng.choice([b"/v2/models/rand16/infer", wire.EVALUATE_PATH.format(name="rand16").encode(),
-                       b"/v2/repository/models/rand16/unload", b"/v2/health/live/"])
-    lines = [b"POST " + path + b" HTTP/1.1", b"Host: x", b"Connection: close"]
-    for name in rng.sample(names, rng.randint(1, 4)):
-        value = rng.choice(values) if rng.random() < 0.6 else bytes(
-            rng.choice([b for b in range(1, 256) if b not in (10, 13)]) for _ in range(rng.randint(1, 12)))
-        lines.append(name + b": " + value)
-    return b"\r\n".join(lines) + b"\r\n\r\n" + b"{}"
+    """A request with a two-byte body to an infer, evaluate or control path, with one to three headers of
+    fuzzed values (the v2 header length, the finding's, in 60 %): numbers in odd spellings (superscripts, signs, hex, spaces, 30 digits), media types,
+    or random bytes (`TEXT_BYTES`)."""
+    names = [b"Content-Length", b"Content-Type", b"Content-Encoding", b"Authorization", b"Transfer-Encoding",
+             b"Expect", b"X-" + bytes(rng.choice(b"abc-") for _ in range(5))]
+    values = [b"\xb2", b"\xb9", b"\xb3", b"1\xb2", b"\xd9\xa3", b"-1", b"+2", b"1e3", b"0x10", b" 2 ", b"9" * 30,
+              b"\x00", b"0", b"2", b"chunked", b"application/json", b"application/msgpack", b"100-continue",
+              b"gzip", b""]
+    path = rng.choice([b"/v2/models/rand16/infer"] * 3 + [wire.EVALUATE_PATH.format(name="rand16").encode(),
+                       b"/v2/repository/models/flat16/unload", b"/v2/health/live/"])
+    headers = {b"Host": b"x", b"Connection": b"close", b"Content-Length": b"2"}
+    picked = rng.sample(names, rng.randint(0, 2)) + [b"Inference-Header-Content-Length"] * (rng.random() < 0.6)
+    for name in picked or names[:1]:
+        headers[name] = rng.choice(values) if rng.random() < 0.7 else bytes(
+            rng.choice(TEXT_BYTES) for _ in range(rng.randint(1, 12)))
+    lines = [b"POST " + path + b" HTTP/1.1"] + [name + b": " + value for name, value in headers.items()]
+    return b"\r\n".join(lines) + b"\r\n\r\n{}"
 
 
 @pytest.mark.parametrize("count", [1500, pytest.param(10_000, marks=pytest.mark.slow)])
