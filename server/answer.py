@@ -10,7 +10,7 @@ has taken all of it - or once the client is gone:
   ``NEUMIP_WRITE_TIMEOUT_S`` without room its connection is dropped (`protocol.py`).
 - `JsonAnswer` encodes a large answer in a worker thread, `JSON_PIECE_VALUES` numbers at a time, and
   streams it (chunked transfer encoding): the event loop, health checks included, never waits for the
-  encoding of a large answer (each piece holds the GIL for ~10 ms), and the text of only one piece
+  encoding of a large answer (each piece holds the GIL for a few ms), and the text of only one piece
   exists at a time. Small answers (up to `JSON_INLINE_VALUES` numbers) are encoded at once and sent
   with a Content-Length. The numbers are those of ``json.dumps(rgb.tolist())``, as before.
 """
@@ -28,8 +28,9 @@ PIECE_BYTES = 1 << 20
 """Most bytes one send hands to the connection."""
 JSON_INLINE_VALUES = 1 << 14
 """JSON answers of at most this many numbers are encoded on the event loop (about 3 ms), in one piece."""
-JSON_PIECE_VALUES = 1 << 16
-"""Numbers a worker thread encodes in one go (about 10-20 ms holding the GIL)."""
+JSON_PIECE_VALUES = 1 << 14
+"""Numbers a worker thread encodes in one go (about 3-5 ms holding the GIL, which ``json`` never lets go of
+within one call: the event loop waits that long at most)."""
 
 
 class Answer(Response):

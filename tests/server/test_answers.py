@@ -6,8 +6,11 @@ slashes are not redirected, and a fuzz of headers causes no 5xx."""
 from __future__ import annotations
 
 import json
+import os
 import random
 import socket
+import subprocess
+import sys
 import threading
 import time
 
@@ -46,34 +49,64 @@ def status_of(sock: socket.socket, wait_s: float) -> int | None:
     return int(head.split(b" ", 2)[1]) if b"\r\n\r\n" in head else None
 
 
-def health_while(url: str, busy: threading.Event) -> list[float]:
-    """Seconds each /v2/health/live took, one every 20 ms, while `busy` is set."""
-    took = []
-    with httpx.Client(timeout=30) as http:
-        http.get(url + "/v2/health/live")
-        while busy.is_set():
-            start = time.perf_counter()
-            assert http.get(url + "/v2/health/live").status_code == 200
-            took.append(time.perf_counter() - start)
+PROBE = """
+import sys, time, httpx
+took = []
+with httpx.Client(timeout=30) as http:
+    http.get(sys.argv[1])
+    print("ready", flush=True)
+    while not sys.stdin.readline().strip():  # an empty line: probe again; "stop": end
+        start = time.perf_counter()
+        assert http.get(sys.argv[1]).status_code == 200
+        took.append(time.perf_counter() - start)
+took.sort()
+print(took[-1], took[int(0.99 * len(took))], len(took))
+"""
+"""Probes /v2/health/live from a process of its own (a thread of the test would wait for the GIL that
+the test's own request threads hold)."""
+
+
+class HealthProbe:
+    """/v2/health/live timed every 20 ms from another process, from `start` until `stop` -> (max s, 99th
+    percentile s, count)."""
+
+    def __init__(self, url: str) -> None:
+        self.process = subprocess.Popen([sys.executable, "-c", PROBE, url + "/v2/health/live"], text=True,
+                                        stdin=subprocess.PIPE, stdout=subprocess.PIPE)
+        assert self.process.stdout.readline().strip() == "ready"
+        self.busy = threading.Event()
+        self.thread = threading.Thread(target=self._tick)
+
+    def _tick(self) -> None:
+        while self.busy.is_set():
+            self.process.stdin.write("\n")
+            self.process.stdin.flush()
             time.sleep(0.02)
-    return took
+
+    def start(self) -> None:
+        self.busy.set()
+        self.thread.start()
+
+    def stop(self) -> tuple[float, float, int]:
+        self.busy.clear()
+        self.thread.join()
+        out, _ = self.process.communicate("stop\n", timeout=30)
+        worst, p99, count = out.split()
+        return float(worst), float(p99), int(count)
 
 
 @pytest.mark.parametrize("rows, requests, bound_s", [
-    (300_000, 2, 0.25),
+    (300_000, 2, 0.1),
     pytest.param(2_000_000, 3, 0.1, marks=pytest.mark.slow),
 ], ids=["300k-rows", "2M-rows"])
 def test_json_answers_leave_the_event_loop_free(serve, reference, rows, requests, bound_s):
     """F3: a 2M-row JSON answer was encoded on the event loop, freezing every client, health included,
-    for 2.7-2.9 s. It is encoded in a thread, piece by piece, and streamed. (The bound of the default
-    size leaves room for the busy shared machine; the slow one is the issue's goal.)"""
+    for 2.7-2.9 s. It is encoded in a thread, piece by piece, and streamed: the 99th percentile of health
+    checks stays under 100 ms (the issue's goal; the default size, 300k rows, used to stall ~0.4 s)."""
     server = serve()
     q = random_queries(rows, seed=3)
-    busy, replies = threading.Event(), []
-    busy.set()
-    probe = []
-    prober = threading.Thread(target=lambda: probe.extend(health_while(server.url, busy)))
-    prober.start()
+    replies, probe = [], HealthProbe(server.url)
+    probe.start()
     try:
         workers = [threading.Thread(target=lambda: replies.append(infer_json_output(server.url, q)))
                    for _ in range(requests)]
@@ -82,13 +115,13 @@ def test_json_answers_leave_the_event_loop_free(serve, reference, rows, requests
         for worker in workers:
             worker.join(timeout=300)
     finally:
-        busy.clear()
-        prober.join()
+        worst, p99, count = probe.stop()
     assert [r.status_code for r in replies] == [200] * requests
     rgb = np.asarray(replies[0].json()["outputs"][0]["data"], dtype=np.float32).reshape(rows, 3)
     np.testing.assert_array_equal(rgb, reference.evaluate("rand16", q))  # the bits, through JSON
-    print(f"health while {requests} x {rows}-row JSON answers: max {max(probe) * 1e3:.0f} ms over {len(probe)}")
-    assert max(probe) < bound_s
+    print(f"health while {requests} x {rows}-row JSON answers: max {worst * 1e3:.0f} ms, 99th percentile "
+          f"{p99 * 1e3:.0f} ms over {count} (load average {os.getloadavg()[0]:.1f})")
+    assert p99 < bound_s and worst < 5 * bound_s  # a busy shared machine delays some probes on its own
 
 
 def test_clients_that_do_not_read_are_bounded_then_dropped(serve):
