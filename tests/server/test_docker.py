@@ -44,3 +44,73 @@ def test_docker_smoke(compose):
     )
     assert run.returncode == 0, run.stdout[-6000:] + run.stderr[-6000:]
     assert f"smoke: OK with {compose} " in run.stdout
+
+
+IMAGE = "neumip-server:local"
+"""The image compose builds (`compose.yaml`; docker/smoke.sh builds it)."""
+
+
+def container_memory_mib(name: str) -> float:
+    """The container's memory use as `docker stats` reports it (cgroup memory less the page cache)."""
+    out = subprocess.run(["docker", "stats", "--no-stream", "--format", "{{.MemUsage}}", name],
+                         capture_output=True, text=True, timeout=60).stdout.split("/")[0].strip()
+    number, unit = float(out.rstrip("KMGiB")), out.lstrip("0123456789.").strip()
+    return number * {"KiB": 1 / 1024, "MiB": 1, "GiB": 1024}[unit]
+
+
+@pytest.mark.slow
+@pytest.mark.docker
+def test_the_container_survives_clients_that_do_not_read(tmp_path):
+    """Issue 27, F2, in the container with compose's 2 GiB limit: 100 clients send valid requests and
+    never read the answer (90 such clients used to wedge it for minutes, 13 JSON ones got it
+    OOM-killed). Health stays under 1 s, nothing restarts, and memory comes back once the write
+    timeout has dropped them."""
+    import socket
+    import time
+
+    import httpx
+
+    from neumip.client import wire
+    from neumip.core.contract import random_queries
+    from neumip.server.process import ServerProcess
+
+    reason = docker_engine("docker")
+    if reason is None and subprocess.run(["docker", "image", "inspect", IMAGE], capture_output=True).returncode:
+        reason = f"no image {IMAGE}: build it with docker/smoke.sh or docker compose build"
+    if reason:
+        pytest.skip(f"Docker test skipped: {reason}")
+    name = f"neumip-nonreading-{os.getpid()}"
+    command = ["docker", "run", "--rm", "--name", name, "--memory", "2g", "--memory-swap", "2g",
+               "-e", "NEUMIP_WRITE_TIMEOUT_S=10", "-p", "127.0.0.1:{port}:8000", IMAGE]
+    with ServerProcess.start(ROOT / "models", tmp_path / "docker.log", command=command, timeout_s=180) as server:
+        host, port = server.host_port.split(":")
+        body = wire.encode_request(random_queries(200_000, seed=1))
+        head = (f"POST {wire.EVALUATE_PATH.format(name='rock')} HTTP/1.1\r\nHost: x\r\n"
+                f"Content-Type: {wire.MSGPACK_MEDIA_TYPE}\r\nContent-Length: {len(body)}\r\n\r\n").encode()
+        before = container_memory_mib(name)
+        socks = []
+        for _ in range(100):
+            sock = socket.socket()
+            sock.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, 4096)
+            sock.settimeout(30)
+            sock.connect((host, int(port)))
+            sock.sendall(head + body)
+            socks.append(sock)
+        took = []
+        for _ in range(20):
+            start = time.perf_counter()
+            assert httpx.get(server.url + "/v2/health/live", timeout=10).status_code == 200
+            took.append(time.perf_counter() - start)
+            time.sleep(0.5)
+        during = container_memory_mib(name)
+        time.sleep(15)  # past the write timeout
+        for sock in socks:
+            sock.close()
+        time.sleep(2)
+        after = container_memory_mib(name)
+        restarts = subprocess.run(["docker", "inspect", "-f", "{{.RestartCount}} {{.State.OOMKilled}}", name],
+                                  capture_output=True, text=True).stdout.split()
+    print(f"100 non-reading clients: health max {max(took) * 1e3:.0f} ms; container memory {before:.0f} MiB "
+          f"before, {during:.0f} with the clients, {after:.0f} after (load average {os.getloadavg()[0]:.1f})")
+    assert max(took) < 1.0 and restarts == ["0", "false"]
+    assert after < before + 100
