@@ -47,21 +47,17 @@ class Answer(Response):
             headers["content-length"] = str(length)
         self.init_headers(headers)
 
-    def pieces(self, gone: asyncio.Task) -> AsyncIterator[bytes | memoryview]:
-        """The body, piece by piece (`gone`: done once the client went away)."""
+    def pieces(self, receive) -> AsyncIterator[bytes | memoryview]:
+        """The body, piece by piece (`receive`: the ASGI receive, to learn that the client went away)."""
         raise NotImplementedError
 
     async def __call__(self, scope, receive, send) -> None:
-        gone = asyncio.ensure_future(_disconnect(receive))  # done once the client went away
         try:
             await send({"type": "http.response.start", "status": self.status_code, "headers": self.raw_headers})
-            async for piece in self.pieces(gone):
-                if gone.done():
-                    return
+            async for piece in self.pieces(receive):  # once the client is gone, uvicorn's send returns at once
                 await send({"type": "http.response.body", "body": piece, "more_body": True})
             await send({"type": "http.response.body", "body": b"", "more_body": False})
         finally:
-            gone.cancel()
             self.on_sent()
 
 
@@ -80,7 +76,7 @@ class BufferAnswer(Answer):
                                    else b) for b in buffers]
         super().__init__(media_type, on_sent, sum(b.nbytes for b in self.buffers), headers)
 
-    async def pieces(self, gone: asyncio.Task) -> AsyncIterator[memoryview]:
+    async def pieces(self, receive) -> AsyncIterator[memoryview]:
         for buffer in self.buffers:
             for start in range(0, buffer.nbytes, PIECE_BYTES):
                 yield buffer[start:start + PIECE_BYTES]
@@ -102,15 +98,19 @@ class JsonAnswer(Answer):
             self.text = f"{prefix}[{json_items(values)}]{suffix}".encode()
         super().__init__("application/json", on_sent, None if self.text is None else len(self.text))
 
-    async def pieces(self, gone: asyncio.Task) -> AsyncIterator[bytes]:
+    async def pieces(self, receive) -> AsyncIterator[bytes]:
         if self.text is not None:
             yield self.text
             return
         step = max(JSON_PIECE_VALUES * len(self.values) // self.values.size, 1)  # items a piece
-        yield (self.prefix + "[").encode()
-        for start in range(0, len(self.values), step):
-            if gone.done():
-                return
-            text = await asyncio.to_thread(json_items, self.values[start:start + step])
-            yield (text if start == 0 else "," + text).encode()
-        yield ("]" + self.suffix).encode()
+        gone = asyncio.ensure_future(_disconnect(receive))  # no more encoding once the client is gone
+        try:
+            yield (self.prefix + "[").encode()
+            for start in range(0, len(self.values), step):
+                if gone.done():
+                    return
+                text = await asyncio.to_thread(json_items, self.values[start:start + step])
+                yield (text if start == 0 else "," + text).encode()
+            yield ("]" + self.suffix).encode()
+        finally:
+            gone.cancel()
