@@ -30,6 +30,7 @@ import logging
 
 from uvicorn.protocols.http.httptools_impl import HttpToolsProtocol
 
+from .answer import PIECE_BYTES
 from .settings import Settings
 
 STATUS_TEXT = {400: "Bad Request", 408: "Request Timeout", 431: "Request Header Fields Too Large"}
@@ -57,6 +58,9 @@ def protocol_class(settings: Settings) -> type[asyncio.Protocol]:
 
         def connection_made(self, transport) -> None:  # type: ignore[override]
             super().connection_made(transport)
+            # answers go out in pieces of PIECE_BYTES, each written once the buffer is below the low mark:
+            # the socket always has the rest of one piece queued while the next waits
+            transport.set_write_buffer_limits(high=PIECE_BYTES, low=PIECE_BYTES // 4)
             self._write_timer = None
             self._shutting_down = False
             self._header_bytes = 0
