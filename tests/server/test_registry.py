@@ -99,11 +99,14 @@ def test_both_engines_refuse_non_finite_weights_at_load(model_dir, tmp_path, wri
     """Issue 27: the engines' NaN policies differed - the kernel engine refused a file with a NaN weight
     at load, ONNX Runtime served it and answered 500 for the rows that touched it. Both refuse it now,
     with the kernel engine's message (its test: tests/server/test_engine.py)."""
-    from neumip.server.engine import Engine, nonfinite_initializers
+    from neumip.server.engine import Engine
 
     write_nan_weight(model_dir / "rand16.onnx", tmp_path / "nan.onnx")
     shutil.copy(model_dir / "flat16.onnx", tmp_path)
     registry = Registry.load(tmp_path, Engine.onnxruntime(), warmup_rows=16)
     assert sorted(registry.materials) == ["flat16"]
     assert registry.failed["nan"] == "nan.onnx: non-finite weights in pyramid"
+
+    from neumip.server.engine import nonfinite_initializers
+
     assert nonfinite_initializers((model_dir / "rand16.onnx").read_bytes()) == []
