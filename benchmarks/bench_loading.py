@@ -16,12 +16,8 @@ the largest resident model bytes seen on /metrics (sampled every 20 ms) against 
 from __future__ import annotations
 
 import argparse
-import os
 import re
 import shutil
-import socket
-import subprocess
-import sys
 import tempfile
 import threading
 import time
@@ -32,40 +28,16 @@ import numpy as np
 
 from neumip.client import wire
 from neumip.core.contract import random_queries
-
-
-def free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
+from neumip.server.process import ServerProcess
 
 
 class Server:
     def __init__(self, folder: Path, **env) -> None:
-        self.port = free_port()
-        self.url = f"http://127.0.0.1:{self.port}"
-        environ = {**os.environ, **{f"NEUMIP_{k.upper()}": str(v) for k, v in env.items()}}
-        self.start = time.perf_counter()
-        self.proc = subprocess.Popen(
-            [sys.executable, "-m", "neumip.client.cli", "serve", "--port", str(self.port), "--model-dir", str(folder)],
-            env=environ, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL,
-        )
-        while True:
-            try:
-                if httpx.get(self.url + "/v2/health/ready", timeout=1).status_code == 200:
-                    break
-            except httpx.HTTPError:
-                pass
-            if self.proc.poll() is not None:
-                raise RuntimeError("server exited")
-            time.sleep(0.02)
-        self.ready_s = time.perf_counter() - self.start
+        self.process = ServerProcess.start(folder, **env)
+        self.url, self.proc, self.ready_s = self.process.url, self.process.process, self.process.ready_s
 
     def rss_mb(self) -> float:
-        for line in Path(f"/proc/{self.proc.pid}/status").read_text().splitlines():
-            if line.startswith("VmRSS:"):
-                return int(line.split()[1]) / 1024
-        return float("nan")
+        return self.process.rss_bytes() / 2**20
 
     def metric(self, name: str, **labels) -> float:
         total = 0.0
@@ -80,8 +52,7 @@ class Server:
                           headers={"content-type": wire.MSGPACK_MEDIA_TYPE}, timeout=120)
 
     def stop(self) -> None:
-        self.proc.terminate()
-        self.proc.wait(30)
+        self.process.stop(30)
 
 
 def copies(model: Path, folder: Path, count: int) -> Path:

@@ -44,23 +44,23 @@ from __future__ import annotations
 import argparse
 import functools
 import os
-import signal
 import socket
 import statistics
-import subprocess
 import sys
 import tempfile
 import threading
 import time
 from pathlib import Path
 
-import httpx
 import numpy as np
 
 from neumip.core import contract as C
 from neumip.client import wire
 from neumip.client.http import ClientConfig, MaterialClient, ServerError
 from neumip.client.local import LocalMaterials
+from neumip.server.process import ServerProcess
+from neumip.server.uvicorn_run import ServeError
+
 
 def parse_args() -> argparse.Namespace:
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
@@ -114,38 +114,22 @@ class Server:
     def __init__(self, folder: Path, log: Path, engine: str = "onnxruntime", cores: set[int] | None = None,
                  bare: bool = False) -> None:
         """`bare`: not `neumip serve` but the HTTP floor, `bare_server` (evaluates nothing)."""
-        with socket.socket() as s:
-            s.bind(("127.0.0.1", 0))
-            port = s.getsockname()[1]
-        self.url = f"http://127.0.0.1:{port}"
-        cmd = [sys.executable, "-m", "neumip.client.cli", "serve", "--port", str(port), "--model-dir", str(folder)]
+        command = None
         if bare:
-            here = str(Path(__file__).parent)
-            cmd = [sys.executable, "-m", "uvicorn", "bare_server:app", "--app-dir", here, "--port", str(port),
-                   "--loop", "uvloop", "--http", "httptools", "--log-level", "warning", "--no-access-log"]
-        env = {**os.environ, "NEUMIP_ENGINE": engine}
-        place = (lambda: os.sched_setaffinity(0, cores)) if cores else None  # the child, one thread before exec
-        self.process = subprocess.Popen(cmd, stdout=log.open("w"), stderr=subprocess.STDOUT, env=env,
-                                        preexec_fn=place)
-        deadline = time.monotonic() + 120
-        while time.monotonic() < deadline:
-            if self.process.poll() is not None:
-                sys.exit(f"server exited:\n{log.read_text()}")
-            try:
-                if httpx.get(self.url + "/v2/health/ready", timeout=1).status_code == 200:
-                    return
-            except httpx.TransportError:
-                time.sleep(0.2)
-        sys.exit("server not ready within 120 s")
+            command = [sys.executable, "-m", "uvicorn", "bare_server:app", "--app-dir", str(Path(__file__).parent),
+                       "--port", "{port}", "--loop", "uvloop", "--http", "httptools", "--log-level", "warning",
+                       "--no-access-log"]
+        try:
+            self.server = ServerProcess.start(folder, log, command=command, cores=cores, engine=engine)
+        except ServeError as exc:
+            sys.exit(str(exc))
+        self.url, self.process = self.server.url, self.server.process
 
     def pin(self, cores: set[int]) -> None:
         pin(self.process.pid, cores)
 
     def rss_mib(self) -> float:
-        for line in Path(f"/proc/{self.process.pid}/status").read_text().splitlines():
-            if line.startswith("VmRSS:"):
-                return int(line.split()[1]) / 1024
-        return float("nan")
+        return self.server.rss_bytes() / 2**20
 
     def cpu_s(self) -> tuple[float, float]:
         """CPU seconds (user + system) the server's main thread (the event loop: HTTP, decoding,
@@ -164,8 +148,7 @@ class Server:
         return loop, other
 
     def stop(self) -> int:
-        self.process.send_signal(signal.SIGTERM)
-        return self.process.wait(timeout=60)
+        return self.server.stop()
 
 
 def msgpack_call(client: MaterialClient, name: str, q: np.ndarray, stages: dict | None = None) -> np.ndarray:

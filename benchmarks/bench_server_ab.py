@@ -19,7 +19,6 @@ from __future__ import annotations
 
 import argparse
 import os
-import socket
 import statistics
 import subprocess
 import sys
@@ -27,11 +26,12 @@ import tempfile
 import time
 from pathlib import Path
 
-import httpx
 
 from neumip.core import contract as C
 from neumip.client.http import ClientConfig, MaterialClient
 from neumip.client.local import LocalMaterials
+from neumip.server.process import ServerProcess
+from neumip.server.uvicorn_run import ServeError
 
 from bench_server import p50_16_rows  # this folder is on sys.path when run as a script
 
@@ -59,25 +59,13 @@ def base_package(revision: str, scratch: Path) -> Path:
     return package.parent
 
 
-def start(folder: Path, pythonpath: Path | None, log: Path) -> tuple[subprocess.Popen, str]:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        port = s.getsockname()[1]
-    env = {**os.environ, **({"PYTHONPATH": str(pythonpath)} if pythonpath else {})}
-    cmd = [sys.executable, "-m", "neumip.client.cli", "serve", "--port", str(port), "--model-dir", str(folder)]
-    process = subprocess.Popen(cmd, env=env, stdout=log.open("w"), stderr=subprocess.STDOUT, cwd=log.parent)
-    url = f"http://127.0.0.1:{port}"
-    deadline = time.monotonic() + 120
-    while time.monotonic() < deadline:
-        if process.poll() is not None:
-            sys.exit(f"server exited:\n{log.read_text()}")
-        try:
-            if httpx.get(url + "/v2/health/ready", timeout=1).status_code == 200:
-                return process, url
-        except httpx.TransportError:
-            pass
-        time.sleep(0.2)
-    sys.exit(f"server not ready within 120 s:\n{log.read_text()}")
+def start(folder: Path, pythonpath: Path | None, log: Path) -> ServerProcess:
+    """`neumip serve` of the working tree, or of the code on `pythonpath`."""
+    try:
+        return ServerProcess.start(folder, log, env={"PYTHONPATH": str(pythonpath)} if pythonpath else None,
+                                   cwd=log.parent)
+    except ServeError as exc:
+        sys.exit(str(exc))
 
 
 def main() -> None:
@@ -99,7 +87,7 @@ def main() -> None:
             local = LocalMaterials(folder)
             q = C.random_queries(1_000_000, seed=7)
             pool = C.random_queries(1 << 14, seed=1)
-            clients = {k: MaterialClient(url, ClientConfig(timeout_s=120)) for k, (_, url) in servers.items()}
+            clients = {k: MaterialClient(server.url, ClientConfig(timeout_s=120)) for k, server in servers.items()}
             kinds = {"in-process": lambda: local.evaluate("bench256", q)}
             kinds.update({k: (lambda c=c: c.evaluate("bench256", q)) for k, c in clients.items()})
             for fn in kinds.values():
@@ -118,7 +106,7 @@ def main() -> None:
             runs = {(k, case): [] for k in servers for case in ("alone", "beside a slow uploader")}
             for _ in range(args.slow_runs):
                 for k, case in runs:
-                    runs[(k, case)].append(p50_16_rows(servers[k][1], "bench256", pool, case != "alone"))
+                    runs[(k, case)].append(p50_16_rows(servers[k].url, "bench256", pool, case != "alone"))
             print(f"\n## 16-row requests, p50 (ms), median of {args.slow_runs} interleaved runs of 100 "
                   f"(load avg {os.getloadavg()[0]:.2f})")
             for (k, case), values in runs.items():
@@ -127,9 +115,8 @@ def main() -> None:
             for client in clients.values():
                 client.close()
         finally:
-            for process, _ in servers.values():
-                process.terminate()
-                process.wait(timeout=60)
+            for server in servers.values():
+                server.stop()
             subprocess.run(["git", "-C", str(ROOT), "worktree", "remove", "--force", str(scratch / "base")], check=False)
 
 

@@ -250,7 +250,7 @@ def decode_infer_response(body, header_length: str | None) -> np.ndarray:
     """A v2 infer answer with a binary ``rgb`` output (and `header_length`, its
     Inference-Header-Content-Length) -> (N, 3) float32 RGB, or (N, 3 K) answers of query groups, a view
     of `body`. Raises QueryError."""
-    if header_length is None or not header_length.isdigit() or int(header_length) > len(body):
+    if header_length is None or not (header_length.isascii() and header_length.isdigit()) or int(header_length) > len(body):
         raise QueryError(f"v2 answer has no valid {INFER_HEADER_LENGTH} ({header_length!r}): no binary output")
     length = int(header_length)
     try:

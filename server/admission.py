@@ -11,6 +11,11 @@ grow with; a group takes at least 8 bytes a light, so the true count can exceed 
 length, and the server refuses it then); it is released when the answer is complete (or, for a handler cancelled
 by a client that went away, when its queued rows have run).
 
+A third budget bounds the way out: a request's **answer** (12 bytes an answer, ``answer_budget_bytes``)
+is reserved once its rows are known, before they are evaluated (503 past the budget), and freed when the
+response has been handed to the connection - or, for a client that does not read it, when the connection
+is dropped after ``write_timeout_s`` (`protocol.py`).
+
 Bodies then grow with the bytes that actually arrive (`read_body`), within the body timeout: a client
 that declares 128 MiB and sends one byte holds its reservation for ``body_timeout_s`` at most, and no
 memory.
@@ -19,7 +24,7 @@ memory.
 from __future__ import annotations
 
 import asyncio
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from contextlib import contextmanager
 from dataclasses import dataclass
 
@@ -28,9 +33,10 @@ from starlette.requests import ClientDisconnect
 
 from neumip.client.wire import ROW_BYTES
 
+from .body import header_int
 from .errors import ApiError, QueueFull
 from .metrics import Metrics
-from .settings import JSON_MEMORY_FACTOR, Settings
+from .settings import ANSWER_BYTES, JSON_MEMORY_FACTOR, Settings
 
 MIN_JSON_ROW_BYTES = 14
 """Fewest bytes a query row takes in JSON (``0,0,0,0,0,0,0,`` in v2's flat data): rows <= length / 14."""
@@ -64,9 +70,7 @@ def plan(request: Request, settings: Settings, json: bool, json_length: int | No
     if encoding not in ("", "identity"):
         raise ApiError(415, f"Content-Encoding {encoding!r} is not supported; send the body uncompressed")
     value = request.headers.get("content-length")
-    if value is not None and not value.strip().isdigit():
-        raise ApiError(400, f"Content-Length must be a non-negative integer, got {value[:40]!r}")
-    declared = None if value is None else int(value)
+    declared = None if value is None else header_int(value, "Content-Length")
     if declared is not None and declared > settings.max_body_bytes:
         raise ApiError(413, f"body of {declared} bytes is larger than the limit of {settings.max_body_bytes} bytes")
     all_json = json and json_length is None
@@ -92,6 +96,10 @@ class Ticket:
     """Query rows reserved."""
     until: asyncio.Future | None = None
     """The request's answer: the reservation lasts until it is done (set once its rows are queued)."""
+    answer: int = 0
+    """Bytes of answer memory reserved."""
+    answer_handed: bool = False
+    """A response frees the answer's reservation once sent (`Admission.hand_answer`), not the ticket."""
     released: bool = False
 
 
@@ -104,10 +112,12 @@ class Admission:
         self.memory = 0  # touched on the event loop only, like everything here
         self.rows = 0
         self.requests = 0
+        self.answers = 0
         # the gauges read the books when /metrics is scraped, not on every change
         metrics.body_bytes.set_function(lambda: self.memory)
         metrics.queue_rows.set_function(lambda: self.rows)
         metrics.queue_requests.set_function(lambda: self.requests)
+        metrics.answer_bytes.set_function(lambda: self.answers)
 
     @contextmanager
     def admit(self, plan: BodyPlan) -> Iterator[Ticket]:
@@ -136,6 +146,25 @@ class Admission:
         self.rows += rows - ticket.rows
         ticket.memory, ticket.rows = memory, rows
 
+    def reserve_answer(self, ticket: Ticket, answers: int) -> None:
+        """Reserve the memory of `answers` answers (a query group of K lights counting K) before they are
+        evaluated; QueueFull (503) if the answer budget cannot take them."""
+        size, budget = answers * ANSWER_BYTES, self.settings.answer_budget_bytes
+        if size > ticket.answer and self.answers - ticket.answer + size > budget:
+            self._refuse(f"{self.answers} bytes of answers in memory, {size} more would pass the budget of {budget}")
+        self.answers += size - ticket.answer
+        ticket.answer = size
+
+    def hand_answer(self, ticket: Ticket) -> Callable[[], None]:
+        """The answer leaves in a response: returns what frees its reservation once the response is sent
+        (from then on the ticket's release keeps it)."""
+        ticket.answer_handed = True
+        return lambda: self._free_answer(ticket)
+
+    def _free_answer(self, ticket: Ticket) -> None:
+        self.answers -= ticket.answer
+        ticket.answer = 0
+
     def _refuse(self, why: str) -> None:
         self.metrics.rejected.inc()
         retry = self.settings.retry_after_s
@@ -147,6 +176,8 @@ class Admission:
             self.memory -= ticket.memory
             self.rows -= ticket.rows
             self.requests -= 1
+            if not ticket.answer_handed:
+                self._free_answer(ticket)
 
 
 async def read_body(request: Request, plan: BodyPlan, ticket: Ticket, admission: Admission) -> bytearray:

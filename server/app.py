@@ -73,6 +73,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
         summary="NeuMIP neural materials: (N, 7) shading queries -> (N, 3) RGB, or query groups "
                 "(N, 5 + 2K) -> (N, 3K)",
         lifespan=lifespan,
+        redirect_slashes=False,  # a trailing slash is 404, not a 307 to the path without it
     )
     app.state.neumip = ServerState(settings, metrics, Admission(settings, metrics), engine)
     install_error_handlers(app)

@@ -24,6 +24,16 @@ def media_type(request: Request) -> str | None:
     return value.split(";", 1)[0].strip().lower() or None
 
 
+def header_int(value: str, name: str) -> int:
+    """A header's non-negative decimal integer; 400 for anything else. ASCII digits only: ``str.isdigit``
+    also takes superscripts such as "²", which ``int`` refuses; at most 18 of them (``int`` refuses
+    strings of more than 4300 digits, and no length here comes near 10^18)."""
+    text = value.strip()
+    if not (0 < len(text) <= 18 and text.isascii() and text.isdigit()):
+        raise ApiError(400, f"{name} must be a non-negative integer, got {value[:40]!r}")
+    return int(text)
+
+
 def parse_json(raw: bytes | memoryview, what: str = "body") -> object:
     """JSON text -> Python value; 400 saying where the JSON is broken (or that it nests too deep)."""
     try:

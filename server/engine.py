@@ -11,6 +11,19 @@
   drjit's workers wait, is paid less often). Answers agree with ONNX Runtime's within the
   export's parity tolerance, and each row is computed alone, so they do not depend on the batch.
 
+The kernel engine traces (compiles) its arithmetic once per number of lights in a group, seconds for
+wide groups (0.6 s for 3 lights, 13 s for 64, every material again), holding the process-wide drjit
+lock that every other material's calls need. So it only ever runs the widths the registry's warm-up
+traced, `WARM_LIGHTS`: a wider group is split into groups of two lights (and one single query for an
+odd count), evaluated in one call, and put back together - free, since a group answers with the
+bits of its single queries.
+
+Both engines refuse a file with a non-finite weight (NaN or Inf in any float initializer) when it
+loads, naming the tensors - the kernel engine as it reads them, ONNX Runtime's through
+`nonfinite_initializers` (the ONNX file read as protobuf, with no ``onnx`` package) - and both answer
+500 naming the material and the row for an answer that is not finite (`batching`), e.g. from a graph
+that gives NaN for some inputs.
+
 Either way the registry and the batcher see one thing per material: a `Material` whose
 ``run(queries) -> answers`` evaluates one call and whose ``bytes`` count against the memory budget
 (the file's size).
@@ -25,8 +38,9 @@ from pathlib import Path
 
 import numpy as np
 
+from neumip.core import contract as C
 from neumip.core.errors import NeumipError
-from neumip.client.local import Material, load_material
+from neumip.client.local import Material, ModelError, load_material
 
 from .settings import Settings, available_cores
 
@@ -45,13 +59,95 @@ class EngineUnavailable(NeumipError, ImportError):
     """The engine asked for cannot run here (a missing extra or library); the message says how to fix it."""
 
 
+WARM_LIGHTS = (1, 2)
+"""Lights of the query groups the kernel engine evaluates as they are: the widths the registry warms up
+(`Registry`'s warm-up runs single queries and groups of two), so the engine compiles nothing once a
+material is loaded."""
+
+
 @dataclass
 class KernelModel(Material):
     """A material of the ``kernel`` engine: ``session`` is its `neumip.client.kernel.KernelMaterial`."""
 
     def run(self, queries: np.ndarray) -> np.ndarray:
-        """One call: validated (n, 5 + 2 K) float32 queries -> (n, 3 K) float32 RGB."""
-        return self.session.run(queries)
+        """One call: validated (n, 5 + 2 K) float32 queries -> (n, 3 K) float32 RGB; groups of more than
+        two lights as groups of two (`in_pairs`)."""
+        if C.group_lights(queries.shape[1]) in WARM_LIGHTS:
+            return self.session.run(queries)
+        return in_pairs(self.session.run, queries)
+
+
+def in_pairs(run: Callable[[np.ndarray], np.ndarray], queries: np.ndarray) -> np.ndarray:
+    """Query groups of K > 2 lights (n, 5 + 2 K) -> (n, 3 K) RGB, evaluated by `run` as groups of two
+    lights, (n K // 2, 9) -> (n K // 2, 6), and, for an odd K, the last light's single queries."""
+    n, lights = queries.shape[0], C.group_lights(queries.shape[1])
+    singles = C.ungroup(queries).reshape(n, lights, C.QUERY_DIM)  # (n, K, 7): light j of group i
+    even = lights - lights % 2
+    pairs = np.empty((n, even // 2, C.group_width(2)), C.DTYPE)  # lights 2 m and 2 m + 1 of each group
+    pairs[:, :, :C.QUERY_DIM] = singles[:, 0:even:2]
+    pairs[:, :, C.QUERY_DIM:] = singles[:, 1:even:2, C.WI_X:C.WI_Y + 1]
+    rgb = np.empty((n, lights, C.RGB_DIM), C.DTYPE)
+    rgb[:, :even] = run(pairs.reshape(-1, pairs.shape[2])).reshape(n, even, C.RGB_DIM)
+    if lights % 2:
+        rgb[:, -1] = run(np.ascontiguousarray(singles[:, -1]))
+    return rgb.reshape(n, lights * C.RGB_DIM)
+
+
+FLOAT_TYPES = {1: "<f4", 11: "<f8"}
+"""ONNX TensorProto data types checked for non-finite values (FLOAT, DOUBLE) and their numpy types."""
+
+
+def _varint(buf: memoryview, i: int) -> tuple[int, int]:
+    value = shift = 0
+    while True:
+        byte = buf[i]
+        value |= (byte & 0x7F) << shift
+        i, shift = i + 1, shift + 7
+        if byte < 0x80:
+            return value, i
+
+
+def _fields(buf: memoryview):
+    """The (field number, wire type, value) of a protobuf message: ints for varints, memoryviews else."""
+    i = 0
+    while i < len(buf):
+        key, i = _varint(buf, i)
+        kind = key & 7
+        if kind == 0:
+            value, i = _varint(buf, i)
+        elif kind == 2:
+            size, i = _varint(buf, i)
+            value, i = buf[i:i + size], i + size
+        elif kind in (1, 5):
+            size = 8 if kind == 1 else 4
+            value, i = buf[i:i + size], i + size
+        else:
+            raise ModelError(f"unsupported protobuf wire type {kind}")
+        yield key >> 3, kind, value
+
+
+def nonfinite_initializers(data: bytes) -> list[str]:
+    """Names of the graph's float initializers holding NaN or Inf, read from the ONNX file's bytes
+    (ModelProto.graph = 7, GraphProto.initializer = 5; TensorProto: data_type = 2, float_data = 4,
+    double_data = 10, name = 8, raw_data = 9)."""
+    bad = []
+    for field, _, graph in _fields(memoryview(data)):
+        if field != 7:
+            continue
+        for field, _, tensor in _fields(graph):
+            if field != 5:
+                continue
+            parts, name, dtype = [], "", None
+            for number, kind, value in _fields(tensor):
+                if number == 2:
+                    dtype = FLOAT_TYPES.get(value)
+                elif number == 8:
+                    name = bytes(value).decode("utf-8", "replace")
+                elif number in (4, 9, 10) and kind != 0:
+                    parts.append(value)  # packed values, raw data, or one unpacked value
+            if dtype is not None and any(not np.isfinite(np.frombuffer(p, dtype)).all() for p in parts if len(p)):
+                bad.append(name)
+    return bad
 
 
 @dataclass(frozen=True)
@@ -75,8 +171,16 @@ class Engine:
 
     @classmethod
     def onnxruntime(cls, threads: int = 1, workers: int = 1, chunk_rows: int = 8192) -> "Engine":
-        """ONNX Runtime sessions of `threads` intra-op threads each."""
-        return cls("onnxruntime", lambda path, data: load_material(path, threads, data=data), workers, chunk_rows)
+        """ONNX Runtime sessions of `threads` intra-op threads each; files with non-finite weights refused."""
+
+        def load(path: Path, data: bytes) -> Material:
+            material = load_material(path, threads, data=data)  # ModelError for a file it cannot run
+            bad = nonfinite_initializers(data)
+            if bad:
+                raise ModelError(f"{path.name}: non-finite weights in {', '.join(sorted(bad))}")
+            return material
+
+        return cls("onnxruntime", load, workers, chunk_rows)
 
     @classmethod
     def kernel(cls, chunk_rows: int = 262144) -> "Engine":

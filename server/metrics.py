@@ -56,6 +56,10 @@ class Metrics:
         self.body_bytes = Gauge(
             "neumip_body_bytes", "Bytes of request-body memory reserved by requests in flight", registry=r
         )
+        self.answer_bytes = Gauge(
+            "neumip_answer_bytes", "Bytes of answer memory reserved by requests in flight (evaluated or being sent)",
+            registry=r,
+        )
         self.rejected = Counter(
             "neumip_queue_rejected", "Requests refused with 503 because the row queue or body budget was full",
             registry=r,

@@ -45,7 +45,7 @@ import numpy as np
 from neumip.core import contract as C
 from neumip.client.local import NAME_PATTERN, Material, ModelError, UnknownMaterial
 
-from .engine import Engine
+from .engine import WARM_LIGHTS, Engine
 from .errors import ApiError
 from .metrics import Metrics
 
@@ -265,7 +265,7 @@ class Registry:
                 raise ModelError(f"{path.name} changed while it was read (still being written?)")
             material = self.config.engine.load(path, data)
             rows = self.config.warmup_rows
-            for lights in (1, 2) if rows else ():  # the renderer's two shapes (the kernel engine traces each)
+            for lights in WARM_LIGHTS if rows else ():  # the renderer's two shapes (the kernel engine traces each)
                 C.as_rgb(material.run(warmup_queries(rows, lights)), rows, lights)
         except (ModelError, OSError) as exc:
             reason = str(exc)

@@ -11,10 +11,13 @@ import os
 from pathlib import Path
 from typing import Literal
 
-from pydantic import Field, model_validator
+from pydantic import Field, SecretStr, model_validator
 from pydantic_settings import BaseSettings, SettingsConfigDict
 
 
+ANSWER_BYTES = 12
+"""Bytes of memory one answer (3 float32) holds until it is sent, whatever the format: msgpack and
+binary answers are sent from the evaluated array itself, JSON is encoded from it piece by piece."""
 JSON_MEMORY_FACTOR = 16
 """Bytes of memory one byte of a JSON body may become while parsed: ``json.loads`` of the densest query
 JSON (``[0,0,0,0,0,0,0]`` rows), then numpy, peaked at 13.5x the body's length (tracemalloc)."""
@@ -69,6 +72,12 @@ class Settings(BaseSettings):
     """Largest JSON body (or v2 JSON header) accepted, in bytes (more: 413; large requests go as msgpack/binary)."""
     body_budget_bytes: int = Field(512 * 1024 * 1024, ge=1024)
     """Most request-body memory the requests in flight may reserve (JSON counts 16x); beyond it: 503."""
+    answer_budget_bytes: int = Field(256 * 1024 * 1024, ge=1024)
+    """Most answer memory the requests in flight may reserve (12 bytes an answer), from before their rows
+    are evaluated until the answer is sent; beyond it: 503."""
+    write_timeout_s: float = Field(30.0, gt=0)
+    """Seconds an answer may wait for a client that does not read it (the connection's send buffer stays
+    full); then the connection is dropped and the answer freed."""
     body_timeout_s: float = Field(60.0, gt=0)
     """Seconds a request body may take to arrive once its headers are in (slower: 408, connection closed)."""
     header_timeout_s: float = Field(10.0, gt=0)
@@ -88,6 +97,11 @@ class Settings(BaseSettings):
     warmup_rows: int = Field(1024, ge=0)
     """Rows each material evaluates at start-up, before the server reports ready: as single queries and as
     query groups of two lights, the shapes a renderer sends (the kernel engine compiles each once)."""
+    model_control: Literal["none", "explicit"] = "none"
+    """none: ``POST /v2/repository/models/{name}/load`` and ``/unload`` answer 403; explicit: they load and
+    unload models (Triton's ``--model-control-mode``)."""
+    model_control_token: SecretStr | None = None
+    """With model_control=explicit: load and unload need ``Authorization: Bearer <token>`` (unset: none)."""
     graceful_shutdown_s: float = Field(10.0, ge=0)
     """Seconds uvicorn lets running requests finish after SIGTERM."""
 
@@ -104,6 +118,11 @@ class Settings(BaseSettings):
                 f"body_budget_bytes ({self.body_budget_bytes}) must be >= max_body_bytes ({self.max_body_bytes}) + "
                 f"{JSON_MEMORY_FACTOR} x max_json_body_bytes ({self.max_json_body_bytes}): otherwise the largest "
                 "allowed request could never be admitted"
+            )
+        if self.answer_budget_bytes < ANSWER_BYTES * self.max_rows:
+            raise ValueError(
+                f"answer_budget_bytes ({self.answer_budget_bytes}) must be >= {ANSWER_BYTES} x max_rows "
+                f"({self.max_rows}): otherwise the largest allowed answer could never be reserved"
             )
         return self
 

@@ -14,12 +14,12 @@ import asyncio
 
 import numpy as np
 from fastapi import APIRouter, Depends, Request, Response
-from fastapi.responses import JSONResponse
 
 from neumip.core import contract as C
 from neumip.client import wire
 
 from .admission import plan, read_body
+from .answer import BufferAnswer, JsonAnswer
 from .body import JSON_TYPE, MSGPACK_TYPES, check_rows, media_type, parse_json
 from .errors import ApiError
 from .metrics import StageTimer
@@ -29,7 +29,7 @@ from .state import ServerState, serving
 router = APIRouter(tags=["v1 (renderer fast path)"])
 
 OFFLOAD_BYTES = 1 << 20
-"""Bodies larger than this are decoded and encoded in a thread, keeping the event loop free."""
+"""JSON bodies larger than this are decoded in a thread, keeping the event loop free (answers: `answer`)."""
 
 
 def decode_json(body: bytes) -> np.ndarray:
@@ -112,6 +112,7 @@ async def evaluate(name: str, request: Request, state: ServerState = Depends(ser
                 queries = await decode(body, kind)  # (N, 5 + 2 K) float32, K = 1: (N, 7)
                 answers = check_rows(queries, state.settings.max_rows)
                 state.admission.resize(ticket, ticket.memory, answers)
+                state.admission.reserve_answer(ticket, answers)  # 503 if the answers' budget is spent
                 timer.mark("decode")
                 # msgpack: the workers write the answer straight into the response body (out: a view of it)
                 content, out = None, None
@@ -119,10 +120,12 @@ async def evaluate(name: str, request: Request, state: ServerState = Depends(ser
                     content, out = wire.response_buffer(queries.shape[0], C.group_lights(queries.shape[1]))
                 ticket.until = arrival.submit(name, queries, out=out, material=material)
             rgb = await asyncio.shield(ticket.until)  # (N, 3 K) float32
-        timer.mark("evaluate")
+            timer.mark("evaluate")
+            sent = state.admission.hand_answer(ticket)  # the response frees the answer once sent
         if kind == "msgpack":
-            content, media = memoryview(content), wire.MSGPACK_MEDIA_TYPE  # Response takes no bytearray
+            response = BufferAnswer([content], wire.MSGPACK_MEDIA_TYPE, sent)
         else:
-            content, media = JSONResponse({"n": int(rgb.shape[0]), "rgb": rgb.tolist()}).body, JSON_TYPE
-        timer.mark("encode")
-        return Response(content, media_type=media, headers=timer.header())
+            response = JsonAnswer(f'{{"n":{rgb.shape[0]},"rgb":', rgb, "}", sent)
+        timer.mark("encode")  # what is encoded before the answer goes out (large JSON streams after)
+        response.headers.update(timer.header())
+        return response

@@ -11,17 +11,18 @@ from __future__ import annotations
 
 import asyncio
 import json
+from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
 from fastapi import APIRouter, Depends, Request, Response
-from fastapi.responses import JSONResponse
 
 from neumip.core import contract as C
 from neumip.client import wire
 
 from .admission import plan, read_body
-from .body import JSON_TYPE, check_rows, media_type, parse_json
+from .answer import Answer, BufferAnswer, JsonAnswer
+from .body import JSON_TYPE, check_rows, header_int, media_type, parse_json
 from .errors import ApiError
 from .metrics import StageTimer
 from .openapi import ERROR_RESPONSES, INFER_BODY
@@ -67,11 +68,7 @@ def check_version(version: str | None) -> None:
 def json_length(request: Request) -> int | None:
     """The Inference-Header-Content-Length header: bytes of the JSON part (None: the body is all JSON)."""
     value = request.headers.get(HEADER_LENGTH)
-    if value is None:
-        return None
-    if not value.strip().isdigit():
-        raise ApiError(400, f"{HEADER_LENGTH} must be a non-negative integer, got {value[:40]!r}")
-    return int(value)
+    return None if value is None else header_int(value, HEADER_LENGTH)
 
 
 def split_body(body: bytes, length: int | None) -> tuple[object, memoryview]:
@@ -179,22 +176,20 @@ def parse_infer(body: bytes, header_length: int | None) -> InferRequest:
 
 
 # --- encode -----------------------------------------------------------------------------------
-def infer_response(name: str, request: InferRequest, rgb: np.ndarray) -> Response:
-    """(N, 3 K) RGB -> the infer response, JSON or JSON + binary tail."""
-    output = {"name": C.ONNX_OUTPUT, "datatype": DATATYPE, "shape": list(rgb.shape)}
-    head = {"model_name": name, "model_version": MODEL_VERSION, "outputs": [output]}
+def infer_response(name: str, request: InferRequest, rgb: np.ndarray, on_sent: Callable[[], None]) -> Answer:
+    """(N, 3 K) RGB -> the infer response, JSON (streamed when large) or JSON + binary tail."""
+    head = {"model_name": name, "model_version": MODEL_VERSION}
     if request.id is not None:
-        head["id"] = request.id
+        head["id"] = request.id  # before the outputs: the JSON answer's data is cut in after the last "@"
+    output = {"name": C.ONNX_OUTPUT, "datatype": DATATYPE, "shape": list(rgb.shape)}
+    head["outputs"] = [output]
     if not request.binary_output:
-        output["data"] = rgb.reshape(-1).tolist()
-        return JSONResponse(head)
+        output["data"] = "@"
+        prefix, suffix = json.dumps(head, separators=(",", ":")).rsplit('"@"', 1)
+        return JsonAnswer(prefix, rgb.reshape(-1), suffix, on_sent)
     output["parameters"] = {"binary_data_size": rgb.nbytes}
     header = json.dumps(head, separators=(",", ":")).encode()
-    return Response(
-        header + np.ascontiguousarray(rgb, dtype=C.DTYPE).tobytes(),
-        media_type="application/octet-stream",
-        headers={HEADER_LENGTH: str(len(header))},
-    )
+    return BufferAnswer([header, rgb], "application/octet-stream", on_sent, {HEADER_LENGTH: str(len(header))})
 
 
 # --- routes -----------------------------------------------------------------------------------
@@ -266,11 +261,13 @@ async def infer(name: str, request: Request, version: str | None = None, state: 
                     parsed = parse_infer(body, header_length)
                 answers = check_rows(parsed.queries, state.settings.max_rows)
                 state.admission.resize(ticket, ticket.memory, answers)
+                state.admission.reserve_answer(ticket, answers)  # 503 if the answers' budget is spent
                 timer.mark("decode")
                 ticket.until = arrival.submit(name, parsed.queries, material=material)
             rgb = await asyncio.shield(ticket.until)  # (N, 3 K) float32
-        timer.mark("evaluate")
-        response = infer_response(name, parsed, rgb)
-        timer.mark("encode")
+            timer.mark("evaluate")
+            sent = state.admission.hand_answer(ticket)  # the response frees the answer once sent
+        response = infer_response(name, parsed, rgb, sent)
+        timer.mark("encode")  # what is encoded before the answer goes out (large JSON streams after)
         response.headers.update(timer.header())
         return response

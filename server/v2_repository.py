@@ -6,11 +6,16 @@ model configuration, statistics, the repository index and explicit model control
 The configuration is the same `ModelConfig` that `neumip export-repository` writes as
 ``config.pbtxt`` (`neumip.server.model_config`), filled in with this server's settings. The statistics
 are what the batcher records (`neumip.server.model_stats`).
+
+Model control is off unless configured, as in Triton's default mode: load and unload answer 403 until
+``NEUMIP_MODEL_CONTROL=explicit`` (Triton's ``--model-control-mode=explicit``); with
+``NEUMIP_MODEL_CONTROL_TOKEN`` set they also need ``Authorization: Bearer <token>``.
 """
 
 from __future__ import annotations
 
 import asyncio
+import hmac
 
 from fastapi import APIRouter, Depends, Request
 
@@ -74,11 +79,25 @@ async def repository_index(request: Request, state: ServerState = Depends(servin
     return sorted(index, key=lambda m: m["name"])
 
 
+def check_control(request: Request, state: ServerState) -> None:
+    """403 unless the settings allow explicit model control, and the request carries the token if one is set."""
+    settings = state.settings
+    if settings.model_control != "explicit":
+        raise ApiError(403, "model control is off: load and unload need NEUMIP_MODEL_CONTROL=explicit")
+    token = settings.model_control_token
+    if token is not None:
+        given = request.headers.get("authorization", "")
+        if not hmac.compare_digest(given.encode(), f"Bearer {token.get_secret_value()}".encode()):
+            raise ApiError(403, "model control needs the header Authorization: Bearer <NEUMIP_MODEL_CONTROL_TOKEN>")
+
+
 @router.post("/repository/models/{name}/load", summary="Load (or reload) a model now", responses=ERROR_RESPONSES)
 async def load(name: str, request: Request, state: ServerState = Depends(serving)) -> dict:
     """Read `name`.onnx from the model folder now and serve it (a changed file replaces the model
     atomically; a file that fails leaves a loaded older model serving): 404 without a file, 400 if it
-    cannot be served. The body (tritonclient sends ``{}`` or parameters) is read and ignored."""
+    cannot be served. The body (tritonclient sends ``{}`` or parameters) is read and ignored. 403 without
+    explicit model control (`check_control`)."""
+    check_control(request, state)
     await read_small_body(request, state, INDEX_BODY_BYTES)
     await asyncio.to_thread(state.registry.load_material, check_name(name))
     return {}
@@ -87,7 +106,8 @@ async def load(name: str, request: Request, state: ServerState = Depends(serving
 @router.post("/repository/models/{name}/unload", summary="Unload a model", responses=ERROR_RESPONSES)
 async def unload(name: str, request: Request, state: ServerState = Depends(serving)) -> dict:
     """Stop serving `name` and free its model; requests in flight finish on it. It is not served
-    again until loaded (``.../load``)."""
+    again until loaded (``.../load``). 403 without explicit model control (`check_control`)."""
+    check_control(request, state)
     await read_small_body(request, state, INDEX_BODY_BYTES)
     state.registry.unload(name)
     return {}

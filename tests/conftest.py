@@ -3,14 +3,7 @@
 
 from __future__ import annotations
 
-import os
 import signal
-import socket
-import subprocess
-import sys
-import time
-import urllib.request
-from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -76,71 +69,20 @@ def default_sigint():
     return lambda: signal.signal(signal.SIGINT, signal.SIG_DFL)
 
 
-def free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
-
-
 @pytest.fixture(scope="session")
 def port_finder():
     """port_finder() -> a free TCP port on 127.0.0.1 (for servers a test starts itself)."""
+    from neumip.server.process import free_port
+
     return free_port
 
 
-@dataclass
-class LiveServer:
-    """A `neumip serve` process on loopback."""
+def start_server(model_dir: Path, log: Path, **settings):
+    """`neumip serve` on a free loopback port, ready (`neumip.server.process.ServerProcess`); settings as
+    keyword arguments (``NEUMIP_*`` without the prefix), a small warm-up unless given."""
+    from neumip.server.process import ServerProcess
 
-    url: str
-    process: subprocess.Popen
-    log: Path
-
-    @property
-    def host_port(self) -> str:
-        return self.url.split("://", 1)[1]
-
-    def rss_bytes(self) -> int:
-        """Resident memory of the server process."""
-        for line in Path(f"/proc/{self.process.pid}/status").read_text().splitlines():
-            if line.startswith("VmRSS:"):
-                return int(line.split()[1]) * 1024
-        raise RuntimeError("no VmRSS")
-
-    def stop(self) -> int:
-        """SIGTERM, wait for the graceful exit; returns the exit status."""
-        if self.process.poll() is None:
-            self.process.send_signal(signal.SIGTERM)
-            try:
-                return self.process.wait(timeout=30)
-            except subprocess.TimeoutExpired:
-                self.process.kill()
-                self.process.wait()
-                raise
-        return self.process.returncode
-
-
-def start_server(model_dir: Path, log: Path, **env: str) -> LiveServer:
-    """Start `neumip serve` on a free loopback port and wait (<= 60 s) until it reports ready."""
-    port = free_port()
-    environ = {**os.environ, "NEUMIP_WARMUP_ROWS": "256", **{f"NEUMIP_{k.upper()}": str(v) for k, v in env.items()}}
-    cmd = [sys.executable, "-m", "neumip.client.cli", "serve", "--host", "127.0.0.1", "--port", str(port),
-           "--model-dir", str(model_dir)]
-    process = subprocess.Popen(cmd, env=environ, stdout=log.open("w"), stderr=subprocess.STDOUT)
-    server = LiveServer(f"http://127.0.0.1:{port}", process, log)
-    deadline = time.monotonic() + 60
-    while time.monotonic() < deadline:
-        if process.poll() is not None:
-            raise RuntimeError(f"server exited with {process.returncode}:\n{log.read_text()}")
-        try:
-            with urllib.request.urlopen(server.url + "/v2/health/ready", timeout=1) as reply:
-                if reply.status == 200:
-                    return server
-        except OSError:  # refused while starting, or 400 (HTTPError) until warm
-            pass
-        time.sleep(0.1)
-    server.stop()
-    raise RuntimeError(f"server not ready within 60 s:\n{log.read_text()}")
+    return ServerProcess.start(model_dir, log, timeout_s=60, **{"warmup_rows": 256, **settings})
 
 
 @pytest.fixture(scope="module")
@@ -148,7 +90,7 @@ def live_server(model_dir, tmp_path_factory):
     """A real `neumip serve` process serving the test materials; checks the graceful exit after."""
     server = start_server(model_dir, tmp_path_factory.mktemp("server") / "server.log")
     yield server
-    assert server.stop() == 0, server.log.read_text()
+    assert server.stop(30) == 0, server.log.read_text()
 
 
 def _servers(model_dir: Path, log_path):
@@ -156,13 +98,13 @@ def _servers(model_dir: Path, log_path):
     is stopped and must have exited with status 0."""
     servers = []
 
-    def start(folder: Path | None = None, **env) -> LiveServer:
+    def start(folder: Path | None = None, **env):
         servers.append(start_server(folder or model_dir, log_path(len(servers)), **env))
         return servers[-1]
 
     yield start
     for server in servers:
-        assert server.stop() == 0, server.log.read_text()
+        assert server.stop(30) == 0, server.log.read_text()
 
 
 @pytest.fixture

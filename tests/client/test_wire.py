@@ -116,6 +116,7 @@ def test_v2_binary_request_and_answer():
     for broken, length_header, message in (
         (head6.replace(b"[5, 6]", b"[5, 5]") + rgb6.tobytes()[:-20], str(len(head6)), "N, 3 K"),
         (answer, None, "no valid"),
+        (answer, "\u00b2", "no valid"),  # a superscript two: str.isdigit takes it, int refuses it
         (answer[:-4], str(len(answer_head)), "holds 56 bytes"),
         (b"{}" + rgb.tobytes(), "2", "not an infer response"),
         (answer_head.replace(b"FP32", b"FP64") + rgb.tobytes(), str(len(answer_head)), "not FP32"),

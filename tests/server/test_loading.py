@@ -134,7 +134,7 @@ def test_following_the_folder_and_explicit_load_unload(serve, tmp_path):
     import tritonclient.http as triton
 
     folder = distinct_models(tmp_path / "follow", 2)
-    server = serve(folder, poll_s=0.1)
+    server = serve(folder, poll_s=0.1, model_control="explicit", model_control_token="s3cret")
     q = random_queries(50, seed=7)
     assert evaluate(server, "m0", q).status_code == 200
     # a file copied in later is served; a deleted one answers 404, for that material only
@@ -149,15 +149,20 @@ def test_following_the_folder_and_explicit_load_unload(serve, tmp_path):
     listing = httpx.get(server.url + wire.MATERIALS_PATH)
     assert listing.status_code == 200 and [m["name"] for m in listing.json()["materials"]] == ["m0", "new"]
     assert evaluate(server, "m0", q).status_code == 200
-    # explicit model control, as tritonclient calls it
+    # explicit model control, as tritonclient calls it: with the token only
     client = triton.InferenceServerClient(server.host_port)
-    client.unload_model("m0")
+    for wrong in ({}, {"Authorization": "Bearer guess"}):
+        with pytest.raises(Exception, match="Authorization: Bearer"):
+            client.unload_model("m0", headers=wrong)
+    assert evaluate(server, "m0", q).status_code == 200
+    token = {"Authorization": "Bearer s3cret"}
+    client.unload_model("m0", headers=token)
     assert evaluate(server, "m0", q).status_code == 400
     assert not client.is_model_ready("m0")
-    client.load_model("m0")
+    client.load_model("m0", headers=token)
     assert client.is_model_ready("m0") and evaluate(server, "m0", q).status_code == 200
     with pytest.raises(Exception, match="unknown material"):
-        client.load_model("nothing")
+        client.load_model("nothing", headers=token)
     assert metric(server, "neumip_model_unloads_total", material="m1", reason="deleted") == 1
 
 
@@ -166,7 +171,7 @@ def test_a_file_replaced_in_place_is_never_served_half_written(serve, tmp_path):
 
     folder = distinct_models(tmp_path / "swap", 1, offset=True)
     new = distinct_models(tmp_path / "new", 2, offset=True) / "m1.onnx"
-    server = serve(folder, poll_s=0.05)
+    server = serve(folder, poll_s=0.05, model_control="explicit")
     q = random_queries(2000, seed=11)
     old_answer = LocalMaterials(folder).evaluate("m0", q)
     new_answer = LocalMaterials(new.parent).evaluate("m1", q)
@@ -230,7 +235,8 @@ def test_a_deleted_file_without_polling(tmp_path):
     from neumip.server.settings import Settings
 
     folder = distinct_models(tmp_path / "del", 2)
-    with TestClient(create_app(Settings(model_dir=folder, warmup_rows=16, poll_s=0))) as client:
+    settings = Settings(model_dir=folder, warmup_rows=16, poll_s=0, model_control="explicit")
+    with TestClient(create_app(settings)) as client:
         (folder / "m1.onnx").unlink()
         assert client.get(wire.MATERIALS_PATH).status_code == 200
         assert client.post("/v2/repository/models/m1/load").status_code == 404

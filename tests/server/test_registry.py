@@ -93,3 +93,20 @@ def test_a_material_kept_over_the_budget_while_busy_goes_when_its_request_ends(m
     busy, idle = asyncio.run(run())
     assert busy == 2 * size  # both in flight: over the budget
     assert idle <= 1.5 * size and registry.names() == ["a", "b"]  # one unloaded, both still servable
+
+
+def test_both_engines_refuse_non_finite_weights_at_load(model_dir, tmp_path, write_nan_weight):
+    """Issue 27: the engines' NaN policies differed - the kernel engine refused a file with a NaN weight
+    at load, ONNX Runtime served it and answered 500 for the rows that touched it. Both refuse it now,
+    with the kernel engine's message (its test: tests/server/test_engine.py)."""
+    from neumip.server.engine import Engine
+
+    write_nan_weight(model_dir / "rand16.onnx", tmp_path / "nan.onnx")
+    shutil.copy(model_dir / "flat16.onnx", tmp_path)
+    registry = Registry.load(tmp_path, Engine.onnxruntime(), warmup_rows=16)
+    assert sorted(registry.materials) == ["flat16"]
+    assert registry.failed["nan"] == "nan.onnx: non-finite weights in pyramid"
+
+    from neumip.server.engine import nonfinite_initializers
+
+    assert nonfinite_initializers((model_dir / "rand16.onnx").read_bytes()) == []

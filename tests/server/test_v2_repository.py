@@ -111,3 +111,16 @@ def test_repository_index_refuses_a_bad_body(server):
     assert resp.status_code == 400 and "ready" in resp.json()["error"]
     ready = httpx.post(server.url + "/v2/repository/index", json={"ready": True}).json()
     assert [m["name"] for m in ready] == ["flat16", "lambert", "rand16"]
+
+
+def test_model_control_is_off_by_default(tc, server):
+    """Issue 27, F5: any client could unload a model (every request then got 400 until a reload). As in
+    Triton's default mode, load and unload answer 403 unless NEUMIP_MODEL_CONTROL=explicit."""
+    for call in (tc.unload_model, tc.load_model):
+        with pytest.raises(InferenceServerException, match="model control is off") as refused:
+            call("rand16")
+        assert refused.value.status() == "403"
+    assert tc.is_model_ready("rand16")
+    tensor = triton.InferInput("queries", [8, 7], "FP32")
+    tensor.set_data_from_numpy(random_queries(8, seed=2), binary_data=True)
+    assert tc.infer("rand16", [tensor]).as_numpy("rgb").shape == (8, 3)
