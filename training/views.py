@@ -73,12 +73,13 @@ def images(values: np.ndarray, grid: ViewGrid, resolution: int) -> np.ndarray:
 
 
 def trace_views(material_meta: dict, grid: ViewGrid, resolution: int, out: str | Path,
-                description: str | Path | None = None):
+                description: str | Path | None = None, base_dir: str | Path | None = None):
     """Ground truth of the view grid, traced once into the data set folder `out` (reused when it holds
     the same queries). The material is `description` (a library name or .toml path) if given, else
-    the one a data set's meta.json describes (`material_meta`); its map files must hash as in
-    `material_meta`. Returns the opened data set, or None (logged) when the material cannot be rebuilt,
-    e.g. a description whose map files are elsewhere: then the grid shows the model only.
+    the one a data set's meta.json describes (`material_meta`, its relative map paths resolved against
+    `base_dir`: the description's folder, meta.json's ``description_dir``); its map files must hash as
+    in `material_meta`. Returns the opened data set, or None (logged) when the material cannot be
+    rebuilt, e.g. map files moved or changed since: then the grid shows the model only.
     """
     from .dataset import open_dataset, write_dataset
     from .microgeometry.description import DescriptionError, MaterialDescription, find_description, resolve
@@ -101,13 +102,15 @@ def trace_views(material_meta: dict, grid: ViewGrid, resolution: int, out: str |
         if description is not None:
             desc = find_description(description)
         else:
-            desc = MaterialDescription.from_dict({k: v for k, v in material_meta.items() if k != "map_sha256"})
+            desc = MaterialDescription.from_dict({k: v for k, v in material_meta.items() if k != "map_sha256"},
+                                                 base_dir=base_dir)
         hashes = desc.to_dict().get("map_sha256")
         if material_meta and hashes != material_meta.get("map_sha256"):
             raise DescriptionError(f"the map files of {desc.name!r} differ from the training data's")
         geo = resolve(desc)
     except (DescriptionError, OSError, ValueError, TypeError) as exc:
-        log.warning("no ground truth for the progress grid (%s): it shows the model only", exc)
+        log.warning("no ground truth for the progress grid (%s): it shows the model only; "
+                    "--views-material PATH.toml names the material's description file", exc)
         return None
     rgb = QueryTracer(geo).estimate(queries, grid.spp, seed=1)
     meta = {"material": material_meta, "generator": {"name": "progress views", "spp": grid.spp}}
