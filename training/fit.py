@@ -68,10 +68,9 @@ def work_folder(output: str | Path, work: str | Path | None = None) -> Path:
 
 
 def fitted(output: str | Path) -> bool:
-    """Whether the model at `output` and its record are both in place (the record is moved in last)."""
-    from .outputs import sidecar_paths
-
-    return Path(output).exists() and sidecar_paths(output)[0].exists()
+    """Whether the model at `output` and its record (NAME.json, moved in last) are both in place."""
+    output = Path(output)
+    return output.exists() and output.with_suffix(".json").exists()
 
 
 def fit(description, output: str | Path, settings: FitSettings, report: Report | None = None,

@@ -88,22 +88,22 @@ class StageBar:
 
 
 def _fit(args: argparse.Namespace) -> int:
+    from .fit import fitted
+
+    output = commands.output_path(args, fitted(args.output))
+    commands.import_torch(args.threads)  # first: its OpenMP threads read OMP_WAIT_POLICY once, at import
     from neumip.client.cli import CommandError
     from neumip.client.mitsuba.runtime import MitsubaUnavailable
 
     from .checkpoint import CheckpointError
     from .dataset import DatasetError
-    from .fit import FitSettings, fit, fitted, work_folder
+    from .fit import FitSettings, fit, work_folder
     from .microgeometry.description import DescriptionError, find_description
-
-    output = commands.output_path(args, fitted(args.output))
-    commands.import_torch(args.threads)
-    from tqdm import tqdm
-
     from .microgeometry.generate import GenerateSettings
     from .microgeometry.sampling import QuerySampling
     from .outputs import progress_path
     from .train import TrainingDiverged, TrainingError
+    from tqdm import tqdm
 
     work = work_folder(output, args.work)
     try:

@@ -133,3 +133,15 @@ def test_interrupted_fit_resumes_to_the_same_model(material, tmp_path):
     queries = random_queries(4096, seed=3)
     answers = [LocalMaterials(path.parent, threads=1).evaluate("my", queries) for path in (out, whole)]
     np.testing.assert_array_equal(*answers)
+
+
+def test_fit_command_imports_torch_only_after_setting_its_threads():
+    """`neumip fit` checks its output before importing torch: torch's OpenMP threads read
+    OMP_WAIT_POLICY once, and spinning threads made training ~20x slower on a busy machine."""
+    import subprocess
+    import sys
+
+    code = ("import sys; from neumip.client.cli import build_parser; build_parser(); "
+            "from neumip.training.fit import fitted, work_folder; fitted('m.onnx'); work_folder('m.onnx'); "
+            "sys.exit('torch' in sys.modules)")
+    assert subprocess.run([sys.executable, "-c", code], timeout=120).returncode == 0
