@@ -77,8 +77,9 @@ def fit(description, output: str | Path, settings: FitSettings, report: Report |
         on_progress: Callable | None = None) -> tuple[dict, dict[str, Path]]:
     """Generate, train, validate and export `description` (a `MaterialDescription`) to `output`.
 
-    Returns the validation table and the files written (`outputs.write_outputs`' keys). `report(stage, done, total)` follows the run; `on_progress(trainer)`
-    is called after each progress validation (the progress grid is redrawn before it).
+    Returns the validation table and the files written (`outputs.write_outputs`' keys).
+    `report(stage, done, total)` follows the run; `on_progress(trainer)` is called after each
+    progress validation (the progress grid is redrawn before it).
     """
     from .microgeometry.generate import GenerateSettings, generate
     from .outputs import install_outputs, progress_path, write_progress
@@ -91,7 +92,8 @@ def fit(description, output: str | Path, settings: FitSettings, report: Report |
     gen = settings.generate or GenerateSettings()
     gen = replace(gen, resolution=gen.resolution or resolution)
     log.info("fitting %s into %s (work folder %s)", description.name, output, work)
-    data = generate(description, settings.data or work / "data", gen, lambda done, total: report(STAGES[0], done, total))
+    data = generate(description, settings.data or work / "data", gen,
+                    lambda done, total: report(STAGES[0], done, total))  # (N, 7) queries, (N, 3) RGB
     report(STAGES[1], 0, None)
     views = trace_views(data.meta.get("material") or {}, ViewGrid(), resolution, work / "views",
                         settings.views_material, data.meta.get("description_dir"))
