@@ -41,7 +41,7 @@ async def app(scope, receive, send) -> None:
         return
     path, method = scope["path"], scope["method"]
     if method == "GET":
-        metadata = {"name": path.rsplit("/", 1)[-1], wire.GROUPS_KEY: True}
+        metadata = {"name": path.rsplit("/", 1)[-1]}
         await _answer(send, 200, json.dumps(metadata).encode(), "application/json")
         return
     body = bytearray()

@@ -16,13 +16,16 @@ one table, and read the load average printed with it. Sections:
            int64 Mod on single texels), `LocalMaterials.evaluate` and torch eager, one call per batch
            of 2^10 ... 2^20 queries; and `LocalMaterials.evaluate` on query groups of two lights (what
            the renderer sends: 2^(k-1) groups, counted as 2^k answers), random and coherent; the same
-           groups through `KernelMaterials.evaluate` (the renderer's in-kernel engine: the material's
-           arithmetic compiled by drjit, not the ONNX graph; numpy in and out, with the `render`
-           extra); and each ``--model NAME=FILE``, a model of the same material
+           groups through `KernelMaterials.evaluate` (the renderer's in-kernel engine: the ONNX graph
+           compiled by drjit; numpy in and out, with the `kernel` extra); and each ``--model NAME=FILE``, a model of the same material
            written elsewhere (an older version of the export: in its checkout, ``python -c "from
            bench_inference import *; m = material(256, 0); open('/tmp/before.onnx', 'wb').write(
            build_onnx(m.config, weights_from_state(m.state_dict(), m.config)).SerializeToString())"``
            run in benchmarks/).
+- kernel:  the in-kernel engine (`KernelMaterials.evaluate`: the shipped graph interpreted as drjit
+           arithmetic, `client/onnx_kernel.py`) against another checkout's (``--kernel-before FILE``,
+           its ``client/kernel.py``; `kernel_before.py`), single queries and groups of two lights,
+           interleaved in one process, with the largest difference from torch.
 - session: the shipped graph on 2 cores: ONNX Runtime's intra-op pool (spinning or not, arena,
            optimization level) against one-thread sessions running chunks on 2 threads.
 - chunk:   `run_chunked` on 2^20 queries for several chunk sizes.
@@ -259,7 +262,7 @@ def graphs_section(mat, models: dict[str, bytes], args) -> None:
 
 def kernel_materials(folder: str, variant: str | None = None):
     """The renderer's in-kernel evaluator over `folder` (the material's arithmetic compiled by drjit,
-    numpy in and out: not the ONNX graph), or None without the `kernel` extra."""
+    numpy in and out), or None without the `kernel` extra."""
     try:
         from neumip.client.kernel import KernelMaterials, namespace_of
     except ImportError:
@@ -269,6 +272,37 @@ def kernel_materials(folder: str, variant: str | None = None):
 
         return KernelMaterials(folder, namespace_of(mitsuba.Float))
     return KernelMaterials(folder)
+
+
+def kernel_section(mat, models: dict[str, bytes], args) -> None:
+    """This checkout's in-kernel engine against ``--kernel-before`` (another checkout's), interleaved."""
+    from kernel_before import Before  # this folder is on sys.path when run as a script
+
+    check = random_queries(4096, seed=1)
+    with torch.inference_mode():
+        want = mat(torch.from_numpy(check)).numpy()
+    pool = random_queries(max(1 << 20, 2 << max(args.batches)), seed=20)
+    group_pool = np.ascontiguousarray(np.concatenate([pool[: len(pool) // 2], pool[len(pool) // 2:, 3:5]], 1))
+    with tempfile.TemporaryDirectory() as folder:
+        (Path(folder) / "m0.onnx").write_bytes(models[SHIPPED])
+        engines = {"kernel (this checkout)": kernel_materials(folder, args.variant)}
+        if args.kernel_before:
+            backend = next(iter(engines.values())).backend
+            engines[f"kernel ({Path(args.kernel_before).name})"] = Before(args.kernel_before, folder, backend)
+        print("\nmax |in-kernel - torch| on 4096 random queries (parity contract: 1e-5 abs or 1e-4 rel):")
+        for name, engine in engines.items():
+            print(f"  {name:36s} {np.abs(engine.evaluate('m0', check) - want).max():.2e}")
+        columns, table = [], {}
+        for log2 in args.batches:
+            fns = {}
+            for name, engine in engines.items():
+                q, gq = Batches(pool, 1 << log2), Batches(group_pool, 1 << (log2 - 1))
+                fns[name] = lambda e=engine, q=q: e.evaluate("m0", q.next())
+                fns[f"{name}, groups of 2"] = lambda e=engine, gq=gq: e.evaluate("m0", gq.next())
+            for name, value in interleaved(fns, 1 << log2, args.seconds, args.rounds).items():
+                table.setdefault(name, []).append(value)
+            columns.append(f"2^{log2}")
+        print_table("in-kernel engines, one evaluate() per batch", columns, table)
 
 
 def torch_eval(mat, queries: torch.Tensor) -> torch.Tensor:
@@ -535,6 +569,8 @@ def main() -> None:
     parser.add_argument("--rounds", type=int, default=3)
     parser.add_argument("--model", type=lambda t: tuple(t.split("=", 1)), action="append", default=[],
                         metavar="NAME=FILE", help="another model file of the same material for the graphs section")
+    parser.add_argument("--kernel-before", metavar="FILE", help="kernel section: another checkout's client/kernel.py "
+                        "(git show 906263c:client/kernel.py > FILE)")
     parser.add_argument("--variant", help="Mitsuba variant of the drjit kernel rows (default llvm_ad_rgb; cuda_ad_rgb "
                         "on an NVIDIA GPU)")
     args = parser.parse_args()
@@ -549,6 +585,8 @@ def main() -> None:
     sections = args.sections.split(",")
     if "graphs" in sections:
         graphs_section(mat, models, args)
+    if "kernel" in sections:
+        kernel_section(mat, models, args)
     if "session" in sections:
         session_section(models[SHIPPED], args)
     if "chunk" in sections:

@@ -24,6 +24,7 @@ whole in-process render: a smaller one left kernels to compile inside the timed 
     .venv/bin/python benchmarks/bench_render.py                         # ratios, rock from models/
     .venv/bin/python benchmarks/bench_render.py --sections ratios,demo  # and the demo in-process vs HTTP
     .venv/bin/python benchmarks/bench_render.py --sections demo --stand-in   # untrained stand-ins
+    .venv/bin/python benchmarks/bench_render.py --kernel-before /tmp/kernel_before.py  # and another checkout's kernel
 
 ``--stand-in`` builds constant-colour materials of the default architecture (256^2 pyramid,
 neural offset) into a temporary folder for the demo: evaluation costs what a trained material costs,
@@ -75,10 +76,11 @@ class ConstantKernel:
     def kernel(self, material: str) -> "ConstantKernel":
         return self
 
-    def answers(self, u, v, sigma, wo, lights) -> list:
+    def answers(self, columns: list) -> list:
         from neumip.client.mitsuba.render import dr, mi
 
-        return [[dr.full(mi.Float, self.rgb, dr.width(u))] * C.RGB_DIM for _ in lights]
+        return [[dr.full(mi.Float, self.rgb, dr.width(columns[0]))] * C.RGB_DIM
+                for _ in range(C.group_lights(len(columns)))]
 
 
 class ConstantEvaluator:
@@ -143,9 +145,11 @@ def ratio_scenes(mi, material, args) -> dict:
 
     reference = mesh.reference_surface(mi, resolve(desc), args.tiles, to_world)
     neural = view(mi, plane(neural_bsdf), {"type": "neumip_path", **depth}, args.size, args.spp)
+    before = {"neural, kernel before": (neural, "kernel before")} if args.kernel_before else {}
     return {
         "reference (path)": (view(mi, reference, {"type": "path", **depth}, args.size, args.spp), None),
         "neural (neumip_path)": (neural, "kernel"),
+        **before,
         "neural, ONNX Runtime": (neural, "local"),
         "constant (neumip_path)": (neural, "constant kernel"),
         "constant, buffered": (neural, "constant"),
@@ -176,6 +180,10 @@ def ratios(args) -> None:
     material = material_name(args)
     evaluators = {"kernel": KernelMaterials(args.models, namespace_of(mi.Float)), "local": local, "constant": ConstantEvaluator(material),
                   "constant kernel": ConstantKernel(material), None: None}
+    if args.kernel_before:  # another checkout's in-kernel engine, for before/after runs
+        from kernel_before import Before  # this folder is on sys.path when run as a script
+
+        evaluators["kernel before"] = Before(args.kernel_before, args.models, namespace_of(mi.Float))
     scenes = {name: (mi.load_dict(scene), evaluators[ev])
               for name, (scene, ev) in ratio_scenes(mi, local.get(material), args).items()}
     print(f"## ratios: {args.material} on a plane at {ZENITH_DEG:g} deg, {args.tiles} x {args.tiles} tiles, "
@@ -184,7 +192,7 @@ def ratios(args) -> None:
     for scene, evaluator in scenes.values():  # warm-up: compile (or load cached) kernels
         time_render(mi, scene, evaluator, args.spp, 0, args.max_lanes)
     times = {name: [] for name in scenes}  # (wall, CPU) per round
-    evaluation = {"kernel": [], "local": []}
+    evaluation = {key: [] for key in ("kernel", "local", "kernel before") if key in evaluators}
     for r in range(args.rounds):
         for name, (scene, evaluator) in scenes.items():
             wall, cpu, inside = time_render(mi, scene, evaluator, args.spp, r + 1, args.max_lanes)
@@ -196,9 +204,11 @@ def ratios(args) -> None:
     cpu = {name: statistics.median(t[1] for t in v) for name, v in times.items()}
     for name in scenes:
         print(f"  {name:<24} {wall[name]:7.3f} s wall   {cpu[name]:7.3f} CPU s")
-    print(f"  (neural evaluation inside the neural renders: {statistics.median(evaluation['kernel']):.3f} s in "
-          f"kernel, {statistics.median(evaluation['local']):.3f} s with ONNX Runtime, wall)")
-    for label, a, b, target in (("neural / reference", "neural (neumip_path)", "reference (path)", 1.0),
+    print("  (neural evaluation inside the neural renders, wall: "
+          + ", ".join(f"{key} {statistics.median(values):.3f} s" for key, values in evaluation.items()) + ")")
+    before = [("kernel before: neural / reference", "neural, kernel before", "reference (path)", 1.0),
+              ("in-kernel after / before", "neural (neumip_path)", "neural, kernel before", 1.05)] if args.kernel_before else []
+    for label, a, b, target in (("neural / reference", "neural (neumip_path)", "reference (path)", 1.0), *before,
                                 ("overhead / diffuse", "constant (neumip_path)", "diffuse (path)", 1.5),
                                 ("ONNX Runtime: neural / reference", "neural, ONNX Runtime", "reference (path)", 1.0),
                                 ("ONNX Runtime: overhead / diffuse", "constant, buffered", "diffuse (path)", 1.5)):
@@ -315,12 +325,13 @@ def main() -> int:
     parser.add_argument("--max-lanes", type=int, default=2**21,
                         help="lanes per render pass of neumip_path (stock path renders in one pass); on a GPU, "
                         "passes of 2^21 lanes leave it idle between them")
+    parser.add_argument("--kernel-before", metavar="FILE", help="ratios: also render in-kernel with another checkout's "
+                        "client/kernel.py (git show 906263c:client/kernel.py > FILE), interleaved")
     parser.add_argument("--variant", help="Mitsuba variant of every render (default: the renderer's, llvm_ad_rgb; "
                         "cuda_ad_rgb on an NVIDIA GPU)")
     args = parser.parse_args()
     set_variant(args.variant)
 
-    sys.path.insert(0, str(ROOT))
     sections = args.sections.split(",")
     if "ratios" in sections:
         ratios(args)

@@ -7,10 +7,7 @@ timeouts; 503 (queue full, honouring ``Retry-After``) and connection failures ar
 number of times with exponential backoff; anything else fails at once with an error that says what
 the server answered. Large buffers are sent as several requests of at most ``ClientConfig.max_rows``
 rows. Query groups (N, 5 + 2 K) travel as they are (`neumip.core.contract`) and answer (N, 3 K);
-a row is a group, so a split never cuts one. Whether the server takes groups for a material is read
-from its metadata once (`MaterialClient.takes_groups`); where it does not (a server from before
-groups, or Triton serving a model file exported before them) their single queries (`contract.ungroup`)
-go instead, and the answers come back in the same (N, 3 K) shape with the same bits. A material name
+a row is a group, so a split never cuts one. A material name
 goes into the URL path, so a name that is not a material name (`neumip.client.local.NAME_PATTERN`) is
 refused before anything is sent.
 
@@ -83,10 +80,6 @@ class Codec(Protocol):
         """URL path of the evaluation endpoint of `material`."""
         ...
 
-    def metadata_path(self, material: str) -> str:
-        """URL path of `material`'s metadata, which says whether it takes query groups (`wire.takes_groups`)."""
-        ...
-
     def encode(self, queries: np.ndarray) -> tuple[dict[str, str], list]:
         """Validated (n, 7) float32 queries or (n, 5 + 2 K) groups -> (request headers, body as a list
         of buffers)."""
@@ -103,9 +96,6 @@ class MsgpackCodec:
 
     def path(self, material: str) -> str:
         return wire.EVALUATE_PATH.format(name=material)
-
-    def metadata_path(self, material: str) -> str:
-        return wire.MATERIAL_PATH.format(name=material)
 
     def encode(self, queries: np.ndarray) -> tuple[dict[str, str], list]:
         header, rows = wire.encode_request_parts(queries)
@@ -125,9 +115,6 @@ class InferCodec:
 
     def path(self, material: str) -> str:
         return wire.INFER_PATH.format(name=material)
-
-    def metadata_path(self, material: str) -> str:
-        return wire.MODEL_PATH.format(name=material)
 
     def encode(self, queries: np.ndarray) -> tuple[dict[str, str], list]:
         return wire.encode_infer_request(queries)
@@ -170,7 +157,6 @@ class MaterialClient:
             trust_env=False,  # no proxies from the environment: the server is named by its URL
         )
         self._names: list[str] | None = None
-        self._groups: dict[str, bool] = {}  # material -> whether the server takes its query groups
         self.server_timing: dict[str, float] = {}
         """Stage durations (ms) the server reported for the last evaluation (``Server-Timing``)."""
 
@@ -195,14 +181,6 @@ class MaterialClient:
         n, lights = queries.shape[0], C.group_lights(queries.shape[1])
         if n == 0:
             return np.empty((0, C.RGB_DIM * lights), dtype=C.DTYPE)
-        if lights > 1 and not self.takes_groups(material):  # (N K, 3) answers of the single queries
-            return self._evaluate_split(material, C.ungroup(queries)).reshape(n, C.RGB_DIM * lights)
-        return self._evaluate_split(material, queries)
-
-    def _evaluate_split(self, material: str, queries: np.ndarray) -> np.ndarray:
-        """Validated (N > 0, 7) queries or (N, 5 + 2 K) groups -> (N, 3 K) RGB, in requests of at most
-        `max_rows` queries."""
-        n, lights = queries.shape[0], C.group_lights(queries.shape[1])
         rows = max(self.config.max_rows // lights, 1)  # per request
         if n <= rows:
             rgb = self._evaluate_once(material, queries)
@@ -212,23 +190,6 @@ class MaterialClient:
             hi = min(lo + rows, n)
             out[lo:hi] = self._evaluate_once(material, queries[lo:hi])
         return out
-
-    def takes_groups(self, material: str) -> bool:
-        """Whether the server takes query groups for `material`, from its metadata (`wire.takes_groups`):
-        asked on the first groups sent to it, then cached (`refresh()` asks again). A server or model
-        file from before groups says no; `evaluate` then sends the groups' single queries."""
-        known = self._groups.get(material)
-        if known is None:
-            what = f"look up material {material!r}"
-            response = self._request("GET", self.codec.metadata_path(material), what=what)
-            try:
-                metadata = response.json()
-            except ValueError:
-                raise ServerError(f"cannot {what}: the server's metadata is not JSON: {response.text[:80]!r}") from None
-            known = self._groups[material] = wire.takes_groups(metadata)
-            if not known:
-                log.info("%s takes no query groups for %s: sending their single queries", self.url, material)
-        return known
 
     def _evaluate_once(self, material: str, queries: np.ndarray) -> np.ndarray:
         """One request: validated (n, 7) queries or (n, 5 + 2 K) groups -> (n, 3 K) RGB (a view of the
@@ -243,9 +204,8 @@ class MaterialClient:
 
     # --- plumbing -------------------------------------------------------------------------------
     def refresh(self) -> None:
-        """Forget the cached material list and what each material takes (`takes_groups`)."""
+        """Forget the cached material list."""
         self._names = None
-        self._groups = {}
 
     def close(self) -> None:
         self._http.close()

@@ -25,7 +25,6 @@ import numpy as np
 
 from neumip.core import contract as C
 from neumip.core.errors import NeumipError
-from .wire import GROUPS_KEY
 
 log = logging.getLogger(__name__)
 
@@ -81,9 +80,6 @@ class Material:
     metadata: dict[str, str]
     bytes: int = 0
     """Size of the model file it was loaded from."""
-    groups: bool = True
-    """Whether the graph takes query groups (models exported before them take (N, 7) only); read once
-    from the graph when it loads (`accepts_groups`)."""
 
     @property
     def config(self) -> dict:
@@ -91,7 +87,7 @@ class Material:
 
     def run(self, queries: np.ndarray) -> np.ndarray:
         """One call: validated (n, 5 + 2 K) float32 queries -> (n, 3 K) float32 RGB (`run_call`)."""
-        return run_call(self.session, queries, self.groups)
+        return run_call(self.session, queries)
 
     def info(self) -> dict:
         """What a listing shows of this material."""
@@ -105,13 +101,12 @@ class Material:
             "validation": json.loads(validation) if validation else None,
             "trim": json.loads(trim) if trim else None,
             "bytes": self.bytes,
-            GROUPS_KEY: self.groups,  # clients send single queries where false (`wire.takes_groups`)
         }
 
 
 def load_material(path: str | Path, threads: int = 0, data: bytes | None = None) -> Material:
     """Open one ``.onnx`` material (from `data`, the file's bytes already read, if given); raises
-    ModelError if unreadable or of another contract version."""
+    ModelError if unreadable or of another contract version (`contract.version_problem`)."""
     ort = _onnxruntime()
     path = Path(path)
     opts = ort.SessionOptions()
@@ -128,39 +123,26 @@ def load_material(path: str | Path, threads: int = 0, data: bytes | None = None)
     except Exception as exc:  # onnxruntime raises its own exception types for corrupt files
         raise ModelError(f"{path.name}: cannot load ONNX model: {exc}") from exc
     meta = dict(session.get_modelmeta().custom_metadata_map)
-    version = meta.get(C.META_CONTRACT)
-    if version != C.CONTRACT_VERSION:
-        raise ModelError(
-            f"{path.name}: query contract version {version!r}, this build speaks {C.CONTRACT_VERSION!r}"
-        )
+    problem = C.version_problem(meta, str(path))
+    if problem:
+        raise ModelError(f"{path.name}: {problem}")
     inputs, outputs = session.get_inputs(), session.get_outputs()
     if [i.name for i in inputs] != [C.ONNX_INPUT] or [o.name for o in outputs] != [C.ONNX_OUTPUT]:
         raise ModelError(f"{path.name}: graph must map '{C.ONNX_INPUT}' to '{C.ONNX_OUTPUT}'")
-    return Material(path.stem, path, session, meta, len(source), accepts_groups(session))
+    return Material(path.stem, path, session, meta, len(source))
 
 
-def accepts_groups(session) -> bool:
-    """Whether an ONNX Runtime session's graph takes query groups: its input's width is not fixed."""
-    return not isinstance(session.get_inputs()[0].shape[1], int)
-
-
-def run_call(session, queries: np.ndarray, groups: bool = True) -> np.ndarray:
+def run_call(session, queries: np.ndarray) -> np.ndarray:
     """One ONNX Runtime call: validated (n, 7) float32 queries -> (n, 3), or query groups (n, 5 + 2 K)
-    -> (n, 3 K). `groups`: whether the graph takes query groups (`Material.groups`); a graph exported
-    before them (False) gets their single queries (`contract.ungroup`), answered with the same bits."""
-    lights = C.group_lights(queries.shape[1])
-    if lights > 1 and not groups:
-        rgb = session.run([C.ONNX_OUTPUT], {C.ONNX_INPUT: C.ungroup(queries)})[0]
-        return rgb.reshape(queries.shape[0], lights * C.RGB_DIM)
+    -> (n, 3 K)."""
     return session.run([C.ONNX_OUTPUT], {C.ONNX_INPUT: queries})[0]
 
 
 def run_chunked(
     session, queries: np.ndarray, chunk: int = DEFAULT_CHUNK, executor: Executor | None = None,
-    groups: bool = True,
 ) -> np.ndarray:
     """Evaluate validated (N, 7) float32 queries, or query groups (N, 5 + 2 K), in calls of `chunk`
-    rows (`run_call`; `groups` as there) -> (N, 3 K) float32.
+    rows (`run_call`) -> (N, 3 K) float32.
 
     With an `executor` the chunks run concurrently on its threads.
     """
@@ -169,7 +151,7 @@ def run_chunked(
 
     def run(lo: int) -> None:
         hi = min(lo + chunk, n)
-        out[lo:hi] = run_call(session, queries[lo:hi], groups)
+        out[lo:hi] = run_call(session, queries[lo:hi])
 
     starts = range(0, n, chunk)
     if executor is None or len(starts) < 2:
@@ -306,4 +288,4 @@ class LocalMaterials:
         queries = C.as_queries(queries, groups=True)
         per_call = max(self.chunk // C.group_lights(queries.shape[1]), 1)  # `chunk` counts answers
         return run_chunked(mat.session, queries, split_chunk(queries.shape[0], self.threads, per_call),
-                           self._executor, mat.groups)
+                           self._executor)

@@ -11,13 +11,8 @@ both counts), so a wrong ``n`` cannot be read as groups of another width. A body
 before it) has its width read from the byte count: with ``n`` given, ``bytes / (4 n)`` has one value,
 and a count that is no valid width (8 columns, or bytes that are not ``n`` whole rows) is a QueryError
 naming the count; (N, 7) bodies read as they always did. ``N = 0`` with no bytes answers no rows (of
-``3 K`` values with ``"lights"``; else of 3). Servers from before the key ignore it (they read such a
-body through msgpack's decoder, one copy of the rows).
-
-Whether a server takes query groups for a material is stated in its metadata (`takes_groups`): on
-``/v1`` by the field ``"groups": true`` of ``GET /v1/materials/{name}`` (absent on servers from before
-groups: single queries only), on ``/v2`` by the model metadata's input shape (``[-1, -1]``: any width;
-``[-1, 7]``: single queries only, e.g. Triton serving a model file exported before groups).
+``3 K`` values with ``"lights"``; else of 3). Every material takes query groups (contract version 2):
+on ``/v2`` its model metadata states the input ``[-1, -1]``, any width.
 
 The rows travel as raw float32 bytes, so neither side copies them: a body laid out exactly as
 `msgpack.packb` writes it is read as a view (`_fast_rows`), and the server writes its answer straight
@@ -46,10 +41,7 @@ EVALUATE_PATH = "/v1/materials/{name}/evaluate"
 MATERIALS_PATH = "/v1/materials"
 """GET here to list the served materials with their metadata."""
 MATERIAL_PATH = "/v1/materials/{name}"
-"""GET here for the metadata of material `name`, with `GROUPS_KEY`."""
-GROUPS_KEY = "groups"
-"""Field of a material's ``/v1`` metadata: true when its model file takes query groups (false: send it
-single queries; absent: a server from before groups, which takes none)."""
+"""GET here for the metadata of material `name`."""
 LIGHTS_KEY = "lights"
 """Optional field of a msgpack request body: the lights K of its query groups (1: plain queries)."""
 ROW_BYTES = QUERY_DIM * DTYPE.itemsize
@@ -276,16 +268,3 @@ def decode_infer_response(body, header_length: str | None) -> np.ndarray:
                          f"{shape[0] * shape[1] * DTYPE.itemsize}")
     return np.frombuffer(body, dtype=DTYPE, offset=length).reshape(shape)
 
-
-def takes_groups(metadata: object) -> bool:
-    """Whether a material's metadata says it takes query groups: ``"groups": true`` (``/v1``,
-    `MATERIAL_PATH`) or an input whose last dimension is variable, ``[-1, -1]`` (``/v2``, `MODEL_PATH`).
-    Anything else says single queries only: a server from before groups (no such field), or a model
-    of fixed width ``[-1, 7]`` (Triton serving a file exported before groups)."""
-    if not isinstance(metadata, dict):
-        return False
-    if metadata.get(GROUPS_KEY) is True:
-        return True
-    inputs = metadata.get("inputs")
-    shape = inputs[0].get("shape") if isinstance(inputs, list) and inputs and isinstance(inputs[0], dict) else None
-    return isinstance(shape, list) and len(shape) == 2 and shape[-1] == -1

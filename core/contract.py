@@ -28,6 +28,11 @@ row carries them once: the 7 columns of its first query, then ``wi_x, wi_y`` of 
 in the same order, ``3 K`` columns. A model answers light ``j`` of a group with the same bits as the
 single query ``(u, v, sigma, wi_j, wo)``; it evaluates the position's part (the neural offset and the
 texture lookups) once per group. A plain (N, 7) buffer is a buffer of groups of one light.
+
+**Versions.** A model file declares the contract it answers (`META_CONTRACT`). Version 2 (this one):
+every model takes query groups. Version 1 files (exported before groups were part of the contract)
+are refused by every engine with one error that names the command that upgrades them
+(:func:`version_problem`: ``neumip export OLD.onnx -o NEW.onnx``).
 """
 
 from __future__ import annotations
@@ -39,8 +44,11 @@ import numpy as np
 
 from .errors import NeumipError
 
-CONTRACT_VERSION = "1"
-"""Version of the query layout; travels in every model's metadata."""
+CONTRACT_VERSION = "2"
+"""Version of the query contract; travels in every model's metadata. 2: query groups are part of it."""
+
+UPGRADABLE_VERSIONS = ("1",)
+"""Older contract versions whose files `neumip export OLD.onnx -o NEW.onnx` rewrites in this one."""
 
 QUERY_FIELDS = ("u", "v", "sigma", "wi_x", "wi_y", "wo_x", "wo_y")
 """Column order of a query row."""
@@ -74,6 +82,23 @@ META_TRIM = "neumip.trim"
 
 class QueryError(NeumipError, ValueError):
     """A query buffer that breaks the contract (shape, dtype or values)."""
+
+
+def version_problem(metadata: dict[str, str], source: str = "OLD.onnx") -> str | None:
+    """Why a model file whose ONNX metadata is `metadata` cannot be served by this build (None: it can):
+    the one wording every engine gives a file of another contract version, naming the command that
+    upgrades an older one (`source`: the file's path, as the command should read it)."""
+    version = metadata.get(META_CONTRACT)
+    if version == CONTRACT_VERSION:
+        return None
+    if version in UPGRADABLE_VERSIONS:
+        return (f"query contract version {version} (exported before query groups were part of the contract), "
+                f"this build reads version {CONTRACT_VERSION}: upgrade the file (same weights and answers) "
+                f"with `neumip export {source} -o NEW.onnx`")
+    if version is None:
+        return f"not a neumip material (no {META_CONTRACT} in its ONNX metadata)"
+    return (f"query contract version {version[:20]!r}, this build reads version {CONTRACT_VERSION} "
+            f"(and upgrades version {', '.join(UPGRADABLE_VERSIONS)} with `neumip export`)")
 
 
 def level_of_detail(sigma: np.ndarray, resolution: int) -> np.ndarray:

@@ -17,9 +17,7 @@ only function that touches the engine (`neumip.server.engine`).
 Answers are checked: a model that answers NaN or Inf for some row fails that request with a 500
 naming the material (counted in ``neumip_nonfinite_answers_total``), never a silent NaN.
 
-Only pieces of the same width share a call (one queue per material and width). A model exported
-before query groups (input width fixed to 7) gets the single queries of a group
-(`neumip.client.local.run_call`), with the same bits.
+Only pieces of the same width share a call (one queue per material and width).
 
 Merging and splitting keep answers bit-identical to evaluating each request on its own, in one call or
 in process (`neumip.client.local`): the exported graph answers a row with the same bits wherever it
@@ -56,8 +54,7 @@ log = logging.getLogger(__name__)
 
 
 def predict(material: Material, queries: np.ndarray) -> np.ndarray:
-    """One engine call: (n, 5 + 2 K) float32 contiguous queries -> (n, 3 K) float32 RGB (`Material.run`:
-    an ONNX graph exported before query groups gets the n K single queries, `run_call`)."""
+    """One engine call: (n, 5 + 2 K) float32 contiguous queries -> (n, 3 K) float32 RGB (`Material.run`)."""
     return material.run(queries)
 
 

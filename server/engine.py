@@ -47,8 +47,7 @@ class EngineUnavailable(NeumipError, ImportError):
 
 @dataclass
 class KernelModel(Material):
-    """A material of the ``kernel`` engine: ``session`` is its `neumip.client.kernel.KernelMaterial`.
-    It answers query groups whatever graph the file holds (the weights are the same)."""
+    """A material of the ``kernel`` engine: ``session`` is its `neumip.client.kernel.KernelMaterial`."""
 
     def run(self, queries: np.ndarray) -> np.ndarray:
         """One call: validated (n, 5 + 2 K) float32 queries -> (n, 3 K) float32 RGB."""
@@ -99,7 +98,7 @@ class Engine:
 
         def load(path: Path, data: bytes) -> Material:
             kernel = KernelMaterial(path, data=data)
-            return KernelModel(path.stem, path, kernel, kernel.metadata, len(data), groups=True)
+            return KernelModel(path.stem, path, kernel, kernel.metadata, len(data))
 
         return cls("kernel", load, 1, chunk_rows, lambda: dr.set_thread_count(available_cores()),
                    platform=KERNEL_PLATFORM)

@@ -67,34 +67,26 @@ VARIABLE = -1
 """Triton's dimension of variable size."""
 
 
-def row_dims(groups: bool) -> tuple[int, int]:
-    """Values per row of the input and the output of a model: variable for a graph that takes query
-    groups, else (7, 3) (a file exported before them). Triton's config and the v2 metadata state these."""
-    return (VARIABLE, VARIABLE) if groups else (C.QUERY_DIM, C.RGB_DIM)
-
-
 def tensor(name: str, dim: int) -> dict:
     """A batched FP32 tensor of `dim` values per row, -1 for a variable count (Triton adds the batch
     dimension)."""
     return {"name": name, "data_type": ProtoEnum("TYPE_FP32"), "dims": [dim]}
 
 
-def model_config(name: str, options: TritonOptions, groups: bool = True) -> dict:
+def model_config(name: str, options: TritonOptions) -> dict:
     """Triton's ModelConfig of material `name`: (N, 5 + 2 K) FP32 query groups -> (N, 3 K) FP32 rgb,
-    both widths variable (Triton batches only requests of the same width together); with ``groups``
-    false, for a model file exported before query groups, (N, 7) -> (N, 3)."""
+    both widths variable (Triton batches only requests of the same width together)."""
     config = {"name": name}
     if options.backend == "onnxruntime":
         config |= {"platform": ONNX_PLATFORM, "backend": "onnxruntime"}
     else:
         config["backend"] = "python"
     threads = str(options.intra_op_threads)
-    width, answers = row_dims(groups)
     return config | {
         "version_policy": {"specific": {"versions": [int(MODEL_VERSION)]}},
         "max_batch_size": options.max_batch_size,
-        "input": [tensor(C.ONNX_INPUT, width)],
-        "output": [tensor(C.ONNX_OUTPUT, answers)],
+        "input": [tensor(C.ONNX_INPUT, VARIABLE)],
+        "output": [tensor(C.ONNX_OUTPUT, VARIABLE)],
         "dynamic_batching": {
             "preferred_batch_size": [options.preferred_batch_size],
             "max_queue_delay_microseconds": options.max_queue_delay_us,

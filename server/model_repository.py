@@ -10,11 +10,9 @@ Every material is loaded first (contract version, graph) and nothing is written 
 repository is built in a temporary folder beside the target and renamed into place, so an
 interrupted export never leaves a half-written repository under the target's name.
 
-Each config states what its model file takes: dims [-1] in and out (queries (N, 7) or query groups
-(N, 5 + 2 K) -> (N, 3 K), `neumip.core.contract`), or [7] and [3] for a file exported before query
-groups, whose graph fixes the width (a config states what its graph takes). neumip's
-own server answers groups for both (`neumip.client.local.run_call`); Triton serves such a file
-single queries only until it is re-exported (`neumip export OLD.onnx -o NEW.onnx`).
+Each config states dims [-1] in and out (queries (N, 7) or query groups (N, 5 + 2 K) -> (N, 3 K),
+`neumip.core.contract`). A model file of an older contract version is refused, with the command that
+upgrades it (`neumip export OLD.onnx -o NEW.onnx`).
 """
 
 from __future__ import annotations
@@ -64,8 +62,7 @@ Made by neumip {neumip_version()} with `{command}`.
 Triton model repository, backend `{options.backend}`: one model per material, `NAME/config.pbtxt`
 and `NAME/{MODEL_VERSION}/model.onnx`.{python} Every model takes `{C.ONNX_INPUT}` FP32 [N, {C.QUERY_DIM}]
 (u, v, sigma, wi_x, wi_y, wo_x, wo_y) and answers `{C.ONNX_OUTPUT}` FP32 [N, {C.RGB_DIM}], or query groups
-[N, 5 + 2 K] (wi_x, wi_y of each further light after the 7) answered [N, 3 K] (config dims [-1]; a model
-file exported before query groups takes [N, {C.QUERY_DIM}] only, and its config says so); each ONNX file
+[N, 5 + 2 K] (wi_x, wi_y of each further light after the 7) answered [N, 3 K] (config dims [-1]); each ONNX file
 carries its own metadata (`neumip.contract_version`, `neumip.config`, `neumip.validation`).
 Batching: at most {options.max_batch_size} rows per request, dynamic batching towards
 {options.preferred_batch_size} rows, waiting at most {options.max_queue_delay_us} us;
@@ -85,7 +82,7 @@ def write_model(folder: Path, material: Material, options: TritonOptions) -> Non
     """One material's model folder: config.pbtxt, 1/model.onnx (and 1/model.py for the python backend)."""
     version = folder / MODEL_VERSION
     version.mkdir(parents=True)
-    (folder / "config.pbtxt").write_text(to_pbtxt(model_config(material.name, options, material.groups)))
+    (folder / "config.pbtxt").write_text(to_pbtxt(model_config(material.name, options)))
     shutil.copyfile(material.path, version / "model.onnx")
     if options.backend == "python":
         shutil.copyfile(PYTHON_MODEL, version / "model.py")

@@ -42,7 +42,6 @@ class TritonPythonModel:
         params = {k: v["string_value"] for k, v in config.get("parameters", {}).items()}
         self.input = config["input"][0]["name"]
         self.output = config["output"][0]["name"]
-        self.width = int(config["input"][0]["dims"][0])  # -1: query groups of any width
         options = ort.SessionOptions()
         options.intra_op_num_threads = int(params.get("intra_op_thread_count", "0"))
         options.inter_op_num_threads = int(params.get("inter_op_thread_count", "0"))
@@ -54,10 +53,9 @@ class TritonPythonModel:
         import triton_python_backend_utils as pb_utils
 
         queries = pb_utils.get_input_tensor_by_name(request, self.input).as_numpy()
-        widths = range(7, 5 + 2 * MAX_LIGHTS + 1, 2) if self.width < 0 else (self.width,)
-        if queries.ndim != 2 or queries.shape[1] not in widths:
-            groups = "" if self.width > 0 else f" or (N, 5 + 2 K) for query groups of K <= {MAX_LIGHTS} lights"
-            return f"{self.input} must be (N, 7){groups}, got {queries.shape}"
+        if queries.ndim != 2 or queries.shape[1] not in range(7, 5 + 2 * MAX_LIGHTS + 1, 2):
+            return (f"{self.input} must be (N, 7) or (N, 5 + 2 K) for query groups of K <= {MAX_LIGHTS} lights, "
+                    f"got {queries.shape}")
         bad = np.flatnonzero(~np.isfinite(queries).all(axis=1))
         if bad.size:
             return f"{self.input} row {bad[0]} holds NaN or Inf"

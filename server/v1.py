@@ -5,8 +5,7 @@
 takes ``{"queries": [[u, v, sigma, wi_x, wi_y, wo_x, wo_y], ...]}`` and answers
 ``{"n": N, "rgb": [[r, g, b], ...]}``. Query groups (`neumip.core.contract`) go the same way: rows of
 ``5 + 2 K`` values in (msgpack: the width stated by ``"lights": K``, or read from the byte count,
-`neumip.client.wire`), ``3 K`` out. ``GET /v1/materials`` lists the materials with their metadata;
-``"groups"`` says whether a material's model file takes query groups (`wire.takes_groups`).
+`neumip.client.wire`), ``3 K`` out. ``GET /v1/materials`` lists the materials with their metadata.
 """
 
 from __future__ import annotations

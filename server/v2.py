@@ -2,10 +2,7 @@
 
 Each material is a model with one version, ``"1"``, one input ``queries`` FP32 [-1, -1] and one output
 ``rgb`` FP32 [-1, -1] (the protocol's -1: a dimension of variable size): [N, 7] queries answer [N, 3],
-[N, 5 + 2 K] query groups of K lights answer [N, 3 K] (`neumip.core.contract`). The metadata of a
-model file exported before query groups says [-1, 7] and [-1, 3], what its graph takes and what Triton
-says of it, so clients that read it send single queries (`wire.takes_groups`); this server still answers
-groups sent to it (their single queries, `neumip.client.local.run_call`). Infer bodies are
+[N, 5 + 2 K] query groups of K lights answer [N, 3 K] (`neumip.core.contract`). Infer bodies are
 read raw (tritonclient sends no Content-Type) and split by the ``Inference-Header-Content-Length``
 header into the JSON header and the binary tensor bytes.
 """
@@ -27,7 +24,6 @@ from .admission import plan, read_body
 from .body import JSON_TYPE, check_rows, media_type, parse_json
 from .errors import ApiError
 from .metrics import StageTimer
-from .model_config import row_dims
 from .openapi import ERROR_RESPONSES, INFER_BODY
 from .registry import MODEL_VERSION
 from .state import ServerState, get_state, serving
@@ -50,17 +46,15 @@ class InferRequest:
     binary_output: bool
 
 
-def model_metadata(name: str, platform: str, groups: bool = True) -> dict:
+def model_metadata(name: str, platform: str) -> dict:
     """The model metadata of material `name` run by `platform` (`Engine.platform`): shapes [-1, -1] in
-    and out (queries (N, 5 + 2 K) -> (N, 3 K)) if its graph takes query groups (`Material.groups`), else
-    [-1, 7] -> [-1, 3], as Triton states the file's exported config (`model_config.row_dims`)."""
-    width, answers = row_dims(groups)
+    and out (queries (N, 5 + 2 K) -> (N, 3 K))."""
     return {
         "name": name,
         "versions": [MODEL_VERSION],
         "platform": platform,
-        "inputs": [{"name": C.ONNX_INPUT, "datatype": DATATYPE, "shape": [-1, width]}],
-        "outputs": [{"name": C.ONNX_OUTPUT, "datatype": DATATYPE, "shape": [-1, answers]}],
+        "inputs": [{"name": C.ONNX_INPUT, "datatype": DATATYPE, "shape": [-1, -1]}],
+        "outputs": [{"name": C.ONNX_OUTPUT, "datatype": DATATYPE, "shape": [-1, -1]}],
     }
 
 
@@ -229,8 +223,8 @@ async def ready(state: ServerState = Depends(get_state)) -> Response:
 @router.get("/models/{name}/versions/{version}", include_in_schema=False)
 async def metadata(name: str, version: str | None = None, state: ServerState = Depends(serving)) -> dict:
     check_version(version)
-    material = await asyncio.to_thread(state.registry.get, name)  # loads a lazily listed one: its graph says
-    return model_metadata(name, state.engine.platform, material.groups)
+    await asyncio.to_thread(state.registry.get, name)  # 404 unless served (loads a lazily listed one)
+    return model_metadata(name, state.engine.platform)
 
 
 @router.get("/models/{name}/ready", summary="Model readiness (200, else 400; 404 if unknown)")

@@ -4,9 +4,7 @@ model configuration, statistics, the repository index and explicit model control
 `unload_model`).
 
 The configuration is the same `ModelConfig` that `neumip export-repository` writes as
-``config.pbtxt`` (`neumip.server.model_config`), filled in with this server's settings; like it, it
-states what the model file takes: variable widths, or [7] and [3] for a file exported before query
-groups (as does the v2 model metadata; this server still answers groups sent to such a file). The statistics
+``config.pbtxt`` (`neumip.server.model_config`), filled in with this server's settings. The statistics
 are what the batcher records (`neumip.server.model_stats`).
 """
 
@@ -47,8 +45,8 @@ async def config(name: str, version: str | None = None, state: ServerState = Dep
     """The config Triton would serve the file with (what `export-repository` writes), whatever engine this
     server runs (its model metadata names that: `Engine.platform`)."""
     check_version(version)
-    material = await asyncio.to_thread(state.registry.get, name)  # loads a lazily listed one: its graph says
-    return model_config(name, TritonOptions.from_settings(state.settings), material.groups)
+    await asyncio.to_thread(state.registry.get, name)  # 404 unless served (loads a lazily listed one)
+    return model_config(name, TritonOptions.from_settings(state.settings))
 
 
 @router.get("/models/stats", summary="Inference statistics of every model (Triton's shape)")

@@ -38,6 +38,18 @@ def model_dir(tmp_path_factory):
     return folder
 
 
+def _groups_of(n: int, lights: int, seed: int) -> np.ndarray:
+    """(n, 5 + 2 lights) valid query groups: random queries plus the wi of further random queries."""
+    extra = [C.random_queries(n, seed=seed * 100 + j)[:, C.WI_X:C.WI_Y + 1] for j in range(1, lights)]
+    return np.ascontiguousarray(np.hstack([C.random_queries(n, seed=seed), *extra]))
+
+
+@pytest.fixture(scope="session")
+def groups_of():
+    """groups_of(n, lights, seed) -> (n, 5 + 2 lights) float32 valid query groups (`contract`)."""
+    return _groups_of
+
+
 @pytest.fixture(scope="session")
 def write_nan_weight():
     """``write(src, dst)``: the model file `src` saved as `dst` with one texel of its pyramid NaN (a file

@@ -49,7 +49,8 @@ def register(sub: argparse._SubParsersAction) -> None:
     fit_command.register(sub)
 
     p = sub.add_parser("export", help="export a training checkpoint to an ONNX material, or rewrite an "
-                       "exported .onnx material with this version's graph (same weights and metadata)")
+                       "exported .onnx material with this version's graph (same weights and metadata; "
+                       "upgrades a file of an older query contract version)")
     p.add_argument("checkpoint", help="checkpoint file written by `neumip train`, or an exported .onnx model")
     p.add_argument("-o", "--output", required=True, help="output .onnx path (e.g. models/NAME.onnx)")
     p.add_argument("--force", action="store_true", help="replace the output model if it exists")

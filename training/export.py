@@ -39,6 +39,7 @@ from onnx import helper
 from neumip.core import contract as C
 
 from neumip.core import head
+from neumip.core import weights as W
 from neumip.core.config import MaterialConfig
 from .export_lookup import pyramid_texels, texture_texels
 from .onnx_graph import GraphWriter
@@ -53,17 +54,16 @@ def weights_from_state(state: dict, config: MaterialConfig) -> dict[str, np.ndar
     """Torch state dict of `NeuMIPMaterial` -> the numpy weights `build_onnx` takes."""
     arr = {k: v.detach().cpu().numpy().astype(np.float32) for k, v in state.items()}
     weights = {
-        "pyramid": np.concatenate(
+        W.PYRAMID: np.concatenate(
             [arr[f"pyramid.{i}"].reshape(-1, config.channels) for i in range(config.levels + 1)]
         )
     }
-    prefixes = ["decoder"] + (["offset_mlp"] if config.offset else [])
-    for prefix in prefixes:
+    for prefix in W.mlps(config):
         for i in range(config.layers):
-            weights[f"{prefix}.{i}.weight"] = arr[f"{prefix}.{2 * i}.weight"]
-            weights[f"{prefix}.{i}.bias"] = arr[f"{prefix}.{2 * i}.bias"]
+            weights[W.weight(prefix, i)] = arr[f"{prefix}.{2 * i}.weight"]
+            weights[W.bias(prefix, i)] = arr[f"{prefix}.{2 * i}.bias"]
     if config.offset:
-        weights["offset_texture"] = arr["offset_texture"].reshape(-1, config.offset_channels)
+        weights[W.OFFSET_TEXTURE] = arr["offset_texture"].reshape(-1, config.offset_channels)
     return weights
 
 
@@ -75,11 +75,11 @@ def _query_part(g: GraphWriter, q: str, weights: dict, prefix: str, columns: lis
     Their weights sit in a (hidden, 7) matrix with zero columns elsewhere, so no Slice/Concat of the
     query is needed.
     """
-    w = weights[f"{prefix}.0.weight"]  # (hidden, C + query columns)
+    w = weights[W.weight(prefix, 0)]  # (hidden, C + query columns)
     matrix = np.zeros((w.shape[0], C.QUERY_DIM), np.float32)
     matrix[:, columns] = w[:, weight_columns]
-    bias = g.const(weights[f"{prefix}.0.bias"][:, None], name=f"{prefix}.0.bias")
-    return g.product(matrix, q, bias, rows=True, name=f"{prefix}.0.half_weight.query")
+    bias = g.const(weights[W.bias(prefix, 0)][:, None], name=W.bias(prefix, 0))
+    return g.product(matrix, q, bias, rows=True, name=W.half_weight(prefix, 0, "query"))
 
 
 def _first_layer(g: GraphWriter, q: str, texels: str, tap_w: str, taps: int, columns: list[int],
@@ -91,14 +91,14 @@ def _first_layer(g: GraphWriter, q: str, texels: str, tap_w: str, taps: int, col
     A 0/1 matrix sums the weighted taps (in one order per query, unlike ReduceSum), then one Gemm
     applies the texture weights and adds the query part.
     """
-    w = weights[f"{prefix}.0.weight"]  # (hidden, C + inputs): texture part, then the query columns
+    w = weights[W.weight(prefix, 0)]  # (hidden, C + inputs): texture part, then the query columns
     w_tex = w[:, :-inputs]
     width = w_tex.shape[1]
     spread = np.kron(np.eye(taps, dtype=np.float32), np.ones((1, width), np.float32))  # (K, K C)
     weighted = g.op("Mul", texels, g.op("MatMul", tap_w, g.const(spread)))  # (N, K C)
     rest = _query_part(g, q, weights, prefix, columns, slice(w.shape[1] - len(columns), None))  # (hidden, N)
     summed = g.product(np.tile(np.eye(width, dtype=np.float32), (1, taps)), weighted, rows=True)  # (C, N)
-    return g.product(w_tex, summed, rest, name=f"{prefix}.0.half_weight.texture")
+    return g.product(w_tex, summed, rest, name=W.half_weight(prefix, 0, "texture"))
 
 
 def _reshape(g: GraphWriter, x: str, *dims: str | int, output: str | None = None) -> str:
@@ -130,10 +130,9 @@ def _lights(g: GraphWriter, q: str) -> tuple[str, str, str, str]:
 def _depth_weights(weights: dict, config: MaterialConfig) -> dict:
     """Offset MLP with offset_scale folded into its last layer, whose one output is repeated twice
     (the depth beside each of wo_x, wo_y)."""
-    last = config.layers - 1
     out = dict(weights)
-    out[f"offset_mlp.{last}.weight"] = np.repeat(weights[f"offset_mlp.{last}.weight"], 2, 0) * config.offset_scale
-    out[f"offset_mlp.{last}.bias"] = np.repeat(weights[f"offset_mlp.{last}.bias"], 2, 0) * config.offset_scale
+    for name in (W.weight(W.OFFSET_MLP, config.layers - 1), W.bias(W.OFFSET_MLP, config.layers - 1)):
+        out[name] = np.repeat(weights[name], W.DEPTH_COPIES, 0) * config.offset_scale
     return out
 
 
@@ -171,26 +170,26 @@ def material_graph(g: GraphWriter, config: MaterialConfig, weights: dict,
 
     # --- neural offset: uv += r * wo_xy / max(wo_z, min_cos) -----------------------------------
     if config.offset:
-        texture = g.const(weights["offset_texture"], name="offset_texture")
+        texture = g.const(weights[W.OFFSET_TEXTURE], name=W.OFFSET_TEXTURE)
         texels, tap_w = texture_texels(g, texture, config.resolution, config.offset_channels, g.wrap(uv))
         mlp = _depth_weights(weights, config)
-        hidden = _first_layer(g, q, texels, tap_w, 4, [C.WO_X, C.WO_Y], mlp, "offset_mlp", 2)
+        hidden = _first_layer(g, q, texels, tap_w, 4, [C.WO_X, C.WO_Y], mlp, W.OFFSET_MLP, 2)
         if config.layers > 1:
             hidden = g.op("Relu", hidden)
-        depth = g.op("Transpose", g.mlp(hidden, mlp, "offset_mlp", config.layers, first=1), perm=[1, 0])  # (N, 2)
+        depth = g.op("Transpose", g.mlp(hidden, mlp, W.OFFSET_MLP, config.layers, first=1), perm=[1, 0])  # (N, 2)
         uv = g.op("Add", uv, _parallax(g, depth, wo, config.offset_min_cos))
 
     # --- trilinear pyramid lookup, then the decoder once per light -------------------------------
-    atlas = g.const(weights["pyramid"], name="pyramid")
+    atlas = g.const(weights[W.PYRAMID], name=W.PYRAMID)
     texels, tap_w = pyramid_texels(g, config, atlas, config.channels, g.wrap(uv), sigma, finest_level)
-    shared = _first_layer(g, q, texels, tap_w, 8, [C.WO_X, C.WO_Y], weights, "decoder", 4)  # (hidden, N)
+    shared = _first_layer(g, q, texels, tap_w, 8, [C.WO_X, C.WO_Y], weights, W.DECODER, 4)  # (hidden, N)
     wi, n, k, kn = _lights(g, q)  # (K N, 2)
-    w = weights["decoder.0.weight"]
-    light = g.product(w[:, -4:-2], wi, rows=True, name="decoder.0.half_weight.light")  # (hidden, K N)
+    w = weights[W.weight(W.DECODER, 0)]
+    light = g.product(w[:, -4:-2], wi, rows=True, name=W.half_weight(W.DECODER, 0, "light"))  # (hidden, K N)
     hidden = g.op("Add", g.op("Tile", shared, g.op("Concat", g.const([1], np.int64), k, axis=0)), light)
     if config.layers > 1:
         hidden = g.op("Relu", hidden)
-    out = g.mlp(hidden, weights, "decoder", config.layers, first=1)  # (O, K N)
+    out = g.mlp(hidden, weights, W.DECODER, config.layers, first=1)  # (O, K N)
     size = head.outputs(config.head)
     rows = _reshape(g, g.op("Transpose", out, perm=[1, 0]), k, n, size)  # (K, N, O)
     rows = _reshape(g, g.op("Transpose", rows, perm=[1, 0, 2]), kn, size)  # (N K, O)
@@ -278,20 +277,6 @@ def export_checkpoint(checkpoint: str | Path, out: str | Path, description: str 
 # --- weight factories (no torch): known-answer and random materials for tests and benchmarks ------
 
 
-def _shapes(config: MaterialConfig) -> dict[str, tuple[int, ...]]:
-    shapes: dict[str, tuple[int, ...]] = {"pyramid": (config.atlas_rows(), config.channels)}
-    mlps = {"decoder": (config.channels + 4, head.outputs(config.head))}
-    if config.offset:
-        mlps["offset_mlp"] = (config.offset_channels + 2, 1)
-        shapes["offset_texture"] = (config.resolution**2, config.offset_channels)
-    for prefix, (n_in, n_out) in mlps.items():
-        widths = [n_in] + [config.hidden] * (config.layers - 1) + [n_out]
-        for i in range(config.layers):
-            shapes[f"{prefix}.{i}.weight"] = (widths[i + 1], widths[i])
-            shapes[f"{prefix}.{i}.bias"] = (widths[i + 1],)
-    return shapes
-
-
 def random_weights(config: MaterialConfig, seed: int = 0, scale: float = 0.5) -> dict[str, np.ndarray]:
     """Random weights of the right shapes: a material whose answers are positive and vary with
     position, footprint and directions in every channel, whatever the seed.
@@ -303,13 +288,14 @@ def random_weights(config: MaterialConfig, seed: int = 0, scale: float = 0.5) ->
     """
     rng = np.random.default_rng(seed)
     out = {}
-    last = f"decoder.{config.layers - 1}"
-    for name, shape in _shapes(config).items():
+    last = W.weight(W.DECODER, config.layers - 1)
+    for name, shape in W.weight_shapes(config).items():
         if name.endswith("weight"):
             w = rng.normal(size=shape) * np.sqrt(2.0 / shape[1])
-            out[name] = np.abs(w) * (scale / shape[1]) ** 0.5 if name == f"{last}.weight" and config.layers > 1 else w
+            out[name] = np.abs(w) * (scale / shape[1]) ** 0.5 if name == last and config.layers > 1 else w
         elif name.endswith("bias"):
-            out[name] = rng.uniform(0.1, 0.3, shape) if name == f"{last}.bias" else rng.uniform(0.0, 0.1, shape)
+            out[name] = (rng.uniform(0.1, 0.3, shape) if name == W.bias(W.DECODER, config.layers - 1)
+                         else rng.uniform(0.0, 0.1, shape))
         else:  # a texture
             out[name] = rng.normal(size=shape) * scale
     return {name: value.astype(np.float32) for name, value in out.items()}
@@ -317,6 +303,6 @@ def random_weights(config: MaterialConfig, seed: int = 0, scale: float = 0.5) ->
 
 def constant_weights(config: MaterialConfig, rgb) -> dict[str, np.ndarray]:
     """Weights of a material that answers `rgb` for every query (e.g. albedo / pi: a Lambertian)."""
-    out = {name: np.zeros(shape, np.float32) for name, shape in _shapes(config).items()}
-    out[f"decoder.{config.layers - 1}.bias"] = head.answer_bias(config.head, rgb)
+    out = {name: np.zeros(shape, np.float32) for name, shape in W.weight_shapes(config).items()}
+    out[W.bias(W.DECODER, config.layers - 1)] = head.answer_bias(config.head, rgb)
     return out

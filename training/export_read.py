@@ -3,26 +3,15 @@
 Shipped materials are ONNX files only (no checkpoint). Reading their weights back lets `neumip
 export MODEL.onnx -o NEW.onnx` rewrite a model with this version's graph: same weights, same
 metadata (config, description, validation, trim record), and - when the graphs compute the same
-function in the same float order - the same answer bits (query groups changed the order of the
-decoder's first sum: models from before them change by rounding)
-(`reexport_file` checks that on random queries and reports the largest difference).
+function in the same float order - the same answer bits (`reexport_file` checks that on random
+queries and reports the largest difference). A file of query contract version 1 is read by
+`upgrade.read_v1` instead and comes out in this version (`neumip.core.contract.version_problem`).
 
-What the graph keeps, by initializer name (the writer is `export.py`; matrices are stored halved,
-`onnx_graph.GraphWriter.product`, and doubled back here, exact):
-
-- the textures: ``pyramid`` (levels K..L of a trimmed model) and ``offset_texture``;
-- every layer but the first of each MLP: ``{prefix}.{i}.half_weight`` (out, in) and ``.bias``
-  (out, 1); the first layer's bias ``{prefix}.0.bias``, its weights on the texture features
-  ``{prefix}.0.half_weight.texture`` (hidden, C) and on the query ``{prefix}.0.half_weight.query``
-  (hidden, 7: the columns it reads, zeros elsewhere); the decoder's weights on a light's wi are
-  ``decoder.0.half_weight.light`` (hidden, 2) (models written before query groups hold them in the
-  query matrix);
-- the offset MLP's last layer is stored folded (`export._depth_weights`: its one output repeated
-  twice, times ``offset_scale``); it is unfolded to weights that fold to the same bits.
-
-Models written before issue 12's graph (row-major MLPs: ``{prefix}.{i}.weight`` (out, in) and
-``.bias`` (out,), the first layer split over a query Gemm and a texture Gemm) are read too
-(`_previous_layer`), so `neumip export OLD.onnx` brings them to this layout.
+The graph's initializers and their shapes are `neumip.core.weights.initializer_shapes`; each is
+checked, so a file this export did not write is refused by name, never guessed at. Matrices are
+stored halved (`onnx_graph.GraphWriter.product`) and doubled back here, exact; a first layer is put
+back together from its parts (texture, query, light columns); the offset MLP's last layer is stored
+folded (`export._depth_weights`) and unfolded to weights that fold to the same bits.
 """
 
 from __future__ import annotations
@@ -35,105 +24,109 @@ import onnx
 from onnx import numpy_helper
 
 from neumip.core import contract as C
-
+from neumip.core import weights as W
 from neumip.core.config import MaterialConfig
+from neumip.core.errors import NeumipError
+
 from .export import _depth_weights, build_onnx, save_onnx
 from .onnx_graph import COLUMN_ALPHA
 
-QUERY_COLUMNS = {"decoder": [C.WI_X, C.WI_Y, C.WO_X, C.WO_Y], "offset_mlp": [C.WO_X, C.WO_Y]}
-"""The query columns each MLP's first layer reads after the texture features (`export.material_graph`)."""
 
-
-class ModelLayoutError(ValueError):
+class ModelLayoutError(NeumipError, ValueError):
     """A model whose graph is not one `export.build_onnx` wrote (its weights cannot be read back)."""
 
 
-def _initializers(model: onnx.ModelProto) -> dict[str, np.ndarray]:
+def initializers(model: onnx.ModelProto) -> dict[str, np.ndarray]:
+    """Every initializer of `model` by name."""
     return {init.name: numpy_helper.to_array(init) for init in model.graph.initializer}
 
 
-def _layer(inits: dict, prefix: str, i: int, columns: list[int]) -> tuple[np.ndarray, np.ndarray]:
-    """Layer i of MLP `prefix`: weights (out, in), bias (out,)."""
+def metadata(model: onnx.ModelProto) -> dict[str, str]:
+    """The model's ONNX metadata."""
+    return {p.key: p.value for p in model.metadata_props}
+
+
+def model_facts(meta: dict[str, str]) -> tuple[MaterialConfig, int]:
+    """(config, finest level: 0 unless trimmed) from a model's metadata; ModelLayoutError without a config."""
+    if C.META_CONFIG not in meta:
+        raise ModelLayoutError(f"not a neumip material (no {C.META_CONFIG} in its ONNX metadata)")
+    finest = json.loads(meta[C.META_TRIM])["finest_level"] if meta.get(C.META_TRIM) else 0
+    return MaterialConfig.from_json(meta[C.META_CONFIG]), finest
+
+
+def check_shapes(inits: dict[str, np.ndarray], want: dict[str, tuple[int, ...]]) -> None:
+    """ModelLayoutError naming the first initializer of `want` that `inits` lacks or holds in another shape."""
+    for name, shape in want.items():
+        if name not in inits:
+            raise ModelLayoutError(f"no initializer {name!r}: not a graph of this export")
+        if inits[name].shape != shape:
+            raise ModelLayoutError(f"initializer {name!r} of shape {inits[name].shape}, this export writes {shape}")
+
+
+def _layer(inits: dict, mlp: str, i: int) -> tuple[np.ndarray, np.ndarray]:
+    """Layer i of MLP `mlp` as stored -> weights (out, in), bias (out,)."""
+    alpha = np.float32(COLUMN_ALPHA)
     if i > 0:
-        weight = inits[f"{prefix}.{i}.half_weight"] * np.float32(COLUMN_ALPHA)
+        weight = inits[W.half_weight(mlp, i)] * alpha
     else:
-        texture, query = (inits[f"{prefix}.0.half_weight.{part}"] * np.float32(COLUMN_ALPHA)
-                          for part in ("texture", "query"))
-        light = inits.get(f"{prefix}.0.half_weight.light")  # absent before query groups
-        if light is not None:
-            query = query.copy()
-            query[:, [C.WI_X, C.WI_Y]] = light * np.float32(COLUMN_ALPHA)
-        weight = np.concatenate([texture, query[:, columns]], axis=1)
-    bias = inits[f"{prefix}.{i}.bias"]
-    if bias.shape != (weight.shape[0], 1):
-        raise ModelLayoutError(f"{prefix}.{i}.bias of shape {bias.shape}, expected ({weight.shape[0]}, 1)")
-    return weight, bias[:, 0]
+        query = inits[W.half_weight(mlp, 0, "query")] * alpha  # (hidden, 7): the columns it reads
+        if mlp == W.DECODER:
+            query[:, [C.WI_X, C.WI_Y]] = inits[W.half_weight(mlp, 0, "light")] * alpha
+        texture = inits[W.half_weight(mlp, 0, "texture")] * alpha
+        weight = np.concatenate([texture, query[:, list(W.MLP_QUERY_COLUMNS[mlp])]], axis=1)
+    return weight, inits[W.bias(mlp, i)][:, 0]
 
 
-def _previous_layer(model: onnx.ModelProto, inits: dict, prefix: str, i: int,
-                    columns: list[int]) -> tuple[np.ndarray, np.ndarray]:
-    """Layer i of MLP `prefix` in the layout before issue 12: weights (out, in), bias (out,). The first
-    layer is two Gemms: the query's (7, hidden) rows, whose output is the texture Gemm's bias."""
-    if i > 0:
-        return inits[f"{prefix}.{i}.weight"], inits[f"{prefix}.{i}.bias"]
-    gemms = [n for n in model.graph.node if n.op_type == "Gemm"]
-    query = [n for n in gemms if n.input[0] == C.ONNX_INPUT and list(n.input[2:]) == [f"{prefix}.0.bias"]]
-    texture = [n for n in gemms if query and list(n.input[2:]) == [query[0].output[0]]]
-    if len(query) != 1 or len(texture) != 1:
-        raise ModelLayoutError(f"{prefix}.0: not the two Gemms of an older export")
-    rows, w_tex = inits[query[0].input[1]], inits[texture[0].input[1]]  # (7, hidden), (C, hidden)
-    return np.concatenate([w_tex.T, rows[columns].T], axis=1), inits[f"{prefix}.0.bias"]
-
-
-def _unfold_depth(folded: dict, config: MaterialConfig) -> dict:
+def unfold_depth(folded: dict, config: MaterialConfig) -> dict:
     """The offset MLP's last layer as stored (2 rows, times offset_scale) -> weights of one output
     that `export._depth_weights` folds to the same bits (of the float32 neighbours of w / scale)."""
-    last = f"offset_mlp.{config.layers - 1}"
     out = dict(folded)
-    for part in ("weight", "bias"):
-        stored = folded[f"{last}.{part}"]
+    for name in (W.weight(W.OFFSET_MLP, config.layers - 1), W.bias(W.OFFSET_MLP, config.layers - 1)):
+        stored = folded[name]
         if not np.array_equal(stored[0], stored[1]):
-            raise ModelLayoutError(f"{last}.{part}: the depth's two rows differ")
+            raise ModelLayoutError(f"{name}: the depth's two rows differ")
         guess = (stored[:1] / np.float32(config.offset_scale)).astype(np.float32)
         found = np.full(guess.shape, np.nan, np.float32)
         for candidate in (guess, np.nextafter(guess, np.float32(np.inf)), np.nextafter(guess, np.float32(-np.inf))):
-            refold = _depth_weights({**out, f"{last}.{part}": candidate}, config)[f"{last}.{part}"][0]
+            refold = _depth_weights({**out, name: candidate}, config)[name][0]
             found = np.where(np.isnan(found) & (refold == stored[0]), candidate, found)
         if np.isnan(found).any():
-            raise ModelLayoutError(f"{last}.{part}: no weights fold to the stored ones")
-        out[f"{last}.{part}"] = found
+            raise ModelLayoutError(f"{name}: no weights fold to the stored ones")
+        out[name] = found
     return out
 
 
-def read_model(model: onnx.ModelProto) -> tuple[MaterialConfig, dict[str, np.ndarray], dict[str, str], int]:
-    """Exported `model` -> (config, weights as `export.weights_from_state` gives them, its metadata,
-    its finest level K: 0 unless trimmed)."""
-    meta = {p.key: p.value for p in model.metadata_props}
-    if meta.get(C.META_CONTRACT) != C.CONTRACT_VERSION or C.META_CONFIG not in meta:
-        raise ModelLayoutError("not a neumip material of this contract version (no neumip.config metadata)")
-    config = MaterialConfig.from_json(meta[C.META_CONFIG])
-    finest = json.loads(meta[C.META_TRIM])["finest_level"] if meta.get(C.META_TRIM) else 0
-    inits = _initializers(model)
-    textures = ["pyramid"] + (["offset_texture"] if config.offset else [])
-    prefixes = ["decoder"] + (["offset_mlp"] if config.offset else [])
-    previous = "decoder.0.half_weight.texture" not in inits  # the layout before issue 12
-    try:
-        weights = {name: inits[name] for name in textures}
-        for prefix in prefixes:
-            for i in range(config.layers):
-                layer = (_previous_layer(model, inits, prefix, i, QUERY_COLUMNS[prefix]) if previous
-                         else _layer(inits, prefix, i, QUERY_COLUMNS[prefix]))
-                weights[f"{prefix}.{i}.weight"], weights[f"{prefix}.{i}.bias"] = layer
-    except KeyError as exc:
-        raise ModelLayoutError(f"no initializer {exc}: not a graph of this export or the one before") from exc
-    if config.offset:
-        weights = _unfold_depth(weights, config)
-    return config, weights, meta, finest
+def read_model(model: onnx.ModelProto, source: str = "OLD.onnx",
+               ) -> tuple[MaterialConfig, dict[str, np.ndarray], dict[str, str], int]:
+    """Exported `model` of this contract version -> (config, weights as `export.weights_from_state`
+    gives them, its metadata, its finest level K: 0 unless trimmed). ModelLayoutError otherwise (of
+    another version: `contract.version_problem`, naming `source`)."""
+    meta = metadata(model)
+    problem = C.version_problem(meta, source)
+    if problem:
+        raise ModelLayoutError(problem)
+    config, finest = model_facts(meta)
+    return config, read_weights(initializers(model), config, finest), meta, finest
+
+
+def read_weights(inits: dict[str, np.ndarray], config: MaterialConfig, finest: int) -> dict[str, np.ndarray]:
+    """A graph's initializers, checked against `weights.initializer_shapes` -> the weights as
+    `export.weights_from_state` gives them."""
+    check_shapes(inits, W.initializer_shapes(config, finest))
+    weights = {name: inits[name] for name in W.textures(config)}
+    for mlp in W.mlps(config):
+        for i in range(config.layers):
+            weights[W.weight(mlp, i)], weights[W.bias(mlp, i)] = _layer(inits, mlp, i)
+    return unfold_depth(weights, config) if config.offset else weights
 
 
 def reexport(model: onnx.ModelProto) -> onnx.ModelProto:
-    """`model` rewritten with this version's graph: its weights, config, finest level and metadata."""
-    config, weights, meta, finest = read_model(model)
+    """`model` rewritten with this version's graph: its weights, config, finest level and metadata.
+    A file of an older contract version (`contract.UPGRADABLE_VERSIONS`) comes out in this one."""
+    from .upgrade import read_v1
+
+    version = metadata(model).get(C.META_CONTRACT)
+    config, weights, meta, finest = read_v1(model) if version in C.UPGRADABLE_VERSIONS else read_model(model)
     owned = {C.META_CONTRACT, C.META_CONFIG, C.META_DESCRIPTION}
     extra = {key: value for key, value in meta.items() if key not in owned}
     return build_onnx(config, weights, meta.get(C.META_DESCRIPTION, ""), extra, finest)
@@ -163,6 +156,5 @@ def reexport_file(source: str | Path, out: str | Path, description: str = "") ->
     old = onnx.load(str(source))
     new = reexport(old)
     if description:
-        onnx.helper.set_model_props(new, {**{p.key: p.value for p in new.metadata_props},
-                                          C.META_DESCRIPTION: description})
+        onnx.helper.set_model_props(new, {**metadata(new), C.META_DESCRIPTION: description})
     return save_onnx(new, out), answer_difference(old, new)

@@ -9,6 +9,8 @@ import numpy as np
 import onnx
 from onnx import TensorProto, helper, numpy_helper
 
+from neumip.core import weights as W
+
 
 COLUMN_ALPHA = 2.0
 """The Gemm alpha of `GraphWriter.product` (its matrices are stored halved)."""
@@ -79,11 +81,11 @@ class GraphWriter:
 
     def mlp(self, x: str, weights: dict, prefix: str, layers: int, first: int = 0) -> str:
         """Column-major activations (in, N) -> (out, N) through layers first..layers-1 of MLP
-        `prefix` (weights[f"{prefix}.{i}.weight"] (out, in) and ``.bias``): Gemm + Relu, no Relu
-        after the last layer. Initializers ``{prefix}.{i}.half_weight`` and ``{prefix}.{i}.bias``."""
+        `prefix` (`weights.weight` (out, in) and `weights.bias` of each, `neumip.core.weights`): Gemm +
+        Relu, no Relu after the last layer. Initializers `weights.half_weight` and `weights.bias`."""
         for i in range(first, layers):
-            bias = self.const(weights[f"{prefix}.{i}.bias"][:, None], name=f"{prefix}.{i}.bias")
-            x = self.product(weights[f"{prefix}.{i}.weight"], x, bias, name=f"{prefix}.{i}.half_weight")
+            bias = self.const(weights[W.bias(prefix, i)][:, None], name=W.bias(prefix, i))
+            x = self.product(weights[W.weight(prefix, i)], x, bias, name=W.half_weight(prefix, i))
             if i < layers - 1:
                 x = self.op("Relu", x)
         return x

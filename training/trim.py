@@ -33,6 +33,7 @@ import onnx
 from onnx import numpy_helper
 
 from neumip.core import contract as C
+from neumip.core import weights as W
 
 from neumip.core.config import MaterialConfig
 from .export import save_onnx
@@ -70,8 +71,9 @@ def metadata(model: onnx.ModelProto) -> dict[str, str]:
 
 def model_config(model: onnx.ModelProto) -> MaterialConfig:
     meta = metadata(model)
-    if meta.get(C.META_CONTRACT) != C.CONTRACT_VERSION or C.META_CONFIG not in meta:
-        raise TrimError("not a neumip material of this contract version (no neumip.config metadata)")
+    problem = C.version_problem(meta) or (None if C.META_CONFIG in meta else f"no {C.META_CONFIG} metadata")
+    if problem:
+        raise TrimError(f"not a neumip material of this contract version: {problem}")
     return MaterialConfig.from_json(meta[C.META_CONFIG])
 
 
@@ -104,7 +106,7 @@ def trim_model(model: onnx.ModelProto, finest_level: int) -> onnx.ModelProto:
     if finest_level == old:  # nothing to cut: the same model, bit for bit
         return out
     g = out.graph
-    found = texture_constants(g, "pyramid")
+    found = texture_constants(g, W.PYRAMID)
     _replace(g, found["quads"], trimmed_atlas(config, old)[0].rows, trimmed_atlas(config, finest_level)[0].rows)
     old_lod, new_lod = (stage_constants(config, k, level_tables(config, k)) for k in (old, finest_level))
     for name, value in new_lod.items():
@@ -113,11 +115,12 @@ def trim_model(model: onnx.ModelProto, finest_level: int) -> onnx.ModelProto:
              np.asarray(clip_min(finest_level), np.float32))
     starts = config.level_starts() + [config.atlas_rows()]
     expected = (starts[-1] - starts[old], config.channels)
-    pyramid = next(i for i in g.initializer if i.name == "pyramid")
+    pyramid = next(i for i in g.initializer if i.name == W.PYRAMID)
     atlas = numpy_helper.to_array(pyramid)
     if atlas.shape != expected:
         raise TrimError(f"pyramid atlas of shape {atlas.shape}, expected {expected}")
-    pyramid.CopyFrom(numpy_helper.from_array(np.ascontiguousarray(atlas[starts[finest_level] - starts[old]:]), "pyramid"))
+    kept = np.ascontiguousarray(atlas[starts[finest_level] - starts[old]:])
+    pyramid.CopyFrom(numpy_helper.from_array(kept, W.PYRAMID))
 
     sizes = config.level_sizes()
     record = TrimRecord(

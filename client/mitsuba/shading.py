@@ -7,7 +7,7 @@ arrays. Two ways, by the evaluator bound:
 
 - **In the kernel** (`client.kernel.KernelMaterials`, the in-process default): per material, its lanes are
   compressed (`dr.compress`) and one kernel over them gathers their columns and computes every light's
-  answer from the material's weights (`KernelMaterial.answers`); the answers are scattered back to
+  answer from the material's ONNX graph (`KernelMaterial.answers`); the answers are scattered back to
   their lanes, one evaluation a bounce for all materials (a material on nearly every lane is computed
   on all of them, without the compaction). Nothing leaves drjit.
 - **Buffered** (`contract.Evaluator`: in-process `LocalMaterials`, the ONNX graph in ONNX Runtime, or
@@ -27,6 +27,7 @@ from __future__ import annotations
 import logging
 import time
 from dataclasses import dataclass, field
+from typing import Protocol, runtime_checkable
 
 import numpy as np
 
@@ -68,6 +69,25 @@ class ShadingStats:
         self.calls += 1
         self.seconds += seconds
         self.per_material[material] = self.per_material.get(material, 0) + rows
+
+
+class KernelMaterial(Protocol):
+    """A material whose answers are drjit arithmetic on the lanes (`client.kernel.KernelMaterial`)."""
+
+    def answers(self, columns: list[mi.Float]) -> list[list[mi.Float]]:
+        """Query-group columns (contract order, 5 + 2 K Floats) -> per light, its RGB (3 Floats)."""
+
+
+@runtime_checkable
+class InKernelEvaluator(Protocol):
+    """An evaluator that computes its answers inside the renderer's kernels
+    (`client.kernel.KernelMaterials`), instead of answering query buffers (`contract.Evaluator`)."""
+
+    def materials(self) -> list[str]:
+        """The material names it serves."""
+
+    def kernel(self, material: str) -> KernelMaterial:
+        """The material `material`, ready to be traced into a bounce's kernel."""
 
 
 class NestedNeuralBSDF(NeumipError, ValueError):
@@ -141,11 +161,11 @@ class NeuralHits:
 class NeuralShading:
     """Buffered evaluation of the neural materials of one scene through one evaluator."""
 
-    def __init__(self, scene: mi.Scene, evaluator: C.Evaluator) -> None:
+    def __init__(self, scene: mi.Scene, evaluator: C.Evaluator | InKernelEvaluator) -> None:
         self.bsdfs = neural_bsdfs(scene)
         self.evaluator = evaluator
-        self.in_kernel = callable(getattr(evaluator, "kernel", None))
-        """Whether the answers are computed inside drjit's kernels (`client.kernel.KernelMaterials`)."""
+        self.in_kernel = isinstance(evaluator, InKernelEvaluator)
+        """Whether the answers are computed inside drjit's kernels (`InKernelEvaluator`)."""
         self.stats = ShadingStats()
         missing = sorted({b.material for b in self.bsdfs} - set(evaluator.materials()))
         if missing:
@@ -238,11 +258,11 @@ class NeuralShading:
                 continue
             kernel = self.evaluator.kernel(material)
             if count >= DENSE_LANES * width:
-                for j, rgb in enumerate(_answers(kernel, cols)):
+                for j, rgb in enumerate(kernel.answers(cols)):
                     out[j] = [dr.select(mask, x, o) for x, o in zip(rgb, out[j])]
             else:
                 lanes = dr.compress(mask)
-                for j, rgb in enumerate(_answers(kernel, [dr.gather(mi.Float, c, lanes) for c in cols])):
+                for j, rgb in enumerate(kernel.answers([dr.gather(mi.Float, c, lanes) for c in cols])):
                     for ch in range(C.RGB_DIM):
                         dr.scatter(out[j][ch], rgb[ch], lanes)
             computed[material] = count * queries.lights
@@ -290,13 +310,6 @@ class NeuralShading:
         rgb = C.as_rgb(self.evaluator.evaluate(material, queries), call.total, call.lights)
         self.stats.add(material, call.total * call.lights, time.perf_counter() - start)
         return rgb.reshape(-1)
-
-
-def _answers(kernel, columns: list[mi.Float]) -> list[list[mi.Float]]:
-    """`KernelMaterial.answers` of query-group columns (contract order): per light, its RGB."""
-    lights = [(columns[C.WI_X], columns[C.WI_Y])]
-    lights += [(columns[i], columns[i + 1]) for i in range(C.QUERY_DIM, len(columns), 2)]
-    return kernel.answers(columns[C.U], columns[C.V], columns[C.SIGMA], (columns[C.WO_X], columns[C.WO_Y]), lights)
 
 
 @dataclass

@@ -79,3 +79,13 @@ def test_query_groups_widths_values_and_ungroup():
     assert C.as_rgb(np.zeros((4, 6)), 4, lights=2).shape == (4, 6)
     with pytest.raises(C.QueryError, match="shape"):
         C.as_rgb(np.zeros((4, 3)), 4, lights=2)
+
+
+def test_version_problem_names_the_upgrade_of_a_version_1_file():
+    """The one message every loader gives a model file of another contract version."""
+    assert C.CONTRACT_VERSION == "2" and C.version_problem({C.META_CONTRACT: "2"}, "m.onnx") is None
+    old = C.version_problem({C.META_CONTRACT: "1"}, "models/old.onnx")
+    assert "version 1" in old and "`neumip export models/old.onnx -o NEW.onnx`" in old
+    assert "no neumip.contract_version" in C.version_problem({}, "m.onnx")
+    other = C.version_problem({C.META_CONTRACT: "99"}, "m.onnx")
+    assert "version '99'" in other and "reads version 2" in other

@@ -20,19 +20,16 @@ from neumip.core.contract import random_queries
 
 FAST = dict(backoff_s=0.001, max_backoff_s=0.01)
 PRE_GROUPS = Path(__file__).parents[1] / "training" / "data" / "pre_groups_offset.onnx"
-"""A model file exported before query groups (its input width fixed to 7)."""
+"""A model file of query contract version 1 (exported before query groups)."""
 
 
 class FakeServer:
     """Answers the msgpack protocol from a LocalMaterials; `failures` lists statuses/exceptions to
-    produce first, one per request. ``groups=False`` stands in for a server from before query groups:
-    its material metadata has no "groups" field, and it refuses every body but (N, 7) with a 400, as
-    that server's decoder did (it ignores the "lights" key and checks n x 28 bytes)."""
+    produce first, one per request."""
 
-    def __init__(self, folder, failures=(), groups=True):
+    def __init__(self, folder, failures=()):
         self.local = LocalMaterials(folder)
         self.failures = list(failures)
-        self.groups = groups
         self.requests: list[httpx.Request] = []
 
     def __call__(self, request: httpx.Request) -> httpx.Response:
@@ -45,16 +42,7 @@ class FakeServer:
         if request.method == "GET" and request.url.path == wire.MATERIALS_PATH:
             return httpx.Response(200, json={"materials": [{"name": n} for n in self.local.materials()]})
         try:
-            if request.method == "GET":  # a material's metadata
-                info = self.local.get(request.url.path.split("/")[-1]).info()
-                if not self.groups:
-                    del info[wire.GROUPS_KEY]
-                return httpx.Response(200, json=info)
             queries = wire.decode_request(request.content)
-            if not self.groups and queries.shape[1] != C.QUERY_DIM:
-                n = queries.shape[0]
-                return httpx.Response(400, json={"error": f"'queries' holds {queries.nbytes} bytes; n={n} rows of 7 "
-                                                          f"float32 need {n * 28}"})
             rgb = self.local.evaluate(request.url.path.split("/")[-2], queries)
         except UnknownMaterial as exc:
             return httpx.Response(404, json={"error": str(exc)})
@@ -74,7 +62,7 @@ def test_evaluate_matches_in_process_and_splits_large_buffers(model_dir):
     np.testing.assert_array_equal(rgb, server.local.evaluate("rand16", queries))
     assert rgb.flags.writeable and one.flags.writeable
     posts = [r for r in server.requests if r.method == "POST"]
-    assert posts == server.requests  # plain queries need no look-up of the material
+    assert posts == server.requests  # no look-up of the material
     assert [wire.decode_request(r.content).shape[0] for r in posts] == [1000, 1000, 500, 10]
     assert posts[0].headers["content-type"] == wire.MSGPACK_MEDIA_TYPE
 
@@ -93,32 +81,23 @@ def test_query_groups_are_sent_whole_and_answer_three_values_a_light(model_dir):
             client.evaluate("rand16", np.zeros((2, 8), np.float32))
     np.testing.assert_array_equal(rgb, server.local.evaluate("rand16", groups))
     np.testing.assert_array_equal(rgb.reshape(-1, 3), server.local.evaluate("rand16", C.ungroup(groups)))
-    assert [r.url.path for r in server.requests[:1]] == ["/v1/materials/rand16"]  # asked once: it takes groups
-    assert [wire.decode_request(r.content).shape for r in server.requests[1:]] == [(1000, 9), (1000, 9), (500, 9)]
+    assert [wire.decode_request(r.content).shape for r in server.requests] == [(1000, 9), (1000, 9), (500, 9)]
     evaluator = FallbackEvaluator(client_for(server, retries=0), LocalMaterials(model_dir))
     server.failures = [httpx.ConnectError("refused")]
     np.testing.assert_array_equal(evaluator.evaluate("rand16", groups), rgb)
     assert evaluator.switched
 
 
-def triton_stand_in(folder, width: int):
-    """A stand-in (MockTransport handler) of Triton serving `folder`'s files over /v2 with config dims
-    [width] (-1: any; 7: a file exported before query groups): its model metadata says [-1, width], and
-    an infer of another width is a 400, as Triton answers. Returns (handler, the requests it got)."""
+def triton_stand_in(folder):
+    """A stand-in (MockTransport handler) of Triton serving `folder`'s files over /v2 (config dims [-1]).
+    Returns (handler, the requests it got)."""
     local, seen = LocalMaterials(folder), []
 
     def handler(request: httpx.Request) -> httpx.Response:
         seen.append(request)
         name = request.url.path.split("/")[3]
-        if request.method == "GET":
-            return httpx.Response(200, json={"name": name, "versions": ["1"], "platform": "onnxruntime_onnx",
-                                             "inputs": [{"name": "queries", "datatype": "FP32", "shape": [-1, width]}],
-                                             "outputs": [{"name": "rgb", "datatype": "FP32", "shape": [-1, -1 if width < 0 else 3]}]})
         length = int(request.headers[wire.INFER_HEADER_LENGTH])
         shape = json.loads(request.content[:length])["inputs"][0]["shape"]
-        if width > 0 and shape[1] != width:
-            return httpx.Response(400, json={"error": f"unexpected shape for input 'queries' for model '{name}'. "
-                                                      f"Expected [-1,{width}], got {shape}"})
         rgb = local.evaluate(name, np.frombuffer(request.content[length:], np.float32).reshape(shape))
         out = {"name": "rgb", "datatype": "FP32", "shape": list(rgb.shape), "parameters": {"binary_data_size": rgb.nbytes}}
         head = json.dumps({"model_name": name, "outputs": [out]}).encode()
@@ -139,18 +118,15 @@ def sent_widths(requests: list[httpx.Request]) -> list[int]:
 
 
 @pytest.mark.parametrize("protocol", ["msgpack", "v2"])
-@pytest.mark.parametrize("takes", [True, False])
-def test_groups_go_as_single_queries_where_the_server_takes_none(model_dir, protocol, takes):
-    """Stand-ins (MockTransport): a server from before query groups (msgpack, no "groups" field) and
-    Triton serving a file exported before them (v2, metadata [-1, 7]) refuse groups with a 400; the
-    client reads that from the metadata once per material and sends the single queries instead, with
-    the groups' answers bit for bit. Where the server takes groups (a current server; Triton [-1, -1])
-    they go whole."""
+def test_groups_go_whole_in_either_protocol(model_dir, protocol):
+    """Stand-ins (MockTransport) of neumip's server (msgpack) and of Triton (v2): groups of three
+    lights go whole, split between groups by `max_rows` counted in answers, with no look-up of the
+    material first, and answer with the bits of their single queries."""
     if protocol == "msgpack":
-        server = FakeServer(model_dir, groups=takes)
+        server = FakeServer(model_dir)
         handler, seen, local = server, server.requests, server.local
     else:
-        (handler, seen), local = triton_stand_in(model_dir, -1 if takes else C.QUERY_DIM), LocalMaterials(model_dir)
+        (handler, seen), local = triton_stand_in(model_dir), LocalMaterials(model_dir)
     groups = np.ascontiguousarray(np.hstack([random_queries(2500, seed=3), random_queries(2500, seed=4)[:, 3:5],
                                              random_queries(2500, seed=5)[:, 3:5]]))  # (2500, 11): 3 lights
     client = MaterialClient("http://neumip.test", ClientConfig(max_rows=3000, **FAST), httpx.MockTransport(handler),
@@ -159,25 +135,15 @@ def test_groups_go_as_single_queries_where_the_server_takes_none(model_dir, prot
     assert rgb.shape == (2500, 9) and rgb.flags.writeable
     np.testing.assert_array_equal(rgb, local.evaluate("rand16", groups))
     np.testing.assert_array_equal(rgb.reshape(-1, 3), local.evaluate("rand16", C.ungroup(groups)))
-    assert client.takes_groups("rand16") is takes
-    # 3000 answers a request: 1000 groups of three, or 3000 single queries (7500 in all)
-    assert sent_widths(seen) == ([11, 11, 11] if takes else [7, 7, 7])
-    for _ in range(2):
-        np.testing.assert_array_equal(client.evaluate("rand16", groups[:10]), rgb[:10])
-        np.testing.assert_array_equal(client.evaluate("flat16", groups[:10]), local.evaluate("flat16", groups[:10]))
-    looked_up = [r.url.path.rsplit("/", 1)[-1] for r in seen if r.method == "GET"]
-    assert looked_up == ["rand16", "flat16"]  # once per material
-    client.refresh()
-    client.evaluate("rand16", groups[:10])
-    assert sum(r.method == "GET" for r in seen) == 3  # refresh() asks again
+    assert sent_widths(seen) == [11, 11, 11] and len(seen) == 3  # 1000 groups of three a request
 
 
-def test_looking_up_an_unknown_material_is_the_server_error_and_not_cached(model_dir):
+def test_an_unknown_material_is_the_server_error_each_time(model_dir):
     server = FakeServer(model_dir)
     groups = np.hstack([random_queries(4), random_queries(4, seed=1)[:, 3:5]])
     client = client_for(server)
     for _ in range(2):
-        with pytest.raises(ServerError, match="cannot look up material 'nope': server answered 404: unknown material") as info:
+        with pytest.raises(ServerError, match="evaluate 4 queries on 'nope': server answered 404: unknown material") as info:
             client.evaluate("nope", groups)
         assert info.value.status == 404
     assert len(server.requests) == 2
@@ -407,10 +373,10 @@ class Recording(httpx.HTTPTransport):
         return super().handle_request(request)
 
 
-def test_real_server_a_file_from_before_groups_gets_single_queries_with_the_same_bits(serve, model_dir, tmp_path):
-    """A real `neumip serve` with a model file exported before query groups (a test fixture) beside one
-    that takes them: in both protocols the client reads from the material's metadata that the old one
-    takes single queries, sends those, and its answers equal the groups' answers, bit for bit."""
+def test_real_server_refuses_a_version_1_file_naming_its_upgrade_and_takes_groups(serve, model_dir, tmp_path):
+    """A real `neumip serve` with a model file of contract version 1 (a test fixture) beside a current
+    one: in both protocols the client's error for the old one names the command that upgrades it, and
+    groups for the current one go whole and answer with the bits of in-process evaluation."""
     shutil.copy(PRE_GROUPS, tmp_path / "old.onnx")
     shutil.copy(model_dir / "rand16.onnx", tmp_path / "rand16.onnx")
     server = serve(tmp_path)
@@ -419,10 +385,10 @@ def test_real_server_a_file_from_before_groups_gets_single_queries_with_the_same
     for protocol in ("msgpack", "v2"):
         transport = Recording()
         with MaterialClient(server.url, ClientConfig(max_rows=4000), transport, protocol) as client:
-            for name, takes in (("old", False), ("rand16", True)):
-                rgb = client.evaluate(name, groups)
-                np.testing.assert_array_equal(rgb, local.evaluate(name, groups))
-                np.testing.assert_array_equal(rgb.reshape(-1, 3), local.evaluate(name, C.ungroup(groups)))
-                assert client.takes_groups(name) is takes
-        # old: 6000 single queries in two requests; rand16: 3000 groups of two (6000 answers) in two
-        assert sent_widths(transport.requests) == [7, 7, 9, 9], protocol
+            with pytest.raises(ServerError, match="neumip export old.onnx -o NEW.onnx") as info:
+                client.evaluate("old", groups)
+            assert info.value.status in (400, 404)
+            rgb = client.evaluate("rand16", groups)
+            np.testing.assert_array_equal(rgb, local.evaluate("rand16", groups))
+        # old: refused once; rand16: 3000 groups of two (6000 answers) in two requests
+        assert sent_widths(transport.requests) == [9, 9, 9], protocol

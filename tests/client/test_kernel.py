@@ -1,12 +1,15 @@
-"""In-kernel evaluation (`client/kernel.py`): the same answers as the ONNX graph in ONNX Runtime,
-within the export's parity tolerance, for every layout a model file can have; bad files refused with
-a clear error; answers that do not depend on the batch or the thread. Needs drjit, not Mitsuba (the
-render with it: tests/client/mitsuba/test_kernel_render.py)."""
+"""In-kernel evaluation (`client/kernel.py`, the graph interpreted by `client/onnx_kernel.py`): the
+same answers as the ONNX graph in ONNX Runtime, within the export's parity tolerance, for every layout
+a model file can have and for a graph written by another tool; bad files and unsupported operators
+refused with a clear error; answers that do not depend on the batch or the thread. Needs drjit, not
+Mitsuba (the render with it: tests/client/mitsuba/test_kernel_render.py)."""
 
 from __future__ import annotations
 
 import importlib
 import shutil
+import subprocess
+import sys
 from pathlib import Path
 
 import numpy as np
@@ -27,6 +30,7 @@ from neumip.training.export import build_onnx, random_weights, save_onnx  # noqa
 from neumip.training.trim import trim_model  # noqa: E402
 
 DATA = Path(__file__).resolve().parents[1] / "training" / "data"
+
 
 BACKENDS = [
     pytest.param("drjit.llvm.ad", marks=pytest.mark.skipif(not dr.has_backend(dr.JitBackend.LLVM),
@@ -64,7 +68,7 @@ def random_queries(n: int, seed: int, lights: int = 1) -> np.ndarray:
 @pytest.fixture(scope="module")
 def layouts(tmp_path_factory):
     """One file per layout: offset (64^2 and 16^2, and one clamped only at grazing angles), no offset,
-    YUV head, one- and two-layer MLPs, trimmed, and the two older graphs a model folder may still hold."""
+    YUV head, one- and two-layer MLPs, and trimmed."""
     folder = tmp_path_factory.mktemp("kernel_models")
     configs = {
         "offset64": MaterialConfig(resolution=64),
@@ -78,8 +82,6 @@ def layouts(tmp_path_factory):
     for seed, (name, cfg) in enumerate(configs.items()):
         save_onnx(build_onnx(cfg, random_weights(cfg, seed=seed)), folder / f"{name}.onnx")
     save_onnx(trim_model(onnx.load(folder / "offset64.onnx"), 2), folder / "trimmed.onnx")
-    for old in ("pre_groups_offset", "pre_issue12_nooffset"):
-        shutil.copy(DATA / f"{old}.onnx", folder / f"{old}.onnx")
     return folder
 
 
@@ -99,29 +101,107 @@ def test_answers_match_onnx_runtime_for_every_layout(layouts, backend):
 def test_a_group_answers_each_light_as_its_single_query(layouts):
     kernel = KernelMaterials(layouts)
     q = random_queries(1000, seed=5, lights=3)
-    grouped = kernel.evaluate("offset16", q)
-    singles = kernel.evaluate("offset16", C.ungroup(q)).reshape(1000, 9)
-    np.testing.assert_array_equal(grouped, singles)
+    for name in kernel.materials():
+        grouped = kernel.evaluate(name, q)
+        singles = kernel.evaluate(name, C.ungroup(q)).reshape(1000, 9)
+        np.testing.assert_array_equal(grouped, singles, err_msg=name)
+
+
+@pytest.mark.parametrize("backend", BACKENDS)
+def test_a_foreign_graph_answers_as_onnx_runtime_does(tmp_path, backend, checkerboard):
+    """A material written with onnx.helper (Slice, Floor, Sub, Greater, Cast, Equal, Where; no neumip
+    metadata, no query groups) is evaluated from its graph: ONNX Runtime's answers, single queries and
+    groups (each light as a single query)."""
+    import onnxruntime as ort
+
+    model = checkerboard()
+    save_onnx(model, tmp_path / "checker.onnx")
+    kernel = KernelMaterials(tmp_path, importlib.import_module(backend))
+    session = ort.InferenceSession(model.SerializeToString(), providers=["CPUExecutionProvider"])
+    q = random_queries(5000, seed=11, lights=2)
+    want = session.run([C.ONNX_OUTPUT], {C.ONNX_INPUT: C.ungroup(q)})[0]
+    assert len(np.unique(want, axis=0)) == 2  # both squares are read
+    np.testing.assert_array_equal(kernel.evaluate("checker", q[:, :C.QUERY_DIM]), want[::2])
+    np.testing.assert_array_equal(kernel.evaluate("checker", q), want.reshape(5000, 6))
+
+
+@pytest.mark.filterwarnings("ignore::DeprecationWarning")
+def test_a_graph_exported_by_torch_answers_as_onnx_runtime_does(tmp_path):
+    """Another tool's graph: a small MLP on the query (Gemm, Relu, Sigmoid, Mul, a Constant node)
+    written by torch.onnx.export, evaluated from its graph."""
+    torch = pytest.importorskip("torch")
+    import io
+
+    import onnxruntime as ort
+
+    class Material(torch.nn.Module):
+        def __init__(self) -> None:
+            super().__init__()
+            self.mlp = torch.nn.Sequential(torch.nn.Linear(7, 16), torch.nn.ReLU(), torch.nn.Linear(16, 3),
+                                           torch.nn.Sigmoid())
+
+        def forward(self, queries):  # (N, 7) -> (N, 3)
+            return self.mlp(queries) * 0.3
+
+    torch.manual_seed(0)
+    buffer = io.BytesIO()
+    torch.onnx.export(Material(), (torch.zeros(4, 7),), buffer, input_names=[C.ONNX_INPUT],
+                      output_names=[C.ONNX_OUTPUT], dynamic_axes={C.ONNX_INPUT: {0: "N"}, C.ONNX_OUTPUT: {0: "N"}},
+                      dynamo=False, opset_version=18)
+    (tmp_path / "mlp.onnx").write_bytes(buffer.getvalue())
+    session = ort.InferenceSession(buffer.getvalue(), providers=["CPUExecutionProvider"])
+    q = random_queries(3000, seed=12, lights=2)
+    want = session.run([C.ONNX_OUTPUT], {C.ONNX_INPUT: C.ungroup(q)})[0].reshape(3000, 6)
+    assert parity(KernelMaterials(tmp_path).evaluate("mlp", q), want) <= 1.0
+
+
+def test_an_unsupported_operator_or_another_contract_is_one_clear_error(tmp_path, checkerboard):
+    model = checkerboard()
+    next(n for n in model.graph.node if n.op_type == "Floor").op_type = "Round"
+    save_onnx(model, tmp_path / "rounded.onnx")
+    other = checkerboard()
+    onnx.helper.set_model_props(other, {C.META_CONTRACT: "0"})
+    save_onnx(other, tmp_path / "older.onnx")
+    kernel = KernelMaterials(tmp_path)
+    with pytest.raises(ModelError, match=r"rounded.onnx: operator\(s\) Round not supported in the kernel"):
+        kernel.kernel("rounded")
+    with pytest.raises(ModelError, match="older.onnx: query contract version '0'"):
+        kernel.kernel("older")
+
+
+def test_the_engine_imports_nothing_from_the_renderer():
+    """The in-kernel engine sits below the Mitsuba plugin (client/mitsuba/, which uses it): importing
+    it loads neither that package nor Mitsuba (the libLLVM check is `client/llvm.py`). Its imports
+    from training/ are checked statically by tests/test_layers.py."""
+    code = ("import sys, neumip.client.kernel; print(' '.join(m for m in sys.modules "
+            "if m.startswith(('neumip.client.mitsuba', 'mitsuba'))))")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=60)
+    assert out.returncode == 0, out.stderr[-2000:]
+    assert out.stdout.split() == []
 
 
 @pytest.mark.parametrize("backend", BACKENDS)
 def test_answers_do_not_depend_on_the_batch(layouts, backend):
     kernel = KernelMaterials(layouts, importlib.import_module(backend))
-    q = random_queries(3000, seed=7)
-    whole = kernel.evaluate("offset64", q)
+    q = random_queries(3000, seed=7, lights=2)
     cuts = [0, 1, 2, 3, 1000, 1997, 2994, 3000]
-    parts = np.concatenate([kernel.evaluate("offset64", q[a:b]) for a, b in zip(cuts, cuts[1:])])
-    np.testing.assert_array_equal(whole, parts)
-    assert kernel.evaluate("offset64", q[:0]).shape == (0, 3)
+    for name in kernel.materials():
+        whole = kernel.evaluate(name, q)
+        parts = np.concatenate([kernel.evaluate(name, q[a:b]) for a, b in zip(cuts, cuts[1:])])
+        np.testing.assert_array_equal(whole, parts, err_msg=name)
+        assert kernel.evaluate(name, q[:0]).shape == (0, 6)
 
 
 def test_bad_files_and_names_get_clear_errors(layouts, tmp_path, write_nan_weight):
     (tmp_path / "corrupt.onnx").write_bytes(b"not an onnx file")
     write_nan_weight(layouts / "offset16.onnx", tmp_path / "nan.onnx")
     shutil.copy(layouts / "nooffset.onnx", tmp_path / "good.onnx")
+    shutil.copy(DATA / "pre_groups_offset.onnx", tmp_path / "old.onnx")  # query contract version 1
     kernel = KernelMaterials(tmp_path)
     with pytest.raises(ModelError, match="corrupt.onnx: cannot load"):
         kernel.kernel("corrupt")
+    with pytest.raises(ModelError, match="old.onnx: .*version 1.*`neumip export"):
+        kernel.kernel("old")
     with pytest.raises(ModelError, match="nan.onnx: non-finite weights in pyramid"):
         kernel.kernel("nan")
     with pytest.raises(UnknownMaterial, match="unknown material 'nope'"):
@@ -143,7 +223,7 @@ def test_a_constant_material_answers_every_lane_whatever_the_batch(model_dir):
     wide = dr.arange(Float, 186) / 186.0
     for n in (54, 3, 1, 100):
         x = dr.gather(Float, wide, dr.arange(UInt32, n) * 2)
-        answers = material.answers(x, x, x * 0.01, (x * 0.1, x * 0.2), [(x * 0.3, x), (x, x * 0.1)])
+        answers = material.answers([x, x, x * 0.01, x * 0.3, x, x * 0.1, x * 0.2, x, x * 0.1])  # 2 lights
         for rgb in answers:
             for channel in rgb:
                 assert dr.width(channel) == n
@@ -275,8 +355,7 @@ def test_a_lane_at_a_non_finite_position_answers_zero(model_dir):
         u = q[:, C.U].copy()
         u[bad] = value
         v = np.where(bad[::-1], value, q[:, C.V]).astype(np.float32)  # other lanes' v
-        cols = [Float(c) for c in (u, v, q[:, C.SIGMA], q[:, C.WO_X], q[:, C.WO_Y], q[:, C.WI_X], q[:, C.WI_Y])]
-        (rgb,) = material.answers(*cols[:3], (cols[3], cols[4]), [(cols[5], cols[6])])
+        (rgb,) = material.answers([Float(c) for c in (u, v, *q[:, C.SIGMA:].T)])
         got = np.stack([np.asarray(c) for c in rgb], 1)
         finite = ~(bad | bad[::-1])
         np.testing.assert_array_equal(got[finite], want[finite])

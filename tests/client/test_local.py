@@ -1,4 +1,4 @@
-"""In-process evaluator: loading a folder, chunking, validation, bad files, no torch import."""
+"""In-process evaluator: loading a folder, chunking, validation, bad files (no torch: tests/test_layers.py)."""
 
 import shutil
 import subprocess
@@ -10,7 +10,7 @@ import onnxruntime as ort
 import pytest
 
 from neumip.core import contract as C
-from neumip.client.local import LocalMaterials, ModelError, UnknownMaterial, load_material, run_call
+from neumip.client.local import LocalMaterials, ModelError, UnknownMaterial, load_material
 from neumip.core.contract import random_queries
 
 
@@ -68,15 +68,6 @@ def test_model_of_another_contract_version_is_refused(tmp_path):
     assert onnx.load(str(tmp_path / "future.onnx"))
 
 
-def test_import_client_does_not_import_torch():
-    code = (
-        "import sys, neumip.client, neumip.core.contract, neumip.client.local, neumip.client.cli;"
-        "assert 'torch' not in sys.modules, 'torch imported';"
-        "assert 'mitsuba' not in sys.modules, 'mitsuba imported'"
-    )
-    subprocess.run([sys.executable, "-c", code], check=True)
-
-
 def test_cli_query_prints_rgb(model_dir):
     out = subprocess.run(
         [sys.executable, "-m", "neumip.client.cli", "query", str(model_dir / "lambert.onnx"),
@@ -95,31 +86,16 @@ def test_cli_query_bad_direction_is_a_clear_error(model_dir):
     assert res.returncode == 2 and "wi must be" in res.stderr
 
 
-class RunOnly:
-    """An ONNX Runtime session that can only run: reading its input shape fails the test."""
-
-    def __init__(self, session):
-        self._session = session
-
-    def run(self, *args, **kwargs):
-        return self._session.run(*args, **kwargs)
-
-
-def test_group_support_is_read_once_when_a_material_loads(model_dir, tmp_path):
-    """`Material.groups` comes from the graph at load; evaluations never read the input shape again
-    (their sessions here can only run), and a file exported before groups still answers a group with
-    the bits of its single queries, the same bits as a graph that takes groups."""
-    old = Path(__file__).parents[1] / "training" / "data" / "pre_groups_offset.onnx"
-    shutil.copy(old, tmp_path / "old.onnx")
+def test_a_version_1_file_is_refused_naming_its_upgrade_and_the_others_serve(model_dir, tmp_path):
+    """A file exported before query groups were part of the contract (version 1) fails to load with
+    the command that upgrades it; the folder's other materials answer query groups with the bits of
+    their single queries."""
+    shutil.copy(Path(__file__).parents[1] / "training" / "data" / "pre_groups_offset.onnx", tmp_path / "old.onnx")
     shutil.copy(model_dir / "rand16.onnx", tmp_path / "rand16.onnx")
+    with pytest.raises(ModelError, match=f"version 1 .* `neumip export {tmp_path / 'old.onnx'} -o NEW.onnx`"):
+        load_material(tmp_path / "old.onnx")
     mats = LocalMaterials(tmp_path, threads=2)
-    assert (mats.get("old").groups, mats.get("rand16").groups) == (False, True)
-    assert mats.get("old").info()["groups"] is False
+    assert mats.materials() == ["rand16"] and "neumip export" in mats.errors["old"]
     groups = np.ascontiguousarray(np.hstack([random_queries(5000, seed=1), random_queries(5000, seed=2)[:, 3:5]]))
-    singles = {name: mats.evaluate(name, C.ungroup(groups)).reshape(5000, 6) for name in ("old", "rand16")}
-    for name in ("old", "rand16"):
-        mats.get(name).session = RunOnly(mats.get(name).session)
-        np.testing.assert_array_equal(mats.evaluate(name, groups), singles[name])
-    with pytest.raises(Exception, match="queries"):  # told it takes groups, the old graph refuses (N, 9)
-        run_call(mats.get("old").session, groups[:4], groups=True)
-    np.testing.assert_array_equal(run_call(mats.get("rand16").session, groups[:4], groups=False), singles["rand16"][:4])
+    np.testing.assert_array_equal(mats.evaluate("rand16", groups),
+                                  mats.evaluate("rand16", C.ungroup(groups)).reshape(5000, 6))

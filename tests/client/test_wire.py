@@ -142,12 +142,3 @@ def test_a_body_that_states_its_lights_must_hold_exactly_n_rows_of_them():
         with pytest.raises(C.QueryError, match="'lights' must be an integer from 1 to 64"):
             wire.decode_request(body)
 
-
-def test_takes_groups_reads_either_protocols_metadata_and_says_no_when_unsure():
-    def v2(shape):
-        return {"name": "m", "inputs": [{"name": "queries", "datatype": "FP32", "shape": shape}]}
-
-    assert wire.takes_groups({"name": "m", "groups": True}) and wire.takes_groups(v2([-1, -1]))
-    for metadata in ({"name": "m"}, {"groups": False}, {"groups": "true"}, v2([-1, 7]), v2([-1]), v2("x"),
-                     {"inputs": []}, {"inputs": ["queries"]}, [], None, "groups"):
-        assert not wire.takes_groups(metadata), metadata

@@ -26,8 +26,6 @@ from neumip.client.kernel import KernelMaterials  # noqa: E402
 from neumip.server.engine import Engine, EngineUnavailable  # noqa: E402
 from neumip.server.registry import Registry  # noqa: E402
 
-from .test_groups import groups_of  # noqa: E402
-
 MATERIALS = ("rand16", "flat16", "lambert")
 CHUNK = 1000
 """The server's kernel_chunk_rows: requests of several thousand rows run as several calls."""
@@ -62,7 +60,7 @@ def kernel(folder):
 
 @pytest.mark.parametrize("protocol", ["msgpack", "v2"])
 @pytest.mark.parametrize("lights", [1, 2, 3])
-def test_answers_are_the_bits_of_in_process_kernels_and_near_onnx_runtime(server, kernel, folder, protocol, lights):
+def test_answers_are_the_bits_of_in_process_kernels_and_near_onnx_runtime(server, kernel, folder, protocol, lights, groups_of):
     queries = groups_of(4321, lights, seed=lights)  # > CHUNK answers: several calls, the last one short
     local = LocalMaterials(folder, threads=1)
     with MaterialClient(server.url, protocol=protocol) as client:
@@ -80,7 +78,7 @@ def test_model_metadata_names_the_engine(server):
     assert model["platform"] == "neumip_drjit_llvm" and model["inputs"][0]["shape"] == [-1, -1]
 
 
-def test_concurrent_requests_merged_or_cut_keep_their_bits(server, kernel):
+def test_concurrent_requests_merged_or_cut_keep_their_bits(server, kernel, groups_of):
     """Requests of several sizes and widths from several threads at once: whatever calls the batcher
     made of them (metrics: more than one request piece per call), each gets its in-process answer."""
     requests = [groups_of(n, lights, seed=n) for n, lights in ((17, 1), (2500, 2), (300, 1), (999, 3), (1, 1))]
@@ -161,7 +159,7 @@ def test_the_memory_budget_unloads_the_least_recently_used(folder, tmp_path):
     np.testing.assert_array_equal(registry.get("b").run(q), KernelMaterials(folder).evaluate("rand16", q))
 
 
-def test_loading_warms_up_the_shapes_a_renderer_sends(folder):
+def test_loading_warms_up_the_shapes_a_renderer_sends(folder, groups_of):
     """A material is traced (and compiled) for single queries and groups of two lights when it loads,
     so a renderer's first requests do not pay for it; other widths are traced on first use."""
     registry = Registry.load(folder, Engine.kernel(), warmup_rows=16)

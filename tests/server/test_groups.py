@@ -1,6 +1,6 @@
 """Query groups (N, 5 + 2 K) through a real `neumip serve` process: msgpack /v1 and OIP /v2 answer
 (N, 3 K) with the bits of in-process evaluation and of the single queries; bad widths are 400s; a batch
-never mixes widths; a model exported before groups (input width fixed to 7) answers them too."""
+never mixes widths; a model file of contract version 1 (before groups) is refused, naming its upgrade."""
 
 from __future__ import annotations
 
@@ -15,22 +15,15 @@ import pytest
 
 from neumip.core import contract as C
 from neumip.client import wire
-from neumip.core.contract import random_queries
 from neumip.client.http import ClientConfig, MaterialClient
 from neumip.client.local import LocalMaterials
 
 OLD_MODEL = Path(__file__).parents[1] / "training" / "data" / "pre_issue12_offset.onnx"
 
 
-def groups_of(n: int, lights: int, seed: int) -> np.ndarray:
-    """(n, 5 + 2 lights) valid query groups: random queries plus the wi of further random queries."""
-    extra = [random_queries(n, seed=seed * 100 + j)[:, C.WI_X:C.WI_Y + 1] for j in range(1, lights)]
-    return np.ascontiguousarray(np.hstack([random_queries(n, seed=seed), *extra]))
-
-
 @pytest.fixture(scope="module")
 def folder(model_dir, tmp_path_factory):
-    """The test materials and `old`, a model file exported before query groups."""
+    """The test materials and `old`, a model file of contract version 1 (exported before query groups)."""
     out = tmp_path_factory.mktemp("groups")
     for path in model_dir.glob("*.onnx"):
         shutil.copy(path, out)
@@ -50,9 +43,8 @@ def local(folder):
 
 
 @pytest.mark.parametrize("protocol", ["msgpack", "v2"])
-@pytest.mark.parametrize("material", ["rand16", "old"])
-def test_groups_answer_with_the_bits_of_in_process_and_of_single_queries(server, local, protocol, material):
-    assert local.get(material).groups == (material != "old")
+@pytest.mark.parametrize("material", ["rand16", "flat16"])
+def test_groups_answer_with_the_bits_of_in_process_and_of_single_queries(server, local, protocol, material, groups_of):
     groups = groups_of(7000, 2, seed=1)  # (N, 9); 7000 > max_rows of the client: split by groups
     with MaterialClient(server.url, ClientConfig(max_rows=3000), protocol=protocol) as client:
         rgb = client.evaluate(material, groups)
@@ -62,22 +54,23 @@ def test_groups_answer_with_the_bits_of_in_process_and_of_single_queries(server,
         assert client.evaluate(material, np.zeros((0, 9), np.float32)).shape == (0, 6)
 
 
-def test_the_server_states_which_materials_take_groups_and_answers_groups_for_all(server, local):
-    """/v1 metadata ("groups"), the v2 model metadata and the v2 config state what each file's graph
-    takes, as Triton states the exported repository; groups sent anyway to a file exported before them
-    are still answered, with the bits of its single queries."""
+def test_every_material_takes_groups_and_a_version_1_file_is_refused_with_its_upgrade(server, local, groups_of):
+    """The v2 model metadata and the v2 config state variable widths for every material, as Triton
+    states the exported repository; the version-1 file is listed as failed, with the command that
+    upgrades it, and evaluating it is a 400 that says so."""
     groups = groups_of(300, 2, seed=4)
     with httpx.Client(base_url=server.url, timeout=30) as http:
-        listing = {m["name"]: m for m in http.get(wire.MATERIALS_PATH).json()["materials"]}
-        for name, takes in (("rand16", True), ("old", False)):
-            assert listing[name][wire.GROUPS_KEY] is takes
-            assert http.get(wire.MATERIAL_PATH.format(name=name)).json()[wire.GROUPS_KEY] is takes
+        listing = http.get(wire.MATERIALS_PATH).json()
+        [failed] = [f for f in listing["failed"] if f["name"] == "old"]
+        assert "query contract version 1" in str(failed) and "neumip export old.onnx -o NEW.onnx" in str(failed)
+        resp = http.post(wire.EVALUATE_PATH.format(name="old"), content=wire.encode_request(groups),
+                         headers={"content-type": wire.MSGPACK_MEDIA_TYPE})
+        assert resp.status_code == 400 and "neumip export old.onnx" in resp.json()["error"], resp.text
+        for name in ("rand16", "flat16"):
             metadata = http.get(wire.MODEL_PATH.format(name=name)).json()
-            assert wire.takes_groups(metadata) is takes
-            assert [metadata["inputs"][0]["shape"], metadata["outputs"][0]["shape"]] == (
-                [[-1, -1], [-1, -1]] if takes else [[-1, 7], [-1, 3]])
+            assert [metadata["inputs"][0]["shape"], metadata["outputs"][0]["shape"]] == [[-1, -1], [-1, -1]]
             config = http.get(f"/v2/models/{name}/config").json()
-            assert [config["input"][0]["dims"], config["output"][0]["dims"]] == ([[-1], [-1]] if takes else [[7], [3]])
+            assert [config["input"][0]["dims"], config["output"][0]["dims"]] == [[-1], [-1]]
             resp = http.post(wire.EVALUATE_PATH.format(name=name), content=wire.encode_request(groups),
                              headers={"content-type": wire.MSGPACK_MEDIA_TYPE})
             assert resp.status_code == 200, resp.text
@@ -85,7 +78,7 @@ def test_the_server_states_which_materials_take_groups_and_answers_groups_for_al
                                           local.evaluate(name, C.ungroup(groups)))
 
 
-def test_bad_widths_are_400_and_the_server_keeps_serving(server, local):
+def test_bad_widths_are_400_and_the_server_keeps_serving(server, local, groups_of):
     path = wire.EVALUATE_PATH.format(name="rand16")
     msgpack_type = {"content-type": wire.MSGPACK_MEDIA_TYPE}
     with httpx.Client(base_url=server.url, timeout=30) as http:
@@ -113,10 +106,10 @@ def test_bad_widths_are_400_and_the_server_keeps_serving(server, local):
         np.testing.assert_array_equal(np.asarray(resp.json()["rgb"], np.float32), local.evaluate("rand16", groups))
 
 
-def test_concurrent_clients_of_mixed_widths_each_get_their_answers(server, local):
+def test_concurrent_clients_of_mixed_widths_each_get_their_answers(server, local, groups_of):
     """Threads send 1, 2 and 3 lights at once to two materials; the server merges what it can (only
     rows of one width share a call) and every answer keeps its bits."""
-    jobs = [(material, lights, seed) for material in ("rand16", "old") for lights in (1, 2, 3) for seed in range(2)]
+    jobs = [(material, lights, seed) for material in ("rand16", "flat16") for lights in (1, 2, 3) for seed in range(2)]
     answers, errors = {}, []
 
     def run(job):
@@ -141,7 +134,7 @@ def test_concurrent_clients_of_mixed_widths_each_get_their_answers(server, local
         np.testing.assert_array_equal(rgb, local.evaluate(material, groups))
 
 
-def test_the_row_limit_counts_each_light_of_a_group(server, local):
+def test_the_row_limit_counts_each_light_of_a_group(server, local, groups_of):
     """max_rows (5000 here) bounds the queries a request asks for: 2600 groups of two lights are 5200."""
     groups = groups_of(2600, 2, seed=9)
     with MaterialClient(server.url, ClientConfig(max_rows=10_000)) as client:  # one request: refused

@@ -98,7 +98,8 @@ def hardened(serve_module, model_dir, tmp_path_factory):
 
 
 def write_nan_model(path) -> None:
-    """rgb = 0.1 + 0 * log(100 - u): 0.1 for u < 100, NaN beyond (a model broken for some inputs)."""
+    """rgb = 0.1 + 0 * log(100 - u): 0.1 for u < 100, NaN beyond (a model broken for some inputs); like
+    every model of the contract, it takes query groups (N, 5 + 2 K) and answers (N, 3 K)."""
     import onnx
     from onnx import TensorProto, helper
 
@@ -110,14 +111,23 @@ def write_nan_model(path) -> None:
         helper.make_node("Sub", ["hundred", "u"], ["d"]),
         helper.make_node("Log", ["d"], ["log"]),
         helper.make_node("Mul", ["log", "nought"], ["z"]),
-        helper.make_node("Add", ["z", "grey"], [C.ONNX_OUTPUT]),  # (N, 1) + (1, 3) -> (N, 3)
+        helper.make_node("Add", ["z", "grey"], ["rgb1"]),  # (N, 1)
+        helper.make_node("Shape", [C.ONNX_INPUT], ["shape"]),  # [N, 5 + 2 K]
+        helper.make_node("Mul", ["shape", "three"], ["thrice"]),  # [3 N, 15 + 6 K]
+        helper.make_node("Sub", ["thrice", "fifteen"], ["minus"]),
+        helper.make_node("Div", ["minus", "two"], ["answers"]),  # [_, 3 K]
+        helper.make_node("Slice", ["shape", "zero", "one"], ["n"]),
+        helper.make_node("Slice", ["answers", "one", "two"], ["k3"]),
+        helper.make_node("Concat", ["n", "k3"], ["out_shape"], axis=0),
+        helper.make_node("Expand", ["rgb1", "out_shape"], [C.ONNX_OUTPUT]),  # (N, 3 K)
     ]
     graph = helper.make_graph(
         nodes, "nan_for_large_u",
-        [helper.make_tensor_value_info(C.ONNX_INPUT, TensorProto.FLOAT, ["N", C.QUERY_DIM])],
-        [helper.make_tensor_value_info(C.ONNX_OUTPUT, TensorProto.FLOAT, ["N", C.RGB_DIM])],
+        [helper.make_tensor_value_info(C.ONNX_INPUT, TensorProto.FLOAT, ["N", "width"])],
+        [helper.make_tensor_value_info(C.ONNX_OUTPUT, TensorProto.FLOAT, ["N", "answers"])],
         [const("zero", [0], TensorProto.INT64), const("one", [1], TensorProto.INT64), const("hundred", [100.0]),
-         const("nought", [0.0]), const("grey", [0.1] * 3, dims=[1, 3])],
+         const("nought", [0.0]), const("grey", [0.1], dims=[1, 1]), const("two", [2], TensorProto.INT64),
+         const("three", [3], TensorProto.INT64), const("fifteen", [15], TensorProto.INT64)],
     )
     model = helper.make_model(graph, opset_imports=[helper.make_opsetid("", 17)], ir_version=8)
     helper.set_model_props(model, {C.META_CONTRACT: C.CONTRACT_VERSION, C.META_DESCRIPTION: "NaN for u > 100"})

@@ -77,7 +77,7 @@ def test_a_render_through_the_server_loads_exactly_its_materials(serve, model_di
     from neumip.client.mitsuba.bsdf import mi
     from neumip.client.mitsuba.render import RenderConfig, render_scene
 
-    from ..client.mitsuba.test_footprint import facing_plane
+    from ..client.mitsuba.scenes import facing_plane
 
     server = serve(load="lazy", poll_s=0)
     render_scene(mi.load_dict(facing_plane(uv_scale=2.0)), MaterialClient(server.url), RenderConfig(spp=2))

@@ -66,14 +66,15 @@ def test_python_backend_repository(repositories, model_dir):
     assert "backend `python`" in (repo / "README.md").read_text()
 
 
-def test_a_model_exported_before_query_groups_keeps_its_fixed_width(tmp_path):
-    """Its graph takes (N, 7) only, and its config says so."""
+def test_a_model_file_of_contract_version_1_is_refused_naming_its_upgrade(tmp_path, capsys):
+    """Exported before query groups were part of the contract: no repository is written, and the error
+    names the command that upgrades the file."""
     models = tmp_path / "models"
     models.mkdir()
     shutil.copy(Path(__file__).parents[1] / "training" / "data" / "pre_issue12_offset.onnx", models / "old.onnx")
-    assert main(["export-repository", str(models), "-o", str(tmp_path / "repo")]) == 0
-    config = parse(tmp_path / "repo" / "old" / "config.pbtxt")
-    assert [list(t.dims) for t in config.input] == [[7]] and [list(t.dims) for t in config.output] == [[3]]
+    assert main(["export-repository", str(models), "-o", str(tmp_path / "repo")]) != 0
+    assert f"neumip export {models / 'old.onnx'} -o NEW.onnx" in capsys.readouterr().err
+    assert not (tmp_path / "repo").exists()
 
 
 def test_batching_follows_the_server_settings(model_dir, tmp_path, monkeypatch):

@@ -48,10 +48,10 @@ def pb_utils(monkeypatch):
     return module
 
 
-def model_for(tmp_path, model_dir, groups: bool = True) -> TritonPythonModel:
+def model_for(tmp_path, model_dir) -> TritonPythonModel:
     (tmp_path / "1").mkdir()
     (tmp_path / "1" / "model.onnx").write_bytes((model_dir / "rand16.onnx").read_bytes())
-    config = model_config("rand16", TritonOptions(1000, 100, 0, backend="python"), groups)
+    config = model_config("rand16", TritonOptions(1000, 100, 0, backend="python"))
     model = TritonPythonModel()
     model.initialize({"model_config": json.dumps(config), "model_repository": str(tmp_path), "model_version": "1"})
     return model
@@ -67,13 +67,6 @@ def test_a_batch_of_mixed_widths_answers_each_request(pb_utils, tmp_path, model_
     for response, q in zip([responses[i] for i in (0, 1, 3)], (plain, groups, other)):
         [tensor] = response.output_tensors
         np.testing.assert_array_equal(tensor.array, reference.evaluate("rand16", q))
-
-
-def test_a_config_of_fixed_width_takes_plain_queries_only(pb_utils, tmp_path, model_dir):
-    model = model_for(tmp_path, model_dir, groups=False)
-    groups = np.hstack([random_queries(3), random_queries(3)[:, 3:5]])
-    [response] = model.execute([{"queries": groups}])
-    assert response.error == "queries must be (N, 7), got (3, 9)"
 
 
 def test_its_copy_of_the_contract_agrees():

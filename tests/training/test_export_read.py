@@ -1,6 +1,7 @@
 """Reading an exported model's weights back (`export_read`): re-exporting a model this version wrote
-gives the same bytes, the shipped models are in this version's layout, and `neumip export MODEL.onnx`
-rewrites a model file and refuses what it cannot read."""
+gives the same bytes, the shipped models are in this version's layout, `neumip export MODEL.onnx`
+rewrites a model file and refuses what it cannot read, and upgrades files of contract version 1
+(`upgrade`) that every engine refuses."""
 
 from __future__ import annotations
 
@@ -13,7 +14,8 @@ import pytest
 
 from neumip.core import contract as C
 from neumip.client.cli import main
-from neumip.client.local import accepts_groups, load_material, run_chunked
+from neumip.client.local import ModelError, load_material, run_chunked
+from neumip.core import weights as W
 from neumip.core.config import MaterialConfig
 from neumip.training.export import build_onnx, random_weights, save_onnx
 from neumip.training.export_read import ModelLayoutError, answer_difference, read_model, reexport
@@ -62,16 +64,32 @@ def test_shipped_models_are_in_this_versions_layout(path):
     assert reexport(model).SerializeToString() == model.SerializeToString()
 
 
-def test_a_graph_of_another_layout_is_refused():
+def test_a_graph_of_another_layout_is_refused_by_name():
     config = CONFIGS["offset"]
     model = build_onnx(config, random_weights(config, seed=1))
-    init = next(i for i in model.graph.initializer if i.name == "decoder.0.half_weight.query")
+    init = next(i for i in model.graph.initializer if i.name == W.half_weight(W.DECODER, 0, "query"))
     init.name = "decoder.0.weight"  # as an older export named its layers
-    with pytest.raises(ModelLayoutError, match="decoder.0.half_weight.query"):
+    with pytest.raises(ModelLayoutError, match="no initializer 'decoder.0.half_weight.query'"):
+        read_model(model)
+    model = build_onnx(config, random_weights(config, seed=1))
+    init = next(i for i in model.graph.initializer if i.name == W.bias(W.DECODER, 2))
+    init.CopyFrom(onnx.numpy_helper.from_array(np.zeros((24, 1), np.float32), init.name))
+    with pytest.raises(ModelLayoutError, match=r"'decoder.2.bias' of shape \(24, 1\), this export writes \(25, 1\)"):
         read_model(model)
     del model.metadata_props[:]
-    with pytest.raises(ModelLayoutError, match="contract"):
+    with pytest.raises(ModelLayoutError, match="not a neumip material"):
         read_model(model)
+
+
+def test_initializer_shapes_are_what_the_export_writes():
+    """`core.weights` states the stored weights' names and shapes: exactly the graph's initializers of
+    those names, for every config and a trimmed pyramid."""
+    for config in CONFIGS.values():
+        model = build_onnx(config, random_weights(config, seed=4))
+        for finest, m in ((0, model), (2, trim_model(model, 2))):
+            stored = {i.name: tuple(i.dims) for i in m.graph.initializer}
+            want = W.initializer_shapes(config, finest)
+            assert {name: stored.get(name) for name in want} == want
 
 
 def test_cli_rewrites_a_model_and_refuses_bad_input(tmp_path, capsys):
@@ -96,16 +114,25 @@ LAYOUTS = {
 }
 
 
+def groups_of_two(n: int) -> np.ndarray:
+    return np.ascontiguousarray(np.concatenate([C.random_queries(n, seed=1), C.random_queries(n, seed=2)[:, 3:5]], 1))
+
+
 @pytest.mark.parametrize("layout", list(LAYOUTS))
 @pytest.mark.parametrize("name", ["offset", "nooffset"])
-def test_a_model_of_an_older_layout_is_rewritten(layout, name, tmp_path, capsys):
-    """Tiny models written by older exports (kept as test data): `neumip export OLD.onnx` rewrites
-    them in this layout with the same answers up to rounding (query groups changed the order of the
-    decoder's first sum), and the rewritten model takes query groups."""
+def test_a_version_1_file_of_an_older_layout_is_upgraded(layout, name, tmp_path, capsys):
+    """Tiny models written by older exports under contract version 1 (kept as test data): the engines
+    refuse them naming the upgrade; `neumip export OLD.onnx` rewrites them in this version and layout
+    with the same answers up to rounding (query groups changed the order of the decoder's first sum),
+    and the rewritten model takes query groups."""
     source = Path(__file__).parent / "data" / f"{layout}_{name}.onnx"
     old = onnx.load(str(source))
     assert LAYOUTS[layout] in {i.name for i in old.graph.initializer}
     assert old.graph.input[0].type.tensor_type.shape.dim[1].dim_value == C.QUERY_DIM  # fixed width
+    with pytest.raises(ModelError, match=f"`neumip export {source} -o NEW.onnx`"):
+        load_material(source)
+    with pytest.raises(ModelLayoutError, match="version 1"):
+        read_model(old)
     new = reexport(old)
     assert answer_difference(old, new, n=1 << 15) < 1e-5
     assert reexport(new).SerializeToString() == new.SerializeToString()  # now in this layout
@@ -114,7 +141,24 @@ def test_a_model_of_an_older_layout_is_rewritten(layout, name, tmp_path, capsys)
     assert "largest answer difference" in capsys.readouterr().out
     trim_model(onnx.load(str(out)), 1)  # trim reads it now
     session = load_material(out).session
-    assert accepts_groups(session) and not accepts_groups(load_material(source).session)
-    groups = np.concatenate([C.random_queries(64, seed=1), C.random_queries(64, seed=2)[:, 3:5]], axis=1)
-    singles = run_chunked(session, C.ungroup(groups)).reshape(64, 6)
-    np.testing.assert_array_equal(run_chunked(session, groups), singles)
+    groups = groups_of_two(64)
+    np.testing.assert_array_equal(run_chunked(session, groups), run_chunked(session, C.ungroup(groups)).reshape(64, 6))
+
+
+@pytest.mark.skipif(not SHIPPED, reason="no shipped models")
+def test_a_version_1_file_made_from_a_shipped_model_is_refused_then_upgraded_to_the_same_bits(tmp_path, capsys):
+    """The shipped rock as version 1 wrote it (the same graph, `neumip.contract_version` "1"): every
+    loader refuses it naming `neumip export`, which gives back the shipped file, answering with the
+    same bits (the graph is unchanged)."""
+    model = onnx.load("models/rock.onnx")
+    onnx.helper.set_model_props(model, {**{p.key: p.value for p in model.metadata_props}, C.META_CONTRACT: "1"})
+    old = save_onnx(model, tmp_path / "old.onnx")
+    with pytest.raises(ModelError, match="query contract version 1 .*this build reads version 2"):
+        load_material(old)
+    with pytest.raises(ModelLayoutError, match="neumip export"):
+        read_model(model)
+    new = tmp_path / "new.onnx"
+    assert main(["export", str(old), "-o", str(new)]) == 0
+    assert "largest answer difference from" in capsys.readouterr().out
+    assert new.read_bytes() == Path("models/rock.onnx").read_bytes()
+    assert answer_difference(model, onnx.load(str(new)), n=1 << 14) == 0.0

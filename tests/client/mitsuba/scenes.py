@@ -9,9 +9,27 @@ LAMBERT = {"type": "neumip", "material": "lambert", "uv_scale": 2.0}
 DIFFUSE = {"type": "diffuse", "reflectance": {"type": "rgb", "value": 0.5}}
 """What LAMBERT must render like."""
 
+WIDTH, DISTANCE, FOV = 32, 3.0, 30.0
+"""`facing_plane`'s film width (pixels), camera distance and field of view (degrees)."""
+
 
 def _look_at(origin, target):
     return mi.ScalarTransform4f().look_at(origin=origin, target=target, up=[0, 1, 0])
+
+
+def facing_plane(uv_scale: float, rfilter: str = "gaussian") -> dict:
+    """A 2 x 2 rectangle (uv 0..1) seen head-on from DISTANCE, filling the view."""
+    return {
+        "type": "scene",
+        "integrator": {"type": "neumip_path", "max_depth": 2},
+        "sensor": {
+            "type": "perspective", "fov": FOV,
+            "to_world": mi.ScalarTransform4f().look_at(origin=[0, 0, DISTANCE], target=[0, 0, 0], up=[0, 1, 0]),
+            "film": {"type": "hdrfilm", "width": WIDTH, "height": WIDTH, "rfilter": {"type": rfilter}},
+        },
+        "sky": {"type": "constant"},
+        "plane": {"type": "rectangle", "bsdf": {"type": "neumip", "material": "lambert", "uv_scale": uv_scale}},
+    }
 
 
 def simple(bsdf: dict, integrator: dict, size: int = 48, spp: int = 64) -> dict:

@@ -16,7 +16,7 @@ from neumip.client.mitsuba.bsdf import mi
 from neumip.client.mitsuba.render import RenderConfig, render_scene
 
 from .recording import Recording
-from .test_footprint import facing_plane
+from .scenes import facing_plane
 
 
 def test_footprints_are_those_of_a_render(model_dir):

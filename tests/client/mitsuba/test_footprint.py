@@ -15,24 +15,7 @@ from neumip.client.mitsuba.integrator import filter_std_px
 from neumip.client.mitsuba.render import RenderConfig, render_scene
 
 from .recording import Recording
-
-WIDTH, DISTANCE, FOV = 32, 3.0, 30.0
-
-
-def facing_plane(uv_scale: float, rfilter: str = "gaussian") -> dict:
-    """A 2 x 2 rectangle (uv 0..1) seen head-on from DISTANCE, filling the view."""
-    return {
-        "type": "scene",
-        "integrator": {"type": "neumip_path", "max_depth": 2},
-        "sensor": {
-            "type": "perspective", "fov": FOV,
-            "to_world": mi.ScalarTransform4f().look_at(origin=[0, 0, DISTANCE], target=[0, 0, 0], up=[0, 1, 0]),
-            "film": {"type": "hdrfilm", "width": WIDTH, "height": WIDTH, "rfilter": {"type": rfilter}},
-        },
-        "sky": {"type": "constant"},
-        "plane": {"type": "rectangle", "bsdf": {"type": "neumip", "material": "lambert", "uv_scale": uv_scale}},
-    }
-
+from .scenes import DISTANCE, FOV, WIDTH, facing_plane
 
 FILTER_STD = {"gaussian": 0.5, "box": 1 / math.sqrt(12), "tent": 1 / math.sqrt(6)}
 """Std (pixels) of Mitsuba's reconstruction filters at their default radii."""

@@ -148,7 +148,9 @@ class EchoKernel(Echo):
         def __init__(self, name, widths):
             self.name, self.widths = name, widths
 
-        def answers(self, u, v, sigma, wo, lights):
+        def answers(self, columns):
+            u, v, sigma = columns[:3]
+            lights = [columns[C.WI_X:C.WI_Y + 1]] + [columns[i:i + 2] for i in range(C.QUERY_DIM, len(columns), 2)]
             self.widths.append((self.name, dr.width(u)))
             return [[u + 1.0 + wi[0], v + 1.0 + wi[1], sigma + 1.0] for wi in lights]
 

@@ -1,0 +1,112 @@
+"""The weights of a neural material: their names and shapes, stated once.
+
+Two views of the same numbers, both from a `MaterialConfig`:
+
+- `weight_shapes`: the weights as the model holds them, and as `training.export.build_onnx` takes
+  them and `training.export_read.read_model` gives them back: the textures (``pyramid``, the flat
+  atlas of every level, finest first; ``offset_texture``, one level) and each MLP's layers
+  (``{mlp}.{i}.weight`` (out, in), ``{mlp}.{i}.bias`` (out,)). An MLP's first layer reads the
+  texture features, then the query columns `MLP_QUERY_COLUMNS` names, in that order.
+- `initializer_shapes`: the initializers the exported graph stores them in. Matrices are stored halved
+  (``{mlp}.{i}.half_weight``; the graph's Gemm multiplies by 2), biases as columns (out, 1); a first
+  layer is split by what it reads (``{mlp}.0.half_weight.texture``, ``.query``: a (hidden, 7) matrix
+  over the whole query row, zero but for the columns it reads, and the decoder's ``.light``: its
+  columns on a light's wi); the offset MLP's last layer is stored with ``offset_scale`` folded in and
+  its one output twice (the depth beside each of wo_x, wo_y).
+
+Names and shapes only: no numpy, no arithmetic.
+"""
+
+from __future__ import annotations
+
+from . import contract as C
+from .config import MaterialConfig
+from .head import outputs
+
+PYRAMID = "pyramid"
+"""The neural texture pyramid: the rows of every level, finest first (`MaterialConfig.level_starts`)."""
+OFFSET_TEXTURE = "offset_texture"
+"""The neural offset texture: one level at the finest resolution."""
+DECODER = "decoder"
+"""The MLP that turns texture features and directions into the answer."""
+OFFSET_MLP = "offset_mlp"
+"""The MLP that turns offset-texture features and wo into a ray depth."""
+
+MLP_QUERY_COLUMNS = {DECODER: (C.WI_X, C.WI_Y, C.WO_X, C.WO_Y), OFFSET_MLP: (C.WO_X, C.WO_Y)}
+"""The query columns each MLP's first layer reads after its texture's features."""
+
+FIRST_LAYER_PARTS = {DECODER: ("texture", "query", "light"), OFFSET_MLP: ("texture", "query")}
+"""What each MLP's stored first layer is split into (`half_weight`)."""
+
+DEPTH_COPIES = 2
+"""Rows of the offset MLP's stored last layer: its one output, once beside each of wo_x, wo_y."""
+
+
+def weight(mlp: str, layer: int) -> str:
+    """Name of layer `layer`'s weights (out, in) of MLP `mlp` in `weight_shapes`."""
+    return f"{mlp}.{layer}.weight"
+
+
+def bias(mlp: str, layer: int) -> str:
+    """Name of layer `layer`'s bias: (out,) in `weight_shapes`, (out, 1) in `initializer_shapes`."""
+    return f"{mlp}.{layer}.bias"
+
+
+def half_weight(mlp: str, layer: int, part: str | None = None) -> str:
+    """Name of the initializer holding half of layer `layer`'s weights (``part`` of a first layer:
+    "texture", "query" or "light", `FIRST_LAYER_PARTS`)."""
+    return f"{mlp}.{layer}.half_weight" + (f".{part}" if part else "")
+
+
+def mlps(config: MaterialConfig) -> dict[str, tuple[int, int]]:
+    """The material's MLPs -> (inputs, outputs): texture features plus query columns in, answer out."""
+    found = {DECODER: (config.channels + len(MLP_QUERY_COLUMNS[DECODER]), outputs(config.head))}
+    if config.offset:
+        found[OFFSET_MLP] = (config.offset_channels + len(MLP_QUERY_COLUMNS[OFFSET_MLP]), 1)
+    return found
+
+
+def textures(config: MaterialConfig) -> list[str]:
+    """Names of the material's textures."""
+    return [PYRAMID] + ([OFFSET_TEXTURE] if config.offset else [])
+
+
+def _widths(config: MaterialConfig, inputs: int, answers: int) -> list[int]:
+    """Widths of an MLP's activations, input to output: layers + 1 values."""
+    return [inputs] + [config.hidden] * (config.layers - 1) + [answers]
+
+
+def weight_shapes(config: MaterialConfig) -> dict[str, tuple[int, ...]]:
+    """Every weight of the material -> its shape, as the model holds it (textures first, then each
+    MLP's layers in order)."""
+    shapes: dict[str, tuple[int, ...]] = {PYRAMID: (config.atlas_rows(), config.channels)}
+    if config.offset:
+        shapes[OFFSET_TEXTURE] = (config.resolution**2, config.offset_channels)
+    for mlp, (inputs, answers) in mlps(config).items():
+        widths = _widths(config, inputs, answers)
+        for i in range(config.layers):
+            shapes[weight(mlp, i)] = (widths[i + 1], widths[i])
+            shapes[bias(mlp, i)] = (widths[i + 1],)
+    return shapes
+
+
+def initializer_shapes(config: MaterialConfig, finest_level: int = 0) -> dict[str, tuple[int, ...]]:
+    """Every initializer of the exported graph that holds a weight -> its shape (the graph's other
+    initializers are constants of its arithmetic). ``finest_level`` K > 0: a trimmed model, whose
+    pyramid holds levels K..L only."""
+    starts = config.level_starts()
+    rows = config.atlas_rows() - starts[finest_level]
+    shapes: dict[str, tuple[int, ...]] = {PYRAMID: (rows, config.channels)}
+    if config.offset:
+        shapes[OFFSET_TEXTURE] = (config.resolution**2, config.offset_channels)
+    for mlp, (inputs, answers) in mlps(config).items():
+        widths = _widths(config, inputs, DEPTH_COPIES if mlp == OFFSET_MLP else answers)
+        texture = inputs - len(MLP_QUERY_COLUMNS[mlp])
+        first = {"texture": texture, "query": C.QUERY_DIM, "light": 2}
+        for part in FIRST_LAYER_PARTS[mlp]:
+            shapes[half_weight(mlp, 0, part)] = (widths[1], first[part])
+        shapes[bias(mlp, 0)] = (widths[1], 1)
+        for i in range(1, config.layers):
+            shapes[half_weight(mlp, i)] = (widths[i + 1], widths[i])
+            shapes[bias(mlp, i)] = (widths[i + 1], 1)
+    return shapes

@@ -1,0 +1,96 @@
+"""The interpreter's shape algebra (`client/onnx_kernel.py`): a batched tensor held as per-lane cells
+reshaped, transposed, tiled, sliced, concatenated, gathered and multiplied as numpy does it to the
+whole tensor. Each lane's cells hold the tensor's own values, so any misplaced row shows."""
+
+from __future__ import annotations
+
+import importlib
+
+import numpy as np
+import pytest
+
+pytest.importorskip("neumip.client.kernel")  # drjit, after the libLLVM check
+
+from drjit.llvm.ad import Float  # noqa: E402
+from onnx import helper  # noqa: E402
+
+from neumip.client.onnx_kernel import Dim, GraphError, Lanes, Ops, objects  # noqa: E402
+
+N = 3
+OPS = Ops(importlib.import_module("drjit.llvm.ad"), {})
+
+
+def batched(full: np.ndarray) -> Lanes:
+    """A (N, ...) numpy tensor as Lanes: one cell per element of a row, one lane per row."""
+    cells = [Float(full[(slice(None),) + index]) for index in np.ndindex(full.shape[1:])]
+    return Lanes(objects((1, 1) + full.shape[1:], cells), 0)
+
+
+def whole(x: Lanes) -> np.ndarray:
+    """The numpy tensor that Lanes `x` holds (its batch axis outer x N x inner long)."""
+    values = np.stack([np.broadcast_to(np.asarray(c), N) for c in x.cells.ravel()])  # literals: width 1
+    values = values.reshape(x.cells.shape + (N,))
+    a = x.axis
+    values = np.moveaxis(values, -1, a + 1)  # (..., outer, N, inner, ...)
+    shape = x.cells.shape
+    return values.reshape(shape[:a] + (shape[a] * N * shape[a + 1],) + shape[a + 2:])
+
+
+def node(op: str, **attrs):
+    return helper.make_node(op, [], ["y"], **attrs)
+
+
+@pytest.fixture
+def groups():
+    """(N, 4, 2) values 0..: a batch of 4 lights of (wi_x, wi_y) each."""
+    return np.arange(N * 8, dtype=np.float32).reshape(N, 4, 2)
+
+
+def test_the_export_s_light_rows_round_trip(groups):
+    """(N, K, 2) -> (K, N, 2) -> (K N, 2) -> (K, N, 2) -> (N, K, 2) -> (N, 2 K): the export's path of
+    a query group's lights (`training/export.py`: `_lights` and the answer's reshapes)."""
+    x = batched(groups)
+    t = OPS.Transpose(node("Transpose"), x, perm=[1, 0, 2])
+    np.testing.assert_array_equal(whole(t), groups.transpose(1, 0, 2))
+    rows = OPS.Reshape(node("Reshape"), t, objects((2,), [Dim(4), 2]))
+    np.testing.assert_array_equal(whole(rows), groups.transpose(1, 0, 2).reshape(4 * N, 2))
+    back = OPS.Reshape(node("Reshape"), rows, objects((3,), [4, Dim(1), 2]))
+    back = OPS.Transpose(node("Transpose"), back, perm=[1, 0, 2])
+    flat = OPS.Reshape(node("Reshape"), back, np.array([0, -1]))
+    np.testing.assert_array_equal(whole(flat), groups.reshape(N, 8))
+    assert OPS.Shape(node("Shape"), rows).tolist() == [Dim(4), 2]
+
+
+def test_tile_concat_slice_and_gather_follow_numpy(groups):
+    x = OPS.Transpose(node("Transpose"), batched(groups), perm=[2, 0, 1])  # (2, N, 4)
+    want = groups.transpose(2, 0, 1)
+    np.testing.assert_array_equal(whole(OPS.Tile(node("Tile"), x, np.array([2, 3, 1]))), np.tile(want, (2, 3, 1)))
+    both = OPS.Concat(node("Concat"), x, np.ones((1, 1, 2), np.float32), axis=2)
+    np.testing.assert_array_equal(whole(both), np.concatenate([want, np.ones((2, N, 2))], axis=2))
+    part = OPS.Slice(node("Slice"), x, np.array([1]), np.array([2**62]), np.array([2]), np.array([2]))
+    np.testing.assert_array_equal(whole(part), want[:, :, 1::2])
+    taken = OPS.Gather(node("Gather"), x, np.array([[3, 0]]), axis=2)
+    np.testing.assert_array_equal(whole(taken), np.take(want, [[3, 0]], axis=2))
+
+
+def test_products_with_constant_matrices_follow_numpy(groups):
+    rng = np.random.default_rng(0)
+    x = OPS.Reshape(node("Reshape"), batched(groups), np.array([-1, 8]))  # (N, 8)
+    w = rng.integers(-3, 4, (8, 5)).astype(np.float32)  # small integers: every sum exact
+    w[2] = 0.0
+    full = groups.reshape(N, 8)
+    np.testing.assert_array_equal(whole(OPS.Gemm(node("MatMul"), x, w, matmul=True)), full @ w)
+    bias = rng.integers(-3, 4, (5, 1)).astype(np.float32)
+    columns = OPS.Gemm(node("Gemm"), w.T.copy(), x, bias, alpha=2.0, transB=1)  # (5, N): the batch on columns
+    assert columns.axis == 1
+    np.testing.assert_array_equal(whole(columns), 2 * w.T @ full.T + bias)
+
+
+def test_the_batch_axis_cannot_be_cut_or_mixed(groups):
+    x = batched(groups)
+    with pytest.raises(GraphError, match="Slice of the batch"):
+        OPS.Slice(node("Slice"), x, np.array([1]), np.array([2]), np.array([0]))
+    with pytest.raises(GraphError, match="mix with other axes"):
+        OPS.Reshape(node("Reshape"), x, objects((2,), [8, Dim(1)]))
+    with pytest.raises(GraphError, match="two computed tensors"):
+        OPS.Gemm(node("MatMul"), x, x, matmul=True)
