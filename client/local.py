@@ -60,6 +60,9 @@ class UnknownMaterial(NeumipError, KeyError):
 
 
 def _onnxruntime():
+    # ONNX Runtime >= 1.29 sends usage telemetry, and where it cannot write its cache (a container
+    # user without a home) warns at start-up in raw ANSI colours; ORT_DISABLE_TELEMETRY=0 turns it back on
+    os.environ.setdefault("ORT_DISABLE_TELEMETRY", "1")
     try:
         import onnxruntime
     except ImportError as exc:  # pragma: no cover - base dependency

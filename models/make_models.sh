@@ -1,7 +1,8 @@
 #!/usr/bin/env bash
-# Reproduce the shipped materials: path-traced data ($RES^2 level of detail, $QPT queries per texel,
-# $SPP spp), then `neumip train` with the preset $PRESET, replacing models/NAME.onnx (--force). Each
-# step resumes if interrupted (a checkpoint in runs/NAME/ from another preset is refused: move it away).
+# Reproduce the shipped materials with `neumip fit`: path-traced data ($RES^2 level of detail, $QPT queries
+# per texel, $SPP spp) in data/MATERIAL (shared by NAME and NAME_nooffset), then training with the preset
+# $PRESET, replacing models/NAME.onnx (--force). Each step resumes if interrupted (a checkpoint in
+# runs/NAME/ from another preset is refused: move it away).
 # Defaults reproduce the models shipped now (`ship` preset, 64^2, 256 queries per texel, 16 spp).
 # PRESET=quality is the longer recipe measured in models/README.md ("Quality levers"): 10 000 steps of 16 384.
 # Run from the repository root: [PRESET=ship|quality] [RES=64] [THREADS=1] bash models/make_models.sh [NAME ...]
@@ -46,7 +47,7 @@ for name in "${names[@]}"; do
   material=${name%_nooffset}
   flags=()
   [ "$name" != "$material" ] && flags=(--no-offset)
-  generate_data "$material"
-  "$NEUMIP" train "$(data_dir "$material")" -o "models/$name.onnx" --force --preset "$PRESET" --threads "$THREADS" \
-    --resolution "$RES" --hidden "$HIDDEN" "${flags[@]}" --description "$(describe "$name")"
+  "$NEUMIP" fit "$material" -o "models/$name.onnx" --force --work "runs/$name" --data "$(data_dir "$material")" \
+    --resolution "$RES" --queries-per-texel "$QPT" --spp "$SPP" --preset "$PRESET" --threads "$THREADS" \
+    --hidden "$HIDDEN" "${flags[@]}" --description "$(describe "$name")"
 done

@@ -52,6 +52,8 @@ def run(overrides: dict) -> int:
     app = create_app(settings)  # EngineUnavailable (one line) if NEUMIP_ENGINE cannot run here
     sock = listen(settings.host, settings.port)
     logging.getLogger().setLevel(settings.log_level.upper())
+    host = f"[{settings.host}]" if ":" in settings.host else settings.host
+    log.info("listening on http://%s:%d (ready once the models load: GET /v2/health/ready)", host, settings.port)
     config = uvicorn.Config(
         app,
         host=settings.host,

@@ -6,7 +6,7 @@ import argparse
 import os
 from pathlib import Path
 
-from . import trim_command
+from . import fit_command, trim_command
 from neumip.core.config import MaterialConfig  # torch-free
 from .train_config import PRESETS  # torch-free
 
@@ -22,7 +22,8 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--preset", choices=tuple(PRESETS), default="ship",
                    help="training schedule preset (training/TRAINING.md)")
     p.add_argument("--config", help="JSON file of TrainConfig fields (applied over the preset)")
-    p.add_argument("--checkpoint", help="checkpoint path (default runs/NAME/checkpoint.pt); resumes if it exists")
+    p.add_argument("--checkpoint", help="checkpoint path (default NAME.run/checkpoint.pt beside the output); "
+                   "resumes if it exists")
     level = p.add_mutually_exclusive_group()
     level.add_argument("--resolution", "--finest-resolution", type=int,
                        help="finest pyramid level, texels per side (default: the data's generator resolution, else 128)")
@@ -45,6 +46,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--threads", type=int, help="torch CPU threads (default: one per core; idle threads sleep "
                    "instead of spinning, so this holds up on a busy machine: training/TRAINING.md)")
     p.set_defaults(func=_train)
+    fit_command.register(sub)
 
     p = sub.add_parser("export", help="export a training checkpoint to an ONNX material, or rewrite an "
                        "exported .onnx material with this version's graph (same weights and metadata; "
@@ -58,7 +60,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     trim_command.register(sub)
 
 
-def _train_config(args: argparse.Namespace):
+def train_settings(args: argparse.Namespace):
     import json
     from dataclasses import replace
 
@@ -107,57 +109,90 @@ def _budget_resolution(args: argparse.Namespace, output: Path) -> int | None:
     return resolution
 
 
-def _train(args: argparse.Namespace) -> int:
+def output_path(args: argparse.Namespace, done: bool) -> Path:
+    """--output as a .onnx path that may be written (`done`: a model is already there)."""
     from neumip.client.cli import CommandError
 
     output = Path(args.output)
     if output.suffix != ".onnx":
         raise CommandError(f"--output must end in .onnx, got {output}")
-    if output.exists() and not args.force:
+    if done and not args.force:
         raise CommandError(f"{output} exists: pass --force to replace it, or choose another --output")
+    return output
+
+
+def import_torch(threads: int | None) -> None:
+    """Import torch with `threads` CPU threads (None: one per core) that sleep while they wait."""
     # torch's OpenMP threads spin while they wait by default: on a machine whose cores other jobs
     # use, 2 spinning threads made a quick run ~7x slower than 1; sleeping threads do not (TRAINING.md)
     os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
     import torch
+
+    if threads:
+        torch.set_num_threads(threads)
+
+
+def _step_bar(bar, batch: int):
+    """(step, loss) callback that advances `bar` to `step`, with the loss and the query rate."""
+    def progress(step: int, loss: float) -> None:
+        bar.update(step - bar.n)
+        if step % 10 == 0:
+            rate = bar.format_dict["rate"] or 0.0
+            bar.set_postfix(loss=f"{loss:.4g}", queries_per_s=f"{rate * batch / 1e6:.2f}M")
+    return progress
+
+
+def progress_line(trainer, progress_png: Path) -> str:
+    step, _levels, mse = trainer.state.progress[-1]
+    return f"step {step}: held-out MSE {mse * 1e3:.4f}e-3, {progress_png} updated"
+
+
+def print_finished(table: dict, paths: dict, kept: str) -> None:
+    """Print the validation table, the files written and the run's length (`kept`: where its state is)."""
+    from .validation import format_table
+
+    print(format_table(table))
+    size = paths["onnx"].stat().st_size / 1e6
+    print(f"wrote {paths['onnx']} ({size:.2f} MB), {paths['json']}, {paths['png']}, {paths['progress']}")
+    print(f"trained {table['steps']} steps in {table['train_seconds'] / 60:.1f} min; {kept}")
+
+
+def _train(args: argparse.Namespace) -> int:
+    from neumip.client.cli import CommandError
+
+    from .fit import work_folder
+
+    output = output_path(args, Path(args.output).exists())
+    import_torch(args.threads)
     from tqdm import tqdm
 
     from .checkpoint import CheckpointError
     from .dataset import DatasetError
-    from .outputs import progress_path, write_outputs, write_progress
+    from .outputs import install_outputs, progress_path, write_progress
     from .train import Trainer, TrainingDiverged, TrainingError
-    from .validation import format_table
     from .views import ViewGrid, trace_views
 
-    if args.threads:
-        torch.set_num_threads(args.threads)
-    checkpoint = Path(args.checkpoint or Path("runs") / output.stem / "checkpoint.pt")
+    checkpoint = Path(args.checkpoint or work_folder(output) / "checkpoint.pt")
     try:
-        config = _train_config(args)
+        config = train_settings(args)
         resolution = args.resolution or _budget_resolution(args, output) or _data_resolution(args.data)
         material = MaterialConfig(resolution=resolution, offset=not args.no_offset, head=args.head,
                                   hidden=args.hidden)
         trainer = Trainer(args.data, checkpoint, material, config, args.description)
     except (ValueError, DatasetError, CheckpointError) as exc:
         raise CommandError(str(exc)) from exc
-    views = trace_views(trainer.data.meta.get("material") or {}, ViewGrid(), resolution,
-                        checkpoint.parent / "views", args.views_material)
+    meta = trainer.data.meta
+    views = trace_views(meta.get("material") or {}, ViewGrid(), resolution, checkpoint.parent / "views",
+                        args.views_material, meta.get("description_dir"))
     progress_png = progress_path(output)
 
     def on_progress(trainer: Trainer) -> None:
         write_progress(trainer, progress_png, views)
-        step, _levels, mse = trainer.state.progress[-1]
-        bar.write(f"step {step}: held-out MSE {mse * 1e3:.4f}e-3, {progress_png} updated")
+        bar.write(progress_line(trainer, progress_png))
 
     bar = tqdm(total=config.steps, initial=trainer.state.step, unit="step", dynamic_ncols=True)
-
-    def progress(step: int, loss: float) -> None:
-        bar.update(1)
-        if step % 10 == 0:
-            rate = bar.format_dict["rate"] or 0.0
-            bar.set_postfix(loss=f"{loss:.4g}", queries_per_s=f"{rate * config.batch / 1e6:.2f}M")
-
     try:
-        table = trainer.run(progress, on_progress)
+        table = trainer.run(_step_bar(bar, config.batch), on_progress)
     except (TrainingDiverged, TrainingError) as exc:
         raise CommandError(str(exc)) from exc
     except KeyboardInterrupt:
@@ -167,11 +202,7 @@ def _train(args: argparse.Namespace) -> int:
         raise
     finally:
         bar.close()
-    paths = write_outputs(trainer, table, output, views)
-    print(format_table(table))
-    size = paths["onnx"].stat().st_size / 1e6
-    print(f"wrote {paths['onnx']} ({size:.2f} MB), {paths['json']}, {paths['png']}, {paths['progress']}")
-    print(f"trained {trainer.state.step} steps in {trainer.state.seconds / 60:.1f} min; checkpoint {checkpoint}")
+    print_finished(table, install_outputs(trainer, table, output, views), f"checkpoint {checkpoint}")
     return 0
 
 
@@ -262,7 +293,7 @@ def _train_many(args: argparse.Namespace) -> int:
 
     ray = ray_config(args)
     try:
-        settings = LibrarySettings(Path(args.models), Path(args.runs), _train_config(args), args.threads)
+        settings = LibrarySettings(Path(args.models), Path(args.runs), train_settings(args), args.threads)
         jobs = _library_jobs(args)
     except ValueError as exc:
         raise CommandError(str(exc)) from exc

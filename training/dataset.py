@@ -34,9 +34,18 @@ from neumip.core.errors import NeumipError
 
 FORMAT = "neumip-mbtf-1"
 
+LOCATION_KEYS = ("description_dir",)
+"""meta.json keys that say where the inputs were, not what the data are: a data set resumed or
+remade from a moved description keeps its identity, and the keys take the newest values."""
+
 
 class DatasetError(NeumipError, RuntimeError):
     """A data set folder that is missing, incomplete or inconsistent."""
+
+
+def _identity(meta: dict) -> dict:
+    """What identifies a data set in its meta (JSON-normalised): all but completion and location."""
+    return json.loads(json.dumps({k: v for k, v in meta.items() if k != "complete" and k not in LOCATION_KEYS}))
 
 
 def _write_json(path: Path, data: dict) -> None:
@@ -99,16 +108,18 @@ class DatasetWriter:
         saved = json.loads(meta_path.read_text()) if meta_path.exists() else {}
         self.complete = bool(saved.get("complete"))
         if self.complete:  # the same data set again: nothing to write; another one: refused
-            if {k: v for k, v in saved.items() if k != "complete"} != json.loads(json.dumps(self.meta)):
+            if _identity(saved) != _identity(self.meta):
                 raise DatasetError(
                     f"{self.path} already holds a complete data set made with other settings; "
                     "remove it or write to another folder"
                 )
+            if any(saved.get(k) != self.meta.get(k) for k in LOCATION_KEYS):  # its inputs moved
+                _write_json(meta_path, {**self.meta, "complete": True})
             self.done = self.chunks
             return
         if self._progress.exists():
             state = json.loads(self._progress.read_text())
-            if state["meta"] != json.loads(json.dumps(self.meta)):
+            if _identity(state["meta"]) != _identity(self.meta):
                 raise DatasetError(
                     f"{self.path} holds a partial data set made with other settings; "
                     "remove it or use the same settings to resume"

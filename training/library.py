@@ -10,8 +10,6 @@ data sets, models and runs folders must be on a file system every node sees (or 
 from __future__ import annotations
 
 import logging
-import os
-import shutil
 from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Callable
@@ -63,21 +61,14 @@ def train_material(job: MaterialJob, settings: LibrarySettings, progress: Progre
     """Train (or resume) one material and move its outputs into place; returns the validation table."""
     import torch
 
-    from .outputs import write_outputs
+    from .outputs import install_outputs
     from .train import Trainer
 
     torch.set_num_threads(settings.threads)
     checkpoint = settings.runs / job.name / "checkpoint.pt"
     trainer = Trainer(job.data, checkpoint, job.material, settings.config, job.description)
     table = trainer.run(progress)
-    staging = settings.models / f".{job.name}.partial"
-    shutil.rmtree(staging, ignore_errors=True)  # left by an interrupted export
-    staging.mkdir(parents=True)
-    paths = write_outputs(trainer, table, staging / f"{job.name}.onnx")
-    for kind in sorted(paths, key=lambda k: k == "json"):  # the record last: it marks the material finished
-        if paths[kind] is not None:
-            os.replace(paths[kind], settings.models / paths[kind].name)
-    staging.rmdir()
+    install_outputs(trainer, table, settings.models / f"{job.name}.onnx")
     return table
 
 

@@ -12,6 +12,7 @@ from __future__ import annotations
 import json
 import logging
 import os
+import shutil
 from pathlib import Path
 
 import numpy as np
@@ -145,3 +146,20 @@ def write_outputs(trainer: Trainer, table: dict, output: str | Path, views=None)
     log.info("wrote %s (%.2f MB), %s, %s, %s", onnx_path, onnx_path.stat().st_size / 1e6, json_path, png_path,
              progress)
     return {"onnx": onnx_path, "json": json_path, "png": png_path, "progress": progress}
+
+
+def install_outputs(trainer: Trainer, table: dict, output: str | Path, views=None) -> dict[str, Path]:
+    """`write_outputs` into a hidden staging folder beside `output`, then move each file into place,
+    ``NAME.json`` last: a model whose record exists is whole, and an interrupted export leaves no
+    half-written file under the model's name."""
+    output = Path(output)
+    staging = output.with_name(f".{output.stem}.partial")
+    shutil.rmtree(staging, ignore_errors=True)  # left by an interrupted export
+    staging.mkdir(parents=True)
+    paths = write_outputs(trainer, table, staging / output.name, views)
+    for kind in sorted(paths, key=lambda k: k == "json"):  # the record last: it marks the model whole
+        final = output.with_name(paths[kind].name)
+        os.replace(paths[kind], final)
+        paths[kind] = final
+    staging.rmdir()
+    return paths

@@ -72,16 +72,38 @@ def images(values: np.ndarray, grid: ViewGrid, resolution: int) -> np.ndarray:
     return values.reshape(len(grid.views), len(grid_levels(grid, resolution)), p, p, C.RGB_DIM)
 
 
+def data_material(material_meta: dict, description: str | Path | None = None, base_dir: str | Path | None = None):
+    """The `MaterialDescription` of a data set: `description` (a library name or .toml path) if
+    given, else the one its meta.json holds (`material_meta`, its relative map paths resolved against
+    `base_dir`: the description file's folder, meta.json's ``description_dir``). Raises
+    DescriptionError when it cannot be rebuilt (map files moved) or its map files hash otherwise than
+    the data's."""
+    from .microgeometry.description import DescriptionError, MaterialDescription, find_description
+
+    if description is not None:
+        desc = find_description(description)
+    elif isinstance(material_meta, dict) and material_meta:
+        desc = MaterialDescription.from_dict({k: v for k, v in material_meta.items() if k != "map_sha256"},
+                                             base_dir=base_dir)
+    else:
+        raise DescriptionError("the data set does not describe its material")
+    hashes = desc.to_dict().get("map_sha256")
+    if isinstance(material_meta, dict) and material_meta and hashes != material_meta.get("map_sha256"):
+        raise DescriptionError(f"the map files of {desc.name!r} differ from the training data's")
+    return desc
+
+
 def trace_views(material_meta: dict, grid: ViewGrid, resolution: int, out: str | Path,
-                description: str | Path | None = None):
+                description: str | Path | None = None, base_dir: str | Path | None = None):
     """Ground truth of the view grid, traced once into the data set folder `out` (reused when it holds
     the same queries). The material is `description` (a library name or .toml path) if given, else
-    the one a data set's meta.json describes (`material_meta`); its map files must hash as in
-    `material_meta`. Returns the opened data set, or None (logged) when the material cannot be rebuilt,
-    e.g. a description whose map files are elsewhere: then the grid shows the model only.
+    the one a data set's meta.json describes (`material_meta`, its relative map paths resolved against
+    `base_dir`: the description's folder, meta.json's ``description_dir``); its map files must hash as
+    in `material_meta`. Returns the opened data set, or None (logged) when the material cannot be
+    rebuilt, e.g. map files moved or changed since: then the grid shows the model only.
     """
     from .dataset import open_dataset, write_dataset
-    from .microgeometry.description import DescriptionError, MaterialDescription, find_description, resolve
+    from .microgeometry.description import DescriptionError, resolve
     from .microgeometry.tracer import QueryTracer
 
     out = Path(out)
@@ -98,16 +120,10 @@ def trace_views(material_meta: dict, grid: ViewGrid, resolution: int, out: str |
         except Exception as exc:  # a stale or broken cache: trace again
             log.warning("progress views at %s unusable (%s): tracing them again", out, exc)
     try:
-        if description is not None:
-            desc = find_description(description)
-        else:
-            desc = MaterialDescription.from_dict({k: v for k, v in material_meta.items() if k != "map_sha256"})
-        hashes = desc.to_dict().get("map_sha256")
-        if material_meta and hashes != material_meta.get("map_sha256"):
-            raise DescriptionError(f"the map files of {desc.name!r} differ from the training data's")
-        geo = resolve(desc)
+        geo = resolve(data_material(material_meta, description, base_dir))
     except (DescriptionError, OSError, ValueError, TypeError) as exc:
-        log.warning("no ground truth for the progress grid (%s): it shows the model only", exc)
+        log.warning("no ground truth for the progress grid (%s): it shows the model only; "
+                    "--views-material PATH.toml names the material's description file", exc)
         return None
     rgb = QueryTracer(geo).estimate(queries, grid.spp, seed=1)
     meta = {"material": material_meta, "generator": {"name": "progress views", "spp": grid.spp}}

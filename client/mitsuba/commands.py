@@ -159,6 +159,8 @@ def _render(args: argparse.Namespace) -> int:
     if args.max_lanes:
         config.max_lanes = args.max_lanes
     scene = R.load_scene(args.scene, **params)
+    if not args.server:
+        _load_scene_materials(evaluator, scene)
     with tqdm(desc="render passes", unit="pass", total=None) as bar:
 
         def on_pass(done: int, total: int) -> None:
@@ -182,6 +184,28 @@ def _render(args: argparse.Namespace) -> int:
         f"{result.seconds:.1f} s total, {s.seconds:.1f} s neural evaluation, {s.queries:,} queries"
     )
     return 0
+
+
+def _load_scene_materials(evaluator, scene) -> None:
+    """Load the scene's neural materials from the model folder before rendering (the evaluators load
+    lazily): model files that fail are reported now, all of them, as the server reports them at
+    start-up, never in the middle of a render."""
+    from neumip.client.cli import CommandError
+    from neumip.client.local import ModelError
+
+    from .shading import scene_materials
+
+    load = getattr(evaluator, "kernel", None) or evaluator.get
+    failed = {}
+    for name in set(scene_materials(scene)) & set(evaluator.materials()):
+        try:
+            load(name)
+        except ModelError as exc:
+            failed[name] = str(exc)
+    if failed:
+        reasons = "; ".join(f"{name}: {reason}" for name, reason in sorted(failed.items()))
+        raise CommandError(f"{len(failed)} of the scene's materials failed to load from {evaluator.folder} "
+                           f"({reasons}); no image written")
 
 
 def _select_variant(variant: str) -> None:

@@ -22,6 +22,24 @@ def test_verbose_before_or_after_the_subcommand(argv):
     assert cli.build_parser().parse_args(argv).verbose is True
 
 
+def test_bare_neumip_prints_the_help(capsys):
+    assert cli.main([]) == 0
+    out = capsys.readouterr().out
+    assert out.startswith("usage: neumip") and "fit" in out and "render" in out and "serve" in out
+
+
+def test_serve_says_where_it_listens_and_logs_no_colour_codes(model_dir, serve, monkeypatch):
+    """The server's log names its address, and where ONNX Runtime cannot write its telemetry cache (a
+    container user without a home) it carries no raw ANSI colour codes from ONNX Runtime's warning."""
+    monkeypatch.setenv("HOME", "/proc/neumip-no-home")  # cannot be created, not even by root
+    monkeypatch.delenv("XDG_CACHE_HOME", raising=False)
+    monkeypatch.delenv("ORT_DISABLE_TELEMETRY", raising=False)
+    server = serve()
+    log = server.log.read_text()
+    assert f"listening on {server.url}" in log, log
+    assert "\x1b[" not in log and "telemetry" not in log, log
+
+
 def test_verbose_defaults_to_off():
     assert cli.build_parser().parse_args(["query", "m.onnx", *"0 0 0 0 0 0 0".split()]).verbose is False
 

@@ -1,6 +1,6 @@
 """Material descriptions: a small TOML file describing one periodic tile of microgeometry.
 
-Format (every key but ``name`` optional; paths are relative to the file)::
+The user guide, with every key's units and a worked example, is MATERIALS.md beside this file. Format (every key but ``name`` optional; paths are relative to the file)::
 
     name = "yarn"                 # identifier (defaults to the file name)
     summary = "plain-woven yarn"  # one line for listings

@@ -127,6 +127,8 @@ def generate(
     settings = settings or GenerateSettings()
     n = settings.query_count(desc)
     meta = {"material": desc.to_dict(), "generator": settings.to_meta(desc)}
+    if desc.base_dir is not None and "map_sha256" in meta["material"]:
+        meta["description_dir"] = str(desc.base_dir.resolve())  # where its map files are (training's views)
     writer = DatasetWriter(out, n, settings.chunk, meta)
     if writer.complete:
         log.info("%s is already complete with these settings: nothing to do", out)

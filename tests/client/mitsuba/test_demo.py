@@ -33,6 +33,17 @@ def test_demo_uses_the_shipped_material_names():
     assert scene.emitters()  # area light and environment
 
 
+@pytest.mark.parametrize("scene, param, replaced", [
+    (DEMO, "cube", "rock"), (DEMO, "cylinder", "foam"), (DEMO, "left_sphere", "yarn"),
+    (DEMO, "right_sphere", "turtle"), (DEMO.with_name("closeup.xml"), "material", "yarn"),
+])
+def test_scene_parameters_name_the_neural_materials(scene, param, replaced):
+    """`-D cube=bricks` puts one's own material in the demo without editing XML; the others stay."""
+    defaults = scene_materials(load_scene(scene, resx="8", resy="8"))
+    mine = scene_materials(load_scene(scene, resx="8", resy="8", **{param: "bricks"}))
+    assert mine == sorted(set(defaults) - {replaced} | {"bricks"})
+
+
 def test_demo_renders_all_materials(model_dir, tmp_path):
     models = stand_ins(model_dir, tmp_path)
     scene = load_scene(DEMO, resx="64", resy="64")

@@ -52,6 +52,27 @@ def test_unknown_material_is_a_clear_error(model_dir, tmp_path, capsys):
     assert "velvet" in capsys.readouterr().err and not out.exists()
 
 
+@pytest.mark.parametrize("engine", ["kernel", "onnxruntime"])
+def test_corrupt_models_are_reported_as_failed_before_rendering(model_dir, tmp_path, capsys, monkeypatch, engine):
+    """A scene's corrupt model file fails the render at its start, named with its reason (as the
+    server reports it at start-up), not as a failed pass mid-render; nothing is written."""
+    import shutil
+
+    from neumip.client.mitsuba import render as R
+
+    models = tmp_path / "models"
+    models.mkdir()
+    shutil.copy(model_dir / "lambert.onnx", models / "lambert.onnx")
+    (models / "rand16.onnx").write_bytes((model_dir / "rand16.onnx").read_bytes()[:500])  # truncated
+    passes = []
+    monkeypatch.setattr(R, "_render_pass", lambda *args: passes.append(args))
+    out = tmp_path / "out.png"
+    rc = cli.main(["render", write_xml(tmp_path), "-o", str(out), "--models", str(models), "--engine", engine])
+    assert rc == 2 and not out.exists() and not passes
+    err = capsys.readouterr().err
+    assert f"1 of the scene's materials failed to load from {models} (rand16: rand16.onnx" in err
+
+
 def test_unreachable_server_is_a_clear_error(tmp_path, capsys):
     out = tmp_path / "out.png"
     with socket.socket() as bound:  # a port that is bound but not listening: connections are refused

@@ -48,11 +48,15 @@ def test_server_render_equals_in_process(model_dir, server, tmp_path, one_drjit_
     np.testing.assert_array_equal(remote.image, local.image)
 
 
-def test_render_command_over_v2_equals_msgpack(model_dir, server, tmp_path):
+def test_render_command_over_v2_equals_msgpack(model_dir, server, tmp_path, caplog):
     """`neumip render --protocol v2` writes the image `--protocol msgpack` writes (up to the film's
-    thread-dependent summation order; bit for bit on one thread: test_server_render_equals_in_process)."""
+    thread-dependent summation order; bit for bit on one thread: test_server_render_equals_in_process).
+    Its HTTP requests are logged only with -v (DEBUG), not one INFO line per request."""
+    import logging
+
     from neumip.client.mitsuba.render import mi
 
+    caplog.set_level(logging.DEBUG)
     scene = write_xml(tmp_path)
     images = {}
     for protocol in ("msgpack", "v2"):
@@ -61,6 +65,9 @@ def test_render_command_over_v2_equals_msgpack(model_dir, server, tmp_path):
         images[protocol] = np.array(mi.Bitmap(str(out)))
     assert images["v2"].mean() > 0.01
     np.testing.assert_allclose(images["v2"], images["msgpack"], rtol=1e-5, atol=1e-6)
+    assert "HTTP Request" not in caplog.text
+    assert cli.main(["render", scene, "-o", str(out), "--server", server.url, "--spp", "1", "-v"]) == 0
+    assert "HTTP Request: POST" in caplog.text
 
 
 SHIPPED = Path(__file__).resolve().parents[3] / "models"

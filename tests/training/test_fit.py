@@ -1,0 +1,147 @@
+"""`neumip fit` and texture-map materials run from another folder: a real 8^2 material from PNG maps,
+path-traced with Mitsuba, trained a few steps, exported; interrupted fits resume to the same model."""
+
+from __future__ import annotations
+
+import json
+import logging
+from dataclasses import replace
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+
+from neumip.client.cli import main
+from neumip.core.config import MaterialConfig
+from neumip.training.train_config import TEST
+
+pytest.importorskip("mitsuba")
+Image = pytest.importorskip("PIL.Image")
+
+STEPS = 30
+FAST = replace(TEST, steps=STEPS, batch=512, checkpoint_every=10, validate_every=10, log_every=5)
+
+
+@pytest.fixture(scope="module", autouse=True)
+def one_thread():
+    threads = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(threads)
+
+
+@pytest.fixture(scope="module")
+def material(tmp_path_factory) -> Path:
+    """my.toml with 8 x 8 height, albedo and roughness PNGs beside it (a raised square on a floor)."""
+    folder = tmp_path_factory.mktemp("my_material")
+    height = np.zeros((8, 8), np.uint16)
+    height[2:6, 2:6] = 65535
+    Image.fromarray(height).save(folder / "height.png")
+    albedo = np.full((8, 8, 3), 180, np.uint8)
+    albedo[2:6, 2:6] = (200, 60, 40)
+    Image.fromarray(albedo).save(folder / "albedo.png")
+    Image.fromarray(np.where(height > 0, 80, 230).astype(np.uint8)).save(folder / "roughness.png")
+    (folder / "my.toml").write_text(
+        'summary = "a raised square"\nresolution = 8\nheight_scale = 0.05\n'
+        '[maps]\nheight = "height.png"\nbase_color = "albedo.png"\nroughness = "roughness.png"\n'
+    )
+    return folder / "my.toml"
+
+
+def test_train_views_find_the_maps_of_data_made_in_another_folder(material, tmp_path, monkeypatch, caplog):
+    """The progress grid's ground truth of a texture-map material: meta.json's map paths are relative
+    to the description file, so training run from another folder used to lose them (and the grid
+    showed the model only)."""
+    data = tmp_path / "data"
+    monkeypatch.chdir(material.parent)  # generated beside the maps, with a relative path
+    assert main(["generate", material.name, "-o", str(data), "--queries", "2048", "--spp", "2"]) == 0
+    elsewhere = tmp_path / "elsewhere"
+    elsewhere.mkdir()
+    monkeypatch.chdir(elsewhere)
+    caplog.set_level(logging.WARNING)
+    argv = ["train", str(data), "-o", str(tmp_path / "my.onnx"), "--preset", "test", "--steps", "10",
+            "--batch", "256", "--checkpoint", str(tmp_path / "run" / "ck.pt"), "--threads", "1"]
+    assert main(argv) == 0
+    assert "no ground truth for the progress grid" not in caplog.text
+    views = json.loads((tmp_path / "run" / "views" / "meta.json").read_text())
+    assert views["complete"] and views["material"]["name"] == "my"
+
+
+def test_train_checkpoint_defaults_beside_the_output(material, tmp_path, monkeypatch, plane_data):
+    """Without --checkpoint, `neumip train` keeps its run in NAME.run/ beside the model, not in ./runs."""
+    data = plane_data(tmp_path / "plane", 2048)
+    monkeypatch.chdir(tmp_path)
+    out = tmp_path / "models" / "plane.onnx"
+    assert main(["train", str(data.path), "-o", str(out), "--preset", "test", "--steps", "5",
+                 "--batch", "256", "--resolution", "8", "--threads", "1"]) == 0
+    assert (tmp_path / "models" / "plane.run" / "checkpoint.pt").is_file()
+    assert not (tmp_path / "runs").exists()
+
+
+def test_fit_from_another_folder(material, tmp_path, monkeypatch, capsys):
+    """One command, run from an unrelated folder: ground truth, training, validation table, export."""
+    monkeypatch.chdir(tmp_path)
+    out = tmp_path / "models" / "my.onnx"
+    argv = ["fit", str(material), "-o", str(out), "--preset", "test", "--steps", "10", "--spp", "2",
+            "--queries-per-texel", "32", "--threads", "1"]
+    assert main(argv) == 0
+    printed = capsys.readouterr().out
+    assert "MSE x1e-3" in printed and "work folder" in printed
+    for name in ("my.onnx", "my.json", "my.loss.png", "my.progress.png"):
+        assert (out.parent / name).is_file(), name
+    record = json.loads(out.with_suffix(".json").read_text())
+    assert record["validation"]["steps"] == 10 and record["material_config"]["resolution"] == 8
+    assert (out.parent / "my.run" / "views" / "meta.json").is_file()  # the grid had its ground truth
+    assert not list(out.parent.glob(".*.partial"))
+    assert main(argv) == 2  # finished: replaced only with --force
+    assert "pass --force" in capsys.readouterr().err
+    assert main(["fit", str(tmp_path / "absent.toml"), "-o", str(tmp_path / "a.onnx")]) == 2
+    assert "does not exist" in capsys.readouterr().err
+
+
+def test_interrupted_fit_resumes_to_the_same_model(material, tmp_path):
+    """Interrupted in the ground truth and again in training, a fit leaves no model under its name,
+    and the same call then finishes the model an uninterrupted fit makes."""
+    from neumip.client.local import LocalMaterials
+    from neumip.core.contract import random_queries
+    from neumip.training.fit import FitSettings, fit, fitted
+    from neumip.training.microgeometry.description import load_description
+    from neumip.training.microgeometry.generate import GenerateSettings
+
+    desc = load_description(material)
+    gen = GenerateSettings(queries=2048, spp=2, chunk=512)
+    settings = FitSettings(MaterialConfig(resolution=8), FAST, gen)
+
+    def interrupt_at(stage: str, count: int):
+        def report(name: str, done: int, total: int | None) -> None:
+            if name == stage and done >= count:
+                raise KeyboardInterrupt
+        return report
+
+    out = tmp_path / "resumed" / "my.onnx"
+    for stage, count in (("ground truth", 1024), ("training", 15)):
+        with pytest.raises(KeyboardInterrupt):
+            fit(desc, out, settings, interrupt_at(stage, count))
+        assert not out.exists() and not fitted(out)
+    progress = json.loads((out.parent / "my.run" / "data" / "meta.json").read_text())
+    assert progress["complete"]  # the ground truth was finished by the second call
+    table, paths = fit(desc, out, settings)
+    assert fitted(out) and table["steps"] == STEPS
+    whole = tmp_path / "whole" / "my.onnx"
+    fit(desc, whole, settings)
+    queries = random_queries(4096, seed=3)
+    answers = [LocalMaterials(path.parent, threads=1).evaluate("my", queries) for path in (out, whole)]
+    np.testing.assert_array_equal(*answers)
+
+
+def test_fit_command_imports_torch_only_after_setting_its_threads():
+    """`neumip fit` checks its output before importing torch: torch's OpenMP threads read
+    OMP_WAIT_POLICY once, and spinning threads made training ~20x slower on a busy machine."""
+    import subprocess
+    import sys
+
+    code = ("import sys; from neumip.client.cli import build_parser; build_parser(); "
+            "from neumip.training.fit import fitted, work_folder; fitted('m.onnx'); work_folder('m.onnx'); "
+            "sys.exit('torch' in sys.modules)")
+    assert subprocess.run([sys.executable, "-c", code], timeout=120).returncode == 0

@@ -1,0 +1,111 @@
+"""One material description to one model: ground truth, training, validation and export in one run.
+
+`fit` chains what `neumip generate` and `neumip train` do, in a work folder beside the model
+(``NAME.run/`` next to ``NAME.onnx`` unless told otherwise; `neumip train` keeps its checkpoint there
+too)::
+
+    NAME.run/
+      data/            the path-traced MBTF data set (resumable chunks, training/dataset.py)
+      checkpoint.pt    the training run (resumes exactly where it stopped)
+      views/           ground truth of the progress grid (training/views.py)
+
+Every stage resumes when the same call is made again after an interruption: the data set continues
+at its first unfinished chunk, training at its last checkpoint. The model and its sidecar files are
+written into a staging folder and moved into place one by one, ``NAME.json`` last, so a model
+whose ``NAME.json`` exists is whole (`fitted`).
+"""
+
+from __future__ import annotations
+
+import logging
+from dataclasses import dataclass, replace
+from pathlib import Path
+from typing import TYPE_CHECKING, Callable
+
+from neumip.core.config import MaterialConfig
+
+from .train_config import SHIP, TrainConfig
+
+if TYPE_CHECKING:  # Mitsuba is imported only when a fit runs
+    from .microgeometry.generate import GenerateSettings
+
+log = logging.getLogger(__name__)
+
+STAGES = ("ground truth", "progress views", "training", "export")
+"""The stages of a fit, in order, as `Report` names them."""
+
+Report = Callable[[str, int, int | None], None]
+"""Called with (stage, done, total) as a fit goes: queries traced, steps trained (total None where
+a stage has no count)."""
+
+
+@dataclass
+class FitSettings:
+    """How one material description becomes a model."""
+
+    material: MaterialConfig
+    """Architecture; its resolution is also the one the ground truth samples footprints for."""
+    train: TrainConfig = SHIP
+    """Training schedule (a `train_config.PRESETS` value, possibly with overrides)."""
+    generate: GenerateSettings | None = None
+    """Ground-truth settings (None: the defaults); footprints are sampled for the material's
+    resolution unless these name another."""
+    work: Path | None = None
+    """Folder of the data, checkpoint and views (None: ``NAME.run/`` beside the model)."""
+    data: Path | None = None
+    """Data set folder (None: ``WORK/data``); models of one material with other architectures, e.g.
+    without the neural offset, can share one."""
+    description: str = ""
+    """Stored in the model's metadata."""
+    views_material: str | None = None
+    """Description whose ground truth the progress grid shows (None: the fitted one)."""
+
+
+def work_folder(output: str | Path, work: str | Path | None = None) -> Path:
+    """models/NAME.onnx -> models/NAME.run (or `work` when given)."""
+    output = Path(output)
+    return Path(work) if work is not None else output.with_name(output.stem + ".run")
+
+
+def fitted(output: str | Path) -> bool:
+    """Whether the model at `output` and its record (NAME.json, moved in last) are both in place."""
+    output = Path(output)
+    return output.exists() and output.with_suffix(".json").exists()
+
+
+def fit(description, output: str | Path, settings: FitSettings, report: Report | None = None,
+        on_progress: Callable | None = None) -> tuple[dict, dict[str, Path]]:
+    """Generate, train, validate and export `description` (a `MaterialDescription`) to `output`.
+
+    Returns the validation table and the files written (`outputs.write_outputs`' keys).
+    `report(stage, done, total)` follows the run; `on_progress(trainer)` is called after each
+    progress validation (the progress grid is redrawn before it).
+    """
+    from .microgeometry.generate import GenerateSettings, generate
+    from .outputs import install_outputs, progress_path, write_progress
+    from .train import Trainer
+    from .views import ViewGrid, trace_views
+
+    report = report or (lambda stage, done, total: None)
+    work = work_folder(output, settings.work)
+    resolution = settings.material.resolution
+    gen = settings.generate or GenerateSettings()
+    gen = replace(gen, resolution=gen.resolution or resolution)
+    log.info("fitting %s into %s (work folder %s)", description.name, output, work)
+    data = generate(description, settings.data or work / "data", gen,
+                    lambda done, total: report(STAGES[0], done, total))  # (N, 7) queries, (N, 3) RGB
+    report(STAGES[1], 0, None)
+    views = trace_views(data.meta.get("material") or {}, ViewGrid(), resolution, work / "views",
+                        settings.views_material, data.meta.get("description_dir"))
+    trainer = Trainer(data.path, work / "checkpoint.pt", settings.material, settings.train, settings.description)
+    grid_png = progress_path(output)
+
+    def progress(trainer: Trainer) -> None:
+        write_progress(trainer, grid_png, views)
+        if on_progress is not None:
+            on_progress(trainer)
+
+    report(STAGES[2], trainer.state.step, settings.train.steps)
+    table = trainer.run(lambda step, loss: report(STAGES[2], step, settings.train.steps), progress)
+    report(STAGES[3], 0, None)
+    return table, install_outputs(trainer, table, output, views)

@@ -1,0 +1,135 @@
+"""`neumip fit`: the command line of `fit.py` (registered by `training.commands`): a material
+description to a model in one command, with one progress bar for the whole run."""
+
+from __future__ import annotations
+
+import argparse
+from pathlib import Path
+
+from neumip.core.config import MaterialConfig  # torch-free
+
+from . import commands
+from .train_config import PRESETS  # torch-free
+
+
+def register(sub: argparse._SubParsersAction) -> None:
+    from neumip.training.microgeometry.generate import GenerateSettings
+    from neumip.training.microgeometry.sampling import QuerySampling
+
+    p = sub.add_parser(
+        "fit", help="material description -> model in one command: ground truth, training, validation, export",
+        description="Path-trace the ground truth of MATERIAL (a .toml description with its maps beside it, or "
+        "a shipped name), train a neural material on it, validate it on held-out queries and export "
+        "OUTPUT (.onnx) with NAME.json, NAME.loss.png and NAME.progress.png beside it. The data set, "
+        "checkpoint and progress views go into the work folder (default NAME.run/ beside the output); "
+        "an interrupted fit resumes where it stopped when the same command is run again.",
+    )
+    p.add_argument("material", help="a .toml material description (training/microgeometry/MATERIALS.md) "
+                   "or a shipped material name (neumip generate --list)")
+    p.add_argument("-o", "--output", required=True, help="output .onnx path (e.g. models/NAME.onnx)")
+    p.add_argument("--force", action="store_true", help="replace a finished model at the output")
+    p.add_argument("--preset", choices=tuple(PRESETS), default="ship",
+                   help="training schedule preset, as neumip train takes it (training/TRAINING.md)")
+    p.add_argument("--resolution", type=int, help="finest pyramid level, texels per side; the ground truth "
+                   "samples footprints for it (default: the description's resolution)")
+    p.add_argument("--work", type=Path, help="folder of the data set, checkpoint and views (default NAME.run/ "
+                   "beside the output)")
+    p.add_argument("--data", type=Path, help="data set folder of the ground truth, written or resumed (default "
+                   "WORK/data); models of one material, e.g. with and without --no-offset, can share it")
+    p.add_argument("--queries-per-texel", type=float, default=QuerySampling.queries_per_texel,
+                   help="ground-truth queries per finest texel")
+    p.add_argument("--spp", type=int, default=GenerateSettings.spp, help="path samples per ground-truth query")
+    p.add_argument("--no-offset", action="store_true", help="train without the neural offset")
+    p.add_argument("--hidden", type=int, default=MaterialConfig.hidden, help=commands.HIDDEN_HELP)
+    p.add_argument("--steps", type=int, help="override the preset's TrainConfig.steps")
+    p.add_argument("--description", default="", help="short description stored in the model metadata "
+                   "(default: the material's summary, resolution and preset)")
+    p.add_argument("--views-material", metavar="NAME_OR_TOML",
+                   help="material whose ground truth the progress grid shows (default: the fitted one)")
+    p.add_argument("--threads", type=int, help="torch CPU threads (default: one per core)")
+    p.set_defaults(func=_fit, config=None, batch=None, lr=None, seed=None, blur_half_life=None, loss=None,
+                   device=None, compile=False)
+
+
+class StageBar:
+    """One progress bar for a whole fit: it restarts at each stage (queries traced, steps trained)."""
+
+    UNITS = {"ground truth": ("query", True), "training": ("step", False)}
+    """Unit and unit scaling of the stages that count something."""
+
+    def __init__(self, name: str, batch: int) -> None:
+        self.name, self.batch = name, batch
+        self.bar = None  # made at the first report
+        self.stage = None
+
+    def report(self, stage: str, done: int, total: int | None) -> None:
+        from tqdm import tqdm
+
+        from .fit import STAGES
+
+        if stage != self.stage:
+            self.stage = stage
+            unit, scale = self.UNITS.get(stage, ("", False))
+            desc = f"{self.name} [{STAGES.index(stage) + 1}/{len(STAGES)}] {stage}"
+            if self.bar is None:
+                self.bar = tqdm(total=total, unit=unit, unit_scale=scale, desc=desc, dynamic_ncols=True)
+            else:
+                self.bar.reset(total)
+                self.bar.total, self.bar.unit, self.bar.unit_scale = total, unit, scale
+                self.bar.set_description(desc)
+        bar = self.bar
+        bar.update(done - bar.n)
+        if stage == "training" and done % 10 == 0 and bar.format_dict["rate"]:
+            bar.set_postfix(queries_per_s=f"{bar.format_dict['rate'] * self.batch / 1e6:.2f}M")
+
+    def close(self) -> None:
+        if self.bar is not None:
+            self.bar.close()
+
+
+def _fit(args: argparse.Namespace) -> int:
+    from .fit import fitted
+
+    output = commands.output_path(args, fitted(args.output))
+    commands.import_torch(args.threads)  # first: its OpenMP threads read OMP_WAIT_POLICY once, at import
+    from neumip.client.cli import CommandError
+    from neumip.client.mitsuba.runtime import MitsubaUnavailable
+
+    from .checkpoint import CheckpointError
+    from .dataset import DatasetError
+    from .fit import FitSettings, fit, work_folder
+    from .microgeometry.description import DescriptionError, find_description
+    from .microgeometry.generate import GenerateSettings
+    from .microgeometry.sampling import QuerySampling
+    from .outputs import progress_path
+    from .train import TrainingDiverged, TrainingError
+    from tqdm import tqdm
+
+    work = work_folder(output, args.work)
+    try:
+        desc = find_description(args.material)
+        config = commands.train_settings(args)
+        resolution = args.resolution or desc.resolution
+        material = MaterialConfig(resolution=resolution, offset=not args.no_offset, hidden=args.hidden)
+        generate = GenerateSettings(spp=args.spp, sampling=QuerySampling(queries_per_texel=args.queries_per_texel))
+    except (DescriptionError, ValueError) as exc:
+        raise CommandError(str(exc)) from exc
+    kind = "neural offset" if material.offset else "no neural offset"
+    description = args.description or f"{desc.name}: {desc.summary or 'fitted'}, {resolution}^2, {kind}, " \
+                                      f"{args.preset} preset"
+    settings = FitSettings(material, config, generate, work, args.data, description, args.views_material)
+    bar = StageBar(desc.name, config.batch)
+    try:
+        table, paths = fit(desc, output, settings, bar.report,
+                           lambda trainer: tqdm.write(commands.progress_line(trainer, progress_path(output))))
+    except (DescriptionError, DatasetError, CheckpointError, TrainingDiverged, TrainingError,
+            MitsubaUnavailable, ValueError) as exc:
+        raise CommandError(str(exc)) from exc
+    except KeyboardInterrupt:
+        bar.close()
+        print(f"interrupted: re-run the same command to resume (work folder {work})")
+        raise
+    finally:
+        bar.close()
+    commands.print_finished(table, paths, f"work folder {work}")
+    return 0
