@@ -469,12 +469,12 @@ class Ops:
         index = [slice(None)] * (rank + (1 if isinstance(x, Lanes) else 0))
         for a, s, e, st in zip(axes, np.asarray(starts).tolist(), np.asarray(ends).tolist(), steps):
             if isinstance(x, Lanes) and a == x.axis:
-                if s != 0 or st != 1 or not (isinstance(e, Dim) or e >= 2**31 - 1):
+                whole = e.count >= shape[a].count if isinstance(e, Dim) else e >= 2**31 - 1
+                if s != 0 or st != 1 or not whole:
                     raise GraphError("a Slice of the batch axis")
                 continue
-            n = int(shape[a])
             axis = x.storage_axis(a) if isinstance(x, Lanes) else a
-            index[axis] = slice(*slice(int(s), int(min(e, 2**62)), st).indices(n))
+            index[axis] = _slice(int(s), int(e), st, int(shape[a]))
         if not isinstance(x, Lanes):
             return np.asarray(x)[tuple(index)]
         return x.with_cells(x.cells[tuple(index)])
@@ -500,6 +500,9 @@ class Ops:
         if axes is None:
             axes = [i for i, d in enumerate(shape) if _is(d, 1)]
         axes = [int(a) % len(shape) for a in np.asarray(axes).ravel()]
+        for a in axes:
+            if not _is(shape[a], 1):
+                raise GraphError(f"a Squeeze of axis {a}, of length {shape[a]}")
         kept = [d for i, d in enumerate(shape) if i not in axes]
         return self.Reshape(node, x, objects((len(kept),), kept), allowzero=1)
 
@@ -561,6 +564,14 @@ def _fold(xs, fn):
     for x in xs[1:]:
         out = fn(out, x)
     return out
+
+
+def _slice(start: int, end: int, step: int, n: int) -> slice:
+    """ONNX Slice's range of an axis of length `n` as a Python slice: ONNX clamps as
+    `slice.indices` does, and a negative step's end before the first element (-1 there) is
+    ``None`` (-1 in a slice is the last element)."""
+    start, end, step = slice(start, end, step).indices(n)
+    return slice(start, end if end >= 0 else None, step)
 
 
 def _int_divide(a: np.ndarray, b: np.ndarray) -> np.ndarray:

@@ -1,6 +1,8 @@
 """The interpreter's shape algebra (`client/onnx_kernel.py`): a batched tensor held as per-lane cells
 reshaped, transposed, tiled, sliced, concatenated, gathered and multiplied as numpy does it to the
-whole tensor. Each lane's cells hold the tensor's own values, so any misplaced row shows."""
+whole tensor. Each lane's cells hold the tensor's own values, so any misplaced row shows. Small graphs
+written with onnx.helper check the operators' semantics against ONNX Runtime (the ONNX spec's reference
+here): negative slice steps and indices, integer tensors, casts; what the lanes cannot hold is refused."""
 
 from __future__ import annotations
 
@@ -94,3 +96,51 @@ def test_the_batch_axis_cannot_be_cut_or_mixed(groups):
         OPS.Reshape(node("Reshape"), x, objects((2,), [8, Dim(1)]))
     with pytest.raises(GraphError, match="two computed tensors"):
         OPS.Gemm(node("MatMul"), x, x, matmul=True)
+
+
+# --- small graphs against ONNX Runtime: the operators' semantics as the ONNX spec gives them -----------
+
+
+def ints(*values) -> np.ndarray:
+    return np.array(values, np.int64)
+
+
+def against_onnx_runtime(tmp_path, nodes: list, **inits) -> tuple[np.ndarray, np.ndarray]:
+    """A material whose graph is `nodes` (``queries`` (N, 7) -> ``rgb`` (N, 3)) with initializers
+    `inits` -> (the interpreter's answers, ONNX Runtime's) on queries whose u, v span [-3, 3]."""
+    import onnxruntime as ort
+    from onnx import TensorProto, numpy_helper
+
+    from neumip.client.kernel import KernelMaterial
+    from neumip.core import contract as C
+
+    graph = helper.make_graph(nodes, "probe",
+                              [helper.make_tensor_value_info(C.ONNX_INPUT, TensorProto.FLOAT, ["N", 7])],
+                              [helper.make_tensor_value_info(C.ONNX_OUTPUT, TensorProto.FLOAT, ["N", 3])],
+                              initializer=[numpy_helper.from_array(v, k) for k, v in inits.items()])
+    model = helper.make_model(graph, opset_imports=[helper.make_opsetid("", 18)])
+    model.ir_version = 9
+    path = tmp_path / "probe.onnx"
+    path.write_bytes(model.SerializeToString())
+    rng = np.random.default_rng(0)
+    q = np.concatenate([rng.uniform(-3, 3, (200, 2)), rng.uniform(0.01, 1, (200, 1)),
+                        rng.uniform(-0.6, 0.6, (200, 4))], 1).astype(np.float32)
+    session = ort.InferenceSession(model.SerializeToString(), providers=["CPUExecutionProvider"])
+    return KernelMaterial(path).evaluate(q), session.run([C.ONNX_OUTPUT], {C.ONNX_INPUT: q})[0]
+
+
+def test_a_slice_with_a_negative_step_runs_to_the_start(tmp_path):
+    """Slice with step -1 and the end INT64_MIN (numpy's ``[::-1]``): the query's columns reversed."""
+    nodes = [helper.make_node("Slice", ["queries", "start", "end", "axes", "step"], ["reversed"]),
+             helper.make_node("Slice", ["reversed", "zero", "three", "axes"], ["rgb"])]
+    got, want = against_onnx_runtime(tmp_path, nodes, start=ints(-1), end=ints(-2**63), axes=ints(1),
+                                     step=ints(-1), zero=ints(0), three=ints(3))
+    np.testing.assert_array_equal(got, want)
+
+
+def test_a_slice_or_squeeze_that_would_cut_the_batch_is_refused(groups):
+    rows = OPS.Reshape(node("Reshape"), batched(groups), objects((2,), [Dim(4), 2]))  # (4 N, 2)
+    with pytest.raises(GraphError, match="Slice of the batch"):
+        OPS.Slice(node("Slice"), rows, np.array([0]), objects((1,), [Dim(1)]), np.array([0]))
+    with pytest.raises(GraphError, match="Squeeze of axis 1, of length 2"):
+        OPS.Squeeze(node("Squeeze"), rows, np.array([1]))
