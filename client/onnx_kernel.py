@@ -143,7 +143,11 @@ class LaneGraph:
         constants, self.nodes = fold_constants(graph.node, inits)
         self.table_names = sorted({n.input[0] for n in self.nodes
                                    if n.op_type == "Gather" and n.input[0] in constants})
-        self.tables = [backend.Float(np.ascontiguousarray(constants[name], np.float32).ravel())
+        for name in self.table_names:
+            if constants[name].dtype != np.float32:
+                raise GraphError(f"computed indices read the table {name!r} of {constants[name].dtype} "
+                                 "(only float32 tables)")
+        self.tables = [backend.Float(np.ascontiguousarray(constants[name]).ravel())
                        for name in self.table_names]
         """The constants that computed indices read (textures), flat: the frozen function's inputs."""
         self.table_shapes = [constants[name].shape for name in self.table_names]
@@ -395,7 +399,9 @@ class Ops:
         jit = self.jit
 
         def read(index):
-            start = jit.UInt32(dr.clip(jit.Int32(index), 0, rows - 1)) * width  # ONNX refuses others
+            index = jit.Int32(index)
+            index = dr.select(index < 0, index + rows, index)  # -1: the last row
+            start = jit.UInt32(dr.clip(index, 0, rows - 1)) * width  # out of range: ONNX Runtime refuses
             return [dr.gather(jit.Float, table, start + i) for i in range(width)]
 
         values = [value for index in indices.cells.ravel() for value in read(index)]

@@ -138,6 +138,32 @@ def test_a_slice_with_a_negative_step_runs_to_the_start(tmp_path):
     np.testing.assert_array_equal(got, want)
 
 
+def test_computed_negative_indices_count_from_the_table_s_end(tmp_path):
+    """Gather of a constant table with computed indices in [-5, 4]: -1 is the last row."""
+    nodes = [helper.make_node("Slice", ["queries", "zero", "one", "axes"], ["u"]),  # (N, 1) in [-3, 3]
+             helper.make_node("Floor", ["u"], ["floored"]),
+             helper.make_node("Cast", ["floored"], ["index"], to=7),  # INT64, in [-3, 2]
+             helper.make_node("Gather", ["table", "index"], ["rows"]),  # (N, 1, 3)
+             helper.make_node("Reshape", ["rows", "shape"], ["rgb"])]
+    table = np.arange(15, dtype=np.float32).reshape(5, 3)
+    got, want = against_onnx_runtime(tmp_path, nodes, table=table, zero=ints(0), one=ints(1), axes=ints(1),
+                                     shape=ints(-1, 3))
+    np.testing.assert_array_equal(got, want)
+
+
+def test_a_table_of_integers_read_with_computed_indices_is_refused(tmp_path):
+    from neumip.client.local import ModelError
+
+    nodes = [helper.make_node("Slice", ["queries", "zero", "one", "axes"], ["u"]),
+             helper.make_node("Cast", ["u"], ["index"], to=7),
+             helper.make_node("Gather", ["table", "index"], ["rows"]),
+             helper.make_node("Reshape", ["rows", "shape"], ["whole"]),
+             helper.make_node("Cast", ["whole"], ["rgb"], to=1)]
+    with pytest.raises(ModelError, match="table 'table' of int64"):
+        against_onnx_runtime(tmp_path, nodes, table=np.arange(15).reshape(5, 3), zero=ints(0), one=ints(1),
+                             axes=ints(1), shape=ints(-1, 3))
+
+
 def test_a_slice_or_squeeze_that_would_cut_the_batch_is_refused(groups):
     rows = OPS.Reshape(node("Reshape"), batched(groups), objects((2,), [Dim(4), 2]))  # (4 N, 2)
     with pytest.raises(GraphError, match="Slice of the batch"):
