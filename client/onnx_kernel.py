@@ -295,7 +295,7 @@ class Ops:
             a, b = np.asarray(a), np.asarray(b)
             return a / b if a.dtype.kind == "f" else _int_divide(a, b)
         with dr.scoped_set_flag(dr.JitFlag.FastMath, False):  # GPU: div.rn, as ONNX Runtime rounds
-            return self.binary(a, b, None, lambda x, y: x / y)
+            return self.binary(a, b, None, _divide)
 
     def Clip(self, node, x, lo=None, hi=None):
         if lo is not None:
@@ -519,10 +519,17 @@ def _product(a, b):
     without a rounding mode), whose single rounding differs from ONNX Runtime's two. There the product
     is an fma with 0 (kept: constant propagation off), which rounds like a product and is not fused."""
     array = a if dr.is_array_v(a) else b
-    if not (dr.is_array_v(array) and dr.backend_v(array) == dr.JitBackend.CUDA):
+    if not (dr.is_float_v(array) and dr.backend_v(array) == dr.JitBackend.CUDA):
         return a * b
     with dr.scoped_set_flag(dr.JitFlag.ConstantPropagation, False):
         return dr.fma(a, b, 0.0)
+
+
+def _divide(a, b):
+    """a / b of drjit arrays (or one and a Python scalar): ONNX's integer Div truncates, as drjit's
+    ``//`` of integers does."""
+    array = a if dr.is_array_v(a) else b
+    return a / b if dr.is_float_v(array) else a // b
 
 
 def _sqrt(x):
@@ -536,7 +543,7 @@ def _same_dtype(fn):
 
 
 UNARY = {  # name: (on numpy constants, on a drjit array)
-    "Relu": (_same_dtype(lambda x: np.maximum(x, 0)), lambda x: dr.maximum(x, 0.0)), "Sqrt": (np.sqrt, _sqrt),
+    "Relu": (_same_dtype(lambda x: np.maximum(x, 0)), lambda x: dr.maximum(x, 0)), "Sqrt": (np.sqrt, _sqrt),
     "Floor": (np.floor, dr.floor), "Ceil": (np.ceil, dr.ceil), "Exp": (np.exp, dr.exp),
     "Log": (np.log, dr.log),
     "Sigmoid": (_same_dtype(lambda x: 1 / (1 + np.exp(-x))), lambda x: dr.rcp(1.0 + dr.exp(-x))),

@@ -151,6 +151,22 @@ def test_computed_negative_indices_count_from_the_table_s_end(tmp_path):
     np.testing.assert_array_equal(got, want)
 
 
+def test_integer_lanes_divide_and_rectify_as_integers(tmp_path):
+    """Div of int64 tensors truncates toward zero; Relu of one stays an integer."""
+    nodes = [helper.make_node("Slice", ["queries", "zero", "three", "axes"], ["uvs"]),
+             helper.make_node("Mul", ["uvs", "ten"], ["scaled"]),
+             helper.make_node("Cast", ["scaled"], ["whole"], to=7),  # INT64 in [-30, 30]
+             helper.make_node("Div", ["whole", "seven"], ["quotient"]),
+             helper.make_node("Relu", ["whole"], ["rectified"]),
+             helper.make_node("Div", ["rectified", "four"], ["quarter"]),
+             helper.make_node("Add", ["quotient", "quarter"], ["sum"]),
+             helper.make_node("Cast", ["sum"], ["rgb"], to=1)]
+    got, want = against_onnx_runtime(tmp_path, nodes, zero=ints(0), three=ints(3), axes=ints(1),
+                                     ten=np.float32([10.0]), seven=ints(7), four=ints(4))
+    assert (want < 0).any() and (want > 0).any()
+    np.testing.assert_array_equal(got, want)
+
+
 def test_a_table_of_integers_read_with_computed_indices_is_refused(tmp_path):
     from neumip.client.local import ModelError
 
