@@ -311,13 +311,16 @@ class Ops:
     def Cast(self, node, x, to):
         if not isinstance(x, Lanes):
             return np.asarray(x).astype(onnx.helper.tensor_dtype_to_np_dtype(to))
-        kind = np.dtype(onnx.helper.tensor_dtype_to_np_dtype(to)).kind
-        jit = self.jit
-        convert = {"f": lambda c: jit.Float(dr.select(c, 1.0, 0.0)) if dr.is_mask_v(c) else jit.Float(c),
-                   "i": lambda c: dr.select(c, 1, 0) if dr.is_mask_v(c) else jit.Int32(c),
-                   "b": lambda c: c if dr.is_mask_v(c) else c != 0}.get(kind)
-        if convert is None:
-            raise GraphError(f"cast to {TensorProto.DataType.Name(to)}")
+        if to not in CASTS:
+            raise GraphError(f"a cast to {TensorProto.DataType.Name(to)} (computed tensors are float32, "
+                             "int32, int64 (held as int32) or bool)")
+        jit, kind = self.jit, CASTS[to]
+
+        def convert(c):
+            if kind == "Bool":
+                return c if dr.is_mask_v(c) else c != 0
+            return getattr(jit, kind)(dr.select(c, 1, 0) if dr.is_mask_v(c) else c)
+
         return x.with_cells(elementwise(lambda c: lift(jit, convert(c)), x.cells))
 
     def Identity(self, node, x):
@@ -563,6 +566,9 @@ OPERATORS = sorted({*UNARY, *BINARY, "Div", "Clip", "Where", "Cast", "Identity",
                     "Gemm", "Gather", "Shape", "Reshape", "Flatten", "Transpose", "Concat", "Slice", "Tile",
                     "Unsqueeze", "Squeeze"})
 """The operators (ONNX's default domain) the kernel evaluates."""
+CASTS = {TensorProto.FLOAT: "Float", TensorProto.INT32: "Int32", TensorProto.INT64: "Int32",
+         TensorProto.BOOL: "Bool"}
+"""The types a computed tensor can be cast to: the drjit array type that holds it."""
 
 
 def _fma(x, w: float, acc):

@@ -167,6 +167,17 @@ def test_integer_lanes_divide_and_rectify_as_integers(tmp_path):
     np.testing.assert_array_equal(got, want)
 
 
+@pytest.mark.parametrize("to", [10, 11, 3])  # FLOAT16, DOUBLE, INT8
+def test_a_cast_to_a_type_the_lanes_cannot_hold_is_refused(tmp_path, to):
+    from neumip.client.local import ModelError
+
+    nodes = [helper.make_node("Slice", ["queries", "zero", "three", "axes"], ["uvs"]),
+             helper.make_node("Cast", ["uvs"], ["narrow"], to=to),
+             helper.make_node("Cast", ["narrow"], ["rgb"], to=1)]
+    with pytest.raises(ModelError, match="Cast node .*: a cast to"):
+        against_onnx_runtime(tmp_path, nodes, zero=ints(0), three=ints(3), axes=ints(1))
+
+
 def test_a_table_of_integers_read_with_computed_indices_is_refused(tmp_path):
     from neumip.client.local import ModelError
 
