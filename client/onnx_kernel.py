@@ -498,10 +498,10 @@ class Ops:
         return x.with_cells(np.tile(x.cells, storage))
 
     def Unsqueeze(self, node, x, axes=None):
-        axes = sorted(int(a) for a in np.asarray(axes).ravel())
         shape = list(x.shape if isinstance(x, Lanes) else np.shape(x))
-        for a in axes:
-            shape.insert(a % (len(shape) + 1), 1)
+        rank = len(shape) + np.size(axes)  # negative axes count from the output's end
+        for a in sorted(int(a) % rank for a in np.asarray(axes).ravel()):
+            shape.insert(a, 1)
         return self.Reshape(node, x, objects((len(shape),), shape), allowzero=1)
 
     def Squeeze(self, node, x, axes=None):

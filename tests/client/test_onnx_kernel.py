@@ -167,6 +167,12 @@ def test_integer_lanes_divide_and_rectify_as_integers(tmp_path):
     np.testing.assert_array_equal(got, want)
 
 
+def test_unsqueeze_places_negative_axes_in_the_output_s_rank():
+    x = np.arange(3, dtype=np.float32)
+    assert OPS.Unsqueeze(node("Unsqueeze"), x, ints(-2, -1)).shape == (3, 1, 1)
+    assert OPS.Unsqueeze(node("Unsqueeze"), x, ints(-1, 0)).shape == (1, 3, 1)
+
+
 @pytest.mark.parametrize("to", [10, 11, 3])  # FLOAT16, DOUBLE, INT8
 def test_a_cast_to_a_type_the_lanes_cannot_hold_is_refused(tmp_path, to):
     from neumip.client.local import ModelError
