@@ -127,6 +127,8 @@ class LaneGraph:
         inputs = [i for i in graph.input if i.name not in inits]
         if [i.name for i in inputs] != [C.ONNX_INPUT] or [o.name for o in graph.output] != [C.ONNX_OUTPUT]:
             raise GraphError(f"graph must map '{C.ONNX_INPUT}' to '{C.ONNX_OUTPUT}'")
+        if graph.output[0].type.tensor_type.elem_type != TensorProto.FLOAT:
+            raise GraphError(f"'{C.ONNX_OUTPUT}' must be float32")
         dims = inputs[0].type.tensor_type.shape.dim
         if inputs[0].type.tensor_type.elem_type != TensorProto.FLOAT or len(dims) != 2:
             raise GraphError(f"'{C.ONNX_INPUT}' must be a 2-D float32 tensor")

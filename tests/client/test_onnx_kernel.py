@@ -9,14 +9,18 @@ from __future__ import annotations
 import importlib
 
 import numpy as np
+import onnx
 import pytest
 
 pytest.importorskip("neumip.client.kernel")  # drjit, after the libLLVM check
 
 from drjit.llvm.ad import Float  # noqa: E402
-from onnx import helper  # noqa: E402
+from onnx import TensorProto, helper, numpy_helper  # noqa: E402
 
+from neumip.client.kernel import KernelMaterial  # noqa: E402
+from neumip.client.local import ModelError  # noqa: E402
 from neumip.client.onnx_kernel import Dim, GraphError, Lanes, Ops, objects  # noqa: E402
+from neumip.core import contract as C  # noqa: E402
 
 N = 3
 OPS = Ops(importlib.import_module("drjit.llvm.ad"), {})
@@ -109,10 +113,6 @@ def against_onnx_runtime(tmp_path, nodes: list, **inits) -> tuple[np.ndarray, np
     """A material whose graph is `nodes` (``queries`` (N, 7) -> ``rgb`` (N, 3)) with initializers
     `inits` -> (the interpreter's answers, ONNX Runtime's) on queries whose u, v span [-3, 3]."""
     import onnxruntime as ort
-    from onnx import TensorProto, numpy_helper
-
-    from neumip.client.kernel import KernelMaterial
-    from neumip.core import contract as C
 
     graph = helper.make_graph(nodes, "probe",
                               [helper.make_tensor_value_info(C.ONNX_INPUT, TensorProto.FLOAT, ["N", 7])],
@@ -175,8 +175,6 @@ def test_unsqueeze_places_negative_axes_in_the_output_s_rank():
 
 @pytest.mark.parametrize("to", [10, 11, 3])  # FLOAT16, DOUBLE, INT8
 def test_a_cast_to_a_type_the_lanes_cannot_hold_is_refused(tmp_path, to):
-    from neumip.client.local import ModelError
-
     nodes = [helper.make_node("Slice", ["queries", "zero", "three", "axes"], ["uvs"]),
              helper.make_node("Cast", ["uvs"], ["narrow"], to=to),
              helper.make_node("Cast", ["narrow"], ["rgb"], to=1)]
@@ -185,8 +183,6 @@ def test_a_cast_to_a_type_the_lanes_cannot_hold_is_refused(tmp_path, to):
 
 
 def test_a_table_of_integers_read_with_computed_indices_is_refused(tmp_path):
-    from neumip.client.local import ModelError
-
     nodes = [helper.make_node("Slice", ["queries", "zero", "one", "axes"], ["u"]),
              helper.make_node("Cast", ["u"], ["index"], to=7),
              helper.make_node("Gather", ["table", "index"], ["rows"]),
@@ -203,3 +199,18 @@ def test_a_slice_or_squeeze_that_would_cut_the_batch_is_refused(groups):
         OPS.Slice(node("Slice"), rows, np.array([0]), objects((1,), [Dim(1)]), np.array([0]))
     with pytest.raises(GraphError, match="Squeeze of axis 1, of length 2"):
         OPS.Squeeze(node("Squeeze"), rows, np.array([1]))
+
+
+def test_an_answer_that_is_not_float32_is_refused(tmp_path):
+    """The contract's ``rgb`` is float32: a graph declaring another type is refused at load."""
+    nodes = [helper.make_node("Slice", ["queries", "zero", "three", "axes"], ["uvs"]),
+             helper.make_node("Cast", ["uvs"], ["rgb"], to=7)]
+    graph = helper.make_graph(nodes, "probe",
+                              [helper.make_tensor_value_info(C.ONNX_INPUT, TensorProto.FLOAT, ["N", 7])],
+                              [helper.make_tensor_value_info(C.ONNX_OUTPUT, TensorProto.INT64, ["N", 3])],
+                              initializer=[numpy_helper.from_array(ints(v), k)
+                                           for k, v in {"zero": 0, "three": 3, "axes": 1}.items()])
+    path = tmp_path / "ints.onnx"
+    onnx.save(helper.make_model(graph, opset_imports=[helper.make_opsetid("", 18)]), path)
+    with pytest.raises(ModelError, match="ints.onnx: 'rgb' must be float32"):
+        KernelMaterial(path)
