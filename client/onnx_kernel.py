@@ -301,8 +301,8 @@ class Ops:
 
     def Clip(self, node, x, lo=None, hi=None):
         if lo is not None:
-            x = self.binary(x, lo, np.maximum, dr.maximum)
-        return x if hi is None else self.binary(x, hi, np.minimum, dr.minimum)
+            x = self.binary(x, lo, *BINARY["Max"])
+        return x if hi is None else self.binary(x, hi, *BINARY["Min"])
 
     def Where(self, node, cond, a, b):
         if not any(isinstance(v, Lanes) for v in (cond, a, b)):
