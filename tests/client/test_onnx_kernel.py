@@ -1,8 +1,9 @@
-"""The interpreter's shape algebra (`client/onnx_kernel.py`): a batched tensor held as per-lane cells
-reshaped, transposed, tiled, sliced, concatenated, gathered and multiplied as numpy does it to the
-whole tensor. Each lane's cells hold the tensor's own values, so any misplaced row shows. Small graphs
-written with onnx.helper check the operators' semantics against ONNX Runtime (the ONNX spec's reference
-here): negative slice steps and indices, integer tensors, casts; what the lanes cannot hold is refused."""
+"""The interpreter (`client/onnx_kernel.py`, its operators in `client/onnx_ops.py`): a batched tensor
+held as per-lane cells reshaped, transposed, tiled, sliced, concatenated, gathered and multiplied as
+numpy does it to the whole tensor. Each lane's cells hold the tensor's own values, so any misplaced row
+shows. Small graphs written with onnx.helper check the operators' semantics against ONNX Runtime (the
+ONNX spec's reference here): negative slice steps and indices, integer tensors, casts; what the lanes
+cannot hold is refused."""
 
 from __future__ import annotations
 
@@ -19,7 +20,7 @@ from onnx import TensorProto, helper, numpy_helper  # noqa: E402
 
 from neumip.client.kernel import KernelMaterial  # noqa: E402
 from neumip.client.local import ModelError  # noqa: E402
-from neumip.client.onnx_kernel import Dim, GraphError, Lanes, Ops, objects  # noqa: E402
+from neumip.client.onnx_ops import Dim, GraphError, Lanes, Ops, objects  # noqa: E402
 from neumip.core import contract as C  # noqa: E402
 
 N = 3
