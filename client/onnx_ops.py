@@ -127,6 +127,8 @@ class Ops:
 
     def run(self, node, args):
         op = node.op_type
+        if (op in UNARY or op in BINARY) and node.attribute:  # opset 6's broadcast and axis, say
+            raise GraphError(f"attribute(s) {', '.join(a.name for a in node.attribute)} (none since opset 7)")
         if op in UNARY:
             return self.unary(args[0], op)
         if op in BINARY:

@@ -103,6 +103,13 @@ def test_the_batch_axis_cannot_be_cut_or_mixed(groups):
         OPS.Gemm(node("MatMul"), x, x, matmul=True)
 
 
+
+def test_elementwise_attributes_of_old_opsets_are_refused(groups):
+    """Opset 6's Add broadcast along `axis`, numpy broadcasting since opset 7: refused, not misread."""
+    old_add = helper.make_node("Add", ["x", "b"], ["y"], broadcast=1, axis=0)
+    with pytest.raises(GraphError, match="attribute.s. axis, broadcast"):
+        OPS.run(old_add, [batched(groups), np.ones(3, np.float32)])
+
 # --- small graphs against ONNX Runtime: the operators' semantics as the ONNX spec gives them -----------
 
 
