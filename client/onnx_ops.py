@@ -437,7 +437,8 @@ UNARY = {  # name: (on numpy constants, on a drjit array)
 }
 BINARY = {  # name: (on numpy constants, on drjit arrays or a drjit array and a Python scalar)
     "Add": (np.add, operator.add), "Sub": (np.subtract, operator.sub), "Mul": (np.multiply, _product),
-    "Pow": (np.power, dr.power), "Max": (np.maximum, dr.maximum), "Min": (np.minimum, dr.minimum),
+    "Pow": (lambda a, b: np.power(a, b).astype(a.dtype), dr.power),  # the base's type, as ONNX's
+    "Max": (np.maximum, dr.maximum), "Min": (np.minimum, dr.minimum),
     "Sum": (np.add, operator.add), "Greater": (np.greater, operator.gt), "Less": (np.less, operator.lt),
     "GreaterOrEqual": (np.greater_equal, operator.ge), "LessOrEqual": (np.less_equal, operator.le),
     "Equal": (np.equal, operator.eq), "And": (np.logical_and, operator.and_),

@@ -110,6 +110,13 @@ def test_elementwise_attributes_of_old_opsets_are_refused(groups):
     with pytest.raises(GraphError, match="attribute.s. axis, broadcast"):
         OPS.run(old_add, [batched(groups), np.ones(3, np.float32)])
 
+
+def test_a_folded_power_keeps_its_base_s_type():
+    """Pow's result has its base's type (the exponent may be another): float32 ** int64 stays float32,
+    so a table computed with it is read as any other."""
+    folded = OPS.run(helper.make_node("Pow", ["x", "e"], ["y"]), [np.float32([1.5, 2.0]), np.int64([2])])
+    assert folded.dtype == np.float32 and folded.tolist() == [2.25, 4.0]
+
 # --- small graphs against ONNX Runtime: the operators' semantics as the ONNX spec gives them -----------
 
 
