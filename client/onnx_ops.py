@@ -233,7 +233,7 @@ class Ops:
             a = self.Transpose(node, a, perm=[1, 0]) if transA else a
             b = self.Transpose(node, b, perm=[1, 0]) if transB else b
         if c is not None and beta != 1.0:
-            c = self.Mul(node, c, np.float32(beta))
+            c = self.binary(c, np.float32(beta), *BINARY["Mul"])
         if isinstance(a, Lanes):
             return self._rows(a, np.asarray(b, np.float32) * np.float32(alpha), c)
         # constant A on columns of B: (B^T A^T)^T, the batch on B's columns

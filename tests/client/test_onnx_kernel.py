@@ -229,3 +229,11 @@ def test_an_answer_that_is_not_float32_is_refused(tmp_path):
     onnx.save(helper.make_model(graph, opset_imports=[helper.make_opsetid("", 18)]), path)
     with pytest.raises(ModelError, match="ints.onnx: 'rgb' must be float32"):
         KernelMaterial(path)
+
+
+def test_a_gemm_scales_its_bias_by_beta(tmp_path):
+    """Gemm alpha A B^T + beta C on the query (the batch on A's rows)."""
+    w = np.random.default_rng(1).normal(size=(3, 7)).astype(np.float32)
+    nodes = [helper.make_node("Gemm", ["queries", "w", "c"], ["rgb"], transB=1, alpha=0.5, beta=2.0)]
+    got, want = against_onnx_runtime(tmp_path, nodes, w=w, c=np.float32([1, 2, 3]))
+    np.testing.assert_allclose(got, want, rtol=1e-4, atol=1e-5)
