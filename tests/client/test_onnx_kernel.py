@@ -117,6 +117,14 @@ def test_a_folded_power_keeps_its_base_s_type():
     folded = OPS.run(helper.make_node("Pow", ["x", "e"], ["y"]), [np.float32([1.5, 2.0]), np.int64([2])])
     assert folded.dtype == np.float32 and folded.tolist() == [2.25, 4.0]
 
+
+def test_every_listed_operator_has_an_evaluation():
+    """`OPERATORS` (what a graph may use) and the evaluations agree: a listed operator without one would
+    fail at load with an AttributeError, not a clear error."""
+    from neumip.client.onnx_ops import BINARY, OPERATORS, UNARY
+
+    assert [op for op in OPERATORS if op not in UNARY and op not in BINARY and not hasattr(Ops, op)] == []
+
 # --- small graphs against ONNX Runtime: the operators' semantics as the ONNX spec gives them -----------
 
 
