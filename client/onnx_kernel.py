@@ -133,7 +133,7 @@ def run_node(ops: Ops, node, env: dict) -> None:
     GraphError naming the node."""
     try:
         out = ops.run(node, [env[name] if name else None for name in node.input])
-    except (GraphError, ValueError, IndexError, TypeError, KeyError, ArithmeticError) as exc:
+    except (GraphError, ValueError, IndexError, TypeError, KeyError, ArithmeticError, RuntimeError) as exc:
         raise GraphError(f"{node.op_type} node {node.name or node.output[0]!r}: {exc}") from None
     for name, value in zip(node.output, out if isinstance(out, tuple) else (out,)):
         env[name] = value

@@ -148,8 +148,9 @@ def against_onnx_runtime(tmp_path, nodes: list, **inits) -> tuple[np.ndarray, np
     rng = np.random.default_rng(0)
     q = np.concatenate([rng.uniform(-3, 3, (200, 2)), rng.uniform(0.01, 1, (200, 1)),
                         rng.uniform(-0.6, 0.6, (200, 4))], 1).astype(np.float32)
+    material = KernelMaterial(path)  # first: a graph that both refuse gives the interpreter's error
     session = ort.InferenceSession(model.SerializeToString(), providers=["CPUExecutionProvider"])
-    return KernelMaterial(path).evaluate(q), session.run([C.ONNX_OUTPUT], {C.ONNX_INPUT: q})[0]
+    return material.evaluate(q), session.run([C.ONNX_OUTPUT], {C.ONNX_INPUT: q})[0]
 
 
 def test_a_slice_with_a_negative_step_runs_to_the_start(tmp_path):
@@ -245,3 +246,14 @@ def test_a_gemm_scales_its_bias_by_beta(tmp_path):
     nodes = [helper.make_node("Gemm", ["queries", "w", "c"], ["rgb"], transB=1, alpha=0.5, beta=2.0)]
     got, want = against_onnx_runtime(tmp_path, nodes, w=w, c=np.float32([1, 2, 3]))
     np.testing.assert_allclose(got, want, rtol=1e-4, atol=1e-5)
+
+
+def test_an_operator_on_a_type_drjit_lacks_is_a_clear_error(tmp_path):
+    """Sqrt of an integer tensor (ONNX Runtime refuses the graph too): drjit's RuntimeError becomes a
+    ModelError naming the node, as any other failure of a node does."""
+    nodes = [helper.make_node("Slice", ["queries", "zero", "three", "axes"], ["uvs"]),
+             helper.make_node("Cast", ["uvs"], ["whole"], to=7),
+             helper.make_node("Sqrt", ["whole"], ["root"]),
+             helper.make_node("Cast", ["root"], ["rgb"], to=1)]
+    with pytest.raises(ModelError, match="Sqrt node 'root'"):
+        against_onnx_runtime(tmp_path, nodes, zero=ints(0), three=ints(3), axes=ints(1))
