@@ -9,7 +9,7 @@ number of lights (cached on disk like every drjit kernel), into one vectorised k
 also gathers the lanes' queries and scatters the answers: no buffers, no copies, no separate
 inference engine. The graph is the one runtime definition of the material: ONNX Runtime, the server
 and Triton run it too, and any ONNX material that follows the query contract (`core.contract`) with
-the operators `onnx_kernel.OPERATORS` lists renders in the kernel, whoever wrote it.
+the operators `onnx_ops.OPERATORS` lists renders in the kernel, whoever wrote it.
 
 It computes what ONNX Runtime computes, in another order of float operations: answers agree with
 ONNX Runtime's within the export's parity tolerance (1e-5 absolute plus 1e-4 relative;
@@ -48,7 +48,8 @@ try:
     import drjit as dr
     import onnx
 
-    from neumip.client.onnx_kernel import GraphError, LaneGraph
+    from neumip.client.onnx_kernel import LaneGraph
+    from neumip.client.onnx_ops import GraphError
 except ImportError as exc:
     raise ImportError(f"{exc.name or exc} is not installed: pip install 'neumip[kernel]'") from exc
 

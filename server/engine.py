@@ -3,9 +3,9 @@
 - ``onnxruntime`` (default): each material is an ONNX Runtime session running the file's graph
   (`neumip.client.local.load_material`); ``NEUMIP_ORT_WORKERS`` calls run at once (default one per
   core), each of at most ``NEUMIP_CHUNK_ROWS`` answers on ``NEUMIP_ORT_THREADS`` threads.
-- ``kernel``: each material's weights are read from the same file and its arithmetic runs as drjit
-  LLVM kernels (`neumip.client.kernel.KernelMaterial`, the renderer's in-process engine; needs the
-  ``kernel`` extra). One call runs at a time: drjit runs one frozen call at a time per process and
+- ``kernel``: each material's graph, the same file's, is interpreted as drjit LLVM kernels
+  (`neumip.client.kernel.KernelMaterial`, the renderer's in-process engine; needs the ``kernel``
+  extra). One call runs at a time: drjit runs one frozen call at a time per process and
   spreads each call over every core itself. Calls hold up to ``NEUMIP_KERNEL_CHUNK_ROWS`` answers
   (default 2^18: fewer, larger calls than ONNX Runtime's, so the batcher's work between calls, while
   drjit's workers wait, is paid less often). Answers agree with ONNX Runtime's within the
@@ -51,7 +51,7 @@ ONNX_PLATFORM = "onnxruntime_onnx"
 """Triton's platform name of an ONNX model run by ONNX Runtime (its onnxruntime backend), which the
 ``onnxruntime`` engine is too."""
 KERNEL_PLATFORM = "neumip_drjit_llvm"
-"""The platform the model metadata names under the ``kernel`` engine: the file's weights as drjit LLVM
+"""The platform the model metadata names under the ``kernel`` engine: the file's graph as drjit LLVM
 kernels."""
 
 

@@ -39,6 +39,7 @@ from neumip.core.config import MaterialConfig
 from .export import save_onnx
 from .export_lod import clip_min, clip_node, stage_constants
 from .export_lookup import level_tables, texture_constants, trimmed_atlas
+from .export_read import metadata
 
 log = logging.getLogger(__name__)
 
@@ -63,10 +64,6 @@ class TrimRecord:
     """Size of the serialized model before trimming (this and every earlier trim)."""
     offset: str = "kept"
     """The neural offset texture: kept whole (bit-identity above the cut needs it)."""
-
-
-def metadata(model: onnx.ModelProto) -> dict[str, str]:
-    return {p.key: p.value for p in model.metadata_props}
 
 
 def model_config(model: onnx.ModelProto) -> MaterialConfig:

@@ -36,8 +36,8 @@ def register(sub: argparse._SubParsersAction) -> None:
     _scene_params(p)
     p.add_argument("--seed", type=int, default=0, help="seed of the first pass")
     p.add_argument("--engine", choices=("kernel", "onnxruntime"), default="kernel",
-                   help="in-process evaluation: the material's weights traced into the render's drjit "
-                   "kernels (default), or its ONNX graph in ONNX Runtime (the server's engine)")
+                   help="in-process evaluation: the material's ONNX graph traced into the render's drjit "
+                   "kernels (default), or run by ONNX Runtime (the server's engine)")
     p.add_argument("--threads", type=int, default=0,
                    help="ONNX Runtime evaluation threads in-process (0: all cores)")
     p.add_argument("--variant", choices=VARIANTS, default=None,

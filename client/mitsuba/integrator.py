@@ -4,9 +4,9 @@ Each bounce of the Python loop below is one wavefront over every lane of the ima
 calls `sample()` once with all rays). Per bounce, every shading query that lands on a `neumip`
 surface - two per shading point, as in the paper: the next-event light direction and the
 cosine-sampled direction - is collected and evaluated per material (`shading.NeuralShading`): in a
-kernel over that material's lanes, its weights compiled into it (`client.kernel.KernelMaterials`), or through
-an evaluator in at most two calls: the shading points where both directions count as query groups of
-two, the others' single queries. Stock Mitsuba BSDFs on other shapes are called as the stock `path`
+kernel over that material's lanes, its ONNX graph traced into it (`client.kernel.KernelMaterials`), or
+through an evaluator in at most two calls: the shading points where both directions count as query
+groups of two, the others' single queries. Stock Mitsuba BSDFs on other shapes are called as the stock `path`
 integrator calls them; next-event estimation goes to all of Mitsuba's emitters with MIS (power
 heuristic) against BSDF sampling.
 

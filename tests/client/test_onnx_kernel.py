@@ -1,20 +1,27 @@
-"""The interpreter's shape algebra (`client/onnx_kernel.py`): a batched tensor held as per-lane cells
-reshaped, transposed, tiled, sliced, concatenated, gathered and multiplied as numpy does it to the
-whole tensor. Each lane's cells hold the tensor's own values, so any misplaced row shows."""
+"""The interpreter (`client/onnx_kernel.py`, its operators in `client/onnx_ops.py`): a batched tensor
+held as per-lane cells reshaped, transposed, tiled, sliced, concatenated, gathered and multiplied as
+numpy does it to the whole tensor. Each lane's cells hold the tensor's own values, so any misplaced row
+shows. Small graphs written with onnx.helper check the operators' semantics against ONNX Runtime (the
+ONNX spec's reference here): negative slice steps and indices, integer tensors, casts; what the lanes
+cannot hold is refused."""
 
 from __future__ import annotations
 
 import importlib
 
 import numpy as np
+import onnx
 import pytest
 
 pytest.importorskip("neumip.client.kernel")  # drjit, after the libLLVM check
 
 from drjit.llvm.ad import Float  # noqa: E402
-from onnx import helper  # noqa: E402
+from onnx import TensorProto, helper, numpy_helper  # noqa: E402
 
-from neumip.client.onnx_kernel import Dim, GraphError, Lanes, Ops, objects  # noqa: E402
+from neumip.client.kernel import KernelMaterial  # noqa: E402
+from neumip.client.local import ModelError  # noqa: E402
+from neumip.client.onnx_ops import Dim, GraphError, Lanes, Ops, objects  # noqa: E402
+from neumip.core import contract as C  # noqa: E402
 
 N = 3
 OPS = Ops(importlib.import_module("drjit.llvm.ad"), {})
@@ -94,3 +101,159 @@ def test_the_batch_axis_cannot_be_cut_or_mixed(groups):
         OPS.Reshape(node("Reshape"), x, objects((2,), [8, Dim(1)]))
     with pytest.raises(GraphError, match="two computed tensors"):
         OPS.Gemm(node("MatMul"), x, x, matmul=True)
+
+
+
+def test_elementwise_attributes_of_old_opsets_are_refused(groups):
+    """Opset 6's Add broadcast along `axis`, numpy broadcasting since opset 7: refused, not misread."""
+    old_add = helper.make_node("Add", ["x", "b"], ["y"], broadcast=1, axis=0)
+    with pytest.raises(GraphError, match="attribute.s. axis, broadcast"):
+        OPS.run(old_add, [batched(groups), np.ones(3, np.float32)])
+
+
+def test_a_folded_power_keeps_its_base_s_type():
+    """Pow's result has its base's type (the exponent may be another): float32 ** int64 stays float32,
+    so a table computed with it is read as any other."""
+    folded = OPS.run(helper.make_node("Pow", ["x", "e"], ["y"]), [np.float32([1.5, 2.0]), np.int64([2])])
+    assert folded.dtype == np.float32 and folded.tolist() == [2.25, 4.0]
+
+
+def test_every_listed_operator_has_an_evaluation():
+    """`OPERATORS` (what a graph may use) and the evaluations agree: a listed operator without one would
+    fail at load with an AttributeError, not a clear error."""
+    from neumip.client.onnx_ops import BINARY, OPERATORS, UNARY
+
+    assert [op for op in OPERATORS if op not in UNARY and op not in BINARY and not hasattr(Ops, op)] == []
+
+# --- small graphs against ONNX Runtime: the operators' semantics as the ONNX spec gives them -----------
+
+
+def ints(*values) -> np.ndarray:
+    return np.array(values, np.int64)
+
+
+def against_onnx_runtime(tmp_path, nodes: list, **inits) -> tuple[np.ndarray, np.ndarray]:
+    """A material whose graph is `nodes` (``queries`` (N, 7) -> ``rgb`` (N, 3)) with initializers
+    `inits` -> (the interpreter's answers, ONNX Runtime's) on queries whose u, v span [-3, 3]."""
+    import onnxruntime as ort
+
+    graph = helper.make_graph(nodes, "probe",
+                              [helper.make_tensor_value_info(C.ONNX_INPUT, TensorProto.FLOAT, ["N", 7])],
+                              [helper.make_tensor_value_info(C.ONNX_OUTPUT, TensorProto.FLOAT, ["N", 3])],
+                              initializer=[numpy_helper.from_array(v, k) for k, v in inits.items()])
+    model = helper.make_model(graph, opset_imports=[helper.make_opsetid("", 18)])
+    model.ir_version = 9
+    path = tmp_path / "probe.onnx"
+    path.write_bytes(model.SerializeToString())
+    rng = np.random.default_rng(0)
+    q = np.concatenate([rng.uniform(-3, 3, (200, 2)), rng.uniform(0.01, 1, (200, 1)),
+                        rng.uniform(-0.6, 0.6, (200, 4))], 1).astype(np.float32)
+    material = KernelMaterial(path)  # first: a graph that both refuse gives the interpreter's error
+    session = ort.InferenceSession(model.SerializeToString(), providers=["CPUExecutionProvider"])
+    return material.evaluate(q), session.run([C.ONNX_OUTPUT], {C.ONNX_INPUT: q})[0]
+
+
+def test_a_slice_with_a_negative_step_runs_to_the_start(tmp_path):
+    """Slice with step -1 and the end INT64_MIN (numpy's ``[::-1]``): the query's columns reversed."""
+    nodes = [helper.make_node("Slice", ["queries", "start", "end", "axes", "step"], ["reversed"]),
+             helper.make_node("Slice", ["reversed", "zero", "three", "axes"], ["rgb"])]
+    got, want = against_onnx_runtime(tmp_path, nodes, start=ints(-1), end=ints(-2**63), axes=ints(1),
+                                     step=ints(-1), zero=ints(0), three=ints(3))
+    np.testing.assert_array_equal(got, want)
+
+
+def test_computed_negative_indices_count_from_the_table_s_end(tmp_path):
+    """Gather of a constant table with computed indices in [-5, 4]: -1 is the last row."""
+    nodes = [helper.make_node("Slice", ["queries", "zero", "one", "axes"], ["u"]),  # (N, 1) in [-3, 3]
+             helper.make_node("Floor", ["u"], ["floored"]),
+             helper.make_node("Cast", ["floored"], ["index"], to=7),  # INT64, in [-3, 2]
+             helper.make_node("Gather", ["table", "index"], ["rows"]),  # (N, 1, 3)
+             helper.make_node("Reshape", ["rows", "shape"], ["rgb"])]
+    table = np.arange(15, dtype=np.float32).reshape(5, 3)
+    got, want = against_onnx_runtime(tmp_path, nodes, table=table, zero=ints(0), one=ints(1), axes=ints(1),
+                                     shape=ints(-1, 3))
+    np.testing.assert_array_equal(got, want)
+
+
+def test_integer_lanes_divide_and_rectify_as_integers(tmp_path):
+    """Div of int64 tensors truncates toward zero; Relu of one stays an integer."""
+    nodes = [helper.make_node("Slice", ["queries", "zero", "three", "axes"], ["uvs"]),
+             helper.make_node("Mul", ["uvs", "ten"], ["scaled"]),
+             helper.make_node("Cast", ["scaled"], ["whole"], to=7),  # INT64 in [-30, 30]
+             helper.make_node("Div", ["whole", "seven"], ["quotient"]),
+             helper.make_node("Relu", ["whole"], ["rectified"]),
+             helper.make_node("Div", ["rectified", "four"], ["quarter"]),
+             helper.make_node("Add", ["quotient", "quarter"], ["sum"]),
+             helper.make_node("Cast", ["sum"], ["rgb"], to=1)]
+    got, want = against_onnx_runtime(tmp_path, nodes, zero=ints(0), three=ints(3), axes=ints(1),
+                                     ten=np.float32([10.0]), seven=ints(7), four=ints(4))
+    assert (want < 0).any() and (want > 0).any()
+    np.testing.assert_array_equal(got, want)
+
+
+def test_unsqueeze_places_negative_axes_in_the_output_s_rank():
+    x = np.arange(3, dtype=np.float32)
+    assert OPS.Unsqueeze(node("Unsqueeze"), x, ints(-2, -1)).shape == (3, 1, 1)
+    assert OPS.Unsqueeze(node("Unsqueeze"), x, ints(-1, 0)).shape == (1, 3, 1)
+
+
+@pytest.mark.parametrize("to", [10, 11, 3])  # FLOAT16, DOUBLE, INT8
+def test_a_cast_to_a_type_the_lanes_cannot_hold_is_refused(tmp_path, to):
+    nodes = [helper.make_node("Slice", ["queries", "zero", "three", "axes"], ["uvs"]),
+             helper.make_node("Cast", ["uvs"], ["narrow"], to=to),
+             helper.make_node("Cast", ["narrow"], ["rgb"], to=1)]
+    with pytest.raises(ModelError, match="Cast node .*: a cast to"):
+        against_onnx_runtime(tmp_path, nodes, zero=ints(0), three=ints(3), axes=ints(1))
+
+
+def test_a_table_of_integers_read_with_computed_indices_is_refused(tmp_path):
+    nodes = [helper.make_node("Slice", ["queries", "zero", "one", "axes"], ["u"]),
+             helper.make_node("Cast", ["u"], ["index"], to=7),
+             helper.make_node("Gather", ["table", "index"], ["rows"]),
+             helper.make_node("Reshape", ["rows", "shape"], ["whole"]),
+             helper.make_node("Cast", ["whole"], ["rgb"], to=1)]
+    with pytest.raises(ModelError, match="table 'table' of int64"):
+        against_onnx_runtime(tmp_path, nodes, table=np.arange(15).reshape(5, 3), zero=ints(0), one=ints(1),
+                             axes=ints(1), shape=ints(-1, 3))
+
+
+def test_a_slice_or_squeeze_that_would_cut_the_batch_is_refused(groups):
+    rows = OPS.Reshape(node("Reshape"), batched(groups), objects((2,), [Dim(4), 2]))  # (4 N, 2)
+    with pytest.raises(GraphError, match="Slice of the batch"):
+        OPS.Slice(node("Slice"), rows, np.array([0]), objects((1,), [Dim(1)]), np.array([0]))
+    with pytest.raises(GraphError, match="Squeeze of axis 1, of length 2"):
+        OPS.Squeeze(node("Squeeze"), rows, np.array([1]))
+
+
+def test_an_answer_that_is_not_float32_is_refused(tmp_path):
+    """The contract's ``rgb`` is float32: a graph declaring another type is refused at load."""
+    nodes = [helper.make_node("Slice", ["queries", "zero", "three", "axes"], ["uvs"]),
+             helper.make_node("Cast", ["uvs"], ["rgb"], to=7)]
+    graph = helper.make_graph(nodes, "probe",
+                              [helper.make_tensor_value_info(C.ONNX_INPUT, TensorProto.FLOAT, ["N", 7])],
+                              [helper.make_tensor_value_info(C.ONNX_OUTPUT, TensorProto.INT64, ["N", 3])],
+                              initializer=[numpy_helper.from_array(ints(v), k)
+                                           for k, v in {"zero": 0, "three": 3, "axes": 1}.items()])
+    path = tmp_path / "ints.onnx"
+    onnx.save(helper.make_model(graph, opset_imports=[helper.make_opsetid("", 18)]), path)
+    with pytest.raises(ModelError, match="ints.onnx: 'rgb' must be float32"):
+        KernelMaterial(path)
+
+
+def test_a_gemm_scales_its_bias_by_beta(tmp_path):
+    """Gemm alpha A B^T + beta C on the query (the batch on A's rows)."""
+    w = np.random.default_rng(1).normal(size=(3, 7)).astype(np.float32)
+    nodes = [helper.make_node("Gemm", ["queries", "w", "c"], ["rgb"], transB=1, alpha=0.5, beta=2.0)]
+    got, want = against_onnx_runtime(tmp_path, nodes, w=w, c=np.float32([1, 2, 3]))
+    np.testing.assert_allclose(got, want, rtol=1e-4, atol=1e-5)
+
+
+def test_an_operator_on_a_type_drjit_lacks_is_a_clear_error(tmp_path):
+    """Sqrt of an integer tensor (ONNX Runtime refuses the graph too): drjit's RuntimeError becomes a
+    ModelError naming the node, as any other failure of a node does."""
+    nodes = [helper.make_node("Slice", ["queries", "zero", "three", "axes"], ["uvs"]),
+             helper.make_node("Cast", ["uvs"], ["whole"], to=7),
+             helper.make_node("Sqrt", ["whole"], ["root"]),
+             helper.make_node("Cast", ["root"], ["rgb"], to=1)]
+    with pytest.raises(ModelError, match="Sqrt node 'root'"):
+        against_onnx_runtime(tmp_path, nodes, zero=ints(0), three=ints(3), axes=ints(1))
