@@ -51,6 +51,7 @@ from __future__ import annotations
 
 import argparse
 import collections
+import functools
 import json
 import os
 import statistics
@@ -70,7 +71,7 @@ import torch  # noqa: E402
 
 from neumip.core import contract as C  # noqa: E402
 from neumip.core.contract import random_queries  # noqa: E402
-from neumip.client.local import LocalMaterials, run_chunked, split_chunk  # noqa: E402
+from neumip.client.local import LocalMaterials, run_call, run_chunked, split_chunk  # noqa: E402
 from neumip.core.config import MaterialConfig  # noqa: E402
 from neumip.training.export import build_onnx, weights_from_state  # noqa: E402
 from neumip.training.material import NeuMIPMaterial  # noqa: E402
@@ -323,7 +324,7 @@ def session_section(model: bytes, args) -> None:
     }
     sessions = {name: open_session(model, s) for name, s in variants.items()}
     pool = ThreadPoolExecutor(2)
-    single = sessions["1 thread"]
+    single = functools.partial(run_call, sessions["1 thread"])
     columns, table = [], {name: [] for name in [*sessions, "1-thread session, 2 chunk workers"]}
     queries = random_queries(1 << 20, seed=20)
     for log2 in args.session_batches:
@@ -341,14 +342,15 @@ def session_section(model: bytes, args) -> None:
 def chunk_section(model: bytes, args) -> None:
     """2^20 queries through `run_chunked`: one-thread session with 2 chunk workers, and one
     thread alone, for several chunk sizes."""
-    single = open_session(model, Session(threads=1, spinning=False))
+    session = open_session(model, Session(threads=1, spinning=False))
+    single = functools.partial(run_call, session)
     pool = ThreadPoolExecutor(2)
     q = random_queries(1 << 20, seed=20)
     fns = {}
     for k in args.chunks:
         fns[f"chunk 2^{k}, 2 workers"] = lambda c=1 << k: run_chunked(single, q, c, pool)
         fns[f"chunk 2^{k}, 1 thread"] = lambda c=1 << k: run_chunked(single, q, c)
-    fns["one run() of 2^20, 1 thread"] = lambda: single.run(None, {C.ONNX_INPUT: q})
+    fns["one run() of 2^20, 1 thread"] = lambda: session.run(None, {C.ONNX_INPUT: q})
     result = interleaved(fns, len(q), args.seconds, args.rounds)
     pool.shutdown()
     print_table("run_chunked on 2^20 queries, shipped graph", ["2^20"], {n: [v] for n, v in result.items()})

@@ -64,6 +64,6 @@ def _query(args: argparse.Namespace) -> int:
 
     material = load_material(model_path(args.material, args.models))
     row = C.as_queries([[getattr(args, f) for f in C.QUERY_FIELDS]])
-    r, g, b = run_chunked(material.session, row)[0]
+    r, g, b = run_chunked(material.run, row)[0]
     print(f"{r:.6g} {g:.6g} {b:.6g}")
     return 0

@@ -93,10 +93,9 @@ class KernelMaterial:
             raise ModelError(f"{path.name}: cannot load ONNX model: {exc}") from exc
         self.metadata = {p.key: p.value for p in model.metadata_props}
         """The model's metadata (a graph made by another tool may have none)."""
-        if C.META_CONTRACT in self.metadata:  # a graph made by another tool may say nothing of it
-            problem = C.version_problem(self.metadata, str(path))
-            if problem:
-                raise ModelError(f"{path.name}: {problem}")
+        problem = C.engine_problem(self.metadata, str(path))
+        if problem:
+            raise ModelError(f"{path.name}: {problem}")
         self.config = _config(path, self.metadata)
         """The material's config from its metadata (resolution, levels...), for callers that need it
         (a report's scenes); None for a graph without it. The kernel itself reads only the graph."""

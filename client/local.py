@@ -80,6 +80,10 @@ class Material:
     metadata: dict[str, str]
     bytes: int = 0
     """Size of the model file it was loaded from."""
+    single_queries: bool = False
+    """Whether the graph's input is fixed at 7 columns (a graph made by another tool that takes no
+    query groups): each light of a group is then answered as its single query, as the in-kernel engine
+    answers it."""
 
     @property
     def config(self) -> dict:
@@ -87,6 +91,8 @@ class Material:
 
     def run(self, queries: np.ndarray) -> np.ndarray:
         """One call: validated (n, 5 + 2 K) float32 queries -> (n, 3 K) float32 RGB (`run_call`)."""
+        if self.single_queries and queries.shape[1] != C.QUERY_DIM:
+            return run_call(self.session, C.ungroup(queries)).reshape(queries.shape[0], -1)
         return run_call(self.session, queries)
 
     def info(self) -> dict:
@@ -123,13 +129,17 @@ def load_material(path: str | Path, threads: int = 0, data: bytes | None = None)
     except Exception as exc:  # onnxruntime raises its own exception types for corrupt files
         raise ModelError(f"{path.name}: cannot load ONNX model: {exc}") from exc
     meta = dict(session.get_modelmeta().custom_metadata_map)
-    problem = C.version_problem(meta, str(path))
+    problem = C.engine_problem(meta, str(path))
     if problem:
         raise ModelError(f"{path.name}: {problem}")
     inputs, outputs = session.get_inputs(), session.get_outputs()
     if [i.name for i in inputs] != [C.ONNX_INPUT] or [o.name for o in outputs] != [C.ONNX_OUTPUT]:
         raise ModelError(f"{path.name}: graph must map '{C.ONNX_INPUT}' to '{C.ONNX_OUTPUT}'")
-    return Material(path.stem, path, session, meta, len(source))
+    width = inputs[0].shape[1] if len(inputs[0].shape) == 2 else None
+    if isinstance(width, int) and width != C.QUERY_DIM:
+        raise ModelError(f"{path.name}: '{C.ONNX_INPUT}' must be (N, {C.QUERY_DIM}) or query groups "
+                         f"(N, 5 + 2 K), not (N, {width})")
+    return Material(path.stem, path, session, meta, len(source), single_queries=width == C.QUERY_DIM)
 
 
 def run_call(session, queries: np.ndarray) -> np.ndarray:
@@ -139,10 +149,11 @@ def run_call(session, queries: np.ndarray) -> np.ndarray:
 
 
 def run_chunked(
-    session, queries: np.ndarray, chunk: int = DEFAULT_CHUNK, executor: Executor | None = None,
+    call: Callable[[np.ndarray], np.ndarray], queries: np.ndarray, chunk: int = DEFAULT_CHUNK,
+    executor: Executor | None = None,
 ) -> np.ndarray:
     """Evaluate validated (N, 7) float32 queries, or query groups (N, 5 + 2 K), in calls of `chunk`
-    rows (`run_call`) -> (N, 3 K) float32.
+    rows of `call` (`Material.run`) -> (N, 3 K) float32.
 
     With an `executor` the chunks run concurrently on its threads.
     """
@@ -151,7 +162,7 @@ def run_chunked(
 
     def run(lo: int) -> None:
         hi = min(lo + chunk, n)
-        out[lo:hi] = run_call(session, queries[lo:hi])
+        out[lo:hi] = call(queries[lo:hi])
 
     starts = range(0, n, chunk)
     if executor is None or len(starts) < 2:
@@ -287,5 +298,5 @@ class LocalMaterials:
         mat = self.get(material)
         queries = C.as_queries(queries, groups=True)
         per_call = max(self.chunk // C.group_lights(queries.shape[1]), 1)  # `chunk` counts answers
-        return run_chunked(mat.session, queries, split_chunk(queries.shape[0], self.threads, per_call),
+        return run_chunked(mat.run, queries, split_chunk(queries.shape[0], self.threads, per_call),
                            self._executor)

@@ -101,6 +101,14 @@ def version_problem(metadata: dict[str, str], source: str = "OLD.onnx") -> str |
             f"(and upgrades version {', '.join(UPGRADABLE_VERSIONS)} with `neumip export`)")
 
 
+def engine_problem(metadata: dict[str, str], source: str = "OLD.onnx") -> str | None:
+    """Why an engine cannot serve a model file whose ONNX metadata is `metadata` (None: it can). A file
+    that declares a contract version must declare this one (`version_problem`); a graph made by another
+    tool may declare none, and is then judged by its graph alone (every engine: ONNX Runtime, the
+    server, the in-kernel engine)."""
+    return version_problem(metadata, source) if META_CONTRACT in metadata else None
+
+
 def level_of_detail(sigma: np.ndarray, resolution: int) -> np.ndarray:
     """Continuous level of detail for footprint ``sigma`` on a pyramid whose finest level is ``resolution``.
 

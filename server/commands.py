@@ -17,7 +17,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--model-dir", help="folder of .onnx materials (NEUMIP_MODEL_DIR, default models)")
     p.add_argument("--engine", choices=("onnxruntime", "kernel"),
                    help="what evaluates the materials (NEUMIP_ENGINE, default onnxruntime): the file's graph in "
-                   "ONNX Runtime, or its weights as drjit LLVM kernels, the renderer's in-process engine "
+                   "ONNX Runtime, or interpreted as drjit LLVM kernels, the renderer's in-process engine "
                    "(pip install 'neumip[kernel]')")
     p.add_argument("--list-settings", action="store_true", help="print every NEUMIP_* setting and exit")
     p.set_defaults(func=serve)

@@ -155,6 +155,23 @@ def test_a_graph_exported_by_torch_answers_as_onnx_runtime_does(tmp_path):
     assert parity(KernelMaterials(tmp_path).evaluate("mlp", q), want) <= 1.0
 
 
+@pytest.mark.parametrize("engine", ["onnxruntime", "kernel"])
+def test_a_foreign_graph_is_served_alike_by_every_engine(tmp_path, checkerboard, serve, engine, groups_of):
+    """A graph made by another tool (scenes/checkerboard.py: no neumip metadata, input fixed at 7
+    columns) is served by ONNX Runtime in-process, by the in-kernel engine and by a real server on
+    either engine with the same answers; each light of a group is answered as its single query."""
+    from neumip.client.http import MaterialClient
+
+    save_onnx(checkerboard(), tmp_path / "checker.onnx")
+    q = groups_of(3000, 3, seed=4)
+    local = LocalMaterials(tmp_path).evaluate("checker", q)
+    assert local.shape == (3000, 9) and len(np.unique(local.reshape(-1, 3), axis=0)) == 2
+    np.testing.assert_array_equal(local.reshape(-1, 3), LocalMaterials(tmp_path).evaluate("checker", C.ungroup(q)))
+    np.testing.assert_array_equal(KernelMaterials(tmp_path).evaluate("checker", q), local)
+    with MaterialClient(serve(tmp_path, engine=engine).url) as client:
+        np.testing.assert_array_equal(client.evaluate("checker", q), local)
+
+
 def test_an_unsupported_operator_or_another_contract_is_one_clear_error(tmp_path, checkerboard):
     model = checkerboard()
     next(n for n in model.graph.node if n.op_type == "Floor").op_type = "Round"

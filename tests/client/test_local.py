@@ -99,3 +99,4 @@ def test_a_version_1_file_is_refused_naming_its_upgrade_and_the_others_serve(mod
     groups = np.ascontiguousarray(np.hstack([random_queries(5000, seed=1), random_queries(5000, seed=2)[:, 3:5]]))
     np.testing.assert_array_equal(mats.evaluate("rand16", groups),
                                   mats.evaluate("rand16", C.ungroup(groups)).reshape(5000, 6))
+

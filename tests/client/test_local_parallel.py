@@ -20,7 +20,7 @@ def test_concurrent_chunks_match_one_call(model_dir, rows):
 
 
 def test_run_chunked_with_executor_fills_every_row(model_dir):
-    session = load_material(model_dir / "rand16.onnx", threads=1).session
+    session = load_material(model_dir / "rand16.onnx", threads=1).run
     q = random_queries(10_007, seed=2)
     with ThreadPoolExecutor(4) as pool:
         parallel = run_chunked(session, q, 1000, pool)

@@ -140,7 +140,7 @@ def test_a_version_1_file_of_an_older_layout_is_upgraded(layout, name, tmp_path,
     assert main(["export", str(source), "-o", str(out)]) == 0
     assert "largest answer difference" in capsys.readouterr().out
     trim_model(onnx.load(str(out)), 1)  # trim reads it now
-    session = load_material(out).session
+    session = load_material(out).run
     groups = groups_of_two(64)
     np.testing.assert_array_equal(run_chunked(session, groups), run_chunked(session, C.ungroup(groups)).reshape(64, 6))
 

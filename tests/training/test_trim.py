@@ -39,7 +39,7 @@ def boundary_sigmas(k: int) -> np.ndarray:
 
 def session(model: onnx.ModelProto, path):
     save_onnx(model, path)
-    return load_material(path).session
+    return load_material(path).run
 
 
 @pytest.fixture(scope="module", params=[True, False], ids=["offset", "no-offset"])
