@@ -72,6 +72,24 @@ def images(values: np.ndarray, grid: ViewGrid, resolution: int) -> np.ndarray:
     return values.reshape(len(grid.views), len(grid_levels(grid, resolution)), p, p, C.RGB_DIM)
 
 
+def data_material(material_meta: dict, description: str | Path | None = None):
+    """The `MaterialDescription` of a data set: `description` (a library name or .toml path) if
+    given, else the one its meta.json holds (`material_meta`). Raises DescriptionError when it cannot
+    be rebuilt (map files elsewhere) or its map files hash otherwise than the data's."""
+    from .microgeometry.description import DescriptionError, MaterialDescription, find_description
+
+    if description is not None:
+        desc = find_description(description)
+    elif isinstance(material_meta, dict) and material_meta:
+        desc = MaterialDescription.from_dict({k: v for k, v in material_meta.items() if k != "map_sha256"})
+    else:
+        raise DescriptionError("the data set does not describe its material")
+    hashes = desc.to_dict().get("map_sha256")
+    if isinstance(material_meta, dict) and material_meta and hashes != material_meta.get("map_sha256"):
+        raise DescriptionError(f"the map files of {desc.name!r} differ from the training data's")
+    return desc
+
+
 def trace_views(material_meta: dict, grid: ViewGrid, resolution: int, out: str | Path,
                 description: str | Path | None = None):
     """Ground truth of the view grid, traced once into the data set folder `out` (reused when it holds
@@ -81,7 +99,7 @@ def trace_views(material_meta: dict, grid: ViewGrid, resolution: int, out: str |
     e.g. a description whose map files are elsewhere: then the grid shows the model only.
     """
     from .dataset import open_dataset, write_dataset
-    from .microgeometry.description import DescriptionError, MaterialDescription, find_description, resolve
+    from .microgeometry.description import DescriptionError, resolve
     from .microgeometry.tracer import QueryTracer
 
     out = Path(out)
@@ -98,14 +116,7 @@ def trace_views(material_meta: dict, grid: ViewGrid, resolution: int, out: str |
         except Exception as exc:  # a stale or broken cache: trace again
             log.warning("progress views at %s unusable (%s): tracing them again", out, exc)
     try:
-        if description is not None:
-            desc = find_description(description)
-        else:
-            desc = MaterialDescription.from_dict({k: v for k, v in material_meta.items() if k != "map_sha256"})
-        hashes = desc.to_dict().get("map_sha256")
-        if material_meta and hashes != material_meta.get("map_sha256"):
-            raise DescriptionError(f"the map files of {desc.name!r} differ from the training data's")
-        geo = resolve(desc)
+        geo = resolve(data_material(material_meta, description))
     except (DescriptionError, OSError, ValueError, TypeError) as exc:
         log.warning("no ground truth for the progress grid (%s): it shows the model only", exc)
         return None

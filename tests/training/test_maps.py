@@ -183,3 +183,19 @@ def test_a_map_informed_material_learns_the_plane_and_its_checkpoint_exports(pla
     # the checkpoint is a map-informed run: resuming it as the paper's model is refused
     with pytest.raises(TrainingError, match="map encoder"):
         Trainer(plane.path, tmp_path / "c.pt", MaterialConfig(resolution=16), config)
+
+
+def test_cli_trains_a_map_informed_model_from_a_description(plane, tmp_path, capsys):
+    from pathlib import Path
+
+    from neumip.client.cli import main
+
+    bumps = Path(__file__).parents[2] / "benchmarks" / "materials" / "bumps.toml"
+    out = tmp_path / "plane.onnx"
+    argv = ["train", str(plane.path), "-o", str(out), "--preset", "test", "--resolution", "8", "--steps", "5",
+            "--batch", "256", "--checkpoint", str(tmp_path / "ck.pt")]
+    assert main([*argv, "--maps", str(bumps)]) == 0 and out.exists()
+    assert isinstance(checkpoint.load(tmp_path / "ck.pt")[0], MapMaterial)
+    # the plane's data set names no material description to take the maps from
+    assert main([*argv, "--maps", "--force"]) == 2
+    assert "does not describe its material" in capsys.readouterr().err
