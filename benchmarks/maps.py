@@ -49,6 +49,7 @@ VARIANTS: dict[str, tuple[dict, MapConfig | None, object]] = {
     "M_noblur": ({}, MapConfig(), replace(SHIP, blur_start=0.0)),
     "N128": ({"resolution": 128}, None, SHIP),
     "M128": ({"resolution": 128}, MapConfig(), SHIP),
+    "N256": ({"resolution": 256}, None, SHIP),
     "M256": ({"resolution": 256}, MapConfig(), SHIP),
 }
 
@@ -95,7 +96,7 @@ def train(variant: str, data: str, material: str, runs: Path, threads: int) -> N
 
 
 def score(variants: list[str], material: str, runs: Path, cache_dir: str, camera_res: int, out: str) -> None:
-    from neumip.client.local import LocalMaterials
+    from neumip.client.kernel import KernelMaterials
     from neumip.training.microgeometry.description import find_description, resolve
     from neumip.training.report import metrics as Q
     from neumip.training.report.cache import RenderCache
@@ -110,7 +111,7 @@ def score(variants: list[str], material: str, runs: Path, cache_dir: str, camera
     renderers = {}
     for variant in variants:
         folder = runs / variant
-        r = MaterialRenderer(name, desc, geo, folder, LocalMaterials(folder, threads=config.threads), config, cache)
+        r = MaterialRenderer(name, desc, geo, folder, KernelMaterials(folder), config, cache)  # as `neumip render`
         r.resolution = camera_res  # every variant seen from the same cameras
         renderers[variant] = r
     first = renderers[variants[0]]

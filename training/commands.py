@@ -11,7 +11,7 @@ from neumip.core.config import MaterialConfig  # torch-free
 from .train_config import PRESETS  # torch-free
 
 HIDDEN_HELP = (f"width of the hidden layers of both MLPs (default {MaterialConfig.hidden}, the paper's; "
-               "the shipped materials too; 48 was measured, not shipped: models/README.md)")
+               "the shipped materials too; 48 was measured, not shipped: benchmarks/results/quality_levers_log.md)")
 
 
 def register(sub: argparse._SubParsersAction) -> None:

@@ -199,3 +199,16 @@ def test_cli_trains_a_map_informed_model_from_a_description(plane, tmp_path, cap
     # the plane's data set names no material description to take the maps from
     assert main([*argv, "--maps", "--force"]) == 2
     assert "does not describe its material" in capsys.readouterr().err
+
+
+def test_a_map_informed_run_resumes_as_one(plane, tmp_path):
+    torch.set_num_threads(1)
+    config = replace(TEST, steps=10, batch=256, validate_every=0)
+    maps = (MapConfig(neighbourhood=1), plane_geometry())
+    Trainer(plane.path, tmp_path / "c.pt", MaterialConfig(resolution=8), config, maps=maps).run()
+    again = Trainer(plane.path, tmp_path / "c.pt", MaterialConfig(resolution=8), replace(config, steps=20), maps=maps)
+    assert isinstance(again.material, MapMaterial) and again.state.step == 10
+    again.run()
+    assert again.state.step == 20
+    with pytest.raises(TrainingError, match="map encoder"):  # another encoder is another run
+        Trainer(plane.path, tmp_path / "c.pt", MaterialConfig(resolution=8), config, maps=(MapConfig(), plane_geometry()))
