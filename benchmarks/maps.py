@@ -44,6 +44,7 @@ VARIANTS: dict[str, tuple[dict, MapConfig | None, object]] = {
     # name: (MaterialConfig overrides, map encoder or None for the paper's model, TrainConfig)
     "N": ({}, None, SHIP),
     "M": ({}, MapConfig(), SHIP),
+    "M_hz": ({}, MapConfig(horizons=8), SHIP),
     "M_1x1": ({}, MapConfig(neighbourhood=1), SHIP),
     "M_residual": ({}, MapConfig(residual=True), SHIP),
     "M_noblur": ({}, MapConfig(), replace(SHIP, blur_start=0.0)),

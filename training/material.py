@@ -10,7 +10,7 @@ from neumip.core import contract as C
 
 from neumip.core import head
 from neumip.core.config import MaterialConfig
-from .maps import FEATURES, MapConfig, level_feature
+from .maps import MapConfig, level_feature
 from .offset import parallax_shift
 from .pyramid import pyramid_lookup, texture_lookup
 
@@ -121,7 +121,7 @@ class MapMaterial(NeuMIPMaterial):
         super().__init__(config, init_std)
         self.maps = maps
         sizes = config.level_sizes()
-        if features is not None and [tuple(f.shape[:2]) for f in features] != [(s, s) for s in sizes]:
+        if features is not None and [tuple(f.shape) for f in features] != [(s, s, maps.features) for s in sizes]:
             raise ValueError(f"map features of shapes {[tuple(f.shape) for f in features]} do not match "
                              f"the pyramid's levels {sizes}")
         with torch.no_grad():
@@ -129,7 +129,7 @@ class MapMaterial(NeuMIPMaterial):
                 param.zero_()
                 param.requires_grad_(maps.residual)
         for i, size in enumerate(sizes):
-            value = torch.zeros(size, size, FEATURES) if features is None else torch.as_tensor(features[i])
+            value = torch.zeros(size, size, maps.features) if features is None else torch.as_tensor(features[i])
             self.register_buffer(f"map_features_{i}", value.to(torch.float32).clone())
         self.encoder = mlp(maps.inputs, maps.hidden, config.channels, maps.layers)
         if config.offset:

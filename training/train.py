@@ -182,7 +182,7 @@ class Trainer:
             if maps is None:
                 self.material = NeuMIPMaterial(material_config)
             else:
-                features = prefilter(maps[1], material_config.level_sizes())
+                features = prefilter(maps[1], material_config.level_sizes(), maps[0].horizons)
                 self.material = MapMaterial(material_config, maps[0], features)
             init_output(self.material, self.data.rgb[self.train_idx[:: max(1, len(self.train_idx) // 4096)]])
             self.material.to(self.device)

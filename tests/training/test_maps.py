@@ -212,3 +212,19 @@ def test_a_map_informed_run_resumes_as_one(plane, tmp_path):
     assert again.state.step == 20
     with pytest.raises(TrainingError, match="map encoder"):  # another encoder is another run
         Trainer(plane.path, tmp_path / "c.pt", MaterialConfig(resolution=8), config, maps=(MapConfig(), plane_geometry()))
+
+
+def test_horizons_see_a_wall_towards_it_only():
+    """A wall one sample wide, 0.1 tile above a plane: the sample two to its left (towards -u) sees
+    it at azimuth 0 (+u) under atan(0.1 / (2 / 32)); azimuth 180 degrees sees open sky."""
+    height = np.full((32, 32), -0.1)
+    height[:, 16] = 0.0
+    feats = prefilter(geometry(height), [32], horizons=4)[0]
+    assert feats.shape == (32, 32, FEATURES + 4)
+    left = feats[5, 14, FEATURES:]  # azimuths 0, 90, 180, 270 degrees
+    assert left[0] == pytest.approx(np.arctan(0.1 / (2 / 32)) / (np.pi / 2), rel=1e-5)
+    np.testing.assert_allclose(left[1:], [0.0, 0.0, 0.0], atol=1e-7)  # along the wall, away from it
+    np.testing.assert_allclose(feats[..., 16, FEATURES:], 0.0, atol=1e-7)  # the wall's top sees the sky
+    flat = prefilter(geometry(np.zeros((16, 16))), [16, 1], horizons=8)
+    for f in flat:
+        np.testing.assert_allclose(f[..., FEATURES:], 0.0, atol=1e-7)
