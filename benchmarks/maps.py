@@ -13,8 +13,10 @@ each under the lights of `LIGHTS`. Renders are cached (``--cache``). One JSON li
 (variant, view) is appended to --out; ``--table`` prints them.
 
     .venv/bin/python benchmarks/maps.py train --data data/rock --material rock --runs runs/maps N M
-    .venv/bin/python benchmarks/maps.py score --material rock --runs runs/maps N M --out runs/maps/rock.jsonl
-    .venv/bin/python benchmarks/maps.py --table runs/maps/rock.jsonl
+    .venv/bin/python benchmarks/maps.py score --material rock --runs runs/maps N M --out runs/maps/scores.jsonl
+    .venv/bin/python benchmarks/maps.py --table runs/maps/scores.jsonl
+    .venv/bin/python benchmarks/maps.py --strip closeups.png C,N,M runs/maps/scores_rock_64_level0_side.npz ...
+    .venv/bin/python benchmarks/maps.py speed N M --data data/rock --material rock   # seconds per step
 
 benchmarks/results/maps.txt has every command and figure of the last run.
 """
@@ -37,6 +39,7 @@ from neumip.training.maps import MapConfig  # noqa: E402
 from neumip.training.train_config import PRESETS  # noqa: E402
 
 SHIP = replace(PRESETS["ship"], validate_every=0)
+QUICK = replace(PRESETS["quick"], validate_every=0)
 RECIPE = {"resolution": 64, "hidden": 25}
 """The shipped models' architecture (models/make_models.sh)."""
 
@@ -52,6 +55,9 @@ VARIANTS: dict[str, tuple[dict, MapConfig | None, object]] = {
     "M128": ({"resolution": 128}, MapConfig(), SHIP),
     "N256": ({"resolution": 256}, None, SHIP),
     "M256": ({"resolution": 256}, MapConfig(), SHIP),
+    # 256^2 within this session's time: the `quick` schedule (half of ship's steps), a 1 x 1 encoder
+    "N256q": ({"resolution": 256}, None, QUICK),
+    "M256q": ({"resolution": 256}, MapConfig(neighbourhood=1), QUICK),
 }
 
 LIGHTS = {"high": (15.0, 90.0), "side": (60.0, 90.0), "front": (50.0, 0.0)}
@@ -83,17 +89,48 @@ def train(variant: str, data: str, material: str, runs: Path, threads: int) -> N
     checkpoint.unlink(missing_ok=True)
     trainer = Trainer(data, checkpoint, MaterialConfig(**{**RECIPE, **overrides}), config,
                       maps=None if maps is None else (maps, resolve(desc)))
-    start = time.perf_counter()
+    start, cpu = time.perf_counter(), time.process_time()
     held = trainer.run()
-    seconds = time.perf_counter() - start
+    seconds, cpu = time.perf_counter() - start, time.process_time() - cpu
     export_material(trainer.material, out, f"benchmarks/maps.py {variant}", held)
     record = {"variant": variant, "data": data, "queries": len(trainer.data), "steps": trainer.state.step,
-              "batch": config.batch, "train_seconds": round(seconds, 1), "held_out_mse": held["overall"]["mse"],
+              "batch": config.batch, "train_seconds": round(seconds, 1), "cpu_seconds": round(cpu, 1), "held_out_mse": held["overall"]["mse"],
               "load_average": os.getloadavg(), "onnx_mb": round(out.stat().st_size / 1e6, 2)}
     (runs / variant / f"{desc.name}.json").write_text(json.dumps(record, indent=1) + "\n")
     checkpoint.unlink(missing_ok=True)
     print(f"{variant}: {seconds:.0f} s, held-out MSE {held['overall']['mse'] * 1e3:.4f}e-3, "
           f"load {os.getloadavg()[0]:.1f} -> {out}", flush=True)
+
+
+def speed(variants: list[str], data: str, material: str, rounds: int, steps: int) -> None:
+    """Seconds per training step of each variant (one thread), interleaved round by round, median
+    of the rounds; steps inside the blur schedule (its most expensive part)."""
+    import tempfile
+
+    import torch
+
+    from neumip.training.microgeometry.description import find_description, resolve
+    from neumip.training.train import Trainer
+
+    torch.set_num_threads(1)
+    geo = resolve(find_description(material))
+    trainers = {}
+    with tempfile.TemporaryDirectory() as tmp:
+        for variant in variants:
+            overrides, maps, config = VARIANTS[variant]
+            trainers[variant] = Trainer(data, Path(tmp) / f"{variant}.pt", MaterialConfig(**{**RECIPE, **overrides}),
+                                        replace(config, checkpoint_every=10**9),
+                                        maps=None if maps is None else (maps, geo))
+        times: dict = {v: [] for v in variants}
+        for _ in range(rounds):
+            for variant, trainer in trainers.items():
+                start = time.perf_counter()
+                for _ in range(steps):
+                    trainer.step()
+                times[variant].append((time.perf_counter() - start) / steps)
+    print(f"load average {os.getloadavg()[0]:.1f}; seconds per step (batch {SHIP.batch}), median of {rounds} rounds:")
+    for variant, t in times.items():
+        print(f"  {variant:<10} {np.median(t):.4f}  ({np.median(t) / np.median(times[variants[0]]):.2f}x {variants[0]})")
 
 
 def score(variants: list[str], material: str, runs: Path, cache_dir: str, camera_res: int, out: str) -> None:
@@ -134,8 +171,11 @@ def score(variants: list[str], material: str, runs: Path, cache_dir: str, camera
                 f.write(json.dumps(row) + "\n")
             print(f"{name} {view.name:<14} {method:<10} MSE {s.mse * 1e3:.3f}e-3 FLIP {s.flip:.3f} "
                   f"mean {s.mean_ratio:.3f} p99 {s.p99_ratio:.3f}", flush=True)
-        np.savez_compressed(Path(out).with_suffix("") .as_posix() + f"_{name}_{camera_res}_{view.name}.npz",
-                            R=ref, **images)
+        saved = Path(Path(out).with_suffix("").as_posix() + f"_{name}_{camera_res}_{view.name}.npz")
+        if saved.exists():  # keep the other variants' images of this view
+            with np.load(saved) as old:
+                images = {**{k: old[k] for k in old.files if k != "R"}, **images}
+        np.savez_compressed(saved, R=ref, **images)
 
 
 def table(path: str) -> None:
@@ -156,9 +196,27 @@ def table(path: str) -> None:
             print(line)
 
 
+def strip(out: str, renders: list[str], methods: list[str], scale: int = 3) -> None:
+    """A PNG of close-ups: one row per saved view (`score`'s .npz files), R then `methods`, all
+    tone-mapped with R's exposure (the report's tone mapping)."""
+    from PIL import Image
+
+    from neumip.training.report.metrics import exposure_for, tonemap
+
+    rows = []
+    for path in renders:
+        with np.load(path) as d:
+            e = exposure_for(d["R"])
+            rows.append(np.concatenate([tonemap(d[m], e) for m in ["R", *methods]], axis=1))
+    img = (np.concatenate(rows, axis=0) * 255).round().astype(np.uint8)
+    Image.fromarray(img).resize((img.shape[1] * scale, img.shape[0] * scale), Image.NEAREST).save(out)
+
+
 def main() -> None:
     if len(os.sys.argv) == 3 and os.sys.argv[1] == "--table":
         return table(os.sys.argv[2])
+    if len(os.sys.argv) > 4 and os.sys.argv[1] == "--strip":  # --strip OUT.png METHODS,... RENDER.npz ...
+        return strip(os.sys.argv[2], os.sys.argv[4:], os.sys.argv[3].split(","))
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     sub = p.add_subparsers(dest="command", required=True)
     t = sub.add_parser("train")
@@ -167,6 +225,12 @@ def main() -> None:
     t.add_argument("--material", required=True, help="library name or .toml of the data's material")
     t.add_argument("--runs", type=Path, default=Path("runs/maps"))
     t.add_argument("--threads", type=int, default=1)
+    v = sub.add_parser("speed")
+    v.add_argument("variants", nargs="+", choices=tuple(VARIANTS))
+    v.add_argument("--data", required=True)
+    v.add_argument("--material", required=True)
+    v.add_argument("--rounds", type=int, default=3)
+    v.add_argument("--steps", type=int, default=10)
     s = sub.add_parser("score")
     s.add_argument("variants", nargs="+", choices=tuple(VARIANTS))
     s.add_argument("--material", required=True)
@@ -178,6 +242,8 @@ def main() -> None:
     if args.command == "train":
         for variant in args.variants:
             train(variant, args.data, args.material, args.runs, args.threads)
+    elif args.command == "speed":
+        speed(args.variants, args.data, args.material, args.rounds, args.steps)
     else:
         score(args.variants, args.material, args.runs, args.cache, args.camera_res, args.out)
 
