@@ -60,8 +60,9 @@ VARIANTS: dict[str, tuple[dict, MapConfig | None, object]] = {
     "M256q": ({"resolution": 256}, MapConfig(neighbourhood=1), QUICK),
 }
 
-LIGHTS = {"high": (15.0, 90.0), "side": (60.0, 90.0), "front": (50.0, 0.0)}
-"""Light name: (zenith, azimuth from the camera's side) in degrees; side is the report's light."""
+LIGHTS = {"high": (15.0, 90.0), "side": (60.0, 90.0), "front": (50.0, 0.0), "low": (85.0, 90.0)}
+"""Light name: (zenith, azimuth from the camera's side) in degrees; side is the report's light, low its
+low_light (5 degrees above the horizon: highlights)."""
 LEVELS = (0, 2)
 """Footprints at the image centre: 2^level texels of the --camera-res grid (1 and 4 texels)."""
 SPP, REFERENCE_SPP, SEED = 64, 256, 0
