@@ -47,6 +47,8 @@ VARIANTS: dict[str, tuple[dict, MapConfig | None, object]] = {
     # name: (MaterialConfig overrides, map encoder or None for the paper's model, TrainConfig)
     "N": ({}, None, SHIP),
     "M": ({}, MapConfig(), SHIP),
+    "N_seed1": ({}, None, replace(SHIP, seed=1)),  # the run-to-run spread of each model
+    "M_seed1": ({}, MapConfig(), replace(SHIP, seed=1)),
     "M_hz": ({}, MapConfig(horizons=8), SHIP),
     "M_1x1": ({}, MapConfig(neighbourhood=1), SHIP),
     "M_residual": ({}, MapConfig(residual=True), SHIP),
