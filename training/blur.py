@@ -117,11 +117,7 @@ def effective_textures(
 @torch.no_grad()
 def bake(material: NeuMIPMaterial, levels: list[torch.Tensor], otex: torch.Tensor | None) -> None:
     """Store the given effective textures as the material's own (export then matches training)."""
-    for param, value in zip(material.pyramid, levels):
-        if value is not param:
-            param.copy_(value)
-    if otex is not None and otex is not material.offset_texture:
-        material.offset_texture.copy_(otex)
+    material.store_textures(levels, otex)
 
 
 def bake_checkpoint_textures(material: NeuMIPMaterial, extra: dict) -> bool:

@@ -1,6 +1,7 @@
 """Checkpoint files: model config, weights and training state, written atomically.
 
-A checkpoint is a `torch.save` dict ``{"format", "config", "state", "extra"}``. It is written to a
+A checkpoint is a `torch.save` dict ``{"format", "config", "state", "extra"}``, plus ``"maps"`` (the
+`MapConfig` JSON) for a map-informed material. It is written to a
 temporary file and renamed into place, so an interrupted write never leaves a truncated checkpoint.
 """
 
@@ -15,7 +16,8 @@ import torch
 from neumip.core.errors import NeumipError
 
 from neumip.core.config import MaterialConfig
-from .material import NeuMIPMaterial
+from .maps import MapConfig
+from .material import MapMaterial, NeuMIPMaterial
 
 FORMAT = "neumip-checkpoint-1"
 
@@ -34,6 +36,8 @@ def save(path: str | Path, material: NeuMIPMaterial, extra: dict[str, Any] | Non
         "state": {k: v.detach().cpu() for k, v in material.state_dict().items()},
         "extra": extra or {},
     }
+    if isinstance(material, MapMaterial):
+        payload["maps"] = material.maps.to_json()
     tmp = path.with_name(path.name + ".tmp")
     torch.save(payload, tmp)
     os.replace(tmp, path)
@@ -51,6 +55,8 @@ def load(path: str | Path) -> tuple[NeuMIPMaterial, dict[str, Any]]:
         raise CheckpointError(f"{path} is not a readable checkpoint: {exc}") from exc
     if not isinstance(payload, dict) or payload.get("format") != FORMAT:
         raise CheckpointError(f"{path} is not a NeuMIP checkpoint (format {FORMAT} expected)")
-    material = NeuMIPMaterial(MaterialConfig.from_json(payload["config"]))
+    config = MaterialConfig.from_json(payload["config"])
+    maps = payload.get("maps")
+    material = NeuMIPMaterial(config) if maps is None else MapMaterial(config, MapConfig.from_json(maps))
     material.load_state_dict(payload["state"])
     return material, payload["extra"]

@@ -11,7 +11,7 @@ from neumip.core.config import MaterialConfig  # torch-free
 from .train_config import PRESETS  # torch-free
 
 HIDDEN_HELP = (f"width of the hidden layers of both MLPs (default {MaterialConfig.hidden}, the paper's; "
-               "the shipped materials too; 48 was measured, not shipped: models/README.md)")
+               "the shipped materials too; 48 was measured, not shipped: benchmarks/results/quality_levers_log.md)")
 
 
 def register(sub: argparse._SubParsersAction) -> None:
@@ -31,6 +31,9 @@ def register(sub: argparse._SubParsersAction) -> None:
                        help="`neumip budget --json` output: train at its recommended finest resolution for the material")
     p.add_argument("--material", help="material name to look up in --budget (default: the output's file stem)")
     p.add_argument("--no-offset", action="store_true", help="train without the neural offset")
+    p.add_argument("--maps", nargs="?", const="", metavar="NAME_OR_TOML",
+                   help="map-informed model: its textures are encoded from the material's prefiltered maps "
+                        "(the data's own material, or this library name / .toml); the export is the paper's graph")
     p.add_argument("--description", default="", help="short description stored in the model metadata")
     p.add_argument("--head", choices=("relu", "yuv"), default="relu",
                    help="decoder output head: relu (paper) or yuv (authors' exp(YUV) - 1 with a shadow mask)")
@@ -77,6 +80,20 @@ def train_settings(args: argparse.Namespace):
     if args.compile:
         overrides["compile"] = True
     return replace(config, **overrides)
+
+
+def _map_source(args: argparse.Namespace):
+    """(MapConfig, Microgeometry) of `--maps`, or None without it."""
+    if args.maps is None:
+        return None
+    from .dataset import open_dataset
+    from .maps import MapConfig
+    from .microgeometry.description import resolve
+    from .views import data_material
+
+    meta = open_dataset(args.data).meta
+    return MapConfig(), resolve(data_material(meta.get("material") or {}, args.maps or None,
+                                              meta.get("description_dir")))
 
 
 def _data_resolution(data: str, default: int = 128) -> int:
@@ -178,7 +195,7 @@ def _train(args: argparse.Namespace) -> int:
         resolution = args.resolution or _budget_resolution(args, output) or _data_resolution(args.data)
         material = MaterialConfig(resolution=resolution, offset=not args.no_offset, head=args.head,
                                   hidden=args.hidden)
-        trainer = Trainer(args.data, checkpoint, material, config, args.description)
+        trainer = Trainer(args.data, checkpoint, material, config, args.description, _map_source(args))
     except (ValueError, DatasetError, CheckpointError) as exc:
         raise CommandError(str(exc)) from exc
     meta = trainer.data.meta

@@ -1,4 +1,5 @@
-"""The NeuMIP material: texture pyramid + neural offset + decoder MLP (paper Eq. 7). Pure torch."""
+"""The NeuMIP material: texture pyramid + neural offset + decoder MLP (paper Eq. 7), and the
+map-informed variant whose textures an encoder computes from the material's prefiltered maps. Pure torch."""
 
 from __future__ import annotations
 
@@ -9,6 +10,7 @@ from neumip.core import contract as C
 
 from neumip.core import head
 from neumip.core.config import MaterialConfig
+from .maps import MapConfig, level_feature
 from .offset import parallax_shift
 from .pyramid import pyramid_lookup, texture_lookup
 
@@ -45,6 +47,21 @@ class NeuMIPMaterial(nn.Module):
         """The raw neural textures: pyramid levels (finest first, each (S, S, C)) and the offset texture."""
         return list(self.pyramid), (self.offset_texture if self.config.offset else None)
 
+    @torch.no_grad()
+    def store_textures(self, levels: list[torch.Tensor] | None, offset_texture: torch.Tensor | None) -> None:
+        """Make `textures()` return these (e.g. blurred copies, so an export computes what training
+        did); None keeps that texture as it is."""
+        for param, value in zip(self.pyramid, levels or []):
+            if value is not param:
+                param.copy_(value)
+        if offset_texture is not None and offset_texture is not self.offset_texture:
+            self.offset_texture.copy_(offset_texture)
+
+    def freeze_offset(self) -> None:
+        """Stop training what makes the offset texture (`Trainer`, at the end of the blur schedule)."""
+        self.offset_texture.requires_grad_(False)
+        self.offset_texture.grad = None
+
     def forward(
         self,
         queries: torch.Tensor,
@@ -55,9 +72,11 @@ class NeuMIPMaterial(nn.Module):
 
         `pyramid` / `offset_texture` replace the stored textures (training evaluates blurred copies).
         """
-        levels, otex = self.textures()
-        levels = levels if pyramid is None else pyramid
-        otex = otex if offset_texture is None else offset_texture
+        levels, otex = pyramid, offset_texture
+        if levels is None or (self.config.offset and otex is None):  # (an encoder's textures cost a pass)
+            stored_levels, stored_otex = self.textures()
+            levels = stored_levels if levels is None else levels
+            otex = stored_otex if otex is None else otex
         u, v, sigma = queries[:, C.U], queries[:, C.V], queries[:, C.SIGMA]
         wo = queries[:, C.WO_X : C.WO_Y + 1]
         if self.config.offset:
@@ -72,3 +91,110 @@ class NeuMIPMaterial(nn.Module):
             shadow = head.SHADOW_FLOOR + torch.sigmoid(out[:, 3:])
             out = torch.expm1(out[:, :3] @ self.yuv_to_rgb) * shadow
         return torch.relu(out)
+
+
+def neighbourhood(features: torch.Tensor, size: int) -> torch.Tensor:
+    """(S, S, F) features -> (S, S, size^2 F): each texel's wrapped size x size neighbourhood,
+    row by row (the texel itself in the middle)."""
+    r = size // 2
+    shifted = [torch.roll(features, (-dy, -dx), (0, 1)) for dy in range(-r, r + 1) for dx in range(-r, r + 1)]
+    return torch.cat(shifted, dim=2)
+
+
+class MapMaterial(NeuMIPMaterial):
+    """A NeuMIP material whose textures start from the material's maps (issue 25, lever 1).
+
+    One MLP shared by every texel of every level (`encoder`) maps a neighbourhood of the level's
+    prefiltered map features (`maps.prefilter`, buffers ``map_features_{i}``) and the level feature
+    to the level's latent texture; a second one (`offset_encoder`) maps the finest level's to the
+    offset texture. `pyramid` and `offset_texture` hold a free part added to them: zero, and trained
+    only with `MapConfig.residual` (or set by `store_textures`).
+
+    The decoder, the offset MLP and the lookups are the paper model's, so its export is the paper's
+    graph with these textures baked in: `state_dict()` holds the textures the material answers with
+    under the paper model's names (``pyramid.{i}``, ``offset_texture``: what `export.py` reads) and
+    the free parts under ``free.``; `load_state_dict` reads the free parts back.
+    """
+
+    def __init__(self, config: MaterialConfig, maps: MapConfig, features: list | None = None,
+                 init_std: float = 0.1) -> None:
+        super().__init__(config, init_std)
+        self.maps = maps
+        sizes = config.level_sizes()
+        if features is not None and [tuple(f.shape) for f in features] != [(s, s, maps.features) for s in sizes]:
+            raise ValueError(f"map features of shapes {[tuple(f.shape) for f in features]} do not match "
+                             f"the pyramid's levels {sizes}")
+        with torch.no_grad():
+            for param in self.free_parameters():
+                param.zero_()
+                param.requires_grad_(maps.residual)
+        for i, size in enumerate(sizes):
+            value = torch.zeros(size, size, maps.features) if features is None else torch.as_tensor(features[i])
+            self.register_buffer(f"map_features_{i}", value.to(torch.float32).clone())
+        self.encoder = mlp(maps.inputs, maps.hidden, config.channels, maps.layers)
+        if config.offset:
+            self.offset_encoder = mlp(maps.inputs, maps.hidden, config.offset_channels, maps.layers)
+        self.register_state_dict_post_hook(_state_with_textures)
+        self.register_load_state_dict_pre_hook(_free_parts_from_state)
+
+    def free_parameters(self) -> list[nn.Parameter]:
+        """The free textures added to the encoded ones (pyramid levels, then the offset texture)."""
+        return list(self.pyramid) + ([self.offset_texture] if self.config.offset else [])
+
+    def encoder_inputs(self, level: int) -> torch.Tensor:
+        """(S * S, maps.inputs) encoder inputs of one level's texels, row-major."""
+        features = getattr(self, f"map_features_{level}")
+        size = features.shape[0]
+        near = neighbourhood(features, self.maps.neighbourhood).reshape(size * size, -1)
+        return torch.cat([near, near.new_full((size * size, 1), level_feature(size))], dim=1)
+
+    def textures(self) -> tuple[list[torch.Tensor], torch.Tensor | None]:
+        """The encoded textures plus their free parts: levels (finest first, (S, S, C)) and the offset texture."""
+        sizes = self.config.level_sizes()
+        inputs = [self.encoder_inputs(i) for i in range(len(sizes))]
+        encoded = self.encoder(torch.cat(inputs, dim=0)).split([s * s for s in sizes])  # one MLP call
+        levels = [e.view(s, s, -1) + free for e, s, free in zip(encoded, sizes, self.pyramid)]
+        if not self.config.offset:
+            return levels, None
+        size = sizes[0]
+        return levels, self.offset_encoder(inputs[0]).view(size, size, -1) + self.offset_texture
+
+    @torch.no_grad()
+    def store_textures(self, levels: list[torch.Tensor] | None, offset_texture: torch.Tensor | None) -> None:
+        """Make `textures()` return these: their difference from the encoded textures goes to the free parts."""
+        now_levels, now_offset = self.textures()
+        for param, value, now in zip(self.pyramid, levels or [], now_levels):
+            param.add_(value - now)
+        if offset_texture is not None:
+            self.offset_texture.add_(offset_texture - now_offset)
+
+    def freeze_offset(self) -> None:
+        """Stop training the offset texture and the encoder that makes it."""
+        super().freeze_offset()
+        for param in self.offset_encoder.parameters():
+            param.requires_grad_(False)
+            param.grad = None
+
+
+FREE = "free."
+"""State-dict prefix of a `MapMaterial`'s free texture parts."""
+
+
+def _texture_names(material: MapMaterial) -> list[str]:
+    return [f"pyramid.{i}" for i in range(len(material.pyramid))] + (["offset_texture"] if material.config.offset else [])
+
+
+def _state_with_textures(material: MapMaterial, state: dict, prefix: str, _meta) -> None:
+    """state_dict post-hook: the textures the material answers with under the paper model's names."""
+    with torch.no_grad():
+        levels, offset_texture = material.textures()
+    for name, texture in zip(_texture_names(material), levels + [offset_texture]):
+        state[prefix + FREE + name] = state[prefix + name]
+        state[prefix + name] = texture.detach()
+
+
+def _free_parts_from_state(material: MapMaterial, state: dict, prefix: str, *_args) -> None:
+    """load_state_dict pre-hook: the free parts back under their parameters' names."""
+    for name in _texture_names(material):
+        if prefix + FREE + name in state:
+            state[prefix + name] = state.pop(prefix + FREE + name)

@@ -28,7 +28,9 @@ from neumip.core.config import MaterialConfig
 from .dataset import Dataset, open_dataset
 from neumip.core.head import answer_bias
 from .losses import training_loss
-from .material import NeuMIPMaterial
+from .maps import MapConfig, prefilter
+from .material import MapMaterial, NeuMIPMaterial
+from .microgeometry.description import Microgeometry
 from .train_config import TrainConfig
 from .validation import predict, validation_table
 
@@ -141,6 +143,12 @@ def learning_rate(step: int, config: TrainConfig) -> float:
     return config.lr * (config.lr_final + (1.0 - config.lr_final) * 0.5 * (1.0 + math.cos(math.pi * t)))
 
 
+def _maps_dict(source: NeuMIPMaterial | MapConfig | None) -> dict:
+    """The map encoder's settings of a material or a MapConfig ({} for the paper's model)."""
+    maps = source.maps if isinstance(source, MapMaterial) else source
+    return asdict(maps) if isinstance(maps, MapConfig) else {}
+
+
 def _finite(material: NeuMIPMaterial) -> bool:
     return all(bool(torch.isfinite(p).all()) for p in material.parameters())
 
@@ -155,8 +163,12 @@ class Trainer:
         material_config: MaterialConfig,
         config: TrainConfig,
         description: str = "",
+        maps: tuple[MapConfig, Microgeometry] | None = None,
     ) -> None:
+        """`maps`: train a map-informed material (`MapMaterial`) whose encoder reads these maps,
+        prefiltered to the pyramid's levels; None: the paper's model."""
         self.data = open_dataset(data_path)
+        self.map_config = maps[0] if maps is not None else None
         self.checkpoint_path = Path(checkpoint_path)
         self.config, self.description = config, description
         self.device = resolve_device(config.device)
@@ -167,7 +179,11 @@ class Trainer:
             self.material = self._resume(material_config)
         else:
             torch.manual_seed(config.seed)
-            self.material = NeuMIPMaterial(material_config)
+            if maps is None:
+                self.material = NeuMIPMaterial(material_config)
+            else:
+                features = prefilter(maps[1], material_config.level_sizes(), maps[0].horizons)
+                self.material = MapMaterial(material_config, maps[0], features)
             init_output(self.material, self.data.rgb[self.train_idx[:: max(1, len(self.train_idx) // 4096)]])
             self.material.to(self.device)
             self.optimizer = _make_optimizer(self.material, config)
@@ -195,6 +211,7 @@ class Trainer:
             ("training settings", differences(saved_config, self.config.to_dict(),
                                               MAY_CHANGE_ON_RESUME)),
             ("data", differences(extra.get("data", {}), self._data_identity())),
+            ("map encoder", differences(_maps_dict(material), _maps_dict(self.map_config))),
         ]
         for what, diff in mismatches:
             if diff:
@@ -206,7 +223,7 @@ class Trainer:
         material.to(self.device)
         self.state = TrainState(**extra["state"])
         if self.state.offset_frozen:
-            material.offset_texture.requires_grad_(False)
+            material.freeze_offset()
         self.optimizer = _make_optimizer(material, self.config)
         self.optimizer.load_state_dict(extra["optimizer"])
         self.sampler.generator.set_state(extra["rng"])
@@ -245,10 +262,9 @@ class Trainer:
     def _freeze_offset(self) -> None:
         """End of the blur schedule: bake the offset texture's floor blur and stop training it."""
         with torch.no_grad():
-            otex = self.material.offset_texture
-            otex.copy_(blur_texture(otex, self.config.offset_blur_floor))
-        otex.requires_grad_(False)
-        otex.grad = None
+            otex = self.material.textures()[1]
+            self.material.store_textures(None, blur_texture(otex, self.config.offset_blur_floor))
+        self.material.freeze_offset()
         self.state.offset_frozen = True
         log.info("step %d: blur schedule ended, offset texture frozen", self.state.step)
 

@@ -72,7 +72,8 @@ def images(values: np.ndarray, grid: ViewGrid, resolution: int) -> np.ndarray:
     return values.reshape(len(grid.views), len(grid_levels(grid, resolution)), p, p, C.RGB_DIM)
 
 
-def data_material(material_meta: dict, description: str | Path | None = None, base_dir: str | Path | None = None):
+def data_material(material_meta: dict, description: str | Path | None = None,
+                  base_dir: str | Path | None = None):
     """The `MaterialDescription` of a data set: `description` (a library name or .toml path) if
     given, else the one its meta.json holds (`material_meta`, its relative map paths resolved against
     `base_dir`: the description file's folder, meta.json's ``description_dir``). Raises

@@ -1,0 +1,255 @@
+"""Map-informed materials (issue 25): the paper's model N against the map-informed one M, the
+classical material C and the real geometry R, in images, up close, under several lights.
+
+`train` fits each variant to one data set in-process (equal data and equal steps for every variant)
+and exports ``RUNS/VARIANT/MATERIAL.onnx``; the run's wall time and held-out MSE go to
+``RUNS/VARIANT/MATERIAL.json``.
+
+`score` renders R (stock `path` on the displaced geometry, the mean of two seeds), C (the principled
+BSDF with the full-resolution maps and a normal map, stock `path`) and every variant (`neumip_path`)
+with the report's building blocks (`training/report/`: views, scenes, renderer, metrics), in oblique
+views (55 degrees) whose pixel footprint covers 1 and 4 texels of a ``--camera-res`` texel grid,
+each under the lights of `LIGHTS`. Renders are cached (``--cache``). One JSON line per
+(variant, view) is appended to --out; ``--table`` prints them.
+
+    .venv/bin/python benchmarks/maps.py train --data data/rock --material rock --runs runs/maps N M
+    .venv/bin/python benchmarks/maps.py score --material rock --runs runs/maps N M --out runs/maps/scores.jsonl
+    .venv/bin/python benchmarks/maps.py --table runs/maps/scores.jsonl
+    .venv/bin/python benchmarks/maps.py --strip closeups.png C,N,M runs/maps/scores_rock_64_level0_side.npz ...
+    .venv/bin/python benchmarks/maps.py speed N M --data data/rock --material rock   # seconds per step
+
+benchmarks/results/maps.txt has every command and figure of the last run.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import time
+from dataclasses import replace
+from pathlib import Path
+
+os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
+
+import numpy as np  # noqa: E402
+
+from neumip.core.config import MaterialConfig  # noqa: E402
+from neumip.training.maps import MapConfig  # noqa: E402
+from neumip.training.train_config import PRESETS  # noqa: E402
+
+SHIP = replace(PRESETS["ship"], validate_every=0)
+QUICK = replace(PRESETS["quick"], validate_every=0)
+RECIPE = {"resolution": 64, "hidden": 25}
+"""The shipped models' architecture (models/make_models.sh)."""
+
+VARIANTS: dict[str, tuple[dict, MapConfig | None, object]] = {
+    # name: (MaterialConfig overrides, map encoder or None for the paper's model, TrainConfig)
+    "N": ({}, None, SHIP),
+    "M": ({}, MapConfig(), SHIP),
+    "N_seed1": ({}, None, replace(SHIP, seed=1)),  # the run-to-run spread of each model
+    "M_seed1": ({}, MapConfig(), replace(SHIP, seed=1)),
+    "M_hz": ({}, MapConfig(horizons=8), SHIP),
+    "M_1x1": ({}, MapConfig(neighbourhood=1), SHIP),
+    "M_residual": ({}, MapConfig(residual=True), SHIP),
+    "M_noblur": ({}, MapConfig(), replace(SHIP, blur_start=0.0)),
+    "N128": ({"resolution": 128}, None, SHIP),
+    "M128": ({"resolution": 128}, MapConfig(), SHIP),
+    "N256": ({"resolution": 256}, None, SHIP),
+    "M256": ({"resolution": 256}, MapConfig(), SHIP),
+    # 256^2 within this session's time: the `quick` schedule (half of ship's steps), a 1 x 1 encoder
+    "N256q": ({"resolution": 256}, None, QUICK),
+    "M256q": ({"resolution": 256}, MapConfig(neighbourhood=1), QUICK),
+}
+
+LIGHTS = {"high": (15.0, 90.0), "side": (60.0, 90.0), "front": (50.0, 0.0), "low": (85.0, 90.0)}
+"""Light name: (zenith, azimuth from the camera's side) in degrees; side is the report's light, low its
+low_light (5 degrees above the horizon: highlights)."""
+LEVELS = (0, 2)
+"""Footprints at the image centre: 2^level texels of the --camera-res grid (1 and 4 texels)."""
+SPP, REFERENCE_SPP, SEED = 64, 256, 0
+
+
+def views():
+    from neumip.training.report.views import View
+
+    return [View(f"level{lv}_{light}", 55.0, lv, light_zenith=z, light_azimuth=a)
+            for light, (z, a) in LIGHTS.items() for lv in LEVELS]
+
+
+def train(variant: str, data: str, material: str, runs: Path, threads: int) -> None:
+    import torch
+
+    from neumip.training.export import export_material
+    from neumip.training.microgeometry.description import find_description, resolve
+    from neumip.training.train import Trainer
+
+    torch.set_num_threads(threads)
+    overrides, maps, config = VARIANTS[variant]
+    desc = find_description(material)
+    out = runs / variant / f"{desc.name}.onnx"
+    checkpoint = runs / variant / f"{desc.name}.pt"
+    checkpoint.unlink(missing_ok=True)
+    trainer = Trainer(data, checkpoint, MaterialConfig(**{**RECIPE, **overrides}), config,
+                      maps=None if maps is None else (maps, resolve(desc)))
+    start, cpu = time.perf_counter(), time.process_time()
+    held = trainer.run()
+    seconds, cpu = time.perf_counter() - start, time.process_time() - cpu
+    export_material(trainer.material, out, f"benchmarks/maps.py {variant}", held)
+    record = {"variant": variant, "data": data, "queries": len(trainer.data), "steps": trainer.state.step,
+              "batch": config.batch, "train_seconds": round(seconds, 1), "cpu_seconds": round(cpu, 1), "held_out_mse": held["overall"]["mse"],
+              "load_average": os.getloadavg(), "onnx_mb": round(out.stat().st_size / 1e6, 2)}
+    (runs / variant / f"{desc.name}.json").write_text(json.dumps(record, indent=1) + "\n")
+    checkpoint.unlink(missing_ok=True)
+    print(f"{variant}: {seconds:.0f} s, held-out MSE {held['overall']['mse'] * 1e3:.4f}e-3, "
+          f"load {os.getloadavg()[0]:.1f} -> {out}", flush=True)
+
+
+def speed(variants: list[str], data: str, material: str, rounds: int, steps: int) -> None:
+    """Seconds per training step of each variant (one thread), interleaved round by round, median
+    of the rounds; steps inside the blur schedule (its most expensive part)."""
+    import tempfile
+
+    import torch
+
+    from neumip.training.microgeometry.description import find_description, resolve
+    from neumip.training.train import Trainer
+
+    torch.set_num_threads(1)
+    geo = resolve(find_description(material))
+    trainers = {}
+    with tempfile.TemporaryDirectory() as tmp:
+        for variant in variants:
+            overrides, maps, config = VARIANTS[variant]
+            trainers[variant] = Trainer(data, Path(tmp) / f"{variant}.pt", MaterialConfig(**{**RECIPE, **overrides}),
+                                        replace(config, checkpoint_every=10**9),
+                                        maps=None if maps is None else (maps, geo))
+        times: dict = {v: [] for v in variants}
+        for _ in range(rounds):
+            for variant, trainer in trainers.items():
+                start = time.perf_counter()
+                for _ in range(steps):
+                    trainer.step()
+                times[variant].append((time.perf_counter() - start) / steps)
+    print(f"load average {os.getloadavg()[0]:.1f}; seconds per step (batch {SHIP.batch}), median of {rounds} rounds:")
+    for variant, t in times.items():
+        print(f"  {variant:<10} {np.median(t):.4f}  ({np.median(t) / np.median(times[variants[0]]):.2f}x {variants[0]})")
+
+
+def score(variants: list[str], material: str, runs: Path, cache_dir: str, camera_res: int, out: str) -> None:
+    from neumip.client.kernel import KernelMaterials
+    from neumip.training.microgeometry.description import find_description, resolve
+    from neumip.training.report import metrics as Q
+    from neumip.training.report.cache import RenderCache
+    from neumip.training.report.config import FULL
+    from neumip.training.report.pipeline import REFERENCE_SEEDS
+    from neumip.training.report.renderer import MaterialRenderer
+
+    desc = find_description(material)
+    geo, name = resolve(desc), desc.name
+    cache = RenderCache(cache_dir)
+    config = replace(FULL, reference_spp=REFERENCE_SPP)
+    renderers = {}
+    for variant in variants:
+        folder = runs / variant
+        r = MaterialRenderer(name, desc, geo, folder, KernelMaterials(folder), config, cache)  # as `neumip render`
+        r.resolution = camera_res  # every variant seen from the same cameras
+        renderers[variant] = r
+    first = renderers[variants[0]]
+    for view in views():
+        refs = [first.render(view, "R", config.reference_spp, s, timed=False)[0] for s in REFERENCE_SEEDS]
+        first.release()
+        ref = (refs[0] + refs[1]) / 2
+        images = {"C": first.render(view, "C", SPP, SEED, timed=False)[0]}
+        first.release()
+        for variant, r in renderers.items():
+            images[variant] = r.render(view, "N", SPP, SEED, timed=False)[0]
+            r.release()
+        for method, image in images.items():
+            s, _ = Q.score(ref, image, Q.exposure_for(ref))
+            row = {"material": name, "camera_res": camera_res, "view": view.name, "method": method,
+                   "mse": s.mse, "flip": s.flip, "mean_ratio": s.mean_ratio, "p99_ratio": s.p99_ratio,
+                   "load_average": os.getloadavg()[0]}
+            with open(out, "a") as f:
+                f.write(json.dumps(row) + "\n")
+            print(f"{name} {view.name:<14} {method:<10} MSE {s.mse * 1e3:.3f}e-3 FLIP {s.flip:.3f} "
+                  f"mean {s.mean_ratio:.3f} p99 {s.p99_ratio:.3f}", flush=True)
+        saved = Path(Path(out).with_suffix("").as_posix() + f"_{name}_{camera_res}_{view.name}.npz")
+        if saved.exists():  # keep the other variants' images of this view
+            with np.load(saved) as old:
+                images = {**{k: old[k] for k in old.files if k != "R"}, **images}
+        np.savez_compressed(saved, R=ref, **images)
+
+
+def table(path: str) -> None:
+    rows = [json.loads(line) for line in Path(path).read_text().splitlines() if line.strip()]
+    groups: dict = {}
+    for r in rows:  # the last row of each (material, camera, view, method) wins
+        groups.setdefault((r["material"], r["camera_res"]), {})[(r["view"], r["method"])] = r
+    for (material, camera_res), cells in groups.items():
+        view_names = list(dict.fromkeys(v for v, _ in cells))
+        methods = list(dict.fromkeys(m for _, m in cells))
+        print(f"\n== {material}, cameras for {camera_res}^2 texels: MSE x1e-3 / FLIP (mean luminance / R's)")
+        print(f"{'view':<15}" + "".join(f"{m:>24}" for m in methods))
+        for v in view_names:
+            line = f"{v:<15}"
+            for m in methods:
+                c = cells.get((v, m))
+                line += f"{c['mse'] * 1e3:>9.3f} / {c['flip']:.3f} ({c['mean_ratio']:.2f})" if c else f"{'-':>24}"
+            print(line)
+
+
+def strip(out: str, renders: list[str], methods: list[str], scale: int = 3) -> None:
+    """A PNG of close-ups: one row per saved view (`score`'s .npz files), R then `methods`, all
+    tone-mapped with R's exposure (the report's tone mapping)."""
+    from PIL import Image
+
+    from neumip.training.report.metrics import exposure_for, tonemap
+
+    rows = []
+    for path in renders:
+        with np.load(path) as d:
+            e = exposure_for(d["R"])
+            rows.append(np.concatenate([tonemap(d[m], e) for m in ["R", *methods]], axis=1))
+    img = (np.concatenate(rows, axis=0) * 255).round().astype(np.uint8)
+    Image.fromarray(img).resize((img.shape[1] * scale, img.shape[0] * scale), Image.NEAREST).save(out)
+
+
+def main() -> None:
+    if len(os.sys.argv) == 3 and os.sys.argv[1] == "--table":
+        return table(os.sys.argv[2])
+    if len(os.sys.argv) > 4 and os.sys.argv[1] == "--strip":  # --strip OUT.png METHODS,... RENDER.npz ...
+        return strip(os.sys.argv[2], os.sys.argv[4:], os.sys.argv[3].split(","))
+    p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    sub = p.add_subparsers(dest="command", required=True)
+    t = sub.add_parser("train")
+    t.add_argument("variants", nargs="+", choices=tuple(VARIANTS))
+    t.add_argument("--data", required=True)
+    t.add_argument("--material", required=True, help="library name or .toml of the data's material")
+    t.add_argument("--runs", type=Path, default=Path("runs/maps"))
+    t.add_argument("--threads", type=int, default=1)
+    v = sub.add_parser("speed")
+    v.add_argument("variants", nargs="+", choices=tuple(VARIANTS))
+    v.add_argument("--data", required=True)
+    v.add_argument("--material", required=True)
+    v.add_argument("--rounds", type=int, default=3)
+    v.add_argument("--steps", type=int, default=10)
+    s = sub.add_parser("score")
+    s.add_argument("variants", nargs="+", choices=tuple(VARIANTS))
+    s.add_argument("--material", required=True)
+    s.add_argument("--runs", type=Path, default=Path("runs/maps"))
+    s.add_argument("--cache", default="runs/maps/renders")
+    s.add_argument("--camera-res", type=int, default=64)
+    s.add_argument("--out", required=True)
+    args = p.parse_args()
+    if args.command == "train":
+        for variant in args.variants:
+            train(variant, args.data, args.material, args.runs, args.threads)
+    elif args.command == "speed":
+        speed(args.variants, args.data, args.material, args.rounds, args.steps)
+    else:
+        score(args.variants, args.material, args.runs, args.cache, args.camera_res, args.out)
+
+
+if __name__ == "__main__":
+    main()
