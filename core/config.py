@@ -41,7 +41,7 @@ class MaterialConfig:
     offset_min_cos: float = 0.6
     """wo_z is clamped to at least this in offset = r * wo_xy / wo_z (grazing-angle stability; the
     authors' 0.6). 0.3 was measured in images: within the training-seed spread alone, better only
-    together with 48-wide MLPs (models/README.md, "Quality levers")."""
+    together with 48-wide MLPs (benchmarks/results/quality_levers_log.md, "Quality levers")."""
     head: str = "relu"
     """Decoder output head (core/head.py): "relu" (paper: RGB = max(out, 0)) or "yuv" (authors'
     code: exp(YUV) - 1 times a shadow mask 0.1 + sigmoid, 6 outputs)."""

@@ -4,7 +4,7 @@
 # $PRESET, replacing models/NAME.onnx (--force). Each step resumes if interrupted (a checkpoint in
 # runs/NAME/ from another preset is refused: move it away).
 # Defaults reproduce the models shipped now (`ship` preset, 64^2, 256 queries per texel, 16 spp).
-# PRESET=quality is the longer recipe measured in models/README.md ("Quality levers"): 10 000 steps of 16 384.
+# PRESET=quality is the longer recipe measured in benchmarks/results/quality_levers_log.md ("Quality levers"): 10 000 steps of 16 384.
 # Run from the repository root: [PRESET=ship|quality] [RES=64] [THREADS=1] bash models/make_models.sh [NAME ...]
 # RAY=auto (or HOST:PORT, or local) runs data chunks and then one training per material as Ray tasks
 # (`neumip generate --ray`, `neumip train-many --ray`; pip install 'neumip[cluster]'); THREADS is
