@@ -6,6 +6,8 @@ from __future__ import annotations
 
 import json
 import logging
+import os
+import shutil
 import time
 from collections.abc import Callable
 from dataclasses import asdict
@@ -88,7 +90,7 @@ def run_report(out: Path, materials: list[str], config: ReportConfig, models: Pa
 
     descriptions = find_materials(materials, models)
     progress = progress or Progress()
-    out.mkdir(parents=True, exist_ok=True)
+    final, out = out, staging_folder(out)
     cache = RenderCache(cache_dir / "renders")
     evaluator = LocalMaterials(models, threads=config.threads)  # query sweeps: the ONNX graph
     renders = KernelMaterials(models)  # neural renders: in the render's kernels, as `neumip render`
@@ -127,7 +129,29 @@ def run_report(out: Path, materials: list[str], config: ReportConfig, models: Pa
     from .writer import write_markdown
 
     write_markdown(out, results, config)
+    publish(out, final)
     return results
+
+
+def staging_folder(out: Path) -> Path:
+    """An empty folder beside ``out`` where a run writes its report until it is whole."""
+    stage = out.parent / f".{out.name}.partial"
+    shutil.rmtree(stage, ignore_errors=True)
+    stage.mkdir(parents=True)
+    return stage
+
+
+def publish(stage: Path, out: Path) -> None:
+    """Move a whole report from ``stage`` into ``out``, replacing what a run writes (its files and its
+    ``strips/``, whole) and leaving anything else in ``out`` alone; ``report.md`` goes last. An
+    interrupted run never reaches this: ``out`` keeps the previous whole report."""
+    out.mkdir(parents=True, exist_ok=True)
+    for entry in sorted(stage.iterdir(), key=lambda p: p.name == "report.md"):
+        target = out / entry.name
+        if target.is_dir():
+            shutil.rmtree(target)
+        os.replace(entry, target)
+    stage.rmdir()
 
 
 def run_stability(out, materials, config, evaluator, renders, cache, progress, models: Path) -> dict:
