@@ -168,6 +168,8 @@ def write_markdown(out: Path, results: dict, config: ReportConfig) -> Path:
          "method being timed has a scene alive in the process (built, warmed up by an untimed 1-spp render, "
          "rendered, released); median seconds, with the 1-minute load average. R's time beyond its 64-spp rung is "
          "extrapolated (unbiased: its error above R's noise falls as 1/time).", ""]
+    L += ["## Summary", "", "What holds under every light (read from the tables below):", ""]
+    L += summary(results, cfg) + [""]
     L += ["## Headline", "", f"MSE x1e-3 / FLIP at {cfg.spp} spp, one table per light.", ""]
     for light in LIGHTS:
         L += [f"### Light: {light.name} (zenith {light.zenith:g}, azimuth {light.azimuth:g})", ""]
@@ -211,13 +213,37 @@ def write_markdown(out: Path, results: dict, config: ReportConfig) -> Path:
 
 
 def _failing_lights(results: dict) -> list[str]:
+    """Per material and verdict: the best per-light footprint and the lights under which it fails."""
     out = []
     for name, mat in results["materials"].items():
         for key, d in mat.get("verdicts", {}).items():
-            if d["fails_under"] and d["per_light"]:
+            known = [x for x in d["per_light"].values() if x is not None]
+            if d["fails_under"] and known:
                 against, what = key.split("_")
-                out.append(f"{name}, N beats {against} by {what}: not under {', '.join(d['fails_under'])}")
+                out.append(f"{name}, N beats {against} by {what} from {min(known):g} texels: "
+                           f"not under {', '.join(d['fails_under'])}")
     return out
+
+
+def summary(results: dict, config: ReportConfig) -> list[str]:
+    """One line per material: the verdicts that hold under every light, and the lights that break stronger ones."""
+    lines = []
+    for name, mat in results["materials"].items():
+        v, checks = mat.get("verdicts"), mat.get("close_up", {})
+        if not v:
+            continue
+        parts = []
+        for against in ("C", "Cmip"):
+            d = v[f"{against}_mse"]
+            where = "never under every light" if d["from"] is None else f"from {d['from']:g} map texels under every light"
+            fails = f" (fails under {', '.join(d['fails_under'])} from a smaller footprint)" if d["fails_under"] else ""
+            parts.append(f"N beats {against} by MSE at {config.spp} spp {where}{fails}")
+        if checks.get("offset_gain_min") is not None:
+            loses = checks["offset_loses"]
+            parts.append(f"the neural offset's gain is at least {checks['offset_gain_min']:.2f}x in its close-up views"
+                         + (f" (the offset loses in {', '.join(loses)})" if loses else ""))
+        lines.append(f"- **{name}**: " + "; ".join(parts) + ".")
+    return lines
 
 
 def stability_section(results: dict) -> list[str]:
