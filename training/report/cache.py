@@ -32,6 +32,8 @@ class Cached:
     """(H, W, 3) float32 linear RGB."""
     seconds: float
     """Wall time of the render when it was made."""
+    load: float = float("nan")
+    """1-minute load average of the machine when the render finished (nan: not recorded)."""
 
 
 class RenderCache:
@@ -53,7 +55,8 @@ class RenderCache:
             return None
         try:
             with np.load(path) as data:
-                cached = Cached(data["image"].astype(np.float32), float(data["seconds"]))
+                load = float(data["load"]) if "load" in data.files else float("nan")
+                cached = Cached(data["image"].astype(np.float32), float(data["seconds"]), load)
         except (OSError, ValueError, KeyError, zipfile.BadZipFile) as exc:
             log.warning("cached render %s unreadable (%s): rendering again", path.name, exc)
             return None
@@ -61,12 +64,12 @@ class RenderCache:
         self.seconds += cached.seconds
         return cached
 
-    def put(self, params: dict, image: np.ndarray, seconds: float) -> None:
+    def put(self, params: dict, image: np.ndarray, seconds: float, load: float = float("nan")) -> None:
         path = self.path(params)
         tmp = path.with_name(f".{path.stem}.{os.getpid()}.partial.npz")
         try:
             with open(tmp, "wb") as f:
-                np.savez(f, image=image.astype(np.float32), seconds=np.float64(seconds),
+                np.savez(f, image=image.astype(np.float32), seconds=np.float64(seconds), load=np.float64(load),
                          params=json.dumps(params, sort_keys=True, default=str))
             os.replace(tmp, path)
             self.seconds += seconds

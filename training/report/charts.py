@@ -8,8 +8,9 @@ from pathlib import Path
 import numpy as np
 
 from . import metrics as Q
+from .methods import METHODS
 
-COLORS = {"R": "black", "N": "tab:red", "N0": "tab:orange", "C": "tab:blue", "Cmip": "tab:cyan"}
+COLORS = {"R": "black", "N": "tab:red", "N0": "tab:orange", "Nmaps": "tab:purple", "C": "tab:blue", "Cmip": "tab:cyan"}
 DPI = 80
 
 
@@ -34,7 +35,7 @@ def strip(view_result: dict, path: Path, title: str) -> Path:
     plt = _plt()
     images, maps = view_result["images"], view_result["flip_maps"]
     exposure = view_result["reference"]["exposure"]
-    names = [m for m in ("R", "N", "N0", "C", "Cmip") if m in images]
+    names = [m for m in METHODS if m in images]
     h, w = images["R"].shape[:2]
     fig, axes = plt.subplots(2, len(names), figsize=(1.9 * len(names), 1.9 * 2 * h / w + 0.5), squeeze=False)
     for i, m in enumerate(names):
@@ -63,7 +64,7 @@ def error_time(material_result: dict, views: list[str], path: Path, title: str) 
             spps = sorted(s for s in entries if "seconds" in entries[s] and "mse" in entries[s])
             t = [entries[s]["seconds"] for s in spps]
             e = [entries[s]["mse"] * 1e3 for s in spps]
-            ax.loglog(t, e, "o-", color=COLORS[m], label=m, ms=3, lw=1)
+            ax.loglog(t, e, "o-", color=COLORS.get(m), label=m, ms=3, lw=1)
         ax.axhline(res["reference"]["noise_mse"] * 1e3, color="grey", ls=":", lw=1, label="R noise")
         ax.set_title(view, fontsize=9)
         ax.set_xlabel("seconds", fontsize=8)

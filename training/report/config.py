@@ -14,18 +14,22 @@ MATERIALS = ("flat", "rock", "yarn", "turtle", "foam")
 class ReportConfig:
     """How large a report run is."""
 
-    film: Film = field(default_factory=lambda: Film(64, 48))
-    """Image size of every view."""
-    reference_spp: int = 256
+    film: Film = field(default_factory=lambda: Film(192, 144))
+    """Image size of the views (large enough that one method's 64-spp render takes ~0.5 s on 2 cores)."""
+    max_reference_tiles: float = 24_000
+    """Most tiles a view of real geometry may show: a far view of fine maps gets a smaller film
+    (R's instances of a tile block: their cost grows with their count)."""
+    reference_spp: int = 128
     """Samples per pixel of each of the reference's two seeds (the reference is their mean)."""
     spp: int = 64
     """Samples per pixel of each method's two-seed renders (scores, bias and noise)."""
-    reference_ladder: tuple[int, ...] = (1, 4, 16, 64, 256)
-    """spp ladder of R (error against time)."""
     ladder: tuple[int, ...] = (1, 4, 16, 64)
-    """spp ladder of the other methods (their error flattens earlier: a bias floor)."""
+    """spp ladder of every method (error against time), in the views of the ladder light; R's time
+    beyond its last rung is extrapolated (it is unbiased: its error above R's noise falls as 1/spp)."""
     rounds: int = 2
-    """Interleaved timing rounds of the ladder (the median is reported)."""
+    """Timed interleaved rounds of the ladder, after one untimed round (the median is reported)."""
+    smoke: bool = False
+    """A smoke run (tiny sizes): its timings mean nothing and the report draws no timing verdicts."""
     max_lanes: int = 1 << 20
     """Most pixels x samples in one render pass."""
     threads: int = 2
@@ -45,10 +49,14 @@ class ReportConfig:
     horizon_film: Film = field(default_factory=lambda: Film(96, 96))
     """Image of the plane-to-the-horizon render."""
 
+    def __post_init__(self) -> None:
+        if self.spp not in self.ladder:
+            raise ValueError(f"the scored spp {self.spp} must be a rung of the ladder {self.ladder}")
+
 
 FULL = ReportConfig()
 QUICK = ReportConfig(
-    film=Film(24, 18), reference_spp=64, spp=16, reference_ladder=(1, 16), ladder=(1, 16), rounds=1,
+    film=Film(24, 18), max_reference_tiles=2_000, reference_spp=64, spp=16, ladder=(1, 16), rounds=1, smoke=True,
     tradeoff_steps=30, tradeoff_batch=1024, tradeoff_queries=1 << 13, tradeoff_reference_queries=1 << 10,
     tradeoff_resolutions=(32, 64), sweep_points=64, horizon_film=Film(32, 32),
 )

@@ -1,8 +1,11 @@
 """The methods the report compares, each as a Mitsuba scene of the same view.
 
 - ``R``: the real displaced microgeometry (instances of one tile block), stock ``path``.
-- ``N``: the neural material with its neural offset, ``neumip_path``.
-- ``N0``: the neural material trained without the offset (``<name>_nooffset``), ``neumip_path``.
+- ``N``: the neural material with its neural offset (``<name>.onnx``), ``neumip_path``.
+- ``N0``: the neural material trained without the offset (``<name>_nooffset.onnx``), ``neumip_path``.
+- ``Nmaps``: a neural material informed by the material's maps (``<name>_maps.onnx``), ``neumip_path``.
+  A neural method is compared wherever its model file is in the models folder; another is one more
+  entry of :data:`NEURAL_MODELS`.
 - ``C``: the classical material: the generator's principled BSDF with full-resolution albedo,
   roughness and metallic bitmaps, and a normal map derived from the height, stock ``path``.
 - ``Cmip``: the same with every map pre-filtered to the footprint's level (see :func:`mip_maps`).
@@ -15,18 +18,38 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, replace
+from pathlib import Path
 
 import numpy as np
 
+from neumip.core.errors import NeumipError
 from neumip.training.microgeometry.description import Microgeometry
 from neumip.training.microgeometry.mesh import block_origins, height_gradient, make_bsdf, reference_instances
 
 from .views import Film, View, camera_distance, distance_to_polygon, emitter_dicts, sensor_dict, visible_corners
 
-METHODS = ("R", "N", "N0", "C", "Cmip")
-NEURAL = ("N", "N0")
+NEURAL_MODELS = {"N": "{name}", "N0": "{name}_nooffset", "Nmaps": "{name}_maps"}
+"""Neural methods and the model file each is rendered from (``<models>/<file>.onnx``; ``N`` is required)."""
+NEURAL = tuple(NEURAL_MODELS)
+METHODS = ("R", *NEURAL, "C", "Cmip")
+COMPARED = METHODS[1:]
+"""The methods scored against the reference R."""
 MAX_DEPTH = 5
 """Path length of every method: up to 4 surface interactions, as the ground-truth tracer's paths."""
+
+
+class MissingModelError(NeumipError, FileNotFoundError):
+    """A material to report on has no neural model in the models folder."""
+
+
+def neural_models(name: str, models: Path) -> dict[str, Path]:
+    """``{method: model file}`` of the neural methods whose file exists in ``models`` for material
+    ``name``; a missing ``N`` model raises :class:`MissingModelError`."""
+    files = {m: Path(models) / f"{pattern.format(name=name)}.onnx" for m, pattern in NEURAL_MODELS.items()}
+    if not files["N"].is_file():
+        raise MissingModelError(f"no model {files['N']} for material {name!r} (models are found by the "
+                                f"description's name: train one with `neumip train ... -o {files['N']}`)")
+    return {m: f for m, f in files.items() if f.is_file()}
 
 
 @dataclass(frozen=True)
@@ -36,7 +59,7 @@ class SceneSpec:
     view: View
     film: Film
     resolution: int
-    """Finest level of the neural material (texels per tile): sets the footprint's scale."""
+    """Texels per tile of the material's maps: the unit of the view's footprint."""
     max_instances: int = 48
     """The reference block grows (powers of two, within ``max_block_vertices``) until at most this
     many instances cover the view: every live instance adds to the cost of every render in the
@@ -87,7 +110,12 @@ def _rectangle(mi, half: int, bsdf) -> dict:
 
 
 def reference_scene(mi, spec: SceneSpec, geo: Microgeometry) -> dict:
-    """R: instances of one block covering the visible plane plus a margin."""
+    """R: instances of one block covering the visible plane plus a margin (a material without a
+    heightfield: the plane itself, with the generator's BSDF)."""
+    if geo.height.shape[0] == 1:
+        half = spec.half_size(2.0)
+        to_uv = mi.ScalarTransform4f().scale([2.0 * half, 2.0 * half, 1.0])
+        return {**_base(mi, spec, "path"), "plane": _rectangle(mi, half, make_bsdf(mi, geo, to_uv=to_uv))}
     block, origins = spec.blocks(reference_margin(geo, spec.view), geo.height.shape[0])
     scene = _base(mi, spec, "path")
     scene.update(reference_instances(mi, geo, origins, block))

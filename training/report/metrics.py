@@ -37,14 +37,18 @@ def mse(a: np.ndarray, b: np.ndarray) -> float:
 
 
 def flip_map(reference_ldr: np.ndarray, test_ldr: np.ndarray) -> tuple[np.ndarray, float]:
-    """LDR-FLIP of two tone-mapped images: ((H, W) error map, mean error)."""
+    """LDR-FLIP of two tone-mapped (H, W, 3) images: ((H, W) error map in [0, 1], mean error).
+
+    The map is FLIP's error itself (``applyMagma=False``; by default `flip.evaluate` returns it
+    already coloured by magma, whose channels are not the error); the mean error is its mean."""
     import flip_evaluator as flip
 
     error_map, mean, _ = flip.evaluate(
-        np.ascontiguousarray(reference_ldr, np.float32), np.ascontiguousarray(test_ldr, np.float32), "LDR"
+        np.ascontiguousarray(reference_ldr, np.float32), np.ascontiguousarray(test_ldr, np.float32), "LDR",
+        applyMagma=False,
     )
-    error_map = np.asarray(error_map, np.float32).reshape(*reference_ldr.shape[:2], -1)
-    return error_map[..., 0], float(mean)  # one channel (the map is grey, repeated in RGB)
+    error_map = np.asarray(error_map, np.float32).reshape(reference_ldr.shape[:2])
+    return error_map, float(mean)
 
 
 def ssim(reference_ldr: np.ndarray, test_ldr: np.ndarray) -> float:

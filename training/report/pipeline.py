@@ -1,12 +1,17 @@
 """The image comparison of one material: every view, every method, scores, bias/noise, spp ladders.
 
 Per view: the reference R is the mean of two seeds at ``reference_spp`` (its own noise is measured
-from their difference). Each method (R included, as a check) is rendered with seeds 0 and 1 at
-``spp``: seed 0 gives its scores, the pair its noise, and error - noise - reference noise its bias.
-Views with a ladder then render every method at each spp of its ladder in rounds (round r uses
-seed r, so rounds 0 and 1 at ``spp`` are the two renders above), timed in this process: R alone,
-then the other methods interleaved (N N0 C Cmip, N N0 C Cmip, ...); the reported seconds are the
-median over rounds, and a linear fit gives the per-spp slope and the fixed cost per render.
+from their difference). Each compared method is rendered with seeds 0 and 1 at ``spp``: seed 0 gives
+its scores, the pair its noise, and error - noise - reference noise its bias.
+
+Views with a ladder (the ladder light's) render every method, R included, at each spp of the
+ladder in interleaved rounds (R N N0 C Cmip, R N N0 C Cmip, ...; round r uses seed r, so rounds 0
+and 1 at ``spp`` are the two scored renders). Only the method being rendered has a scene alive in
+the process: it is built, warmed up by an untimed 1-spp render, rendered at every rung, and
+released (drjit's virtual calls dispatch over every live shape, so the reference's many instances
+slowed every other render in the process by up to 9x while they existed). Round 0 is untimed (it
+compiles the kernels); the reported seconds are the median over the ``rounds`` timed rounds, with the
+machine's load average beside them, and a linear fit gives the per-spp slope and the fixed cost.
 """
 
 from __future__ import annotations
@@ -17,7 +22,6 @@ from collections.abc import Callable
 import numpy as np
 
 from . import metrics as Q
-from .config import ReportConfig
 from .renderer import MaterialRenderer
 from .views import VIEWS, View
 
@@ -27,56 +31,53 @@ REFERENCE_SEEDS = (1000, 1001)
 """Seeds of the reference's two renders (apart from the methods' seeds 0, 1, ...)."""
 
 
+def scored_methods(renderer: MaterialRenderer, view: View) -> tuple[str, ...]:
+    """Methods rendered in ``view``: R as a method only where it is timed (the ladder views)."""
+    return tuple(m for m in renderer.methods if m != "R" or view.ladder)
+
+
 def view_steps(renderer: MaterialRenderer, view: View) -> int:
     """Renders one view takes (for progress bars)."""
-    cfg, methods = renderer.config, renderer.methods
-    n = 2 + 2 * len(methods)  # the reference, then two seeds of each method
+    cfg, methods = renderer.config, scored_methods(renderer, view)
     if view.ladder:
-        n += cfg.rounds * sum(len(ladder_of(cfg, m)) for m in methods)
-    return n
-
-
-def ladder_of(config: ReportConfig, method: str) -> tuple[int, ...]:
-    return config.reference_ladder if method == "R" else config.ladder
+        return 2 + (cfg.rounds + 1) * len(methods) * len(cfg.ladder)
+    return 2 + 2 * len(methods)
 
 
 def run_view(renderer: MaterialRenderer, view: View, tick: Callable[[], None] = lambda: None) -> dict:
     """Scores of every method in ``view``: ``{"reference": {...}, "methods": {method: {spp: {...}}},
-    "fits": {method: {...}}}`` plus the images the report shows (``"images"``, not JSON).
-
-    R's scene is rendered and released before the other methods' scenes are built: drjit's virtual
-    calls dispatch over every live shape, so the reference's many instances would slow down every
-    other render in the process while it exists.
-    """
+    "fits": {method: {...}}}`` plus the images the report shows (``"images"``, not JSON)."""
     cfg = renderer.config
     images: dict = {}
-    seconds: dict = {}
+    timings: dict = {}
 
-    def render(method: str, spp: int, seed: int, timed: bool = True) -> None:
-        image, secs, _ = renderer.render(view, method, spp, seed, timed)
+    def render(method: str, spp: int, seed: int) -> None:
+        image, secs, load = renderer.render(view, method, spp, seed)
         images[(method, spp, seed)] = image
-        seconds.setdefault((method, spp), {})[seed] = secs
+        timings[(method, spp, seed)] = (secs, load)
         tick()
 
-    groups = [("R",), tuple(m for m in renderer.methods if m != "R")]
-    for group in groups:
-        if group == ("R",):
-            for seed in REFERENCE_SEEDS:
-                render("R", cfg.reference_spp, seed, timed=False)
-        for method in group:
+    for seed in REFERENCE_SEEDS:
+        render("R", cfg.reference_spp, seed)
+    renderer.release()
+    methods = scored_methods(renderer, view)
+    if view.ladder:
+        for rnd in range(cfg.rounds + 1):
+            for method in methods:
+                if rnd > 0 and not all(renderer.cached(view, method, s, rnd) for s in cfg.ladder):
+                    renderer.warm_up(view, method)
+                for spp in cfg.ladder:
+                    render(method, spp, rnd)
+                renderer.release()
+    else:
+        for method in methods:
             for seed in (0, 1):
                 render(method, cfg.spp, seed)
-        if view.ladder:
-            for spp in sorted({s for m in group for s in ladder_of(cfg, m)}):
-                for rnd in range(cfg.rounds):
-                    for method in group:
-                        if spp in ladder_of(cfg, method):
-                            render(method, spp, rnd)
-        renderer.release()
-    return score_view(renderer, view, images, seconds)
+            renderer.release()
+    return score_view(renderer, view, images, timings)
 
 
-def score_view(renderer: MaterialRenderer, view: View, images: dict, seconds: dict) -> dict:
+def score_view(renderer: MaterialRenderer, view: View, images: dict, timings: dict) -> dict:
     cfg = renderer.config
     r0, r1 = (images[("R", cfg.reference_spp, s)] for s in REFERENCE_SEEDS)
     reference = (r0 + r1) / 2
@@ -84,33 +85,37 @@ def score_view(renderer: MaterialRenderer, view: View, images: dict, seconds: di
     exposure = Q.exposure_for(reference)
     out = {
         "reference": {"spp": 2 * cfg.reference_spp, "noise_mse": ref_noise,
-                      "seconds": seconds[("R", cfg.reference_spp)][REFERENCE_SEEDS[0]],
+                      "seconds": timings[("R", cfg.reference_spp, REFERENCE_SEEDS[0])][0],
                       "mean_luminance": float(Q.luminance(reference).mean()), "exposure": exposure},
+        "film": list(reference.shape[1::-1]),
         "methods": {}, "fits": {}, "images": {"R": reference}, "flip_maps": {},
         "mip_level": renderer.mip_level(view),
     }
-    for method in renderer.methods:
+    for method in scored_methods(renderer, view):
         a, b = images[(method, cfg.spp, 0)], images[(method, cfg.spp, 1)]
         scores, fmap = Q.score(reference, a, exposure)
         noise = Q.noise_mse(a, b)
-        entry = {**scores.to_dict(), "seconds": seconds[(method, cfg.spp)][0],
-                 **Q.bias_noise(scores.mse, noise, ref_noise)}
+        entry = {**scores.to_dict(), **Q.bias_noise(scores.mse, noise, ref_noise)}
         out["methods"].setdefault(method, {})[cfg.spp] = entry
         if method != "R":
             out["images"][method], out["flip_maps"][method] = a, fmap
-        if not view.ladder:
-            continue
-        ladder = ladder_of(cfg, method)
-        for spp in ladder:
-            e = out["methods"][method].setdefault(spp, {})
-            if "mse" not in e:
-                e.update(Q.score(reference, images[(method, spp, 0)], exposure)[0].to_dict())
-            rounds = [seconds[(method, spp)][r] for r in range(cfg.rounds)]
-            e["seconds"] = float(np.median(rounds))
-        secs = [out["methods"][method][s]["seconds"] for s in ladder]
-        slope, fixed = np.polyfit(np.array(ladder, float), np.array(secs), 1) if len(ladder) > 1 else (secs[0], 0.0)
-        out["fits"][method] = {"seconds_per_spp": float(slope), "fixed_seconds": float(fixed)}
+        if view.ladder:
+            out["fits"][method] = _ladder(out["methods"][method], method, reference, exposure, images, timings, cfg)
     return out
+
+
+def _ladder(entries: dict, method: str, reference, exposure: float, images: dict, timings: dict, cfg) -> dict:
+    """Scores and median timed seconds (and load) of every rung; returns the linear fit of seconds on spp."""
+    timed = range(1, cfg.rounds + 1)
+    for spp in cfg.ladder:
+        e = entries.setdefault(spp, {})
+        if "mse" not in e:
+            e.update(Q.score(reference, images[(method, spp, 0)], exposure)[0].to_dict())
+        e["seconds"] = float(np.median([timings[(method, spp, r)][0] for r in timed]))
+        e["load"] = float(np.median([timings[(method, spp, r)][1] for r in timed]))
+    secs = [entries[s]["seconds"] for s in cfg.ladder]
+    slope, fixed = np.polyfit(np.array(cfg.ladder, float), np.array(secs), 1) if len(cfg.ladder) > 1 else (secs[0], 0.0)
+    return {"seconds_per_spp": float(slope), "fixed_seconds": float(fixed)}
 
 
 def run_material(renderer: MaterialRenderer, views: tuple[View, ...] = VIEWS, tick=lambda: None) -> dict:

@@ -5,6 +5,7 @@ from __future__ import annotations
 import gc
 import hashlib
 import logging
+import os
 import time
 from dataclasses import asdict
 from pathlib import Path
@@ -16,11 +17,11 @@ from neumip.training.microgeometry.description import MaterialDescription, Micro
 from . import methods as M
 from .cache import RenderCache
 from .config import ReportConfig
-from .views import View
+from .views import View, film_for_tiles
 
 log = logging.getLogger(__name__)
 
-CACHE_VERSION = 3
+CACHE_VERSION = 4
 """Bump when a change in this package changes what a cached render would hold."""
 NEURAL_VERSION = 6
 """Bump when `neumip_path` renders a neural material differently, or at another cost: the cached
@@ -44,28 +45,29 @@ class MaterialRenderer:
         self._R = R
         self.name, self.desc, self.geo, self.config, self.cache = name, desc, geo, config, cache
         self.evaluator = evaluator
-        self.models = {"N": name, "N0": f"{name}_nooffset"}
-        self.digests = {m: file_digest(models / f"{model}.onnx") for m, model in self.models.items()
-                        if (models / f"{model}.onnx").exists()}
-        if "N" not in self.digests:
-            raise FileNotFoundError(f"no model {models / (name + '.onnx')}")
-        self.resolution = evaluator.kernel(name).config.resolution
+        self.models = M.neural_models(name, models)
+        self.digests = {m: file_digest(path) for m, path in self.models.items()}
+        self.resolution = desc.resolution
+        """Texels per tile in which the views' footprints are counted: the description's maps', so
+        every model of the material (64^2, 256^2, ...) is judged on the same views."""
         self._scenes: dict = {}
-        self._warm: set = set()
 
     @property
     def methods(self) -> tuple[str, ...]:
         return tuple(m for m in M.METHODS if m not in M.NEURAL or m in self.digests)
 
     def spec(self, view: View) -> M.SceneSpec:
-        return M.SceneSpec(view, self.config.film, self.resolution)
+        film = self.config.film
+        if self.geo.height.shape[0] > 1:  # real geometry: keep the tiles R must build within bounds
+            film = film_for_tiles(view, film, self.resolution, self.config.max_reference_tiles)
+        return M.SceneSpec(view, film, self.resolution)
 
     def mip_level(self, view: View) -> int:
         return M.mip_level_for(self.spec(view), self.geo.base_color.shape[0])
 
     def key(self, view: View, method: str, spp: int, seed: int) -> dict:
         key = {"version": CACHE_VERSION, "material": self.desc.to_dict(), "view": asdict(view),
-               "film": asdict(self.config.film), "resolution": self.resolution, "method": method,
+               "film": asdict(self.spec(view).film), "resolution": self.resolution, "method": method,
                "spp": spp, "seed": seed}
         if method in M.NEURAL:
             key["model"], key["neural_version"] = self.digests[method], NEURAL_VERSION
@@ -79,7 +81,7 @@ class MaterialRenderer:
             if method == "R":
                 d = M.reference_scene(mi, spec, self.geo)
             elif method in M.NEURAL:
-                d = M.neural_scene(mi, spec, self.models[method])
+                d = M.neural_scene(mi, spec, self.models[method].stem)
             else:
                 d = M.classical_scene(mi, spec, self.geo, self.mip_level(view) if method == "Cmip" else None)
             self._scenes[(view.name, method)] = mi.load_dict(d)
@@ -88,28 +90,30 @@ class MaterialRenderer:
     def release(self) -> None:
         """Drop every scene (and what drjit holds for it)."""
         self._scenes.clear()
-        self._warm.clear()
         gc.collect()
 
-    def render(self, view: View, method: str, spp: int, seed: int, timed: bool = True) -> tuple[np.ndarray, float, bool]:
-        """``(image, seconds, fresh)``: from the cache, or rendered and stored.
-
-        A timed render first renders the same scene at the same spp once, untimed (another seed):
-        drjit compiles a kernel per scene and sample count, and that compilation is not counted.
-        """
+    def render(self, view: View, method: str, spp: int, seed: int) -> tuple[np.ndarray, float, float]:
+        """``(image, seconds, load)`` from the cache, or rendered and stored: the render's wall time
+        and the 1-minute load average of the machine when it finished (nan where not measured)."""
         key = self.key(view, method, spp, seed)
         cached = self.cache.get(key)
         if cached is not None:
-            return cached.image, cached.seconds, False
+            return cached.image, cached.seconds, cached.load
         scene = self.scene(view, method)
-        if timed and (view.name, method, spp) not in self._warm:
-            self._render(scene, spp, 999_999)
-            self._warm.add((view.name, method, spp))
         start = time.perf_counter()
         image = self._render(scene, spp, seed)
         seconds = time.perf_counter() - start
-        self.cache.put(key, image, seconds)
-        return image, seconds, True
+        load = os.getloadavg()[0]
+        self.cache.put(key, image, seconds, load)
+        return image, seconds, load
+
+    def cached(self, view: View, method: str, spp: int, seed: int) -> bool:
+        return self.cache.path(self.key(view, method, spp, seed)).exists()
+
+    def warm_up(self, view: View, method: str) -> None:
+        """One untimed 1-spp render of a freshly built scene (not stored): its first launch pays
+        allocations and kernel look-ups that a timed render should not count."""
+        self._render(self.scene(view, method), 1, 999_999)
 
     def _render(self, scene, spp: int, seed: int) -> np.ndarray:
         cfg = self._R.RenderConfig(spp=spp, seed=seed, max_lanes=self.config.max_lanes)

@@ -6,6 +6,8 @@ from __future__ import annotations
 
 import json
 import logging
+import os
+import shutil
 import time
 from collections.abc import Callable
 from dataclasses import asdict
@@ -13,19 +15,24 @@ from pathlib import Path
 
 import numpy as np
 
+from neumip.core.errors import NeumipError
+
 from . import charts, stability, tradeoff
 from . import metrics as Q
-from .analysis import close_up_checks, headline
+from .analysis import close_up_checks, headline, time_to_error, verdicts
 from .cache import RenderCache
 from .config import ReportConfig
+from .methods import neural_models
 from .pipeline import REFERENCE_SEEDS, run_material, view_steps
 from .renderer import NEURAL_VERSION, file_digest
-from .views import DISTANCE_VIEWS, VIEWS, View
+from .views import DISTANCE_VIEWS, LADDER_LIGHT, VIEWS, View
 
 log = logging.getLogger(__name__)
 
 TRADEOFF_MATERIAL = "rock"
 """The material whose configurations the trade-off trains (the deepest shipped relief)."""
+TRADEOFF_VIEW = next(v for v in DISTANCE_VIEWS if v.light == LADDER_LIGHT and v.level == 2)
+"""The view whose image error the trade-off reports (4 map texels, the ladder light)."""
 HORIZON_MATERIAL = "yarn"
 """The material of the plane-to-the-horizon render."""
 
@@ -45,31 +52,52 @@ def _jsonable(results: dict) -> dict:
     out = {}
     for view, res in results.items():
         out[view] = {
-            "reference": res["reference"], "mip_level": res["mip_level"], "fits": res["fits"],
+            "reference": res["reference"], "mip_level": res["mip_level"], "fits": res["fits"], "film": res["film"],
             "methods": {m: {str(s): e for s, e in sorted(entries.items())} for m, entries in res["methods"].items()},
         }
     return out
 
 
+def find_materials(materials: list[str], models: Path) -> dict:
+    """``{name: description}`` of shipped names and description files alike, each with its model
+    ``models/<description's name>.onnx``. Everything is checked before anything is written: a
+    description that cannot be read or a missing model raises one :class:`NeumipError`."""
+    from neumip.training.microgeometry.description import find_description
+
+    descriptions = {}
+    for arg in materials:
+        desc = find_description(arg)
+        if desc.name in descriptions:
+            raise ReportError(f"material {desc.name!r} is given twice ({arg})")
+        neural_models(desc.name, models)  # raises if NAME.onnx is missing
+        descriptions[desc.name] = desc
+    return descriptions
+
+
+class ReportError(NeumipError, ValueError):
+    """Arguments of a report that cannot be run."""
+
+
 def run_report(out: Path, materials: list[str], config: ReportConfig, models: Path, cache_dir: Path,
                progress: Progress | None = None, stages: tuple[str, ...] = ("images", "stability", "tradeoff"),
-               views: tuple[View, ...] = VIEWS) -> dict:
+               views: tuple[View, ...] = VIEWS, command: str = "neumip report") -> dict:
+    """Run the report on ``materials`` (shipped names or description files) and write it to ``out``."""
     from neumip.client.local import LocalMaterials
     from neumip.client.kernel import KernelMaterials
-    from neumip.training.microgeometry.description import find_description, resolve
+    from neumip.training.microgeometry.description import resolve
 
     from .renderer import MaterialRenderer
 
+    descriptions = find_materials(materials, models)
     progress = progress or Progress()
-    out.mkdir(parents=True, exist_ok=True)
+    final, out = out, staging_folder(out)
     cache = RenderCache(cache_dir / "renders")
     evaluator = LocalMaterials(models, threads=config.threads)  # query sweeps: the ONNX graph
     renders = KernelMaterials(models)  # neural renders: in the render's kernels, as `neumip render`
     start = time.perf_counter()
-    results: dict = {"config": asdict(config), "materials": {}, "notes": {}}
+    results: dict = {"config": asdict(config), "command": command, "materials": {}, "notes": {}}
     renderers = {}
-    for name in materials:
-        desc = find_description(name)
+    for name, desc in descriptions.items():
         renderers[name] = MaterialRenderer(name, desc, resolve(desc), models, renders, config, cache)
         if "N0" not in renderers[name].methods:
             results["notes"][name] = f"no {name}_nooffset model in {models}: N0 not shown"
@@ -84,10 +112,14 @@ def run_report(out: Path, materials: list[str], config: ReportConfig, models: Pa
             ladder_views = [v.name for v in views if v.ladder]
             if ladder_views:
                 charts.error_time(images[name], ladder_views, out / f"error_time_{name}.png", f"{name}: error against time")
-            results["materials"][name]["headline"] = headline(images[name], config.spp)
-            results["materials"][name]["close_up"] = close_up_checks(images[name], config.spp)
+            mat = results["materials"][name]
+            mat["headline"] = headline(images[name], config.spp)
+            mat["verdicts"] = verdicts(mat["headline"])
+            mat["close_up"] = close_up_checks(images[name], config.spp)
+            if not config.smoke:
+                mat["time_to_error"] = time_to_error(images[name], config.spp)
     if "stability" in stages:
-        results["stability"] = run_stability(out, materials, config, evaluator, renders, cache, progress)
+        results["stability"] = run_stability(out, list(descriptions), config, evaluator, renders, cache, progress, models)
     if "tradeoff" in stages and TRADEOFF_MATERIAL in renderers:
         results["tradeoff"] = run_tradeoff(out, renderers[TRADEOFF_MATERIAL], config, cache_dir, progress)
     results["seconds"] = time.perf_counter() - start
@@ -97,11 +129,33 @@ def run_report(out: Path, materials: list[str], config: ReportConfig, models: Pa
     from .writer import write_markdown
 
     write_markdown(out, results, config)
+    publish(out, final)
     return results
 
 
-def run_stability(out, materials, config, evaluator, renders, cache, progress) -> dict:
-    names = [n for n in evaluator.materials() if n.split("_nooffset")[0] in materials]
+def staging_folder(out: Path) -> Path:
+    """An empty folder beside ``out`` where a run writes its report until it is whole."""
+    stage = out.parent / f".{out.name}.partial"
+    shutil.rmtree(stage, ignore_errors=True)
+    stage.mkdir(parents=True)
+    return stage
+
+
+def publish(stage: Path, out: Path) -> None:
+    """Move a whole report from ``stage`` into ``out``, replacing what a run writes (its files and its
+    ``strips/``, whole) and leaving anything else in ``out`` alone; ``report.md`` goes last. An
+    interrupted run never reaches this: ``out`` keeps the previous whole report."""
+    out.mkdir(parents=True, exist_ok=True)
+    for entry in sorted(stage.iterdir(), key=lambda p: p.name == "report.md"):
+        target = out / entry.name
+        if target.is_dir():
+            shutil.rmtree(target)
+        os.replace(entry, target)
+    stage.rmdir()
+
+
+def run_stability(out, materials, config, evaluator, renders, cache, progress, models: Path) -> dict:
+    names = [f.stem for m in materials for f in neural_models(m, models).values()]
     progress.stage("stability", len(names) + 2)
     sweeps = {}
     for name in names:
@@ -171,9 +225,9 @@ def run_tradeoff(out, renderer, config, cache_dir, progress) -> dict:
     renders = KernelMaterials(folder / "models")
     names = [v.name for v in variants]
     qps = tradeoff.queries_per_second(evaluator, names)
-    view = DISTANCE_VIEWS[0]
+    view = TRADEOFF_VIEW
     spec = renderer.spec(view)
-    reference_images = [renderer.render(view, "R", config.reference_spp, s, timed=False)[0] for s in REFERENCE_SEEDS]
+    reference_images = [renderer.render(view, "R", config.reference_spp, s)[0] for s in REFERENCE_SEEDS]
     reference = (reference_images[0] + reference_images[1]) / 2
     points = {}
     progress.stage("trade-off: measure", len(variants))
@@ -193,7 +247,7 @@ def _render_variant(renderer, spec, renders, name, onnx, config, view) -> np.nda
 
     from .methods import neural_scene
 
-    key = {"tradeoff": name, "model": file_digest(onnx), "view": asdict(view), "film": asdict(config.film),
+    key = {"tradeoff": name, "model": file_digest(onnx), "view": asdict(view), "film": asdict(spec.film),
            "spp": config.spp, "resolution": spec.resolution, "neural_version": NEURAL_VERSION}
     cached = renderer.cache.get(key)
     if cached is not None:

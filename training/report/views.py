@@ -1,18 +1,20 @@
-"""The report's views: an oblique plane seen by a perspective camera, lit by a directional light at
-the side plus a dim constant environment, at distances chosen for a pixel footprint.
+"""The report's views: an oblique plane seen by a perspective camera, lit by a directional light
+plus a dim constant environment, at distances chosen for a pixel footprint.
 
 World frame: the material plane is ``z = 0`` with **one tile per world unit**, tile coordinates
 ``(u, v) = (x, y)`` (the material repeats with period 1). The camera looks at the origin from zenith
-``theta`` in the ``y-z`` plane (it sees the plane receding along +y); the light comes from the side
-(azimuth 90 degrees from the view).
+``theta`` in the ``y-z`` plane (it sees the plane receding along +y). Every distance is rendered under
+each light of :data:`LIGHTS`: high, from the side, and from in front of the viewer (beyond the
+plane's centre, lighting it towards the camera).
 
 Footprint. A pixel's footprint (std) is ``filter_std`` (0.5 px for the film's default Gaussian
 filter) times the larger uv length of one pixel step; `neumip_path` queries one sample's share of it
 (``sample_footprint(spp)``: all of it at 1 spp, 1/8 from 64 spp). At the image centre the step is
 ``distance * pixel_angle / cos(theta)`` tiles along the receding axis, so a view for level ``L`` of a
-material whose finest level has ``R`` texels per tile puts the camera at the distance where the
-pixel footprint is ``2^L / R`` tiles (``2^L`` finest texels; what a 1-spp render queries). The footprint
-grows towards the top of the image (perspective); the vertical field of view is kept small.
+material whose maps have ``R`` texels per tile (its description's ``resolution``, whatever model is
+judged) puts the camera at the distance where the pixel footprint is ``2^L / R`` tiles (``2^L`` map
+texels; what a 1-spp render queries). The footprint grows towards the top of the image
+(perspective); the vertical field of view is kept small.
 """
 
 from __future__ import annotations
@@ -27,6 +29,29 @@ FILTER_STD_PX = 0.5
 
 
 @dataclass(frozen=True)
+class Light:
+    """A directional light of the views."""
+
+    name: str
+    """Identifier (a suffix of the view names)."""
+    zenith: float
+    """Zenith angle, degrees."""
+    azimuth: float
+    """Azimuth from the direction towards the camera, degrees (90: from the side; above 90: in front
+    of the viewer, lighting the plane towards the camera)."""
+
+
+LIGHTS = (Light("high", 20.0, 45.0), Light("side", 60.0, 90.0), Light("front", 50.0, 135.0))
+"""The lights of every distance view: nearly overhead, from the side, and from in front of the viewer
+(the set-up under which one material's verdict flipped in issue 24)."""
+LADDER_LIGHT = "side"
+"""The light whose distance views also get spp ladders (error against time); the others are scored
+at equal spp."""
+LEVELS = (0, 2, 4, 6, 8)
+"""Footprints of the distance views: 1, 4, 16, 64 and 256 map texels at the image centre."""
+
+
+@dataclass(frozen=True)
 class View:
     """One camera and light set-up of the report."""
 
@@ -35,7 +60,7 @@ class View:
     theta: float
     """Camera zenith angle in degrees (0: looking straight down)."""
     level: float
-    """Level of detail at the image centre: the footprint covers 2^level finest texels."""
+    """Level of detail at the image centre: the footprint covers 2^level texels of the material's maps."""
     light_zenith: float = 60.0
     """Zenith angle of the directional light, degrees."""
     light_azimuth: float = 90.0
@@ -44,20 +69,27 @@ class View:
     """Vertical field of view, degrees."""
     ladder: bool = False
     """Render an spp ladder (error against time) for this view."""
+    light: str = "side"
+    """Name of the light (:data:`LIGHTS`), or of the view's own light set-up."""
 
     @property
     def footprint_texels(self) -> float:
         return 2.0**self.level
 
 
-DISTANCE_VIEWS = tuple(View(f"level{lv}", 55.0, lv, ladder=True) for lv in (0, 2, 4, 6))
-"""An oblique plane (55 degrees) at footprints of 1, 4, 16 and 64 finest texels."""
+def distance_view(level: int, light: Light) -> View:
+    return View(f"level{level}_{light.name}", 55.0, level, light.zenith, light.azimuth,
+                ladder=light.name == LADDER_LIGHT, light=light.name)
+
+
+DISTANCE_VIEWS = tuple(distance_view(lv, light) for light in LIGHTS for lv in LEVELS)
+"""An oblique plane (55 degrees) at every footprint of :data:`LEVELS`, under every light."""
 EXTRA_VIEWS = (
     View("grazing75", 75.0, 2, fov=6.0),
     View("grazing85", 85.0, 2, fov=4.0),
-    View("low_light", 55.0, 2, light_zenith=85.0),
+    View("low_light", 55.0, 2, light_zenith=85.0, light="low"),
 )
-"""Grazing views and a light near the horizon (footprint of 4 texels at the centre)."""
+"""Grazing views (side light) and a light 5 degrees above the horizon (footprint of 4 map texels)."""
 VIEWS = DISTANCE_VIEWS + EXTRA_VIEWS
 
 
@@ -69,13 +101,32 @@ class Film:
     height: int
 
 
+def film_for_tiles(view: View, film: Film, resolution: int, max_tiles: float) -> Film:
+    """``film``, or a smaller one of the same shape where the view would show more than ``max_tiles``
+    tiles at its footprint (about ``pixels x (2 sigma)^2 / cos(theta)``): the real geometry's cost
+    grows with the tiles it must build (far views of fine maps)."""
+    step = 2.0 * view.footprint_texels / resolution  # tiles per pixel step at the centre
+    tiles = film.width * film.height * step * step / math.cos(math.radians(view.theta))
+    if tiles <= max_tiles:
+        return film
+    shrink = math.sqrt(max_tiles / tiles)
+    return Film(max(8, round(film.width * shrink)), max(6, round(film.height * shrink)))
+
+
 def pixel_angle(view: View, film: Film) -> float:
     """Angle (radians) subtended by one pixel at the image centre."""
     return 2 * math.tan(math.radians(view.fov) / 2) / film.height
 
 
+def lights_of(views) -> list[str]:
+    """Names of the lights of ``views``' distance views, in :data:`LIGHTS` order."""
+    present = {v.light for v in views}
+    return [light.name for light in LIGHTS if light.name in present]
+
+
 def camera_distance(view: View, film: Film, resolution: int) -> float:
-    """Distance (tiles) from the camera to the plane's centre for the view's footprint level."""
+    """Distance (tiles) from the camera to the plane's centre for the view's footprint level, the
+    footprint counted in texels of a ``resolution``-texel map."""
     sigma = view.footprint_texels / resolution
     return sigma * math.cos(math.radians(view.theta)) / (FILTER_STD_PX * pixel_angle(view, film))
 

@@ -7,66 +7,99 @@ from pathlib import Path
 
 from neumip.core.contract import sample_footprint
 
-from .analysis import COMPARED, OFFSET_VIEWS, winning_footprint
+from .analysis import OFFSET_VIEWS
 from .config import ReportConfig
-from .methods import MAX_DEPTH
-from .views import VIEWS, DISTANCE_VIEWS
+from .methods import COMPARED, MAX_DEPTH
+from .views import DISTANCE_VIEWS, LADDER_LIGHT, LEVELS, LIGHTS, VIEWS
 
 
 def _f(x, scale: float = 1.0, digits: int = 3) -> str:
     return "-" if x is None else f"{x * scale:.{digits}f}"
 
 
-def headline_table(results: dict) -> list[str]:
-    """Per material and distance: MSE x1e-3 / FLIP of N, N0, C, Cmip; R's seconds to reach N's error."""
-    lines = ["| material | footprint (texels) | N | N0 | C | Cmip | R noise | N s | R s to N's MSE |",
-             "|---|---|---|---|---|---|---|---|---|"]
+def headline_table(results: dict, light: str, timings: bool = True) -> list[str]:
+    """Per material and distance under one light: MSE x1e-3 / FLIP of every compared method."""
+    methods = _methods(results)
+    lines = ["| material | footprint (map texels) | " + " | ".join(methods) + " | R noise |",
+             "|---|---|" + "---|" * (len(methods) + 1)]
     for name, mat in results["materials"].items():
-        for row in mat.get("headline", []):
-            cells = [f"{_f(row[m]['mse'], 1e3)} / {_f(row[m]['flip'])}" if row.get(m) else "-" for m in COMPARED]
-            n_s = row["N"]["seconds"] if row.get("N") else None
-            lines.append(f"| {name} | {row['texels']:g} | " + " | ".join(cells)
-                         + f" | {_f(row['reference_noise'], 1e3)} | {_f(n_s, 1, 2)} | {_f(row.get('R_seconds_to_N'), 1, 2)} |")
+        for row in mat.get("headline", {}).get(light, []):
+            cells = [f"{_f(row[m]['mse'], 1e3)} / {_f(row[m]['flip'])}" if row.get(m) else "-" for m in methods]
+            lines.append(f"| {name} | {row['texels']:g} | " + " | ".join(cells) + f" | {_f(row['reference_noise'], 1e3)} |")
     return lines
+
+
+def _methods(results: dict) -> list[str]:
+    """The compared methods present in any material (a method without its model is left out)."""
+    present = set()
+    for mat in results["materials"].values():
+        for rows in mat.get("headline", {}).values():
+            present |= {m for row in rows for m in COMPARED if row.get(m)}
+    return [m for m in COMPARED if m in present]
+
+
+def _footprint(x) -> str:
+    return "never" if x is None else f"{x:g}"
 
 
 def winners(results: dict) -> list[str]:
     lines = ["| material | N beats C: MSE at equal spp | C: bias (floor) | N beats Cmip: MSE | Cmip: bias |",
              "|---|---|---|---|---|"]
     for name, mat in results["materials"].items():
-        rows = mat.get("headline", [])
-        if rows:
-            cells = [winning_footprint(rows, against, key) for against in ("C", "Cmip") for key in ("mse", "bias")]
-            lines.append(f"| {name} | " + " | ".join("never" if c is None else f"{c:g}" for c in cells) + " |")
+        v = mat.get("verdicts")
+        if not v:
+            continue
+        cells = []
+        for key in ("C_mse", "C_bias", "Cmip_mse", "Cmip_bias"):
+            d = v[key]
+            per = ", ".join(f"{light} {_footprint(x)}" for light, x in d["per_light"].items())
+            cells.append(f"**{_footprint(d['from'])}** ({per})")
+        lines.append(f"| {name} | " + " | ".join(cells) + " |")
     return lines
 
 
 def close_up_table(results: dict) -> list[str]:
-    """Per material: the offset's gain (N0's MSE / N's) per view, N's low-light mean and p99 / R's."""
+    """Per material: the offset's gain (N0's MSE / N's) per view, its minimum, N's low-light mean and p99 / R's."""
     lines = ["| material | " + " | ".join(f"offset gain, {v}" for v in OFFSET_VIEWS)
-             + " | low light: mean / R | low light: p99 / R |", "|---|" + "---|" * (len(OFFSET_VIEWS) + 2)]
+             + " | smallest gain | low light: mean / R | low light: p99 / R |", "|---|" + "---|" * (len(OFFSET_VIEWS) + 3)]
     for name, mat in results["materials"].items():
         checks = mat.get("close_up")
         if checks:
             cells = [_f(checks["offset_gain"].get(v), 1, 2) for v in OFFSET_VIEWS]
-            cells += [_f(checks["low_light_mean"], 1, 2), _f(checks["low_light_p99"], 1, 2)]
+            cells += [f"**{_f(checks['offset_gain_min'], 1, 2)}**", _f(checks["low_light_mean"], 1, 2),
+                      _f(checks["low_light_p99"], 1, 2)]
             lines.append(f"| {name} | " + " | ".join(cells) + " |")
     return lines
 
 
+def time_table(results: dict) -> list[str]:
+    """Per material and ladder footprint: each method's seconds to reach N's MSE, with the load average."""
+    methods = ["R"] + _methods(results)
+    lines = ["| material | footprint (map texels) | N's MSE x1e-3 | " + " | ".join(f"{m} s" for m in methods)
+             + " | load average |", "|---|---|---|" + "---|" * (len(methods) + 1)]
+    for name, mat in results["materials"].items():
+        for row in mat.get("time_to_error", []):
+            loads = [x for x in row["load"].values() if x == x]
+            load = f"{min(loads):.1f}-{max(loads):.1f}" if loads else "-"
+            cells = [_f(row["seconds"].get(m), 1, 2) for m in methods]
+            lines.append(f"| {name} | {row['texels']:g} | {_f(row['target_mse'], 1e3)} | " + " | ".join(cells) + f" | {load} |")
+    return lines
+
+
 def view_table(name: str, mat: dict, spp: int) -> list[str]:
-    lines = [f"| view | method | MSE x1e-3 | FLIP | SSIM | mean / R | p99 / R | bias x1e-3 | noise x1e-3 | s |",
+    lines = [f"| view | film | method | MSE x1e-3 | FLIP | SSIM | mean / R | p99 / R | bias x1e-3 | noise x1e-3 |",
              "|---|---|---|---|---|---|---|---|---|---|"]
     for view in VIEWS:
         res = mat.get(view.name)
         if res is None:
             continue
+        film = "x".join(map(str, res.get("film", [])))
         for m, entries in res["methods"].items():
             e = entries.get(str(spp))
             if e is None:
                 continue
-            lines.append(f"| {view.name} | {m} | {_f(e['mse'], 1e3)} | {_f(e['flip'])} | {_f(e['ssim'])} | "
-                         f"{_f(e['mean_ratio'])} | {_f(e.get('p99_ratio'))} | {_f(e.get('bias'), 1e3)} | {_f(e.get('noise'), 1e3)} | {_f(e['seconds'], 1, 2)} |")
+            lines.append(f"| {view.name} | {film} | {m} | {_f(e['mse'], 1e3)} | {_f(e['flip'])} | {_f(e['ssim'])} | "
+                         f"{_f(e['mean_ratio'])} | {_f(e.get('p99_ratio'))} | {_f(e.get('bias'), 1e3)} | {_f(e.get('noise'), 1e3)} |")
     return lines
 
 
@@ -78,64 +111,97 @@ def fit_table(mat: dict) -> list[str]:
     lines = ["| method | " + " | ".join(f"{v}: ms/spp, fixed s" for v in views) + " |",
              "|---|" + "---|" * len(views)]
     for m in mat[views[0]]["fits"]:
-        cells = [mat[v]["fits"][m] for v in views]
-        lines.append(f"| {m} | " + " | ".join(f"{c['seconds_per_spp'] * 1e3:.2f}, {c['fixed_seconds']:.2f}" for c in cells) + " |")
+        cells = [mat[v]["fits"].get(m) for v in views]
+        lines.append(f"| {m} | " + " | ".join("-" if c is None else f"{c['seconds_per_spp'] * 1e3:.2f}, {c['fixed_seconds']:.2f}"
+                                               for c in cells) + " |")
     return lines
+
+
+SMOKE_TITLE = "# neumip evidence report: SMOKE RUN (--quick)"
+SMOKE_NOTE = ("**This is a smoke run** (`neumip report --quick`): tiny images and few samples, to check that the "
+              "pipeline runs. Its figures are not evidence, its timings mean nothing, and it draws no timing verdicts.")
 
 
 def write_markdown(out: Path, results: dict, config: ReportConfig) -> Path:
     cfg = config
-    L = ["# neumip evidence report", "",
-         "Generated by `neumip report` (every number below is in `results.json` beside this file; "
-         f"this run took {results['seconds'] / 60:.1f} min and took {results['cached_renders_reused']} renders from its "
-         f"cache; the renders' own wall time, summed: {results.get('render_seconds', 0) / 60:.1f} min). "
-         "Timings are wall time in one process on a busy shared 2-core machine: compare them as ratios.", "",
+    lights = ", ".join(f"{l.name} (zenith {l.zenith:g}, azimuth {l.azimuth:g} degrees from the view)" for l in LIGHTS)
+    L = [SMOKE_TITLE if cfg.smoke else "# neumip evidence report", ""]
+    if cfg.smoke:
+        L += [SMOKE_NOTE, ""]
+    L += ["Generated by `" + results.get("command", "neumip report") + "` (every number below is in `results.json` "
+         f"beside this file; this run took {results['seconds'] / 60:.1f} min and took {results['cached_renders_reused']} "
+         f"renders from its cache; the renders' own wall time, summed: {results.get('render_seconds', 0) / 60:.1f} min). "
+         "Timings are wall time in one process on a busy shared 2-core machine, with its load average beside them: "
+         "compare them as ratios.", "",
          "## Set-up", "",
          f"- **Views**: a plane seen by a perspective camera ({cfg.film.width} x {cfg.film.height} pixels) at "
          "55 degrees from the normal, at distances where a pixel's footprint (std: half a pixel step, the film's "
-         "Gaussian filter) covers 1, 4, 16 and 64 finest texels of the neural material (levels 0, 2, 4, 6) at the "
-         "image centre; grazing views at 75 and 85 degrees and a light 5 degrees above the horizon (4 texels). "
-         "A directional light from the side (60 degrees, unit irradiance on the plane) and a dim constant "
-         "environment (radiance 0.05).",
-         f"- **R**: the real displaced microgeometry (the generator's 256^2 heightfield and principled maps), built "
-         "from `instance`s of one block of tiles (a Mitsuba `shapegroup`, 1-8 tiles a side) covering the visible "
+         "Gaussian filter) covers " + ", ".join(f"{2 ** lv:g}" for lv in LEVELS) + " texels of the material's maps "
+         "(its description's `resolution`, whatever the model's) at the image centre. Far views of real geometry "
+         f"that would show more than {cfg.max_reference_tiles:,.0f} tiles get a smaller film of the same shape (R's "
+         "cost grows with its instances; the film of each view is in the tables below). Every distance is lit by "
+         f"each of three directional lights: {lights}, each giving unit irradiance on the plane, plus a dim constant "
+         "environment (radiance 0.05). Grazing views at 75 and 85 degrees (side light) and a light 5 degrees above the "
+         "horizon, at 4 map texels.",
+         "- **R**: the real displaced microgeometry (the description's heightfield and principled maps), built "
+         "from `instance`s of one block of tiles (a Mitsuba `shapegroup`) covering the visible "
          f"plane plus the parallax and shadow reach of the deepest groove, stock `path`, max_depth {MAX_DEPTH} "
-         f"(up to 4 surface interactions, as the ground-truth tracer). Reference = mean of two seeds at "
-         f"{cfg.reference_spp} spp each; its noise (MSE of the mean, from the two seeds) is listed per view.",
-         "- **N** / **N0**: the shipped neural material with / without the neural offset, `neumip_path`. Each of "
-         "n samples per pixel queries max(1/8, 1/sqrt(n)) of the pixel footprint (pbrt-v4's rule): at "
+         f"(up to 4 surface interactions, as the ground-truth tracer); a material without a heightfield is the plane "
+         f"itself. Reference = mean of two seeds at {cfg.reference_spp} spp each; its noise (MSE of the mean, from "
+         "the two seeds) is listed per view.",
+         "- **N** / **N0** / **Nmaps**: the neural material `MODELS/NAME.onnx`, without the neural offset "
+         "`NAME_nooffset.onnx`, informed by the maps `NAME_maps.onnx`, each where its file exists, `neumip_path`. "
+         "Each of n samples per pixel queries max(1/8, 1/sqrt(n)) of the pixel footprint (pbrt-v4's rule): at "
          f"{cfg.spp} spp, {math.log2(1 / sample_footprint(cfg.spp)):g} levels finer than the footprint.",
          "- **C**: the generator's principled BSDF with full-resolution albedo, roughness and metallic bitmaps and a "
          "`normalmap` from the height's periodic central-difference gradient, stock `path`.",
          "- **Cmip**: C with every map box-averaged by 2^k before rendering, k = log2(pixel step x map resolution) at "
          "the image centre (one texel per pixel step, the trilinear mip rule; Mitsuba 3.9's bitmap has no mipmap "
          "filter, so the level is chosen per view). The normal map of level k comes from the box-averaged height, "
-         "i.e. averaged slopes: grooves flatten as in a mip-mapped normal map. Unlike N, Cmip's prefilter is the "
-         "whole pixel step at every spp: it is what a real-time mip lookup reads, and it blurs the pixel twice.",
-         f"- **Metrics**: linear-RGB MSE (x 1e-3); LDR-FLIP (`flip-evaluator`) and SSIM (scikit-image) after the same "
-         "tone mapping (exposure mapping R's mean luminance to 0.25, clip, sRGB); mean luminance / R's. "
-         f"Each method is rendered with two seeds at {cfg.spp} spp: noise = MSE(seed 0, seed 1) / 2, "
-         "bias = MSE - noise - R's noise.",
-         f"- **Error against time**: spp ladders (R {list(cfg.reference_ladder)}, others {list(cfg.ladder)}) rendered "
-         f"in {cfg.rounds} interleaved rounds after an untimed warm-up render of each scene; median seconds.", ""]
-    L += ["## Headline", "",
-          f"MSE x1e-3 / FLIP at {cfg.spp} spp; `N s`: N's render time; `R s to N's MSE`: seconds R's ladder needs to "
-          "reach N's MSE (log-log interpolation; `-`: not within the ladder).", ""]
-    L += headline_table(results) + [""]
-    L += ["Footprint (texels) from which N is better than the classical material at every larger footprint, "
-          f"by MSE at {cfg.spp} spp (what a render at equal samples shows; the neural material is also less noisy "
-          "per sample) and by bias (the error floor left after the noise is averaged away):", ""]
+         "i.e. averaged slopes: grooves flatten as in a mip-mapped normal map.",
+         f"- **Metrics**: linear-RGB MSE (x 1e-3); LDR-FLIP (`flip-evaluator`, mean of its error map) and SSIM "
+         "(scikit-image) after the same tone mapping (exposure mapping R's mean luminance to 0.25, clip, sRGB); "
+         f"mean luminance / R's. Each method is rendered with two seeds at {cfg.spp} spp: noise = MSE(seed 0, seed 1) "
+         "/ 2, bias = MSE - noise - R's noise.",
+         f"- **Error against time** (the {LADDER_LIGHT} light's views): every method, R included, at {list(cfg.ladder)} "
+         f"spp in interleaved rounds (R, N, ..., R, N, ...), one untimed round then {cfg.rounds} timed; only the "
+         "method being timed has a scene alive in the process (built, warmed up by an untimed 1-spp render, "
+         "rendered, released); median seconds, with the 1-minute load average. R's time beyond its 64-spp rung is "
+         "extrapolated (unbiased: its error above R's noise falls as 1/time).", ""]
+    L += ["## Summary", "", "What holds under every light (read from the tables below):", ""]
+    L += summary(results, cfg) + [""]
+    L += ["## Headline", "", f"MSE x1e-3 / FLIP at {cfg.spp} spp, one table per light.", ""]
+    for light in LIGHTS:
+        L += [f"### Light: {light.name} (zenith {light.zenith:g}, azimuth {light.azimuth:g})", ""]
+        L += headline_table(results, light.name) + [""]
+    L += ["Footprint (map texels) from which N is better than the classical material at every larger footprint, "
+          f"by MSE at {cfg.spp} spp (what a render at equal samples shows) and by bias (the error floor left after "
+          "the noise is averaged away). **Bold: the verdict under every light** (the largest of the per-light "
+          "footprints; `never` where under some light N never wins from the largest footprint down); in brackets, "
+          "each light's own.", ""]
     L += winners(results) + [""]
-    L += [f"Close-ups: the neural offset's gain (N0's MSE / N's, at {cfg.spp} spp; above 1: the offset helps) at 1 and 4 "
-          "texels and at the grazing views, and whether N's highlights survive a light 5 degrees above the horizon "
-          "(its mean and 99th-percentile luminance / R's):", ""]
+    fails = _failing_lights(results)
+    if fails:
+        L += ["Where a stronger verdict fails: " + "; ".join(fails) + ".", ""]
+    L += [f"Close-ups: the neural offset's gain (N0's MSE / N's, at {cfg.spp} spp; above 1: the offset helps) at 1 and "
+          "4 map texels under every light and at the grazing views; **the smallest gain is the one that holds "
+          "everywhere**. Then whether N's highlights survive a light 5 degrees above the horizon (its mean and "
+          "99th-percentile luminance / R's):", ""]
     L += close_up_table(results) + [""]
+    if cfg.smoke:
+        L += ["No timing verdicts: a smoke run's timings mean nothing.", ""]
+    else:
+        L += [f"Time to error ({LADDER_LIGHT} light): seconds each method's timed ladder needs to reach N's MSE at "
+              f"{cfg.spp} spp (log-log interpolation between rungs; `-`: its error never gets there, a bias floor; "
+              "R beyond its ladder extrapolated), with the machine's 1-minute load average over those renders.", ""]
+        L += time_table(results) + [""]
     for name, note in results.get("notes", {}).items():
         L.append(f"- {note}")
     L.append("")
     for name, mat in results["materials"].items():
         L += [f"## {name}", "", f"![error against time]({'error_time_' + name + '.png'})", ""]
-        L += fit_table(mat) + [""]
+        if not cfg.smoke:
+            L += fit_table(mat) + [""]
         L += view_table(name, mat, cfg.spp) + [""]
         for view in VIEWS:
             if view.name in mat:
@@ -144,6 +210,40 @@ def write_markdown(out: Path, results: dict, config: ReportConfig) -> Path:
     path = out / "report.md"
     path.write_text("\n".join(L) + "\n")
     return path
+
+
+def _failing_lights(results: dict) -> list[str]:
+    """Per material and verdict: the best per-light footprint and the lights under which it fails."""
+    out = []
+    for name, mat in results["materials"].items():
+        for key, d in mat.get("verdicts", {}).items():
+            known = [x for x in d["per_light"].values() if x is not None]
+            if d["fails_under"] and known:
+                against, what = key.split("_")
+                out.append(f"{name}, N beats {against} by {what} from {min(known):g} texels: "
+                           f"not under {', '.join(d['fails_under'])}")
+    return out
+
+
+def summary(results: dict, config: ReportConfig) -> list[str]:
+    """One line per material: the verdicts that hold under every light, and the lights that break stronger ones."""
+    lines = []
+    for name, mat in results["materials"].items():
+        v, checks = mat.get("verdicts"), mat.get("close_up", {})
+        if not v:
+            continue
+        parts = []
+        for against in ("C", "Cmip"):
+            d = v[f"{against}_mse"]
+            where = "never under every light" if d["from"] is None else f"from {d['from']:g} map texels under every light"
+            fails = f" (fails under {', '.join(d['fails_under'])} from a smaller footprint)" if d["fails_under"] else ""
+            parts.append(f"N beats {against} by MSE at {config.spp} spp {where}{fails}")
+        if checks.get("offset_gain_min") is not None:
+            loses = checks["offset_loses"]
+            parts.append(f"the neural offset's gain is at least {checks['offset_gain_min']:.2f}x in its close-up views"
+                         + (f" (the offset loses in {', '.join(loses)})" if loses else ""))
+        lines.append(f"- **{name}**: " + "; ".join(parts) + ".")
+    return lines
 
 
 def stability_section(results: dict) -> list[str]:

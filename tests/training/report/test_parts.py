@@ -95,13 +95,15 @@ def test_close_up_checks_read_the_offset_gain_and_the_highlights():
         return {64: {"mse": mse, "mean_ratio": mean, "p99_ratio": p99}}
 
     material = {
-        "level0": {"methods": {"N": entry(1.0), "N0": entry(2.5)}},
-        "level2": {"methods": {"N": entry(2.0), "N0": entry(1.0)}},
+        "level0_side": {"methods": {"N": entry(1.0), "N0": entry(2.5)}},
+        "level2_side": {"methods": {"N": entry(2.0), "N0": entry(1.0)}},
         "grazing75": {"methods": {"N": entry(1.0)}},  # no N0: no gain
         "low_light": {"methods": {"N": entry(1.0, 0.9, 0.5), "N0": entry(1.0)}},
     }
     checks = analysis.close_up_checks(material, 64)
-    assert checks["offset_gain"] == {"level0": 2.5, "level2": 0.5, "grazing75": None, "grazing85": None}
+    gains = {v: g for v, g in checks["offset_gain"].items() if g is not None}
+    assert gains == {"level0_side": 2.5, "level2_side": 0.5}  # no N0 or no view: no gain
+    assert checks["offset_gain_min"] == 0.5 and checks["offset_loses"] == ["level2_side"]
     assert (checks["low_light_mean"], checks["low_light_p99"]) == (0.9, 0.5)
     assert analysis.close_up_checks({}, 64)["low_light_p99"] is None
 

@@ -1,8 +1,10 @@
-"""The `--quick` report pipeline on real renders: flat (the known answer) and rock, one view.
+"""The `--quick` report pipeline on real renders: flat (the known answer), rock, and a user's material
+given as a description file (planks, from texture maps, with its own models), in one ladder view.
 
 Checks real numbers: on `flat` the neural image equals the real geometry within the reference's
 noise; on rock the reference's own noise is far below the differences the report draws conclusions
-from; a re-run reuses every cached render and gives the same numbers.
+from; the user's material is rendered with the models named after its description; a re-run reuses
+every cached render and gives the same numbers.
 """
 
 from __future__ import annotations
@@ -17,15 +19,28 @@ from neumip.training.report.config import QUICK
 from neumip.training.report.run import run_report
 from neumip.training.report.views import DISTANCE_VIEWS
 
-MODELS = Path(__file__).resolve().parents[3] / "models"
-VIEW = DISTANCE_VIEWS[0].name
+ROOT = Path(__file__).resolve().parents[3]
+MODELS = ROOT / "models"
+USER_MATERIAL = ROOT / "benchmarks" / "materials" / "planks.toml"
+USER_MODELS = ROOT / "benchmarks" / "materials" / "planks_models"
+LADDER_VIEW = next(v for v in DISTANCE_VIEWS if v.ladder and v.level == 0)
+VIEW = LADDER_VIEW.name
 
 
 @pytest.fixture(scope="module")
-def report(tmp_path_factory):
+def models(tmp_path_factory):
+    """One models folder with shipped models and the user's (links: the report reads one folder)."""
+    folder = tmp_path_factory.mktemp("models")
+    for f in [*MODELS.glob("flat.onnx"), *MODELS.glob("rock*.onnx"), *USER_MODELS.glob("planks*.onnx")]:
+        (folder / f.name).symlink_to(f)
+    return folder
+
+
+@pytest.fixture(scope="module")
+def report(tmp_path_factory, models):
     root = tmp_path_factory.mktemp("report")
-    results = run_report(root / "out", ["flat", "rock"], QUICK, MODELS, root / "cache", stages=("images",),
-                         views=DISTANCE_VIEWS[:1])
+    results = run_report(root / "out", ["flat", "rock", str(USER_MATERIAL)], QUICK, models, root / "cache",
+                         stages=("images",), views=(LADDER_VIEW,))
     return root, results
 
 
@@ -60,20 +75,31 @@ def test_results_json_and_markdown(report):
     for material in ("flat", "rock"):
         methods = on_disk["materials"][material][VIEW]["methods"]
         assert set(methods) >= {"R", "N", "C", "Cmip"}
-        for spp in QUICK.reference_ladder:
-            assert set(methods["R"][str(spp)]) >= {"mse", "flip", "ssim", "seconds", "mean_ratio"}
+        for spp in QUICK.ladder:
+            assert set(methods["R"][str(spp)]) >= {"mse", "flip", "ssim", "seconds", "load", "mean_ratio"}
         assert (out / "strips" / f"{material}_{VIEW}.png").stat().st_size > 1000
         assert (out / f"error_time_{material}.png").exists()
     assert "N0" in on_disk["materials"]["rock"][VIEW]["methods"]  # rock_nooffset is shipped
     text = (out / "report.md").read_text()
-    row = on_disk["materials"]["rock"]["headline"][0]
+    row = on_disk["materials"]["rock"]["headline"][LADDER_VIEW.light][0]
     assert f"{row['N']['mse'] * 1e3:.3f} / {row['N']['flip']:.3f}" in text
+    assert text.startswith("# neumip evidence report: SMOKE RUN (--quick)")
+    assert "Time to error" not in text and "time_to_error" not in on_disk["materials"]["rock"]
+    assert not (root / ".out.partial").exists()  # published whole
+
+
+def test_user_material_from_a_description_file(report):
+    """`--materials my.toml`: the description's name finds planks.onnx and planks_nooffset.onnx."""
+    _, results = report
+    methods = results["materials"]["planks"][VIEW]["methods"]
+    assert set(methods) >= {"R", "N", "N0", "C", "Cmip"}
+    assert methods["N"][str(QUICK.spp)]["mean_ratio"] == pytest.approx(1.0, abs=0.5)  # a plausible image of it
 
 
 def test_rerun_reuses_every_render(report):
     root, results = report
     again = run_report(root / "out2", ["flat"], QUICK, MODELS, root / "cache", stages=("images",),
-                       views=DISTANCE_VIEWS[:1])
+                       views=(LADDER_VIEW,))
     assert again["cached_renders_reused"] > 0
     assert again["materials"]["flat"][VIEW]["methods"]["N"] == results["materials"]["flat"][VIEW]["methods"]["N"]
 
