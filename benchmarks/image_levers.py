@@ -150,12 +150,12 @@ def score(variants: list[str], material: str, runs: Path, cache_dir: str, camera
                 refr = MaterialRenderer(material, desc, geo, path.parent, ev, FULL, cache) \
                     if (path.parent / f"{material}.onnx").exists() else renderer
                 refr.resolution = camera_res
-                refs = [refr.render(view, "R", FULL.reference_spp, s, timed=False)[0] for s in REFERENCE_SEEDS]
+                refs = [refr.render(view, "R", FULL.reference_spp, s)[0] for s in REFERENCE_SEEDS]
                 refr.release()
                 references[view.name] = (refs[0] + refs[1]) / 2
             ref = references[view.name]
             start = time.perf_counter()
-            image = renderer.render(view, "N", SPP, SEED, timed=False)[0]
+            image = renderer.render(view, "N", SPP, SEED)[0]
             seconds = time.perf_counter() - start
             renderer.release()
             s, _ = Q.score(ref, image, Q.exposure_for(ref))

@@ -157,13 +157,13 @@ def score(variants: list[str], material: str, runs: Path, cache_dir: str, camera
         renderers[variant] = r
     first = renderers[variants[0]]
     for view in views():
-        refs = [first.render(view, "R", config.reference_spp, s, timed=False)[0] for s in REFERENCE_SEEDS]
+        refs = [first.render(view, "R", config.reference_spp, s)[0] for s in REFERENCE_SEEDS]
         first.release()
         ref = (refs[0] + refs[1]) / 2
-        images = {"C": first.render(view, "C", SPP, SEED, timed=False)[0]}
+        images = {"C": first.render(view, "C", SPP, SEED)[0]}
         first.release()
         for variant, r in renderers.items():
-            images[variant] = r.render(view, "N", SPP, SEED, timed=False)[0]
+            images[variant] = r.render(view, "N", SPP, SEED)[0]
             r.release()
         for method, image in images.items():
             s, _ = Q.score(ref, image, Q.exposure_for(ref))
