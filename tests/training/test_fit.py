@@ -10,7 +10,6 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-import torch
 
 from neumip.client.cli import main
 from neumip.core.config import MaterialConfig
@@ -23,12 +22,7 @@ STEPS = 30
 FAST = replace(TEST, steps=STEPS, batch=512, checkpoint_every=10, validate_every=10, log_every=5)
 
 
-@pytest.fixture(scope="module", autouse=True)
-def one_thread():
-    threads = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(threads)
+pytestmark = pytest.mark.usefixtures("one_torch_thread")
 
 
 @pytest.fixture(scope="module")

@@ -27,13 +27,7 @@ REL_L1_BOUND = 0.06
 0.030 after the fixture's 300 steps of 1 024; the constant-colour start is 0.38)."""
 
 
-@pytest.fixture(scope="module", autouse=True)
-def one_thread():
-    """Tiny batches: one torch thread is faster, and far faster on an oversubscribed machine."""
-    threads = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(threads)
+pytestmark = pytest.mark.usefixtures("one_torch_thread")
 
 
 @pytest.fixture(scope="module")
