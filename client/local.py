@@ -135,7 +135,9 @@ def load_material(path: str | Path, threads: int = 0, data: bytes | None = None)
     inputs, outputs = session.get_inputs(), session.get_outputs()
     if [i.name for i in inputs] != [C.ONNX_INPUT] or [o.name for o in outputs] != [C.ONNX_OUTPUT]:
         raise ModelError(f"{path.name}: graph must map '{C.ONNX_INPUT}' to '{C.ONNX_OUTPUT}'")
-    width = inputs[0].shape[1] if len(inputs[0].shape) == 2 else None
+    if len(inputs[0].shape) != 2:
+        raise ModelError(f"{path.name}: '{C.ONNX_INPUT}' must be 2-D, (N, {C.QUERY_DIM}) or (N, 5 + 2 K)")
+    width = inputs[0].shape[1]
     if isinstance(width, int) and width != C.QUERY_DIM:
         raise ModelError(f"{path.name}: '{C.ONNX_INPUT}' must be (N, {C.QUERY_DIM}) or query groups "
                          f"(N, 5 + 2 K), not (N, {width})")

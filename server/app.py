@@ -1,7 +1,8 @@
 """The FastAPI application: lifespan (load, warm up, batch), routes, errors and metrics.
 
-``create_app(settings)`` builds an app; uvicorn serves it (`neumip serve`, or
-``uvicorn --factory neumip.server.app:create_app``). Models load and warm up in the lifespan, before
+``create_app(settings)`` builds an app; `neumip serve` serves it with uvicorn and neumip's protocol
+class (`uvicorn_run.py`), which enforces the write timeout and the header limits: plain ``uvicorn
+--factory neumip.server.app:create_app`` would serve without them. Models load and warm up in the lifespan, before
 uvicorn accepts connections; ``/v2/health/ready`` says yes only after that and until shutdown begins.
 OpenAPI docs: ``/docs`` and ``/openapi.json``.
 """

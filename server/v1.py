@@ -122,10 +122,14 @@ async def evaluate(name: str, request: Request, state: ServerState = Depends(ser
             rgb = await asyncio.shield(ticket.until)  # (N, 3 K) float32
             timer.mark("evaluate")
             sent = state.admission.hand_answer(ticket)  # the response frees the answer once sent
-        if kind == "msgpack":
-            response = BufferAnswer([content], wire.MSGPACK_MEDIA_TYPE, sent)
-        else:
-            response = JsonAnswer(f'{{"n":{rgb.shape[0]},"rgb":', rgb, "}", sent)
+        try:
+            if kind == "msgpack":
+                response = BufferAnswer([content], wire.MSGPACK_MEDIA_TYPE, sent)
+            else:
+                response = JsonAnswer(f'{{"n":{rgb.shape[0]},"rgb":', rgb, "}", sent)
+        except BaseException:
+            sent()  # no response will send it: give the reservation back now
+            raise
         timer.mark("encode")  # what is encoded before the answer goes out (large JSON streams after)
         response.headers.update(timer.header())
         return response

@@ -267,7 +267,11 @@ async def infer(name: str, request: Request, version: str | None = None, state: 
             rgb = await asyncio.shield(ticket.until)  # (N, 3 K) float32
             timer.mark("evaluate")
             sent = state.admission.hand_answer(ticket)  # the response frees the answer once sent
-        response = infer_response(name, parsed, rgb, sent)
+        try:
+            response = infer_response(name, parsed, rgb, sent)
+        except BaseException:
+            sent()  # no response will send it: give the reservation back now
+            raise
         timer.mark("encode")  # what is encoded before the answer goes out (large JSON streams after)
         response.headers.update(timer.header())
         return response

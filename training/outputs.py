@@ -157,6 +157,7 @@ def install_outputs(trainer: Trainer, table: dict, output: str | Path, views=Non
     shutil.rmtree(staging, ignore_errors=True)  # left by an interrupted export
     staging.mkdir(parents=True)
     paths = write_outputs(trainer, table, staging / output.name, views)
+    output.with_name(paths["json"].name).unlink(missing_ok=True)  # an old record must not vouch for new files
     for kind in sorted(paths, key=lambda k: k == "json"):  # the record last: it marks the model whole
         final = output.with_name(paths[kind].name)
         os.replace(paths[kind], final)

@@ -61,7 +61,9 @@ def _jsonable(results: dict) -> dict:
 def find_materials(materials: list[str], models: Path) -> dict:
     """``{name: description}`` of shipped names and description files alike, each with its model
     ``models/<description's name>.onnx``. Everything is checked before anything is written: a
-    description that cannot be read or a missing model raises one :class:`NeumipError`."""
+    description that cannot be read, or a model file missing or unusable (corrupt, another contract
+    version) raises one :class:`NeumipError`."""
+    from neumip.client.local import load_material
     from neumip.training.microgeometry.description import find_description
 
     descriptions = {}
@@ -69,7 +71,8 @@ def find_materials(materials: list[str], models: Path) -> dict:
         desc = find_description(arg)
         if desc.name in descriptions:
             raise ReportError(f"material {desc.name!r} is given twice ({arg})")
-        neural_models(desc.name, models)  # raises if NAME.onnx is missing
+        for path in neural_models(desc.name, models).values():  # raises if NAME.onnx is missing
+            load_material(path)  # a corrupt or outdated file fails here, before any render (ModelError)
         descriptions[desc.name] = desc
     return descriptions
 
@@ -119,7 +122,7 @@ def run_report(out: Path, materials: list[str], config: ReportConfig, models: Pa
             if not config.smoke:
                 mat["time_to_error"] = time_to_error(images[name], config.spp)
     if "stability" in stages:
-        results["stability"] = run_stability(out, list(descriptions), config, evaluator, renders, cache, progress, models)
+        results["stability"] = run_stability(out, descriptions, config, evaluator, renders, cache, progress, models)
     if "tradeoff" in stages and TRADEOFF_MATERIAL in renderers:
         results["tradeoff"] = run_tradeoff(out, renderers[TRADEOFF_MATERIAL], config, cache_dir, progress)
     results["seconds"] = time.perf_counter() - start
@@ -165,7 +168,7 @@ def run_stability(out, materials, config, evaluator, renders, cache, progress, m
     charts.sweeps(sweeps, out / "stability_sweeps.png")
     result = {"sweeps": {n: _summary(s) for n, s in sweeps.items()}}
     if HORIZON_MATERIAL in materials:
-        result["horizon"] = horizon(out, config, evaluator, renders, cache, progress)
+        result["horizon"] = horizon(out, materials[HORIZON_MATERIAL], config, evaluator, renders, cache, progress)
     return result
 
 
@@ -175,14 +178,14 @@ def _summary(sweep: dict) -> dict:
             for kind, r in sweep.items()}
 
 
-def horizon(out, config, evaluator, renders, cache, progress) -> dict:
+def horizon(out, desc, config, evaluator, renders, cache, progress) -> dict:
     from neumip.client.mitsuba import render as R
-    from neumip.training.microgeometry.description import find_description, resolve
+    from neumip.training.microgeometry.description import resolve
 
     from .methods import classical_bsdf
 
     mi = R.mi
-    geo = resolve(find_description(HORIZON_MATERIAL))
+    geo = resolve(desc)  # the description given (a user's file may be named like a shipped material)
     bsdfs = {
         "N": lambda scale: {"type": "neumip", "material": HORIZON_MATERIAL, "uv_scale": scale},
         "C": lambda scale: classical_bsdf(mi, geo, scale),
@@ -215,7 +218,7 @@ def run_tradeoff(out, renderer, config, cache_dir, progress) -> dict:
     folder = cache_dir / "tradeoff"
     variants = tradeoff.variants(config)
     progress.stage("trade-off: data", 1)
-    train, ref = tradeoff.datasets(renderer.name, folder / "data", config)
+    train, ref = tradeoff.datasets(renderer.desc, folder / "data", config)
     progress.tick()
     progress.stage("trade-off: training", len(variants))
     for v in variants:
@@ -229,6 +232,7 @@ def run_tradeoff(out, renderer, config, cache_dir, progress) -> dict:
     spec = renderer.spec(view)
     reference_images = [renderer.render(view, "R", config.reference_spp, s)[0] for s in REFERENCE_SEEDS]
     reference = (reference_images[0] + reference_images[1]) / 2
+    renderer.release()  # the reference scene's instances slow every other render while alive
     points = {}
     progress.stage("trade-off: measure", len(variants))
     for v in variants:

@@ -55,13 +55,13 @@ def variants(config: ReportConfig) -> list[Variant]:
     return out
 
 
-def datasets(material: str, folder: Path, config: ReportConfig, on_chunk=None) -> tuple[Path, Path]:
-    """Training data (4 spp) and low-noise validation queries (64 spp) of ``material`` (resumable)."""
+def datasets(desc, folder: Path, config: ReportConfig, on_chunk=None) -> tuple[Path, Path]:
+    """Training data (4 spp) and low-noise validation queries (64 spp) of the material described by
+    ``desc`` (a `MaterialDescription`; resumable)."""
     from neumip.training.dataset import DatasetError, open_dataset
-    from neumip.training.microgeometry.description import find_description
     from neumip.training.microgeometry.generate import GenerateSettings, generate
 
-    desc = find_description(material)
+    material = desc.name
     resolution = max(config.tradeoff_resolutions)
     train = folder / f"{material}_train"
     ref = folder / f"{material}_reference"

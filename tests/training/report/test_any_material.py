@@ -54,6 +54,21 @@ def test_a_missing_model_is_one_error_and_nothing_is_written(tmp_path, material)
     assert not (tmp_path / "out").exists() and not cache.exists()
 
 
+
+def test_a_corrupt_model_is_one_error_before_any_render(tmp_path):
+    """A model file that is there but unusable (not ONNX) fails the check, not the first neural render
+    after the reference renders; nothing is written."""
+    from neumip.client.local import ModelError
+
+    toml = user_material(tmp_path, "mine")
+    models = tmp_path / "models"
+    models.mkdir()
+    (models / "mine.onnx").write_bytes(b"not onnx")
+    out, cache = tmp_path / "out" / "report", tmp_path / "cache"
+    with pytest.raises(ModelError, match="mine.onnx"):
+        run_report(out, [str(toml)], QUICK, models, cache)
+    assert not (tmp_path / "out").exists() and not cache.exists()
+
 def test_the_cli_says_one_line_and_writes_nothing(tmp_path, capsys):
     from neumip.client.cli import main
 
