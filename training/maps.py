@@ -45,9 +45,20 @@ LEVEL_SCALE = 8.0
 """The level feature is log2(texels per side) / LEVEL_SCALE (0 at 1 x 1, 1 at 256 x 256)."""
 
 
+def box_weights(n: int, size: int) -> np.ndarray:
+    """(size, n) weights of an area average: output texel i is the mean of the input texels over
+    [i n / size, (i + 1) n / size), each weighted by the length it overlaps (any n > size)."""
+    edges = np.arange(size + 1) * (n / size)
+    lo, hi = edges[:-1, None], edges[1:, None]
+    cells = np.arange(n)[None, :]
+    overlap = np.clip(np.minimum(hi, cells + 1) - np.maximum(lo, cells), 0, None)
+    return overlap / (n / size)
+
+
 def resize(arr: np.ndarray, size: int) -> np.ndarray:
-    """A periodic (H, H[, C]) map -> (size, size[, C]): box-averaged when it is finer by a whole
-    factor (each output texel the mean of the texels it covers), else bilinear at texel centres."""
+    """A periodic (H, H[, C]) map -> (size, size[, C]): area-averaged when it is finer (each output
+    texel the mean of the texels it covers, fractions of texels included), else bilinear at texel
+    centres."""
     h = arr.shape[0]
     if arr.shape[1] != h:
         raise ValueError(f"maps must be square, got {arr.shape[:2]}")
@@ -58,6 +69,10 @@ def resize(arr: np.ndarray, size: int) -> np.ndarray:
     if h > size and h % size == 0:
         f = h // size
         return arr.reshape(size, f, size, f, *arr.shape[2:]).mean(axis=(1, 3)).astype(np.float32)
+    if h > size:  # not a whole factor: exact area weights (point samples would alias)
+        w = box_weights(h, size)
+        rows = np.tensordot(w, arr.astype(np.float64), axes=(1, 0))  # (size, H[, C])
+        return np.moveaxis(np.tensordot(w, rows, axes=(1, 1)), 0, 1).astype(np.float32)
     if arr.ndim == 2:
         return resample_periodic(arr, size)
     return np.stack([resample_periodic(arr[..., c], size) for c in range(arr.shape[2])], axis=2)

@@ -228,3 +228,16 @@ def test_horizons_see_a_wall_towards_it_only():
     flat = prefilter(geometry(np.zeros((16, 16))), [16, 1], horizons=8)
     for f in flat:
         np.testing.assert_allclose(f[..., FEATURES:], 0.0, atol=1e-7)
+
+
+def test_a_map_of_any_size_is_area_averaged_not_point_sampled():
+    """A 1000^2 texel checkerboard (mean 0.5) at 256^2, 128^2 and 3^2, sizes it does not divide:
+    each texel holds the mean of what it covers (point samples read 0.03-0.97); a random colour map
+    keeps its mean."""
+    from neumip.training.maps import resize
+
+    checker = (np.indices((1000, 1000)).sum(0) % 2).astype(np.float32)
+    for size in (256, 128, 3):
+        np.testing.assert_allclose(resize(checker, size), 0.5, atol=1e-3)
+    rgb = np.random.default_rng(0).random((1000, 1000, 3))
+    np.testing.assert_allclose(resize(rgb, 256).mean(axis=(0, 1)), rgb.mean(axis=(0, 1)), atol=1e-5)
