@@ -19,7 +19,8 @@ from __future__ import annotations
 
 import asyncio
 import json
-from collections.abc import AsyncIterator, Callable
+from collections.abc import AsyncIterator, Callable, Iterator
+from contextlib import contextmanager
 
 import numpy as np
 from starlette.responses import Response
@@ -31,6 +32,17 @@ JSON_INLINE_VALUES = 1 << 14
 JSON_PIECE_VALUES = 1 << 14
 """Numbers a worker thread encodes in one go (about 3-5 ms holding the GIL, which ``json`` never lets go of
 within one call: the event loop waits that long at most)."""
+
+
+@contextmanager
+def freed_on_failure(sent: Callable[[], None]) -> Iterator[None]:
+    """Around building the response that will send an answer: if building fails, no response will
+    ever free the answer's reservation (`Admission.hand_answer`), so it is given back at once."""
+    try:
+        yield
+    except BaseException:
+        sent()
+        raise
 
 
 class Answer(Response):

@@ -19,7 +19,7 @@ from neumip.core import contract as C
 from neumip.client import wire
 
 from .admission import plan, read_body
-from .answer import BufferAnswer, JsonAnswer
+from .answer import BufferAnswer, JsonAnswer, freed_on_failure
 from .body import JSON_TYPE, MSGPACK_TYPES, check_rows, media_type, parse_json
 from .errors import ApiError
 from .metrics import StageTimer
@@ -122,14 +122,11 @@ async def evaluate(name: str, request: Request, state: ServerState = Depends(ser
             rgb = await asyncio.shield(ticket.until)  # (N, 3 K) float32
             timer.mark("evaluate")
             sent = state.admission.hand_answer(ticket)  # the response frees the answer once sent
-        try:
+        with freed_on_failure(sent):
             if kind == "msgpack":
                 response = BufferAnswer([content], wire.MSGPACK_MEDIA_TYPE, sent)
             else:
                 response = JsonAnswer(f'{{"n":{rgb.shape[0]},"rgb":', rgb, "}", sent)
-        except BaseException:
-            sent()  # no response will send it: give the reservation back now
-            raise
         timer.mark("encode")  # what is encoded before the answer goes out (large JSON streams after)
         response.headers.update(timer.header())
         return response

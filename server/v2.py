@@ -21,7 +21,7 @@ from neumip.core import contract as C
 from neumip.client import wire
 
 from .admission import plan, read_body
-from .answer import Answer, BufferAnswer, JsonAnswer
+from .answer import Answer, BufferAnswer, JsonAnswer, freed_on_failure
 from .body import JSON_TYPE, check_rows, header_int, media_type, parse_json
 from .errors import ApiError
 from .metrics import StageTimer
@@ -267,11 +267,8 @@ async def infer(name: str, request: Request, version: str | None = None, state: 
             rgb = await asyncio.shield(ticket.until)  # (N, 3 K) float32
             timer.mark("evaluate")
             sent = state.admission.hand_answer(ticket)  # the response frees the answer once sent
-        try:
+        with freed_on_failure(sent):
             response = infer_response(name, parsed, rgb, sent)
-        except BaseException:
-            sent()  # no response will send it: give the reservation back now
-            raise
         timer.mark("encode")  # what is encoded before the answer goes out (large JSON streams after)
         response.headers.update(timer.header())
         return response
