@@ -49,7 +49,12 @@ VARIANTS: dict[str, tuple[dict, MapConfig | None, object]] = {
     "M": ({}, MapConfig(), SHIP),
     "N_seed1": ({}, None, replace(SHIP, seed=1)),  # the run-to-run spread of each model
     "M_seed1": ({}, MapConfig(), replace(SHIP, seed=1)),
+    "M_seed2": ({}, MapConfig(), replace(SHIP, seed=2)),
+    "M_seed3": ({}, MapConfig(), replace(SHIP, seed=3)),
     "M_hz": ({}, MapConfig(horizons=8), SHIP),
+    "N_k4": ({}, None, replace(SHIP, candidates=4)),  # best of 4 starts after 300 steps
+    "M_k4": ({}, MapConfig(), replace(SHIP, candidates=4)),
+    "M_hz_k4": ({}, MapConfig(horizons=8), replace(SHIP, candidates=4)),
     "M_1x1": ({}, MapConfig(neighbourhood=1), SHIP),
     "M_residual": ({}, MapConfig(residual=True), SHIP),
     "M_noblur": ({}, MapConfig(), replace(SHIP, blur_start=0.0)),
@@ -77,7 +82,7 @@ def views():
             for light, (z, a) in LIGHTS.items() for lv in LEVELS]
 
 
-def train(variant: str, data: str, material: str, runs: Path, threads: int) -> None:
+def train(variant: str, data: str, material: str, runs: Path, threads: int, validate_every: int = 0) -> None:
     import torch
 
     from neumip.training.export import export_material
@@ -86,6 +91,7 @@ def train(variant: str, data: str, material: str, runs: Path, threads: int) -> N
 
     torch.set_num_threads(threads)
     overrides, maps, config = VARIANTS[variant]
+    config = replace(config, validate_every=validate_every)
     desc = find_description(material)
     out = runs / variant / f"{desc.name}.onnx"
     checkpoint = runs / variant / f"{desc.name}.pt"
@@ -98,11 +104,38 @@ def train(variant: str, data: str, material: str, runs: Path, threads: int) -> N
     export_material(trainer.material, out, f"benchmarks/maps.py {variant}", held)
     record = {"variant": variant, "data": data, "queries": len(trainer.data), "steps": trainer.state.step,
               "batch": config.batch, "train_seconds": round(seconds, 1), "cpu_seconds": round(cpu, 1), "held_out_mse": held["overall"]["mse"],
-              "load_average": os.getloadavg(), "onnx_mb": round(out.stat().st_size / 1e6, 2)}
+              "load_average": os.getloadavg(), "onnx_mb": round(out.stat().st_size / 1e6, 2),
+              "progress": [[step, overall] for step, _, overall in trainer.state.progress]}
     (runs / variant / f"{desc.name}.json").write_text(json.dumps(record, indent=1) + "\n")
-    checkpoint.unlink(missing_ok=True)
+    trainer.save_checkpoint()  # kept: `bake` re-evaluates a map model's encoder at other resolutions
     print(f"{variant}: {seconds:.0f} s, held-out MSE {held['overall']['mse'] * 1e3:.4f}e-3, "
           f"load {os.getloadavg()[0]:.1f} -> {out}", flush=True)
+
+
+def bake(variant: str, material: str, runs: Path, resolution: int) -> None:
+    """A trained map model's encoder evaluated on its maps prefiltered to a pyramid of `resolution`
+    texels per side (its decoder and offset network unchanged) -> RUNS/VARIANT_bRESOLUTION/MATERIAL.onnx."""
+    import torch
+
+    from neumip.training import checkpoint
+    from neumip.training.export import export_material
+    from neumip.training.maps import prefilter
+    from neumip.training.material import MapMaterial
+    from neumip.training.microgeometry.description import find_description, resolve
+
+    desc = find_description(material)
+    trained, _ = checkpoint.load(runs / variant / f"{desc.name}.pt")
+    config = replace(trained.config, resolution=resolution)
+    features = prefilter(resolve(desc), config.level_sizes(), trained.maps.horizons)
+    baked = MapMaterial(config, trained.maps, features)
+    shared = {k: v for k, v in trained.state_dict().items()
+              if k.split(".")[0] in ("encoder", "offset_encoder", "decoder", "offset_mlp")}
+    missing = baked.load_state_dict(shared, strict=False)
+    assert not missing.unexpected_keys, missing.unexpected_keys
+    out = runs / f"{variant}_b{resolution}" / f"{desc.name}.onnx"
+    with torch.no_grad():
+        export_material(baked, out, f"benchmarks/maps.py bake {variant} {resolution}")
+    print(f"{variant} baked at {resolution}^2 -> {out} ({out.stat().st_size / 1e6:.2f} MB)")
 
 
 def speed(variants: list[str], data: str, material: str, rounds: int, steps: int) -> None:
@@ -228,14 +261,20 @@ def main() -> None:
     t.add_argument("--material", required=True, help="library name or .toml of the data's material")
     t.add_argument("--runs", type=Path, default=Path("runs/maps"))
     t.add_argument("--threads", type=int, default=1)
+    t.add_argument("--validate-every", type=int, default=0, help="record the held-out MSE every this many steps")
     v = sub.add_parser("speed")
     v.add_argument("variants", nargs="+", choices=tuple(VARIANTS))
     v.add_argument("--data", required=True)
     v.add_argument("--material", required=True)
     v.add_argument("--rounds", type=int, default=3)
     v.add_argument("--steps", type=int, default=10)
+    b = sub.add_parser("bake")
+    b.add_argument("variant")
+    b.add_argument("--material", required=True)
+    b.add_argument("--runs", type=Path, default=Path("runs/maps"))
+    b.add_argument("--resolution", type=int, required=True)
     s = sub.add_parser("score")
-    s.add_argument("variants", nargs="+", choices=tuple(VARIANTS))
+    s.add_argument("variants", nargs="+")
     s.add_argument("--material", required=True)
     s.add_argument("--runs", type=Path, default=Path("runs/maps"))
     s.add_argument("--cache", default="runs/maps/renders")
@@ -244,7 +283,9 @@ def main() -> None:
     args = p.parse_args()
     if args.command == "train":
         for variant in args.variants:
-            train(variant, args.data, args.material, args.runs, args.threads)
+            train(variant, args.data, args.material, args.runs, args.threads, args.validate_every)
+    elif args.command == "bake":
+        bake(args.variant, args.material, args.runs, args.resolution)
     elif args.command == "speed":
         speed(args.variants, args.data, args.material, args.rounds, args.steps)
     else:

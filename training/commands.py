@@ -41,7 +41,8 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--views-material", metavar="NAME_OR_TOML",
                    help="material whose ground truth the progress grid NAME.progress.png shows (default: the "
                         "data's own, when its description can be rebuilt from meta.json)")
-    for name, kind in (("steps", int), ("batch", int), ("lr", float), ("seed", int), ("blur-half-life", float)):
+    for name, kind in (("steps", int), ("batch", int), ("lr", float), ("seed", int), ("blur-half-life", float),
+                       ("candidates", int)):
         p.add_argument(f"--{name}", type=kind, help=f"override TrainConfig.{name.replace('-', '_')}")
     p.add_argument("--loss", choices=("comb2", "mse"), help="override TrainConfig.loss")
     p.add_argument("--device", choices=("auto", "cpu", "cuda"), help="override TrainConfig.device")
@@ -74,7 +75,7 @@ def train_settings(args: argparse.Namespace):
         config = TrainConfig.from_dict({**config.to_dict(), **json.loads(Path(args.config).read_text())})
     overrides = {
         k: getattr(args, k)
-        for k in ("steps", "batch", "lr", "seed", "blur_half_life", "loss", "device")
+        for k in ("steps", "batch", "lr", "seed", "blur_half_life", "loss", "device", "candidates")
         if getattr(args, k) is not None
     }
     if args.compile:
@@ -207,7 +208,7 @@ def _train(args: argparse.Namespace) -> int:
         write_progress(trainer, progress_png, views)
         bar.write(progress_line(trainer, progress_png))
 
-    bar = tqdm(total=config.steps, initial=trainer.state.step, unit="step", dynamic_ncols=True)
+    bar = tqdm(total=trainer.config.total_steps, initial=trainer.steps_done, unit="step", dynamic_ncols=True)
     try:
         table = trainer.run(_step_bar(bar, config.batch), on_progress)
     except (TrainingDiverged, TrainingError) as exc:
@@ -269,6 +270,7 @@ def _register_train_many(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--no-offset", action="append", default=[], metavar="NAME",
                    help="train NAME without the neural offset (repeatable)")
     p.add_argument("--steps", type=int, help="override TrainConfig.steps")
+    p.add_argument("--candidates", type=int, help="override TrainConfig.candidates")
     p.add_argument("--device", choices=("auto", "cpu", "cuda"), help="override TrainConfig.device")
     p.add_argument("--threads", type=int, default=1, help="torch threads of each material (default 1; "
                    "with --ray the CPUs each task reserves)")
@@ -328,7 +330,7 @@ def _train_many(args: argparse.Namespace) -> int:
         tqdm.write(f"{job.name}: {outcome}")
 
     def progress(job):
-        steps[job.name] = tqdm(total=settings.config.steps, unit="step", desc=job.name, leave=False, position=1)
+        steps[job.name] = tqdm(total=settings.config.total_steps, unit="step", desc=job.name, leave=False, position=1)
         return lambda step, loss: steps[job.name].update(step - steps[job.name].n)
 
     try:

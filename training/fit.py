@@ -105,7 +105,7 @@ def fit(description, output: str | Path, settings: FitSettings, report: Report |
         if on_progress is not None:
             on_progress(trainer)
 
-    report(STAGES[2], trainer.state.step, settings.train.steps)
-    table = trainer.run(lambda step, loss: report(STAGES[2], step, settings.train.steps), progress)
+    report(STAGES[2], trainer.steps_done, trainer.config.total_steps)
+    table = trainer.run(lambda step, loss: report(STAGES[2], step, trainer.config.total_steps), progress)
     report(STAGES[3], 0, None)
     return table, install_outputs(trainer, table, output, views)

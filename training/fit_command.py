@@ -42,6 +42,8 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--no-offset", action="store_true", help="train without the neural offset")
     p.add_argument("--hidden", type=int, default=MaterialConfig.hidden, help=commands.HIDDEN_HELP)
     p.add_argument("--steps", type=int, help="override the preset's TrainConfig.steps")
+    p.add_argument("--candidates", type=int, help="override the preset's TrainConfig.candidates (best of this "
+                   "many initial weights, compared after TrainConfig.candidate_steps steps)")
     p.add_argument("--description", default="", help="short description stored in the model metadata "
                    "(default: the material's summary, resolution and preset)")
     p.add_argument("--views-material", metavar="NAME_OR_TOML",

@@ -70,6 +70,10 @@ class TrainState:
     """The run ended inside the blur schedule and its blurred textures were stored as the weights."""
     progress: list = field(default_factory=list)
     """[step, [[level, MSE], ...], overall MSE] of each progress validation (`Trainer.check_progress`)."""
+    candidates: list = field(default_factory=list)
+    """[seed, held-out MSE] of each candidate instance compared (`TrainConfig.candidates`)."""
+    dropped_steps: int = 0
+    """Steps trained by the candidates that were dropped."""
 
 
 def differences(saved: dict, now: dict, ignore=()) -> list[str]:
@@ -178,18 +182,28 @@ class Trainer:
         if self.checkpoint_path.exists():
             self.material = self._resume(material_config)
         else:
-            torch.manual_seed(config.seed)
-            if maps is None:
-                self.material = NeuMIPMaterial(material_config)
-            else:
-                features = prefilter(maps[1], material_config.level_sizes(), maps[0].horizons)
-                self.material = MapMaterial(material_config, maps[0], features)
-            init_output(self.material, self.data.rgb[self.train_idx[:: max(1, len(self.train_idx) // 4096)]])
-            self.material.to(self.device)
+            features = None if maps is None else prefilter(maps[1], material_config.level_sizes(), maps[0].horizons)
+            self._new_material = lambda seed: self._initial_material(material_config, features, seed)
+            self.material = self._new_material(config.seed)
             self.optimizer = _make_optimizer(self.material, config)
         self._end = schedule_end(config)
         self._window: list[float] = []  # losses since the last history record
         self._loss = torch.compile(self._batch_loss, dynamic=False) if config.compile else self._batch_loss
+
+    def _initial_material(self, material_config: MaterialConfig, features: list | None, seed: int) -> NeuMIPMaterial:
+        """A new material with the initial weights of `seed` (map-informed when `features` are given)."""
+        torch.manual_seed(seed)
+        if features is None:
+            material = NeuMIPMaterial(material_config)
+        else:
+            material = MapMaterial(material_config, self.map_config, features)
+        init_output(material, self.data.rgb[self.train_idx[:: max(1, len(self.train_idx) // 4096)]])
+        return material.to(self.device)
+
+    @property
+    def steps_done(self) -> int:
+        """Optimiser steps taken so far, the dropped candidates' included."""
+        return self.state.step + self.state.dropped_steps
 
     def _batch_loss(
         self, queries: torch.Tensor, target: torch.Tensor, levels: list[torch.Tensor], otex: torch.Tensor | None
@@ -319,12 +333,50 @@ class Trainer:
         self.state.progress.append(record)
         return record
 
+    def pick_candidate(self, callback: Callback | None = None) -> None:
+        """Train `config.candidates` instances `candidate_steps` steps each, on the same batches, and
+        go on with the one of the lowest held-out MSE (at the step's blur); no checkpoint is written
+        before the choice, so an interrupted run starts the comparison again."""
+        cfg, start = self.config, time.perf_counter()
+        batches = self.sampler.generator.get_state()
+        best = None
+        for i in range(cfg.candidates):
+            if i > 0:
+                self.material = self._new_material(cfg.seed + i)
+                self.optimizer = _make_optimizer(self.material, cfg)
+                self.state = TrainState(candidates=self.state.candidates, dropped_steps=self.steps_done)
+                self._window = []
+                self.sampler.generator.set_state(batches)
+            self.material.train()
+            while self.state.step < cfg.candidate_steps:
+                loss = self.step()
+                if callback is not None:
+                    callback(self.steps_done, loss)
+            mse = self.check_progress()[2]
+            self.state.candidates.append([cfg.seed + i, mse])
+            log.info("candidate %d of %d (seed %d): held-out MSE %.4g after %d steps",
+                     i + 1, cfg.candidates, cfg.seed + i, mse, cfg.candidate_steps)
+            if best is None or mse < best[0]:
+                best = (mse, self.material, self.optimizer, self.sampler.generator.get_state(), self._window, self.state)
+        records, done = self.state.candidates, self.steps_done
+        _, self.material, self.optimizer, rng, self._window, self.state = best
+        self.sampler.generator.set_state(rng)
+        self.state.candidates, self.state.dropped_steps = records, done - self.state.step
+        self.state.seconds = time.perf_counter() - start
+        kept = min(records, key=lambda r: r[1])
+        log.info("kept candidate seed %d (held-out MSE %.4g)", kept[0], kept[1])
+        self.save_checkpoint()
+
     def run(self, callback: Callback | None = None, on_progress: ProgressCallback | None = None) -> dict:
         """Train up to config.steps (from wherever the checkpoint left off), then validate.
 
+        A new run with `config.candidates` > 1 first picks its best candidate (`pick_candidate`).
         Every `config.validate_every` steps a progress validation is recorded and `on_progress` called.
+        `callback(steps_done, loss)` counts the dropped candidates' steps too (of `config.total_steps`).
         Returns the validation table (also stored in the final checkpoint's extra["validation"]).
         """
+        if self.state.step == 0 and self.config.candidates > 1:
+            self.pick_candidate(callback)
         cfg, state = self.config, self.state
         self.material.train()
         log.info(
@@ -347,7 +399,7 @@ class Trainer:
                 if state.step % cfg.checkpoint_every == 0:
                     self.save_checkpoint()
                 if callback is not None:
-                    callback(state.step, loss)
+                    callback(self.steps_done, loss)
         except KeyboardInterrupt:
             if state.step > 0:  # keep the steps done since the last periodic checkpoint
                 self.save_checkpoint()

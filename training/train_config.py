@@ -55,6 +55,12 @@ class TrainConfig:
     """Steps between loss-history records (loss curve, progress)."""
     seed: int = 0
     """Seeds the initial weights, the split and the batch sampling (a run is reproducible)."""
+    candidates: int = 1
+    """Instances started from different initial weights (seeds `seed`, `seed` + 1, ...). Each trains
+    `candidate_steps` steps on the same batches; the one with the lowest held-out MSE goes on and the
+    others are dropped (best-of-k: a single run's result depends on its initial weights)."""
+    candidate_steps: int = 300
+    """Steps each candidate trains before they are compared."""
     device: str = "auto"
     """'auto' (CUDA when available, else CPU), 'cpu' or 'cuda'."""
     preload_mb: int = 2048
@@ -77,8 +83,16 @@ class TrainConfig:
             raise ValueError(f"holdout must be in (0, 1), got {self.holdout}")
         if self.blur_half_life <= 0 or self.blur_start < 0 or self.blur_min <= 0:
             raise ValueError("blur_half_life and blur_min must be > 0, blur_start >= 0")
+        if self.candidates < 1 or (self.candidates > 1 and not 1 <= self.candidate_steps < self.steps):
+            raise ValueError(f"candidates must be >= 1 and candidate_steps in [1, steps), got "
+                             f"{self.candidates}, {self.candidate_steps}")
         if self.device not in ("auto", "cpu", "cuda"):
             raise ValueError(f"device must be 'auto', 'cpu' or 'cuda', got {self.device!r}")
+
+    @property
+    def total_steps(self) -> int:
+        """Optimiser steps of a whole run, the dropped candidates' included."""
+        return self.steps + (self.candidates - 1) * self.candidate_steps
 
     def to_dict(self) -> dict:
         return asdict(self)

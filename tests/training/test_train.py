@@ -350,3 +350,44 @@ def test_presets_scale_the_papers_schedule(name):
     assert cfg.blur_half_life / cfg.steps == pytest.approx(3333 / 30_000, rel=0.01)
     assert schedule_end(cfg) / cfg.steps == pytest.approx(0.59, abs=0.01)
     assert cfg.lr_schedule == "constant" and cfg.offset_freeze  # what measured best (benchmarks/quality_levers.py)
+
+
+def test_candidates_go_on_with_the_best_start_and_count_every_step(data, tmp_path):
+    """Three starts train 20 steps each on the same batches; the one with the lowest held-out error
+    goes on, exactly as a run from that start alone would; the callback counts all 100 steps once."""
+    config = replace(FAST, candidates=3, candidate_steps=20)
+    trainer = Trainer(data.path, tmp_path / "c.pt", TINY, config)
+    counted = []
+    trainer.run(lambda step, loss: counted.append(step))
+    assert counted == list(range(1, config.total_steps + 1)) and config.total_steps == 100
+    seeds, errors = zip(*trainer.state.candidates)
+    assert seeds == (0, 1, 2) and len(set(errors)) == 3
+    kept = seeds[int(np.argmin(errors))]
+    assert (trainer.state.step, trainer.state.dropped_steps) == (60, 40)
+
+    alone = Trainer(data.path, tmp_path / "alone.pt", TINY, FAST)  # the same split and batches
+    alone.material = alone._new_material(kept)
+    alone.optimizer = train_mod._make_optimizer(alone.material, FAST)
+    alone.run()
+    want, got = alone.material.state_dict(), trainer.material.state_dict()
+    assert max(float((got[k] - want[k]).abs().max()) for k in want) < 1e-6
+    resumed = Trainer(data.path, tmp_path / "c.pt", TINY, config)  # the comparison is in the checkpoint
+    assert resumed.state.candidates == trainer.state.candidates and resumed.steps_done == 100
+
+
+def test_a_run_interrupted_while_comparing_candidates_compares_them_again(data, tmp_path):
+    config = replace(FAST, candidates=2, candidate_steps=20)
+
+    def stop_in_the_second(step, loss):
+        if step == 30:
+            raise KeyboardInterrupt
+
+    with pytest.raises(KeyboardInterrupt):
+        Trainer(data.path, tmp_path / "i.pt", TINY, config).run(stop_in_the_second)
+    assert not (tmp_path / "i.pt").exists()  # no half-compared candidate passed off as the run
+    again = Trainer(data.path, tmp_path / "i.pt", TINY, config)
+    assert again.state.step == 0
+    again.run()
+    whole = Trainer(data.path, tmp_path / "w.pt", TINY, config)
+    whole.run()
+    assert again.state.candidates == whole.state.candidates
