@@ -24,6 +24,7 @@ from typing import TYPE_CHECKING, Callable
 
 from neumip.core.config import MaterialConfig
 
+from .maps import MapConfig
 from .train_config import SHIP, TrainConfig
 
 if TYPE_CHECKING:  # Mitsuba is imported only when a fit runs
@@ -44,12 +45,14 @@ class FitSettings:
     """How one material description becomes a model."""
 
     material: MaterialConfig
-    """Architecture; its resolution is also the one the ground truth samples footprints for."""
+    """Architecture. The ground truth has `queries_per_texel` queries per texel of its finest level,
+    with footprints sampled for the material's own resolution (its maps'), which may be finer: the
+    renders that look closest ask for footprints that small."""
     train: TrainConfig = SHIP
     """Training schedule (a `train_config.PRESETS` value, possibly with overrides)."""
     generate: GenerateSettings | None = None
-    """Ground-truth settings (None: the defaults); footprints are sampled for the material's
-    resolution unless these name another."""
+    """Ground-truth settings (None: the defaults); their `resolution` and `queries`, when given,
+    replace the footprints' resolution and the count above."""
     work: Path | None = None
     """Folder of the data, checkpoint and views (None: ``NAME.run/`` beside the model)."""
     data: Path | None = None
@@ -59,6 +62,8 @@ class FitSettings:
     """Stored in the model's metadata."""
     views_material: str | None = None
     """Description whose ground truth the progress grid shows (None: the fitted one)."""
+    maps: MapConfig | None = None
+    """Train a map-informed material whose encoder reads the description's maps (None: the paper's model)."""
 
 
 def work_folder(output: str | Path, work: str | Path | None = None) -> Path:
@@ -83,6 +88,7 @@ def fit(description, output: str | Path, settings: FitSettings, report: Report |
     """
     from .microgeometry.generate import GenerateSettings, generate
     from .outputs import install_outputs, progress_path, write_progress
+    from .microgeometry.description import resolve
     from .train import Trainer
     from .views import ViewGrid, trace_views
 
@@ -90,14 +96,15 @@ def fit(description, output: str | Path, settings: FitSettings, report: Report |
     work = work_folder(output, settings.work)
     resolution = settings.material.resolution
     gen = settings.generate or GenerateSettings()
-    gen = replace(gen, resolution=gen.resolution or resolution)
+    gen = replace(gen, queries=gen.queries or max(1, round(gen.sampling.queries_per_texel * resolution**2)))
     log.info("fitting %s into %s (work folder %s)", description.name, output, work)
     data = generate(description, settings.data or work / "data", gen,
                     lambda done, total: report(STAGES[0], done, total))  # (N, 7) queries, (N, 3) RGB
     report(STAGES[1], 0, None)
     views = trace_views(data.meta.get("material") or {}, ViewGrid(), resolution, work / "views",
                         settings.views_material, data.meta.get("description_dir"))
-    trainer = Trainer(data.path, work / "checkpoint.pt", settings.material, settings.train, settings.description)
+    maps = None if settings.maps is None else (settings.maps, resolve(description))
+    trainer = Trainer(data.path, work / "checkpoint.pt", settings.material, settings.train, settings.description, maps)
     grid_png = progress_path(output)
 
     def progress(trainer: Trainer) -> None:

@@ -37,9 +37,12 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--data", type=Path, help="data set folder of the ground truth, written or resumed (default "
                    "WORK/data); models of one material, e.g. with and without --no-offset, can share it")
     p.add_argument("--queries-per-texel", type=float, default=QuerySampling.queries_per_texel,
-                   help="ground-truth queries per finest texel")
+                   help="ground-truth queries per texel of the model's finest level (their footprints are "
+                        "sampled for the material's own resolution)")
     p.add_argument("--spp", type=int, default=GenerateSettings.spp, help="path samples per ground-truth query")
     p.add_argument("--no-offset", action="store_true", help="train without the neural offset")
+    p.add_argument("--maps", action="store_true", help="map-informed model: its textures are encoded from the "
+                   "material's prefiltered maps (training/TRAINING.md); the export is the paper's graph")
     p.add_argument("--hidden", type=int, default=MaterialConfig.hidden, help=commands.HIDDEN_HELP)
     p.add_argument("--steps", type=int, help="override the preset's TrainConfig.steps")
     p.add_argument("--candidates", type=int, help="override the preset's TrainConfig.candidates (best of this "
@@ -100,6 +103,7 @@ def _fit(args: argparse.Namespace) -> int:
     from .checkpoint import CheckpointError
     from .dataset import DatasetError
     from .fit import FitSettings, fit, work_folder
+    from .maps import MapConfig
     from .microgeometry.description import DescriptionError, find_description
     from .microgeometry.generate import GenerateSettings
     from .microgeometry.sampling import QuerySampling
@@ -116,10 +120,11 @@ def _fit(args: argparse.Namespace) -> int:
         generate = GenerateSettings(spp=args.spp, sampling=QuerySampling(queries_per_texel=args.queries_per_texel))
     except (DescriptionError, ValueError) as exc:
         raise CommandError(str(exc)) from exc
-    kind = "neural offset" if material.offset else "no neural offset"
+    kind = ("neural offset" if material.offset else "no neural offset") + (", map-informed" if args.maps else "")
     description = args.description or f"{desc.name}: {desc.summary or 'fitted'}, {resolution}^2, {kind}, " \
                                       f"{args.preset} preset"
-    settings = FitSettings(material, config, generate, work, args.data, description, args.views_material)
+    settings = FitSettings(material, config, generate, work, args.data, description, args.views_material,
+                           MapConfig() if args.maps else None)
     bar = StageBar(desc.name, config.batch)
     try:
         table, paths = fit(desc, output, settings, bar.report,

@@ -139,3 +139,28 @@ def test_fit_command_imports_torch_only_after_setting_its_threads():
             "from neumip.training.fit import fitted, work_folder; fitted('m.onnx'); work_folder('m.onnx'); "
             "sys.exit('torch' in sys.modules)")
     assert subprocess.run([sys.executable, "-c", code], timeout=120).returncode == 0
+
+
+def test_fit_samples_the_maps_footprints_and_trains_a_map_model(material, tmp_path, capsys):
+    """A model coarser than the maps: its queries (per model texel) have footprints sampled for the
+    maps' resolution; --maps trains the map-informed model, whose export answers as its checkpoint."""
+    from neumip.client.local import LocalMaterials, load_material
+    from neumip.core.contract import random_queries
+    from neumip.training import checkpoint
+
+    out = tmp_path / "my.onnx"
+    argv = ["fit", str(material), "-o", str(out), "--preset", "test", "--steps", "10", "--spp", "2",
+            "--queries-per-texel", "32", "--resolution", "4", "--maps", "--threads", "1"]
+    assert main(argv) == 0
+    meta = json.loads((tmp_path / "my.run" / "data" / "meta.json").read_text())
+    assert (meta["generator"]["resolution"], meta["generator"]["queries"]) == (8, 32 * 4 * 4)
+    record = json.loads(out.with_suffix(".json").read_text())
+    assert record["material_config"]["resolution"] == 4
+    assert "map-informed" in load_material(out).info()["description"]
+    trained, _ = checkpoint.load(tmp_path / "my.run" / "checkpoint.pt")
+    assert trained.maps is not None  # a MapMaterial
+    queries = random_queries(2048, seed=4)
+    import torch
+    with torch.no_grad():
+        want = trained(torch.from_numpy(queries)).numpy()
+    np.testing.assert_allclose(LocalMaterials(tmp_path, threads=1).evaluate("my", queries), want, rtol=1e-4, atol=1e-5)
