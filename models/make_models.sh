@@ -1,8 +1,9 @@
 #!/usr/bin/env bash
-# Reproduce the shipped materials with `neumip fit`: path-traced data ($RES^2 level of detail, $QPT queries
-# per texel, $SPP spp) in data/MATERIAL (shared by NAME and NAME_nooffset), then training with the preset
-# $PRESET, replacing models/NAME.onnx (--force). Each step resumes if interrupted (a checkpoint in
-# runs/NAME/ from another preset is refused: move it away).
+# Reproduce the shipped materials with `neumip fit`: path-traced data ($QPT queries per texel of the $RES^2
+# model, footprints sampled for the material's maps' resolution where finer, $SPP spp) in data/MATERIAL_nQUERIES_sSPP
+# (shared by NAME, NAME_nooffset, NAME_maps), then training with the preset $PRESET, replacing
+# models/NAME.onnx (--force). Each step resumes if interrupted (a checkpoint in runs/NAME/ from another
+# preset is refused: move it away). NAME_maps is the map-informed model (`neumip fit --maps`).
 # Defaults reproduce the models shipped now (`ship` preset, 64^2, 256 queries per texel, 16 spp).
 # PRESET=quality is the longer recipe measured in benchmarks/results/quality_levers_log.md ("Quality levers"): 10 000 steps of 16 384.
 # Run from the repository root: [PRESET=ship|quality] [RES=64] [THREADS=1] bash models/make_models.sh [NAME ...]
@@ -20,22 +21,23 @@ THREADS=${THREADS:-1}  # the shipped models were trained with one torch thread
 RAY=${RAY:-}
 names=("$@")
 [ ${#names[@]} -gt 0 ] || names=(flat rock rock_nooffset yarn yarn_nooffset turtle turtle_nooffset foam foam_nooffset)
-data_dir() {  # the 64^2 / 256 / 16 data keep their old folder (data/NAME)
-  if [ "$RES" = 64 ] && [ "$QPT" = 256 ] && [ "$SPP" = 16 ]; then echo "data/$1"; else echo "data/$1_r${RES}_q${QPT}_s${SPP}"; fi
-}
-generate_data() {  # MATERIAL [--ray=ADDRESS]
-  local data; data=$(data_dir "$1")
+QUERIES=$(( QPT * RES * RES ))
+data_dir() { echo "data/$1_n${QUERIES}_s${SPP}"; }
+generate_data() {  # MATERIAL [--ray=ADDRESS]: the data `neumip fit` makes (footprints for max(RES, the maps'))
+  local data res; data=$(data_dir "$1")
+  res=$("${NEUMIP%neumip}python" -c "import sys; from neumip.training.microgeometry.description import find_description as f; print(max($RES, f(sys.argv[1]).resolution))" "$1")
   [ -f "$data/meta.json" ] && grep -q '"complete": true' "$data/meta.json" ||
-    "$NEUMIP" generate "$1" -o "$data" --queries-per-texel "$QPT" --resolution "$RES" --spp "$SPP" --seed 0 "${@:2}"
+    "$NEUMIP" generate "$1" -o "$data" --queries "$QUERIES" --queries-per-texel "$QPT" --resolution "$res" --spp "$SPP" --seed 0 "${@:2}"
 }
+material_of() { local m=${1%_nooffset}; echo "${m%_maps}"; }  # rock_maps_nooffset -> rock
 describe() {  # NAME
-  local material=${1%_nooffset}
-  echo "$material, ${RES}^2, $([ "$1" != "$material" ] && echo 'no neural offset' || echo 'neural offset'),$([ "$HIDDEN" != 25 ] && echo " MLP width $HIDDEN,") $PRESET preset"
+  echo "$(material_of "$1"), ${RES}^2, $([[ "$1" == *_nooffset ]] && echo 'no neural offset' || echo 'neural offset'),$([[ "$1" == *_maps* ]] && echo ' map-informed,')$([ "$HIDDEN" != 25 ] && echo " MLP width $HIDDEN,") $PRESET preset"
 }
 if [ -n "$RAY" ]; then
   jobs=() flags=()
   for name in "${names[@]}"; do
-    material=${name%_nooffset}
+    material=$(material_of "$name")
+    [[ "$name" == *_maps* ]] && { echo "RAY: train-many trains no map-informed models ($name): run without RAY" >&2; exit 2; }
     generate_data "$material" --ray="$RAY"
     jobs+=("$name=$(data_dir "$material")")
     [ "$name" != "$material" ] && flags+=(--no-offset "$name")
@@ -44,10 +46,11 @@ if [ -n "$RAY" ]; then
     --resolution "$RES" --hidden "$HIDDEN" --ray="$RAY"
 fi
 for name in "${names[@]}"; do
-  material=${name%_nooffset}
+  material=$(material_of "$name")
   flags=()
-  [ "$name" != "$material" ] && flags=(--no-offset)
+  [[ "$name" == *_nooffset ]] && flags+=(--no-offset)
+  [[ "$name" == *_maps* ]] && flags+=(--maps)
   "$NEUMIP" fit "$material" -o "models/$name.onnx" --force --work "runs/$name" --data "$(data_dir "$material")" \
     --resolution "$RES" --queries-per-texel "$QPT" --spp "$SPP" --preset "$PRESET" --threads "$THREADS" \
-    --hidden "$HIDDEN" "${flags[@]}" --description "$(describe "$name")"
+    --hidden "$HIDDEN" ${flags[@]+"${flags[@]}"} --description "$(describe "$name")"
 done

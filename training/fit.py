@@ -46,7 +46,7 @@ class FitSettings:
 
     material: MaterialConfig
     """Architecture. The ground truth has `queries_per_texel` queries per texel of its finest level,
-    with footprints sampled for the material's own resolution (its maps'), which may be finer: the
+    with footprints sampled for the material's own resolution (its maps') where that is finer: the
     renders that look closest ask for footprints that small."""
     train: TrainConfig = SHIP
     """Training schedule (a `train_config.PRESETS` value, possibly with overrides)."""
@@ -96,7 +96,8 @@ def fit(description, output: str | Path, settings: FitSettings, report: Report |
     work = work_folder(output, settings.work)
     resolution = settings.material.resolution
     gen = settings.generate or GenerateSettings()
-    gen = replace(gen, queries=gen.queries or max(1, round(gen.sampling.queries_per_texel * resolution**2)))
+    gen = replace(gen, resolution=gen.resolution or max(resolution, description.resolution),
+                  queries=gen.queries or max(1, round(gen.sampling.queries_per_texel * resolution**2)))
     log.info("fitting %s into %s (work folder %s)", description.name, output, work)
     data = generate(description, settings.data or work / "data", gen,
                     lambda done, total: report(STAGES[0], done, total))  # (N, 7) queries, (N, 3) RGB
