@@ -322,6 +322,10 @@ def _stage(p: dict) -> str:
     return "map encoder" + (f" + {maps['horizons']} horizons" if maps.get("horizons") else "")
 
 
+def _image_view(tr: dict) -> str:
+    return next((p["image_view"] for p in tr["points"].values() if p.get("image_view")), "one")
+
+
 def tradeoff_section(results: dict) -> list[str]:
     tr = results.get("tradeoff")
     if not tr:
@@ -334,7 +338,7 @@ def tradeoff_section(results: dict) -> list[str]:
          "load average at its end: the machine is shared), and at render, queries per second in-process (ONNX "
          "Runtime, median of interleaved rounds; a map-informed model is exported as the paper's graph with its "
          "textures baked, measured like the others). What it buys: validation MSE on low-noise (64 spp) reference "
-         "queries, and image MSE in the level0 view against R.", "",
+         f"queries, and image MSE in the {_image_view(tr)} view against R.", "",
          "![trade-off](tradeoff.png)", "",
          "| configuration | resolution | channels | MLP width | offset | maps | seed | training s (load) | M queries/s "
          "| validation MSE x1e-3 | image MSE x1e-3 |",
