@@ -169,8 +169,8 @@ def close_up(material_result: dict, spp: int, method: str) -> dict:
         res = material_result.get(view)
         return main_entry(res, m, spp) if res else None
 
-    def ratio(a: dict | None, b: dict | None, key: str = "mse") -> float | None:
-        return a[key] / b[key] if a and b and b[key] > 0 else None
+    def ratio(a: dict | None, b: dict | None) -> float | None:
+        return a["mse"] / b["mse"] if a and b and b["mse"] > 0 else None
 
     gain = {v: ratio(entry(v, NO_OFFSET[method]), entry(v, method)) for v in OFFSET_VIEWS}
     known = {v: g for v, g in gain.items() if g is not None}

@@ -345,7 +345,7 @@ def tradeoff_section(results: dict) -> list[str]:
          "|---|---|---|---|---|---|---|---|---|---|---|"]
     for name, p in tr["points"].items():
         load = p.get("training_load")
-        training = _f(p.get("training_seconds"), 1, 0) + ("" if load is None else f" ({load:.1f})")
+        training = _f(p.get("training_seconds"), 1, 1) + ("" if load is None else f" ({load:.1f})")
         L.append(f"| {name} | {p['resolution']} | {p['channels']} | {p['hidden']} | {p['offset']} | {_stage(p)} | "
                  f"{p['seed']} | {training} | {p['queries_per_second'] / 1e6:.2f} | {_f(p['validation_mse'], 1e3)} | "
                  f"{_f(p['image_mse'], 1e3)} |")

@@ -167,8 +167,8 @@ def test_the_tradeoff_table_shows_what_each_stage_costs(tmp_path):
     points = {"base": point(None, 100.0, 2e6), "maps_hz": point(tradeoff.MapConfig(horizons=8), 130.0, 1.9e6)}
     tr = json.loads(json.dumps({"material": "rock", "points": points, "steps": 600, "batch": 8192, "note": None}))
     lines = writer.tradeoff_section({"tradeoff": tr})
-    assert any(line.startswith("| base |") and "| - | 0 | 100 (2.5) | 2.00 |" in line for line in lines)
-    assert any(line.startswith("| maps_hz |") and "| map encoder + 8 horizons | 0 | 130 (2.5) | 1.90 |" in line
+    assert any(line.startswith("| base |") and "| - | 0 | 100.0 (2.5) | 2.00 |" in line for line in lines)
+    assert any(line.startswith("| maps_hz |") and "| map encoder + 8 horizons | 0 | 130.0 (2.5) | 1.90 |" in line
                for line in lines)
     flat = writer.tradeoff_section({"tradeoff": {**tr, "points": {"base": tr["points"]["base"]},
                                                  "note": "flat has no height map (its height is 1 x 1): no map-informed variants"}})
