@@ -32,7 +32,8 @@ def _save(fig, path: Path) -> Path:
 
 
 def strip(view_result: dict, path: Path, title: str) -> Path:
-    """R | N | N0 | C | Cmip tone-mapped (top) and their FLIP maps against R (bottom)."""
+    """R and every compared method present (N, N0, Nmaps, Nmaps0, C, Cmip) tone-mapped (top) and their FLIP
+    maps against R (bottom)."""
     plt = _plt()
     images, maps = view_result["images"], view_result["flip_maps"]
     exposure = view_result["reference"]["exposure"]

@@ -30,7 +30,7 @@ log = logging.getLogger(__name__)
 
 QPS_ROWS = 1 << 17
 """Random queries per throughput measurement."""
-QPS_ROUNDS = 3
+QPS_ROUNDS = 9
 """Interleaved rounds of the throughput measurement (median)."""
 
 
@@ -118,7 +118,8 @@ def train_variant(variant: Variant, data: Path, folder: Path, config: ReportConf
     trainer = Trainer(data, folder / f"{variant.name}.pt", material, train, f"trade-off {variant.name}", maps=maps)
     setup = time.perf_counter() - start  # opening the data; a map-informed variant also prefilters its maps
     table = trainer.run()
-    cost = {"training_seconds": setup + trainer.state.seconds, "training_load": os.getloadavg()[0]}
+    cost = {"training_seconds": setup + trainer.state.seconds, "setup_seconds": setup,
+            "training_load": os.getloadavg()[0]}
     log.info("trained %s in %.0f s (load %.1f)", variant.name, cost["training_seconds"], cost["training_load"])
     write_outputs(trainer, table, onnx)
     (folder / f"{variant.name}.cost.json").write_text(json.dumps(cost))
@@ -126,12 +127,13 @@ def train_variant(variant: Variant, data: Path, folder: Path, config: ReportConf
 
 
 def training_cost(folder: Path, name: str) -> dict:
-    """``{"training_seconds", "training_load"}`` recorded when configuration ``name`` was trained: the
-    wall time of setting it up and of every (resumed) part of its training, and the 1-minute load
-    average at its end (None where not recorded)."""
+    """``{"training_seconds", "setup_seconds", "training_load"}`` recorded when configuration ``name``
+    was trained: the wall time of setting it up (opening the data, prefiltering a map-informed one's
+    maps) and of every (resumed) part of its training, the set-up alone, and the 1-minute load average
+    at its end (None where not recorded)."""
     path = folder / f"{name}.cost.json"
     if not path.exists():
-        return {"training_seconds": None, "training_load": None}
+        return {"training_seconds": None, "setup_seconds": None, "training_load": None}
     return json.loads(path.read_text())
 
 

@@ -334,18 +334,21 @@ def tradeoff_section(results: dict) -> list[str]:
          f"Configurations trained on {tr['material']} with {tr['steps']} steps of {tr['batch']} queries (a short "
          "schedule, the same for all: they compare with one another, not with the shipped models, and the larger "
          "pyramids are the least converged after it). What each stage costs: at training, wall seconds on one "
-         "torch thread (set-up, a map-informed model's prefiltered maps included, and training; with the 1-minute "
-         "load average at its end: the machine is shared), and at render, queries per second in-process (ONNX "
+         "torch thread (set-up and training; in brackets the set-up alone, which opens the data and prefilters a "
+         "map-informed model's maps, and the 1-minute load average at its end: the machine is shared; the first "
+         "configuration trained in a process also pays torch's first use), and at render, queries per second in-process (ONNX "
          "Runtime, median of interleaved rounds; a map-informed model is exported as the paper's graph with its "
-         "textures baked, measured like the others). What it buys: validation MSE on low-noise (64 spp) reference "
+         "textures baked, measured like the others; base, seed1, seed2, maps and maps_hz are graphs of one size, so the "
+         "spread of their queries per second is this measurement's noise). What it buys: validation MSE on low-noise (64 spp) reference "
          f"queries, and image MSE in the {_image_view(tr)} view against R.", "",
          "![trade-off](tradeoff.png)", "",
-         "| configuration | resolution | channels | MLP width | offset | maps | seed | training s (load) | M queries/s "
+         "| configuration | resolution | channels | MLP width | offset | maps | seed | training s (set-up s; load) | M queries/s "
          "| validation MSE x1e-3 | image MSE x1e-3 |",
          "|---|---|---|---|---|---|---|---|---|---|---|"]
     for name, p in tr["points"].items():
-        load = p.get("training_load")
-        training = _f(p.get("training_seconds"), 1, 1) + ("" if load is None else f" ({load:.1f})")
+        training = _f(p.get("training_seconds"), 1, 1)
+        if p.get("training_load") is not None:
+            training += f" ({_f(p.get('setup_seconds'), 1, 1)}; {p['training_load']:.1f})"
         L.append(f"| {name} | {p['resolution']} | {p['channels']} | {p['hidden']} | {p['offset']} | {_stage(p)} | "
                  f"{p['seed']} | {training} | {p['queries_per_second'] / 1e6:.2f} | {_f(p['validation_mse'], 1e3)} | "
                  f"{_f(p['image_mse'], 1e3)} |")
