@@ -2,14 +2,16 @@
 
 A verdict ("N beats C from 4 texels", "the offset gains 2x") is drawn per light, and the headline
 verdict is the one that holds under every light: the largest footprint of the per-light ones, the
-smallest gain; the lights under which a stronger claim fails are named beside it.
+smallest gain; the lights under which a stronger claim fails are named beside it. Every judged neural
+method (:data:`.methods.JUDGED`: the paper's model N, the map-informed Nmaps) is judged by the same
+functions, each where its model was rendered.
 """
 
 from __future__ import annotations
 
 import math
 
-from .methods import COMPARED
+from .methods import COMPARED, JUDGED, NO_OFFSET
 from .views import DISTANCE_VIEWS, EXTRA_VIEWS, LIGHTS, View
 
 HEADLINE_KEYS = ("mse", "flip", "ssim", "mean_ratio", "bias", "noise")
@@ -67,34 +69,41 @@ def headline(material_result: dict, spp: int) -> dict[str, list[dict]]:
 
 
 def time_to_error(material_result: dict, spp: int) -> list[dict]:
-    """Per ladder view: each method's seconds to reach N's MSE at ``spp`` (from the timed ladders),
-    and the machine's load average during those renders."""
+    """Per ladder view and judged neural method X present (:data:`JUDGED`): X's MSE at ``spp`` and the
+    seconds of that render, every method's seconds to reach that MSE (from the timed ladders; R
+    extrapolated beyond its ladder), ``ratio`` = R's seconds to reach X's MSE / X's seconds at ``spp``
+    (how much longer the real geometry needs for X's error; the issue's goal is at least 2), and the
+    machine's load average during each method's renders."""
     rows = []
     for view in DISTANCE_VIEWS:
         res = material_result.get(view.name)
-        if res is None or not view.ladder or main_entry(res, "N", spp) is None:
+        if res is None or not view.ladder:
             continue
-        target = main_entry(res, "N", spp)["mse"]
+        ladders = {m: {s: e for s, e in entries.items() if "seconds" in e} for m, entries in res["methods"].items()}
+        ladders = {m: ladder for m, ladder in ladders.items() if ladder}
         floor = res["reference"]["noise_mse"]
-        row = {"view": view.name, "texels": view.footprint_texels, "target_mse": target, "seconds": {}, "load": {}}
-        for m, entries in res["methods"].items():
-            ladder = {s: e for s, e in entries.items() if "seconds" in e}
-            if not ladder:
+        for method in JUDGED:
+            own = main_entry(res, method, spp)
+            if own is None or "seconds" not in own:
                 continue
-            row["seconds"][m] = time_to_reach(ladder, target, floor if m == "R" else None)
-            row["load"][m] = max(e.get("load", float("nan")) for e in ladder.values())
-        rows.append(row)
+            seconds = {m: time_to_reach(ladder, own["mse"], floor if m == "R" else None) for m, ladder in ladders.items()}
+            r = seconds.get("R")
+            rows.append({"view": view.name, "texels": view.footprint_texels, "method": method,
+                         "target_mse": own["mse"], "own_seconds": own["seconds"], "seconds": seconds,
+                         "ratio": r / own["seconds"] if r is not None and own["seconds"] > 0 else None,
+                         "load": {m: max(e.get("load", float("nan")) for e in ladder.values())
+                                  for m, ladder in ladders.items()}})
     return rows
 
 
-def winning_footprint(rows: list[dict], against: str, key: str = "mse") -> float | None:
-    """Smallest footprint (texels) from which N's ``key`` (``mse`` at the report's spp, or ``bias``:
-    the error floor that more samples do not remove) is below ``against``'s at every larger one."""
+def winning_footprint(rows: list[dict], against: str, key: str = "mse", method: str = "N") -> float | None:
+    """Smallest footprint (texels) from which ``method``'s ``key`` (``mse`` at the report's spp, or
+    ``bias``: the error floor that more samples do not remove) is below ``against``'s at every larger one."""
     win = None
     for row in reversed(rows):
-        if row["N"] is None or row.get(against) is None:
+        if row.get(method) is None or row.get(against) is None:
             break
-        if row["N"][key] <= row[against][key]:
+        if row[method][key] <= row[against][key]:
             win = row["texels"]
         else:
             break
@@ -114,36 +123,63 @@ def verdict_all_lights(per_light: dict[str, float | None]) -> dict:
     return {"from": holds, "per_light": per_light, "fails_under": fails}
 
 
+def _present(headline_rows: dict[str, list[dict]], method: str) -> bool:
+    return any(row.get(method) for rows in headline_rows.values() for row in rows)
+
+
 def verdicts(headline_rows: dict[str, list[dict]]) -> dict:
-    """For each classical method and key: where N beats it, per light and under every light."""
+    """Per judged neural method present, for each classical method and key: where the neural method
+    beats it, per light and under every light (``{method: {"C_mse": ..., "C_bias": ..., ...}}``)."""
     out = {}
-    for against in ("C", "Cmip"):
-        for key in ("mse", "bias"):
-            per_light = {light: winning_footprint(rows, against, key) for light, rows in headline_rows.items()}
-            out[f"{against}_{key}"] = verdict_all_lights(per_light)
+    for method in JUDGED:
+        if not _present(headline_rows, method):
+            continue
+        out[method] = {}
+        for against in ("C", "Cmip"):
+            for key in ("mse", "bias"):
+                per_light = {light: winning_footprint(rows, against, key, method) for light, rows in headline_rows.items()}
+                out[method][f"{against}_{key}"] = verdict_all_lights(per_light)
     return out
 
 
 OFFSET_LEVELS = (0, 2)
-"""Distance levels (1 and 4 map texels) where the offset's gain is checked, under every light."""
-OFFSET_VIEWS = tuple(v.name for v in DISTANCE_VIEWS if v.level in OFFSET_LEVELS) + tuple(v.name for v in EXTRA_VIEWS[:2])
+"""Distance levels (1 and 4 map texels) of the close-up checks, under every light."""
+CLOSE_UP_VIEWS = tuple(v.name for v in DISTANCE_VIEWS if v.level in OFFSET_LEVELS)
+"""The close-ups under every light: where a neural method is checked against C (the issue's goal:
+MSE at most half C's, FLIP below C's)."""
+OFFSET_VIEWS = CLOSE_UP_VIEWS + tuple(v.name for v in EXTRA_VIEWS[:2])
 """Views where the offset's gain is checked: the close-ups under every light and the grazing views."""
 HIGHLIGHT_VIEW = "low_light"
 """The view whose highlights are checked (a light 5 degrees above the horizon)."""
 
 
 def close_up_checks(material_result: dict, spp: int) -> dict:
-    """What the close-ups show: the offset's gain (N0's MSE / N's) per view of :data:`OFFSET_VIEWS`,
-    the smallest gain over them (the gain that holds under every light) and the views where the
-    offset loses; N's mean and 99th-percentile luminance against R's under the low light."""
-    gain = {}
-    for view in OFFSET_VIEWS:
+    """What the close-ups show, per judged neural method X present: ``{X: checks}`` (see :func:`close_up`)."""
+    present = [m for m in JUDGED if any(main_entry(res, m, spp) for res in material_result.values())]
+    return {m: close_up(material_result, spp, m) for m in present}
+
+
+def close_up(material_result: dict, spp: int, method: str) -> dict:
+    """The offset's gain (the method's no-offset ablation's MSE / the method's, :data:`NO_OFFSET`) per
+    view of :data:`OFFSET_VIEWS`, the smallest gain over them (the gain that holds under every light)
+    and the views where the offset loses; the method's MSE / C's in every close-up and the largest of
+    them, and in how many close-ups its FLIP is below C's; its mean and 99th-percentile luminance
+    against R's under the low light."""
+    def entry(view: str, m: str) -> dict | None:
         res = material_result.get(view)
-        n, n0 = (main_entry(res, m, spp) if res else None for m in ("N", "N0"))
-        gain[view] = n0["mse"] / n["mse"] if n and n0 and n["mse"] > 0 else None
+        return main_entry(res, m, spp) if res else None
+
+    def ratio(a: dict | None, b: dict | None) -> float | None:
+        return a["mse"] / b["mse"] if a and b and b["mse"] > 0 else None
+
+    gain = {v: ratio(entry(v, NO_OFFSET[method]), entry(v, method)) for v in OFFSET_VIEWS}
     known = {v: g for v, g in gain.items() if g is not None}
-    low = material_result.get(HIGHLIGHT_VIEW)
-    n = main_entry(low, "N", spp) if low else None
+    over_c = {v: ratio(entry(v, method), entry(v, "C")) for v in CLOSE_UP_VIEWS}
+    flips = [(entry(v, method), entry(v, "C")) for v in CLOSE_UP_VIEWS]
+    flips = [x["flip"] < c["flip"] for x, c in flips if x and c]
+    low = entry(HIGHLIGHT_VIEW, method)
     return {"offset_gain": gain, "offset_gain_min": min(known.values(), default=None),
             "offset_loses": [v for v, g in known.items() if g < 1.0],
-            "low_light_mean": n and n["mean_ratio"], "low_light_p99": n and n["p99_ratio"]}
+            "mse_over_c": over_c, "mse_over_c_max": max((r for r in over_c.values() if r is not None), default=None),
+            "flip_below_c": [sum(flips), len(flips)],
+            "low_light_mean": low and low["mean_ratio"], "low_light_p99": low and low["p99_ratio"]}

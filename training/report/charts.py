@@ -10,7 +10,8 @@ import numpy as np
 from . import metrics as Q
 from .methods import METHODS
 
-COLORS = {"R": "black", "N": "tab:red", "N0": "tab:orange", "Nmaps": "tab:purple", "C": "tab:blue", "Cmip": "tab:cyan"}
+COLORS = {"R": "black", "N": "tab:red", "N0": "tab:orange", "Nmaps": "tab:purple", "Nmaps0": "tab:pink",
+          "C": "tab:blue", "Cmip": "tab:cyan"}
 DPI = 80
 
 
@@ -31,7 +32,8 @@ def _save(fig, path: Path) -> Path:
 
 
 def strip(view_result: dict, path: Path, title: str) -> Path:
-    """R | N | N0 | C | Cmip tone-mapped (top) and their FLIP maps against R (bottom)."""
+    """R and every compared method present (N, N0, Nmaps, Nmaps0, C, Cmip) tone-mapped (top) and their FLIP
+    maps against R (bottom)."""
     plt = _plt()
     images, maps = view_result["images"], view_result["flip_maps"]
     exposure = view_result["reference"]["exposure"]
@@ -78,19 +80,30 @@ def error_time(material_result: dict, views: list[str], path: Path, title: str) 
     return _save(fig, path)
 
 
+def _tradeoff_color(point: dict) -> str:
+    if point.get("maps"):
+        return COLORS["Nmaps"] if point["offset"] else COLORS["Nmaps0"]
+    return COLORS["N"] if point["offset"] else COLORS["N0"]
+
+
 def tradeoff(points: dict, path: Path) -> Path:
-    """Queries per second against validation error and against image error, one labelled point each."""
+    """What each configuration buys (validation and image error) against what it costs at render (queries
+    per second) and at training (seconds), one labelled point each; map-informed ones in purple."""
     plt = _plt()
-    fig, axes = plt.subplots(1, 2, figsize=(8, 3.4))
-    for ax, key, label in ((axes[0], "validation_mse", "validation MSE x1e-3"), (axes[1], "image_mse", "image MSE x1e-3")):
+    fig, axes = plt.subplots(1, 3, figsize=(12, 3.4))
+    panels = ((axes[0], "validation_mse", "queries_per_second", "validation MSE x1e-3", "M queries / s (in-process)"),
+              (axes[1], "image_mse", "queries_per_second", "image MSE x1e-3", "M queries / s (in-process)"),
+              (axes[2], "image_mse", "training_seconds", "image MSE x1e-3", "training seconds (one thread)"))
+    for ax, key, cost, xlabel, ylabel in panels:
+        scale = 1e-6 if cost == "queries_per_second" else 1.0
         for name, p in points.items():
-            if p.get(key) is None:
+            if p.get(key) is None or p.get(cost) is None:
                 continue
-            ax.scatter(p[key] * 1e3, p["queries_per_second"] / 1e6, s=14,
-                       color="tab:orange" if not p["offset"] else "tab:red")
-            ax.annotate(name, (p[key] * 1e3, p["queries_per_second"] / 1e6), fontsize=7)
-        ax.set_xlabel(label, fontsize=8)
-        ax.set_ylabel("M queries / s (in-process)", fontsize=8)
+            xy = (p[key] * 1e3, p[cost] * scale)
+            ax.scatter(*xy, s=14, color=_tradeoff_color(p))
+            ax.annotate(name, xy, fontsize=7)
+        ax.set_xlabel(xlabel, fontsize=8)
+        ax.set_ylabel(ylabel, fontsize=8)
         ax.grid(True, alpha=0.3)
         ax.tick_params(labelsize=7)
     fig.tight_layout()

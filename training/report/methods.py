@@ -4,8 +4,9 @@
 - ``N``: the neural material with its neural offset (``<name>.onnx``), ``neumip_path``.
 - ``N0``: the neural material trained without the offset (``<name>_nooffset.onnx``), ``neumip_path``.
 - ``Nmaps``: a neural material informed by the material's maps (``<name>_maps.onnx``), ``neumip_path``.
+- ``Nmaps0``: the same trained without the offset (``<name>_maps_nooffset.onnx``), ``neumip_path``.
   A neural method is compared wherever its model file is in the models folder; another is one more
-  entry of :data:`NEURAL_MODELS`.
+  entry of :data:`NEURAL_MODELS` (and, when it is judged like N, of :data:`NO_OFFSET`).
 - ``C``: the classical material: the generator's principled BSDF with full-resolution albedo,
   roughness and metallic bitmaps, and a normal map derived from the height, stock ``path``.
 - ``Cmip``: the same with every map pre-filtered to the footprint's level (see :func:`mip_maps`).
@@ -28,9 +29,13 @@ from neumip.training.microgeometry.mesh import block_origins, height_gradient, m
 
 from .views import Film, View, camera_distance, distance_to_polygon, emitter_dicts, sensor_dict, visible_corners
 
-NEURAL_MODELS = {"N": "{name}", "N0": "{name}_nooffset", "Nmaps": "{name}_maps"}
+NEURAL_MODELS = {"N": "{name}", "N0": "{name}_nooffset", "Nmaps": "{name}_maps", "Nmaps0": "{name}_maps_nooffset"}
 """Neural methods and the model file each is rendered from (``<models>/<file>.onnx``; ``N`` is required)."""
 NEURAL = tuple(NEURAL_MODELS)
+NO_OFFSET = {"N": "N0", "Nmaps": "Nmaps0"}
+"""The neural methods the report judges (verdicts, time to error, close-up checks), each with its
+ablation without the offset (compared, and used for the offset's gain, not judged itself)."""
+JUDGED = tuple(NO_OFFSET)
 METHODS = ("R", *NEURAL, "C", "Cmip")
 COMPARED = METHODS[1:]
 """The methods scored against the reference R."""

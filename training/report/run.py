@@ -22,7 +22,7 @@ from . import metrics as Q
 from .analysis import close_up_checks, headline, time_to_error, verdicts
 from .cache import RenderCache
 from .config import ReportConfig
-from .methods import neural_models
+from .methods import NEURAL_MODELS, NO_OFFSET, neural_models
 from .pipeline import REFERENCE_SEEDS, run_material, view_steps
 from .renderer import NEURAL_VERSION, file_digest
 from .views import DISTANCE_VIEWS, LADDER_LIGHT, VIEWS, View
@@ -77,6 +77,12 @@ def find_materials(materials: list[str], models: Path) -> dict:
     return descriptions
 
 
+def missing_ablations(name: str, present: tuple[str, ...], models: Path) -> list[str]:
+    """A note per judged neural method present whose no-offset ablation is not (its offset's gain is not shown)."""
+    return [f"no {NEURAL_MODELS[ablation].format(name=name)} model in {models}: {ablation} and {method}'s offset "
+            "gain not shown" for method, ablation in NO_OFFSET.items() if method in present and ablation not in present]
+
+
 class ReportError(NeumipError, ValueError):
     """Arguments of a report that cannot be run."""
 
@@ -98,12 +104,11 @@ def run_report(out: Path, materials: list[str], config: ReportConfig, models: Pa
     evaluator = LocalMaterials(models, threads=config.threads)  # query sweeps: the ONNX graph
     renders = KernelMaterials(models)  # neural renders: in the render's kernels, as `neumip render`
     start = time.perf_counter()
-    results: dict = {"config": asdict(config), "command": command, "materials": {}, "notes": {}}
+    results: dict = {"config": asdict(config), "command": command, "materials": {}, "notes": []}
     renderers = {}
     for name, desc in descriptions.items():
         renderers[name] = MaterialRenderer(name, desc, resolve(desc), models, renders, config, cache)
-        if "N0" not in renderers[name].methods:
-            results["notes"][name] = f"no {name}_nooffset model in {models}: N0 not shown"
+        results["notes"] += missing_ablations(name, renderers[name].methods, models)
     images: dict = {}
     if "images" in stages:
         progress.stage("renders", sum(view_steps(r, v) for r in renderers.values() for v in views))
@@ -216,13 +221,15 @@ def run_tradeoff(out, renderer, config, cache_dir, progress) -> dict:
     from neumip.client.kernel import KernelMaterials
 
     folder = cache_dir / "tradeoff"
-    variants = tradeoff.variants(config)
+    has_maps = renderer.geo.height.shape[0] > 1
+    variants = tradeoff.variants(config, maps=has_maps)
     progress.stage("trade-off: data", 1)
     train, ref = tradeoff.datasets(renderer.desc, folder / "data", config)
     progress.tick()
     progress.stage("trade-off: training", len(variants))
+    costs = {}
     for v in variants:
-        tradeoff.train_variant(v, train, folder / "models", config)
+        _, costs[v.name] = tradeoff.train_variant(v, train, folder / "models", config, renderer.geo)
         progress.tick()
     evaluator = LocalMaterials(folder / "models", threads=config.threads)
     renders = KernelMaterials(folder / "models")
@@ -237,13 +244,15 @@ def run_tradeoff(out, renderer, config, cache_dir, progress) -> dict:
     progress.stage("trade-off: measure", len(variants))
     for v in variants:
         image = _render_variant(renderer, spec, renders, v.name, folder / "models" / f"{v.name}.onnx", config, view)
-        points[v.name] = {**tradeoff.describe(v), "queries_per_second": qps[v.name],
+        points[v.name] = {**tradeoff.describe(v), **costs[v.name], "queries_per_second": qps[v.name],
                           "validation_mse": tradeoff.validation_mse(evaluator, v.name, ref),
                           "image_mse": Q.mse(reference, image), "image_view": view.name}
         progress.tick()
     charts.tradeoff(points, out / "tradeoff.png")
+    note = None if has_maps else (f"{renderer.name} has no height map (its height is 1 x 1): no map-informed "
+                                  "variants")
     return {"material": renderer.name, "points": points, "seeds": tradeoff.summary(points),
-            "steps": config.tradeoff_steps, "batch": config.tradeoff_batch}
+            "steps": config.tradeoff_steps, "batch": config.tradeoff_batch, "note": note}
 
 
 def _render_variant(renderer, spec, renders, name, onnx, config, view) -> np.ndarray:

@@ -15,12 +15,14 @@ from __future__ import annotations
 import json
 import logging
 import time
+import os
 from dataclasses import asdict, dataclass, replace
 from pathlib import Path
 
 import numpy as np
 
 from neumip.core import contract as C
+from neumip.training.maps import MapConfig
 
 from .config import ReportConfig
 
@@ -28,7 +30,7 @@ log = logging.getLogger(__name__)
 
 QPS_ROWS = 1 << 17
 """Random queries per throughput measurement."""
-QPS_ROUNDS = 3
+QPS_ROUNDS = 9
 """Interleaved rounds of the throughput measurement (median)."""
 
 
@@ -42,15 +44,24 @@ class Variant:
     hidden: int = 25
     offset: bool = True
     seed: int = 0
+    maps: MapConfig | None = None
+    """The map encoder of a map-informed variant (None: the paper's model)."""
 
 
-def variants(config: ReportConfig) -> list[Variant]:
+MAP_VARIANTS = {"maps": MapConfig(), "maps_hz": MapConfig(horizons=8)}
+"""The map-informed stages: the map encoder, and the same with horizons towards 8 azimuths."""
+
+
+def variants(config: ReportConfig, maps: bool = True) -> list[Variant]:
+    """Every configuration of the trade-off; the map-informed ones only where the material has maps."""
     base = Variant("base")
     out = [base]
     out += [replace(base, name=f"res{r}", resolution=r) for r in config.tradeoff_resolutions if r != base.resolution]
     out += [replace(base, name="ch4", channels=4), replace(base, name="ch12", channels=12)]
     out += [replace(base, name="mlp16", hidden=16), replace(base, name="mlp48", hidden=48)]
     out += [replace(base, name="no_offset", offset=False)]
+    if maps:
+        out += [replace(base, name=name, maps=m) for name, m in MAP_VARIANTS.items()]
     out += [replace(base, name=f"seed{s}", seed=s) for s in (1, 2)]
     return out
 
@@ -80,8 +91,9 @@ def datasets(desc, folder: Path, config: ReportConfig, on_chunk=None) -> tuple[P
     return train, ref
 
 
-def train_variant(variant: Variant, data: Path, folder: Path, config: ReportConfig) -> Path:
-    """Train (or resume, or reuse) one configuration; returns its .onnx."""
+def train_variant(variant: Variant, data: Path, folder: Path, config: ReportConfig, geo=None) -> tuple[Path, dict]:
+    """Train (or resume, or reuse) one configuration (a map-informed one reads the maps of ``geo``, a
+    `Microgeometry`); returns its .onnx and what its training cost (:func:`training_cost`)."""
     import torch
 
     from neumip.core.config import MaterialConfig
@@ -91,7 +103,9 @@ def train_variant(variant: Variant, data: Path, folder: Path, config: ReportConf
 
     onnx = folder / f"{variant.name}.onnx"
     if onnx.exists():
-        return onnx
+        return onnx, training_cost(folder, variant.name)
+    if variant.maps is not None and geo is None:
+        raise ValueError(f"variant {variant.name} is map-informed: pass the material's maps")
     scale = config.tradeoff_steps / QUICK.steps
     train = replace(QUICK, steps=config.tradeoff_steps, batch=config.tradeoff_batch, seed=variant.seed,
                     blur_half_life=QUICK.blur_half_life * scale, checkpoint_every=config.tradeoff_steps,
@@ -99,12 +113,28 @@ def train_variant(variant: Variant, data: Path, folder: Path, config: ReportConf
     material = MaterialConfig(resolution=variant.resolution, channels=variant.channels, hidden=variant.hidden,
                               offset=variant.offset)
     torch.set_num_threads(1)  # one torch thread: faster than two on the shared, busy machine
-    trainer = Trainer(data, folder / f"{variant.name}.pt", material, train, f"trade-off {variant.name}")
     start = time.perf_counter()
+    maps = None if variant.maps is None else (variant.maps, geo)
+    trainer = Trainer(data, folder / f"{variant.name}.pt", material, train, f"trade-off {variant.name}", maps=maps)
+    setup = time.perf_counter() - start  # opening the data; a map-informed variant also prefilters its maps
     table = trainer.run()
-    log.info("trained %s in %.0f s", variant.name, time.perf_counter() - start)
+    cost = {"training_seconds": setup + trainer.state.seconds, "setup_seconds": setup,
+            "training_load": os.getloadavg()[0]}
+    log.info("trained %s in %.0f s (load %.1f)", variant.name, cost["training_seconds"], cost["training_load"])
     write_outputs(trainer, table, onnx)
-    return onnx
+    (folder / f"{variant.name}.cost.json").write_text(json.dumps(cost))
+    return onnx, cost
+
+
+def training_cost(folder: Path, name: str) -> dict:
+    """``{"training_seconds", "setup_seconds", "training_load"}`` recorded when configuration ``name``
+    was trained: the wall time of setting it up (opening the data, prefiltering a map-informed one's
+    maps) and of every (resumed) part of its training, the set-up alone, and the 1-minute load average
+    at its end (None where not recorded)."""
+    path = folder / f"{name}.cost.json"
+    if not path.exists():
+        return {"training_seconds": None, "setup_seconds": None, "training_load": None}
+    return json.loads(path.read_text())
 
 
 def validation_mse(evaluator, name: str, reference: Path) -> float:

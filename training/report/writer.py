@@ -7,9 +7,9 @@ from pathlib import Path
 
 from neumip.core.contract import sample_footprint
 
-from .analysis import OFFSET_VIEWS
+from .analysis import CLOSE_UP_VIEWS, OFFSET_VIEWS
 from .config import ReportConfig
-from .methods import COMPARED, MAX_DEPTH
+from .methods import COMPARED, MAX_DEPTH, NO_OFFSET
 from .views import DISTANCE_VIEWS, LADDER_LIGHT, LEVELS, LIGHTS, VIEWS
 
 
@@ -17,9 +17,10 @@ def _f(x, scale: float = 1.0, digits: int = 3) -> str:
     return "-" if x is None else f"{x * scale:.{digits}f}"
 
 
-def headline_table(results: dict, light: str, timings: bool = True) -> list[str]:
-    """Per material and distance under one light: MSE x1e-3 / FLIP of every compared method."""
-    methods = _methods(results)
+def headline_table(results: dict, light: str) -> list[str]:
+    """Per material and distance under one light: MSE x1e-3 / FLIP of every judged neural method
+    present and of the classical methods, side by side (the ablations are in the per-material tables)."""
+    methods = _methods(results, HEADLINE_METHODS)
     lines = ["| material | footprint (map texels) | " + " | ".join(methods) + " | R noise |",
              "|---|---|" + "---|" * (len(methods) + 1)]
     for name, mat in results["materials"].items():
@@ -29,13 +30,17 @@ def headline_table(results: dict, light: str, timings: bool = True) -> list[str]
     return lines
 
 
-def _methods(results: dict) -> list[str]:
-    """The compared methods present in any material (a method without its model is left out)."""
+HEADLINE_METHODS = tuple(m for m in COMPARED if m not in NO_OFFSET.values())
+"""The methods of the headline tables: the judged neural methods and the classical ones."""
+
+
+def _methods(results: dict, among: tuple[str, ...] = COMPARED) -> list[str]:
+    """The methods of ``among`` present in any material (a method without its model is left out)."""
     present = set()
     for mat in results["materials"].values():
         for rows in mat.get("headline", {}).values():
-            present |= {m for row in rows for m in COMPARED if row.get(m)}
-    return [m for m in COMPARED if m in present]
+            present |= {m for row in rows for m in among if row.get(m)}
+    return [m for m in among if m in present]
 
 
 def _footprint(x) -> str:
@@ -43,46 +48,56 @@ def _footprint(x) -> str:
 
 
 def winners(results: dict) -> list[str]:
-    lines = ["| material | N beats C: MSE at equal spp | C: bias (floor) | N beats Cmip: MSE | Cmip: bias |",
-             "|---|---|---|---|---|"]
+    """Per material and judged neural method: from which footprint it beats C and Cmip, under every
+    light (bold) and under each."""
+    lines = ["| material | method | beats C: MSE at equal spp | C: bias (floor) | beats Cmip: MSE | Cmip: bias |",
+             "|---|---|---|---|---|---|"]
     for name, mat in results["materials"].items():
-        v = mat.get("verdicts")
-        if not v:
-            continue
-        cells = []
-        for key in ("C_mse", "C_bias", "Cmip_mse", "Cmip_bias"):
-            d = v[key]
-            per = ", ".join(f"{light} {_footprint(x)}" for light, x in d["per_light"].items())
-            cells.append(f"**{_footprint(d['from'])}** ({per})")
-        lines.append(f"| {name} | " + " | ".join(cells) + " |")
+        for method, v in mat.get("verdicts", {}).items():
+            cells = []
+            for key in ("C_mse", "C_bias", "Cmip_mse", "Cmip_bias"):
+                d = v[key]
+                per = ", ".join(f"{light} {_footprint(x)}" for light, x in d["per_light"].items())
+                cells.append(f"**{_footprint(d['from'])}** ({per})")
+            lines.append(f"| {name} | {method} | " + " | ".join(cells) + " |")
     return lines
 
 
 def close_up_table(results: dict) -> list[str]:
-    """Per material: the offset's gain (N0's MSE / N's) per view, its minimum, N's low-light mean and p99 / R's."""
-    lines = ["| material | " + " | ".join(f"offset gain, {v}" for v in OFFSET_VIEWS)
-             + " | smallest gain | low light: mean / R | low light: p99 / R |", "|---|" + "---|" * (len(OFFSET_VIEWS) + 3)]
+    """Per material and judged neural method X: the offset's gain (X's ablation's MSE / X's) per view and
+    its minimum; X's largest MSE / C's in the close-ups and its FLIP wins over C there; X's low-light
+    mean and p99 / R's."""
+    lines = ["| material | method | " + " | ".join(f"offset gain, {v}" for v in OFFSET_VIEWS)
+             + " | smallest gain | close-ups: largest MSE / C's | close-ups: FLIP below C's | low light: mean / R "
+             "| low light: p99 / R |", "|---|---|" + "---|" * (len(OFFSET_VIEWS) + 5)]
     for name, mat in results["materials"].items():
-        checks = mat.get("close_up")
-        if checks:
+        for method, checks in mat.get("close_up", {}).items():
+            won, total = checks["flip_below_c"]
             cells = [_f(checks["offset_gain"].get(v), 1, 2) for v in OFFSET_VIEWS]
-            cells += [f"**{_f(checks['offset_gain_min'], 1, 2)}**", _f(checks["low_light_mean"], 1, 2),
-                      _f(checks["low_light_p99"], 1, 2)]
-            lines.append(f"| {name} | " + " | ".join(cells) + " |")
+            cells += [f"**{_f(checks['offset_gain_min'], 1, 2)}**", f"**{_f(checks['mse_over_c_max'], 1, 2)}**",
+                      f"{won} of {total}", _f(checks["low_light_mean"], 1, 2), _f(checks["low_light_p99"], 1, 2)]
+            lines.append(f"| {name} | {method} | " + " | ".join(cells) + " |")
     return lines
 
 
+TIME_GOAL = 2.0
+"""Issue 25's goal: the real geometry needs at least this many times the neural method's time to reach its error."""
+
+
 def time_table(results: dict) -> list[str]:
-    """Per material and ladder footprint: each method's seconds to reach N's MSE, with the load average."""
-    methods = ["R"] + _methods(results)
-    lines = ["| material | footprint (map texels) | N's MSE x1e-3 | " + " | ".join(f"{m} s" for m in methods)
-             + " | load average |", "|---|---|---|" + "---|" * (len(methods) + 1)]
+    """Per material, ladder footprint and judged neural method X: X's MSE and seconds at the report's
+    spp, R's (and C's, Cmip's) seconds to reach that MSE, the ratio R / X, and the load average."""
+    lines = ["| material | footprint (map texels) | method X | X's MSE x1e-3 | X's s | R's s to X's MSE | "
+             "**R's s / X's s** | C's s to X's MSE | Cmip's s to X's MSE | load average |",
+             "|---|---|---|---|---|---|---|---|---|---|"]
     for name, mat in results["materials"].items():
         for row in mat.get("time_to_error", []):
             loads = [x for x in row["load"].values() if x == x]
             load = f"{min(loads):.1f}-{max(loads):.1f}" if loads else "-"
-            cells = [_f(row["seconds"].get(m), 1, 2) for m in methods]
-            lines.append(f"| {name} | {row['texels']:g} | {_f(row['target_mse'], 1e3)} | " + " | ".join(cells) + f" | {load} |")
+            secs = row["seconds"]
+            lines.append(f"| {name} | {row['texels']:g} | {row['method']} | {_f(row['target_mse'], 1e3)} | "
+                         f"{_f(row['own_seconds'], 1, 2)} | {_f(secs.get('R'), 1, 2)} | **{_f(row['ratio'], 1, 2)}** | "
+                         f"{_f(secs.get('C'), 1, 2)} | {_f(secs.get('Cmip'), 1, 2)} | {load} |")
     return lines
 
 
@@ -149,8 +164,11 @@ def write_markdown(out: Path, results: dict, config: ReportConfig) -> Path:
          f"(up to 4 surface interactions, as the ground-truth tracer); a material without a heightfield is the plane "
          f"itself. Reference = mean of two seeds at {cfg.reference_spp} spp each; its noise (MSE of the mean, from "
          "the two seeds) is listed per view.",
-         "- **N** / **N0** / **Nmaps**: the neural material `MODELS/NAME.onnx`, without the neural offset "
-         "`NAME_nooffset.onnx`, informed by the maps `NAME_maps.onnx`, each where its file exists, `neumip_path`. "
+         "- **N** / **N0**: the paper's neural material `MODELS/NAME.onnx` and the same trained without the neural "
+         "offset `NAME_nooffset.onnx`; **Nmaps** / **Nmaps0**: the map-informed material (`neumip train --maps`: its "
+         "latent textures encoded from the material's prefiltered maps, baked at export into the paper's graph) "
+         "`NAME_maps.onnx` and its ablation `NAME_maps_nooffset.onnx`; each where its file exists, `neumip_path`. "
+         "N and Nmaps are judged alike (verdicts, time to error, close-ups); N0 and Nmaps0 give the offset's gain. "
          "Each of n samples per pixel queries max(1/8, 1/sqrt(n)) of the pixel footprint (pbrt-v4's rule): at "
          f"{cfg.spp} spp, {math.log2(1 / sample_footprint(cfg.spp)):g} levels finer than the footprint.",
          "- **C**: the generator's principled BSDF with full-resolution albedo, roughness and metallic bitmaps and a "
@@ -174,28 +192,32 @@ def write_markdown(out: Path, results: dict, config: ReportConfig) -> Path:
     for light in LIGHTS:
         L += [f"### Light: {light.name} (zenith {light.zenith:g}, azimuth {light.azimuth:g})", ""]
         L += headline_table(results, light.name) + [""]
-    L += ["Footprint (map texels) from which N is better than the classical material at every larger footprint, "
-          f"by MSE at {cfg.spp} spp (what a render at equal samples shows) and by bias (the error floor left after "
-          "the noise is averaged away). **Bold: the verdict under every light** (the largest of the per-light "
-          "footprints; `never` where under some light N never wins from the largest footprint down); in brackets, "
-          "each light's own.", ""]
+    L += ["Footprint (map texels) from which each neural method is better than the classical material at every "
+          f"larger footprint, by MSE at {cfg.spp} spp (what a render at equal samples shows) and by bias (the error "
+          "floor left after the noise is averaged away). **Bold: the verdict under every light** (the largest of the "
+          "per-light footprints; `never` where under some light the method never wins from the largest footprint "
+          "down); in brackets, each light's own.", ""]
     L += winners(results) + [""]
     fails = _failing_lights(results)
     if fails:
         L += ["Where a stronger verdict fails: " + "; ".join(fails) + ".", ""]
-    L += [f"Close-ups: the neural offset's gain (N0's MSE / N's, at {cfg.spp} spp; above 1: the offset helps) at 1 and "
-          "4 map texels under every light and at the grazing views; **the smallest gain is the one that holds "
-          "everywhere**. Then whether N's highlights survive a light 5 degrees above the horizon (its mean and "
-          "99th-percentile luminance / R's):", ""]
+    L += [f"Close-ups, per neural method X at {cfg.spp} spp: the neural offset's gain (X0's MSE / X's: N0 / N, Nmaps0 / "
+          "Nmaps; above 1: the offset helps) at 1 and 4 map texels under every light and at the grazing views, **the "
+          "smallest gain being the one that holds everywhere**; X's largest MSE / C's over the close-ups at 1 and 4 "
+          f"map texels under every light ({len(CLOSE_UP_VIEWS)} views; the goal: at most 0.5) and in how many of them "
+          "X's FLIP is below C's; whether X's highlights survive a light 5 degrees above the horizon (its mean and "
+          "99th-percentile luminance / R's; the goal: within 10 %):", ""]
     L += close_up_table(results) + [""]
     if cfg.smoke:
         L += ["No timing verdicts: a smoke run's timings mean nothing.", ""]
     else:
-        L += [f"Time to error ({LADDER_LIGHT} light): seconds each method's timed ladder needs to reach N's MSE at "
-              f"{cfg.spp} spp (log-log interpolation between rungs; `-`: its error never gets there, a bias floor; "
-              "R beyond its ladder extrapolated), with the machine's 1-minute load average over those renders.", ""]
+        L += [f"Time to error ({LADDER_LIGHT} light), per neural method X: X's MSE and seconds at {cfg.spp} spp, the "
+              "seconds R (the real geometry), C and Cmip need to reach that MSE (from their timed ladders, log-log "
+              "interpolation between rungs; `-`: the error never gets there, a bias floor; R beyond its ladder "
+              f"extrapolated), and **R's seconds / X's seconds** (the goal: at least {TIME_GOAL:g} at every "
+              "footprint), with the machine's 1-minute load average over those renders.", ""]
         L += time_table(results) + [""]
-    for name, note in results.get("notes", {}).items():
+    for note in results.get("notes", []):
         L.append(f"- {note}")
     L.append("")
     for name, mat in results["materials"].items():
@@ -213,37 +235,54 @@ def write_markdown(out: Path, results: dict, config: ReportConfig) -> Path:
 
 
 def _failing_lights(results: dict) -> list[str]:
-    """Per material and verdict: the best per-light footprint and the lights under which it fails."""
+    """Per material, neural method and verdict: the best per-light footprint and the lights under which it fails."""
     out = []
     for name, mat in results["materials"].items():
-        for key, d in mat.get("verdicts", {}).items():
-            known = [x for x in d["per_light"].values() if x is not None]
-            if d["fails_under"] and known:
-                against, what = key.split("_")
-                out.append(f"{name}, N beats {against} by {what} from {min(known):g} texels: "
-                           f"not under {', '.join(d['fails_under'])}")
+        for method, v in mat.get("verdicts", {}).items():
+            for key, d in v.items():
+                known = [x for x in d["per_light"].values() if x is not None]
+                if d["fails_under"] and known:
+                    against, what = key.split("_")
+                    out.append(f"{name}, {method} beats {against} by {what} from {min(known):g} texels: "
+                               f"not under {', '.join(d['fails_under'])}")
     return out
 
 
 def summary(results: dict, config: ReportConfig) -> list[str]:
-    """One line per material: the verdicts that hold under every light, and the lights that break stronger ones."""
+    """One line per material and neural method: the verdicts that hold under every light (and the lights
+    that break stronger ones), the close-ups against C, the offset's gain, the highlights and the time to error."""
     lines = []
     for name, mat in results["materials"].items():
-        v, checks = mat.get("verdicts"), mat.get("close_up", {})
-        if not v:
-            continue
-        parts = []
-        for against in ("C", "Cmip"):
-            d = v[f"{against}_mse"]
-            where = "never under every light" if d["from"] is None else f"from {d['from']:g} map texels under every light"
-            fails = f" (fails under {', '.join(d['fails_under'])} from a smaller footprint)" if d["fails_under"] else ""
-            parts.append(f"N beats {against} by MSE at {config.spp} spp {where}{fails}")
-        if checks.get("offset_gain_min") is not None:
-            loses = checks["offset_loses"]
-            parts.append(f"the neural offset's gain is at least {checks['offset_gain_min']:.2f}x in its close-up views"
-                         + (f" (the offset loses in {', '.join(loses)})" if loses else ""))
-        lines.append(f"- **{name}**: " + "; ".join(parts) + ".")
+        for method, v in mat.get("verdicts", {}).items():
+            checks = mat.get("close_up", {}).get(method, {})
+            times = [r for r in mat.get("time_to_error", []) if r["method"] == method]
+            lines.append(f"- **{name}, {method}**: " + "; ".join(_summary_parts(method, v, checks, times, config)) + ".")
     return lines
+
+
+def _summary_parts(method: str, v: dict, checks: dict, times: list[dict], config: ReportConfig) -> list[str]:
+    parts = []
+    for against in ("C", "Cmip"):
+        d = v[f"{against}_mse"]
+        where = "never under every light" if d["from"] is None else f"from {d['from']:g} map texels under every light"
+        fails = f" (fails under {', '.join(d['fails_under'])} from a smaller footprint)" if d["fails_under"] else ""
+        parts.append(f"beats {against} by MSE at {config.spp} spp {where}{fails}")
+    if checks.get("mse_over_c_max") is not None:
+        won, total = checks["flip_below_c"]
+        parts.append(f"at 1-4 texels its MSE is at most {checks['mse_over_c_max']:.2f}x C's, its FLIP below C's in "
+                     f"{won} of {total} views")
+    if checks.get("offset_gain_min") is not None:
+        loses = checks["offset_loses"]
+        parts.append(f"the offset's gain is at least {checks['offset_gain_min']:.2f}x in its close-up views"
+                     + (f" (the offset loses in {', '.join(loses)})" if loses else ""))
+    if checks.get("low_light_mean") is not None:
+        parts.append(f"low light: mean {checks['low_light_mean']:.2f}, p99 {checks['low_light_p99']:.2f} of R's")
+    known = [r for r in times if r["ratio"] is not None]
+    if known:
+        worst = min(known, key=lambda r: r["ratio"])
+        parts.append(f"the real geometry needs {worst['ratio']:.2f}x its time to reach its error at "
+                     f"{worst['texels']:g} texels (the smallest ratio over the footprints)")
+    return parts
 
 
 def stability_section(results: dict) -> list[str]:
@@ -275,6 +314,18 @@ def stability_section(results: dict) -> list[str]:
     return L
 
 
+def _stage(p: dict) -> str:
+    """The map-informed stage of a trade-off point ('-': the paper's model)."""
+    maps = p.get("maps")
+    if not maps:
+        return "-"
+    return "map encoder" + (f" + {maps['horizons']} horizons" if maps.get("horizons") else "")
+
+
+def _image_view(tr: dict) -> str:
+    return next((p["image_view"] for p in tr["points"].values() if p.get("image_view")), "one")
+
+
 def tradeoff_section(results: dict) -> list[str]:
     tr = results.get("tradeoff")
     if not tr:
@@ -282,15 +333,27 @@ def tradeoff_section(results: dict) -> list[str]:
     L = ["## The model's own trade-off", "",
          f"Configurations trained on {tr['material']} with {tr['steps']} steps of {tr['batch']} queries (a short "
          "schedule, the same for all: they compare with one another, not with the shipped models, and the larger "
-         "pyramids are the least converged after it). Validation MSE "
-         "on low-noise (64 spp) reference queries; image MSE in the level0 view against R; queries per second "
-         "in-process (ONNX Runtime, median of interleaved rounds).", "",
+         "pyramids are the least converged after it). What each stage costs: at training, wall seconds on one "
+         "torch thread (set-up and training; in brackets the set-up alone, which opens the data and prefilters a "
+         "map-informed model's maps, and the 1-minute load average at its end: the machine is shared; the first "
+         "configuration trained in a process also pays torch's first use), and at render, queries per second in-process (ONNX "
+         "Runtime, median of interleaved rounds; a map-informed model is exported as the paper's graph with its "
+         "textures baked, measured like the others; base, seed1, seed2, maps and maps_hz are graphs of one size, so the "
+         "spread of their queries per second is this measurement's noise). What it buys: validation MSE on low-noise (64 spp) reference "
+         f"queries, and image MSE in the {_image_view(tr)} view against R.", "",
          "![trade-off](tradeoff.png)", "",
-         "| configuration | resolution | channels | MLP width | offset | seed | M queries/s | validation MSE x1e-3 | image MSE x1e-3 |",
-         "|---|---|---|---|---|---|---|---|---|"]
+         "| configuration | resolution | channels | MLP width | offset | maps | seed | training s (set-up s; load) | M queries/s "
+         "| validation MSE x1e-3 | image MSE x1e-3 |",
+         "|---|---|---|---|---|---|---|---|---|---|---|"]
     for name, p in tr["points"].items():
-        L.append(f"| {name} | {p['resolution']} | {p['channels']} | {p['hidden']} | {p['offset']} | {p['seed']} | "
-                 f"{p['queries_per_second'] / 1e6:.2f} | {_f(p['validation_mse'], 1e3)} | {_f(p['image_mse'], 1e3)} |")
+        training = _f(p.get("training_seconds"), 1, 1)
+        if p.get("training_load") is not None:
+            training += f" ({_f(p.get('setup_seconds'), 1, 1)}; {p['training_load']:.1f})"
+        L.append(f"| {name} | {p['resolution']} | {p['channels']} | {p['hidden']} | {p['offset']} | {_stage(p)} | "
+                 f"{p['seed']} | {training} | {p['queries_per_second'] / 1e6:.2f} | {_f(p['validation_mse'], 1e3)} | "
+                 f"{_f(p['image_mse'], 1e3)} |")
+    if tr.get("note"):
+        L += ["", tr["note"] + "."]
     seeds = tr.get("seeds", {})
     if seeds:
         L += ["", "Training seeds (base, seed1, seed2): " + "; ".join(

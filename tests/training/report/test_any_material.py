@@ -111,10 +111,10 @@ def test_a_verdict_holds_only_where_it_holds_under_every_light():
         return [{"texels": t, "N": {"mse": 1.0 if t >= n_wins_from else 3.0, "bias": 1.0}, "C": {"mse": 2.0, "bias": 2.0},
                  "Cmip": None} for t in (1, 4, 16, 64, 256)]
 
-    v = analysis.verdicts({"high": rows(1), "side": rows(1), "front": rows(16)})
+    v = analysis.verdicts({"high": rows(1), "side": rows(1), "front": rows(16)})["N"]
     assert v["C_mse"]["from"] == 16 and v["C_mse"]["fails_under"] == ["front"]
     assert v["C_bias"]["from"] == 1 and v["C_bias"]["fails_under"] == []
-    never = analysis.verdicts({"high": rows(1), "front": rows(1000)})
+    never = analysis.verdicts({"high": rows(1), "front": rows(1000)})["N"]
     assert never["C_mse"]["from"] is None and never["C_mse"]["fails_under"] == ["front"]
 
 

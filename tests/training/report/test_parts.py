@@ -100,12 +100,13 @@ def test_close_up_checks_read_the_offset_gain_and_the_highlights():
         "grazing75": {"methods": {"N": entry(1.0)}},  # no N0: no gain
         "low_light": {"methods": {"N": entry(1.0, 0.9, 0.5), "N0": entry(1.0)}},
     }
-    checks = analysis.close_up_checks(material, 64)
+    checks = analysis.close_up_checks(material, 64)["N"]
     gains = {v: g for v, g in checks["offset_gain"].items() if g is not None}
     assert gains == {"level0_side": 2.5, "level2_side": 0.5}  # no N0 or no view: no gain
     assert checks["offset_gain_min"] == 0.5 and checks["offset_loses"] == ["level2_side"]
     assert (checks["low_light_mean"], checks["low_light_p99"]) == (0.9, 0.5)
-    assert analysis.close_up_checks({}, 64)["low_light_p99"] is None
+    assert analysis.close_up(material, 64, "N")["mse_over_c_max"] is None  # no C: no ratio
+    assert analysis.close_up({}, 64, "N")["low_light_p99"] is None
 
 
 def test_sweeps_of_the_known_answer_are_flat():

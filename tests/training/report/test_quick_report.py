@@ -1,5 +1,6 @@
 """The `--quick` report pipeline on real renders: flat (the known answer), rock, and a user's material
-given as a description file (planks, from texture maps, with its own models), in one ladder view.
+given as a description file (planks, from texture maps, with its own models and two map-informed
+ones trained here), in one ladder view.
 
 Checks real numbers: on `flat` the neural image equals the real geometry within the reference's
 noise; on rock the reference's own noise is far below the differences the report draws conclusions
@@ -12,6 +13,8 @@ from __future__ import annotations
 import json
 from dataclasses import replace
 from pathlib import Path
+
+import numpy as np
 
 import pytest
 
@@ -27,11 +30,36 @@ LADDER_VIEW = next(v for v in DISTANCE_VIEWS if v.ladder and v.level == 0)
 VIEW = LADDER_VIEW.name
 
 
+def train_map_models(work: Path) -> list[Path]:
+    """planks_maps.onnx and planks_maps_nooffset.onnx: map-informed models of planks (`neumip train --maps`)
+    at 16^2, 100 steps of 1024 queries on 4096 queries traced at 2 spp (about 5 s in all, one thread)."""
+    from neumip.core.config import MaterialConfig
+    from neumip.training.maps import MapConfig
+    from neumip.training.microgeometry.description import find_description, resolve
+    from neumip.training.microgeometry.generate import GenerateSettings, generate
+    from neumip.training.outputs import write_outputs
+    from neumip.training.train import Trainer
+    from neumip.training.train_config import TEST
+
+    desc = find_description(str(USER_MATERIAL))
+    generate(desc, work / "data", GenerateSettings(queries=4096, spp=2, seed=0, resolution=16, chunk=4096))
+    schedule = replace(TEST, steps=100, batch=1024, device="cpu")
+    out = []
+    for name, offset in (("planks_maps", True), ("planks_maps_nooffset", False)):
+        trainer = Trainer(work / "data", work / f"{name}.pt", MaterialConfig(resolution=16, offset=offset), schedule,
+                          name, maps=(MapConfig(), resolve(desc)))
+        out.append(work / f"{name}.onnx")
+        write_outputs(trainer, trainer.run(), out[-1])
+    return out
+
+
 @pytest.fixture(scope="module")
-def models(tmp_path_factory):
-    """One models folder with shipped models and the user's (links: the report reads one folder)."""
+def models(tmp_path_factory, one_torch_thread):
+    """One models folder with shipped models, the user's and map-informed ones of the user's material
+    (links: the report reads one folder)."""
     folder = tmp_path_factory.mktemp("models")
-    for f in [*MODELS.glob("flat.onnx"), *MODELS.glob("rock*.onnx"), *USER_MODELS.glob("planks*.onnx")]:
+    maps = train_map_models(tmp_path_factory.mktemp("map_models"))
+    for f in [*MODELS.glob("flat.onnx"), *MODELS.glob("rock*.onnx"), *USER_MODELS.glob("planks*.onnx"), *maps]:
         (folder / f.name).symlink_to(f)
     return folder
 
@@ -96,6 +124,26 @@ def test_user_material_from_a_description_file(report):
     assert methods["N"][str(QUICK.spp)]["mean_ratio"] == pytest.approx(1.0, abs=0.5)  # a plausible image of it
 
 
+def test_the_map_informed_model_is_judged_as_n(report):
+    """planks_maps.onnx and planks_maps_nooffset.onnx are rendered as Nmaps and Nmaps0 and judged like N:
+    a verdict, close-up checks with the offset's gain Nmaps0 / Nmaps, rows beside N's in the tables."""
+    root, results = report
+    mat = results["materials"]["planks"]
+    methods = mat[VIEW]["methods"]
+    assert {"Nmaps", "Nmaps0"} <= set(methods)
+    assert methods["Nmaps"][str(QUICK.spp)]["mse"] != methods["N"][str(QUICK.spp)]["mse"]  # another model's image
+    assert set(mat["verdicts"]) == set(mat["close_up"]) == {"N", "Nmaps"}
+    nmaps = mat["close_up"]["Nmaps"]
+    gain = methods["Nmaps0"][str(QUICK.spp)]["mse"] / methods["Nmaps"][str(QUICK.spp)]["mse"]
+    assert nmaps["offset_gain"][VIEW] == pytest.approx(gain)
+    over_c = methods["Nmaps"][str(QUICK.spp)]["mse"] / methods["C"][str(QUICK.spp)]["mse"]
+    assert nmaps["mse_over_c_max"] == pytest.approx(over_c)  # the one close-up rendered
+    assert set(results["materials"]["rock"]["verdicts"]) == {"N"}  # no rock_maps: no Nmaps verdict
+    text = (root / "out" / "report.md").read_text()
+    assert "| planks | N |" in text and "| planks | Nmaps |" in text and "- **planks, Nmaps**:" in text
+    assert np.isfinite([e["mse"] for e in methods["Nmaps"].values()]).all()
+
+
 def test_rerun_reuses_every_render(report):
     root, results = report
     again = run_report(root / "out2", ["flat"], QUICK, MODELS, root / "cache", stages=("images",),
@@ -113,8 +161,10 @@ def test_cli_quick_runs_every_stage(tmp_path):
     assert main(["report", "--quick", "-o", str(out), "--materials", "flat", "rock", "yarn",
                  "--models", str(MODELS), "--cache", str(tmp_path / "cache")]) == 0
     results = json.loads((out / "results.json").read_text())
-    assert set(results["tradeoff"]["points"]) >= {"base", "no_offset", "seed1", "seed2"}
-    assert all(p["queries_per_second"] > 0 for p in results["tradeoff"]["points"].values())
+    points = results["tradeoff"]["points"]
+    assert set(points) >= {"base", "no_offset", "seed1", "seed2", "maps", "maps_hz"}  # rock has maps
+    assert all(p["queries_per_second"] > 0 and p["training_seconds"] > 0 for p in points.values())
+    assert points["maps_hz"]["maps"]["horizons"] == 8 and results["tradeoff"]["note"] is None
     assert results["stability"]["sweeps"]["flat"]["sigma"]["largest_step"] < 0.01
     assert "horizon" in results["stability"]
     for name in ("tradeoff.png", "stability_sweeps.png", "horizon.png", "report.md"):
