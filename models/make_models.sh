@@ -18,6 +18,7 @@ SPP=${SPP:-16}
 PRESET=${PRESET:-ship}
 HIDDEN=${HIDDEN:-25}  # MLP width, the paper's; 48 was 0-32 % more accurate in images and 1.34x the render time (models/README.md)
 THREADS=${THREADS:-1}  # the shipped models were trained with one torch thread
+HORIZONS=${HORIZONS:-8}  # NAME_maps: horizon features towards 8 azimuths (rock: better than none in 7 of 8 views, benchmarks/results/maps.txt)
 RAY=${RAY:-}
 names=("$@")
 [ ${#names[@]} -gt 0 ] || names=(flat rock rock_nooffset yarn yarn_nooffset turtle turtle_nooffset foam foam_nooffset)
@@ -49,7 +50,7 @@ for name in "${names[@]}"; do
   material=$(material_of "$name")
   flags=()
   [[ "$name" == *_nooffset ]] && flags+=(--no-offset)
-  [[ "$name" == *_maps* ]] && flags+=(--maps)
+  [[ "$name" == *_maps* ]] && flags+=(--maps --horizons "$HORIZONS")
   "$NEUMIP" fit "$material" -o "models/$name.onnx" --force --work "runs/$name" --data "$(data_dir "$material")" \
     --resolution "$RES" --queries-per-texel "$QPT" --spp "$SPP" --preset "$PRESET" --threads "$THREADS" \
     --hidden "$HIDDEN" ${flags[@]+"${flags[@]}"} --description "$(describe "$name")"

@@ -34,6 +34,9 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--maps", nargs="?", const="", metavar="NAME_OR_TOML",
                    help="map-informed model: its textures are encoded from the material's prefiltered maps "
                         "(the data's own material, or this library name / .toml); the export is the paper's graph")
+    p.add_argument("--horizons", type=int, default=0, metavar="K",
+                   help="with --maps: the horizon's elevation towards K azimuths among the map features "
+                        "(shadows cast from afar; MapConfig.horizons)")
     p.add_argument("--description", default="", help="short description stored in the model metadata")
     p.add_argument("--head", choices=("relu", "yuv"), default="relu",
                    help="decoder output head: relu (paper) or yuv (authors' exp(YUV) - 1 with a shadow mask)")
@@ -86,6 +89,8 @@ def train_settings(args: argparse.Namespace):
 def _map_source(args: argparse.Namespace):
     """(MapConfig, Microgeometry) of `--maps`, or None without it."""
     if args.maps is None:
+        if args.horizons:
+            raise ValueError("--horizons is a feature of the map-informed model: pass --maps too")
         return None
     from .dataset import open_dataset
     from .maps import MapConfig
@@ -93,7 +98,7 @@ def _map_source(args: argparse.Namespace):
     from .views import data_material
 
     meta = open_dataset(args.data).meta
-    return MapConfig(), resolve(data_material(meta.get("material") or {}, args.maps or None,
+    return MapConfig(horizons=args.horizons), resolve(data_material(meta.get("material") or {}, args.maps or None,
                                               meta.get("description_dir")))
 
 

@@ -43,6 +43,8 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--no-offset", action="store_true", help="train without the neural offset")
     p.add_argument("--maps", action="store_true", help="map-informed model: its textures are encoded from the "
                    "material's prefiltered maps (training/TRAINING.md); the export is the paper's graph")
+    p.add_argument("--horizons", type=int, default=0, metavar="K",
+                   help="with --maps: the horizon's elevation towards K azimuths among the map features")
     p.add_argument("--hidden", type=int, default=MaterialConfig.hidden, help=commands.HIDDEN_HELP)
     p.add_argument("--steps", type=int, help="override the preset's TrainConfig.steps")
     p.add_argument("--candidates", type=int, help="override the preset's TrainConfig.candidates (best of this "
@@ -118,13 +120,16 @@ def _fit(args: argparse.Namespace) -> int:
         resolution = args.resolution or desc.resolution
         material = MaterialConfig(resolution=resolution, offset=not args.no_offset, hidden=args.hidden)
         generate = GenerateSettings(spp=args.spp, sampling=QuerySampling(queries_per_texel=args.queries_per_texel))
+        if args.horizons and not args.maps:
+            raise ValueError("--horizons is a feature of the map-informed model: pass --maps too")
+        maps = MapConfig(horizons=args.horizons) if args.maps else None
     except (DescriptionError, ValueError) as exc:
         raise CommandError(str(exc)) from exc
     kind = ("neural offset" if material.offset else "no neural offset") + (", map-informed" if args.maps else "")
     description = args.description or f"{desc.name}: {desc.summary or 'fitted'}, {resolution}^2, {kind}, " \
                                       f"{args.preset} preset"
     settings = FitSettings(material, config, generate, work, args.data, description, args.views_material,
-                           MapConfig() if args.maps else None)
+                           maps)
     bar = StageBar(desc.name, config.batch)
     try:
         table, paths = fit(desc, output, settings, bar.report,
