@@ -43,6 +43,8 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--heavy-fraction", type=float, default=QuerySampling.heavy_fraction,
                    help="share of sigma = texel / sqrt(U); the rest is sigma = 0")
     p.add_argument("--resolution", type=int, help="finest texels per tile side for sigma (default: the material's)")
+    p.add_argument("--levels-resolution", type=int, help="the log-uniform share of sigma spans the levels of a "
+                   "pyramid this fine (a model coarser than --resolution; default: --resolution's)")
     p.add_argument("--chunk", type=int, default=GenerateSettings.chunk,
                    help="queries per chunk, the unit of resumption")
     p.add_argument("--lanes", type=int, default=TracerConfig.lanes,
@@ -99,6 +101,7 @@ def _settings(args: argparse.Namespace):
         level_fraction=args.level_fraction,
         heavy_fraction=args.heavy_fraction,
         directions=args.directions,
+        levels_resolution=args.levels_resolution,
         **({} if args.max_zenith is None else {"max_zenith_deg": args.max_zenith}),
     )
     return GenerateSettings(

@@ -81,6 +81,8 @@ class GenerateSettings:
         sampling = asdict(self.sampling)
         if sampling["directions"] == "disk":  # the only kind before the option: older data sets stay valid
             del sampling["directions"]
+        if sampling["levels_resolution"] is None:  # likewise
+            del sampling["levels_resolution"]
         return {
             "name": GENERATOR,
             "queries": self.query_count(desc),

@@ -8,7 +8,8 @@ Defaults follow the NeuMIP authors' code:
   (``directions="solid_angle"``) uniform in solid angle over the same cap, which gives the grazing
   directions 4x the queries (beyond 80 degrees: 8 % instead of 2 %);
 - ``sigma`` a mixture over levels of detail, in finest texels ``t = 1 / resolution``:
-  ``level_fraction`` log-uniform over all levels (``sigma = 2^L t``, ``L ~ U(0, log2 R)``),
+  ``level_fraction`` log-uniform over all levels (``sigma = 2^L t``, ``L ~ U(0, log2 R)``; with
+  ``levels_resolution`` R' over the levels of an R' pyramid instead, ``t' = 1 / R'``),
   ``heavy_fraction`` heavy-tailed ``sigma = t / sqrt(U)`` (most mass near the finest level),
   and the rest ``sigma = 0`` (the unfiltered BTF).
 """
@@ -40,6 +41,9 @@ class QuerySampling:
     """Share of queries with heavy-tailed sigma = texel / sqrt(U); the rest get sigma = 0."""
     queries_per_texel: float = 256.0
     """Default number of queries per finest texel (the paper used 200-400)."""
+    levels_resolution: int | None = None
+    """The log-uniform share spans the levels of a pyramid of this many texels per side (a model
+    coarser than the material's maps keeps its coarse levels' share); None: the sampling resolution's."""
 
     def __post_init__(self) -> None:
         if not 0 < self.max_zenith_deg < 90:
@@ -50,6 +54,8 @@ class QuerySampling:
             raise ValueError("level_fraction and heavy_fraction must be >= 0 and sum to at most 1")
         if self.queries_per_texel <= 0:
             raise ValueError("queries_per_texel must be positive")
+        if self.levels_resolution is not None and self.levels_resolution < 1:
+            raise ValueError(f"levels_resolution must be >= 1, got {self.levels_resolution}")
 
 
 def sample_directions(
@@ -69,9 +75,9 @@ def sample_directions(
 def sample_sigma(n: int, rng: np.random.Generator, resolution: int, config: QuerySampling) -> np.ndarray:
     """(n,) footprints in tile units drawn from the level mixture of `config`."""
     texel = 1.0 / resolution
-    levels = math.log2(resolution)
+    coarse = config.levels_resolution or resolution
     kind = rng.random(n)
-    log_uniform = texel * 2.0 ** (levels * rng.random(n))
+    log_uniform = 2.0 ** (math.log2(coarse) * rng.random(n)) / coarse
     heavy = texel / np.sqrt(1.0 - rng.random(n))  # 1 - U in (0, 1]: no division by zero
     sigma = np.where(kind < config.level_fraction, log_uniform, 0.0)
     heavy_kind = (kind >= config.level_fraction) & (kind < config.level_fraction + config.heavy_fraction)

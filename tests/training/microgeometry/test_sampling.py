@@ -71,3 +71,16 @@ def test_bad_settings_are_rejected():
         QuerySampling(directions="cosine")
     with pytest.raises(ValueError, match="sum"):
         QuerySampling(level_fraction=0.7, heavy_fraction=0.6)
+
+
+def test_the_log_uniform_share_can_span_a_coarser_pyramids_levels():
+    """levels_resolution 64 at resolution 256: the log-uniform share is over [1/64, 1] tile (a 64^2
+    model's levels), the heavy tail still starts at one 256^2 texel."""
+    cfg = QuerySampling(level_fraction=1.0, heavy_fraction=0.0, levels_resolution=64)
+    sigma = sample_queries(20_000, np.random.default_rng(1), 256, cfg)[:, C.SIGMA].astype(np.float64)
+    assert sigma.min() >= 1 / 64 * (1 - 1e-6) and sigma.max() <= 1.0
+    assert np.median(np.log2(sigma * 64)) == pytest.approx(3.0, abs=0.1)  # uniform over 6 levels
+    heavy = QuerySampling(level_fraction=0.0, heavy_fraction=1.0, levels_resolution=64)
+    assert sample_queries(20_000, np.random.default_rng(1), 256, heavy)[:, C.SIGMA].min() < 1.01 / 256
+    with pytest.raises(ValueError, match="levels_resolution"):
+        QuerySampling(levels_resolution=0)

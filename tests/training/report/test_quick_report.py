@@ -138,7 +138,7 @@ def test_the_map_informed_model_is_judged_as_n(report):
     assert nmaps["offset_gain"][VIEW] == pytest.approx(gain)
     over_c = methods["Nmaps"][str(QUICK.spp)]["mse"] / methods["C"][str(QUICK.spp)]["mse"]
     assert nmaps["mse_over_c_max"] == pytest.approx(over_c)  # the one close-up rendered
-    assert set(results["materials"]["rock"]["verdicts"]) == {"N"}  # no rock_maps: no Nmaps verdict
+    assert set(results["materials"]["flat"]["verdicts"]) == {"N"}  # no flat_maps: no Nmaps verdict
     text = (root / "out" / "report.md").read_text()
     assert "| planks | N |" in text and "| planks | Nmaps |" in text and "- **planks, Nmaps**:" in text
     assert np.isfinite([e["mse"] for e in methods["Nmaps"].values()]).all()
