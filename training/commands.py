@@ -177,7 +177,9 @@ def print_finished(table: dict, paths: dict, kept: str) -> None:
     print(format_table(table))
     size = paths["onnx"].stat().st_size / 1e6
     print(f"wrote {paths['onnx']} ({size:.2f} MB), {paths['json']}, {paths['png']}, {paths['progress']}")
-    print(f"trained {table['steps']} steps in {table['train_seconds'] / 60:.1f} min; {kept}")
+    dropped = table.get("dropped_steps", 0)
+    extra = f" (and {dropped} of the candidate starts dropped)" if dropped else ""
+    print(f"trained {table['steps']} steps{extra} in {table['train_seconds'] / 60:.1f} min; {kept}")
 
 
 def _train(args: argparse.Namespace) -> int:

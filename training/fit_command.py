@@ -30,8 +30,9 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--force", action="store_true", help="replace a finished model at the output")
     p.add_argument("--preset", choices=tuple(PRESETS), default="ship",
                    help="training schedule preset, as neumip train takes it (training/TRAINING.md)")
-    p.add_argument("--resolution", type=int, help="finest pyramid level, texels per side; the ground truth "
-                   "samples footprints for it (default: the description's resolution)")
+    p.add_argument("--resolution", type=int, help="finest pyramid level, texels per side (default: the "
+                   "description's); the ground truth has --queries-per-texel per texel of it, with footprints "
+                   "sampled for the description's resolution where that is finer")
     p.add_argument("--work", type=Path, help="folder of the data set, checkpoint and views (default NAME.run/ "
                    "beside the output)")
     p.add_argument("--data", type=Path, help="data set folder of the ground truth, written or resumed (default "

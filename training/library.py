@@ -109,11 +109,12 @@ def train_library(
 def _material_task(job: MaterialJob, settings: LibrarySettings) -> dict:
     """One material in a Ray worker; logs its progress (Ray forwards worker logs to the driver)."""
     logging.basicConfig(level=logging.INFO, format="%(levelname)s %(name)s: %(message)s")
-    every = max(1, settings.config.steps // 10)
+    total = settings.config.total_steps
+    every = max(1, total // 10)
 
     def progress(step: int, loss: float) -> None:
         if step % every == 0:
-            log.info("%s: step %d of %d, loss %.4g", job.name, step, settings.config.steps, loss)
+            log.info("%s: step %d of %d, loss %.4g", job.name, step, total, loss)
 
     return train_material(job, settings, progress)
 

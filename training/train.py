@@ -214,7 +214,10 @@ class Trainer:
     # --- checkpoints -----------------------------------------------------------------------------
 
     def _data_identity(self) -> dict:
-        return {"n": len(self.data), "material": str(self.data.meta.get("material", ""))}
+        """What the checkpoint's data must match: its size, material and footprints' resolution."""
+        generator = self.data.meta.get("generator")  # (a dict for `neumip generate`'s data)
+        return {"n": len(self.data), "material": str(self.data.meta.get("material", "")),
+                "sampling_resolution": generator.get("resolution") if isinstance(generator, dict) else None}
 
     def _resume(self, material_config: MaterialConfig) -> NeuMIPMaterial:
         material, extra = checkpoint.load(self.checkpoint_path)
@@ -224,7 +227,8 @@ class Trainer:
             ("material config", differences(asdict(material.config), asdict(material_config))),
             ("training settings", differences(saved_config, self.config.to_dict(),
                                               MAY_CHANGE_ON_RESUME)),
-            ("data", differences(extra.get("data", {}), self._data_identity())),
+            ("data", differences(extra.get("data", {}),  # (fields a checkpoint predates are not compared)
+                                 {k: v for k, v in self._data_identity().items() if k in extra.get("data", {})})),
             ("map encoder", differences(_maps_dict(material), _maps_dict(self.map_config))),
         ]
         for what, diff in mismatches:
@@ -348,16 +352,28 @@ class Trainer:
                 self._window = []
                 self.sampler.generator.set_state(batches)
             self.material.train()
-            while self.state.step < cfg.candidate_steps:
-                loss = self.step()
-                if callback is not None:
-                    callback(self.steps_done, loss)
+            try:
+                while self.state.step < cfg.candidate_steps:
+                    loss = self.step()
+                    if callback is not None:
+                        callback(self.steps_done, loss)
+            except TrainingDiverged:  # a bad start is what the comparison is for
+                self.state.candidates.append([cfg.seed + i, math.inf])
+                log.warning("candidate %d of %d (seed %d) diverged", i + 1, cfg.candidates, cfg.seed + i)
+                continue
+            except KeyboardInterrupt:  # back to the first start: a re-run compares them all again
+                self.material, self.state = self._new_material(cfg.seed), TrainState()
+                self.optimizer = _make_optimizer(self.material, cfg)
+                self.sampler.generator.set_state(batches)
+                raise
             mse = self.check_progress()[2]
             self.state.candidates.append([cfg.seed + i, mse])
             log.info("candidate %d of %d (seed %d): held-out MSE %.4g after %d steps",
                      i + 1, cfg.candidates, cfg.seed + i, mse, cfg.candidate_steps)
             if best is None or mse < best[0]:
                 best = (mse, self.material, self.optimizer, self.sampler.generator.get_state(), self._window, self.state)
+        if best is None:
+            raise TrainingDiverged(f"all {cfg.candidates} candidate starts diverged; try a lower learning rate (--lr)")
         records, done = self.state.candidates, self.steps_done
         _, self.material, self.optimizer, rng, self._window, self.state = best
         self.sampler.generator.set_state(rng)
@@ -416,6 +432,7 @@ class Trainer:
                                    table["overall"]["mse"]])
         table["train_seconds"] = round(state.seconds, 1)
         table["steps"] = state.step
+        table["dropped_steps"] = state.dropped_steps
         table["batch"] = cfg.batch
         self.save_checkpoint(table)
         return table

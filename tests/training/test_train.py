@@ -391,3 +391,34 @@ def test_a_run_interrupted_while_comparing_candidates_compares_them_again(data, 
     whole = Trainer(data.path, tmp_path / "w.pt", TINY, config)
     whole.run()
     assert again.state.candidates == whole.state.candidates
+
+
+def test_a_diverging_start_is_dropped_and_an_interrupted_comparison_restarts_in_process(data, tmp_path, monkeypatch):
+    """A candidate whose loss turns NaN loses the comparison instead of ending the run; a comparison
+    interrupted in this process starts again from the first start when run() is called again."""
+    config = replace(FAST, candidates=2, candidate_steps=20)
+    real, calls = train_mod.training_loss, []
+
+    def nan_first(pred, target, cfg):
+        calls.append(1)
+        loss = real(pred, target, cfg)
+        return loss * float("nan") if len(calls) == 1 else loss
+
+    monkeypatch.setattr(train_mod, "training_loss", nan_first)
+    trainer = Trainer(data.path, tmp_path / "d.pt", TINY, config)
+    trainer.run()
+    assert trainer.state.candidates[0] == [0, float("inf")] and trainer.state.candidates[1][0] == 1
+    assert trainer.state.step == 60
+    monkeypatch.setattr(train_mod, "training_loss", real)
+
+    def stop_in_the_second(step, loss):
+        if step == 30:
+            raise KeyboardInterrupt
+
+    again = Trainer(data.path, tmp_path / "i.pt", TINY, config)
+    with pytest.raises(KeyboardInterrupt):
+        again.run(stop_in_the_second)
+    again.run()
+    whole = Trainer(data.path, tmp_path / "w.pt", TINY, config)
+    whole.run()
+    assert again.state.candidates == whole.state.candidates and again.state.step == whole.state.step == 60
