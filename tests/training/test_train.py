@@ -113,16 +113,19 @@ def test_interrupted_run_resumes_exactly(data, tmp_path):
     assert [h[0] for h in resumed.state.history] == [10, 20, 30, 40, 50, 60]
 
 
+def ctrl_c_at(stop: int):
+    """A step callback that raises KeyboardInterrupt (a Ctrl-C) after step `stop`."""
+    def callback(step, loss):
+        if step == stop:
+            raise KeyboardInterrupt
+    return callback
+
+
 def test_ctrl_c_writes_a_checkpoint_of_the_steps_done(data, tmp_path):
     """KeyboardInterrupt at step 27 (periodic checkpoints every 20): the checkpoint holds step 27."""
-
-    def ctrl_c(step, loss):
-        if step == 27:
-            raise KeyboardInterrupt
-
     trainer = Trainer(data.path, tmp_path / "k.pt", TINY, FAST)
     with pytest.raises(KeyboardInterrupt):
-        trainer.run(ctrl_c)
+        trainer.run(ctrl_c_at(27))
     assert Trainer(data.path, tmp_path / "k.pt", TINY, FAST).state.step == 27
 
 
@@ -377,13 +380,8 @@ def test_candidates_go_on_with_the_best_start_and_count_every_step(data, tmp_pat
 
 def test_a_run_interrupted_while_comparing_candidates_compares_them_again(data, tmp_path):
     config = replace(FAST, candidates=2, candidate_steps=20)
-
-    def stop_in_the_second(step, loss):
-        if step == 30:
-            raise KeyboardInterrupt
-
     with pytest.raises(KeyboardInterrupt):
-        Trainer(data.path, tmp_path / "i.pt", TINY, config).run(stop_in_the_second)
+        Trainer(data.path, tmp_path / "i.pt", TINY, config).run(ctrl_c_at(30))  # in the second start
     assert not (tmp_path / "i.pt").exists()  # no half-compared candidate passed off as the run
     again = Trainer(data.path, tmp_path / "i.pt", TINY, config)
     assert again.state.step == 0
@@ -410,14 +408,9 @@ def test_a_diverging_start_is_dropped_and_an_interrupted_comparison_restarts_in_
     assert trainer.state.candidates[0] == [0, float("inf")] and trainer.state.candidates[1][0] == 1
     assert trainer.state.step == 60
     monkeypatch.setattr(train_mod, "training_loss", real)
-
-    def stop_in_the_second(step, loss):
-        if step == 30:
-            raise KeyboardInterrupt
-
     again = Trainer(data.path, tmp_path / "i.pt", TINY, config)
     with pytest.raises(KeyboardInterrupt):
-        again.run(stop_in_the_second)
+        again.run(ctrl_c_at(30))
     again.run()
     whole = Trainer(data.path, tmp_path / "w.pt", TINY, config)
     whole.run()
