@@ -52,6 +52,8 @@ VARIANTS: dict[str, tuple[dict, MapConfig | None, object]] = {
     "M_seed2": ({}, MapConfig(), replace(SHIP, seed=2)),
     "M_seed3": ({}, MapConfig(), replace(SHIP, seed=3)),
     "M_hz": ({}, MapConfig(horizons=8), SHIP),
+    "Nh": ({"half_vector": True}, None, SHIP),  # the decoder also reads h and cos(theta_d)
+    "Mh_hz": ({"half_vector": True}, MapConfig(horizons=8), SHIP),
     "N_k4": ({}, None, replace(SHIP, candidates=4)),  # best of 4 starts after 300 steps
     "M_k4": ({}, MapConfig(), replace(SHIP, candidates=4)),
     "M_hz_k4": ({}, MapConfig(horizons=8), replace(SHIP, candidates=4)),

@@ -20,6 +20,10 @@ def dataclass_from_dict(cls, data: dict):
     return cls(**data)
 
 
+HALF_FLOOR = 1e-12
+"""|wi + wo|^2 is clamped to at least this before the half vector is normalised (`MaterialConfig.half_vector`)."""
+
+
 @dataclass(frozen=True)
 class MaterialConfig:
     """Architecture of a NeuMIP material (paper Sec. 3; defaults follow the paper)."""
@@ -42,6 +46,10 @@ class MaterialConfig:
     """wo_z is clamped to at least this in offset = r * wo_xy / wo_z (grazing-angle stability; the
     authors' 0.6). 0.3 was measured in images: within the training-seed spread alone, better only
     together with 48-wide MLPs (benchmarks/results/quality_levers_log.md, "Quality levers")."""
+    half_vector: bool = False
+    """The decoder also reads, per light, the half vector h = normalize(wi + wo) and cos(theta_d) =
+    h . wi (the half and difference angles of Rusinkiewicz's parametrisation: a glossy lobe is simple
+    in them); off: the paper's decoder, on (texture features, wi, wo)."""
     head: str = "relu"
     """Decoder output head (core/head.py): "relu" (paper: RGB = max(out, 0)) or "yuv" (authors'
     code: exp(YUV) - 1 times a shadow mask 0.1 + sigmoid, 6 outputs)."""
@@ -81,7 +89,11 @@ class MaterialConfig:
         return sum(s * s for s in self.level_sizes())
 
     def to_json(self) -> str:
-        return json.dumps(asdict(self), sort_keys=True)
+        """The fields as JSON; `half_vector` only when on, so the paper's models read as before it existed."""
+        fields_ = asdict(self)
+        if not self.half_vector:
+            del fields_["half_vector"]
+        return json.dumps(fields_, sort_keys=True)
 
     @classmethod
     def from_dict(cls, data: dict) -> "MaterialConfig":

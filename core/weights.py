@@ -10,8 +10,8 @@ Two views of the same numbers, both from a `MaterialConfig`:
 - `initializer_shapes`: the initializers the exported graph stores them in. Matrices are stored halved
   (``{mlp}.{i}.half_weight``; the graph's Gemm multiplies by 2), biases as columns (out, 1); a first
   layer is split by what it reads (``{mlp}.0.half_weight.texture``, ``.query``: a (hidden, 7) matrix
-  over the whole query row, zero but for the columns it reads, and the decoder's ``.light``: its
-  columns on a light's wi); the offset MLP's last layer is stored with ``offset_scale`` folded in and
+  over the whole query row, zero but for the columns it reads, the decoder's ``.light``: its
+  columns on a light's wi, and with `MaterialConfig.half_vector` its ``.half_vector``: on the light's half vector); the offset MLP's last layer is stored with ``offset_scale`` folded in and
   its one output twice (the depth beside each of wo_x, wo_y).
 
 Names and shapes only: no numpy, no arithmetic.
@@ -36,7 +36,23 @@ MLP_QUERY_COLUMNS = {DECODER: (C.WI_X, C.WI_Y, C.WO_X, C.WO_Y), OFFSET_MLP: (C.W
 """The query columns each MLP's first layer reads after its texture's features."""
 
 FIRST_LAYER_PARTS = {DECODER: ("texture", "query", "light"), OFFSET_MLP: ("texture", "query")}
-"""What each MLP's stored first layer is split into (`half_weight`)."""
+"""What each MLP's stored first layer is split into (`half_weight`); with `MaterialConfig.half_vector`
+the decoder's has a fourth part, "half_vector", its columns on a light's half vector and cos(theta_d)."""
+
+HALF_INPUTS = 4
+"""Decoder inputs of `MaterialConfig.half_vector`: h_x, h_y, h_z, cos(theta_d); they follow the texture
+features in the decoder's first layer, before the query columns."""
+
+
+def first_layer_parts(mlp: str, config: MaterialConfig) -> tuple[str, ...]:
+    """The parts the stored first layer of `mlp` is split into."""
+    extra = ("half_vector",) if mlp == DECODER and config.half_vector else ()
+    return FIRST_LAYER_PARTS[mlp] + extra
+
+
+def texture_inputs(mlp: str, config: MaterialConfig) -> int:
+    """Inputs of `mlp`'s first layer that read its texture's features."""
+    return config.channels if mlp == DECODER else config.offset_channels
 
 DEPTH_COPIES = 2
 """Rows of the offset MLP's stored last layer: its one output, once beside each of wo_x, wo_y."""
@@ -60,7 +76,8 @@ def half_weight(mlp: str, layer: int, part: str | None = None) -> str:
 
 def mlps(config: MaterialConfig) -> dict[str, tuple[int, int]]:
     """The material's MLPs -> (inputs, outputs): texture features plus query columns in, answer out."""
-    found = {DECODER: (config.channels + len(MLP_QUERY_COLUMNS[DECODER]), outputs(config.head))}
+    half = HALF_INPUTS if config.half_vector else 0
+    found = {DECODER: (config.channels + half + len(MLP_QUERY_COLUMNS[DECODER]), outputs(config.head))}
     if config.offset:
         found[OFFSET_MLP] = (config.offset_channels + len(MLP_QUERY_COLUMNS[OFFSET_MLP]), 1)
     return found
@@ -101,9 +118,8 @@ def initializer_shapes(config: MaterialConfig, finest_level: int = 0) -> dict[st
         shapes[OFFSET_TEXTURE] = (config.resolution**2, config.offset_channels)
     for mlp, (inputs, answers) in mlps(config).items():
         widths = _widths(config, inputs, DEPTH_COPIES if mlp == OFFSET_MLP else answers)
-        texture = inputs - len(MLP_QUERY_COLUMNS[mlp])
-        first = {"texture": texture, "query": C.QUERY_DIM, "light": 2}
-        for part in FIRST_LAYER_PARTS[mlp]:
+        first = {"texture": texture_inputs(mlp, config), "query": C.QUERY_DIM, "light": 2, "half_vector": HALF_INPUTS}
+        for part in first_layer_parts(mlp, config):
             shapes[half_weight(mlp, 0, part)] = (widths[1], first[part])
         shapes[bias(mlp, 0)] = (widths[1], 1)
         for i in range(1, config.layers):

@@ -10,6 +10,8 @@ from . import fit_command, trim_command
 from neumip.core.config import MaterialConfig  # torch-free
 from .train_config import PRESETS  # torch-free
 
+HALF_VECTOR_HELP = ("the decoder also reads each light's half vector and cos(theta_d) (MaterialConfig.half_vector; "
+                    "glossy materials: benchmarks/results/maps.txt)")
 HIDDEN_HELP = (f"width of the hidden layers of both MLPs (default {MaterialConfig.hidden}, the paper's; "
                "the shipped materials too; 48 was measured, not shipped: benchmarks/results/quality_levers_log.md)")
 
@@ -41,6 +43,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--head", choices=("relu", "yuv"), default="relu",
                    help="decoder output head: relu (paper) or yuv (authors' exp(YUV) - 1 with a shadow mask)")
     p.add_argument("--hidden", type=int, default=MaterialConfig.hidden, help=HIDDEN_HELP)
+    p.add_argument("--half-vector", action="store_true", help=HALF_VECTOR_HELP)
     p.add_argument("--views-material", metavar="NAME_OR_TOML",
                    help="material whose ground truth the progress grid NAME.progress.png shows (default: the "
                         "data's own, when its description can be rebuilt from meta.json)")
@@ -202,6 +205,7 @@ def _train(args: argparse.Namespace) -> int:
         config = train_settings(args)
         resolution = args.resolution or _budget_resolution(args, output) or _data_resolution(args.data)
         material = MaterialConfig(resolution=resolution, offset=not args.no_offset, head=args.head,
+                                  half_vector=args.half_vector,
                                   hidden=args.hidden)
         trainer = Trainer(args.data, checkpoint, material, config, args.description, _map_source(args))
     except (ValueError, DatasetError, CheckpointError) as exc:
@@ -274,6 +278,7 @@ def _register_train_many(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--config", help="JSON file of TrainConfig fields (applied over the preset)")
     p.add_argument("--resolution", type=int, help="finest pyramid level (default: each data set's resolution)")
     p.add_argument("--hidden", type=int, default=MaterialConfig.hidden, help=HIDDEN_HELP)
+    p.add_argument("--half-vector", action="store_true", help=HALF_VECTOR_HELP)
     p.add_argument("--no-offset", action="append", default=[], metavar="NAME",
                    help="train NAME without the neural offset (repeatable)")
     p.add_argument("--steps", type=int, help="override TrainConfig.steps")
@@ -298,7 +303,8 @@ def _library_jobs(args: argparse.Namespace) -> list:
         resolution = args.resolution or _data_resolution(data)
         offset = name not in args.no_offset
         kind = "neural offset" if offset else "no neural offset"
-        material = MaterialConfig(resolution=resolution, offset=offset, hidden=args.hidden)
+        material = MaterialConfig(resolution=resolution, offset=offset, hidden=args.hidden,
+                                  half_vector=args.half_vector)
         width = f"MLP width {args.hidden}, " if args.hidden != MaterialConfig.hidden else ""
         description = f"{Path(data).name}, {resolution}^2, {kind}, {width}{args.preset} preset"
         jobs.append(MaterialJob(name, data, material, description))

@@ -40,7 +40,7 @@ from neumip.core import contract as C
 
 from neumip.core import head
 from neumip.core import weights as W
-from neumip.core.config import MaterialConfig
+from neumip.core.config import HALF_FLOOR, MaterialConfig
 from .export_lookup import pyramid_texels, texture_texels
 from .onnx_graph import GraphWriter
 
@@ -148,6 +148,21 @@ def _parallax(g: GraphWriter, depth: str, wo: str, min_cos: float) -> str:
     return g.op("Mul", g.op("Div", depth, wo_z), wo)
 
 
+def _half_vector(g: GraphWriter, wi: str, wo: str) -> str:
+    """wi, wo (M, 2) -> (M, 4): h = normalize(wi + wo) and cos(theta_d) = h . wi, as `material.half_vector`
+    computes them (z = sqrt(max(1 - x^2 - y^2, 0)); sums of squares by MatMuls with ones)."""
+    def lift(w: str) -> str:
+        r2 = g.op("MatMul", g.op("Mul", w, w), g.const(np.ones((2, 1), np.float32)))
+        return g.op("Concat", w, g.op("Sqrt", g.op("Max", g.op("Sub", g.scalar(1.0), r2), g.scalar(0.0))), axis=1)
+
+    wi3, wo3 = lift(wi), lift(wo)
+    total = g.op("Add", wi3, wo3)
+    norm2 = g.op("MatMul", g.op("Mul", total, total), g.const(np.ones((3, 1), np.float32)))
+    h = g.op("Div", total, g.op("Sqrt", g.op("Max", norm2, g.scalar(HALF_FLOOR))))
+    cos_d = g.op("MatMul", g.op("Mul", h, wi3), g.const(np.ones((3, 1), np.float32)))
+    return g.op("Concat", h, cos_d, axis=1)
+
+
 def _query_columns(g: GraphWriter, q: str) -> tuple[str, str, str]:
     """The query's uv (N, 2), sigma (N, 1) and wo (N, 2)."""
     return (g.pick(q, C.QUERY_DIM, [C.U, C.V]), g.pick(q, C.QUERY_DIM, [C.SIGMA]),
@@ -182,11 +197,18 @@ def material_graph(g: GraphWriter, config: MaterialConfig, weights: dict,
     # --- trilinear pyramid lookup, then the decoder once per light -------------------------------
     atlas = g.const(weights[W.PYRAMID], name=W.PYRAMID)
     texels, tap_w = pyramid_texels(g, config, atlas, config.channels, g.wrap(uv), sigma, finest_level)
-    shared = _first_layer(g, q, texels, tap_w, 8, [C.WO_X, C.WO_Y], weights, W.DECODER, 4)  # (hidden, N)
+    half_inputs = W.HALF_INPUTS if config.half_vector else 0
+    shared = _first_layer(g, q, texels, tap_w, 8, [C.WO_X, C.WO_Y], weights, W.DECODER, 4 + half_inputs)  # (hidden, N)
     wi, n, k, kn = _lights(g, q)  # (K N, 2)
     w = weights[W.weight(W.DECODER, 0)]
     light = g.product(w[:, -4:-2], wi, rows=True, name=W.half_weight(W.DECODER, 0, "light"))  # (hidden, K N)
     hidden = g.op("Add", g.op("Tile", shared, g.op("Concat", g.const([1], np.int64), k, axis=0)), light)
+    if config.half_vector:  # per light: h and cos(theta_d) from its wi and the group's wo
+        wo_rows = g.op("Tile", wo, g.op("Concat", k, g.const([1], np.int64), axis=0))  # (K N, 2), light-major
+        texture = config.channels
+        half = g.product(w[:, texture : texture + half_inputs], _half_vector(g, wi, wo_rows), rows=True,
+                         name=W.half_weight(W.DECODER, 0, "half_vector"))  # (hidden, K N)
+        hidden = g.op("Add", hidden, half)
     if config.layers > 1:
         hidden = g.op("Relu", hidden)
     out = g.mlp(hidden, weights, W.DECODER, config.layers, first=1)  # (O, K N)

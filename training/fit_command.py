@@ -47,6 +47,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--horizons", type=int, default=0, metavar="K",
                    help="with --maps: the horizon's elevation towards K azimuths among the map features")
     p.add_argument("--hidden", type=int, default=MaterialConfig.hidden, help=commands.HIDDEN_HELP)
+    p.add_argument("--half-vector", action="store_true", help=commands.HALF_VECTOR_HELP)
     p.add_argument("--steps", type=int, help="override the preset's TrainConfig.steps")
     p.add_argument("--candidates", type=int, help="override the preset's TrainConfig.candidates (best of this "
                    "many initial weights, compared after TrainConfig.candidate_steps steps)")
@@ -119,14 +120,16 @@ def _fit(args: argparse.Namespace) -> int:
         desc = find_description(args.material)
         config = commands.train_settings(args)
         resolution = args.resolution or desc.resolution
-        material = MaterialConfig(resolution=resolution, offset=not args.no_offset, hidden=args.hidden)
+        material = MaterialConfig(resolution=resolution, offset=not args.no_offset, hidden=args.hidden,
+                                  half_vector=args.half_vector)
         generate = GenerateSettings(spp=args.spp, sampling=QuerySampling(queries_per_texel=args.queries_per_texel))
         if args.horizons and not args.maps:
             raise ValueError("--horizons is a feature of the map-informed model: pass --maps too")
         maps = MapConfig(horizons=args.horizons) if args.maps else None
     except (DescriptionError, ValueError) as exc:
         raise CommandError(str(exc)) from exc
-    kind = ("neural offset" if material.offset else "no neural offset") + (", map-informed" if args.maps else "")
+    kind = ("neural offset" if material.offset else "no neural offset") + (", map-informed" if args.maps else "") \
+        + (", half vector" if material.half_vector else "")
     description = args.description or f"{desc.name}: {desc.summary or 'fitted'}, {resolution}^2, {kind}, " \
                                       f"{args.preset} preset"
     settings = FitSettings(material, config, generate, work, args.data, description, args.views_material,

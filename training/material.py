@@ -9,7 +9,8 @@ from torch import nn
 from neumip.core import contract as C
 
 from neumip.core import head
-from neumip.core.config import MaterialConfig
+from neumip.core import weights as W
+from neumip.core.config import HALF_FLOOR, MaterialConfig
 from .maps import MapConfig, level_feature
 from .offset import parallax_shift
 from .pyramid import pyramid_lookup, texture_lookup
@@ -35,7 +36,7 @@ class NeuMIPMaterial(nn.Module):
         self.pyramid = nn.ParameterList(
             nn.Parameter(torch.randn(s, s, config.channels) * init_std) for s in config.level_sizes()
         )
-        self.decoder = mlp(config.channels + 4, config.hidden, head.outputs(config.head), config.layers)
+        self.decoder = mlp(W.mlps(config)[W.DECODER][0], config.hidden, head.outputs(config.head), config.layers)
         if config.head == "yuv":
             self.register_buffer("yuv_to_rgb", torch.tensor(head.YUV_TO_RGB.T, dtype=torch.float32), persistent=False)
         if config.offset:
@@ -86,11 +87,24 @@ class NeuMIPMaterial(nn.Module):
             u, v = u + du, v + dv
         atlas = torch.cat([lvl.reshape(-1, self.config.channels) for lvl in levels], dim=0)
         features = pyramid_lookup(atlas, self.config, u, v, sigma)
-        out = self.decoder(torch.cat([features, queries[:, C.WI_X : C.WO_Y + 1]], dim=1))
+        directions = queries[:, C.WI_X : C.WO_Y + 1]
+        if self.config.half_vector:
+            features = torch.cat([features, half_vector(directions[:, :2], directions[:, 2:])], dim=1)
+        out = self.decoder(torch.cat([features, directions], dim=1))
         if self.config.head == "yuv":  # exp(YUV) - 1 times the shadow mask (core/head.py)
             shadow = head.SHADOW_FLOOR + torch.sigmoid(out[:, 3:])
             out = torch.expm1(out[:, :3] @ self.yuv_to_rgb) * shadow
         return torch.relu(out)
+
+
+def half_vector(wi: torch.Tensor, wo: torch.Tensor) -> torch.Tensor:
+    """(N, 2) wi, wo (x, y of unit vectors, z >= 0) -> (N, 4): h = normalize(wi + wo) and cos(theta_d) = h . wi
+    (`MaterialConfig.half_vector`; the graph computes the same in `export._half_vector`)."""
+    wi3, wo3 = (torch.cat([w, torch.sqrt(torch.clamp(1.0 - (w * w).sum(1, keepdim=True), min=0.0))], dim=1)
+                for w in (wi, wo))
+    total = wi3 + wo3
+    h = total / torch.sqrt(torch.clamp((total * total).sum(1, keepdim=True), min=HALF_FLOOR))
+    return torch.cat([h, (h * wi3).sum(1, keepdim=True)], dim=1)
 
 
 def neighbourhood(features: torch.Tensor, size: int) -> torch.Tensor:

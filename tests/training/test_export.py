@@ -20,10 +20,11 @@ def torch_eval(material: NeuMIPMaterial, q: np.ndarray) -> np.ndarray:
         return material(torch.from_numpy(q)).numpy()
 
 
-@pytest.fixture(scope="module", params=[True, False], ids=["offset", "no-offset"])
+@pytest.fixture(scope="module", params=[(True, False), (False, False), (True, True)],
+                ids=["offset", "no-offset", "half-vector"])
 def pair(request):
     torch.manual_seed(3)
-    cfg = MaterialConfig(resolution=32, offset=request.param)
+    cfg = MaterialConfig(resolution=32, offset=request.param[0], half_vector=request.param[1])
     material = NeuMIPMaterial(cfg, init_std=0.5)
     # make the offset large enough to matter (random init gives tiny depths)
     if cfg.offset:

@@ -27,6 +27,7 @@ CONFIGS = {
     "no-offset": replace(BASE, offset=False),
     "one-layer": replace(BASE, layers=1),
     "yuv": replace(BASE, head="yuv", channels=5, hidden=9, offset_scale=0.37),
+    "half-vector": replace(BASE, half_vector=True, channels=5),
 }
 SHIPPED = sorted(Path("models").glob("*.onnx"))
 

@@ -150,12 +150,12 @@ def test_fit_samples_the_maps_footprints_and_trains_a_map_model(material, tmp_pa
 
     out = tmp_path / "my.onnx"
     argv = ["fit", str(material), "-o", str(out), "--preset", "test", "--steps", "10", "--spp", "2",
-            "--queries-per-texel", "32", "--resolution", "4", "--maps", "--threads", "1"]
+            "--queries-per-texel", "32", "--resolution", "4", "--maps", "--half-vector", "--threads", "1"]
     assert main(argv) == 0
     meta = json.loads((tmp_path / "my.run" / "data" / "meta.json").read_text())
     assert (meta["generator"]["resolution"], meta["generator"]["queries"]) == (8, 32 * 4 * 4)
     record = json.loads(out.with_suffix(".json").read_text())
-    assert record["material_config"]["resolution"] == 4
+    assert record["material_config"]["resolution"] == 4 and record["material_config"]["half_vector"]
     assert "map-informed" in load_material(out).info()["description"]
     trained, _ = checkpoint.load(tmp_path / "my.run" / "checkpoint.pt")
     assert trained.maps is not None  # a MapMaterial
@@ -164,3 +164,4 @@ def test_fit_samples_the_maps_footprints_and_trains_a_map_model(material, tmp_pa
     with torch.no_grad():
         want = trained(torch.from_numpy(queries)).numpy()
     np.testing.assert_allclose(LocalMaterials(tmp_path, threads=1).evaluate("my", queries), want, rtol=1e-4, atol=1e-5)
+

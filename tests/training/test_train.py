@@ -198,14 +198,14 @@ def test_cli_train_writes_model_table_and_curve(data, tmp_path, capsys):
     (tmp_path / "progress.json").write_text('{"validate_every": 10}')  # drawn mid-run, before models/ exists
     argv = ["train", str(data.path), "-o", str(out), "--preset", "test", "--resolution", "8",
             "--steps", "20", "--batch", "512", "--checkpoint", str(tmp_path / "ck.pt"),
-            "--config", str(tmp_path / "progress.json"), "--hidden", "9"]
+            "--config", str(tmp_path / "progress.json"), "--hidden", "9", "--half-vector"]
     assert main(argv) == 0
     assert out.exists() and out.with_suffix(".json").exists() and (out.parent / "plane.loss.png").exists()
     assert (out.parent / "plane.progress.png").exists() and not list(out.parent.glob("*.tmp.png"))
     printed = capsys.readouterr().out
     assert "step 10: held-out MSE" in printed and "MSE x1e-3" in printed
     config = json.loads(out.with_suffix(".json").read_text())["material_config"]
-    assert config["resolution"] == 8 and config["hidden"] == 9
+    assert config["resolution"] == 8 and config["hidden"] == 9 and config["half_vector"]
     assert main(["train", str(data.path), "-o", str(tmp_path / "x.txt")]) == 2
     assert main(["train", str(tmp_path / "missing"), "-o", str(tmp_path / "new.onnx")]) == 2
     (tmp_path / "junk.pt").write_bytes(b"not a checkpoint")
