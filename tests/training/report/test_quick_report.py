@@ -11,7 +11,6 @@ every cached render and gives the same numbers.
 from __future__ import annotations
 
 import json
-from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -30,36 +29,12 @@ LADDER_VIEW = next(v for v in DISTANCE_VIEWS if v.ladder and v.level == 0)
 VIEW = LADDER_VIEW.name
 
 
-def train_map_models(work: Path) -> list[Path]:
-    """planks_maps.onnx and planks_maps_nooffset.onnx: map-informed models of planks (`neumip train --maps`)
-    at 16^2, 100 steps of 1024 queries on 4096 queries traced at 2 spp (about 5 s in all, one thread)."""
-    from neumip.core.config import MaterialConfig
-    from neumip.training.maps import MapConfig
-    from neumip.training.microgeometry.description import find_description, resolve
-    from neumip.training.microgeometry.generate import GenerateSettings, generate
-    from neumip.training.outputs import write_outputs
-    from neumip.training.train import Trainer
-    from neumip.training.train_config import TEST
-
-    desc = find_description(str(USER_MATERIAL))
-    generate(desc, work / "data", GenerateSettings(queries=4096, spp=2, seed=0, resolution=16, chunk=4096))
-    schedule = replace(TEST, steps=100, batch=1024, device="cpu")
-    out = []
-    for name, offset in (("planks_maps", True), ("planks_maps_nooffset", False)):
-        trainer = Trainer(work / "data", work / f"{name}.pt", MaterialConfig(resolution=16, offset=offset), schedule,
-                          name, maps=(MapConfig(), resolve(desc)))
-        out.append(work / f"{name}.onnx")
-        write_outputs(trainer, trainer.run(), out[-1])
-    return out
-
-
 @pytest.fixture(scope="module")
 def models(tmp_path_factory, one_torch_thread):
-    """One models folder with shipped models, the user's and map-informed ones of the user's material
-    (links: the report reads one folder)."""
+    """One models folder with shipped models and the user's material's, the map-informed ones
+    (planks_maps, planks_maps_nooffset) among them (links: the report reads one folder)."""
     folder = tmp_path_factory.mktemp("models")
-    maps = train_map_models(tmp_path_factory.mktemp("map_models"))
-    for f in [*MODELS.glob("flat.onnx"), *MODELS.glob("rock*.onnx"), *USER_MODELS.glob("planks*.onnx"), *maps]:
+    for f in [*MODELS.glob("flat.onnx"), *MODELS.glob("rock*.onnx"), *USER_MODELS.glob("planks*.onnx")]:
         (folder / f.name).symlink_to(f)
     return folder
 
