@@ -60,6 +60,11 @@ VARIANTS: dict[str, tuple[dict, MapConfig | None, object]] = {
     "M_1x1": ({}, MapConfig(neighbourhood=1), SHIP),
     "M_residual": ({}, MapConfig(residual=True), SHIP),
     "M_noblur": ({}, MapConfig(), replace(SHIP, blur_start=0.0)),
+    # the classical base (MaterialConfig.base at the maps' resolution): base(maps) * exp(c) + a
+    "Nb": ({"base": "maps"}, None, SHIP),
+    "Mb_hz": ({"base": "maps"}, MapConfig(horizons=8), SHIP),
+    "N_rel": ({}, None, replace(SHIP, loss="relative")),  # relative MSE, detached denominator (lever 4)
+    "M_hz_rel": ({}, MapConfig(horizons=8), replace(SHIP, loss="relative")),
     "N128": ({"resolution": 128}, None, SHIP),
     "M128": ({"resolution": 128}, MapConfig(), SHIP),
     "N256": ({"resolution": 256}, None, SHIP),
@@ -87,6 +92,7 @@ def views():
 def train(variant: str, data: str, material: str, runs: Path, threads: int, validate_every: int = 0) -> None:
     import torch
 
+    from neumip.training.base import base_resolution
     from neumip.training.export import export_material
     from neumip.training.microgeometry.description import find_description, resolve
     from neumip.training.train import Trainer
@@ -98,8 +104,11 @@ def train(variant: str, data: str, material: str, runs: Path, threads: int, vali
     out = runs / variant / f"{desc.name}.onnx"
     checkpoint = runs / variant / f"{desc.name}.pt"
     checkpoint.unlink(missing_ok=True)
+    geo = resolve(desc)
+    if overrides.get("base") == "maps":
+        overrides = {**overrides, "base": base_resolution(geo)}
     trainer = Trainer(data, checkpoint, MaterialConfig(**{**RECIPE, **overrides}), config,
-                      maps=None if maps is None else (maps, resolve(desc)))
+                      maps=(maps, geo) if maps is not None or overrides.get("base") else None)
     start, cpu = time.perf_counter(), time.process_time()
     held = trainer.run()
     seconds, cpu = time.perf_counter() - start, time.process_time() - cpu

@@ -23,6 +23,20 @@ def dataclass_from_dict(cls, data: dict):
 HALF_FLOOR = 1e-12
 """|wi + wo|^2 is clamped to at least this before the half vector is normalised (`MaterialConfig.half_vector`)."""
 
+BASE_CHANNELS = 9
+"""Channels of the base maps' pyramid (`MaterialConfig.base`): diffuse colour (3), specular F0 (3), the
+mean slopes dh/du, dh/dv (2) and the GGX alpha^2 with the slopes' variance added (1)."""
+BASE_OUTPUTS = 6
+"""Decoder outputs with a base: a log-scale correction per RGB channel, then an additive term per channel."""
+BASE_ALPHA2_FLOOR = 1e-4
+"""alpha^2 of the base's GGX lobe is clamped to at least this (roughness 0.1)."""
+BASE_COS_FLOOR = 1e-4
+"""The base's cos(n, wo) is clamped to at least this in the specular term's denominator."""
+BASE_WI_FLOOR = 0.05
+"""The reference plane's wi_z is clamped to at least this where the base divides by it."""
+BASE_LOG_CEILING = 8.0
+"""The decoder's log-scale correction is clamped to at most this (exp(8) ~ 3000x) before exp."""
+
 
 @dataclass(frozen=True)
 class MaterialConfig:
@@ -50,6 +64,11 @@ class MaterialConfig:
     """The decoder also reads, per light, the half vector h = normalize(wi + wo) and cos(theta_d) =
     h . wi (the half and difference angles of Rusinkiewicz's parametrisation: a glossy lobe is simple
     in them); off: the paper's decoder, on (texture features, wi, wo)."""
+    base: int = 0
+    """Texels per side of the finest level of the base maps' pyramid (the material's maps' resolution; a
+    power of two), 0: none. With a base the answer is base(maps, wi, wo) * exp(c) + a, with c and a the
+    decoder's 6 outputs (`BASE_OUTPUTS`): the classical material as a start that the decoder corrects
+    (training/base.py has the formula and the pyramid's channels)."""
     head: str = "relu"
     """Decoder output head (core/head.py): "relu" (paper: RGB = max(out, 0)) or "yuv" (authors'
     code: exp(YUV) - 1 times a shadow mask 0.1 + sigmoid, 6 outputs)."""
@@ -64,6 +83,10 @@ class MaterialConfig:
             raise ValueError(f"layers must be >= 1, got {self.layers}")
         if self.head not in HEADS:
             raise ValueError(f"head must be one of {HEADS}, got {self.head!r}")
+        if self.base < 0 or self.base & (self.base - 1):
+            raise ValueError(f"base must be 0 or a power of two, got {self.base}")
+        if self.base and self.head != "relu":
+            raise ValueError(f"a base works with the relu head only, got head {self.head!r}")
         if not 0 < self.offset_min_cos <= 1:
             raise ValueError(f"offset_min_cos must be in (0, 1], got {self.offset_min_cos}")
 
@@ -88,11 +111,18 @@ class MaterialConfig:
         """Texels in all levels together."""
         return sum(s * s for s in self.level_sizes())
 
+    def base_pyramid(self) -> "MaterialConfig | None":
+        """The base maps' pyramid as a config of its own (its resolution and channels), or None without a base."""
+        return MaterialConfig(resolution=self.base, channels=BASE_CHANNELS, offset=False) if self.base else None
+
     def to_json(self) -> str:
-        """The fields as JSON; `half_vector` only when on, so the paper's models read as before it existed."""
+        """The fields as JSON; `half_vector` and `base` only when on, so the paper's models read as before
+        they existed."""
         fields_ = asdict(self)
         if not self.half_vector:
             del fields_["half_vector"]
+        if not self.base:
+            del fields_["base"]
         return json.dumps(fields_, sort_keys=True)
 
     @classmethod

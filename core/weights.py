@@ -4,7 +4,8 @@ Two views of the same numbers, both from a `MaterialConfig`:
 
 - `weight_shapes`: the weights as the model holds them, and as `training.export.build_onnx` takes
   them and `training.export_read.read_model` gives them back: the textures (``pyramid``, the flat
-  atlas of every level, finest first; ``offset_texture``, one level) and each MLP's layers
+  atlas of every level, finest first; ``offset_texture``, one level; with `MaterialConfig.base`,
+  ``base_maps``, the base maps' atlas, finest first) and each MLP's layers
   (``{mlp}.{i}.weight`` (out, in), ``{mlp}.{i}.bias`` (out,)). An MLP's first layer reads the
   texture features, then the query columns `MLP_QUERY_COLUMNS` names, in that order.
 - `initializer_shapes`: the initializers the exported graph stores them in. Matrices are stored halved
@@ -20,11 +21,13 @@ Names and shapes only: no numpy, no arithmetic.
 from __future__ import annotations
 
 from . import contract as C
-from .config import MaterialConfig
+from .config import BASE_OUTPUTS, MaterialConfig
 from .head import outputs
 
 PYRAMID = "pyramid"
 """The neural texture pyramid: the rows of every level, finest first (`MaterialConfig.level_starts`)."""
+BASE = "base_maps"
+"""The base maps' pyramid (`MaterialConfig.base`): rows of every level, finest first, `BASE_CHANNELS` wide."""
 OFFSET_TEXTURE = "offset_texture"
 """The neural offset texture: one level at the finest resolution."""
 DECODER = "decoder"
@@ -77,7 +80,8 @@ def half_weight(mlp: str, layer: int, part: str | None = None) -> str:
 def mlps(config: MaterialConfig) -> dict[str, tuple[int, int]]:
     """The material's MLPs -> (inputs, outputs): texture features plus query columns in, answer out."""
     half = HALF_INPUTS if config.half_vector else 0
-    found = {DECODER: (config.channels + half + len(MLP_QUERY_COLUMNS[DECODER]), outputs(config.head))}
+    answers = BASE_OUTPUTS if config.base else outputs(config.head)
+    found = {DECODER: (config.channels + half + len(MLP_QUERY_COLUMNS[DECODER]), answers)}
     if config.offset:
         found[OFFSET_MLP] = (config.offset_channels + len(MLP_QUERY_COLUMNS[OFFSET_MLP]), 1)
     return found
@@ -85,7 +89,12 @@ def mlps(config: MaterialConfig) -> dict[str, tuple[int, int]]:
 
 def textures(config: MaterialConfig) -> list[str]:
     """Names of the material's textures."""
-    return [PYRAMID] + ([OFFSET_TEXTURE] if config.offset else [])
+    return [PYRAMID] + ([OFFSET_TEXTURE] if config.offset else []) + ([BASE] if config.base else [])
+
+
+def _base_shape(config: MaterialConfig) -> tuple[int, int]:
+    base = config.base_pyramid()
+    return (base.atlas_rows(), base.channels)
 
 
 def _widths(config: MaterialConfig, inputs: int, answers: int) -> list[int]:
@@ -99,6 +108,8 @@ def weight_shapes(config: MaterialConfig) -> dict[str, tuple[int, ...]]:
     shapes: dict[str, tuple[int, ...]] = {PYRAMID: (config.atlas_rows(), config.channels)}
     if config.offset:
         shapes[OFFSET_TEXTURE] = (config.resolution**2, config.offset_channels)
+    if config.base:
+        shapes[BASE] = _base_shape(config)
     for mlp, (inputs, answers) in mlps(config).items():
         widths = _widths(config, inputs, answers)
         for i in range(config.layers):
@@ -116,6 +127,8 @@ def initializer_shapes(config: MaterialConfig, finest_level: int = 0) -> dict[st
     shapes: dict[str, tuple[int, ...]] = {PYRAMID: (rows, config.channels)}
     if config.offset:
         shapes[OFFSET_TEXTURE] = (config.resolution**2, config.offset_channels)
+    if config.base:
+        shapes[BASE] = _base_shape(config)
     for mlp, (inputs, answers) in mlps(config).items():
         widths = _widths(config, inputs, DEPTH_COPIES if mlp == OFFSET_MLP else answers)
         first = {"texture": texture_inputs(mlp, config), "query": C.QUERY_DIM, "light": 2, "half_vector": HALF_INPUTS}

@@ -8,10 +8,13 @@ from pathlib import Path
 
 from . import fit_command, trim_command
 from neumip.core.config import MaterialConfig  # torch-free
-from .train_config import PRESETS  # torch-free
+from .train_config import LOSSES, PRESETS  # torch-free
 
 HALF_VECTOR_HELP = ("the decoder also reads each light's half vector and cos(theta_d) (MaterialConfig.half_vector; "
                     "glossy materials: benchmarks/results/maps.txt)")
+BASE_HELP = ("the classical material as the base: the answer is the principled BSDF on the material's maps (a "
+             "pyramid at the maps' resolution) times exp(the decoder's correction), plus its additive term "
+             "(MaterialConfig.base, training/TRAINING.md)")
 HIDDEN_HELP = (f"width of the hidden layers of both MLPs (default {MaterialConfig.hidden}, the paper's; "
                "the shipped materials too; 48 was measured, not shipped: benchmarks/results/quality_levers_log.md)")
 
@@ -44,13 +47,14 @@ def register(sub: argparse._SubParsersAction) -> None:
                    help="decoder output head: relu (paper) or yuv (authors' exp(YUV) - 1 with a shadow mask)")
     p.add_argument("--hidden", type=int, default=MaterialConfig.hidden, help=HIDDEN_HELP)
     p.add_argument("--half-vector", action="store_true", help=HALF_VECTOR_HELP)
+    p.add_argument("--base", action="store_true", help=BASE_HELP + "; the maps are the data's material's, or --maps'")
     p.add_argument("--views-material", metavar="NAME_OR_TOML",
                    help="material whose ground truth the progress grid NAME.progress.png shows (default: the "
                         "data's own, when its description can be rebuilt from meta.json)")
     for name, kind in (("steps", int), ("batch", int), ("lr", float), ("seed", int), ("blur-half-life", float),
                        ("candidates", int)):
         p.add_argument(f"--{name}", type=kind, help=f"override TrainConfig.{name.replace('-', '_')}")
-    p.add_argument("--loss", choices=("comb2", "mse"), help="override TrainConfig.loss")
+    p.add_argument("--loss", choices=LOSSES, help="override TrainConfig.loss")
     p.add_argument("--device", choices=("auto", "cpu", "cuda"), help="override TrainConfig.device")
     p.add_argument("--compile", action="store_true", help="torch.compile the step (~1.5x faster on CPU after ~15 s)")
     p.add_argument("--threads", type=int, help="torch CPU threads (default: one per core; idle threads sleep "
@@ -90,10 +94,11 @@ def train_settings(args: argparse.Namespace):
 
 
 def _map_source(args: argparse.Namespace):
-    """(MapConfig, Microgeometry) of `--maps`, or None without it."""
-    if args.maps is None:
-        if args.horizons:
-            raise ValueError("--horizons is a feature of the map-informed model: pass --maps too")
+    """(MapConfig or None, Microgeometry) of `--maps` and `--base`: the material's maps (the data's own
+    material's, or the one `--maps` names), with the map encoder's config under `--maps`; None without either."""
+    if args.maps is None and args.horizons:
+        raise ValueError("--horizons is a feature of the map-informed model: pass --maps too")
+    if args.maps is None and not args.base:
         return None
     from .dataset import open_dataset
     from .maps import MapConfig
@@ -101,8 +106,8 @@ def _map_source(args: argparse.Namespace):
     from .views import data_material
 
     meta = open_dataset(args.data).meta
-    return MapConfig(horizons=args.horizons), resolve(data_material(meta.get("material") or {}, args.maps or None,
-                                              meta.get("description_dir")))
+    geo = resolve(data_material(meta.get("material") or {}, args.maps or None, meta.get("description_dir")))
+    return (MapConfig(horizons=args.horizons) if args.maps is not None else None), geo
 
 
 def _data_resolution(data: str, default: int = 128) -> int:
@@ -183,6 +188,10 @@ def print_finished(table: dict, paths: dict, kept: str) -> None:
     dropped = table.get("dropped_steps", 0)
     extra = f" (and {dropped} of the candidate starts dropped)" if dropped else ""
     print(f"trained {table['steps']} steps{extra} in {table['train_seconds'] / 60:.1f} min; {kept}")
+    if "base_choice" in table:
+        choice = table["base_choice"]
+        print(f"classical base: held-out MSE x1e-3 {choice['held_out_mse_without'] * 1e3:.4f} without, "
+              f"{choice['held_out_mse_with'] * 1e3:.4f} with: the model {choice['kept']} it was kept")
 
 
 def _train(args: argparse.Namespace) -> int:
@@ -197,6 +206,7 @@ def _train(args: argparse.Namespace) -> int:
     from .checkpoint import CheckpointError
     from .dataset import DatasetError
     from .outputs import install_outputs, progress_path, write_progress
+    from .base import base_resolution
     from .train import Trainer, TrainingDiverged, TrainingError
     from .views import ViewGrid, trace_views
 
@@ -204,10 +214,11 @@ def _train(args: argparse.Namespace) -> int:
     try:
         config = train_settings(args)
         resolution = args.resolution or _budget_resolution(args, output) or _data_resolution(args.data)
+        maps = _map_source(args)
         material = MaterialConfig(resolution=resolution, offset=not args.no_offset, head=args.head,
-                                  half_vector=args.half_vector,
-                                  hidden=args.hidden)
-        trainer = Trainer(args.data, checkpoint, material, config, args.description, _map_source(args))
+                                  half_vector=args.half_vector, hidden=args.hidden,
+                                  base=base_resolution(maps[1]) if args.base else 0)
+        trainer = Trainer(args.data, checkpoint, material, config, args.description, maps)
     except (ValueError, DatasetError, CheckpointError) as exc:
         raise CommandError(str(exc)) from exc
     meta = trainer.data.meta

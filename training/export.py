@@ -29,6 +29,7 @@ from __future__ import annotations
 
 import json
 import logging
+import math
 import os
 from pathlib import Path
 
@@ -40,7 +41,8 @@ from neumip.core import contract as C
 
 from neumip.core import head
 from neumip.core import weights as W
-from neumip.core.config import HALF_FLOOR, MaterialConfig
+from neumip.core.config import (BASE_ALPHA2_FLOOR, BASE_CHANNELS, BASE_COS_FLOOR, BASE_LOG_CEILING, BASE_OUTPUTS,
+                                BASE_WI_FLOOR, HALF_FLOOR, MaterialConfig)
 from .export_lookup import pyramid_texels, texture_texels
 from .onnx_graph import GraphWriter
 
@@ -64,6 +66,8 @@ def weights_from_state(state: dict, config: MaterialConfig) -> dict[str, np.ndar
             weights[W.bias(prefix, i)] = arr[f"{prefix}.{2 * i}.bias"]
     if config.offset:
         weights[W.OFFSET_TEXTURE] = arr["offset_texture"].reshape(-1, config.offset_channels)
+    if config.base:
+        weights[W.BASE] = arr[W.BASE]
     return weights
 
 
@@ -151,16 +155,79 @@ def _parallax(g: GraphWriter, depth: str, wo: str, min_cos: float) -> str:
 def _half_vector(g: GraphWriter, wi: str, wo: str) -> str:
     """wi, wo (M, 2) -> (M, 4): h = normalize(wi + wo) and cos(theta_d) = h . wi, as `material.half_vector`
     computes them (z = sqrt(max(1 - x^2 - y^2, 0)); sums of squares by MatMuls with ones)."""
-    def lift(w: str) -> str:
-        r2 = g.op("MatMul", g.op("Mul", w, w), g.const(np.ones((2, 1), np.float32)))
-        return g.op("Concat", w, g.op("Sqrt", g.op("Max", g.op("Sub", g.scalar(1.0), r2), g.scalar(0.0))), axis=1)
-
-    wi3, wo3 = lift(wi), lift(wo)
+    wi3, wo3 = _lift(g, wi), _lift(g, wo)
     total = g.op("Add", wi3, wo3)
-    norm2 = g.op("MatMul", g.op("Mul", total, total), g.const(np.ones((3, 1), np.float32)))
-    h = g.op("Div", total, g.op("Sqrt", g.op("Max", norm2, g.scalar(HALF_FLOOR))))
-    cos_d = g.op("MatMul", g.op("Mul", h, wi3), g.const(np.ones((3, 1), np.float32)))
-    return g.op("Concat", h, cos_d, axis=1)
+    h = g.op("Div", total, g.op("Sqrt", g.op("Max", _dot(g, total, total), g.scalar(HALF_FLOOR))))
+    return g.op("Concat", h, _dot(g, h, wi3), axis=1)
+
+
+def _dot(g: GraphWriter, a: str, b: str) -> str:
+    """(M, 3), (M, 3) -> (M, 1) a . b (summed by a MatMul with ones: one order per row)."""
+    return g.op("MatMul", g.op("Mul", a, b), g.const(np.ones((3, 1), np.float32)))
+
+
+def _lift(g: GraphWriter, w: str) -> str:
+    """(M, 2) x, y of unit vectors -> (M, 3) with z = sqrt(max(1 - x^2 - y^2, 0))."""
+    r2 = g.op("MatMul", g.op("Mul", w, w), g.const(np.ones((2, 1), np.float32)))
+    return g.op("Concat", w, g.op("Sqrt", g.op("Max", g.op("Sub", g.scalar(1.0), r2), g.scalar(0.0))), axis=1)
+
+
+def _base_maps(g: GraphWriter, config: MaterialConfig, weights: dict, uv: str, sigma: str) -> str:
+    """The base maps' trilinear lookup: uv (N, 2) in [0, 1), sigma (N, 1) -> (N, BASE_CHANNELS)."""
+    base = config.base_pyramid()
+    atlas = g.const(weights[W.BASE], name=W.BASE)
+    texels, tap_w = pyramid_texels(g, base, atlas, base.channels, uv, sigma, prefix="base.")  # (N, 8 C), (N, 8)
+    spread = np.kron(np.eye(8, dtype=np.float32), np.ones((1, base.channels), np.float32))  # (8, 8 C)
+    weighted = g.op("Mul", texels, g.op("MatMul", tap_w, g.const(spread)))
+    return g.op("MatMul", weighted, g.const(np.tile(np.eye(base.channels, dtype=np.float32), (8, 1))))
+
+
+def _base_answer(g: GraphWriter, maps: str, wi: str, wo: str) -> str:
+    """maps (M, BASE_CHANNELS), wi, wo (M, 2) -> (M, 3): the base's answer, as `base.base_answer` computes it."""
+    def columns(lo: int, hi: int) -> str:
+        pick = np.zeros((BASE_CHANNELS, hi - lo), np.float32)
+        pick[np.arange(lo, hi), np.arange(hi - lo)] = 1.0
+        return g.op("MatMul", maps, g.const(pick))
+
+    def clamp_low(x: str, low: float) -> str:
+        return g.op("Max", x, g.scalar(low))
+
+    wi3, wo3 = _lift(g, wi), _lift(g, wo)
+    to_normal = np.zeros((BASE_CHANNELS, 3), np.float32)
+    to_normal[6, 0] = to_normal[7, 1] = -1.0
+    n = g.op("Add", g.op("MatMul", maps, g.const(to_normal)), g.const(np.array([[0.0, 0.0, 1.0]], np.float32)))
+    n = g.op("Div", n, g.op("Sqrt", _dot(g, n, n)))
+    total = g.op("Add", wi3, wo3)
+    h = g.op("Div", total, g.op("Sqrt", clamp_low(_dot(g, total, total), HALF_FLOOR)))
+    alpha2 = clamp_low(columns(8, 9), BASE_ALPHA2_FLOOR)
+    cos_i, cos_o, cos_h = (clamp_low(_dot(g, n, w), 0.0) for w in (wi3, wo3, h))
+    d = g.op("Add", g.op("Mul", g.op("Mul", cos_h, cos_h), g.op("Sub", alpha2, g.scalar(1.0))), g.scalar(1.0))
+    distribution = g.op("Div", alpha2, g.op("Mul", g.op("Mul", d, d), g.scalar(math.pi)))
+
+    def smith_g1(c: str) -> str:
+        root = g.op("Sqrt", g.op("Add", alpha2, g.op("Mul", g.op("Sub", g.scalar(1.0), alpha2), g.op("Mul", c, c))))
+        return g.op("Div", g.op("Mul", c, g.scalar(2.0)), g.op("Add", c, root))
+
+    f0 = columns(3, 6)
+    s = g.op("Sub", g.scalar(1.0), g.op("Min", clamp_low(_dot(g, h, wi3), 0.0), g.scalar(1.0)))
+    s2 = g.op("Mul", s, s)
+    schlick = g.op("Mul", g.op("Mul", s2, s2), s)
+    fresnel = g.op("Add", f0, g.op("Mul", g.op("Sub", g.scalar(1.0), f0), schlick))
+    masking = g.op("Mul", g.op("Mul", distribution, smith_g1(cos_i)), smith_g1(cos_o))
+    specular = g.op("Div", g.op("Mul", masking, fresnel), g.op("Mul", clamp_low(cos_o, BASE_COS_FLOOR), g.scalar(4.0)))
+    diffuse = g.op("Mul", columns(0, 3), g.op("Div", cos_i, g.scalar(math.pi)))
+    wi_z = g.op("MatMul", wi3, g.const(np.array([[0.0], [0.0], [1.0]], np.float32)))
+    return g.op("Div", g.op("Add", diffuse, specular), clamp_low(wi_z, BASE_WI_FLOOR))
+
+
+def _corrected(g: GraphWriter, base: str, out: str) -> str:
+    """base (M, 3), decoder output (M, BASE_OUTPUTS) -> base * exp(min(c, ceiling)) + a (`base.corrected`)."""
+    log_part = np.zeros((BASE_OUTPUTS, 3), np.float32)
+    log_part[:3] = np.eye(3)
+    add_part = np.zeros((BASE_OUTPUTS, 3), np.float32)
+    add_part[3:] = np.eye(3)
+    c = g.op("Min", g.op("MatMul", out, g.const(log_part)), g.scalar(BASE_LOG_CEILING))
+    return g.op("Add", g.op("Mul", base, g.op("Exp", c)), g.op("MatMul", out, g.const(add_part)))
 
 
 def _query_columns(g: GraphWriter, q: str) -> tuple[str, str, str]:
@@ -196,24 +263,35 @@ def material_graph(g: GraphWriter, config: MaterialConfig, weights: dict,
 
     # --- trilinear pyramid lookup, then the decoder once per light -------------------------------
     atlas = g.const(weights[W.PYRAMID], name=W.PYRAMID)
-    texels, tap_w = pyramid_texels(g, config, atlas, config.channels, g.wrap(uv), sigma, finest_level)
+    uvw = g.wrap(uv)
+    texels, tap_w = pyramid_texels(g, config, atlas, config.channels, uvw, sigma, finest_level)
     half_inputs = W.HALF_INPUTS if config.half_vector else 0
     shared = _first_layer(g, q, texels, tap_w, 8, [C.WO_X, C.WO_Y], weights, W.DECODER, 4 + half_inputs)  # (hidden, N)
     wi, n, k, kn = _lights(g, q)  # (K N, 2)
+    per_light: list[str] = []  # Tile repeats of a group's row, light-major (made when a stage needs it)
+
+    def each_light(x: str) -> str:
+        """A group's rows (N, F) -> (K N, F), row j N + n that of group n."""
+        if not per_light:
+            per_light.append(g.op("Concat", k, g.const([1], np.int64), axis=0))
+        return g.op("Tile", x, per_light[0])
+
     w = weights[W.weight(W.DECODER, 0)]
     light = g.product(w[:, -4:-2], wi, rows=True, name=W.half_weight(W.DECODER, 0, "light"))  # (hidden, K N)
     hidden = g.op("Add", g.op("Tile", shared, g.op("Concat", g.const([1], np.int64), k, axis=0)), light)
     if config.half_vector:  # per light: h and cos(theta_d) from its wi and the group's wo
-        wo_rows = g.op("Tile", wo, g.op("Concat", k, g.const([1], np.int64), axis=0))  # (K N, 2), light-major
         texture = config.channels
-        half = g.product(w[:, texture : texture + half_inputs], _half_vector(g, wi, wo_rows), rows=True,
+        half = g.product(w[:, texture : texture + half_inputs], _half_vector(g, wi, each_light(wo)), rows=True,
                          name=W.half_weight(W.DECODER, 0, "half_vector"))  # (hidden, K N)
         hidden = g.op("Add", hidden, half)
     if config.layers > 1:
         hidden = g.op("Relu", hidden)
-    out = g.mlp(hidden, weights, W.DECODER, config.layers, first=1)  # (O, K N)
+    out = g.op("Transpose", g.mlp(hidden, weights, W.DECODER, config.layers, first=1), perm=[1, 0])  # (K N, O)
     size = head.outputs(config.head)
-    rows = _reshape(g, g.op("Transpose", out, perm=[1, 0]), k, n, size)  # (K, N, O)
+    if config.base:  # per light: the base's answer from the group's maps, corrected by the decoder
+        maps = each_light(_base_maps(g, config, weights, uvw, sigma))  # (K N, BASE_CHANNELS)
+        out = _corrected(g, _base_answer(g, maps, wi, each_light(wo)), out)
+    rows = _reshape(g, out, k, n, size)  # (K, N, O)
     rows = _reshape(g, g.op("Transpose", rows, perm=[1, 0, 2]), kn, size)  # (N K, O)
     return rows, [n, g.op("Mul", k, g.const([C.RGB_DIM], np.int64))]
 
@@ -303,7 +381,7 @@ def random_weights(config: MaterialConfig, seed: int = 0, scale: float = 0.5) ->
     """Random weights of the right shapes: a material whose answers are positive and vary with
     position, footprint and directions in every channel, whatever the seed.
 
-    Textures are N(0, scale^2); every layer's weights N(0, 2 / fan_in) (He: the signal keeps its size
+    Textures are N(0, scale^2) (a base's maps: colours, slopes and alpha^2 in their ranges); every layer's weights N(0, 2 / fan_in) (He: the signal keeps its size
     through the ReLUs), hidden biases small and positive (units stay alive). The decoder's last layer
     has positive weights on ReLU outputs (>= 0) and a positive bias, so each channel answers its bias
     plus a query-dependent non-negative sum (with one layer only the bias is positive).
@@ -318,6 +396,9 @@ def random_weights(config: MaterialConfig, seed: int = 0, scale: float = 0.5) ->
         elif name.endswith("bias"):
             out[name] = (rng.uniform(0.1, 0.3, shape) if name == W.bias(W.DECODER, config.layers - 1)
                          else rng.uniform(0.0, 0.1, shape))
+        elif name == W.BASE:  # maps a base can hold: colours and F0 in [0, 1), slopes, alpha^2 in (0, 1)
+            out[name] = np.concatenate([rng.uniform(0, 1, (shape[0], 6)), rng.normal(size=(shape[0], 2)) * 0.5,
+                                        rng.uniform(0.01, 1, (shape[0], 1))], axis=1)
         else:  # a texture
             out[name] = rng.normal(size=shape) * scale
     return {name: value.astype(np.float32) for name, value in out.items()}

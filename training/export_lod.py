@@ -38,7 +38,8 @@ def clip_min(finest_level: int) -> float:
 
 
 def clip_node(graph) -> "onnx.NodeProto":
-    """The level-of-detail Clip of an exported graph (the graph's only Clip; `level_of_detail`)."""
+    """The level-of-detail Clip of an exported graph (the graph's only Clip; `level_of_detail`; a model
+    with a base has a second one, and `neumip trim` refuses it)."""
     clips = [node for node in graph.node if node.op_type == "Clip"]
     if len(clips) != 1:
         raise ValueError(f"expected the level-of-detail Clip, found {len(clips)} Clip nodes")
@@ -86,16 +87,17 @@ def _with_scale(config: MaterialConfig, finest_level: int, tables: dict | None) 
     return {"scale": scale_table(config, finest_level), **(tables or {})}
 
 
-def level_rows(g: GraphWriter, steps: str, tables: dict[str, np.ndarray]) -> dict[str, str]:
-    """Level steps (N, L) -> each (L + 1, k) table's row lo, (N, k): one Gemm each (exact)."""
+def level_rows(g: GraphWriter, steps: str, tables: dict[str, np.ndarray], prefix: str = "") -> dict[str, str]:
+    """Level steps (N, L) -> each (L + 1, k) table's row lo, (N, k): one Gemm each (exact). The
+    initializers are named ``{prefix}lod.*`` (a second pyramid's stage, the base maps', has its own)."""
     consts = level_constants(tables)
-    return {name: g.op("Gemm", steps, g.const(consts[f"lod.{name}.steps"], name=f"lod.{name}.steps"),
-                       g.const(consts[f"lod.{name}.first"], name=f"lod.{name}.first"))
+    return {name: g.op("Gemm", steps, g.const(consts[f"lod.{name}.steps"], name=f"{prefix}lod.{name}.steps"),
+                       g.const(consts[f"lod.{name}.first"], name=f"{prefix}lod.{name}.first"))
             for name in tables}
 
 
 def level_of_detail(g: GraphWriter, sigma: str, config: MaterialConfig, finest_level: int = 0,
-                    tables: dict[str, np.ndarray] | None = None) -> tuple[dict[str, str], str]:
+                    tables: dict[str, np.ndarray] | None = None, prefix: str = "") -> tuple[dict[str, str], str]:
     """sigma (N, 1) -> (row lo (N, k) of each per-level table (L + 1, k) of `tables`, the fraction
     t (N, 1) in [0, 1) towards level lo + 1); lo + t = clamp(log2(sigma * R), K, L), sigma <= 0
     reading the finest level K.
@@ -109,6 +111,6 @@ def level_of_detail(g: GraphWriter, sigma: str, config: MaterialConfig, finest_l
              g.const(2.0**levels))
     inverse = (2.0 ** -np.arange(1, max(levels, 1) + 1))[None, :]  # (1, L): x 2^-j, exact
     steps = g.op("Min", g.op("Floor", g.op("MatMul", x, g.const(inverse))), g.scalar(1.0))  # (N, L)
-    rows = level_rows(g, steps, _with_scale(config, finest_level, tables))
+    rows = level_rows(g, steps, _with_scale(config, finest_level, tables), prefix)
     t = log2_mantissa(g, g.op("Mul", x, rows.pop("scale")))  # m = x 2^-lo (N, 1) in [1, 2)
     return rows, t

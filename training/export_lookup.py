@@ -141,15 +141,15 @@ def _gather(g: GraphWriter, table: str, line: str, bases: str, levels: int, widt
 
 
 def pyramid_texels(g: GraphWriter, config: MaterialConfig, atlas: str, width: int, uvw: str,
-                   sigma: str, finest_level: int = 0) -> tuple[str, str]:
+                   sigma: str, finest_level: int = 0, prefix: str = "") -> tuple[str, str]:
     """Trilinear footprint: uvw (N, 2) in [0, 1], sigma (N, 1) -> texels (N, 8 width), weights (N, 8).
 
     `atlas` (T, width) holds the pyramid levels flat, finest first, from level ``finest_level`` on (a
     trimmed model): only the table rows move, so a query of level >= K reads the same texels with
-    the same weights.
+    the same weights. `prefix` names a second pyramid's level-of-detail constants (`export_lod.level_rows`).
     """
     tables, _ = trimmed_atlas(config, finest_level)
-    rows, t = level_of_detail(g, sigma, config, finest_level, level_tables(config, finest_level))
+    rows, t = level_of_detail(g, sigma, config, finest_level, level_tables(config, finest_level), prefix)
     size, coef, bases = rows["size"], rows["coef"], rows["base"]  # (N, 4), (N, 4), (N, 2)
     both = g.op("MatMul", uvw, g.const(np.tile(np.eye(2, dtype=np.float32), (1, 2))))  # (N, 4) u v u v
     x = g.op("Sub", g.op("Mul", both, size), g.scalar(0.5))  # (N, 4) texel coordinates per level

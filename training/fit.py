@@ -64,6 +64,10 @@ class FitSettings:
     """Description whose ground truth the progress grid shows (None: the fitted one)."""
     maps: MapConfig | None = None
     """Train a map-informed material whose encoder reads the description's maps (None: the paper's model)."""
+    choose_base: bool = False
+    """Train the model without and with the classical base (`MaterialConfig.base` at the maps' resolution,
+    ``WORK/checkpoint.pt`` and ``WORK/base/checkpoint.pt``) on the same data and keep the one with the lower
+    held-out MSE (`material.base` is then ignored)."""
 
 
 def work_folder(output: str | Path, work: str | Path | None = None) -> Path:
@@ -104,8 +108,14 @@ def fit(description, output: str | Path, settings: FitSettings, report: Report |
     report(STAGES[1], 0, None)
     views = trace_views(data.meta.get("material") or {}, ViewGrid(), resolution, work / "views",
                         settings.views_material, data.meta.get("description_dir"))
-    maps = None if settings.maps is None else (settings.maps, resolve(description))
-    trainer = Trainer(data.path, work / "checkpoint.pt", settings.material, settings.train, settings.description, maps)
+    geo = resolve(description)
+    maps = (settings.maps, geo)
+    if settings.choose_base:
+        from .base import base_resolution
+        candidates = [(replace(settings.material, base=0), work), (replace(settings.material, base=base_resolution(geo)),
+                                                                   work / "base")]
+    else:
+        candidates = [(settings.material, work)]
     grid_png = progress_path(output)
 
     def progress(trainer: Trainer) -> None:
@@ -113,7 +123,19 @@ def fit(description, output: str | Path, settings: FitSettings, report: Report |
         if on_progress is not None:
             on_progress(trainer)
 
-    report(STAGES[2], trainer.steps_done, trainer.config.total_steps)
-    table = trainer.run(lambda step, loss: report(STAGES[2], step, trainer.config.total_steps), progress)
+    total = len(candidates) * settings.train.total_steps
+    kept, held_out = None, []
+    for i, (material, folder) in enumerate(candidates):
+        before = i * settings.train.total_steps  # steps of the candidates trained before this one
+        trainer = Trainer(data.path, folder / "checkpoint.pt", material, settings.train, settings.description, maps)
+        report(STAGES[2], before + trainer.steps_done, total)
+        table = trainer.run(lambda step, loss: report(STAGES[2], before + step, total), progress)
+        held_out.append(table["overall"]["mse"])
+        if kept is None or held_out[-1] < kept[1]["overall"]["mse"]:
+            kept = (trainer, table)
+    trainer, table = kept
+    if settings.choose_base:  # recorded in NAME.json and the model's metadata beside the validation table
+        table = {**table, "base_choice": {"held_out_mse_without": held_out[0], "held_out_mse_with": held_out[1],
+                                          "kept": "with" if held_out[1] < held_out[0] else "without"}}
     report(STAGES[3], 0, None)
     return table, install_outputs(trainer, table, output, views)

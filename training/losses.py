@@ -2,7 +2,13 @@
 
 `comb2` (author code) compares log1p(max(x, -0.1)) of prediction and target: a specular highlight
 100x brighter than its surroundings then weighs like a few-times-brighter one, instead of taking
-over the whole batch as it does under plain MSE.
+over the whole batch as it does under plain MSE. But a log loss is biased under noisy targets: the
+minimiser of E[(log p - log t)^2] is the geometric mean of t, darker than its mean where the 16-spp
+targets are noisy (highlights, shadows' edges).
+
+`relative_mse` (Lehtinen et al., Noise2Noise) divides the squared error by the prediction squared,
+detached from the gradient, plus `RELATIVE_FLOOR`: a highlight weighs as much as its surround, yet the
+minimiser of each term is the target's mean, so noise does not bias it.
 """
 
 from __future__ import annotations
@@ -26,6 +32,16 @@ def comb2(pred: torch.Tensor, target: torch.Tensor, l1_weight: float = 0.1) -> t
     return (diff * diff).mean() + l1_weight * diff.abs().mean()
 
 
+RELATIVE_FLOOR = 0.01
+"""Added to the detached prediction squared in `relative_mse`'s denominator (dark values do not blow up)."""
+
+
+def relative_mse(pred: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
+    """(N, 3), (N, 3) -> scalar mean of (pred - target)^2 / (pred^2 + RELATIVE_FLOOR), the denominator detached."""
+    diff = pred - target
+    return (diff * diff / (pred.detach() ** 2 + RELATIVE_FLOOR)).mean()
+
+
 def mse(pred: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
     """(N, 3), (N, 3) -> scalar mean squared error in linear RGB."""
     diff = pred - target
@@ -36,4 +52,6 @@ def training_loss(pred: torch.Tensor, target: torch.Tensor, config: TrainConfig)
     """The loss `config.loss` names, (N, 3), (N, 3) -> scalar."""
     if config.loss == "comb2":
         return comb2(pred, target, config.l1_weight)
+    if config.loss == "relative":
+        return relative_mse(pred, target)
     return mse(pred, target)

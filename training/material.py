@@ -11,12 +11,13 @@ from neumip.core import contract as C
 from neumip.core import head
 from neumip.core import weights as W
 from neumip.core.config import HALF_FLOOR, MaterialConfig
+from .base import base_answer, corrected, lift
 from .maps import MapConfig, level_feature
 from .offset import parallax_shift
 from .pyramid import pyramid_lookup, texture_lookup
 
 
-def mlp(inputs: int, hidden: int, outputs: int, layers: int) -> nn.Sequential:
+def mlp(inputs: int, outputs: int, layers: int, hidden: int) -> nn.Sequential:
     """`layers` linear layers with ReLU between them (none after the last)."""
     widths = [inputs] + [hidden] * (layers - 1) + [outputs]
     mods: list[nn.Module] = []
@@ -36,13 +37,26 @@ class NeuMIPMaterial(nn.Module):
         self.pyramid = nn.ParameterList(
             nn.Parameter(torch.randn(s, s, config.channels) * init_std) for s in config.level_sizes()
         )
-        self.decoder = mlp(W.mlps(config)[W.DECODER][0], config.hidden, head.outputs(config.head), config.layers)
+        self.decoder = mlp(*W.mlps(config)[W.DECODER], config.layers, hidden=config.hidden)
+        if config.base:  # the answer starts as the base's: zero correction, zero additive term
+            nn.init.zeros_(self.decoder[-1].weight)
+            nn.init.zeros_(self.decoder[-1].bias)
+            self.register_buffer(W.BASE, torch.zeros(W.weight_shapes(config)[W.BASE]))
         if config.head == "yuv":
             self.register_buffer("yuv_to_rgb", torch.tensor(head.YUV_TO_RGB.T, dtype=torch.float32), persistent=False)
         if config.offset:
             r = config.resolution
             self.offset_texture = nn.Parameter(torch.randn(r, r, config.offset_channels) * init_std)
-            self.offset_mlp = mlp(config.offset_channels + 2, config.hidden, 1, config.layers)
+            self.offset_mlp = mlp(*W.mlps(config)[W.OFFSET_MLP], config.layers, hidden=config.hidden)
+
+    @torch.no_grad()
+    def set_base(self, levels: list) -> None:
+        """Store the base maps' pyramid (`base.base_maps`: (S, S, BASE_CHANNELS) per level, finest first)."""
+        atlas = torch.cat([torch.as_tensor(lvl, dtype=torch.float32).reshape(-1, self.base_maps.shape[1])
+                           for lvl in levels])
+        if atlas.shape != self.base_maps.shape:
+            raise ValueError(f"base maps of {atlas.shape[0]} texels, the config's base pyramid has {self.base_maps.shape[0]}")
+        self.base_maps.copy_(atlas)
 
     def textures(self) -> tuple[list[torch.Tensor], torch.Tensor | None]:
         """The raw neural textures: pyramid levels (finest first, each (S, S, C)) and the offset texture."""
@@ -91,6 +105,9 @@ class NeuMIPMaterial(nn.Module):
         if self.config.half_vector:
             features = torch.cat([features, half_vector(directions[:, :2], directions[:, 2:])], dim=1)
         out = self.decoder(torch.cat([features, directions], dim=1))
+        if self.config.base:
+            maps = pyramid_lookup(self.base_maps, self.config.base_pyramid(), u, v, sigma)
+            out = corrected(base_answer(maps, directions[:, :2], directions[:, 2:]), out)
         if self.config.head == "yuv":  # exp(YUV) - 1 times the shadow mask (core/head.py)
             shadow = head.SHADOW_FLOOR + torch.sigmoid(out[:, 3:])
             out = torch.expm1(out[:, :3] @ self.yuv_to_rgb) * shadow
@@ -100,8 +117,7 @@ class NeuMIPMaterial(nn.Module):
 def half_vector(wi: torch.Tensor, wo: torch.Tensor) -> torch.Tensor:
     """(N, 2) wi, wo (x, y of unit vectors, z >= 0) -> (N, 4): h = normalize(wi + wo) and cos(theta_d) = h . wi
     (`MaterialConfig.half_vector`; the graph computes the same in `export._half_vector`)."""
-    wi3, wo3 = (torch.cat([w, torch.sqrt(torch.clamp(1.0 - (w * w).sum(1, keepdim=True), min=0.0))], dim=1)
-                for w in (wi, wo))
+    wi3, wo3 = lift(wi), lift(wo)
     total = wi3 + wo3
     h = total / torch.sqrt(torch.clamp((total * total).sum(1, keepdim=True), min=HALF_FLOOR))
     return torch.cat([h, (h * wi3).sum(1, keepdim=True)], dim=1)
@@ -145,9 +161,9 @@ class MapMaterial(NeuMIPMaterial):
         for i, size in enumerate(sizes):
             value = torch.zeros(size, size, maps.features) if features is None else torch.as_tensor(features[i])
             self.register_buffer(f"map_features_{i}", value.to(torch.float32).clone())
-        self.encoder = mlp(maps.inputs, maps.hidden, config.channels, maps.layers)
+        self.encoder = mlp(maps.inputs, config.channels, maps.layers, hidden=maps.hidden)
         if config.offset:
-            self.offset_encoder = mlp(maps.inputs, maps.hidden, config.offset_channels, maps.layers)
+            self.offset_encoder = mlp(maps.inputs, config.offset_channels, maps.layers, hidden=maps.hidden)
         self.register_state_dict_post_hook(_state_with_textures)
         self.register_load_state_dict_pre_hook(_free_parts_from_state)
 

@@ -28,6 +28,7 @@ from neumip.core.config import MaterialConfig
 from .dataset import Dataset, open_dataset
 from neumip.core.head import answer_bias
 from .losses import training_loss
+from .base import base_maps
 from .maps import MapConfig, prefilter
 from .material import MapMaterial, NeuMIPMaterial
 from .microgeometry.description import Microgeometry
@@ -167,12 +168,16 @@ class Trainer:
         material_config: MaterialConfig,
         config: TrainConfig,
         description: str = "",
-        maps: tuple[MapConfig, Microgeometry] | None = None,
+        maps: tuple[MapConfig | None, Microgeometry] | None = None,
     ) -> None:
-        """`maps`: train a map-informed material (`MapMaterial`) whose encoder reads these maps,
-        prefiltered to the pyramid's levels; None: the paper's model."""
+        """`maps`: the material's maps. With a MapConfig, train a map-informed material (`MapMaterial`)
+        whose encoder reads them, prefiltered to the pyramid's levels (None: the paper's model); with
+        `MaterialConfig.base` they make the base (`base.base_maps`)."""
         self.data = open_dataset(data_path)
         self.map_config = maps[0] if maps is not None else None
+        if material_config.base and maps is None:
+            raise TrainingError("a material with a base needs the material's maps (the data's description)")
+        self._geometry = maps[1] if maps is not None else None
         self.checkpoint_path = Path(checkpoint_path)
         self.config, self.description = config, description
         self.device = resolve_device(config.device)
@@ -182,7 +187,8 @@ class Trainer:
         if self.checkpoint_path.exists():
             self.material = self._resume(material_config)
         else:
-            features = None if maps is None else prefilter(maps[1], material_config.level_sizes(), maps[0].horizons)
+            features = (None if self.map_config is None
+                        else prefilter(maps[1], material_config.level_sizes(), self.map_config.horizons))
             self._new_material = lambda seed: self._initial_material(material_config, features, seed)
             self.material = self._new_material(config.seed)
             self.optimizer = _make_optimizer(self.material, config)
@@ -197,7 +203,10 @@ class Trainer:
             material = NeuMIPMaterial(material_config)
         else:
             material = MapMaterial(material_config, self.map_config, features)
-        init_output(material, self.data.rgb[self.train_idx[:: max(1, len(self.train_idx) // 4096)]])
+        if material_config.base:  # the answer starts as the base's (the decoder's last layer is zero)
+            material.set_base(base_maps(self._geometry, material_config.base))
+        else:
+            init_output(material, self.data.rgb[self.train_idx[:: max(1, len(self.train_idx) // 4096)]])
         return material.to(self.device)
 
     @property

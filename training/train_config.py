@@ -11,6 +11,9 @@ from dataclasses import asdict, dataclass, replace
 
 from neumip.core.config import dataclass_from_dict
 
+LOSSES = ("comb2", "mse", "relative")
+"""Names of the training losses (`TrainConfig.loss`, `losses.training_loss`)."""
+
 
 @dataclass(frozen=True)
 class TrainConfig:
@@ -28,7 +31,8 @@ class TrainConfig:
     lr_final: float = 0.05
     """Final learning rate of the cosine schedule, as a fraction of `lr`."""
     loss: str = "comb2"
-    """'comb2': MSE of log1p(max(x, -0.1)) plus l1_weight x L1 of the same (author code); 'mse': plain MSE."""
+    """'comb2': MSE of log1p(max(x, -0.1)) plus l1_weight x L1 of the same (author code); 'mse': plain MSE;
+    'relative': MSE over the detached prediction squared (unbiased under noisy targets, `losses.relative_mse`)."""
     l1_weight: float = 0.1
     """Weight of the L1 term in the comb2 loss."""
     blur_start: float = 8.0
@@ -77,8 +81,8 @@ class TrainConfig:
         if self.lr_schedule not in ("constant", "cosine") or not 0 <= self.lr_final <= 1:
             raise ValueError(f"lr_schedule must be 'constant' or 'cosine' and lr_final in [0, 1], "
                              f"got {self.lr_schedule!r}, {self.lr_final}")
-        if self.loss not in ("comb2", "mse"):
-            raise ValueError(f"loss must be 'comb2' or 'mse', got {self.loss!r}")
+        if self.loss not in LOSSES:
+            raise ValueError(f"loss must be one of {LOSSES}, got {self.loss!r}")
         if not 0 < self.holdout < 1:
             raise ValueError(f"holdout must be in (0, 1), got {self.holdout}")
         if self.blur_half_life <= 0 or self.blur_start < 0 or self.blur_min <= 0:

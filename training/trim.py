@@ -94,6 +94,9 @@ def _replace(graph, name: str, expected: np.ndarray, value: np.ndarray) -> None:
 def trim_model(model: onnx.ModelProto, finest_level: int) -> onnx.ModelProto:
     """A copy of exported `model` holding pyramid levels ``finest_level``..L only (see the module)."""
     config = model_config(model)
+    if config.base:
+        raise TrimError("this model has a base (MaterialConfig.base), whose maps' pyramid trim does not cut: "
+                        "trimming such a model is not supported")
     before = current_trim(model)
     old = before.finest_level if before else 0
     if not old <= finest_level <= config.levels:

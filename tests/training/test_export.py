@@ -20,12 +20,17 @@ def torch_eval(material: NeuMIPMaterial, q: np.ndarray) -> np.ndarray:
         return material(torch.from_numpy(q)).numpy()
 
 
-@pytest.fixture(scope="module", params=[(True, False), (False, False), (True, True)],
-                ids=["offset", "no-offset", "half-vector"])
+@pytest.fixture(scope="module", params=[(True, False, 0), (False, False, 0), (True, True, 0), (True, False, 64)],
+                ids=["offset", "no-offset", "half-vector", "base"])
 def pair(request):
     torch.manual_seed(3)
-    cfg = MaterialConfig(resolution=32, offset=request.param[0], half_vector=request.param[1])
+    cfg = MaterialConfig(resolution=32, offset=request.param[0], half_vector=request.param[1], base=request.param[2])
     material = NeuMIPMaterial(cfg, init_std=0.5)
+    if cfg.base:  # maps of a base's ranges, and a decoder that corrects the base (its last layer starts at 0)
+        weights = random_weights(cfg, seed=4)
+        with torch.no_grad():
+            material.base_maps.copy_(torch.from_numpy(weights["base_maps"]))
+            material.decoder[-1].weight.normal_(0.0, 0.2)
     # make the offset large enough to matter (random init gives tiny depths)
     if cfg.offset:
         with torch.no_grad():

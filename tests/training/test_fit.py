@@ -55,9 +55,11 @@ def test_train_views_find_the_maps_of_data_made_in_another_folder(material, tmp_
     monkeypatch.chdir(elsewhere)
     caplog.set_level(logging.WARNING)
     argv = ["train", str(data), "-o", str(tmp_path / "my.onnx"), "--preset", "test", "--steps", "10",
-            "--batch", "256", "--checkpoint", str(tmp_path / "run" / "ck.pt"), "--threads", "1"]
+            "--batch", "256", "--checkpoint", str(tmp_path / "run" / "ck.pt"), "--threads", "1", "--base"]
     assert main(argv) == 0
     assert "no ground truth for the progress grid" not in caplog.text
+    record = json.loads((tmp_path / "my.json").read_text())
+    assert record["material_config"]["base"] == 8  # the data's material's maps make the base
     views = json.loads((tmp_path / "run" / "views" / "meta.json").read_text())
     assert views["complete"] and views["material"]["name"] == "my"
 
@@ -143,19 +145,21 @@ def test_fit_command_imports_torch_only_after_setting_its_threads():
 
 def test_fit_samples_the_maps_footprints_and_trains_a_map_model(material, tmp_path, capsys):
     """A model coarser than the maps: its queries (per model texel) have footprints sampled for the
-    maps' resolution; --maps trains the map-informed model, whose export answers as its checkpoint."""
+    maps' resolution; --maps trains the map-informed model, with --base on the maps' base, whose export
+    answers as its checkpoint."""
     from neumip.client.local import LocalMaterials, load_material
     from neumip.core.contract import random_queries
     from neumip.training import checkpoint
 
     out = tmp_path / "my.onnx"
     argv = ["fit", str(material), "-o", str(out), "--preset", "test", "--steps", "10", "--spp", "2",
-            "--queries-per-texel", "32", "--resolution", "4", "--maps", "--half-vector", "--threads", "1"]
+            "--queries-per-texel", "32", "--resolution", "4", "--maps", "--half-vector", "--base", "--threads", "1"]
     assert main(argv) == 0
     meta = json.loads((tmp_path / "my.run" / "data" / "meta.json").read_text())
     assert (meta["generator"]["resolution"], meta["generator"]["queries"]) == (8, 32 * 4 * 4)
     record = json.loads(out.with_suffix(".json").read_text())
     assert record["material_config"]["resolution"] == 4 and record["material_config"]["half_vector"]
+    assert record["material_config"]["base"] == 8  # the maps' resolution
     assert "map-informed" in load_material(out).info()["description"]
     trained, _ = checkpoint.load(tmp_path / "my.run" / "checkpoint.pt")
     assert trained.maps is not None  # a MapMaterial
@@ -165,3 +169,22 @@ def test_fit_samples_the_maps_footprints_and_trains_a_map_model(material, tmp_pa
         want = trained(torch.from_numpy(queries)).numpy()
     np.testing.assert_allclose(LocalMaterials(tmp_path, threads=1).evaluate("my", queries), want, rtol=1e-4, atol=1e-5)
 
+
+
+def test_fit_base_auto_keeps_the_model_with_the_lower_held_out_error(material, tmp_path, capsys):
+    """--base auto trains without and with the classical base on the same data and keeps the better."""
+    from neumip.client.local import load_material
+
+    out = tmp_path / "auto.onnx"
+    argv = ["fit", str(material), "-o", str(out), "--preset", "test", "--steps", "10", "--spp", "2",
+            "--queries-per-texel", "32", "--resolution", "4", "--base", "auto", "--threads", "1"]
+    assert main(argv) == 0
+    record = json.loads(out.with_suffix(".json").read_text())
+    choice = record["validation"]["base_choice"]
+    with_base = choice["held_out_mse_with"] < choice["held_out_mse_without"]
+    assert choice["kept"] == ("with" if with_base else "without")
+    assert record["material_config"].get("base", 0) == (8 if with_base else 0)
+    assert record["validation"]["overall"]["mse"] == min(choice["held_out_mse_with"], choice["held_out_mse_without"])
+    assert (tmp_path / "auto.run" / "checkpoint.pt").exists() and (tmp_path / "auto.run" / "base" / "checkpoint.pt").exists()
+    assert "classical base: held-out MSE" in capsys.readouterr().out
+    assert (load_material(out).config.get("base", 0) == 8) == with_base  # the file is the kept model

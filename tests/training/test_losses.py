@@ -5,7 +5,7 @@ import math
 import pytest
 import torch
 
-from neumip.training.losses import comb2, log_space, mse, training_loss
+from neumip.training.losses import comb2, log_space, mse, relative_mse, training_loss
 from neumip.training.train_config import TrainConfig
 
 
@@ -37,3 +37,31 @@ def test_training_loss_follows_the_config():
     assert float(training_loss(pred, target, TrainConfig(loss="mse"))) == pytest.approx(4 / 3)
     assert float(training_loss(pred, target, TrainConfig(loss="comb2", l1_weight=0.0))) == pytest.approx(
         math.log(3) ** 2 / 3, rel=1e-6)
+
+
+def _fitted_constant(loss, targets: torch.Tensor) -> float:
+    """The constant prediction that `loss` settles on for these noisy targets (Adam from 1)."""
+    value = torch.ones(1, 3, requires_grad=True)
+    optimiser = torch.optim.Adam([value], lr=0.01)
+    for _ in range(1500):
+        optimiser.zero_grad()
+        loss(value.expand_as(targets), targets).backward()
+        optimiser.step()
+    return float(value.mean())
+
+
+def test_relative_mse_is_unbiased_under_noise_where_the_log_loss_is_not():
+    """Noisy targets of mean 2 (an exponential spread, like few-sample highlights): the relative MSE's
+    minimiser is their mean; comb2's is darker."""
+    torch.manual_seed(0)
+    targets = torch.distributions.Exponential(torch.tensor(0.5)).sample((4096, 3))
+    mean = float(targets.mean())
+    assert _fitted_constant(relative_mse, targets) == pytest.approx(mean, rel=0.02)
+    assert _fitted_constant(lambda p, t: comb2(p, t, 0.1), targets) < 0.8 * mean
+
+
+def test_relative_mse_weighs_errors_relative_to_the_prediction():
+    pred, target = torch.tensor([[1.0, 10.0, 100.0]]), torch.tensor([[1.1, 11.0, 110.0]])
+    per_channel = torch.tensor([0.01 / 1.01, 1.0 / 100.01, 100.0 / 10000.01])
+    assert float(relative_mse(pred, target)) == pytest.approx(float(per_channel.mean()), rel=1e-5)
+    assert float(training_loss(pred, target, TrainConfig(loss="relative"))) == float(relative_mse(pred, target))

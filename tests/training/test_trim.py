@@ -106,6 +106,12 @@ def test_refuses_a_graph_of_another_layout(untrimmed):
         trim_model(no_meta, 1)
 
 
+def test_refuses_a_model_with_a_base():
+    config = MaterialConfig(resolution=16, base=32)
+    with pytest.raises(TrimError, match="base"):
+        trim_model(build_onnx(config, random_weights(config)), 1)
+
+
 def test_cli_from_a_budget_and_the_listing(tmp_path, capsys, model_dir):
     budget = tmp_path / "budget.json"
     budget.write_text(json.dumps({"materials": [{"material": "rand16", "finest_level": 2}]}))
