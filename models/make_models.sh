@@ -4,12 +4,14 @@
 # (shared by NAME, NAME_nooffset, NAME_maps), then training with the preset $PRESET, replacing
 # models/NAME.onnx (--force). Each step resumes if interrupted (a checkpoint in runs/NAME/ from another
 # preset is refused: move it away). NAME_maps is the map-informed model (`neumip fit --maps`).
+# Materials defined by maps are fitted with --base auto (with and without the classical base, the one with the
+# lower held-out MSE kept); NAME_nooffset then takes NAME's choice, so the offset's gain compares like with like.
 # Defaults reproduce the models shipped now (`ship` preset, 64^2, 256 queries per texel, 16 spp).
 # PRESET=quality is the longer recipe measured in benchmarks/results/quality_levers_log.md ("Quality levers"): 10 000 steps of 16 384.
 # Run from the repository root: [PRESET=ship|quality] [RES=64] [THREADS=1] bash models/make_models.sh [NAME ...]
 # RAY=auto (or HOST:PORT, or local) runs data chunks and then one training per material as Ray tasks
 # (`neumip generate --ray`, `neumip train-many --ray`; pip install 'neumip[cluster]'); THREADS is
-# then the CPUs of each training task, and models already finished are skipped.
+# then the CPUs of each training task, and models already finished are skipped; train-many trains no base (BASE).
 set -euo pipefail
 NEUMIP=${NEUMIP:-.venv/bin/neumip}
 RES=${RES:-64}
@@ -18,6 +20,7 @@ SPP=${SPP:-16}
 PRESET=${PRESET:-ship}
 HIDDEN=${HIDDEN:-25}  # MLP width, the paper's; 48 was 0-32 % more accurate in images and 1.34x the render time (models/README.md)
 THREADS=${THREADS:-1}  # the shipped models were trained with one torch thread
+BASE=${BASE:-auto}  # classical base (fit --base): auto keeps it where it lowers the held-out MSE; NAME_nooffset follows NAME's choice; on; off
 HORIZONS=${HORIZONS:-8}  # NAME_maps: horizon features towards 8 azimuths (rock: better than none in all 8 close-up views, benchmarks/results/maps.txt)
 RAY=${RAY:-}
 names=("$@")
@@ -31,6 +34,21 @@ generate_data() {  # MATERIAL [--ray=ADDRESS]: the data `neumip fit` makes (foot
   res=$("${NEUMIP%neumip}python" -c "import sys; from neumip.training.microgeometry.description import find_description as f; print(max($RES, f(sys.argv[1]).resolution))" "$1")
   [ -f "$data/meta.json" ] && grep -q '"complete": true' "$data/meta.json" ||
     "$NEUMIP" generate "$1" -o "$data" --queries "$QUERIES" --queries-per-texel "$QPT" --resolution "$res" --spp "$SPP" --seed 0 "${@:2}"
+}
+has_maps() {  # MATERIAL: whether it is defined by principled maps (a base needs them; flat's [bsdf] is not)
+  "${NEUMIP%neumip}python" -c "import sys; from neumip.training.microgeometry.description import find_description, resolve; sys.exit(resolve(find_description(sys.argv[1])).bsdf is not None)" "$1"
+}
+base_flags() {  # NAME: the --base flags of its fit
+  local parent=${1%_nooffset}
+  [ "$BASE" = off ] && return 0
+  has_maps "$(material_of "$1")" || return 0
+  if [ "$BASE" = on ]; then echo --base; return 0; fi
+  if [ "$parent" != "$1" ] && [ -f "models/$parent.json" ]; then  # an ablation keeps its model's choice
+    "${NEUMIP%neumip}python" -c "import json, sys; sys.exit(not json.load(open(sys.argv[1]))['material_config'].get('base'))" \
+      "models/$parent.json" && echo --base
+    return 0
+  fi
+  echo --base auto
 }
 material_of() { local m=${1%_nooffset}; echo "${m%_maps}"; }  # rock_maps_nooffset -> rock
 describe() {  # NAME
@@ -53,6 +71,8 @@ for name in "${names[@]}"; do
   flags=()
   [[ "$name" == *_nooffset ]] && flags+=(--no-offset)
   [[ "$name" == *_maps* ]] && flags+=(--maps --horizons "$HORIZONS")
+  read -r -a base <<< "$(base_flags "$name")"
+  flags+=(${base[@]+"${base[@]}"})
   "$NEUMIP" fit "$material" -o "models/$name.onnx" --force --work "runs/$name" --data "$(data_dir "$material")" \
     --resolution "$RES" --queries-per-texel "$QPT" --spp "$SPP" --preset "$PRESET" --threads "$THREADS" \
     --hidden "$HIDDEN" ${flags[@]+"${flags[@]}"} --description "$(describe "$name")"

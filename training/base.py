@@ -19,9 +19,12 @@ Each level is the area average of the finest one's colour channels and of the he
 squares. The BSDF, on the normal n = normalize(-dh/du, -dh/dv, 1), under unit irradiance on the
 reference plane (`contract`)::
 
-    base = (kd / pi * max(n.wi, 0) + D G1(n.wi) G1(n.wo) F / (4 max(n.wo, BASE_COS_FLOOR))) / max(wi_z, BASE_WI_FLOOR)
+    base = (kd / pi * max(n.wi, 0) + D G1(n.wi) G1(n.wo) F / (4 max(n.wo, BASE_COS_FLOOR))) * S(g) / max(wi_z, BASE_WI_FLOOR)
 
-with the GGX distribution D, Smith's G1 and Schlick's Fresnel on h.wi. `base_maps` is numpy; `base_answer`
+with the GGX distribution D, Smith's G1 and Schlick's Fresnel on h.wi, and the shadow terminator's
+softening of a normal map (Chiang, Li and Burley 2019): g = min(1, wi_z / max(n.wi n_z, BASE_COS_FLOOR)),
+S(g) = g + g^2 - g^3. Without it a bump's side facing a grazing light answers up to 1 / wi_z times its
+flat value (the report's 85-degree light: 11x), far above what the relief, which shadows it, reflects. `base_maps` is numpy; `base_answer`
 torch; `export._base_answer` writes the same formula into the graph.
 """
 
@@ -108,7 +111,9 @@ def base_answer(features: torch.Tensor, wi: torch.Tensor, wo: torch.Tensor) -> t
     specular = distribution * smith_g1(cos_i, alpha2) * smith_g1(cos_o, alpha2) * fresnel / (
         4.0 * torch.clamp(cos_o, min=BASE_COS_FLOOR))
     diffuse = features[:, 0:3] * (cos_i / math.pi)
-    return (diffuse + specular) / torch.clamp(wi3[:, 2:3], min=BASE_WI_FLOOR)
+    wi_z = wi3[:, 2:3]
+    g = torch.clamp(wi_z / torch.clamp(cos_i * n[:, 2:3], min=BASE_COS_FLOOR), max=1.0)
+    return (diffuse + specular) * (g * (1.0 + g - g * g)) / torch.clamp(wi_z, min=BASE_WI_FLOOR)
 
 
 def corrected(base: torch.Tensor, out: torch.Tensor) -> torch.Tensor:

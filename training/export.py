@@ -216,8 +216,12 @@ def _base_answer(g: GraphWriter, maps: str, wi: str, wo: str) -> str:
     masking = g.op("Mul", g.op("Mul", distribution, smith_g1(cos_i)), smith_g1(cos_o))
     specular = g.op("Div", g.op("Mul", masking, fresnel), g.op("Mul", clamp_low(cos_o, BASE_COS_FLOOR), g.scalar(4.0)))
     diffuse = g.op("Mul", columns(0, 3), g.op("Div", cos_i, g.scalar(math.pi)))
-    wi_z = g.op("MatMul", wi3, g.const(np.array([[0.0], [0.0], [1.0]], np.float32)))
-    return g.op("Div", g.op("Add", diffuse, specular), clamp_low(wi_z, BASE_WI_FLOOR))
+    z = g.const(np.array([[0.0], [0.0], [1.0]], np.float32))
+    wi_z = g.op("MatMul", wi3, z)
+    terminator = g.op("Min", g.op("Div", wi_z, clamp_low(g.op("Mul", cos_i, g.op("MatMul", n, z)), BASE_COS_FLOOR)),
+                      g.scalar(1.0))
+    soften = g.op("Mul", terminator, g.op("Sub", g.op("Add", g.scalar(1.0), terminator), g.op("Mul", terminator, terminator)))
+    return g.op("Div", g.op("Mul", g.op("Add", diffuse, specular), soften), clamp_low(wi_z, BASE_WI_FLOOR))
 
 
 def _corrected(g: GraphWriter, base: str, out: str) -> str:

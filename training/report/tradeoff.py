@@ -46,6 +46,8 @@ class Variant:
     seed: int = 0
     maps: MapConfig | None = None
     """The map encoder of a map-informed variant (None: the paper's model)."""
+    classical: bool = False
+    """The classical base (`MaterialConfig.base` at the maps' resolution) under the decoder."""
 
 
 MAP_VARIANTS = {"maps": MapConfig(), "maps_hz": MapConfig(horizons=8)}
@@ -62,6 +64,8 @@ def variants(config: ReportConfig, maps: bool = True) -> list[Variant]:
     out += [replace(base, name="no_offset", offset=False)]
     if maps:
         out += [replace(base, name=name, maps=m) for name, m in MAP_VARIANTS.items()]
+        out += [replace(base, name="classical", classical=True),
+                replace(base, name="maps_hz_classical", maps=MAP_VARIANTS["maps_hz"], classical=True)]
     out += [replace(base, name=f"seed{s}", seed=s) for s in (1, 2)]
     return out
 
@@ -104,17 +108,19 @@ def train_variant(variant: Variant, data: Path, folder: Path, config: ReportConf
     onnx = folder / f"{variant.name}.onnx"
     if onnx.exists():
         return onnx, training_cost(folder, variant.name)
-    if variant.maps is not None and geo is None:
-        raise ValueError(f"variant {variant.name} is map-informed: pass the material's maps")
+    if (variant.maps is not None or variant.classical) and geo is None:
+        raise ValueError(f"variant {variant.name} reads the material's maps: pass them")
     scale = config.tradeoff_steps / QUICK.steps
     train = replace(QUICK, steps=config.tradeoff_steps, batch=config.tradeoff_batch, seed=variant.seed,
                     blur_half_life=QUICK.blur_half_life * scale, checkpoint_every=config.tradeoff_steps,
                     log_every=max(1, config.tradeoff_steps // 20), device="cpu")
+    from neumip.training.base import base_resolution
+
     material = MaterialConfig(resolution=variant.resolution, channels=variant.channels, hidden=variant.hidden,
-                              offset=variant.offset)
+                              offset=variant.offset, base=base_resolution(geo) if variant.classical else 0)
     torch.set_num_threads(1)  # one torch thread: faster than two on the shared, busy machine
     start = time.perf_counter()
-    maps = None if variant.maps is None else (variant.maps, geo)
+    maps = None if variant.maps is None and not variant.classical else (variant.maps, geo)
     trainer = Trainer(data, folder / f"{variant.name}.pt", material, train, f"trade-off {variant.name}", maps=maps)
     setup = time.perf_counter() - start  # opening the data; a map-informed variant also prefilters its maps
     table = trainer.run()
