@@ -49,8 +49,9 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--hidden", type=int, default=MaterialConfig.hidden, help=commands.HIDDEN_HELP)
     p.add_argument("--half-vector", action="store_true", help=commands.HALF_VECTOR_HELP)
     p.add_argument("--base", nargs="?", const="on", choices=("on", "auto"),
-                   help=commands.BASE_HELP + "; --base auto trains the model without and with it and keeps the one "
-                   "with the lower held-out MSE (twice the training time)")
+                   help=commands.BASE_HELP + "; --base auto trains the model without and with it and keeps the base only "
+                   "where it lowers the MSE on a low-noise reference set by 10 %% (fit.BASE_MARGIN; twice the "
+                   "training time)")
     p.add_argument("--steps", type=int, help="override the preset's TrainConfig.steps")
     p.add_argument("--candidates", type=int, help="override the preset's TrainConfig.candidates (best of this "
                    "many initial weights, compared after TrainConfig.candidate_steps steps)")
@@ -90,6 +91,8 @@ class StageBar:
                 self.bar.total, self.bar.unit, self.bar.unit_scale = total, unit, scale
                 self.bar.set_description(desc)
         bar = self.bar
+        if total is not None and bar.total != total:  # a stage that grows (the reference set after the data)
+            bar.total = total
         bar.update(done - bar.n)
         if stage == "training" and done % 10 == 0 and bar.format_dict["rate"]:
             bar.set_postfix(queries_per_s=f"{bar.format_dict['rate'] * self.batch / 1e6:.2f}M")
