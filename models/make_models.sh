@@ -73,7 +73,9 @@ for name in "${names[@]}"; do
   [[ "$name" == *_maps* ]] && flags+=(--maps --horizons "$HORIZONS")
   read -r -a base <<< "$(base_flags "$name")"
   flags+=(${base[@]+"${base[@]}"})
-  "$NEUMIP" fit "$material" -o "models/$name.onnx" --force --work "runs/$name" --data "$(data_dir "$material")" \
+  work="runs/$name"
+  [ "${base[*]-}" = --base ] && work="runs/$name/base"  # where --base auto trains its base candidate too
+  "$NEUMIP" fit "$material" -o "models/$name.onnx" --force --work "$work" --data "$(data_dir "$material")" \
     --resolution "$RES" --queries-per-texel "$QPT" --spp "$SPP" --preset "$PRESET" --threads "$THREADS" \
     --hidden "$HIDDEN" ${flags[@]+"${flags[@]}"} --description "$(describe "$name")"
 done

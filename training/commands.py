@@ -190,9 +190,9 @@ def print_finished(table: dict, paths: dict, kept: str) -> None:
     print(f"trained {table['steps']} steps{extra} in {table['train_seconds'] / 60:.1f} min; {kept}")
     if "base_choice" in table:
         choice = table["base_choice"]
-        print(f"classical base: reference MSE x1e-3 {choice['reference_mse_without'] * 1e3:.4f} without, "
-              f"{choice['reference_mse_with'] * 1e3:.4f} with (kept only {choice['margin'] * 100:.0f} % lower): the model "
-              f"{choice['kept']} it was kept")
+        print(f"classical base: reference log MSE x1e-3 {choice['reference_log_mse_without'] * 1e3:.4f} without, "
+              f"{choice['reference_log_mse_with'] * 1e3:.4f} with (kept only {choice['margin'] * 100:.0f} % lower): the "
+              f"model {choice['kept']} it was kept")
 
 
 def _train(args: argparse.Namespace) -> int:

@@ -50,8 +50,8 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--half-vector", action="store_true", help=commands.HALF_VECTOR_HELP)
     p.add_argument("--base", nargs="?", const="on", choices=("on", "auto"),
                    help=commands.BASE_HELP + "; --base auto trains the model without and with it and keeps the base only "
-                   "where it lowers the MSE on a low-noise reference set by 10 %% (fit.BASE_MARGIN; twice the "
-                   "training time)")
+                   "where it lowers the (log-space) error on a low-noise reference set by 10 %% (fit.BASE_MARGIN; "
+                   "twice the training time)")
     p.add_argument("--steps", type=int, help="override the preset's TrainConfig.steps")
     p.add_argument("--candidates", type=int, help="override the preset's TrainConfig.candidates (best of this "
                    "many initial weights, compared after TrainConfig.candidate_steps steps)")

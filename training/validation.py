@@ -31,7 +31,7 @@ def predict(
     return out
 
 
-def _errors(pred: np.ndarray, target: np.ndarray) -> dict[str, float]:
+def errors(pred: np.ndarray, target: np.ndarray) -> dict[str, float]:
     """Error figures of (n, 3) predictions against (n, 3) targets."""
     diff = pred.astype(np.float64) - target
     log_diff = np.log1p(np.maximum(pred, -0.1)) - np.log1p(np.maximum(target, -0.1))
@@ -58,8 +58,8 @@ def validation_table(
     for lvl in range(int(np.log2(resolution)) + 1):
         mask = level == lvl
         if mask.any():
-            rows.append({"level": lvl, **_errors(pred[mask], target[mask])})
-    return {"resolution": resolution, "levels": rows, "overall": _errors(pred, target)}
+            rows.append({"level": lvl, **errors(pred[mask], target[mask])})
+    return {"resolution": resolution, "levels": rows, "overall": errors(pred, target)}
 
 
 def format_table(table: dict) -> str:

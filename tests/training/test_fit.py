@@ -182,12 +182,12 @@ def test_fit_base_auto_keeps_the_base_only_where_it_lowers_the_reference_error(m
     assert main(argv) == 0
     record = json.loads(out.with_suffix(".json").read_text())
     choice = record["validation"]["base_choice"]
-    with_base = choice["reference_mse_with"] < (1 - choice["margin"]) * choice["reference_mse_without"]
+    with_base = choice["reference_log_mse_with"] < (1 - choice["margin"]) * choice["reference_log_mse_without"]
     assert choice["kept"] == ("with" if with_base else "without")
     assert record["material_config"].get("base", 0) == (8 if with_base else 0)
     run = tmp_path / "auto.run"
     assert (run / "checkpoint.pt").exists() and (run / "base" / "checkpoint.pt").exists()
     reference = json.loads((run / "reference" / "meta.json").read_text())
     assert reference["complete"] and reference["generator"]["spp"] == 256 and reference["n"] == 1 << 14
-    assert "classical base: reference MSE" in capsys.readouterr().out
+    assert "classical base: reference log MSE" in capsys.readouterr().out
     assert (load_material(out).config.get("base", 0) == 8) == with_base  # the file is the kept model
