@@ -37,11 +37,12 @@ def clip_min(finest_level: int) -> float:
     return 2.0**finest_level
 
 
-def clip_node(graph) -> "onnx.NodeProto":
-    """The level-of-detail Clip of an exported graph (the graph's only Clip; `level_of_detail`; a model
-    with a base has a second one, and `neumip trim` refuses it)."""
+def clip_node(graph, base: bool = False) -> "onnx.NodeProto":
+    """The pyramid's level-of-detail Clip of an exported graph (`level_of_detail`): the graph's only Clip,
+    or with a base (`MaterialConfig.base`) the first of two (the base maps' lookup is written after the
+    pyramid's)."""
     clips = [node for node in graph.node if node.op_type == "Clip"]
-    if len(clips) != 1:
+    if len(clips) != (2 if base else 1):
         raise ValueError(f"expected the level-of-detail Clip, found {len(clips)} Clip nodes")
     return clips[0]
 

@@ -94,9 +94,6 @@ def _replace(graph, name: str, expected: np.ndarray, value: np.ndarray) -> None:
 def trim_model(model: onnx.ModelProto, finest_level: int) -> onnx.ModelProto:
     """A copy of exported `model` holding pyramid levels ``finest_level``..L only (see the module)."""
     config = model_config(model)
-    if config.base:
-        raise TrimError("this model has a base (MaterialConfig.base), whose maps' pyramid trim does not cut: "
-                        "trimming such a model is not supported")
     before = current_trim(model)
     old = before.finest_level if before else 0
     if not old <= finest_level <= config.levels:
@@ -111,7 +108,7 @@ def trim_model(model: onnx.ModelProto, finest_level: int) -> onnx.ModelProto:
     old_lod, new_lod = (stage_constants(config, k, level_tables(config, k)) for k in (old, finest_level))
     for name, value in new_lod.items():
         _replace(g, name, old_lod[name], value)
-    _replace(g, clip_node(g).input[1], np.asarray(clip_min(old), np.float32),
+    _replace(g, clip_node(g, bool(config.base)).input[1], np.asarray(clip_min(old), np.float32),
              np.asarray(clip_min(finest_level), np.float32))
     starts = config.level_starts() + [config.atlas_rows()]
     expected = (starts[-1] - starts[old], config.channels)
