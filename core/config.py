@@ -23,9 +23,21 @@ def dataclass_from_dict(cls, data: dict):
 HALF_FLOOR = 1e-12
 """|wi + wo|^2 is clamped to at least this before the half vector is normalised (`MaterialConfig.half_vector`)."""
 
-BASE_CHANNELS = 9
+BASE_HORIZONS = 8
+"""Azimuths of the base's horizons (0, 45, ... degrees from +u towards +v)."""
+BASE_CHANNELS = 9 + BASE_HORIZONS
 """Channels of the base maps' pyramid (`MaterialConfig.base`): diffuse colour (3), specular F0 (3), the
-mean slopes dh/du, dh/dv (2) and the GGX alpha^2 with the slopes' variance added (1)."""
+mean slopes dh/du, dh/dv (2), the GGX alpha^2 with the slopes' variance added (1), and the sine of the
+horizon's elevation towards each of `BASE_HORIZONS` azimuths."""
+BASE_AZIMUTHS = tuple((math.cos(2 * math.pi * j / BASE_HORIZONS), math.sin(2 * math.pi * j / BASE_HORIZONS))
+                      for j in range(BASE_HORIZONS))
+"""Unit vectors (x, y) of the base's horizon azimuths."""
+BASE_AZIMUTH_KERNEL = math.cos(2 * math.pi / BASE_HORIZONS)
+"""An azimuth's weight towards wi is max(cos(phi - phi_j) - this, 0): non-zero for the two nearest only."""
+BASE_AZIMUTH_FLOOR = 1e-6
+"""|wi_xy| and the azimuth weights' sum are clamped to at least this (a light at the zenith clears every horizon)."""
+BASE_SHADOW_SOFTNESS = 0.1
+"""The base's shadow from its horizons: visibility clamp((wi_z - sin(horizon)) / softness + 1/2, 0, 1)."""
 BASE_OUTPUTS = 6
 """Decoder outputs with a base: a log-scale correction per RGB channel, then an additive term per channel."""
 BASE_ALPHA2_FLOOR = 1e-4

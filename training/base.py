@@ -13,6 +13,8 @@ answers a prefiltered version of it:
  6-7  the mean slopes dh/du, dh/dv of the height (tile units), the normal map's
  8    alpha^2 = roughness^4, plus the slopes' variance within the texel (LEAN mapping: a texel
       over bumps answers a wider lobe, not a flatter one)
+ 9-   sin of the horizon's elevation towards each of BASE_HORIZONS azimuths (`maps.horizon_angles`,
+      averaged over the texel): the height field's own shadows, which C lacks
 ====  =======================================================================================
 
 Each level is the area average of the finest one's colour channels and of the height's slopes and their
@@ -21,6 +23,9 @@ reference plane (`contract`)::
 
     base = (kd / pi * max(n.wi, 0) + D G1(n.wi) G1(n.wo) F / (4 max(n.wo, BASE_COS_FLOOR))) * S(g) / max(wi_z, BASE_WI_FLOOR)
 
+times the visibility V(wi) of the light above the horizon (horizon mapping: the sine of the horizon's
+elevation towards wi's azimuth, interpolated between its two nearest azimuths by weights max(cos(phi -
+phi_j) - cos(45 deg), 0), normalised; V = clamp((wi_z - sin(horizon)) / BASE_SHADOW_SOFTNESS + 1/2, 0, 1)),
 with the GGX distribution D, Smith's G1 and Schlick's Fresnel on h.wi, and the shadow terminator's
 softening of a normal map (Chiang, Li and Burley 2019): g = min(1, wi_z / max(n.wi n_z, BASE_COS_FLOOR)),
 S(g) = g + g^2 - g^3. Without it a bump's side facing a grazing light answers up to 1 / wi_z times its
@@ -35,10 +40,11 @@ import math
 import numpy as np
 import torch
 
-from neumip.core.config import (BASE_ALPHA2_FLOOR, BASE_CHANNELS, BASE_COS_FLOOR, BASE_LOG_CEILING,
+from neumip.core.config import (BASE_ALPHA2_FLOOR, BASE_AZIMUTH_FLOOR, BASE_AZIMUTH_KERNEL, BASE_AZIMUTHS,
+                                BASE_CHANNELS, BASE_COS_FLOOR, BASE_HORIZONS, BASE_LOG_CEILING, BASE_SHADOW_SOFTNESS,
                                 BASE_WI_FLOOR, HALF_FLOOR, MaterialConfig)
 
-from .maps import finest_statistics, resize
+from .maps import finest_statistics, horizon_angles, resize
 from .microgeometry.description import Microgeometry
 
 DIELECTRIC_F0 = 0.08
@@ -64,14 +70,15 @@ def base_maps(geo: Microgeometry, resolution: int) -> list[np.ndarray]:
     finest = np.concatenate([colour * (1 - metal), DIELECTRIC_F0 * geo.specular * (1 - metal) + colour * metal,
                              (rough**4)[..., None]], axis=2)  # (R, R, 7): kd, F0, alpha^2
     stats = finest_statistics(geo)[..., 1:6]  # slopes and their raw second moments
+    horizons = np.sin(horizon_angles(geo.height.astype(np.float64), BASE_HORIZONS) * (np.pi / 2))
     out = []
     for size in MaterialConfig(resolution=resolution).level_sizes():
         colours = resize(finest, size).astype(np.float64)
         m = resize(stats, size).astype(np.float64)
         sx, sy = m[..., 0], m[..., 1]
         variance = np.maximum(m[..., 2] - sx * sx, 0.0) + np.maximum(m[..., 3] - sy * sy, 0.0)
-        level = np.concatenate([colours[..., :6], sx[..., None], sy[..., None], (colours[..., 6] + variance)[..., None]],
-                               axis=2)
+        level = np.concatenate([colours[..., :6], sx[..., None], sy[..., None], (colours[..., 6] + variance)[..., None],
+                                resize(horizons, size)], axis=2)
         out.append(level.astype(np.float32))
     assert out[0].shape[2] == BASE_CHANNELS
     return out
@@ -113,7 +120,18 @@ def base_answer(features: torch.Tensor, wi: torch.Tensor, wo: torch.Tensor) -> t
     diffuse = features[:, 0:3] * (cos_i / math.pi)
     wi_z = wi3[:, 2:3]
     g = torch.clamp(wi_z / torch.clamp(cos_i * n[:, 2:3], min=BASE_COS_FLOOR), max=1.0)
-    return (diffuse + specular) * (g * (1.0 + g - g * g)) / torch.clamp(wi_z, min=BASE_WI_FLOOR)
+    lit = visibility(features[:, 9:], wi, wi_z)
+    return (diffuse + specular) * (g * (1.0 + g - g * g)) * lit / torch.clamp(wi_z, min=BASE_WI_FLOOR)
+
+
+def visibility(horizons: torch.Tensor, wi: torch.Tensor, wi_z: torch.Tensor) -> torch.Tensor:
+    """(N, BASE_HORIZONS) sines of the horizon, (N, 2) wi, (N, 1) its z -> (N, 1) the light's visibility."""
+    r = torch.sqrt(torch.clamp((wi * wi).sum(1, keepdim=True), min=BASE_AZIMUTH_FLOOR * BASE_AZIMUTH_FLOOR))
+    azimuths = torch.tensor(BASE_AZIMUTHS, dtype=wi.dtype, device=wi.device).T  # (2, BASE_HORIZONS)
+    kernel = torch.clamp(wi @ azimuths / r - BASE_AZIMUTH_KERNEL, min=0.0)
+    weights = kernel / torch.clamp(kernel.sum(1, keepdim=True), min=BASE_AZIMUTH_FLOOR)
+    horizon = (weights * horizons).sum(1, keepdim=True)
+    return torch.clamp((wi_z - horizon) / BASE_SHADOW_SOFTNESS + 0.5, min=0.0, max=1.0)
 
 
 def corrected(base: torch.Tensor, out: torch.Tensor) -> torch.Tensor:

@@ -41,8 +41,9 @@ from neumip.core import contract as C
 
 from neumip.core import head
 from neumip.core import weights as W
-from neumip.core.config import (BASE_ALPHA2_FLOOR, BASE_CHANNELS, BASE_COS_FLOOR, BASE_LOG_CEILING, BASE_OUTPUTS,
-                                BASE_WI_FLOOR, HALF_FLOOR, MaterialConfig)
+from neumip.core.config import (BASE_ALPHA2_FLOOR, BASE_AZIMUTH_FLOOR, BASE_AZIMUTH_KERNEL, BASE_AZIMUTHS,
+                                BASE_CHANNELS, BASE_COS_FLOOR, BASE_HORIZONS, BASE_LOG_CEILING, BASE_OUTPUTS,
+                                BASE_SHADOW_SOFTNESS, BASE_WI_FLOOR, HALF_FLOOR, MaterialConfig)
 from .export_lookup import pyramid_texels, texture_texels
 from .onnx_graph import GraphWriter
 
@@ -221,7 +222,21 @@ def _base_answer(g: GraphWriter, maps: str, wi: str, wo: str) -> str:
     terminator = g.op("Min", g.op("Div", wi_z, clamp_low(g.op("Mul", cos_i, g.op("MatMul", n, z)), BASE_COS_FLOOR)),
                       g.scalar(1.0))
     soften = g.op("Mul", terminator, g.op("Sub", g.op("Add", g.scalar(1.0), terminator), g.op("Mul", terminator, terminator)))
-    return g.op("Div", g.op("Mul", g.op("Add", diffuse, specular), soften), clamp_low(wi_z, BASE_WI_FLOOR))
+    lit = _visibility(g, columns(9, BASE_CHANNELS), wi, wi_z)
+    return g.op("Div", g.op("Mul", g.op("Mul", g.op("Add", diffuse, specular), soften), lit), clamp_low(wi_z, BASE_WI_FLOOR))
+
+
+def _visibility(g: GraphWriter, horizons: str, wi: str, wi_z: str) -> str:
+    """(M, BASE_HORIZONS) sines of the horizon, (M, 2) wi, (M, 1) its z -> (M, 1) as `base.visibility`."""
+    r2 = g.op("MatMul", g.op("Mul", wi, wi), g.const(np.ones((2, 1), np.float32)))
+    r = g.op("Sqrt", g.op("Max", r2, g.scalar(BASE_AZIMUTH_FLOOR * BASE_AZIMUTH_FLOOR)))
+    cosines = g.op("Div", g.op("MatMul", wi, g.const(np.array(BASE_AZIMUTHS, np.float32).T)), r)
+    kernel = g.op("Max", g.op("Sub", cosines, g.scalar(BASE_AZIMUTH_KERNEL)), g.scalar(0.0))
+    total = g.op("MatMul", kernel, g.const(np.ones((BASE_HORIZONS, 1), np.float32)))
+    weights = g.op("Div", kernel, g.op("Max", total, g.scalar(BASE_AZIMUTH_FLOOR)))
+    horizon = g.op("MatMul", g.op("Mul", weights, horizons), g.const(np.ones((BASE_HORIZONS, 1), np.float32)))
+    lit = g.op("Add", g.op("Div", g.op("Sub", wi_z, horizon), g.scalar(BASE_SHADOW_SOFTNESS)), g.scalar(0.5))
+    return g.op("Min", g.op("Max", lit, g.scalar(0.0)), g.scalar(1.0))
 
 
 def _corrected(g: GraphWriter, base: str, out: str) -> str:
@@ -400,9 +415,10 @@ def random_weights(config: MaterialConfig, seed: int = 0, scale: float = 0.5) ->
         elif name.endswith("bias"):
             out[name] = (rng.uniform(0.1, 0.3, shape) if name == W.bias(W.DECODER, config.layers - 1)
                          else rng.uniform(0.0, 0.1, shape))
-        elif name == W.BASE:  # maps a base can hold: colours and F0 in [0, 1), slopes, alpha^2 in (0, 1)
+        elif name == W.BASE:  # maps a base can hold: colours and F0 in [0, 1), slopes, alpha^2 in (0, 1), horizons
             out[name] = np.concatenate([rng.uniform(0, 1, (shape[0], 6)), rng.normal(size=(shape[0], 2)) * 0.5,
-                                        rng.uniform(0.01, 1, (shape[0], 1))], axis=1)
+                                        rng.uniform(0.01, 1, (shape[0], 1)), rng.uniform(0, 0.6, (shape[0], shape[1] - 9))],
+                                       axis=1)
         else:  # a texture
             out[name] = rng.normal(size=shape) * scale
     return {name: value.astype(np.float32) for name, value in out.items()}

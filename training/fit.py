@@ -34,10 +34,9 @@ log = logging.getLogger(__name__)
 
 BASE_MARGIN = 0.10
 """`FitSettings.choose_base` keeps the base only when its error on the reference queries (`reference_error`) is
-this much lower (a fraction) than the model's without it: a new stage is kept for a clear gain. Measured against
-the report's images on six materials (benchmarks/results/base.txt): the log MSE ranked them as the images did;
-gains of 4-5 % did not show in images (yarn: better in 2 of its 18 views, worse in 10), 35 % did (turtle: 13, 3).
-"""
+this much lower (a fraction) than the model's without it: a new stage is kept for a clear gain. Set from the
+report's images on turtle, yarn and rock (benchmarks/results/base.txt): a 5 % gain did not show in images
+(yarn: better in 2 of its 18 views, worse in 10), 35 % did (turtle: 13 and 3)."""
 REFERENCE_QUERIES = 1 << 14
 """Queries of the low-noise reference set that `FitSettings.choose_base` compares on (``WORK/reference``)."""
 REFERENCE_SPP = 256

@@ -1,0 +1,93 @@
+"""The classical base: its maps' pyramid, its BSDF's known answers, the horizon's shadow, and a new
+material answering the base."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+import torch
+
+from neumip.core import contract as C
+from neumip.core.config import BASE_CHANNELS, BASE_HORIZONS, MaterialConfig
+from neumip.training.base import base_answer, base_maps, base_resolution, visibility
+from neumip.training.material import NeuMIPMaterial
+from neumip.training.microgeometry.description import Microgeometry
+
+
+def geometry(height: np.ndarray, colour=(0.6, 0.4, 0.2), roughness=0.5, metallic=0.0, bsdf=None) -> Microgeometry:
+    size = height.shape[0]
+    return Microgeometry(height=height.astype(np.float32),
+                         base_color=np.broadcast_to(np.asarray(colour, np.float32), (size, size, 3)).copy(),
+                         roughness=np.full((size, size), roughness, np.float32),
+                         metallic=np.full((size, size), metallic, np.float32), specular=0.5, bsdf=bsdf,
+                         normals="smooth")
+
+
+def test_a_flat_material_s_maps_are_its_colours_and_no_slopes_or_horizons():
+    levels = base_maps(geometry(np.zeros((8, 8))), 8)
+    assert [lvl.shape for lvl in levels] == [(s, s, BASE_CHANNELS) for s in (8, 4, 2, 1)]
+    for lvl in levels:
+        np.testing.assert_allclose(lvl[..., 0:3], np.broadcast_to([0.6, 0.4, 0.2], lvl.shape[:2] + (3,)), rtol=1e-6)
+        np.testing.assert_allclose(lvl[..., 3:6], 0.04, rtol=1e-6)  # 0.08 x specular 0.5
+        np.testing.assert_allclose(lvl[..., 8], 0.5**4, rtol=1e-5)
+        assert not lvl[..., 6:8].any() and not lvl[..., 9:].any()
+    metal = base_maps(geometry(np.zeros((4, 4)), metallic=1.0), 4)[0]
+    assert not metal[..., 0:3].any()
+    np.testing.assert_allclose(metal[..., 3:6], np.broadcast_to([0.6, 0.4, 0.2], (4, 4, 3)), rtol=1e-6)
+
+
+def test_bumps_widen_the_coarse_lobe_and_cast_horizons():
+    """A coarse texel over bumps keeps their slopes' variance in alpha^2 (LEAN), and a ridge raises the
+    horizon seen from beside it."""
+    x = np.arange(16) / 16
+    height = 0.05 * np.sin(2 * np.pi * 4 * x)[None, :].repeat(16, 0)  # ridges along v
+    levels = base_maps(geometry(height), 16)
+    assert levels[-1][0, 0, 8] > levels[0][..., 8].max() + 0.1  # the 1 x 1 level: a wider lobe
+    assert levels[0][..., 9:].max() > 0.3 and base_resolution(geometry(height)) == 16
+
+
+def test_a_homogeneous_bsdf_material_has_no_base():
+    with pytest.raises(ValueError, match="principled maps"):
+        base_resolution(geometry(np.zeros((4, 4)), bsdf={"type": "diffuse"}))
+
+
+def test_at_normal_incidence_a_dielectric_base_answers_albedo_over_pi_plus_its_lobe():
+    maps = torch.tensor([[0.5, 0.5, 0.5, 0.0, 0.0, 0.0, 0.0, 0.0, 0.25] + [0.0] * BASE_HORIZONS])
+    zero = torch.zeros(1, 2)
+    torch.testing.assert_close(base_answer(maps, zero, zero), torch.full((1, 3), 0.5 / math.pi))  # F0 = 0: no lobe
+    maps[0, 3:6] = 0.04
+    want = 0.5 / math.pi + 1 / (math.pi * 0.25) * 0.04 / 4  # + D G F / (4 cos_o): D = 1 / (pi alpha^2), G = 1
+    assert float(base_answer(maps, zero, zero)[0, 0]) == pytest.approx(want, rel=1e-5)
+
+
+def test_a_light_below_the_horizon_of_its_azimuth_is_shadowed():
+    horizons = torch.zeros(2, BASE_HORIZONS)
+    horizons[:, 0] = 0.8  # a wall towards +u only
+    wi = torch.tensor([[0.85, 0.0], [0.0, 0.85]])  # towards +u, towards +v; wi_z = 0.527
+    wi_z = torch.sqrt(1 - (wi * wi).sum(1, keepdim=True))
+    lit = visibility(horizons, wi, wi_z)
+    assert float(lit[0]) == 0.0 and float(lit[1]) == 1.0
+    zenith = visibility(torch.full((1, BASE_HORIZONS), 0.9), torch.zeros(1, 2), torch.ones(1, 1))
+    assert float(zenith[0]) == 1.0  # straight above clears every horizon
+
+
+def test_a_new_material_with_a_base_answers_the_base():
+    """The decoder's last layer starts at zero: exp(0) times the base, plus 0."""
+    from neumip.training.pyramid import pyramid_lookup
+
+    torch.manual_seed(0)
+    height = 0.03 * np.random.default_rng(0).standard_normal((16, 16))
+    config = MaterialConfig(resolution=8, base=16, offset=False)
+    material = NeuMIPMaterial(config)
+    material.set_base(base_maps(geometry(height), 16))
+    q = torch.from_numpy(C.random_queries(500, seed=2))
+    with torch.no_grad():
+        got = material(q)
+        maps = pyramid_lookup(material.base_maps, config.base_pyramid(), q[:, C.U], q[:, C.V], q[:, C.SIGMA])
+        want = torch.relu(base_answer(maps, q[:, C.WI_X:C.WI_Y + 1], q[:, C.WO_X:C.WO_Y + 1]))
+    assert torch.isfinite(got).all() and got.std() > 0
+    torch.testing.assert_close(got, want)
+    with pytest.raises(ValueError, match="base maps of"):
+        material.set_base(base_maps(geometry(height), 8))
