@@ -93,6 +93,12 @@ def _dot(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
     return (a * b).sum(1, keepdim=True)
 
 
+def half_direction(wi3: torch.Tensor, wo3: torch.Tensor) -> torch.Tensor:
+    """(N, 3) unit wi, wo -> (N, 3) h = (wi + wo) / sqrt(max(|wi + wo|^2, HALF_FLOOR))."""
+    total = wi3 + wo3
+    return total / torch.sqrt(torch.clamp(_dot(total, total), min=HALF_FLOOR))
+
+
 def smith_g1(cos: torch.Tensor, alpha2: torch.Tensor) -> torch.Tensor:
     """Smith's masking of GGX: 2 c / (c + sqrt(alpha^2 + (1 - alpha^2) c^2)), for c >= 0."""
     return 2.0 * cos / (cos + torch.sqrt(alpha2 + (1.0 - alpha2) * cos * cos))
@@ -104,8 +110,7 @@ def base_answer(features: torch.Tensor, wi: torch.Tensor, wo: torch.Tensor) -> t
     slopes = features[:, 6:8]
     n = torch.cat([-slopes, torch.ones_like(slopes[:, :1])], dim=1)
     n = n / torch.sqrt(_dot(n, n))
-    total = wi3 + wo3
-    h = total / torch.sqrt(torch.clamp(_dot(total, total), min=HALF_FLOOR))
+    h = half_direction(wi3, wo3)
     alpha2 = torch.clamp(features[:, 8:9], min=BASE_ALPHA2_FLOOR)
     cos_i = torch.clamp(_dot(n, wi3), min=0.0)
     cos_o = torch.clamp(_dot(n, wo3), min=0.0)

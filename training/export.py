@@ -153,12 +153,17 @@ def _parallax(g: GraphWriter, depth: str, wo: str, min_cos: float) -> str:
     return g.op("Mul", g.op("Div", depth, wo_z), wo)
 
 
+def _half_direction(g: GraphWriter, wi3: str, wo3: str) -> str:
+    """(M, 3) unit wi, wo -> (M, 3) h = (wi + wo) / sqrt(max(|wi + wo|^2, HALF_FLOOR)) (`base.half_direction`)."""
+    total = g.op("Add", wi3, wo3)
+    return g.op("Div", total, g.op("Sqrt", g.op("Max", _dot(g, total, total), g.scalar(HALF_FLOOR))))
+
+
 def _half_vector(g: GraphWriter, wi: str, wo: str) -> str:
     """wi, wo (M, 2) -> (M, 4): h = normalize(wi + wo) and cos(theta_d) = h . wi, as `material.half_vector`
     computes them (z = sqrt(max(1 - x^2 - y^2, 0)); sums of squares by MatMuls with ones)."""
     wi3, wo3 = _lift(g, wi), _lift(g, wo)
-    total = g.op("Add", wi3, wo3)
-    h = g.op("Div", total, g.op("Sqrt", g.op("Max", _dot(g, total, total), g.scalar(HALF_FLOOR))))
+    h = _half_direction(g, wi3, wo3)
     return g.op("Concat", h, _dot(g, h, wi3), axis=1)
 
 
@@ -198,8 +203,7 @@ def _base_answer(g: GraphWriter, maps: str, wi: str, wo: str) -> str:
     to_normal[6, 0] = to_normal[7, 1] = -1.0
     n = g.op("Add", g.op("MatMul", maps, g.const(to_normal)), g.const(np.array([[0.0, 0.0, 1.0]], np.float32)))
     n = g.op("Div", n, g.op("Sqrt", _dot(g, n, n)))
-    total = g.op("Add", wi3, wo3)
-    h = g.op("Div", total, g.op("Sqrt", clamp_low(_dot(g, total, total), HALF_FLOOR)))
+    h = _half_direction(g, wi3, wo3)
     alpha2 = clamp_low(columns(8, 9), BASE_ALPHA2_FLOOR)
     cos_i, cos_o, cos_h = (clamp_low(_dot(g, n, w), 0.0) for w in (wi3, wo3, h))
     d = g.op("Add", g.op("Mul", g.op("Mul", cos_h, cos_h), g.op("Sub", alpha2, g.scalar(1.0))), g.scalar(1.0))

@@ -10,8 +10,8 @@ from neumip.core import contract as C
 
 from neumip.core import head
 from neumip.core import weights as W
-from neumip.core.config import HALF_FLOOR, MaterialConfig
-from .base import base_answer, corrected, lift
+from neumip.core.config import MaterialConfig
+from .base import base_answer, corrected, half_direction, lift
 from .maps import MapConfig, level_feature
 from .offset import parallax_shift
 from .pyramid import pyramid_lookup, texture_lookup
@@ -118,8 +118,7 @@ def half_vector(wi: torch.Tensor, wo: torch.Tensor) -> torch.Tensor:
     """(N, 2) wi, wo (x, y of unit vectors, z >= 0) -> (N, 4): h = normalize(wi + wo) and cos(theta_d) = h . wi
     (`MaterialConfig.half_vector`; the graph computes the same in `export._half_vector`)."""
     wi3, wo3 = lift(wi), lift(wo)
-    total = wi3 + wo3
-    h = total / torch.sqrt(torch.clamp((total * total).sum(1, keepdim=True), min=HALF_FLOOR))
+    h = half_direction(wi3, wo3)
     return torch.cat([h, (h * wi3).sum(1, keepdim=True)], dim=1)
 
 
