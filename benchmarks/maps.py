@@ -63,6 +63,10 @@ VARIANTS: dict[str, tuple[dict, MapConfig | None, object]] = {
     # the classical base (MaterialConfig.base at the maps' resolution): base(maps) * exp(c) + a
     "Nb": ({"base": "maps"}, None, SHIP),
     "Mb_hz": ({"base": "maps"}, MapConfig(horizons=8), SHIP),
+    # the relief stage (MaterialConfig.relief at the height map's resolution, 8 steps), before the offset or alone
+    "Nr": ({"relief": "maps"}, None, SHIP),
+    "Nr0": ({"relief": "maps", "offset": False}, None, SHIP),
+    "Nbr": ({"base": "maps", "relief": "maps"}, None, SHIP),
     "N_rel": ({}, None, replace(SHIP, loss="relative")),  # relative MSE, detached denominator (lever 4)
     "M_hz_rel": ({}, MapConfig(horizons=8), replace(SHIP, loss="relative")),
     "N128": ({"resolution": 128}, None, SHIP),
@@ -94,6 +98,7 @@ def train(variant: str, data: str, material: str, runs: Path, threads: int, vali
 
     from neumip.training.base import base_resolution
     from neumip.training.export import export_material
+    from neumip.training.relief import relief_resolution
     from neumip.training.microgeometry.description import find_description, resolve
     from neumip.training.train import Trainer
 
@@ -107,8 +112,10 @@ def train(variant: str, data: str, material: str, runs: Path, threads: int, vali
     geo = resolve(desc)
     if overrides.get("base") == "maps":
         overrides = {**overrides, "base": base_resolution(geo)}
+    if overrides.get("relief") == "maps":
+        overrides = {**overrides, "relief": relief_resolution(geo)}
     trainer = Trainer(data, checkpoint, MaterialConfig(**{**RECIPE, **overrides}), config,
-                      maps=(maps, geo) if maps is not None or overrides.get("base") else None)
+                      maps=(maps, geo) if maps is not None or overrides.get("base") or overrides.get("relief") else None)
     start, cpu = time.perf_counter(), time.process_time()
     held = trainer.run()
     seconds, cpu = time.perf_counter() - start, time.process_time() - cpu

@@ -48,6 +48,11 @@ BASE_WI_FLOOR = 0.05
 """The reference plane's wi_z is clamped to at least this where the base divides by it."""
 BASE_LOG_CEILING = 8.0
 """The decoder's log-scale correction is clamped to at most this (exp(8) ~ 3000x) before exp."""
+RELIEF_MIN_COS = 0.25
+"""The relief stage marches along wo_xy / max(wo_z, this): a grazing view's ray is followed at most ~3.9x
+its depth sideways (`MaterialConfig.relief`)."""
+RELIEF_DIVISION_FLOOR = 1e-12
+"""The relief's secant step divides by at least this (its weight is 0 where the floor acts)."""
 
 
 @dataclass(frozen=True)
@@ -81,6 +86,13 @@ class MaterialConfig:
     power of two), 0: none. With a base the answer is base(maps, wi, wo) * exp(c) + a, with c and a the
     decoder's 6 outputs (`BASE_OUTPUTS`): the classical material as a start that the decoder corrects
     (training/base.py has the formula and the pyramid's channels)."""
+    relief: int = 0
+    """Texels per side of the finest level of the height pyramid the relief stage marches (the material's
+    height map's resolution; a power of two), 0: none. With it, every lookup reads where the view ray
+    first meets the height field, prefiltered at the query's footprint (`training/relief.py`), and the
+    learned offset (if any) corrects from there."""
+    relief_steps: int = 8
+    """Linear-search steps of the relief stage (each one height lookup), refined by one secant step."""
     head: str = "relu"
     """Decoder output head (core/head.py): "relu" (paper: RGB = max(out, 0)) or "yuv" (authors'
     code: exp(YUV) - 1 times a shadow mask 0.1 + sigmoid, 6 outputs)."""
@@ -99,6 +111,10 @@ class MaterialConfig:
             raise ValueError(f"base must be 0 or a power of two, got {self.base}")
         if self.base and self.head != "relu":
             raise ValueError(f"a base works with the relu head only, got head {self.head!r}")
+        if self.relief < 0 or self.relief & (self.relief - 1):
+            raise ValueError(f"relief must be 0 or a power of two, got {self.relief}")
+        if self.relief_steps < 1:
+            raise ValueError(f"relief_steps must be >= 1, got {self.relief_steps}")
         if not 0 < self.offset_min_cos <= 1:
             raise ValueError(f"offset_min_cos must be in (0, 1], got {self.offset_min_cos}")
 
@@ -127,14 +143,20 @@ class MaterialConfig:
         """The base maps' pyramid as a config of its own (its resolution and channels), or None without a base."""
         return MaterialConfig(resolution=self.base, channels=BASE_CHANNELS, offset=False) if self.base else None
 
+    def relief_pyramid(self) -> "MaterialConfig | None":
+        """The relief's height pyramid as a config of its own (one channel), or None without a relief."""
+        return MaterialConfig(resolution=self.relief, channels=1, offset=False) if self.relief else None
+
     def to_json(self) -> str:
-        """The fields as JSON; `half_vector` and `base` only when on, so the paper's models read as before
-        they existed."""
+        """The fields as JSON; `half_vector`, `base` and the relief's only when on, so the paper's models
+        read as before they existed."""
         fields_ = asdict(self)
         if not self.half_vector:
             del fields_["half_vector"]
         if not self.base:
             del fields_["base"]
+        if not self.relief:
+            del fields_["relief"], fields_["relief_steps"]
         return json.dumps(fields_, sort_keys=True)
 
     @classmethod

@@ -5,7 +5,7 @@ Two views of the same numbers, both from a `MaterialConfig`:
 - `weight_shapes`: the weights as the model holds them, and as `training.export.build_onnx` takes
   them and `training.export_read.read_model` gives them back: the textures (``pyramid``, the flat
   atlas of every level, finest first; ``offset_texture``, one level; with `MaterialConfig.base`,
-  ``base_maps``, the base maps' atlas, finest first) and each MLP's layers
+  ``base_maps``, the base maps' atlas, finest first; with `MaterialConfig.relief`, ``relief_heights``) and each MLP's layers
   (``{mlp}.{i}.weight`` (out, in), ``{mlp}.{i}.bias`` (out,)). An MLP's first layer reads the
   texture features, then the query columns `MLP_QUERY_COLUMNS` names, in that order.
 - `initializer_shapes`: the initializers the exported graph stores them in. Matrices are stored halved
@@ -28,6 +28,9 @@ PYRAMID = "pyramid"
 """The neural texture pyramid: the rows of every level, finest first (`MaterialConfig.level_starts`)."""
 BASE = "base_maps"
 """The base maps' pyramid (`MaterialConfig.base`): rows of every level, finest first, `BASE_CHANNELS` wide."""
+RELIEF = "relief_heights"
+"""The relief's height pyramid (`MaterialConfig.relief`): rows of every level, finest first, one channel
+(height in tile units, the top 0)."""
 OFFSET_TEXTURE = "offset_texture"
 """The neural offset texture: one level at the finest resolution."""
 DECODER = "decoder"
@@ -89,12 +92,21 @@ def mlps(config: MaterialConfig) -> dict[str, tuple[int, int]]:
 
 def textures(config: MaterialConfig) -> list[str]:
     """Names of the material's textures."""
-    return [PYRAMID] + ([OFFSET_TEXTURE] if config.offset else []) + ([BASE] if config.base else [])
+    return ([PYRAMID] + ([OFFSET_TEXTURE] if config.offset else []) + ([BASE] if config.base else [])
+            + ([RELIEF] if config.relief else []))
 
 
 def _base_shape(config: MaterialConfig) -> tuple[int, int]:
     base = config.base_pyramid()
     return (base.atlas_rows(), base.channels)
+
+
+def _maps_shapes(config: MaterialConfig) -> dict[str, tuple[int, int]]:
+    """The textures made from the material's maps (kept whole by `neumip trim`): the base's, the relief's."""
+    shapes = {BASE: _base_shape(config)} if config.base else {}
+    if config.relief:
+        shapes[RELIEF] = (config.relief_pyramid().atlas_rows(), 1)
+    return shapes
 
 
 def _widths(config: MaterialConfig, inputs: int, answers: int) -> list[int]:
@@ -108,8 +120,7 @@ def weight_shapes(config: MaterialConfig) -> dict[str, tuple[int, ...]]:
     shapes: dict[str, tuple[int, ...]] = {PYRAMID: (config.atlas_rows(), config.channels)}
     if config.offset:
         shapes[OFFSET_TEXTURE] = (config.resolution**2, config.offset_channels)
-    if config.base:
-        shapes[BASE] = _base_shape(config)
+    shapes.update(_maps_shapes(config))
     for mlp, (inputs, answers) in mlps(config).items():
         widths = _widths(config, inputs, answers)
         for i in range(config.layers):
@@ -127,8 +138,7 @@ def initializer_shapes(config: MaterialConfig, finest_level: int = 0) -> dict[st
     shapes: dict[str, tuple[int, ...]] = {PYRAMID: (rows, config.channels)}
     if config.offset:
         shapes[OFFSET_TEXTURE] = (config.resolution**2, config.offset_channels)
-    if config.base:
-        shapes[BASE] = _base_shape(config)
+    shapes.update(_maps_shapes(config))
     for mlp, (inputs, answers) in mlps(config).items():
         widths = _widths(config, inputs, DEPTH_COPIES if mlp == OFFSET_MLP else answers)
         first = {"texture": texture_inputs(mlp, config), "query": C.QUERY_DIM, "light": 2, "half_vector": HALF_INPUTS}

@@ -15,6 +15,9 @@ HALF_VECTOR_HELP = ("the decoder also reads each light's half vector and cos(the
 BASE_HELP = ("the classical material as the base: the answer is the principled BSDF on the material's maps (a "
              "pyramid at the maps' resolution) times exp(the decoder's correction), plus its additive term "
              "(MaterialConfig.base, training/TRAINING.md)")
+RELIEF_HELP = ("parallax and occlusion from the material's height map: every lookup reads where the view ray "
+               "first meets the height field, marched in STEPS steps on a height pyramid at the map's resolution, "
+               "before the neural offset (MaterialConfig.relief, training/TRAINING.md)")
 HIDDEN_HELP = (f"width of the hidden layers of both MLPs (default {MaterialConfig.hidden}, the paper's; "
                "the shipped materials too; 48 was measured, not shipped: benchmarks/results/quality_levers_log.md)")
 
@@ -48,6 +51,8 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--hidden", type=int, default=MaterialConfig.hidden, help=HIDDEN_HELP)
     p.add_argument("--half-vector", action="store_true", help=HALF_VECTOR_HELP)
     p.add_argument("--base", action="store_true", help=BASE_HELP + "; the maps are the data's material's, or --maps'")
+    p.add_argument("--relief", type=int, nargs="?", const=MaterialConfig.relief_steps, default=0, metavar="STEPS",
+                   help=RELIEF_HELP + f"; STEPS defaults to {MaterialConfig.relief_steps}")
     p.add_argument("--views-material", metavar="NAME_OR_TOML",
                    help="material whose ground truth the progress grid NAME.progress.png shows (default: the "
                         "data's own, when its description can be rebuilt from meta.json)")
@@ -94,11 +99,11 @@ def train_settings(args: argparse.Namespace):
 
 
 def _map_source(args: argparse.Namespace):
-    """(MapConfig or None, Microgeometry) of `--maps` and `--base`: the material's maps (the data's own
+    """(MapConfig or None, Microgeometry) of `--maps`, `--base` and `--relief`: the material's maps (the data's own
     material's, or the one `--maps` names), with the map encoder's config under `--maps`; None without either."""
     if args.maps is None and args.horizons:
         raise ValueError("--horizons is a feature of the map-informed model: pass --maps too")
-    if args.maps is None and not args.base:
+    if args.maps is None and not args.base and not args.relief:
         return None
     from .dataset import open_dataset
     from .maps import MapConfig
@@ -208,6 +213,7 @@ def _train(args: argparse.Namespace) -> int:
     from .dataset import DatasetError
     from .outputs import install_outputs, progress_path, write_progress
     from .base import base_resolution
+    from .relief import relief_resolution
     from .train import Trainer, TrainingDiverged, TrainingError
     from .views import ViewGrid, trace_views
 
@@ -218,7 +224,9 @@ def _train(args: argparse.Namespace) -> int:
         maps = _map_source(args)
         material = MaterialConfig(resolution=resolution, offset=not args.no_offset, head=args.head,
                                   half_vector=args.half_vector, hidden=args.hidden,
-                                  base=base_resolution(maps[1]) if args.base else 0)
+                                  base=base_resolution(maps[1]) if args.base else 0,
+                                  relief=relief_resolution(maps[1]) if args.relief else 0,
+                                  relief_steps=args.relief or MaterialConfig.relief_steps)
         trainer = Trainer(args.data, checkpoint, material, config, args.description, maps)
     except (ValueError, DatasetError, CheckpointError) as exc:
         raise CommandError(str(exc)) from exc

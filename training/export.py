@@ -35,7 +35,7 @@ from pathlib import Path
 
 import numpy as np
 import onnx
-from onnx import helper
+from onnx import TensorProto, helper
 
 from neumip.core import contract as C
 
@@ -43,8 +43,9 @@ from neumip.core import head
 from neumip.core import weights as W
 from neumip.core.config import (BASE_ALPHA2_FLOOR, BASE_AZIMUTH_FLOOR, BASE_AZIMUTH_KERNEL, BASE_AZIMUTHS,
                                 BASE_CHANNELS, BASE_COS_FLOOR, BASE_HORIZONS, BASE_LOG_CEILING, BASE_OUTPUTS,
-                                BASE_SHADOW_SOFTNESS, BASE_WI_FLOOR, HALF_FLOOR, MaterialConfig)
-from .export_lookup import pyramid_texels, texture_texels
+                                BASE_SHADOW_SOFTNESS, BASE_WI_FLOOR, HALF_FLOOR, RELIEF_DIVISION_FLOOR,
+                                RELIEF_MIN_COS, MaterialConfig)
+from .export_lookup import footprint_texels, pyramid_footprint, pyramid_texels, texture_texels
 from .onnx_graph import GraphWriter
 
 log = logging.getLogger(__name__)
@@ -67,8 +68,9 @@ def weights_from_state(state: dict, config: MaterialConfig) -> dict[str, np.ndar
             weights[W.bias(prefix, i)] = arr[f"{prefix}.{2 * i}.bias"]
     if config.offset:
         weights[W.OFFSET_TEXTURE] = arr["offset_texture"].reshape(-1, config.offset_channels)
-    if config.base:
-        weights[W.BASE] = arr[W.BASE]
+    for name in (W.BASE, W.RELIEF):
+        if name in arr:
+            weights[name] = arr[name]
     return weights
 
 
@@ -253,6 +255,36 @@ def _corrected(g: GraphWriter, base: str, out: str) -> str:
     return g.op("Add", g.op("Mul", base, g.op("Exp", c)), g.op("MatMul", out, g.const(add_part)))
 
 
+def _relief(g: GraphWriter, config: MaterialConfig, weights: dict, uv: str, sigma: str, wo: str) -> str:
+    """uv (N, 2), sigma (N, 1), wo (N, 2) -> (N, 2) the relief's shift of the lookups, as `relief.relief_shift`
+    computes it: one footprint of the height pyramid, read at each step's position."""
+    heights = weights[W.RELIEF]
+    depth = np.float32(max(-float(heights.min()), 0.0))
+    steps = config.relief_steps
+    fp = pyramid_footprint(g, config.relief_pyramid(), g.const(heights, name=W.RELIEF), 1, sigma, prefix="relief.")
+    r2 = g.op("MatMul", g.op("Mul", wo, wo), g.const(np.ones((2, 2), np.float32)))  # (N, 2) x^2 + y^2
+    floor = np.float32(RELIEF_MIN_COS) * np.float32(RELIEF_MIN_COS)
+    d = g.op("Div", wo, g.op("Sqrt", g.op("Max", g.op("Sub", g.scalar(1.0), r2), g.scalar(floor))))
+    ones = g.const(np.ones((8, 1), np.float32))
+    found = missed = s_prev = None
+    for k in range(steps + 1):
+        t = np.float32(depth * np.float32(k / steps))
+        texels, tap_w = footprint_texels(g, fp, 1, g.wrap(g.op("Sub", uv, g.op("Mul", d, g.scalar(t)))))
+        s = g.op("Add", g.op("MatMul", g.op("Mul", texels, tap_w), ones), g.scalar(t))  # (N, 1)
+        below = g.op("Cast", g.op("GreaterOrEqual", s, g.scalar(0.0)), to=TensorProto.FLOAT)
+        if k == 0:
+            found, missed = g.op("Mul", below, g.scalar(0.0)), g.op("Sub", g.scalar(1.0), below)
+        else:
+            gap = g.op("Max", g.op("Sub", s, s_prev), g.scalar(RELIEF_DIVISION_FLOOR))
+            ratio = g.op("Min", g.op("Max", g.op("Div", g.op("Neg", s_prev), gap), g.scalar(0.0)), g.scalar(1.0))
+            here = g.op("Add", g.op("Mul", ratio, g.scalar(depth / np.float32(steps))), g.scalar(t_prev))
+            found = g.op("Add", found, g.op("Mul", g.op("Mul", missed, below), here))
+            missed = g.op("Mul", missed, g.op("Sub", g.scalar(1.0), below))
+        s_prev, t_prev = s, t
+    found = g.op("Add", found, g.op("Mul", missed, g.scalar(depth)))
+    return g.op("Mul", d, g.op("Neg", found))
+
+
 def _query_columns(g: GraphWriter, q: str) -> tuple[str, str, str]:
     """The query's uv (N, 2), sigma (N, 1) and wo (N, 2)."""
     return (g.pick(q, C.QUERY_DIM, [C.U, C.V]), g.pick(q, C.QUERY_DIM, [C.SIGMA]),
@@ -272,6 +304,10 @@ def material_graph(g: GraphWriter, config: MaterialConfig, weights: dict,
     q = g.op("Slice", C.ONNX_INPUT, g.const([0], np.int64), g.const([C.QUERY_DIM], np.int64),
              g.const([1], np.int64))  # (N, 7): each group's first query
     uv, sigma, wo = _query_columns(g, q)
+
+    # --- relief: uv moves to where the view ray first meets the height field --------------------
+    if config.relief:
+        uv = g.op("Add", uv, _relief(g, config, weights, uv, sigma, wo))
 
     # --- neural offset: uv += r * wo_xy / max(wo_z, min_cos) -----------------------------------
     if config.offset:
@@ -423,9 +459,23 @@ def random_weights(config: MaterialConfig, seed: int = 0, scale: float = 0.5) ->
             out[name] = np.concatenate([rng.uniform(0, 1, (shape[0], 6)), rng.normal(size=(shape[0], 2)) * 0.5,
                                         rng.uniform(0.01, 1, (shape[0], 1)), rng.uniform(0, 0.6, (shape[0], shape[1] - 9))],
                                        axis=1)
+        elif name == W.RELIEF:  # a smooth periodic relief `scale` / 4 tile deep, the same at every level
+            out[name] = _random_relief(config.relief_pyramid().level_sizes(), rng, scale / 4)
         else:  # a texture
             out[name] = rng.normal(size=shape) * scale
     return {name: value.astype(np.float32) for name, value in out.items()}
+
+
+def _random_relief(sizes: list[int], rng: np.random.Generator, depth: float) -> np.ndarray:
+    """A height atlas (levels of `sizes`, finest first, one channel): 3 random periodic waves of up to 4
+    periods per tile, sampled at each level's texel centres, within [-depth, 0]."""
+    freqs, phases = rng.integers(1, 5, (3, 2)), rng.uniform(0, 2 * np.pi, 3)
+    levels = []
+    for size in sizes:
+        x = (np.arange(size) + 0.5) / size
+        u, v = np.meshgrid(x, x)
+        levels.append(sum(np.cos(2 * np.pi * (f[0] * u + f[1] * v) + p) for f, p in zip(freqs, phases)).reshape(-1, 1))
+    return (np.concatenate(levels) / 6.0 - 0.5) * depth
 
 
 def constant_weights(config: MaterialConfig, rgb) -> dict[str, np.ndarray]:

@@ -37,14 +37,14 @@ def clip_min(finest_level: int) -> float:
     return 2.0**finest_level
 
 
-def clip_node(graph, base: bool = False) -> "onnx.NodeProto":
-    """The pyramid's level-of-detail Clip of an exported graph (`level_of_detail`): the graph's only Clip,
-    or with a base (`MaterialConfig.base`) the first of two (the base maps' lookup is written after the
-    pyramid's)."""
+def clip_node(graph, config: MaterialConfig) -> "onnx.NodeProto":
+    """The pyramid's level-of-detail Clip of an exported graph of `config` (`level_of_detail`). The relief's
+    height pyramid (`MaterialConfig.relief`) is read before it, the base maps' (`MaterialConfig.base`) after:
+    each has a Clip of its own."""
     clips = [node for node in graph.node if node.op_type == "Clip"]
-    if len(clips) != (2 if base else 1):
+    if len(clips) != 1 + bool(config.base) + bool(config.relief):
         raise ValueError(f"expected the level-of-detail Clip, found {len(clips)} Clip nodes")
-    return clips[0]
+    return clips[1 if config.relief else 0]
 
 
 def log2_mantissa(g: GraphWriter, m: str) -> str:

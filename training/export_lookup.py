@@ -140,25 +140,57 @@ def _gather(g: GraphWriter, table: str, line: str, bases: str, levels: int, widt
     return g.shape(g.op("Gather", table, rows, axis=0), [-1, 4 * levels * width])
 
 
-def pyramid_texels(g: GraphWriter, config: MaterialConfig, atlas: str, width: int, uvw: str,
-                   sigma: str, finest_level: int = 0, prefix: str = "") -> tuple[str, str]:
-    """Trilinear footprint: uvw (N, 2) in [0, 1], sigma (N, 1) -> texels (N, 8 width), weights (N, 8).
+@dataclass
+class Footprint:
+    """A pyramid's level-of-detail rows of N queries (`pyramid_footprint`): what `footprint_texels` reads
+    the pyramid at any (u, v) with."""
 
-    `atlas` (T, width) holds the pyramid levels flat, finest first, from level ``finest_level`` on (a
-    trimmed model): only the table rows move, so a query of level >= K reads the same texels with
-    the same weights. `prefix` names a second pyramid's level-of-detail constants (`export_lod.level_rows`).
-    """
+    size: str
+    """(N, 4) texels per side of levels lo, lo, hi, hi."""
+    coef: str
+    """(N, 4) row coefficients [1, W_lo, 1, W_hi] (x0 + W y0)."""
+    bases: str
+    """(N, 2) table rows of the footprints at padded (1, 1) of levels lo, hi."""
+    t: str
+    """(N, 1) fraction towards level hi."""
+    atlas: str
+    """The pyramid (T, width), levels flat, finest first."""
+    rows: np.ndarray
+    """Its quad index table (`QuadAtlas.rows`)."""
+    table: str | None = None
+    """The pyramid's quad table (`expand_table`), written by the first `footprint_texels`."""
+
+
+def pyramid_footprint(g: GraphWriter, config: MaterialConfig, atlas: str, width: int, sigma: str,
+                      finest_level: int = 0, prefix: str = "") -> Footprint:
+    """sigma (N, 1) -> the `Footprint` of a trilinear lookup of the pyramid `atlas` (T, width), levels flat,
+    finest first, from level ``finest_level`` on (a trimmed model: only the table rows move, so a query of
+    level >= K reads the same texels with the same weights). `prefix` names a second pyramid's level-of-detail
+    constants (`export_lod.level_rows`)."""
     tables, _ = trimmed_atlas(config, finest_level)
     rows, t = level_of_detail(g, sigma, config, finest_level, level_tables(config, finest_level), prefix)
-    size, coef, bases = rows["size"], rows["coef"], rows["base"]  # (N, 4), (N, 4), (N, 2)
+    return Footprint(rows["size"], rows["coef"], rows["base"], t, atlas, tables.rows)
+
+
+def footprint_texels(g: GraphWriter, fp: Footprint, width: int, uvw: str) -> tuple[str, str]:
+    """uvw (N, 2) in [0, 1] read at footprint `fp` -> texels (N, 8 width), weights (N, 8)."""
     both = g.op("MatMul", uvw, g.const(np.tile(np.eye(2, dtype=np.float32), (1, 2))))  # (N, 4) u v u v
-    x = g.op("Sub", g.op("Mul", both, size), g.scalar(0.5))  # (N, 4) texel coordinates per level
+    x = g.op("Sub", g.op("Mul", both, fp.size), g.scalar(0.5))  # (N, 4) texel coordinates per level
     x0 = g.op("Floor", x)
     spread = np.kron(np.eye(2, dtype=np.float32), np.ones((2, 1), np.float32))  # (4, 2): x0 + W y0
-    line = g.op("MatMul", g.op("Mul", x0, coef), g.const(spread))  # (N, 2)
-    table = expand_table(g, atlas, tables.rows, width)
-    texels = _gather(g, table, line, bases, 2, width)
-    return texels, tap_weights(g, g.op("Sub", x, x0), 2, t)
+    line = g.op("MatMul", g.op("Mul", x0, fp.coef), g.const(spread))  # (N, 2)
+    if fp.table is None:
+        fp.table = expand_table(g, fp.atlas, fp.rows, width)
+    texels = _gather(g, fp.table, line, fp.bases, 2, width)
+    return texels, tap_weights(g, g.op("Sub", x, x0), 2, fp.t)
+
+
+def pyramid_texels(g: GraphWriter, config: MaterialConfig, atlas: str, width: int, uvw: str,
+                   sigma: str, finest_level: int = 0, prefix: str = "") -> tuple[str, str]:
+    """Trilinear footprint: uvw (N, 2) in [0, 1], sigma (N, 1) -> texels (N, 8 width), weights (N, 8)
+    (`pyramid_footprint`, then `footprint_texels`)."""
+    fp = pyramid_footprint(g, config, atlas, width, sigma, finest_level, prefix)
+    return footprint_texels(g, fp, width, uvw)
 
 
 def texture_texels(g: GraphWriter, texture: str, size: int, width: int, uvw: str) -> tuple[str, str]:

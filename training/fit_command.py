@@ -52,6 +52,8 @@ def register(sub: argparse._SubParsersAction) -> None:
                    help=commands.BASE_HELP + "; --base auto trains the model without and with it and keeps the base only "
                    "where it lowers the (log-space) error on a low-noise reference set by 10 %% (fit.BASE_MARGIN; "
                    "twice the training time)")
+    p.add_argument("--relief", type=int, nargs="?", const=MaterialConfig.relief_steps, default=0, metavar="STEPS",
+                   help=commands.RELIEF_HELP + f"; STEPS defaults to {MaterialConfig.relief_steps}")
     p.add_argument("--steps", type=int, help="override the preset's TrainConfig.steps")
     p.add_argument("--candidates", type=int, help="override the preset's TrainConfig.candidates (best of this "
                    "many initial weights, compared after TrainConfig.candidate_steps steps)")
@@ -114,6 +116,7 @@ def _fit(args: argparse.Namespace) -> int:
     from .dataset import DatasetError
     from .fit import FitSettings, fit, work_folder
     from .base import base_resolution
+    from .relief import relief_resolution
     from .maps import MapConfig
     from .microgeometry.description import DescriptionError, find_description, resolve
     from .microgeometry.generate import GenerateSettings
@@ -129,7 +132,9 @@ def _fit(args: argparse.Namespace) -> int:
         resolution = args.resolution or desc.resolution
         material = MaterialConfig(resolution=resolution, offset=not args.no_offset, hidden=args.hidden,
                                   half_vector=args.half_vector,
-                                  base=base_resolution(resolve(desc)) if args.base == "on" else 0)
+                                  base=base_resolution(resolve(desc)) if args.base == "on" else 0,
+                                  relief=relief_resolution(resolve(desc)) if args.relief else 0,
+                                  relief_steps=args.relief or MaterialConfig.relief_steps)
         generate = GenerateSettings(spp=args.spp, sampling=QuerySampling(queries_per_texel=args.queries_per_texel))
         if args.horizons and not args.maps:
             raise ValueError("--horizons is a feature of the map-informed model: pass --maps too")
@@ -138,6 +143,7 @@ def _fit(args: argparse.Namespace) -> int:
         raise CommandError(str(exc)) from exc
     kind = ("neural offset" if material.offset else "no neural offset") + (", map-informed" if args.maps else "") \
         + (", half vector" if material.half_vector else "") + (", classical base" if material.base else "") \
+        + (f", relief ({material.relief_steps} steps)" if material.relief else "") \
         + (", classical base if it lowers the held-out error" if args.base == "auto" else "")
     description = args.description or f"{desc.name}: {desc.summary or 'fitted'}, {resolution}^2, {kind}, " \
                                       f"{args.preset} preset"

@@ -15,6 +15,7 @@ from .base import base_answer, corrected, half_direction, lift
 from .maps import MapConfig, level_feature
 from .offset import parallax_shift
 from .pyramid import pyramid_lookup, texture_lookup
+from .relief import relief_shift
 
 
 def mlp(inputs: int, outputs: int, layers: int, hidden: int) -> nn.Sequential:
@@ -42,6 +43,8 @@ class NeuMIPMaterial(nn.Module):
             nn.init.zeros_(self.decoder[-1].weight)
             nn.init.zeros_(self.decoder[-1].bias)
             self.register_buffer(W.BASE, torch.zeros(W.weight_shapes(config)[W.BASE]))
+        if config.relief:
+            self.register_buffer(W.RELIEF, torch.zeros(W.weight_shapes(config)[W.RELIEF]))
         if config.head == "yuv":
             self.register_buffer("yuv_to_rgb", torch.tensor(head.YUV_TO_RGB.T, dtype=torch.float32), persistent=False)
         if config.offset:
@@ -50,13 +53,14 @@ class NeuMIPMaterial(nn.Module):
             self.offset_mlp = mlp(*W.mlps(config)[W.OFFSET_MLP], config.layers, hidden=config.hidden)
 
     @torch.no_grad()
-    def set_base(self, levels: list) -> None:
-        """Store the base maps' pyramid (`base.base_maps`: (S, S, BASE_CHANNELS) per level, finest first)."""
-        atlas = torch.cat([torch.as_tensor(lvl, dtype=torch.float32).reshape(-1, self.base_maps.shape[1])
-                           for lvl in levels])
-        if atlas.shape != self.base_maps.shape:
-            raise ValueError(f"base maps of {atlas.shape[0]} texels, the config's base pyramid has {self.base_maps.shape[0]}")
-        self.base_maps.copy_(atlas)
+    def set_maps(self, name: str, levels: list) -> None:
+        """Store a pyramid made from the material's maps, (S, S, C) per level, finest first: the base's
+        (`W.BASE`, `base.base_maps`) or the relief's heights (`W.RELIEF`, `relief.relief_heights`)."""
+        buffer = getattr(self, name)
+        atlas = torch.cat([torch.as_tensor(lvl, dtype=torch.float32).reshape(-1, buffer.shape[1]) for lvl in levels])
+        if atlas.shape != buffer.shape:
+            raise ValueError(f"{name} of {atlas.shape[0]} texels, the config's pyramid has {buffer.shape[0]}")
+        buffer.copy_(atlas)
 
     def textures(self) -> tuple[list[torch.Tensor], torch.Tensor | None]:
         """The raw neural textures: pyramid levels (finest first, each (S, S, C)) and the offset texture."""
@@ -94,6 +98,9 @@ class NeuMIPMaterial(nn.Module):
             otex = stored_otex if otex is None else otex
         u, v, sigma = queries[:, C.U], queries[:, C.V], queries[:, C.SIGMA]
         wo = queries[:, C.WO_X : C.WO_Y + 1]
+        if self.config.relief:
+            du, dv = relief_shift(self.relief_heights, self.config, u, v, sigma, wo)
+            u, v = u + du, v + dv
         if self.config.offset:
             feat = texture_lookup(otex, u, v)
             depth = self.config.offset_scale * self.offset_mlp(torch.cat([feat, wo], dim=1))[:, 0]

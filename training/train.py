@@ -20,6 +20,7 @@ import numpy as np
 import torch
 
 from neumip.core import contract as C
+from neumip.core import weights as W
 from neumip.core.errors import NeumipError
 
 from . import checkpoint
@@ -31,6 +32,7 @@ from .losses import training_loss
 from .base import base_maps
 from .maps import MapConfig, prefilter
 from .material import MapMaterial, NeuMIPMaterial
+from .relief import relief_heights
 from .microgeometry.description import Microgeometry
 from .train_config import TrainConfig
 from .validation import predict, validation_table
@@ -172,11 +174,12 @@ class Trainer:
     ) -> None:
         """`maps`: the material's maps. With a MapConfig, train a map-informed material (`MapMaterial`)
         whose encoder reads them, prefiltered to the pyramid's levels (None: the paper's model); with
-        `MaterialConfig.base` they make the base (`base.base_maps`)."""
+        `MaterialConfig.base` they make the base (`base.base_maps`), with `MaterialConfig.relief` the relief's
+        heights (`relief.relief_heights`)."""
         self.data = open_dataset(data_path)
         self.map_config = maps[0] if maps is not None else None
-        if material_config.base and maps is None:
-            raise TrainingError("a material with a base needs the material's maps (the data's description)")
+        if (material_config.base or material_config.relief) and maps is None:
+            raise TrainingError("a material with a base or a relief needs the material's maps (the data's description)")
         self._geometry = maps[1] if maps is not None else None
         self.checkpoint_path = Path(checkpoint_path)
         self.config, self.description = config, description
@@ -204,9 +207,11 @@ class Trainer:
         else:
             material = MapMaterial(material_config, self.map_config, features)
         if material_config.base:  # the answer starts as the base's (the decoder's last layer is zero)
-            material.set_base(base_maps(self._geometry, material_config.base))
+            material.set_maps(W.BASE, base_maps(self._geometry, material_config.base))
         else:
             init_output(material, self.data.rgb[self.train_idx[:: max(1, len(self.train_idx) // 4096)]])
+        if material_config.relief:
+            material.set_maps(W.RELIEF, relief_heights(self._geometry, material_config.relief))
         return material.to(self.device)
 
     @property

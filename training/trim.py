@@ -108,7 +108,7 @@ def trim_model(model: onnx.ModelProto, finest_level: int) -> onnx.ModelProto:
     old_lod, new_lod = (stage_constants(config, k, level_tables(config, k)) for k in (old, finest_level))
     for name, value in new_lod.items():
         _replace(g, name, old_lod[name], value)
-    _replace(g, clip_node(g, bool(config.base)).input[1], np.asarray(clip_min(old), np.float32),
+    _replace(g, clip_node(g, config).input[1], np.asarray(clip_min(old), np.float32),
              np.asarray(clip_min(finest_level), np.float32))
     starts = config.level_starts() + [config.atlas_rows()]
     expected = (starts[-1] - starts[old], config.channels)

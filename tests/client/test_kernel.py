@@ -80,6 +80,7 @@ def layouts(tmp_path_factory):
         "grazing": MaterialConfig(resolution=16, offset_min_cos=0.05),
         "half": MaterialConfig(resolution=16, half_vector=True),
         "base": MaterialConfig(resolution=16, base=32),
+        "relief": MaterialConfig(resolution=16, base=32, relief=32),
     }
     for seed, (name, cfg) in enumerate(configs.items()):
         save_onnx(build_onnx(cfg, random_weights(cfg, seed=seed)), folder / f"{name}.onnx")

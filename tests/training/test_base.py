@@ -10,6 +10,7 @@ import pytest
 import torch
 
 from neumip.core import contract as C
+from neumip.core import weights as W
 from neumip.core.config import BASE_CHANNELS, BASE_HORIZONS, MaterialConfig
 from neumip.training.base import base_answer, base_maps, base_resolution, visibility
 from neumip.training.material import NeuMIPMaterial
@@ -81,7 +82,7 @@ def test_a_new_material_with_a_base_answers_the_base():
     height = 0.03 * np.random.default_rng(0).standard_normal((16, 16))
     config = MaterialConfig(resolution=8, base=16, offset=False)
     material = NeuMIPMaterial(config)
-    material.set_base(base_maps(geometry(height), 16))
+    material.set_maps(W.BASE, base_maps(geometry(height), 16))
     q = torch.from_numpy(C.random_queries(500, seed=2))
     with torch.no_grad():
         got = material(q)
@@ -89,5 +90,5 @@ def test_a_new_material_with_a_base_answers_the_base():
         want = torch.relu(base_answer(maps, q[:, C.WI_X:C.WI_Y + 1], q[:, C.WO_X:C.WO_Y + 1]))
     assert torch.isfinite(got).all() and got.std() > 0
     torch.testing.assert_close(got, want)
-    with pytest.raises(ValueError, match="base maps of"):
-        material.set_base(base_maps(geometry(height), 8))
+    with pytest.raises(ValueError, match="base_maps of"):
+        material.set_maps(W.BASE, base_maps(geometry(height), 8))

@@ -9,6 +9,7 @@ import pytest
 import torch
 
 from neumip.core import contract as C
+from neumip.core import weights as W
 from neumip.training import checkpoint
 from neumip.core.config import MaterialConfig
 from neumip.training.export import build_onnx, constant_weights, export_checkpoint, random_weights, weights_from_state
@@ -20,12 +21,16 @@ def torch_eval(material: NeuMIPMaterial, q: np.ndarray) -> np.ndarray:
         return material(torch.from_numpy(q)).numpy()
 
 
-@pytest.fixture(scope="module", params=[(True, False, 0), (False, False, 0), (True, True, 0), (True, False, 64)],
-                ids=["offset", "no-offset", "half-vector", "base"])
+@pytest.fixture(scope="module", params=[(True, False, 0, 0), (False, False, 0, 0), (True, True, 0, 0), (True, False, 64, 0),
+                                        (True, False, 0, 64), (False, False, 64, 64)],
+                ids=["offset", "no-offset", "half-vector", "base", "relief", "relief-base"])
 def pair(request):
     torch.manual_seed(3)
-    cfg = MaterialConfig(resolution=32, offset=request.param[0], half_vector=request.param[1], base=request.param[2])
+    offset, half_vector, base, relief = request.param
+    cfg = MaterialConfig(resolution=32, offset=offset, half_vector=half_vector, base=base, relief=relief)
     material = NeuMIPMaterial(cfg, init_std=0.5)
+    if cfg.relief:  # a relief 0.125 tile deep: its shifts span many texels
+        material.set_maps(W.RELIEF, [random_weights(cfg, seed=5)[W.RELIEF]])
     if cfg.base:  # maps of a base's ranges, and a decoder that corrects the base (its last layer starts at 0)
         weights = random_weights(cfg, seed=4)
         with torch.no_grad():

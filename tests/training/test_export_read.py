@@ -29,6 +29,7 @@ CONFIGS = {
     "yuv": replace(BASE, head="yuv", channels=5, hidden=9, offset_scale=0.37),
     "half-vector": replace(BASE, half_vector=True, channels=5),
     "base": replace(BASE, base=32),
+    "relief": replace(BASE, relief=32, relief_steps=4),
 }
 SHIPPED = sorted(Path("models").glob("*.onnx"))
 

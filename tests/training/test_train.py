@@ -170,8 +170,10 @@ def test_resume_refuses_other_settings(data, tmp_path, plane_data):
     other = plane_data(tmp_path / "other", 5000)
     with pytest.raises(TrainingError, match=r"data: n: checkpoint 40000, now 5000"):
         Trainer(other.path, tmp_path / "c.pt", TINY, FAST)
-    with pytest.raises(TrainingError, match="a material with a base needs the material's maps"):
+    with pytest.raises(TrainingError, match="a material with a base or a relief needs the material's maps"):
         Trainer(data.path, tmp_path / "b.pt", replace(TINY, base=32), FAST)
+    with pytest.raises(TrainingError, match="a material with a base or a relief needs the material's maps"):
+        Trainer(data.path, tmp_path / "r.pt", replace(TINY, relief=32), FAST)
 
 
 def test_nan_loss_stops_and_keeps_last_good_checkpoint(data, tmp_path, monkeypatch):

@@ -14,6 +14,7 @@ from neumip.client.cli import main
 from neumip.client.local import load_material, run_chunked
 from neumip.core.config import MaterialConfig
 from neumip.training.export import build_onnx, random_weights, save_onnx
+from neumip.training.export_lod import clip_node
 from neumip.training.trim import TrimError, current_trim, trim_model
 
 RES = 16
@@ -42,9 +43,10 @@ def session(model: onnx.ModelProto, path):
     return load_material(path).run
 
 
-@pytest.fixture(scope="module", params=[(True, 0), (False, 0), (True, 2 * RES)], ids=["offset", "no-offset", "base"])
+@pytest.fixture(scope="module", params=[(True, 0, 0), (False, 0, 0), (True, 2 * RES, 0), (True, 2 * RES, 2 * RES)],
+                ids=["offset", "no-offset", "base", "relief-base"])
 def untrimmed(request, tmp_path_factory):
-    config = MaterialConfig(resolution=RES, offset=request.param[0], base=request.param[1])
+    config = MaterialConfig(resolution=RES, offset=request.param[0], base=request.param[1], relief=request.param[2])
     return build_onnx(config, random_weights(config, seed=4), "trim test"), config
 
 
@@ -62,8 +64,8 @@ def test_bit_identical_above_the_cut_and_clamped_below(untrimmed, tmp_path, k):
     a, b = run_chunked(full, q), run_chunked(trimmed, q)
     np.testing.assert_array_equal(b[above], a[above])
     assert not np.array_equal(b[~above & (level < k - 0.5)], a[~above & (level < k - 0.5)])  # finer levels gone
-    if config.base:
-        return  # the base maps' lookup reads the query's own footprint, not level k's
+    if config.base or config.relief:
+        return  # the base maps' and the relief's lookups read the query's own footprint, not level k's
     clamped = q[~above].copy()
     clamped[:, C.SIGMA] = np.float32(2.0**k / RES)  # what they read instead: level k
     np.testing.assert_array_equal(b[~above], run_chunked(full, clamped))
@@ -93,10 +95,10 @@ def test_trim_equals_an_export_at_that_level_and_trims_again(untrimmed, tmp_path
 
 
 def test_refuses_a_graph_of_another_layout(untrimmed):
-    model, _ = untrimmed
+    model, config = untrimmed
     tampered = onnx.ModelProto()
     tampered.CopyFrom(model)
-    clip = next(n for n in tampered.graph.node if n.op_type == "Clip")
+    clip = clip_node(tampered.graph, config)
     init = next(i for i in tampered.graph.initializer if i.name == clip.input[1])
     init.CopyFrom(onnx.numpy_helper.from_array(np.asarray(0.5, np.float32), init.name))
     with pytest.raises(TrimError, match="not what this export writes"):

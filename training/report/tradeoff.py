@@ -48,6 +48,8 @@ class Variant:
     """The map encoder of a map-informed variant (None: the paper's model)."""
     classical: bool = False
     """The classical base (`MaterialConfig.base` at the maps' resolution) under the decoder."""
+    relief: int = 0
+    """Steps of the relief stage (`MaterialConfig.relief` at the height map's resolution), 0: none."""
 
 
 MAP_VARIANTS = {"maps": MapConfig(), "maps_hz": MapConfig(horizons=8)}
@@ -62,7 +64,9 @@ def variants(config: ReportConfig, maps: bool = True) -> list[Variant]:
     out += [replace(base, name="ch4", channels=4), replace(base, name="ch12", channels=12)]
     out += [replace(base, name="mlp16", hidden=16), replace(base, name="mlp48", hidden=48)]
     out += [replace(base, name="no_offset", offset=False)]
-    if maps:
+    if maps:  # (a height map: the relief marches it)
+        out += [replace(base, name=f"relief{k}", relief=k) for k in (4, 8, 16)]
+        out += [replace(base, name="relief8_no_offset", relief=8, offset=False)]
         out += [replace(base, name=name, maps=m) for name, m in MAP_VARIANTS.items()]
         out += [replace(base, name="classical", classical=True),
                 replace(base, name="maps_hz_classical", maps=MAP_VARIANTS["maps_hz"], classical=True)]
@@ -108,19 +112,22 @@ def train_variant(variant: Variant, data: Path, folder: Path, config: ReportConf
     onnx = folder / f"{variant.name}.onnx"
     if onnx.exists():
         return onnx, training_cost(folder, variant.name)
-    if (variant.maps is not None or variant.classical) and geo is None:
+    if (variant.maps is not None or variant.classical or variant.relief) and geo is None:
         raise ValueError(f"variant {variant.name} reads the material's maps: pass them")
     scale = config.tradeoff_steps / QUICK.steps
     train = replace(QUICK, steps=config.tradeoff_steps, batch=config.tradeoff_batch, seed=variant.seed,
                     blur_half_life=QUICK.blur_half_life * scale, checkpoint_every=config.tradeoff_steps,
                     log_every=max(1, config.tradeoff_steps // 20), device="cpu")
     from neumip.training.base import base_resolution
+    from neumip.training.relief import relief_resolution
 
     material = MaterialConfig(resolution=variant.resolution, channels=variant.channels, hidden=variant.hidden,
-                              offset=variant.offset, base=base_resolution(geo) if variant.classical else 0)
+                              offset=variant.offset, base=base_resolution(geo) if variant.classical else 0,
+                              relief=relief_resolution(geo) if variant.relief else 0,
+                              relief_steps=variant.relief or MaterialConfig.relief_steps)
     torch.set_num_threads(1)  # one torch thread: faster than two on the shared, busy machine
     start = time.perf_counter()
-    maps = None if variant.maps is None and not variant.classical else (variant.maps, geo)
+    maps = None if variant.maps is None and not variant.classical and not variant.relief else (variant.maps, geo)
     trainer = Trainer(data, folder / f"{variant.name}.pt", material, train, f"trade-off {variant.name}", maps=maps)
     setup = time.perf_counter() - start  # opening the data; a map-informed variant also prefilters its maps
     table = trainer.run()

@@ -317,7 +317,8 @@ def stability_section(results: dict) -> list[str]:
 def _stage(p: dict) -> str:
     """The map-informed stages of a trade-off point ('-': the paper's model)."""
     maps = p.get("maps")
-    stages = ["map encoder" + (f" + {maps['horizons']} horizons" if maps.get("horizons") else "")] if maps else []
+    stages = [f"relief, {p['relief']} steps"] if p.get("relief") else []
+    stages += ["map encoder" + (f" + {maps['horizons']} horizons" if maps.get("horizons") else "")] if maps else []
     stages += ["classical base"] if p.get("classical") else []
     return " + ".join(stages) or "-"
 
@@ -339,7 +340,7 @@ def tradeoff_section(results: dict) -> list[str]:
          "configuration trained in a process also pays torch's first use), and at render, queries per second in-process (ONNX "
          "Runtime, median of interleaved rounds; a map-informed model is exported as the paper's graph with its "
          "textures baked, measured like the others; base, seed1, seed2, maps and maps_hz are graphs of one size, so the "
-         "spread of their queries per second is this measurement's noise; the classical base adds a stage to the graph). What it buys: validation MSE on low-noise (64 spp) reference "
+         "spread of their queries per second is this measurement's noise; the relief and the classical base add stages to the graph). What it buys: validation MSE on low-noise (64 spp) reference "
          f"queries, and image MSE in the {_image_view(tr)} view against R.", "",
          "![trade-off](tradeoff.png)", "",
          "| configuration | resolution | channels | MLP width | offset | maps | seed | training s (set-up s; load) | M queries/s "

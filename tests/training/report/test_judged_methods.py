@@ -154,21 +154,24 @@ def test_map_variants_only_where_the_material_has_maps():
     with_maps = {v.name: v for v in tradeoff.variants(FULL)}
     assert with_maps["maps"].maps == tradeoff.MapConfig() and with_maps["maps_hz"].maps.horizons == 8
     assert (with_maps["maps"].resolution, with_maps["maps"].offset) == (with_maps["base"].resolution, True)
-    assert not any(v.maps or v.classical for v in tradeoff.variants(FULL, maps=False))
+    assert not any(v.maps or v.classical or v.relief for v in tradeoff.variants(FULL, maps=False))
+    assert [with_maps[f"relief{k}"].relief for k in (4, 8, 16)] == [4, 8, 16]
+    assert not with_maps["relief8_no_offset"].offset
     assert tradeoff.describe(with_maps["maps_hz"])["maps"]["horizons"] == 8
     assert with_maps["classical"].classical and with_maps["classical"].maps is None
     assert with_maps["maps_hz_classical"].classical and with_maps["maps_hz_classical"].maps.horizons == 8
 
 
 def test_the_tradeoff_table_shows_what_each_stage_costs(tmp_path):
-    def point(maps, seconds, qps, classical=False):
-        v = tradeoff.Variant("x", maps=maps, classical=classical)
+    def point(maps, seconds, qps, classical=False, relief=0):
+        v = tradeoff.Variant("x", maps=maps, classical=classical, relief=relief)
         return {**tradeoff.describe(v), "training_seconds": seconds, "setup_seconds": 1.0, "training_load": 2.5,
                 "queries_per_second": qps,
                 "validation_mse": 1e-3, "image_mse": 2e-3, "image_view": "level2_side"}
 
     points = {"base": point(None, 100.0, 2e6), "maps_hz": point(tradeoff.MapConfig(horizons=8), 130.0, 1.9e6),
-              "maps_hz_classical": point(tradeoff.MapConfig(horizons=8), 150.0, 1.2e6, classical=True)}
+              "maps_hz_classical": point(tradeoff.MapConfig(horizons=8), 150.0, 1.2e6, classical=True),
+              "relief8": point(None, 120.0, 1.5e6, relief=8)}
     tr = json.loads(json.dumps({"material": "rock", "points": points, "steps": 600, "batch": 8192, "note": None}))
     lines = writer.tradeoff_section({"tradeoff": tr})
     assert any(line.startswith("| base |") and "| - | 0 | 100.0 (1.0; 2.5) | 2.00 |" in line for line in lines)
@@ -176,6 +179,7 @@ def test_the_tradeoff_table_shows_what_each_stage_costs(tmp_path):
                for line in lines)
     assert any(line.startswith("| maps_hz_classical |") and "| map encoder + 8 horizons + classical base |" in line
                for line in lines)
+    assert any(line.startswith("| relief8 |") and "| relief, 8 steps |" in line for line in lines)
     flat = writer.tradeoff_section({"tradeoff": {**tr, "points": {"base": tr["points"]["base"]},
                                                  "note": "flat has no height map (its height is 1 x 1): no map-informed variants"}})
     assert "flat has no height map (its height is 1 x 1): no map-informed variants." in flat
