@@ -4,6 +4,8 @@
 # (shared by NAME, NAME_nooffset, NAME_maps), then training with the preset $PRESET, replacing
 # models/NAME.onnx (--force). Each step resumes if interrupted (a checkpoint in runs/NAME/ from another
 # preset is refused: move it away). NAME_maps is the map-informed model (`neumip fit --maps`).
+# Materials with a height map are fitted with the relief stage (--relief $RELIEF): parallax and occlusion marched
+# on the height map, before the neural offset; NAME_nooffset has neither, so its gain is the parallax stages'.
 # Materials defined by maps are fitted with --base auto (with and without the classical base, the one with the
 # lower held-out MSE kept); NAME_nooffset then takes NAME's choice, so the offset's gain compares like with like.
 # Defaults reproduce the models shipped now (`ship` preset, 64^2, 256 queries per texel, 16 spp).
@@ -21,6 +23,7 @@ PRESET=${PRESET:-ship}
 HIDDEN=${HIDDEN:-25}  # MLP width, the paper's; 48 was 0-32 % more accurate in images and 1.34x the render time (models/README.md)
 THREADS=${THREADS:-1}  # the shipped models were trained with one torch thread
 BASE=${BASE:-auto}  # classical base (fit --base): auto keeps it where it lowers the held-out MSE; NAME_nooffset follows NAME's choice; on; off
+RELIEF=${RELIEF:-8}  # relief steps (fit --relief) for every material with a height map, 0: none; NAME_nooffset has neither relief nor offset
 HORIZONS=${HORIZONS:-8}  # NAME_maps: horizon features towards 8 azimuths (rock: better than none in all 8 close-up views, benchmarks/results/maps.txt)
 RAY=${RAY:-}
 names=("$@")
@@ -50,9 +53,17 @@ base_flags() {  # NAME: the --base flags of its fit
   fi
   echo --base auto
 }
+has_height() {  # MATERIAL: whether it has a height map to march (flat's is 1 x 1)
+  "${NEUMIP%neumip}python" -c "import sys; from neumip.training.microgeometry.description import find_description, resolve; sys.exit(resolve(find_description(sys.argv[1])).height.shape[0] <= 1)" "$1"
+}
+relief_flags() {  # NAME: the --relief flags of its fit (none for an ablation: NAME_nooffset has no parallax stage)
+  [[ "$1" == *_nooffset ]] || [ "$RELIEF" = 0 ] && return 0
+  has_height "$(material_of "$1")" && echo --relief "$RELIEF"
+  return 0
+}
 material_of() { local m=${1%_nooffset}; echo "${m%_maps}"; }  # rock_maps_nooffset -> rock
 describe() {  # NAME
-  echo "$(material_of "$1"), ${RES}^2, $([[ "$1" == *_nooffset ]] && echo 'no neural offset' || echo 'neural offset'),$([[ "$1" == *_maps* ]] && echo ' map-informed,')$([ "$HIDDEN" != 25 ] && echo " MLP width $HIDDEN,") $PRESET preset"
+  echo "$(material_of "$1"), ${RES}^2, $([[ "$1" == *_nooffset ]] && echo 'no relief, no neural offset' || echo "$([ -n "$(relief_flags "$1")" ] && echo 'relief, ')neural offset"),$([[ "$1" == *_maps* ]] && echo ' map-informed,')$([ "$HIDDEN" != 25 ] && echo " MLP width $HIDDEN,") $PRESET preset"
 }
 if [ -n "$RAY" ]; then
   jobs=() flags=()
@@ -73,6 +84,8 @@ for name in "${names[@]}"; do
   [[ "$name" == *_maps* ]] && flags+=(--maps --horizons "$HORIZONS")
   read -r -a base <<< "$(base_flags "$name")"
   flags+=(${base[@]+"${base[@]}"})
+  read -r -a relief <<< "$(relief_flags "$name")"
+  flags+=(${relief[@]+"${relief[@]}"})
   work="runs/$name"
   [ "${base[*]-}" = --base ] && work="runs/$name/base"  # where --base auto trains its base candidate too
   "$NEUMIP" fit "$material" -o "models/$name.onnx" --force --work "$work" --data "$(data_dir "$material")" \

@@ -44,9 +44,10 @@ def _same_bits(a: np.ndarray, b: np.ndarray) -> None:
     assert not differ.any(), f"{differ.sum()} of {len(a)} rows differ in their bits, first at row {differ.argmax()}"
 
 
-@pytest.fixture(scope="module", params=[True, False], ids=["offset", "no-offset"])
+@pytest.fixture(scope="module", params=[(True, 0, 0), (False, 0, 0), (True, 64, 64)], ids=["offset", "no-offset", "relief-base"])
 def config(request):
-    return MaterialConfig(resolution=32, offset=request.param)
+    offset, base, relief = request.param
+    return MaterialConfig(resolution=32, offset=offset, base=base, relief=relief)
 
 
 def test_answers_do_not_depend_on_the_batch(config, edge_queries):
