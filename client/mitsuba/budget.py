@@ -85,6 +85,9 @@ class ModelFacts:
     """Size of the model file."""
     finest_level: int = 0
     """Finest level the model still holds (> 0 for a trimmed model)."""
+    maps_resolution: int = 0
+    """Texels per side at which the model reads the material's own maps (its classical base's or relief's
+    pyramid, `MaterialConfig.base` / `relief`), 0: none."""
 
 
 @dataclass
@@ -109,7 +112,10 @@ class MaterialBudget:
     """Finest training resolution at which the scene's closest pixel footprints (the same quantile)
     read level 0."""
     too_coarse: bool
-    """True where the recommended resolution is finer than the model's."""
+    """True where the recommended resolution is finer than the model's: its latent pyramid's, or the maps'
+    it reads where finer (`maps_resolution`)."""
+    maps_resolution: int = 0
+    """Texels per side at which the model reads the material's maps (base, relief), 0: none."""
     model_bytes: int | None = None
     """The model file's size now (None: no model file for this material)."""
     trimmed_bytes: int | None = None
@@ -120,8 +126,9 @@ class MaterialBudget:
 
 
 def material_budget(material: str, sigma: np.ndarray, resolution: int, coverage: float = 0.999,
-                    sample_share: float = 1.0) -> MaterialBudget:
-    """Levels read by queries of footprints ``sigma`` (N,) on a model of finest ``resolution``.
+                    sample_share: float = 1.0, maps_resolution: int = 0) -> MaterialBudget:
+    """Levels read by queries of footprints ``sigma`` (N,) on a model of finest ``resolution``, which reads
+    the material's maps at ``maps_resolution`` (0: none; a finer one resolves the closest pixels too).
 
     ``sample_share``: the share of the pixel footprint each query read (`contract.sample_footprint`
     of the render's spp). The levels read (and so the trim) follow the queries; the resolution a
@@ -136,7 +143,7 @@ def material_budget(material: str, sigma: np.ndarray, resolution: int, coverage:
     sigma = np.asarray(sigma, np.float64)
     if sigma.size == 0:
         return MaterialBudget(material, 0, resolution, (levels, levels), [0.0] * (levels + 1), levels, coverage,
-                              0.0, 1, False)
+                              0.0, 1, False, maps_resolution)
     lod = C.level_of_detail(sigma, resolution)
     finer = np.floor(lod).astype(np.int64)
     coarser = np.minimum(finer + (lod > finer), levels)
@@ -156,7 +163,8 @@ def material_budget(material: str, sigma: np.ndarray, resolution: int, coverage:
         coverage=coverage,
         magnified=float(np.mean(pixel * resolution < 1.0)),
         recommended_resolution=int(recommended),
-        too_coarse=recommended > resolution,
+        too_coarse=recommended > max(resolution, maps_resolution),
+        maps_resolution=maps_resolution,
     )
 
 
@@ -168,7 +176,7 @@ def model_facts(path: Path) -> ModelFacts:
     config = material.config
     trim = json.loads(material.metadata.get(C.META_TRIM, "{}"))
     return ModelFacts(int(config["resolution"]), int(config["channels"]), path.stat().st_size,
-                      int(trim.get("finest_level", 0)))
+                      int(trim.get("finest_level", 0)), max(int(config.get("base", 0)), int(config.get("relief", 0))))
 
 
 def trimmed_size(facts: ModelFacts, finest_level: int) -> int:
@@ -208,7 +216,7 @@ def scene_budget(scene: mi.Scene, models: Path | None, spp: int = 4, coverage: f
         path = Path(models) / f"{name}.onnx" if models else None
         facts = model_facts(path) if path is not None and path.is_file() else None
         budget = material_budget(name, sigma, facts.resolution if facts else DEFAULT_RESOLUTION, coverage,
-                                 sample_footprint(render_spp))
+                                 sample_footprint(render_spp), facts.maps_resolution if facts else 0)
         if facts is not None:
             budget.model_bytes = facts.bytes
             budget.trimmed_bytes = trimmed_size(facts, budget.finest_level)
@@ -221,6 +229,7 @@ def format_budget(budget: SceneBudget, width: int = 40) -> str:
     lines = [f"footprints of a render at {budget.render_spp} spp (traced at {budget.spp} spp)"]
     for m in budget.materials:
         lines.append(f"{m.material}: {m.queries:,} queries, model {m.resolution}^2"
+                     + (f" on its maps at {m.maps_resolution}^2" if m.maps_resolution else "")
                      + (f" ({m.model_bytes:,} bytes)" if m.model_bytes is not None else " (no model file)"))
         lines.append(f"  levels read: {m.level_range[0]}..{m.level_range[1]}")
         for level, share in enumerate(m.histogram):
@@ -231,7 +240,10 @@ def format_budget(budget: SceneBudget, width: int = 40) -> str:
             lines.append(f"  bytes: {m.model_bytes:,} now, {m.trimmed_bytes:,} trimmed to level {m.finest_level}")
         verdict = (f"the model ({m.resolution}^2) is too coarse for the closest views: "
                    f"{100 * m.magnified:.2f} % of queries come from pixels finer than level 0"
-                   if m.too_coarse else "the model suffices")
+                   if m.too_coarse else "the model suffices" + (
+                       f": its maps at {m.maps_resolution}^2 resolve the closest pixels; its latent pyramid "
+                       f"({m.resolution}^2) magnifies {100 * m.magnified:.2f} % of queries"
+                       if m.recommended_resolution > m.resolution else ""))
         lines.append(f"  recommended finest training resolution: {m.recommended_resolution}^2 ({verdict})")
     return "\n".join(lines)
 

@@ -12,6 +12,8 @@ import pytest
 from neumip.core import contract as C
 from neumip.client.cli import main
 from neumip.client.mitsuba.budget import material_budget, trace_footprints
+from neumip.core.config import MaterialConfig
+from neumip.training.export import build_onnx, random_weights, save_onnx
 from neumip.client.mitsuba.bsdf import mi
 from neumip.client.mitsuba.render import RenderConfig, render_scene
 
@@ -52,6 +54,9 @@ def test_levels_finest_level_and_recommendation():
     close = material_budget("m", np.full(100, 0.25 / 64), resolution)  # 4x magnified
     assert close.too_coarse and close.recommended_resolution == 256 and close.magnified == 1.0
     assert close.histogram[0] == 1.0 and close.finest_level == 0
+    on_maps = material_budget("m", np.full(100, 0.25 / 64), resolution, maps_resolution=256)  # base / relief maps
+    assert not on_maps.too_coarse and on_maps.recommended_resolution == 256 and on_maps.maps_resolution == 256
+    assert material_budget("m", np.full(100, 0.25 / 64), resolution, maps_resolution=128).too_coarse
     # samples that each read 1/8 of their pixel: the levels read follow the queries, the resolution
     # needed follows the pixel footprint (8x the queries' sigma)
     shared = material_budget("m", sigma / 8, resolution, coverage=0.999, sample_share=1 / 8)
@@ -63,11 +68,14 @@ def test_levels_finest_level_and_recommendation():
 
 def test_cli_closeup_is_too_coarse_and_far_view_trims(tmp_path, capsys):
     models = "models"
-    assert main(["budget", "scenes/closeup.xml", "--models", models, "--spp", "1", "-D", "resx=128",
+    plain = tmp_path / "plain"  # a 64^2 model that reads no maps
+    config = MaterialConfig(resolution=64)
+    save_onnx(build_onnx(config, random_weights(config)), plain / "yarn.onnx")
+    assert main(["budget", "scenes/closeup.xml", "--models", str(plain), "--spp", "1", "-D", "resx=128",
                  "-D", "resy=128", "--json"]) == 0
     close = json.loads(capsys.readouterr().out)["materials"]
     assert [m["material"] for m in close] == ["yarn"]
-    assert close[0]["too_coarse"] and close[0]["recommended_resolution"] > 64
+    assert close[0]["too_coarse"] and close[0]["recommended_resolution"] > 64 and close[0]["maps_resolution"] == 0
     plot = tmp_path / "budget.png"
     assert main(["budget", "scenes/demo.xml", "--models", models, "--spp", "2", "-D", "resx=64",
                  "-D", "resy=64", "--plot", str(plot)]) == 0
