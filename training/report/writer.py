@@ -164,11 +164,12 @@ def write_markdown(out: Path, results: dict, config: ReportConfig) -> Path:
          f"(up to 4 surface interactions, as the ground-truth tracer); a material without a heightfield is the plane "
          f"itself. Reference = mean of two seeds at {cfg.reference_spp} spp each; its noise (MSE of the mean, from "
          "the two seeds) is listed per view.",
-         "- **N** / **N0**: the paper's neural material `MODELS/NAME.onnx` and the same trained without the neural "
-         "offset `NAME_nooffset.onnx`; **Nmaps** / **Nmaps0**: the map-informed material (`neumip train --maps`: its "
+         "- **N** / **N0**: the paper's neural material `MODELS/NAME.onnx` (with the relief stage where the material "
+         "has a height map, `neumip fit --relief`) and the same trained without the parallax stages (neither the relief nor "
+         "the neural offset) `NAME_nooffset.onnx`; **Nmaps** / **Nmaps0**: the map-informed material (`neumip train --maps`: its "
          "latent textures encoded from the material's prefiltered maps, baked at export into the paper's graph) "
          "`NAME_maps.onnx` and its ablation `NAME_maps_nooffset.onnx`; each where its file exists, `neumip_path`. "
-         "N and Nmaps are judged alike (verdicts, time to error, close-ups); N0 and Nmaps0 give the offset's gain. "
+         "N and Nmaps are judged alike (verdicts, time to error, close-ups); N0 and Nmaps0 give the parallax stages' gain (the offset gain). "
          "Each of n samples per pixel queries max(1/8, 1/sqrt(n)) of the pixel footprint (pbrt-v4's rule): at "
          f"{cfg.spp} spp, {math.log2(1 / sample_footprint(cfg.spp)):g} levels finer than the footprint.",
          "- **C**: the generator's principled BSDF with full-resolution albedo, roughness and metallic bitmaps and a "
@@ -201,8 +202,8 @@ def write_markdown(out: Path, results: dict, config: ReportConfig) -> Path:
     fails = _failing_lights(results)
     if fails:
         L += ["Where a stronger verdict fails: " + "; ".join(fails) + ".", ""]
-    L += [f"Close-ups, per neural method X at {cfg.spp} spp: the neural offset's gain (X0's MSE / X's: N0 / N, Nmaps0 / "
-          "Nmaps; above 1: the offset helps) at 1 and 4 map texels under every light and at the grazing views, **the "
+    L += [f"Close-ups, per neural method X at {cfg.spp} spp: the offset gain, what the parallax stages (the relief where "
+          "X has one, and the neural offset) buy (X0's MSE / X's: N0 / N, Nmaps0 / Nmaps; above 1: they help) at 1 and 4 map texels under every light and at the grazing views, **the "
           "smallest gain being the one that holds everywhere**; X's largest MSE / C's over the close-ups at 1 and 4 "
           f"map texels under every light ({len(CLOSE_UP_VIEWS)} views; the goal: at most 0.5) and in how many of them "
           "X's FLIP is below C's; whether X's highlights survive a light 5 degrees above the horizon (its mean and "
