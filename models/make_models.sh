@@ -13,7 +13,8 @@
 # Run from the repository root: [PRESET=ship|quality] [RES=64] [THREADS=1] bash models/make_models.sh [NAME ...]
 # RAY=auto (or HOST:PORT, or local) runs data chunks and then one training per material as Ray tasks
 # (`neumip generate --ray`, `neumip train-many --ray`; pip install 'neumip[cluster]'); THREADS is
-# then the CPUs of each training task, and models already finished are skipped; train-many trains no base (BASE).
+# then the CPUs of each training task, and models already finished are skipped; train-many trains no base (BASE),
+# the relief it does.
 set -euo pipefail
 NEUMIP=${NEUMIP:-.venv/bin/neumip}
 RES=${RES:-64}
@@ -74,6 +75,7 @@ if [ -n "$RAY" ]; then
     jobs+=("$name=$(data_dir "$material")")
     [ "$name" != "$material" ] && flags+=(--no-offset "$name")
   done
+  [ "$RELIEF" != 0 ] && flags+=(--relief "$RELIEF")
   exec "$NEUMIP" train-many "${jobs[@]}" ${flags[@]+"${flags[@]}"} -o models --preset "$PRESET" --threads "$THREADS" \
     --resolution "$RES" --hidden "$HIDDEN" --ray="$RAY"
 fi

@@ -105,14 +105,20 @@ def _map_source(args: argparse.Namespace):
         raise ValueError("--horizons is a feature of the map-informed model: pass --maps too")
     if args.maps is None and not args.base and not args.relief:
         return None
-    from .dataset import open_dataset
     from .maps import MapConfig
+
+    return (MapConfig(horizons=args.horizons) if args.maps is not None else None), data_geometry(args.data, args.maps)
+
+
+def data_geometry(data: str | Path, material: str | None = None):
+    """The `Microgeometry` (maps) of a data set's material, rebuilt from its meta.json (or of `material`, a
+    name or description file, when given)."""
+    from .dataset import open_dataset
     from .microgeometry.description import resolve
     from .views import data_material
 
-    meta = open_dataset(args.data).meta
-    geo = resolve(data_material(meta.get("material") or {}, args.maps or None, meta.get("description_dir")))
-    return (MapConfig(horizons=args.horizons) if args.maps is not None else None), geo
+    meta = open_dataset(data).meta
+    return resolve(data_material(meta.get("material") or {}, material or None, meta.get("description_dir")))
 
 
 def _data_resolution(data: str, default: int = 128) -> int:
@@ -301,6 +307,8 @@ def _register_train_many(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--half-vector", action="store_true", help=HALF_VECTOR_HELP)
     p.add_argument("--no-offset", action="append", default=[], metavar="NAME",
                    help="train NAME without the neural offset (repeatable)")
+    p.add_argument("--relief", type=int, nargs="?", const=MaterialConfig.relief_steps, default=0, metavar="STEPS",
+                   help=RELIEF_HELP + " (every material with a height map but those trained with --no-offset)")
     p.add_argument("--steps", type=int, help="override TrainConfig.steps")
     p.add_argument("--candidates", type=int, help="override TrainConfig.candidates")
     p.add_argument("--device", choices=("auto", "cpu", "cuda"), help="override TrainConfig.device")
@@ -315,6 +323,7 @@ def _library_jobs(args: argparse.Namespace) -> list:
     from neumip.client.cli import CommandError
 
     from .library import MaterialJob
+    from .relief import relief_resolution
 
     jobs = []
     for spec in args.jobs:
@@ -322,9 +331,11 @@ def _library_jobs(args: argparse.Namespace) -> list:
         name = name or Path(data).name
         resolution = args.resolution or _data_resolution(data)
         offset = name not in args.no_offset
-        kind = "neural offset" if offset else "no neural offset"
+        relief = relief_resolution(data_geometry(data)) if args.relief and offset else 0
+        kind = ("relief, " if relief else "") + ("neural offset" if offset else "no neural offset")
         material = MaterialConfig(resolution=resolution, offset=offset, hidden=args.hidden,
-                                  half_vector=args.half_vector)
+                                  half_vector=args.half_vector, relief=relief if relief > 1 else 0,
+                                  relief_steps=args.relief or MaterialConfig.relief_steps)
         width = f"MLP width {args.hidden}, " if args.hidden != MaterialConfig.hidden else ""
         description = f"{Path(data).name}, {resolution}^2, {kind}, {width}{args.preset} preset"
         jobs.append(MaterialJob(name, data, material, description))

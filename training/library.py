@@ -66,7 +66,12 @@ def train_material(job: MaterialJob, settings: LibrarySettings, progress: Progre
 
     torch.set_num_threads(settings.threads)
     checkpoint = settings.runs / job.name / "checkpoint.pt"
-    trainer = Trainer(job.data, checkpoint, job.material, settings.config, job.description)
+    maps = None
+    if job.material.relief:  # the relief marches the data's material's height map
+        from .commands import data_geometry
+
+        maps = (None, data_geometry(job.data))
+    trainer = Trainer(job.data, checkpoint, job.material, settings.config, job.description, maps)
     table = trainer.run(progress)
     install_outputs(trainer, table, settings.models / f"{job.name}.onnx")
     return table

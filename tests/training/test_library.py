@@ -18,6 +18,7 @@ from neumip.core.config import MaterialConfig
 from neumip.training.library import LibrarySettings, MaterialJob, finished, train_library, train_material
 from neumip.training.train_config import TEST
 from tests.training.ray_workers import killing_the_first_busy_worker
+from tests.training.test_fit import material  # noqa: F401 (a fixture: a description with a height map)
 
 CONFIG = replace(TEST, steps=40, batch=512, checkpoint_every=20)
 
@@ -116,3 +117,19 @@ def test_a_training_task_killed_after_a_checkpoint_resumes_to_the_same_model(loc
     queries = random_queries(500, seed=3)
     np.testing.assert_array_equal(LocalMaterials(local.models).evaluate("a", queries),
                                   LocalMaterials(lib.models).evaluate("a", queries))
+
+
+def test_cli_relief_marches_each_material_s_own_height_map(material, tmp_path, monkeypatch):
+    """--relief: a material whose data come from a description with a height map gets the relief stage at
+    its map's resolution; one trained --no-offset gets neither parallax stage."""
+    data = tmp_path / "my"
+    monkeypatch.chdir(material.parent)
+    assert main(["generate", material.name, "-o", str(data), "--queries", "4096", "--spp", "2"]) == 0
+    models = tmp_path / "models"
+    argv = ["train-many", str(data), f"plain={data}", "--no-offset", "plain", "-o", str(models), "--runs",
+            str(tmp_path / "runs"), "--preset", "test", "--steps", "10", "--resolution", "4", "--relief", "2"]
+    assert main(argv) == 0
+    config = json.loads((models / "my.json").read_text())["material_config"]
+    assert (config["relief"], config["relief_steps"]) == (8, 2)
+    assert "relief" not in json.loads((models / "plain.json").read_text())["material_config"]
+    assert LocalMaterials(models).get("my").info()["description"].startswith("my, 4^2, relief, neural offset")
