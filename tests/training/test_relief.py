@@ -11,7 +11,13 @@ from neumip.core import contract as C
 from neumip.core import weights as W
 from neumip.core.config import RELIEF_MIN_COS, MaterialConfig
 from neumip.training.material import NeuMIPMaterial
-from neumip.training.relief import march_direction, relief_depth, relief_heights, relief_resolution, relief_shift
+from neumip.training.relief import (
+    march_direction,
+    relief_depth,
+    relief_heights,
+    relief_resolution,
+    relief_shift,
+)
 
 from .test_base import geometry
 
@@ -28,7 +34,7 @@ def rays(n: int, seed: int, zenith_max: float = 70.0) -> tuple[torch.Tensor, ...
     theta, phi = np.radians(rng.uniform(0, zenith_max, n)), rng.uniform(0, 2 * np.pi, n)
     wo = np.stack([np.sin(theta) * np.cos(phi), np.sin(theta) * np.sin(phi)], 1)
     u, v = rng.uniform(0, 1, (2, n))
-    as_tensor = lambda a: torch.tensor(a, dtype=torch.float32)  # noqa: E731
+    as_tensor = lambda a: torch.tensor(a, dtype=torch.float32)
     return as_tensor(u), as_tensor(v), torch.zeros(n), as_tensor(wo)
 
 
