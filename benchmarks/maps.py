@@ -67,7 +67,6 @@ VARIANTS: dict[str, tuple[dict, MapConfig | None, object]] = {
     "Nr": ({"relief": "maps"}, None, SHIP),
     "Nr0": ({"relief": "maps", "offset": False}, None, SHIP),
     "Nbr": ({"base": "maps", "relief": "maps"}, None, SHIP),
-    "Nbr_c07": ({"base": "maps", "relief": "maps", "base_log_ceiling": 0.7}, None, SHIP),  # exp(c) <= 2
     "N_rel": ({}, None, replace(SHIP, loss="relative")),  # relative MSE, detached denominator (lever 4)
     "M_hz_rel": ({}, MapConfig(horizons=8), replace(SHIP, loss="relative")),
     "N128": ({"resolution": 128}, None, SHIP),

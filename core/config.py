@@ -47,7 +47,7 @@ BASE_COS_FLOOR = 1e-4
 BASE_WI_FLOOR = 0.05
 """The reference plane's wi_z is clamped to at least this where the base divides by it."""
 BASE_LOG_CEILING = 8.0
-"""Default of `MaterialConfig.base_log_ceiling` (exp(8) ~ 3000x)."""
+"""The decoder's log-scale correction is clamped to at most this (exp(8) ~ 3000x) before exp."""
 RELIEF_MIN_COS = 0.25
 """The relief stage marches along wo_xy / max(wo_z, this): a grazing view's ray is followed at most ~3.9x
 its depth sideways (`MaterialConfig.relief`)."""
@@ -86,9 +86,6 @@ class MaterialConfig:
     power of two), 0: none. With a base the answer is base(maps, wi, wo) * exp(c) + a, with c and a the
     decoder's 6 outputs (`BASE_OUTPUTS`): the classical material as a start that the decoder corrects
     (training/base.py has the formula and the pyramid's channels)."""
-    base_log_ceiling: float = BASE_LOG_CEILING
-    """With a base, the decoder's log-scale correction c is clamped to at most this before exp: the most the
-    decoder can multiply the base by is exp(this)."""
     relief: int = 0
     """Texels per side of the finest level of the height pyramid the relief stage marches (the material's
     height map's resolution; a power of two), 0: none. With it, every lookup reads where the view ray
@@ -114,8 +111,6 @@ class MaterialConfig:
             raise ValueError(f"base must be 0 or a power of two, got {self.base}")
         if self.base and self.head != "relu":
             raise ValueError(f"a base works with the relu head only, got head {self.head!r}")
-        if not self.base_log_ceiling > 0:
-            raise ValueError(f"base_log_ceiling must be > 0, got {self.base_log_ceiling}")
         if self.relief < 0 or self.relief & (self.relief - 1):
             raise ValueError(f"relief must be 0 or a power of two, got {self.relief}")
         if self.relief_steps < 1:
@@ -160,8 +155,6 @@ class MaterialConfig:
             del fields_["half_vector"]
         if not self.base:
             del fields_["base"]
-        if not self.base or self.base_log_ceiling == BASE_LOG_CEILING:
-            del fields_["base_log_ceiling"]
         if not self.relief:
             del fields_["relief"], fields_["relief_steps"]
         return json.dumps(fields_, sort_keys=True)

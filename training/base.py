@@ -41,7 +41,7 @@ import numpy as np
 import torch
 
 from neumip.core.config import (BASE_ALPHA2_FLOOR, BASE_AZIMUTH_FLOOR, BASE_AZIMUTH_KERNEL, BASE_AZIMUTHS,
-                                BASE_CHANNELS, BASE_COS_FLOOR, BASE_HORIZONS, BASE_SHADOW_SOFTNESS,
+                                BASE_CHANNELS, BASE_COS_FLOOR, BASE_HORIZONS, BASE_LOG_CEILING, BASE_SHADOW_SOFTNESS,
                                 BASE_WI_FLOOR, HALF_FLOOR, MaterialConfig)
 
 from .maps import finest_statistics, horizon_angles, resize
@@ -139,7 +139,6 @@ def visibility(horizons: torch.Tensor, wi: torch.Tensor, wi_z: torch.Tensor) -> 
     return torch.clamp((wi_z - horizon) / BASE_SHADOW_SOFTNESS + 0.5, min=0.0, max=1.0)
 
 
-def corrected(base: torch.Tensor, out: torch.Tensor, ceiling: float) -> torch.Tensor:
-    """(N, 3) base answers, (N, BASE_OUTPUTS) decoder outputs -> (N, 3) base * exp(min(c, ceiling)) + a (before
-    the ReLU; `MaterialConfig.base_log_ceiling`)."""
-    return base * torch.exp(torch.clamp(out[:, :3], max=ceiling)) + out[:, 3:]
+def corrected(base: torch.Tensor, out: torch.Tensor) -> torch.Tensor:
+    """(N, 3) base answers, (N, BASE_OUTPUTS) decoder outputs -> (N, 3) base * exp(c) + a (before the ReLU)."""
+    return base * torch.exp(torch.clamp(out[:, :3], max=BASE_LOG_CEILING)) + out[:, 3:]

@@ -43,7 +43,7 @@ from neumip.core import contract as C
 from neumip.core import head
 from neumip.core import weights as W
 from neumip.core.config import (BASE_ALPHA2_FLOOR, BASE_AZIMUTH_FLOOR, BASE_AZIMUTH_KERNEL, BASE_AZIMUTHS,
-                                BASE_CHANNELS, BASE_COS_FLOOR, BASE_HORIZONS, BASE_OUTPUTS,
+                                BASE_CHANNELS, BASE_COS_FLOOR, BASE_HORIZONS, BASE_LOG_CEILING, BASE_OUTPUTS,
                                 BASE_SHADOW_SOFTNESS, BASE_WI_FLOOR, HALF_FLOOR, RELIEF_DIVISION_FLOOR,
                                 RELIEF_MIN_COS, MaterialConfig)
 from .export_lookup import footprint_texels, pyramid_footprint, pyramid_texels, texture_texels
@@ -246,13 +246,13 @@ def _visibility(g: GraphWriter, horizons: str, wi: str, wi_z: str) -> str:
     return g.op("Min", g.op("Max", lit, g.scalar(0.0)), g.scalar(1.0))
 
 
-def _corrected(g: GraphWriter, base: str, out: str, ceiling: float) -> str:
+def _corrected(g: GraphWriter, base: str, out: str) -> str:
     """base (M, 3), decoder output (M, BASE_OUTPUTS) -> base * exp(min(c, ceiling)) + a (`base.corrected`)."""
     log_part = np.zeros((BASE_OUTPUTS, 3), np.float32)
     log_part[:3] = np.eye(3)
     add_part = np.zeros((BASE_OUTPUTS, 3), np.float32)
     add_part[3:] = np.eye(3)
-    c = g.op("Min", g.op("MatMul", out, g.const(log_part)), g.scalar(ceiling))
+    c = g.op("Min", g.op("MatMul", out, g.const(log_part)), g.scalar(BASE_LOG_CEILING))
     return g.op("Add", g.op("Mul", base, g.op("Exp", c)), g.op("MatMul", out, g.const(add_part)))
 
 
@@ -350,7 +350,7 @@ def material_graph(g: GraphWriter, config: MaterialConfig, weights: dict,
     size = head.outputs(config.head)
     if config.base:  # per light: the base's answer from the group's maps, corrected by the decoder
         maps = each_light(_base_maps(g, config, weights, uvw, sigma))  # (K N, BASE_CHANNELS)
-        out = _corrected(g, _base_answer(g, maps, wi, each_light(wo)), out, config.base_log_ceiling)
+        out = _corrected(g, _base_answer(g, maps, wi, each_light(wo)), out)
     rows = _reshape(g, out, k, n, size)  # (K, N, O)
     rows = _reshape(g, g.op("Transpose", rows, perm=[1, 0, 2]), kn, size)  # (N K, O)
     return rows, [n, g.op("Mul", k, g.const([C.RGB_DIM], np.int64))]

@@ -114,7 +114,7 @@ class NeuMIPMaterial(nn.Module):
         out = self.decoder(torch.cat([features, directions], dim=1))
         if self.config.base:
             maps = pyramid_lookup(self.base_maps, self.config.base_pyramid(), u, v, sigma)
-            out = corrected(base_answer(maps, directions[:, :2], directions[:, 2:]), out, self.config.base_log_ceiling)
+            out = corrected(base_answer(maps, directions[:, :2], directions[:, 2:]), out)
         if self.config.head == "yuv":  # exp(YUV) - 1 times the shadow mask (core/head.py)
             shadow = head.SHADOW_FLOOR + torch.sigmoid(out[:, 3:])
             out = torch.expm1(out[:, :3] @ self.yuv_to_rgb) * shadow

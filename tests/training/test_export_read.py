@@ -30,7 +30,6 @@ CONFIGS = {
     "half-vector": replace(BASE, half_vector=True, channels=5),
     "base": replace(BASE, base=32),
     "relief": replace(BASE, relief=32, relief_steps=4),
-    "base-ceiling": replace(BASE, base=32, base_log_ceiling=0.7),
 }
 SHIPPED = sorted(Path("models").glob("*.onnx"))
 
