@@ -86,10 +86,13 @@ class NeuMIPMaterial(nn.Module):
         queries: torch.Tensor,
         pyramid: list[torch.Tensor] | None = None,
         offset_texture: torch.Tensor | None = None,
+        landed: bool = False,
     ) -> torch.Tensor:
         """(N, 7) queries -> (N, 3) RGB >= 0.
 
         `pyramid` / `offset_texture` replace the stored textures (training evaluates blurred copies).
+        `landed`: the queries' u, v are already where the relief stage lands (`relief.landed_positions`:
+        training marches each data row once, its heights being fixed).
         """
         levels, otex = pyramid, offset_texture
         if levels is None or (self.config.offset and otex is None):  # (an encoder's textures cost a pass)
@@ -98,7 +101,7 @@ class NeuMIPMaterial(nn.Module):
             otex = stored_otex if otex is None else otex
         u, v, sigma = queries[:, C.U], queries[:, C.V], queries[:, C.SIGMA]
         wo = queries[:, C.WO_X : C.WO_Y + 1]
-        if self.config.relief:
+        if self.config.relief and not landed:
             du, dv = relief_shift(self.relief_heights, self.config, u, v, sigma, wo)
             u, v = u + du, v + dv
         if self.config.offset:

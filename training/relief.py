@@ -89,3 +89,18 @@ def relief_shift(heights: torch.Tensor, config: MaterialConfig, u: torch.Tensor,
     t = relief_depth(heights, config.relief_pyramid(), u, v, sigma, wo, config.relief_steps)
     d = march_direction(wo)
     return -t * d[:, 0], -t * d[:, 1]
+
+
+@torch.no_grad()
+def landed_positions(levels: list[np.ndarray], config: MaterialConfig, queries: np.ndarray,
+                     chunk: int = 1 << 16) -> np.ndarray:
+    """The relief stage of `config` for (N, 7) `queries` (`relief_heights` `levels`) -> (N, 2) float32 u, v where
+    each lands, in chunks; what `NeuMIPMaterial.forward` computes first, answer for answer."""
+    heights = torch.cat([torch.as_tensor(lvl, dtype=torch.float32).reshape(-1, 1) for lvl in levels])
+    out = np.empty((len(queries), 2), np.float32)
+    for start in range(0, len(queries), chunk):
+        q = torch.from_numpy(np.array(queries[start:start + chunk], dtype=np.float32))
+        u, v = q[:, 0], q[:, 1]
+        du, dv = relief_shift(heights, config, u, v, q[:, 2], q[:, 5:7])
+        out[start:start + chunk] = torch.stack([u + du, v + dv], dim=1).numpy()
+    return out

@@ -32,7 +32,7 @@ from .losses import training_loss
 from .base import base_maps
 from .maps import MapConfig, prefilter
 from .material import MapMaterial, NeuMIPMaterial
-from .relief import relief_heights
+from .relief import landed_positions, relief_heights
 from .microgeometry.description import Microgeometry
 from .train_config import TrainConfig
 from .validation import predict, validation_table
@@ -108,11 +108,15 @@ def split_indices(n: int, config: TrainConfig) -> tuple[np.ndarray, np.ndarray]:
 class BatchSampler:
     """Uniform random batches of the training split, drawn from the (memory-mapped) data."""
 
-    def __init__(self, data: Dataset, train_idx: np.ndarray, batch: int, seed: int, preload_mb: int) -> None:
+    def __init__(self, data: Dataset, train_idx: np.ndarray, batch: int, seed: int, preload_mb: int,
+                 landed: np.ndarray | None = None) -> None:
+        """`landed`: (N, 2) u, v of every row where the relief stage lands (`relief.landed_positions`); the
+        batches then carry them in place of the rows' own u, v."""
         self.batch = batch
         self.queries, self.rgb = data.queries, data.rgb
         if (data.queries.nbytes + data.rgb.nbytes) / 2**20 <= preload_mb:
             self.queries, self.rgb = np.array(data.queries), np.array(data.rgb)
+        self.landed = landed
         self.train_idx = torch.from_numpy(train_idx)
         self.generator = torch.Generator().manual_seed(seed)
 
@@ -121,6 +125,8 @@ class BatchSampler:
         pick = torch.randint(len(self.train_idx), (self.batch,), generator=self.generator)
         rows = np.sort(self.train_idx[pick].numpy())
         q = torch.from_numpy(self.queries[rows])
+        if self.landed is not None:
+            q[:, C.U:C.V + 1] = torch.from_numpy(self.landed[rows])
         rgb = torch.from_numpy(self.rgb[rows])
         return q.to(device, non_blocking=True), rgb.to(device, non_blocking=True)
 
@@ -185,7 +191,11 @@ class Trainer:
         self.config, self.description = config, description
         self.device = resolve_device(config.device)
         self.train_idx, self.val_idx = split_indices(len(self.data), config)
-        self.sampler = BatchSampler(self.data, self.train_idx, config.batch, config.seed, config.preload_mb)
+        landed = None
+        if material_config.relief:  # the heights are fixed: each row is marched once, not at every step
+            landed = landed_positions(relief_heights(self._geometry, material_config.relief), material_config,
+                                      self.data.queries)
+        self.sampler = BatchSampler(self.data, self.train_idx, config.batch, config.seed, config.preload_mb, landed)
         self.state = TrainState()
         if self.checkpoint_path.exists():
             self.material = self._resume(material_config)
@@ -223,7 +233,8 @@ class Trainer:
         self, queries: torch.Tensor, target: torch.Tensor, levels: list[torch.Tensor], otex: torch.Tensor | None
     ) -> torch.Tensor:
         """(B, 7) queries, (B, 3) target, effective textures -> scalar training loss."""
-        return training_loss(self.material(queries, levels, otex), target, self.config)
+        return training_loss(self.material(queries, levels, otex, landed=self.sampler.landed is not None), target,
+                             self.config)
 
     # --- checkpoints -----------------------------------------------------------------------------
 

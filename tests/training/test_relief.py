@@ -105,3 +105,22 @@ def test_a_material_with_a_relief_reads_where_the_ray_lands():
         assert not torch.equal(material(q), flat(q))
     with pytest.raises(ValueError, match="relief_heights of"):
         material.set_maps(W.RELIEF, relief_heights(geometry(height[:8, :8]), 8))
+
+
+def test_a_batch_marched_once_answers_as_the_material_marching_it():
+    """Training marches each data row once (`landed_positions`, its heights are fixed) and evaluates the
+    batch with `landed=True`: the same answers, bit for bit, as the material's own march."""
+    from neumip.training.relief import landed_positions
+
+    torch.manual_seed(1)
+    height = 0.05 * (np.random.default_rng(4).standard_normal((16, 16)) - 3)
+    height -= height.max()
+    config = MaterialConfig(resolution=8, relief=16)
+    levels = relief_heights(geometry(height), 16)
+    material = NeuMIPMaterial(config)
+    material.set_maps(W.RELIEF, levels)
+    q = C.random_queries(3000, seed=6)
+    moved = q.copy()
+    moved[:, C.U:C.V + 1] = landed_positions(levels, config, q, chunk=1000)
+    with torch.no_grad():
+        assert torch.equal(material(torch.from_numpy(moved), landed=True), material(torch.from_numpy(q)))
