@@ -18,6 +18,14 @@ BASE_HELP = ("the classical material as the base: the answer is the principled B
 RELIEF_HELP = ("parallax and occlusion from the material's height map: every lookup reads where the view ray "
                "first meets the height field, marched in STEPS steps on a height pyramid at the map's resolution, "
                "before the neural offset (MaterialConfig.relief, training/TRAINING.md)")
+
+
+def add_relief_argument(p: argparse.ArgumentParser, help_tail: str = "") -> None:
+    """`--relief [STEPS]` (0, the default: none; alone: `MaterialConfig.relief_steps`)."""
+    p.add_argument("--relief", type=int, nargs="?", const=MaterialConfig.relief_steps, default=0, metavar="STEPS",
+                   help=RELIEF_HELP + help_tail + f"; STEPS defaults to {MaterialConfig.relief_steps}")
+
+
 HIDDEN_HELP = (f"width of the hidden layers of both MLPs (default {MaterialConfig.hidden}, the paper's; "
                "the shipped materials too; 48 was measured, not shipped: benchmarks/results/quality_levers_log.md)")
 
@@ -51,8 +59,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--hidden", type=int, default=MaterialConfig.hidden, help=HIDDEN_HELP)
     p.add_argument("--half-vector", action="store_true", help=HALF_VECTOR_HELP)
     p.add_argument("--base", action="store_true", help=BASE_HELP + "; the maps are the data's material's, or --maps'")
-    p.add_argument("--relief", type=int, nargs="?", const=MaterialConfig.relief_steps, default=0, metavar="STEPS",
-                   help=RELIEF_HELP + f"; STEPS defaults to {MaterialConfig.relief_steps}")
+    add_relief_argument(p)
     p.add_argument("--views-material", metavar="NAME_OR_TOML",
                    help="material whose ground truth the progress grid NAME.progress.png shows (default: the "
                         "data's own, when its description can be rebuilt from meta.json)")
@@ -307,8 +314,7 @@ def _register_train_many(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--half-vector", action="store_true", help=HALF_VECTOR_HELP)
     p.add_argument("--no-offset", action="append", default=[], metavar="NAME",
                    help="train NAME without the neural offset (repeatable)")
-    p.add_argument("--relief", type=int, nargs="?", const=MaterialConfig.relief_steps, default=0, metavar="STEPS",
-                   help=RELIEF_HELP + " (every material with a height map but those trained with --no-offset)")
+    add_relief_argument(p, " (every material with a height map but those trained with --no-offset)")
     p.add_argument("--steps", type=int, help="override TrainConfig.steps")
     p.add_argument("--candidates", type=int, help="override TrainConfig.candidates")
     p.add_argument("--device", choices=("auto", "cpu", "cuda"), help="override TrainConfig.device")
@@ -334,7 +340,7 @@ def _library_jobs(args: argparse.Namespace) -> list:
         relief = relief_resolution(data_geometry(data)) if args.relief and offset else 0
         kind = ("relief, " if relief else "") + ("neural offset" if offset else "no neural offset")
         material = MaterialConfig(resolution=resolution, offset=offset, hidden=args.hidden,
-                                  half_vector=args.half_vector, relief=relief if relief > 1 else 0,
+                                  half_vector=args.half_vector, relief=relief,
                                   relief_steps=args.relief or MaterialConfig.relief_steps)
         width = f"MLP width {args.hidden}, " if args.hidden != MaterialConfig.hidden else ""
         description = f"{Path(data).name}, {resolution}^2, {kind}, {width}{args.preset} preset"

@@ -52,8 +52,7 @@ def register(sub: argparse._SubParsersAction) -> None:
                    help=commands.BASE_HELP + "; --base auto trains the model without and with it and keeps the base only "
                    "where it lowers the (log-space) error on a low-noise reference set by 10 %% (fit.BASE_MARGIN; "
                    "twice the training time)")
-    p.add_argument("--relief", type=int, nargs="?", const=MaterialConfig.relief_steps, default=0, metavar="STEPS",
-                   help=commands.RELIEF_HELP + f"; STEPS defaults to {MaterialConfig.relief_steps}")
+    commands.add_relief_argument(p)
     p.add_argument("--steps", type=int, help="override the preset's TrainConfig.steps")
     p.add_argument("--candidates", type=int, help="override the preset's TrainConfig.candidates (best of this "
                    "many initial weights, compared after TrainConfig.candidate_steps steps)")

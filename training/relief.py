@@ -36,8 +36,10 @@ from .pyramid import pyramid_lookup
 
 
 def relief_resolution(geo: Microgeometry) -> int:
-    """The height pyramid's finest resolution for `geo`: its height map's side, up to a power of two."""
-    return 1 << max(0, math.ceil(math.log2(geo.height.shape[0])))
+    """The height pyramid's finest resolution for `geo`: its height map's side, up to a power of two; 0 for a
+    flat material (a 1 x 1 height map: nothing to march)."""
+    side = geo.height.shape[0]
+    return 1 << math.ceil(math.log2(side)) if side > 1 else 0
 
 
 def relief_heights(geo: Microgeometry, resolution: int) -> list[np.ndarray]:

@@ -45,6 +45,7 @@ def test_the_height_pyramid_is_the_map_averaged_level_by_level():
     np.testing.assert_allclose(levels[0][..., 0], height, rtol=1e-6)
     np.testing.assert_allclose(levels[-1][0, 0, 0], height.mean(), rtol=1e-5)
     assert relief_resolution(geometry(np.zeros((12, 12)))) == 16
+    assert relief_resolution(geometry(np.zeros((1, 1)))) == 0  # a flat material: nothing to march
 
 
 def test_a_ray_meets_a_flat_floor_at_its_depth_and_a_zenith_ray_does_not_move():
