@@ -144,16 +144,20 @@ def _depth_weights(weights: dict, config: MaterialConfig) -> dict:
     return out
 
 
-def _parallax(g: GraphWriter, depth: str, wo: str, min_cos: float) -> str:
-    """depth (N, 2) (r twice), wo (N, 2) -> shift (N, 2) = r * wo_xy / max(wo_z, min_cos).
+def _clamped_wo_z(g: GraphWriter, wo: str, min_cos: float) -> str:
+    """wo (N, 2) -> (N, 2) max(wo_z, min_cos) twice (the offset's and the relief's divisor).
 
     max(sqrt(max(1 - r2, 0)), m) is computed as sqrt(max(1 - r2, m^2)): equal for a correctly
     rounded sqrt, one op less; every op is on (N, 2) tensors (r2 summed by a 0/1 MatMul).
     """
     r2 = g.op("MatMul", g.op("Mul", wo, wo), g.const(np.ones((2, 2), np.float32)))  # (N, 2) x^2 + y^2
     floor = np.float32(min_cos) * np.float32(min_cos)
-    wo_z = g.op("Sqrt", g.op("Max", g.op("Sub", g.scalar(1.0), r2), g.scalar(floor)))
-    return g.op("Mul", g.op("Div", depth, wo_z), wo)
+    return g.op("Sqrt", g.op("Max", g.op("Sub", g.scalar(1.0), r2), g.scalar(floor)))
+
+
+def _parallax(g: GraphWriter, depth: str, wo: str, min_cos: float) -> str:
+    """depth (N, 2) (r twice), wo (N, 2) -> shift (N, 2) = r * wo_xy / max(wo_z, min_cos)."""
+    return g.op("Mul", g.op("Div", depth, _clamped_wo_z(g, wo, min_cos)), wo)
 
 
 def _half_direction(g: GraphWriter, wi3: str, wo3: str) -> str:
@@ -263,9 +267,7 @@ def _relief(g: GraphWriter, config: MaterialConfig, weights: dict, uv: str, sigm
     depth = np.float32(max(-float(heights.min()), 0.0))
     steps = config.relief_steps
     fp = pyramid_footprint(g, config.relief_pyramid(), g.const(heights, name=W.RELIEF), 1, sigma, prefix="relief.")
-    r2 = g.op("MatMul", g.op("Mul", wo, wo), g.const(np.ones((2, 2), np.float32)))  # (N, 2) x^2 + y^2
-    floor = np.float32(RELIEF_MIN_COS) * np.float32(RELIEF_MIN_COS)
-    d = g.op("Div", wo, g.op("Sqrt", g.op("Max", g.op("Sub", g.scalar(1.0), r2), g.scalar(floor))))
+    d = g.op("Div", wo, _clamped_wo_z(g, wo, RELIEF_MIN_COS))
     ones = g.const(np.ones((8, 1), np.float32))
     found = missed = s_prev = None
     for k in range(steps + 1):

@@ -63,8 +63,14 @@ def relief_depth(heights: torch.Tensor, pyramid: MaterialConfig, u: torch.Tensor
                  sigma: torch.Tensor, wo: torch.Tensor, steps: int) -> torch.Tensor:
     """heights (T, 1) atlas, (N,) u, v, sigma, (N, 2) wo -> (N,) t, the ray's depth where it meets the
     relief (module docstring); the shift of the lookups is -t d (`march_direction`)."""
+    return _march(heights, pyramid, u, v, sigma, march_direction(wo), steps)
+
+
+@torch.no_grad()
+def _march(heights: torch.Tensor, pyramid: MaterialConfig, u: torch.Tensor, v: torch.Tensor,
+           sigma: torch.Tensor, d: torch.Tensor, steps: int) -> torch.Tensor:
+    """`relief_depth` along a march direction d (N, 2) already computed."""
     depth = torch.clamp(-heights.min(), min=0.0)
-    d = march_direction(wo)
     fractions = [k / steps for k in range(steps + 1)]  # t_n = D exactly
     s_prev = t_prev = None
     found = torch.zeros_like(u)
@@ -88,8 +94,8 @@ def relief_depth(heights: torch.Tensor, pyramid: MaterialConfig, u: torch.Tensor
 def relief_shift(heights: torch.Tensor, config: MaterialConfig, u: torch.Tensor, v: torch.Tensor,
                  sigma: torch.Tensor, wo: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
     """The relief stage of `config` (with `relief`): (N,) u, v, sigma, (N, 2) wo -> (N,) du, dv."""
-    t = relief_depth(heights, config.relief_pyramid(), u, v, sigma, wo, config.relief_steps)
     d = march_direction(wo)
+    t = _march(heights, config.relief_pyramid(), u, v, sigma, d, config.relief_steps)
     return -t * d[:, 0], -t * d[:, 1]
 
 
