@@ -2,7 +2,10 @@
 render's own kernel (`KernelMaterials`) and in ONNX Runtime on one thread (`LocalMaterials`), the median
 of interleaved rounds on the same random queries (compare ratios within one run: the machine is shared).
 
-    .venv/bin/python benchmarks/bench_models.py DIR [--queries 18] [--rounds 3]
+    .venv/bin/python benchmarks/bench_models.py DIR [--queries 18] [--rounds 3] [--backends llvm,cuda]
+
+`--backends` names the drjit backends the kernel runs on (cuda: an NVIDIA GPU, as the renderer's
+cuda_ad_rgb variant runs it; its figure includes copying the queries to the GPU and the answers back).
 
 Put the variants to compare in DIR (e.g. a model with and without a stage, `benchmarks/results/relief.txt`).
 """
@@ -12,6 +15,8 @@ from __future__ import annotations
 import argparse
 import os
 import time
+
+import importlib
 
 import numpy as np
 
@@ -25,8 +30,11 @@ def main() -> None:
     parser.add_argument("folder")
     parser.add_argument("--queries", type=int, default=18, help="log2 of the queries per call")
     parser.add_argument("--rounds", type=int, default=3)
+    parser.add_argument("--backends", default="llvm", help="comma-separated drjit backends of the kernel: llvm, cuda")
     args = parser.parse_args()
-    engines = {"kernel": KernelMaterials(args.folder), "onnxruntime": LocalMaterials(args.folder, threads=1)}
+    engines = {f"kernel {b}" if b != "llvm" else "kernel": KernelMaterials(args.folder, importlib.import_module(f"drjit.{b}.ad"))
+               for b in args.backends.split(",")}
+    engines["onnxruntime"] = LocalMaterials(args.folder, threads=1)
     q = random_queries(1 << args.queries, seed=1)
     names = sorted(engines["kernel"].materials())
     for engine in engines.values():  # warm up: kernels compiled, sessions opened

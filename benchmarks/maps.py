@@ -40,6 +40,7 @@ from neumip.training.train_config import PRESETS  # noqa: E402
 
 SHIP = replace(PRESETS["ship"], validate_every=0)
 QUICK = replace(PRESETS["quick"], validate_every=0)
+QUALITY = replace(PRESETS["quality"], validate_every=0)
 RECIPE = {"resolution": 64, "hidden": 25}
 """The shipped models' architecture (models/make_models.sh)."""
 
@@ -67,6 +68,11 @@ VARIANTS: dict[str, tuple[dict, MapConfig | None, object]] = {
     "Nr": ({"relief": "maps"}, None, SHIP),
     "Nr0": ({"relief": "maps", "offset": False}, None, SHIP),
     "Nbr": ({"base": "maps", "relief": "maps"}, None, SHIP),
+    # the shipped recipe's latent pyramid at the maps' resolution, and both with 4.2x the steps (`quality`):
+    # what a GPU (--device cuda) can afford that the 2-core machine's 30-minute budget cannot
+    "Nbr256": ({"base": "maps", "relief": "maps", "resolution": 256}, None, SHIP),
+    "Nbr_quality": ({"base": "maps", "relief": "maps"}, None, QUALITY),
+    "Nbr256_quality": ({"base": "maps", "relief": "maps", "resolution": 256}, None, QUALITY),
     "N_rel": ({}, None, replace(SHIP, loss="relative")),  # relative MSE, detached denominator (lever 4)
     "M_hz_rel": ({}, MapConfig(horizons=8), replace(SHIP, loss="relative")),
     "N128": ({"resolution": 128}, None, SHIP),
@@ -93,7 +99,10 @@ def views():
             for light, (z, a) in LIGHTS.items() for lv in LEVELS]
 
 
-def train(variant: str, data: str, material: str, runs: Path, threads: int, validate_every: int = 0) -> None:
+def train(variant: str, data: str, material: str, runs: Path, threads: int, validate_every: int = 0,
+          device: str = "cpu", reference: str | None = None) -> None:
+    """Fit `variant` on `device` -> RUNS/VARIANT/MATERIAL.onnx and .json; with `reference` (a data set
+    folder, e.g. make_models.sh's runs/NAME/reference), the record has its `fit.reference_error` too."""
     import torch
 
     from neumip.training.base import base_resolution
@@ -104,7 +113,7 @@ def train(variant: str, data: str, material: str, runs: Path, threads: int, vali
 
     torch.set_num_threads(threads)
     overrides, maps, config = VARIANTS[variant]
-    config = replace(config, validate_every=validate_every)
+    config = replace(config, validate_every=validate_every, device=device)
     desc = find_description(material)
     out = runs / variant / f"{desc.name}.onnx"
     checkpoint = runs / variant / f"{desc.name}.pt"
@@ -123,10 +132,17 @@ def train(variant: str, data: str, material: str, runs: Path, threads: int, vali
     record = {"variant": variant, "data": data, "queries": len(trainer.data), "steps": trainer.state.step,
               "batch": config.batch, "train_seconds": round(seconds, 1), "cpu_seconds": round(cpu, 1), "held_out_mse": held["overall"]["mse"],
               "load_average": os.getloadavg(), "onnx_mb": round(out.stat().st_size / 1e6, 2),
-              "progress": [[step, overall] for step, _, overall in trainer.state.progress]}
+              "progress": [[step, overall] for step, _, overall in trainer.state.progress],
+              "device": str(trainer.device)}
+    if reference is not None:
+        from neumip.training.dataset import open_dataset
+        from neumip.training.fit import reference_error
+
+        record["reference_log_mse"] = reference_error(trainer.material, open_dataset(reference))
     (runs / variant / f"{desc.name}.json").write_text(json.dumps(record, indent=1) + "\n")
     trainer.save_checkpoint()  # kept: `bake` re-evaluates a map model's encoder at other resolutions
-    print(f"{variant}: {seconds:.0f} s, held-out MSE {held['overall']['mse'] * 1e3:.4f}e-3, "
+    judged = f", reference log MSE {record['reference_log_mse'] * 1e3:.3f}e-3" if reference is not None else ""
+    print(f"{variant}: {seconds:.0f} s on {trainer.device}, held-out MSE {held['overall']['mse'] * 1e3:.4f}e-3{judged}, "
           f"load {os.getloadavg()[0]:.1f} -> {out}", flush=True)
 
 
@@ -280,6 +296,8 @@ def main() -> None:
     t.add_argument("--runs", type=Path, default=Path("runs/maps"))
     t.add_argument("--threads", type=int, default=1)
     t.add_argument("--validate-every", type=int, default=0, help="record the held-out MSE every this many steps")
+    t.add_argument("--device", choices=("cpu", "cuda"), default="cpu")
+    t.add_argument("--reference", help="a low-noise data set (make_models.sh's runs/NAME/reference): its log MSE")
     v = sub.add_parser("speed")
     v.add_argument("variants", nargs="+", choices=tuple(VARIANTS))
     v.add_argument("--data", required=True)
@@ -301,7 +319,8 @@ def main() -> None:
     args = p.parse_args()
     if args.command == "train":
         for variant in args.variants:
-            train(variant, args.data, args.material, args.runs, args.threads, args.validate_every)
+            train(variant, args.data, args.material, args.runs, args.threads, args.validate_every, args.device,
+                  args.reference)
     elif args.command == "bake":
         bake(args.variant, args.material, args.runs, args.resolution)
     elif args.command == "speed":

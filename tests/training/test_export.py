@@ -64,6 +64,21 @@ def test_parity_edge_queries(pair, edge_queries, assert_parity):
     assert_parity(got, want)
 
 
+CUDA = pytest.mark.skipif(not torch.cuda.is_available(), reason="no CUDA device")
+
+
+@CUDA
+def test_cuda_answers_as_the_graph(pair, edge_queries, assert_parity):
+    """The material on a GPU (how `neumip train --device cuda` trains) answers what the exported graph answers."""
+    material, _, session = pair
+    on_gpu = NeuMIPMaterial(material.config).to("cuda")
+    on_gpu.load_state_dict(material.state_dict())
+    for q in (random_queries(20000, seed=12), edge_queries(material.config.resolution)):
+        with torch.no_grad():
+            got = on_gpu(torch.from_numpy(q).to("cuda")).cpu().numpy()
+        assert_parity(got, session.run(None, {C.ONNX_INPUT: q})[0])
+
+
 def test_graph_stores_textures_as_initializers_and_metadata(pair):
     material, model, _ = pair
     onnx.checker.check_model(model, full_check=True)

@@ -247,6 +247,28 @@ def test_compiled_step_matches_eager(data, tmp_path):
     assert compiled._loss != compiled._batch_loss  # it did not fall back to eager
 
 
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="no CUDA device")
+def test_a_run_on_the_gpu_learns_resumes_on_the_cpu_and_exports_what_it_computed(data, tmp_path, assert_parity):
+    """`--device cuda`: the steps run on the GPU, the checkpoint resumes on the CPU, and the export answers
+    what the GPU-trained material answers."""
+    gpu = Trainer(data.path, tmp_path / "g.pt", TINY, replace(FAST, device="cuda"))
+    first = gpu.step()
+    table = gpu.run()
+    assert next(gpu.material.parameters()).is_cuda and table["steps"] == 60
+    assert table["overall"]["rel_l1"] < 0.5 and gpu.state.history[-1][1] < first
+    cpu = Trainer(data.path, tmp_path / "g.pt", TINY, replace(FAST, steps=70, device="cpu"))
+    assert cpu.state.step == 60 and not next(cpu.material.parameters()).is_cuda
+    for name, value in gpu.material.state_dict().items():
+        torch.testing.assert_close(cpu.material.state_dict()[name], value.cpu())
+    cpu.run()
+    paths = write_outputs(gpu, table, tmp_path / "g.onnx")
+    q = random_queries(5000, seed=2)
+    session = ort.InferenceSession(str(paths["onnx"]), providers=["CPUExecutionProvider"])
+    with torch.no_grad():
+        want = gpu.material(torch.from_numpy(q).to("cuda")).cpu().numpy()
+    assert_parity(session.run(None, {C.ONNX_INPUT: q})[0], want)
+
+
 def test_cosine_schedule_falls_from_lr_to_its_final_fraction():
     from neumip.training.train import learning_rate
 
