@@ -50,7 +50,8 @@ BASE_LOG_CEILING = 8.0
 """The decoder's log-scale correction is clamped to at most this (exp(8) ~ 3000x) before exp."""
 RELIEF_MIN_COS = 0.25
 """The relief stage marches along wo_xy / max(wo_z, this): a grazing view's ray is followed at most ~3.9x
-its depth sideways (`MaterialConfig.relief`)."""
+its depth sideways (`MaterialConfig.relief`). 0.1 was measured: rock's 85-degree view 0.66x the image MSE,
+but turtle's reference error 1.27x (`benchmarks/results/relief.txt`)."""
 RELIEF_DIVISION_FLOOR = 1e-12
 """The relief's secant step divides by at least this (its weight is 0 where the floor acts)."""
 
@@ -93,6 +94,12 @@ class MaterialConfig:
     learned offset (if any) corrects from there."""
     relief_steps: int = 8
     """Linear-search steps of the relief stage (each one height lookup), refined by one secant step."""
+    ceiling: float = 0.0
+    """The largest answer (every channel), 0: none. A trainer sets it to its data's largest target
+    (`train.data_ceiling`): each target is an unbiased estimate of an answer, so an answer above all of them is
+    the model's extrapolation, not the material's, and renders as fireflies (`benchmarks/results/relief.txt`:
+    a base's lobe at grazing views answered 8x the data's largest target). Training's loss reads the answers
+    below the ceiling too, so that a query above it still learns."""
     head: str = "relu"
     """Decoder output head (core/head.py): "relu" (paper: RGB = max(out, 0)) or "yuv" (authors'
     code: exp(YUV) - 1 times a shadow mask 0.1 + sigmoid, 6 outputs)."""
@@ -115,6 +122,8 @@ class MaterialConfig:
             raise ValueError(f"relief must be 0 or a power of two, got {self.relief}")
         if self.relief_steps < 1:
             raise ValueError(f"relief_steps must be >= 1, got {self.relief_steps}")
+        if not (self.ceiling >= 0 and math.isfinite(self.ceiling)):
+            raise ValueError(f"ceiling must be 0 (none) or a finite positive answer, got {self.ceiling}")
         if not 0 < self.offset_min_cos <= 1:
             raise ValueError(f"offset_min_cos must be in (0, 1], got {self.offset_min_cos}")
 
@@ -148,8 +157,8 @@ class MaterialConfig:
         return MaterialConfig(resolution=self.relief, channels=1, offset=False) if self.relief else None
 
     def to_json(self) -> str:
-        """The fields as JSON; `half_vector`, `base` and the relief's only when on, so the paper's models
-        read as before they existed."""
+        """The fields as JSON; `half_vector`, `base`, the relief's and `ceiling` only when on, so the paper's
+        models read as before they existed."""
         fields_ = asdict(self)
         if not self.half_vector:
             del fields_["half_vector"]
@@ -157,6 +166,8 @@ class MaterialConfig:
             del fields_["base"]
         if not self.relief:
             del fields_["relief"], fields_["relief_steps"]
+        if not self.ceiling:
+            del fields_["ceiling"]
         return json.dumps(fields_, sort_keys=True)
 
     @classmethod

@@ -386,7 +386,10 @@ def build_onnx(
     rgb, shape = material_graph(g, config, weights, finest_level)
     if config.head == "yuv":
         rgb = _yuv_head(g, rgb)
-    _reshape(g, g.op("Relu", rgb), *shape, output=C.ONNX_OUTPUT)  # (N, 3 K)
+    rgb = g.op("Relu", rgb)
+    if config.ceiling:
+        rgb = g.op("Min", rgb, g.scalar(config.ceiling))
+    _reshape(g, rgb, *shape, output=C.ONNX_OUTPUT)  # (N, 3 K)
     model = g.model(C.ONNX_INPUT, "width", C.ONNX_OUTPUT, "answers", OPSET, IR_VERSION)
     meta = {
         C.META_CONTRACT: C.CONTRACT_VERSION,

@@ -87,8 +87,10 @@ class NeuMIPMaterial(nn.Module):
         pyramid: list[torch.Tensor] | None = None,
         offset_texture: torch.Tensor | None = None,
         landed: bool = False,
+        ceiling: bool = True,
     ) -> torch.Tensor:
-        """(N, 7) queries -> (N, 3) RGB >= 0.
+        """(N, 7) queries -> (N, 3) RGB >= 0 (and at most `MaterialConfig.ceiling`, unless `ceiling` is False:
+        the training loss reads the answers unclamped, so that a query above the ceiling still learns).
 
         `pyramid` / `offset_texture` replace the stored textures (training evaluates blurred copies).
         `landed`: the queries' u, v are already where the relief stage lands (`relief.landed_positions`:
@@ -121,7 +123,8 @@ class NeuMIPMaterial(nn.Module):
         if self.config.head == "yuv":  # exp(YUV) - 1 times the shadow mask (core/head.py)
             shadow = head.SHADOW_FLOOR + torch.sigmoid(out[:, 3:])
             out = torch.expm1(out[:, :3] @ self.yuv_to_rgb) * shadow
-        return torch.relu(out)
+        out = torch.relu(out)
+        return torch.clamp(out, max=self.config.ceiling) if ceiling and self.config.ceiling else out
 
 
 def half_vector(wi: torch.Tensor, wo: torch.Tensor) -> torch.Tensor:

@@ -12,7 +12,7 @@ from __future__ import annotations
 import logging
 import math
 import time
-from dataclasses import asdict, dataclass, field, fields
+from dataclasses import asdict, dataclass, field, fields, replace
 from pathlib import Path
 from typing import Callable
 
@@ -84,6 +84,12 @@ def differences(saved: dict, now: dict, ignore=()) -> list[str]:
     names = sorted((saved.keys() | now.keys()) - set(ignore))
     return [f"{k}: checkpoint {saved.get(k)!r}, now {now.get(k)!r}" for k in names
             if saved.get(k) != now.get(k)]
+
+
+def data_ceiling(data: Dataset) -> float:
+    """The data's largest target (`MaterialConfig.ceiling`), read in chunks of the memory-mapped file."""
+    rgb = data.rgb
+    return float(max(np.max(rgb[lo:lo + (1 << 20)]) for lo in range(0, len(rgb), 1 << 20)))
 
 
 def resolve_device(name: str) -> torch.device:
@@ -200,6 +206,8 @@ class Trainer:
         if self.checkpoint_path.exists():
             self.material = self._resume(material_config)
         else:
+            if not material_config.ceiling:  # (0: the data's; a resumed run keeps its checkpoint's)
+                material_config = replace(material_config, ceiling=data_ceiling(self.data))
             features = (None if self.map_config is None
                         else prefilter(maps[1], material_config.level_sizes(), self.map_config.horizons))
             self._new_material = lambda seed: self._initial_material(material_config, features, seed)
@@ -233,8 +241,8 @@ class Trainer:
         self, queries: torch.Tensor, target: torch.Tensor, levels: list[torch.Tensor], otex: torch.Tensor | None
     ) -> torch.Tensor:
         """(B, 7) queries, (B, 3) target, effective textures -> scalar training loss."""
-        return training_loss(self.material(queries, levels, otex, landed=self.sampler.landed is not None), target,
-                             self.config)
+        answers = self.material(queries, levels, otex, landed=self.sampler.landed is not None, ceiling=False)
+        return training_loss(answers, target, self.config)
 
     # --- checkpoints -----------------------------------------------------------------------------
 
@@ -246,6 +254,8 @@ class Trainer:
 
     def _resume(self, material_config: MaterialConfig) -> NeuMIPMaterial:
         material, extra = checkpoint.load(self.checkpoint_path)
+        if not material_config.ceiling:  # the data's, as the run began (0 for a run begun before it existed)
+            material_config = replace(material_config, ceiling=material.config.ceiling)
         # fields added since the checkpoint was written take their defaults (the behaviour before them)
         saved_config = {**{f.name: f.default for f in fields(TrainConfig)}, **extra.get("train_config", {})}
         mismatches = [

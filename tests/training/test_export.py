@@ -1,6 +1,7 @@
 """ONNX export: graph structure, metadata, and torch vs ONNX Runtime parity on random and edge queries."""
 
 import json
+from dataclasses import replace
 
 import numpy as np
 import onnx
@@ -77,6 +78,28 @@ def test_cuda_answers_as_the_graph(pair, edge_queries, assert_parity):
         with torch.no_grad():
             got = on_gpu(torch.from_numpy(q).to("cuda")).cpu().numpy()
         assert_parity(got, session.run(None, {C.ONNX_INPUT: q})[0])
+
+
+def test_the_ceiling_clamps_answers_in_torch_and_in_the_graph_alike(assert_parity):
+    """`MaterialConfig.ceiling`: no answer above it, torch and the graph agree, and the loss's unclamped answers
+    (``ceiling=False``) are the same material's."""
+    torch.manual_seed(5)
+    free = NeuMIPMaterial(MaterialConfig(resolution=16), init_std=0.5)
+    q = random_queries(20000, seed=13)
+    unclamped = torch_eval(free, q)
+    ceiling = float(np.float32(np.median(unclamped)))
+    material = NeuMIPMaterial(replace(free.config, ceiling=ceiling))
+    material.load_state_dict(free.state_dict())
+    want = torch_eval(material, q)
+    assert want.max() == ceiling and (unclamped > ceiling).mean() > 0.3
+    np.testing.assert_array_equal(want, np.minimum(unclamped, ceiling))
+    with torch.no_grad():
+        np.testing.assert_array_equal(material(torch.from_numpy(q), ceiling=False).numpy(), unclamped)
+    model = build_onnx(material.config, weights_from_state(material.state_dict(), material.config), "test")
+    got = ort.InferenceSession(model.SerializeToString(), providers=["CPUExecutionProvider"]).run(
+        None, {C.ONNX_INPUT: q})[0]
+    assert got.max() <= ceiling
+    assert_parity(got, want)
 
 
 def test_graph_stores_textures_as_initializers_and_metadata(pair):

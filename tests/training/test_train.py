@@ -368,6 +368,30 @@ def test_checkpoint_from_before_the_new_settings_resumes(data, tmp_path):
     assert Trainer(data.path, tmp_path / "c.pt", TINY, cfg).run()["steps"] == 20
 
 
+def test_the_ceiling_is_the_datas_largest_target_and_a_run_keeps_the_one_it_began_with(data, tmp_path):
+    """`MaterialConfig.ceiling` 0 asks for the data's largest target; a resumed run keeps its checkpoint's (none
+    for a run begun before the ceiling existed); a ceiling given is kept."""
+    cfg = replace(FAST, steps=10)
+    trainer = Trainer(data.path, tmp_path / "c.pt", TINY, cfg)
+    assert trainer.material.config.ceiling == float(np.max(data.rgb)) > 0
+    trainer.run()
+    assert Trainer(data.path, tmp_path / "c.pt", TINY, replace(cfg, steps=20)).material.config.ceiling == \
+        trainer.material.config.ceiling
+    material, extra = checkpoint.load(tmp_path / "c.pt")
+    material.config = replace(material.config, ceiling=0.0)  # as written before the ceiling existed
+    checkpoint.save(tmp_path / "c.pt", material, extra)
+    old = Trainer(data.path, tmp_path / "c.pt", TINY, replace(cfg, steps=20))
+    assert old.material.config.ceiling == 0.0 and old.run()["steps"] == 20
+    low = Trainer(data.path, tmp_path / "low.pt", replace(TINY, ceiling=0.01), cfg)  # below every target
+    assert low.material.config.ceiling == 0.01
+    with torch.no_grad():
+        assert (low.material(torch.from_numpy(random_queries(100, seed=1))) == 0.01).all()
+    before = [w.detach().clone() for w in low.material.decoder.parameters()]
+    losses = [low.step() for _ in range(10)]
+    moved = max(float((w - b).abs().max()) for w, b in zip(low.material.decoder.parameters(), before))
+    assert moved > 1e-3 and losses[-1] < losses[0], "the loss reads the answers unclamped: clamped, none would learn"
+
+
 @pytest.mark.parametrize("name", ["paper", "quality", "ship", "quick"])
 def test_presets_scale_the_papers_schedule(name):
     """Every preset but `test` is the paper's blur schedule scaled to its step count: the blur halves
