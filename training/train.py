@@ -86,6 +86,25 @@ def differences(saved: dict, now: dict, ignore=()) -> list[str]:
             if saved.get(k) != now.get(k)]
 
 
+def claim_checkpoint(path: Path):
+    """Lock ``CHECKPOINT.lock`` for this process (a POSIX record lock, released when the process ends, however
+    it ends) -> the open lock file, to keep while training. A second process training into the same checkpoint
+    would resume it too, and the two would overwrite each other's checkpoints and outputs: it is refused."""
+    try:
+        import fcntl
+    except ImportError:  # not POSIX: no lock
+        return None
+    path.parent.mkdir(parents=True, exist_ok=True)
+    lock = open(path.with_name(path.name + ".lock"), "a+")
+    try:
+        fcntl.lockf(lock, fcntl.LOCK_EX | fcntl.LOCK_NB)
+    except OSError:
+        lock.close()
+        raise TrainingError(f"another process is training into {path}: wait for it to end, or pass another "
+                            "--checkpoint (--work for `neumip fit`)") from None
+    return lock
+
+
 def data_ceiling(data: Dataset) -> float:
     """The data's largest target (`MaterialConfig.ceiling`), read in chunks of the memory-mapped file."""
     rgb = data.rgb
@@ -194,6 +213,7 @@ class Trainer:
             raise TrainingError("a material with a base or a relief needs the material's maps (the data's description)")
         self._geometry = maps[1] if maps is not None else None
         self.checkpoint_path = Path(checkpoint_path)
+        self._claim = claim_checkpoint(self.checkpoint_path)
         self.config, self.description = config, description
         self.device = resolve_device(config.device)
         self.train_idx, self.val_idx = split_indices(len(self.data), config)

@@ -392,6 +392,25 @@ def test_the_ceiling_is_the_datas_largest_target_and_a_run_keeps_the_one_it_bega
     assert moved > 1e-3 and losses[-1] < losses[0], "the loss reads the answers unclamped: clamped, none would learn"
 
 
+def test_a_second_process_training_into_the_same_checkpoint_is_refused(data, tmp_path):
+    """Two processes resuming one checkpoint would overwrite each other's checkpoints and outputs; the same
+    process may open it again (resuming), and the lock goes with the process that held it."""
+    import subprocess
+    import sys
+
+    trainer = Trainer(data.path, tmp_path / "c.pt", TINY, FAST)
+    other = [sys.executable, "-c", "import sys; from neumip.training.train import Trainer, TrainingError; "
+             "from neumip.training.train_config import TEST; from neumip.core.config import MaterialConfig\n"
+             "try: Trainer(sys.argv[1], sys.argv[2], MaterialConfig(resolution=16), TEST)\n"
+             "except TrainingError as e: print(e); sys.exit(3)", str(data.path), str(tmp_path / "c.pt")]
+    refused = subprocess.run(other, capture_output=True, text=True, timeout=120)
+    assert refused.returncode == 3, refused.stderr
+    assert f"another process is training into {tmp_path / 'c.pt'}" in refused.stdout
+    Trainer(data.path, tmp_path / "c.pt", TINY, FAST)  # this process again: allowed
+    trainer._claim.close()  # as when the process ends
+    assert subprocess.run(other, capture_output=True, text=True, timeout=120).returncode == 0
+
+
 @pytest.mark.parametrize("name", ["paper", "quality", "ship", "quick"])
 def test_presets_scale_the_papers_schedule(name):
     """Every preset but `test` is the paper's blur schedule scaled to its step count: the blur halves
