@@ -12,6 +12,8 @@ released (drjit's virtual calls dispatch over every live shape, so the reference
 slowed every other render in the process by up to 9x while they existed). Round 0 is untimed (it
 compiles the kernels); the reported seconds are the median over the ``rounds`` timed rounds, with the
 machine's load average beside them, and a linear fit gives the per-spp slope and the fixed cost.
+The timed rounds of a view come from one run: where any of them is not in the cache, all are rendered
+anew (a cached R timed on a quiet machine against an N timed now on a busy one halved the ratios once).
 """
 
 from __future__ import annotations
@@ -51,8 +53,8 @@ def run_view(renderer: MaterialRenderer, view: View, tick: Callable[[], None] = 
     images: dict = {}
     timings: dict = {}
 
-    def render(method: str, spp: int, seed: int) -> None:
-        image, secs, load = renderer.render(view, method, spp, seed)
+    def render(method: str, spp: int, seed: int, fresh: bool = False) -> None:
+        image, secs, load = renderer.render(view, method, spp, seed, fresh)
         images[(method, spp, seed)] = image
         timings[(method, spp, seed)] = (secs, load)
         tick()
@@ -62,12 +64,16 @@ def run_view(renderer: MaterialRenderer, view: View, tick: Callable[[], None] = 
     renderer.release()
     methods = scored_methods(renderer, view)
     if view.ladder:
+        # Timings are compared as ratios, so they must come from one run: where any timed rung is not
+        # cached (a new model, say), every method's timed rungs are rendered anew beside it.
+        fresh = not all(renderer.cached(view, m, s, rnd) for m in methods for s in cfg.ladder
+                        for rnd in range(1, cfg.rounds + 1))
         for rnd in range(cfg.rounds + 1):
             for method in methods:
-                if rnd > 0 and not all(renderer.cached(view, method, s, rnd) for s in cfg.ladder):
+                if rnd > 0 and (fresh or not all(renderer.cached(view, method, s, rnd) for s in cfg.ladder)):
                     renderer.warm_up(view, method)
                 for spp in cfg.ladder:
-                    render(method, spp, rnd)
+                    render(method, spp, rnd, fresh and rnd > 0)
                 renderer.release()
     else:
         for method in methods:

@@ -92,11 +92,13 @@ class MaterialRenderer:
         self._scenes.clear()
         gc.collect()
 
-    def render(self, view: View, method: str, spp: int, seed: int) -> tuple[np.ndarray, float, float]:
+    def render(self, view: View, method: str, spp: int, seed: int,
+               fresh: bool = False) -> tuple[np.ndarray, float, float]:
         """``(image, seconds, load)`` from the cache, or rendered and stored: the render's wall time
-        and the 1-minute load average of the machine when it finished (nan where not measured)."""
+        and the 1-minute load average of the machine when it finished (nan where not measured). `fresh`:
+        rendered (and timed) anew even where cached."""
         key = self.key(view, method, spp, seed)
-        cached = self.cache.get(key)
+        cached = None if fresh else self.cache.get(key)
         if cached is not None:
             return cached.image, cached.seconds, cached.load
         scene = self.scene(view, method)

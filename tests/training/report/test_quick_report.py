@@ -127,6 +127,25 @@ def test_rerun_reuses_every_render(report):
     assert again["materials"]["flat"][VIEW]["methods"]["N"] == results["materials"]["flat"][VIEW]["methods"]["N"]
 
 
+def test_a_new_model_re_times_every_method_beside_it(report, tmp_path):
+    """Timings are compared as ratios within one run: where a ladder view renders a model anew, every
+    method's timed rungs are rendered anew too, not taken from the cache (their images are the same)."""
+    import onnx
+
+    root, results = report
+    model = onnx.load(MODELS / "flat.onnx")
+    model.doc_string = "the same material, another file"
+    onnx.save(model, tmp_path / "flat.onnx")
+    again = run_report(root / "out3", ["flat"], QUICK, tmp_path, root / "cache", stages=("images",),
+                       views=(LADDER_VIEW,))
+    before, after = (r["materials"]["flat"][VIEW]["methods"] for r in (results, again))
+    for method in ("R", "C"):
+        for spp in QUICK.ladder:
+            old, new = before[method][str(spp)], after[method][str(spp)]
+            assert new["mse"] == old["mse"]  # the same image
+            assert (new["seconds"], new["load"]) != (old["seconds"], old["load"])  # timed again, in this run
+
+
 @pytest.mark.slow
 def test_cli_quick_runs_every_stage(tmp_path):
     """`neumip report --quick` end to end (every view, stability, the trade-off's training): minutes."""
