@@ -99,7 +99,7 @@ class MaterialConfig:
     (`train.data_ceiling`): each target is an unbiased estimate of an answer, so an answer above all of them is
     the model's extrapolation, not the material's, and renders as fireflies (`benchmarks/results/relief.txt`:
     a base's lobe at grazing views answered 8x the data's largest target). Training's loss reads the answers
-    below the ceiling too, so that a query above it still learns."""
+    unclamped, so that a query above the ceiling still learns."""
     head: str = "relu"
     """Decoder output head (core/head.py): "relu" (paper: RGB = max(out, 0)) or "yuv" (authors'
     code: exp(YUV) - 1 times a shadow mask 0.1 + sigmoid, 6 outputs)."""
