@@ -15,6 +15,7 @@ each under the lights of `LIGHTS`. Renders are cached (``--cache``). One JSON li
     .venv/bin/python benchmarks/maps.py train --data data/rock --material rock --runs runs/maps N M
     .venv/bin/python benchmarks/maps.py score --material rock --runs runs/maps N M --out runs/maps/scores.jsonl
     .venv/bin/python benchmarks/maps.py --table runs/maps/scores.jsonl
+    .venv/bin/python benchmarks/maps.py --spread runs/maps/scores.jsonl Nbr,Nbr_seed1,Nbr_seed2   # against seeds
     .venv/bin/python benchmarks/maps.py --strip closeups.png C,N,M runs/maps/scores_rock_64_level0_side.npz ...
     .venv/bin/python benchmarks/maps.py speed N M --data data/rock --material rock   # seconds per step
 
@@ -68,12 +69,31 @@ VARIANTS: dict[str, tuple[dict, MapConfig | None, object]] = {
     "Nr": ({"relief": "maps"}, None, SHIP),
     "Nr0": ({"relief": "maps", "offset": False}, None, SHIP),
     "Nbr": ({"base": "maps", "relief": "maps"}, None, SHIP),
+    # the shipped recipe's spread from seed to seed
+    **{f"Nbr_seed{k}": ({"base": "maps", "relief": "maps"}, None, replace(SHIP, seed=k)) for k in range(1, 8)},
     # the shipped recipe's latent pyramid at the maps' resolution, and both with 4.2x the steps (`quality`):
     # what a GPU (--device cuda) can afford that the 2-core machine's 30-minute budget cannot
     "Nbr256": ({"base": "maps", "relief": "maps", "resolution": 256}, None, SHIP),
     "Nbr_quality": ({"base": "maps", "relief": "maps"}, None, QUALITY),
     "Nbr256_quality": ({"base": "maps", "relief": "maps", "resolution": 256}, None, QUALITY),
     "N_rel": ({}, None, replace(SHIP, loss="relative")),  # relative MSE, detached denominator (lever 4)
+    # the shipped recipe (Nbr) with other losses: unbiased under noisy targets
+    "Nbr_rel": ({"base": "maps", "relief": "maps"}, None, replace(SHIP, loss="relative")),
+    "Nbr_mse": ({"base": "maps", "relief": "maps"}, None, replace(SHIP, loss="mse")),
+    "Nbr_logw": ({"base": "maps", "relief": "maps"}, None, replace(SHIP, loss="log_weighted")),
+    # comb2, then its last sixth of the steps (400) with an unbiased one
+    "Nbr_fin_rel": ({"base": "maps", "relief": "maps"}, None, replace(SHIP, finish_loss="relative", finish_fraction=1 / 6)),
+    "Nbr_fin_logw": ({"base": "maps", "relief": "maps"}, None, replace(SHIP, finish_loss="log_weighted", finish_fraction=1 / 6)),
+    "Nbr_fin_mse": ({"base": "maps", "relief": "maps"}, None, replace(SHIP, finish_loss="mse", finish_fraction=1 / 6)),
+    "Nbr_fin_logw_lr10": ({"base": "maps", "relief": "maps"}, None,
+                          replace(SHIP, finish_loss="log_weighted", finish_fraction=1 / 6, finish_lr_scale=0.1)),
+    "Nbr_fin_logw_lr30": ({"base": "maps", "relief": "maps"}, None,
+                          replace(SHIP, finish_loss="log_weighted", finish_fraction=1 / 6, finish_lr_scale=0.3)),
+    # the weights averaged over the last quarter of the steps (Polyak), of seeds 0 and 1
+    "Nbr_avg": ({"base": "maps", "relief": "maps"}, None, replace(SHIP, average_fraction=0.25)),
+    "Nbr_avg_seed1": ({"base": "maps", "relief": "maps"}, None, replace(SHIP, average_fraction=0.25, seed=1)),
+    # ... from where the blur schedule ends (step ~1 420 of 2 400)
+    "Nbr_fin40_rel": ({"base": "maps", "relief": "maps"}, None, replace(SHIP, finish_loss="relative", finish_fraction=0.4)),
     "M_hz_rel": ({}, MapConfig(horizons=8), replace(SHIP, loss="relative")),
     "N128": ({"resolution": 128}, None, SHIP),
     "M128": ({"resolution": 128}, MapConfig(), SHIP),
@@ -92,11 +112,11 @@ LEVELS = (0, 2)
 SPP, REFERENCE_SPP, SEED = 64, 256, 0
 
 
-def views():
+def views(levels=LEVELS):
     from neumip.training.report.views import View
 
     return [View(f"level{lv}_{light}", 55.0, lv, light_zenith=z, light_azimuth=a)
-            for light, (z, a) in LIGHTS.items() for lv in LEVELS]
+            for light, (z, a) in LIGHTS.items() for lv in levels]
 
 
 def train(variant: str, data: str, material: str, runs: Path, threads: int, validate_every: int = 0,
@@ -203,7 +223,8 @@ def speed(variants: list[str], data: str, material: str, rounds: int, steps: int
         print(f"  {variant:<10} {np.median(t):.4f}  ({np.median(t) / np.median(times[variants[0]]):.2f}x {variants[0]})")
 
 
-def score(variants: list[str], material: str, runs: Path, cache_dir: str, camera_res: int, out: str) -> None:
+def score(variants: list[str], material: str, runs: Path, cache_dir: str, camera_res: int, out: str,
+          levels=LEVELS) -> None:
     from neumip.client.kernel import KernelMaterials
     from neumip.training.microgeometry.description import find_description, resolve
     from neumip.training.report import metrics as Q
@@ -223,7 +244,7 @@ def score(variants: list[str], material: str, runs: Path, cache_dir: str, camera
         r.resolution = camera_res  # every variant seen from the same cameras
         renderers[variant] = r
     first = renderers[variants[0]]
-    for view in views():
+    for view in views(levels):
         refs = [first.render(view, "R", config.reference_spp, s)[0] for s in REFERENCE_SEEDS]
         first.release()
         ref = (refs[0] + refs[1]) / 2
@@ -264,6 +285,41 @@ def table(path: str) -> None:
                 c = cells.get((v, m))
                 line += f"{c['mse'] * 1e3:>9.3f} / {c['flip']:.3f} ({c['mean_ratio']:.2f})" if c else f"{'-':>24}"
             print(line)
+        first = next(m for m in methods if m != "C")  # the others against the first model scored
+        for m in methods:
+            if m in ("C", first):
+                continue
+            ratios = [cells[(v, m)]["mse"] / cells[(v, first)]["mse"] for v in view_names
+                      if (v, m) in cells and (v, first) in cells]
+            print(f"  {m} against {first}: MSE lower by more than 5 % in {sum(r < 0.95 for r in ratios)} of "
+                  f"{len(ratios)} views, higher in {sum(r > 1.05 for r in ratios)}; ratios {min(ratios):.2f}-{max(ratios):.2f}")
+
+
+def spread(path: str, seeds: list[str]) -> None:
+    """Each view's MSE over the runs `seeds` (one recipe, other seeds), and every other variant scored against
+    their median: the run-to-run spread that a lever measured on one run must beat."""
+    rows = [json.loads(line) for line in Path(path).read_text().splitlines() if line.strip()]
+    cells = {(r["material"], r["view"], r["method"]): r for r in rows}  # the last row of each wins
+    for material in dict.fromkeys(r["material"] for r in rows):
+        view_names = sorted({v for m, v, _ in cells if m == material})
+        runs = [s for s in seeds if all((material, v, s) in cells for v in view_names)]
+        if len(runs) < 2:
+            continue
+        median = {v: float(np.median([cells[(material, v, s)]["mse"] for s in runs])) for v in view_names}
+        print(f"\n== {material}: {len(runs)} runs of one recipe ({', '.join(runs)}); image MSE x1e-3")
+        for v in view_names:
+            mse = [cells[(material, v, s)]["mse"] for s in runs]
+            mean = [cells[(material, v, s)]["mean_ratio"] for s in runs]
+            print(f"  {v:<15} {min(mse) * 1e3:.3f}-{max(mse) * 1e3:.3f} (max / min {max(mse) / min(mse):.2f}); "
+                  f"mean luminance / R's {min(mean):.2f}-{max(mean):.2f}")
+        variants = dict.fromkeys(m for (mat, _, m) in cells if mat == material and m != "C")
+        for m in variants:
+            if not all((material, v, m) in cells for v in view_names):
+                continue
+            ratios = [cells[(material, v, m)]["mse"] / median[v] for v in view_names]
+            print(f"  {m:<16} / the runs' median: geometric mean {np.exp(np.mean(np.log(ratios))):.2f}, lower by more "
+                  f"than 5 % in {sum(r < 0.95 for r in ratios)} of {len(ratios)} views, higher in "
+                  f"{sum(r > 1.05 for r in ratios)} ({' '.join(f'{r:.2f}' for r in ratios)})")
 
 
 def strip(out: str, renders: list[str], methods: list[str], scale: int = 3) -> None:
@@ -285,6 +341,8 @@ def strip(out: str, renders: list[str], methods: list[str], scale: int = 3) -> N
 def main() -> None:
     if len(os.sys.argv) == 3 and os.sys.argv[1] == "--table":
         return table(os.sys.argv[2])
+    if len(os.sys.argv) == 4 and os.sys.argv[1] == "--spread":  # --spread SCORES.jsonl SEED_VARIANT,...
+        return spread(os.sys.argv[2], os.sys.argv[3].split(","))
     if len(os.sys.argv) > 4 and os.sys.argv[1] == "--strip":  # --strip OUT.png METHODS,... RENDER.npz ...
         return strip(os.sys.argv[2], os.sys.argv[4:], os.sys.argv[3].split(","))
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
@@ -316,6 +374,8 @@ def main() -> None:
     s.add_argument("--cache", default="runs/maps/renders")
     s.add_argument("--camera-res", type=int, default=64)
     s.add_argument("--out", required=True)
+    s.add_argument("--levels", type=int, nargs="+", default=list(LEVELS),
+                   help="footprints at the image centre, 2^level texels (default: 1 and 4)")
     args = p.parse_args()
     if args.command == "train":
         for variant in args.variants:
@@ -326,7 +386,7 @@ def main() -> None:
     elif args.command == "speed":
         speed(args.variants, args.data, args.material, args.rounds, args.steps)
     else:
-        score(args.variants, args.material, args.runs, args.cache, args.camera_res, args.out)
+        score(args.variants, args.material, args.runs, args.cache, args.camera_res, args.out, args.levels)
 
 
 if __name__ == "__main__":

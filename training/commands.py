@@ -211,6 +211,10 @@ def print_finished(table: dict, paths: dict, kept: str) -> None:
         print(f"classical base: reference log MSE x1e-3 {choice['reference_log_mse_without'] * 1e3:.4f} without, "
               f"{choice['reference_log_mse_with'] * 1e3:.4f} with (kept only {choice['margin'] * 100:.0f} % lower): the "
               f"model {choice['kept']} it was kept")
+    if "seed_choice" in table:
+        choice = table["seed_choice"]
+        errors = ", ".join(f"{seed}: {e * 1e3:.4f}" for seed, e in zip(choice["seeds"], choice["reference_log_mse"]))
+        print(f"initial weights: reference log MSE x1e-3 of seeds {errors}: seed {choice['kept']} kept")
 
 
 def _train(args: argparse.Namespace) -> int:

@@ -56,6 +56,9 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--steps", type=int, help="override the preset's TrainConfig.steps")
     p.add_argument("--candidates", type=int, help="override the preset's TrainConfig.candidates (best of this "
                    "many initial weights, compared after TrainConfig.candidate_steps steps)")
+    p.add_argument("--seeds", type=int, default=1, help="train the model from this many initial weights and keep the "
+                   "one with the lowest error on a low-noise reference set (FitSettings.seeds; this many times the "
+                   "training time; default 1)")
     p.add_argument("--description", default="", help="short description stored in the model metadata "
                    "(default: the material's summary, resolution and preset)")
     p.add_argument("--views-material", metavar="NAME_OR_TOML",
@@ -143,11 +146,12 @@ def _fit(args: argparse.Namespace) -> int:
     kind = ("neural offset" if material.offset else "no neural offset") + (", map-informed" if args.maps else "") \
         + (", half vector" if material.half_vector else "") + (", classical base" if material.base else "") \
         + (f", relief ({material.relief_steps} steps)" if material.relief else "") \
-        + (", classical base if it lowers the held-out error" if args.base == "auto" else "")
+        + (", classical base if it lowers the held-out error" if args.base == "auto" else "") \
+        + (f", best of {args.seeds} initial weights" if args.seeds > 1 else "")
     description = args.description or f"{desc.name}: {desc.summary or 'fitted'}, {resolution}^2, {kind}, " \
                                       f"{args.preset} preset"
     settings = FitSettings(material, config, generate, work, args.data, description, args.views_material,
-                           maps, choose_base=args.base == "auto")
+                           maps, choose_base=args.base == "auto", seeds=args.seeds)
     bar = StageBar(desc.name, config.batch)
     try:
         table, paths = fit(desc, output, settings, bar.report,

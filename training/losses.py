@@ -42,16 +42,29 @@ def relative_mse(pred: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
     return (diff * diff / (pred.detach() ** 2 + RELATIVE_FLOOR)).mean()
 
 
+def log_weighted_mse(pred: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
+    """(N, 3), (N, 3) -> scalar mean of ((pred - target) / (1 + pred))^2, the denominator detached.
+
+    The log loss's weights without its bias: near the answer, (log1p(p) - log1p(t))^2 is
+    ((p - t) / (1 + p))^2, so a highlight weighs as it does under `comb2`, but with the denominator
+    detached each term's minimiser is the target's mean."""
+    diff = (pred - target) / (1.0 + pred.detach().clamp(min=0.0))
+    return (diff * diff).mean()
+
+
 def mse(pred: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
     """(N, 3), (N, 3) -> scalar mean squared error in linear RGB."""
     diff = pred - target
     return (diff * diff).mean()
 
 
-def training_loss(pred: torch.Tensor, target: torch.Tensor, config: TrainConfig) -> torch.Tensor:
-    """The loss `config.loss` names, (N, 3), (N, 3) -> scalar."""
-    if config.loss == "comb2":
+def training_loss(pred: torch.Tensor, target: torch.Tensor, config: TrainConfig, name: str | None = None) -> torch.Tensor:
+    """The loss `name` names (default `config.loss`), (N, 3), (N, 3) -> scalar."""
+    name = config.loss if name is None else name
+    if name == "comb2":
         return comb2(pred, target, config.l1_weight)
-    if config.loss == "relative":
+    if name == "relative":
         return relative_mse(pred, target)
+    if name == "log_weighted":
+        return log_weighted_mse(pred, target)
     return mse(pred, target)

@@ -77,6 +77,10 @@ class TrainState:
     """[seed, held-out MSE] of each candidate instance compared (`TrainConfig.candidates`)."""
     dropped_steps: int = 0
     """Steps trained by the candidates that were dropped."""
+    averaged: int = 0
+    """Steps whose weights are in the running mean (`TrainConfig.average_fraction`)."""
+    average_applied: bool = False
+    """The run ended and its weights were replaced by their running mean."""
 
 
 def differences(saved: dict, now: dict, ignore=()) -> list[str]:
@@ -175,10 +179,11 @@ def _make_optimizer(material: NeuMIPMaterial, config: TrainConfig) -> torch.opti
 
 def learning_rate(step: int, config: TrainConfig) -> float:
     """Learning rate of the step after `step` steps done (TrainConfig.lr_schedule)."""
+    scale = config.finish_lr_scale if config.finishing(step) else 1.0
     if config.lr_schedule == "constant":
-        return config.lr
+        return config.lr * scale
     t = min(step / config.steps, 1.0)
-    return config.lr * (config.lr_final + (1.0 - config.lr_final) * 0.5 * (1.0 + math.cos(math.pi * t)))
+    return scale * config.lr * (config.lr_final + (1.0 - config.lr_final) * 0.5 * (1.0 + math.cos(math.pi * t)))
 
 
 def _maps_dict(source: NeuMIPMaterial | MapConfig | None) -> dict:
@@ -223,6 +228,7 @@ class Trainer:
                                       self.data.queries)
         self.sampler = BatchSampler(self.data, self.train_idx, config.batch, config.seed, config.preload_mb, landed)
         self.state = TrainState()
+        self._average: dict[str, torch.Tensor] = {}  # running mean of the weights (a resumed run's: `_resume`)
         if self.checkpoint_path.exists():
             self.material = self._resume(material_config)
         else:
@@ -258,11 +264,12 @@ class Trainer:
         return self.state.step + self.state.dropped_steps
 
     def _batch_loss(
-        self, queries: torch.Tensor, target: torch.Tensor, levels: list[torch.Tensor], otex: torch.Tensor | None
+        self, queries: torch.Tensor, target: torch.Tensor, levels: list[torch.Tensor], otex: torch.Tensor | None,
+        loss: str,
     ) -> torch.Tensor:
-        """(B, 7) queries, (B, 3) target, effective textures -> scalar training loss."""
+        """(B, 7) queries, (B, 3) target, effective textures, the loss's name -> scalar training loss."""
         answers = self.material(queries, levels, otex, landed=self.sampler.landed is not None, ceiling=False)
-        return training_loss(answers, target, self.config)
+        return training_loss(answers, target, self.config, loss)
 
     # --- checkpoints -----------------------------------------------------------------------------
 
@@ -300,6 +307,7 @@ class Trainer:
         self.optimizer = _make_optimizer(material, self.config)
         self.optimizer.load_state_dict(extra["optimizer"])
         self.sampler.generator.set_state(extra["rng"])
+        self._average = {k: v.to(self.device) for k, v in extra.get("average", {}).items()}
         log.info("resuming %s at step %d of %d", self.checkpoint_path, self.state.step, self.config.steps)
         return material
 
@@ -315,6 +323,8 @@ class Trainer:
             "data": self._data_identity(),
             "description": self.description,
         }
+        if self._average:
+            extra["average"] = self._average
         if validation is not None:
             extra["validation"] = validation
         return checkpoint.save(self.checkpoint_path, self.material, extra)
@@ -348,14 +358,15 @@ class Trainer:
             self._freeze_offset()
         levels, otex = effective_textures(self.material, blur_sigma(state.step, cfg), cfg, state.offset_frozen)
         queries, target = self.sampler.draw(self.device)
+        name = cfg.loss_at(state.step)
         try:
-            loss = self._loss(queries, target, levels, otex)
+            loss = self._loss(queries, target, levels, otex, name)
         except Exception as exc:  # torch.compile needs a working C++ toolchain; eager always works
             if self._loss == self._batch_loss:
                 raise
             log.warning("torch.compile failed (%s): training continues uncompiled", exc)
             self._loss = self._batch_loss
-            loss = self._loss(queries, target, levels, otex)
+            loss = self._loss(queries, target, levels, otex, name)
         value = float(loss.detach())
         if not np.isfinite(value):
             raise TrainingDiverged(self._diverged_message("loss"))
@@ -365,11 +376,32 @@ class Trainer:
             group["lr"] = learning_rate(state.step, cfg)
         self.optimizer.step()
         state.step += 1
+        if cfg.average_fraction and state.step > max(cfg.steps - round(cfg.steps * cfg.average_fraction), self._end):
+            self._accumulate_average()
         self._window.append(value)
         if state.step % cfg.log_every == 0 or state.step == cfg.steps:
             state.history.append([state.step, float(np.mean(self._window))])
             self._window = []
         return value
+
+    def _accumulate_average(self) -> None:
+        """Add the weights after this step to the running mean of the trained parameters (`average_fraction`)."""
+        self.state.averaged += 1
+        with torch.no_grad():
+            for name, p in self.material.named_parameters():
+                if not p.requires_grad:  # (a frozen offset texture keeps its value)
+                    continue
+                mean = self._average.setdefault(name, p.detach().clone())
+                mean.add_((p.detach() - mean) / self.state.averaged)
+
+    def _apply_average(self) -> None:
+        """The run's end: its trained parameters become their running mean."""
+        with torch.no_grad():
+            for name, p in self.material.named_parameters():
+                if name in self._average:
+                    p.copy_(self._average[name])
+        self.state.average_applied = True
+        log.info("weights: the mean of the last %d steps'", self.state.averaged)
 
     def current_textures(self) -> tuple[list[torch.Tensor], torch.Tensor | None]:
         """The textures the material is evaluated with at the current step (blurred during the schedule)."""
@@ -459,6 +491,9 @@ class Trainer:
         if state.baked and state.step < cfg.steps:
             log.warning("continuing a run whose final blurred textures were baked: they are blurred again")
             state.baked = False
+        if state.average_applied and state.step < cfg.steps:
+            log.warning("continuing a run from its averaged weights: the average starts again")
+            state.average_applied, state.averaged, self._average = False, 0, {}
         try:
             while state.step < cfg.steps:
                 loss = self.step()
@@ -476,6 +511,8 @@ class Trainer:
                 self.save_checkpoint()
                 log.info("interrupted at step %d: checkpoint %s written", state.step, self.checkpoint_path)
             raise
+        if self._average and not state.average_applied:
+            self._apply_average()
         sigma = blur_sigma(state.step, cfg)
         if not state.baked and (sigma > 0 or (self.material.config.offset and not state.offset_frozen)):
             log.warning("run ended inside the blur schedule (sigma %.3g): baking the blurred textures", sigma)

@@ -11,7 +11,7 @@ from dataclasses import asdict, dataclass, replace
 
 from neumip.core.config import dataclass_from_dict
 
-LOSSES = ("comb2", "mse", "relative")
+LOSSES = ("comb2", "mse", "relative", "log_weighted")
 """Names of the training losses (`TrainConfig.loss`, `losses.training_loss`)."""
 
 
@@ -32,9 +32,22 @@ class TrainConfig:
     """Final learning rate of the cosine schedule, as a fraction of `lr`."""
     loss: str = "comb2"
     """'comb2': MSE of log1p(max(x, -0.1)) plus l1_weight x L1 of the same (author code); 'mse': plain MSE;
-    'relative': MSE over the detached prediction squared (unbiased under noisy targets, `losses.relative_mse`)."""
+    'relative': MSE over the detached prediction squared (unbiased under noisy targets, `losses.relative_mse`);
+    'log_weighted': MSE over (1 + the detached prediction) squared (comb2's weights, unbiased:
+    `losses.log_weighted_mse`)."""
     l1_weight: float = 0.1
     """Weight of the L1 term in the comb2 loss."""
+    finish_loss: str = ""
+    """A loss for the run's last `finish_fraction` of its steps ('' none; a name from `LOSSES`): e.g. an
+    unbiased one after `comb2`, whose log settles darker than the noisy targets' mean."""
+    finish_fraction: float = 0.0
+    """Fraction of `steps`, at the run's end, trained with `finish_loss` (rounded to whole steps)."""
+    finish_lr_scale: float = 1.0
+    """The learning rate of those steps, as a fraction of the schedule's."""
+    average_fraction: float = 0.0
+    """The run's weights are the mean of those after each of its last `average_fraction` of the steps (only the
+    steps after the blur schedule's end count; Polyak averaging: it smooths the step-to-step noise a constant
+    learning rate leaves in the last step's weights); 0: the last step's weights."""
     blur_start: float = 8.0
     """Gaussian blur sigma of the neural textures at step 0, in texels of the finest level."""
     blur_half_life: float = 267.0
@@ -81,8 +94,13 @@ class TrainConfig:
         if self.lr_schedule not in ("constant", "cosine") or not 0 <= self.lr_final <= 1:
             raise ValueError(f"lr_schedule must be 'constant' or 'cosine' and lr_final in [0, 1], "
                              f"got {self.lr_schedule!r}, {self.lr_final}")
-        if self.loss not in LOSSES:
-            raise ValueError(f"loss must be one of {LOSSES}, got {self.loss!r}")
+        if self.loss not in LOSSES or self.finish_loss not in LOSSES + ("",):
+            raise ValueError(f"loss and finish_loss must be one of {LOSSES}, got {self.loss!r}, {self.finish_loss!r}")
+        if not 0 <= self.average_fraction <= 1:
+            raise ValueError(f"average_fraction must be in [0, 1], got {self.average_fraction}")
+        if not 0 <= self.finish_fraction <= 1 or (self.finish_fraction > 0) != bool(self.finish_loss):
+            raise ValueError(f"finish_fraction must be in [0, 1], and > 0 exactly when finish_loss is set, got "
+                             f"{self.finish_fraction} with {self.finish_loss!r}")
         if not 0 < self.holdout < 1:
             raise ValueError(f"holdout must be in (0, 1), got {self.holdout}")
         if self.blur_half_life <= 0 or self.blur_start < 0 or self.blur_min <= 0:
@@ -92,6 +110,14 @@ class TrainConfig:
                              f"{self.candidates}, {self.candidate_steps}")
         if self.device not in ("auto", "cpu", "cuda"):
             raise ValueError(f"device must be 'auto', 'cpu' or 'cuda', got {self.device!r}")
+
+    def finishing(self, step: int) -> bool:
+        """Whether step `step` (counted from 0) is one of the finish's (`finish_loss`)."""
+        return bool(self.finish_loss) and step >= self.steps - round(self.steps * self.finish_fraction)
+
+    def loss_at(self, step: int) -> str:
+        """The loss that trains step `step` (counted from 0)."""
+        return self.finish_loss if self.finishing(step) else self.loss
 
     @property
     def total_steps(self) -> int:

@@ -194,3 +194,32 @@ def test_fit_base_auto_keeps_the_base_only_where_it_lowers_the_reference_error(m
     assert reference["complete"] and reference["generator"]["spp"] == 256 and reference["n"] == 1 << 14
     assert "classical base: reference log MSE" in capsys.readouterr().out
     assert (load_material(out).config.get("base", 0) == 8) == with_base  # the file is the kept model
+
+
+def test_fit_seeds_keeps_the_initial_weights_with_the_lowest_reference_error(material, tmp_path, capsys):
+    """--seeds 3 trains from seeds 0, 1 and 2 on the same data and exports the run with the lowest error on the
+    reference set; the same command again (every run finished) resumes them and makes the same file."""
+    import onnxruntime as ort
+
+    from neumip.core.contract import random_queries
+    from neumip.training.export import export_checkpoint
+
+    out = tmp_path / "seeds.onnx"
+    argv = ["fit", str(material), "-o", str(out), "--preset", "test", "--steps", "10", "--spp", "2",
+            "--queries-per-texel", "32", "--resolution", "4", "--seeds", "3", "--threads", "1"]
+    assert main(argv) == 0
+    choice = json.loads(out.with_suffix(".json").read_text())["validation"]["seed_choice"]
+    errors = choice["reference_log_mse"]
+    assert choice["seeds"] == [0, 1, 2] and len(set(errors)) == 3
+    assert choice["kept"] == int(np.argmin(errors))
+    assert "initial weights: reference log MSE" in capsys.readouterr().out
+    run = tmp_path / "seeds.run"
+    kept = run / "checkpoint.pt" if choice["kept"] == 0 else run / f"seed{choice['kept']}" / "checkpoint.pt"
+    assert all((run / f"seed{k}" / "checkpoint.pt").exists() for k in (1, 2))
+    export_checkpoint(kept, tmp_path / "kept.onnx")
+    queries = random_queries(256, seed=3)
+    answers = [ort.InferenceSession(str(p)).run(None, {"queries": queries})[0] for p in (out, tmp_path / "kept.onnx")]
+    np.testing.assert_array_equal(*answers)
+    first = out.read_bytes()
+    assert main(argv + ["--force"]) == 0
+    assert out.read_bytes() == first

@@ -5,7 +5,7 @@ import math
 import pytest
 import torch
 
-from neumip.training.losses import comb2, log_space, mse, relative_mse, training_loss
+from neumip.training.losses import comb2, log_space, log_weighted_mse, mse, relative_mse, training_loss
 from neumip.training.train_config import TrainConfig
 
 
@@ -65,3 +65,30 @@ def test_relative_mse_weighs_errors_relative_to_the_prediction():
     per_channel = torch.tensor([0.01 / 1.01, 1.0 / 100.01, 100.0 / 10000.01])
     assert float(relative_mse(pred, target)) == pytest.approx(float(per_channel.mean()), rel=1e-5)
     assert float(training_loss(pred, target, TrainConfig(loss="relative"))) == float(relative_mse(pred, target))
+
+
+def test_log_weighted_mse_is_unbiased_under_noise_where_the_log_loss_is_not():
+    torch.manual_seed(0)
+    targets = torch.distributions.Exponential(torch.tensor(0.5)).sample((4096, 3))
+    assert _fitted_constant(log_weighted_mse, targets) == pytest.approx(float(targets.mean()), rel=0.02)
+
+
+def test_log_weighted_mse_weighs_errors_as_the_log_loss_does_near_the_answer():
+    """Small errors cost what comb2's squared log difference costs; the gradient never reaches the weight."""
+    pred = torch.tensor([[0.0, 1.0, 100.0]], requires_grad=True)
+    target = pred.detach() * 1.001 + 1e-4
+    assert float(log_weighted_mse(pred, target)) == pytest.approx(float(comb2(pred, target, 0.0)), rel=1e-2)
+    log_weighted_mse(pred, target).backward()
+    expected = 2 * (pred.detach() - target) / (1 + pred.detach()) ** 2 / 3
+    assert torch.allclose(pred.grad, expected, rtol=1e-5)
+    assert float(training_loss(pred, target, TrainConfig(loss="log_weighted"))) == float(log_weighted_mse(pred, target))
+
+
+def test_the_finish_loss_trains_the_last_steps():
+    config = TrainConfig(steps=100, finish_loss="relative", finish_fraction=0.3)
+    assert [config.loss_at(s) for s in (0, 69, 70, 99)] == ["comb2", "comb2", "relative", "relative"]
+    assert TrainConfig(steps=100).loss_at(99) == "comb2"
+    for bad in ({"finish_loss": "relative"}, {"finish_fraction": 0.1}, {"finish_loss": "l3", "finish_fraction": 0.1},
+                {"finish_loss": "mse", "finish_fraction": 1.5}):
+        with pytest.raises(ValueError, match="finish"):
+            TrainConfig(steps=100, **bad)

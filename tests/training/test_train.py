@@ -113,6 +113,35 @@ def test_interrupted_run_resumes_exactly(data, tmp_path):
     assert [h[0] for h in resumed.state.history] == [10, 20, 30, 40, 50, 60]
 
 
+AVERAGED = replace(FAST, blur_start=0.0, average_fraction=0.25)
+"""FAST without a blur schedule, its weights averaged over the last 15 of its 60 steps."""
+
+
+def test_the_weights_are_the_mean_of_the_last_steps_and_an_interrupted_average_resumes(data, tmp_path):
+    snapshots = []
+
+    def record(step, loss):
+        if step > 45:
+            snapshots.append({k: p.detach().clone() for k, p in whole.material.named_parameters()})
+
+    whole = Trainer(data.path, tmp_path / "whole.pt", TINY, AVERAGED)
+    whole.run(record)
+    assert len(snapshots) == 15 and whole.state.averaged == 15 and whole.state.average_applied
+    for name, p in whole.material.named_parameters():
+        mean = torch.stack([s[name] for s in snapshots]).mean(0)
+        assert torch.allclose(p.detach(), mean, atol=1e-6), name
+        assert not p.requires_grad or not torch.equal(p.detach(), snapshots[-1][name])  # not the last step's
+    # killed inside the window (checkpoint at 50: 5 steps averaged), then resumed: the same mean
+    part = Trainer(data.path, tmp_path / "part.pt", TINY, AVERAGED)
+    with pytest.raises(KeyboardInterrupt):
+        part.run(ctrl_c_at(53))
+    resumed = Trainer(data.path, tmp_path / "part.pt", TINY, AVERAGED)
+    assert resumed.state.averaged == 8  # the interrupted run's checkpoint at step 53
+    resumed.run()
+    for name, p in whole.material.named_parameters():
+        assert torch.allclose(dict(resumed.material.named_parameters())[name], p, atol=1e-6), name
+
+
 def ctrl_c_at(stop: int):
     """A step callback that raises KeyboardInterrupt (a Ctrl-C) after step `stop`."""
     def callback(step, loss):
@@ -180,9 +209,9 @@ def test_nan_loss_stops_and_keeps_last_good_checkpoint(data, tmp_path, monkeypat
     real_loss = train_mod.training_loss
     calls = {"n": 0}
 
-    def loss_turning_nan(pred, target, config):
+    def loss_turning_nan(pred, target, config, name=None):
         calls["n"] += 1
-        loss = real_loss(pred, target, config)
+        loss = real_loss(pred, target, config, name)
         return loss * float("nan") if calls["n"] > 30 else loss
 
     monkeypatch.setattr(train_mod, "training_loss", loss_turning_nan)
@@ -193,6 +222,18 @@ def test_nan_loss_stops_and_keeps_last_good_checkpoint(data, tmp_path, monkeypat
     material, extra = checkpoint.load(ckpt)
     assert extra["state"]["step"] == 20
     assert all(torch.isfinite(v).all() for v in material.state_dict().values())
+
+
+def test_the_last_steps_train_with_the_finish_loss(data, tmp_path, monkeypatch):
+    real_loss, names = train_mod.training_loss, []
+
+    def recording(pred, target, config, name=None):
+        names.append(name)
+        return real_loss(pred, target, config, name)
+
+    monkeypatch.setattr(train_mod, "training_loss", recording)
+    Trainer(data.path, tmp_path / "f.pt", TINY, replace(FAST, finish_loss="log_weighted", finish_fraction=0.25)).run()
+    assert names == ["comb2"] * 45 + ["log_weighted"] * 15
 
 
 def test_cli_train_writes_model_table_and_curve(data, tmp_path, capsys):
@@ -466,9 +507,9 @@ def test_a_diverging_start_is_dropped_and_an_interrupted_comparison_restarts_in_
     config = replace(FAST, candidates=2, candidate_steps=20)
     real, calls = train_mod.training_loss, []
 
-    def nan_first(pred, target, cfg):
+    def nan_first(pred, target, cfg, name=None):
         calls.append(1)
-        loss = real(pred, target, cfg)
+        loss = real(pred, target, cfg, name)
         return loss * float("nan") if len(calls) == 1 else loss
 
     monkeypatch.setattr(train_mod, "training_loss", nan_first)
