@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import math
 
 
 def view_mse(results: dict, material: str, view: str, method: str) -> float | None:
@@ -36,6 +37,7 @@ def main() -> None:
     better = worse = same = 0
     print(f"image MSE x1e-3: old {args.method} -> new {against} (ratio new / old)")
     for material in new["materials"]:
+        ratios = []
         for view in new["materials"][material]:
             before, after = view_mse(old, material, view, args.method), view_mse(new, material, view, against)
             if before is None or after is None:
@@ -44,7 +46,12 @@ def main() -> None:
             better += ratio < 1 - args.tolerance
             worse += ratio > 1 + args.tolerance
             same += abs(ratio - 1) <= args.tolerance
+            ratios.append(ratio)
             print(f"  {material:<8} {view:<14} {before * 1e3:9.4f} -> {after * 1e3:9.4f}  ({ratio:.2f}x)")
+        if ratios:
+            print(f"  {material}: geometric mean {math.exp(sum(map(math.log, ratios)) / len(ratios)):.3f}, better "
+                  f"{sum(r < 1 - args.tolerance for r in ratios)}, worse {sum(r > 1 + args.tolerance for r in ratios)} "
+                  f"of {len(ratios)}")
     print(f"better by more than {args.tolerance:.0%}: {better}; worse: {worse}; within: {same}")
 
 

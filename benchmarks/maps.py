@@ -303,7 +303,7 @@ def spread(path: str, seeds: list[str]) -> None:
     for material in dict.fromkeys(r["material"] for r in rows):
         view_names = sorted({v for m, v, _ in cells if m == material})
         runs = [s for s in seeds if all((material, v, s) in cells for v in view_names)]
-        if len(runs) < 2:
+        if not runs:
             continue
         median = {v: float(np.median([cells[(material, v, s)]["mse"] for s in runs])) for v in view_names}
         print(f"\n== {material}: {len(runs)} runs of one recipe ({', '.join(runs)}); image MSE x1e-3")

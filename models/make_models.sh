@@ -7,13 +7,15 @@
 # Materials with a height map are fitted with the relief stage (--relief $RELIEF): parallax and occlusion marched
 # on the height map, before the neural offset; NAME_nooffset has neither, so its gain is the parallax stages'.
 # Materials defined by maps are fitted with --base auto (with and without the classical base, the one with the
-# lower held-out MSE kept); NAME_nooffset then takes NAME's choice, so the offset's gain compares like with like.
+# lower reference error kept); NAME_nooffset then takes NAME's choice, so the offset's gain compares like with like.
+# SEEDS=K trains each model from K initial weights (fit --seeds) and keeps the one with the lowest error on a
+# low-noise reference set: a first run in runs/NAME[/base], the others in its seedK/ folders.
 # Defaults reproduce the models shipped now (`ship` preset, 64^2, 256 queries per texel, 16 spp).
 # PRESET=quality is the longer recipe measured in benchmarks/results/quality_levers_log.md ("Quality levers"): 10 000 steps of 16 384.
 # Run from the repository root: [PRESET=ship|quality] [RES=64] [THREADS=1] bash models/make_models.sh [NAME ...]
 # RAY=auto (or HOST:PORT, or local) runs data chunks and then one training per material as Ray tasks
 # (`neumip generate --ray`, `neumip train-many --ray`; pip install 'neumip[cluster]'); THREADS is
-# then the CPUs of each training task, and models already finished are skipped; train-many trains no base (BASE),
+# then the CPUs of each training task, and models already finished are skipped; train-many trains no base (BASE) and one seed (SEEDS),
 # the relief it does.
 set -euo pipefail
 NEUMIP=${NEUMIP:-.venv/bin/neumip}
@@ -26,6 +28,7 @@ THREADS=${THREADS:-1}  # the shipped models were trained with one torch thread
 BASE=${BASE:-auto}  # classical base (fit --base): auto keeps it where it lowers the held-out MSE; NAME_nooffset follows NAME's choice; on; off
 RELIEF=${RELIEF:-8}  # relief steps (fit --relief) for every material with a height map, 0: none; NAME_nooffset has neither relief nor offset
 HORIZONS=${HORIZONS:-8}  # NAME_maps: horizon features towards 8 azimuths (rock: better than none in all 8 close-up views, benchmarks/results/maps.txt)
+SEEDS=${SEEDS:-1}  # fit --seeds: each model from this many initial weights, the lowest reference error kept; 3 was measured, not shipped (TRAINING.md)
 RAY=${RAY:-}
 names=("$@")
 [ ${#names[@]} -gt 0 ] || names=(flat rock rock_nooffset yarn yarn_nooffset turtle turtle_nooffset foam foam_nooffset
@@ -92,5 +95,5 @@ for name in "${names[@]}"; do
   [ "${base[*]-}" = --base ] && work="runs/$name/base"  # where --base auto trains its base candidate too
   "$NEUMIP" fit "$material" -o "models/$name.onnx" --force --work "$work" --data "$(data_dir "$material")" \
     --resolution "$RES" --queries-per-texel "$QPT" --spp "$SPP" --preset "$PRESET" --threads "$THREADS" \
-    --hidden "$HIDDEN" ${flags[@]+"${flags[@]}"} --description "$(describe "$name")"
+    --hidden "$HIDDEN" --seeds "$SEEDS" ${flags[@]+"${flags[@]}"} --description "$(describe "$name")"
 done
