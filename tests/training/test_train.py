@@ -322,6 +322,15 @@ def test_cosine_schedule_falls_from_lr_to_its_final_fraction():
         replace(cfg, lr_schedule="step")
 
 
+def test_the_finish_steps_take_their_fraction_of_the_rate():
+    from neumip.training.train import learning_rate
+
+    cfg = replace(TEST, steps=100, lr=1e-3, finish_loss="relative", finish_fraction=0.2, finish_lr_scale=0.1)
+    assert [learning_rate(s, cfg) for s in (79, 80, 99)] == pytest.approx([1e-3, 1e-4, 1e-4])
+    assert learning_rate(99, replace(cfg, lr_schedule="cosine", lr_final=0.1)) == pytest.approx(
+        0.1 * learning_rate(99, replace(cfg, lr_schedule="cosine", lr_final=0.1, finish_lr_scale=1.0)))
+
+
 def test_cosine_run_sets_the_optimiser_rate(data, tmp_path):
     cfg = replace(FAST, steps=20, lr_schedule="cosine", lr_final=0.0)
     trainer = Trainer(data.path, tmp_path / "c.pt", TINY, cfg)
