@@ -89,9 +89,10 @@ VARIANTS: dict[str, tuple[dict, MapConfig | None, object]] = {
                           replace(SHIP, finish_loss="log_weighted", finish_fraction=1 / 6, finish_lr_scale=0.1)),
     "Nbr_fin_logw_lr30": ({"base": "maps", "relief": "maps"}, None,
                           replace(SHIP, finish_loss="log_weighted", finish_fraction=1 / 6, finish_lr_scale=0.3)),
-    # the weights averaged over the last quarter of the steps (Polyak), of seeds 0 and 1
+    # the weights averaged over the last quarter of the steps (Polyak), from seeds 0-3
     "Nbr_avg": ({"base": "maps", "relief": "maps"}, None, replace(SHIP, average_fraction=0.25)),
-    "Nbr_avg_seed1": ({"base": "maps", "relief": "maps"}, None, replace(SHIP, average_fraction=0.25, seed=1)),
+    **{f"Nbr_avg_seed{k}": ({"base": "maps", "relief": "maps"}, None, replace(SHIP, average_fraction=0.25, seed=k))
+       for k in (1, 2, 3)},
     # ... from where the blur schedule ends (step ~1 420 of 2 400)
     "Nbr_fin40_rel": ({"base": "maps", "relief": "maps"}, None, replace(SHIP, finish_loss="relative", finish_fraction=0.4)),
     "M_hz_rel": ({}, MapConfig(horizons=8), replace(SHIP, loss="relative")),
