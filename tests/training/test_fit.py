@@ -223,3 +223,10 @@ def test_fit_seeds_keeps_the_initial_weights_with_the_lowest_reference_error(mat
     first = out.read_bytes()
     assert main(argv + ["--force"]) == 0
     assert out.read_bytes() == first
+
+
+def test_fit_refuses_fewer_than_one_seed_before_tracing_anything(material, tmp_path, capsys):
+    out = tmp_path / "none.onnx"
+    assert main(["fit", str(material), "-o", str(out), "--preset", "test", "--seeds", "0", "--threads", "1"]) == 2
+    assert "seeds must be >= 1" in capsys.readouterr().err
+    assert not (tmp_path / "none.run" / "data").exists() and not out.exists()
