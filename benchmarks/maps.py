@@ -16,6 +16,7 @@ each under the lights of `LIGHTS`. Renders are cached (``--cache``). One JSON li
     .venv/bin/python benchmarks/maps.py score --material rock --runs runs/maps N M --out runs/maps/scores.jsonl
     .venv/bin/python benchmarks/maps.py --table runs/maps/scores.jsonl
     .venv/bin/python benchmarks/maps.py --spread runs/maps/scores.jsonl Nbr,Nbr_seed1,Nbr_seed2   # against seeds
+    .venv/bin/python benchmarks/maps.py --ensemble Nbr,Nbr_seed1,Nbr_seed2 runs/maps/scores_rock_64_*.npz
     .venv/bin/python benchmarks/maps.py --strip closeups.png C,N,M runs/maps/scores_rock_64_level0_side.npz ...
     .venv/bin/python benchmarks/maps.py speed N M --data data/rock --material rock   # seconds per step
 
@@ -323,6 +324,25 @@ def spread(path: str, seeds: list[str]) -> None:
                   f"{sum(r > 1.05 for r in ratios)} ({' '.join(f'{r:.2f}' for r in ratios)})")
 
 
+def ensemble(renders: list[str], members: list[str]) -> None:
+    """The image of K runs' mean answer, against each run's: `score`'s saved renders (RUNS... .npz) of `members`
+    averaged (the render is linear in the material's answers; the runs' renders share their sample paths)."""
+    from neumip.training.report import metrics as Q
+
+    ratios = []
+    for path in renders:
+        with np.load(path) as saved:
+            ref, images = saved["R"], [saved[m] for m in members]
+        exposure = Q.exposure_for(ref)
+        single = [Q.score(ref, image, exposure)[0].mse for image in images]
+        mean = Q.score(ref, np.mean(images, axis=0), exposure)[0]
+        ratios.append(mean.mse / float(np.median(single)))
+        print(f"{Path(path).stem:<40} runs {' '.join(f'{e * 1e3:.3f}' for e in single)}  their mean answer "
+              f"{mean.mse * 1e3:.3f} ({ratios[-1]:.2f}x the median run; mean luminance {mean.mean_ratio:.2f})")
+    print(f"the mean answer over the median run: geometric mean {np.exp(np.mean(np.log(ratios))):.2f} "
+          f"({min(ratios):.2f}-{max(ratios):.2f}) over {len(ratios)} views")
+
+
 def strip(out: str, renders: list[str], methods: list[str], scale: int = 3) -> None:
     """A PNG of close-ups: one row per saved view (`score`'s .npz files), R then `methods`, all
     tone-mapped with R's exposure (the report's tone mapping)."""
@@ -344,6 +364,8 @@ def main() -> None:
         return table(os.sys.argv[2])
     if len(os.sys.argv) == 4 and os.sys.argv[1] == "--spread":  # --spread SCORES.jsonl SEED_VARIANT,...
         return spread(os.sys.argv[2], os.sys.argv[3].split(","))
+    if len(os.sys.argv) > 3 and os.sys.argv[1] == "--ensemble":  # --ensemble VARIANT,... RENDER.npz ...
+        return ensemble(os.sys.argv[3:], os.sys.argv[2].split(","))
     if len(os.sys.argv) > 4 and os.sys.argv[1] == "--strip":  # --strip OUT.png METHODS,... RENDER.npz ...
         return strip(os.sys.argv[2], os.sys.argv[4:], os.sys.argv[3].split(","))
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
