@@ -18,13 +18,8 @@
 set -u
 data=$1 material=$2 reference=$3 out=$4 budget=${5:-420}
 start=$SECONDS
-site=/tmp/neumip_site runs=/tmp/neumip_gpu_runs
-mkdir -p "$site/neumip" "$out"
-for area in core client server training; do ln -sfn "$PWD/$area" "$site/neumip/$area"; done
-if compgen -G ".whl/*.whl" >/dev/null; then
-    python3 -m pip install -q --no-index --no-deps --no-compile --no-cache-dir --upgrade --target "$site" .whl/*.whl
-fi
-export PYTHONPATH=$site PYTHONUNBUFFERED=1 OMP_WAIT_POLICY=PASSIVE
+source benchmarks/gpu_site.sh
+mkdir -p "$out"
 left() { echo $((budget - (SECONDS - start))); }
 
 { nvidia-smi -L; python3 -c "import torch, drjit as dr; print('torch', torch.__version__, torch.cuda.get_device_name(),

@@ -1,21 +1,19 @@
 #!/usr/bin/env bash
 # benchmarks/maps.py's variants trained on an NVIDIA GPU, each judged on a low-noise reference set: e.g. the
-# spread from seed to seed of the shipped recipe (benchmarks/results/losses.txt):
+# spread from seed to seed of the shipped recipe (benchmarks/results/seeds.txt):
 #
 #   bash benchmarks/gpu_train.sh DATA MATERIAL REFERENCE OUT SECONDS VARIANT...
 #
 # OUT gets each run's record (VARIANT.json) and the models with the lowest and the highest reference error
-# (best.onnx, worst.onnx, named in OUT/choice.txt), to be scored in images on the CPU (`maps.py score`). Runs as
-# benchmarks/gpu_check.sh does (which sets up the same way): the repository's areas linked into a `neumip`
-# namespace, drjit from .whl/ if present; a variant that would end past SECONDS is not started.
+# (best.onnx, worst.onnx, named in OUT/choice.txt; the device returns 8 files at most, so 6 variants fit), to be
+# scored in images on the CPU (`maps.py score`). Runs as
+# benchmarks/gpu_check.sh does (benchmarks/gpu_site.sh); a variant that would end past SECONDS is not started.
 set -u
 data=$1 material=$2 reference=$3 out=$4 budget=$5
 shift 5
 start=$SECONDS
-site=/tmp/neumip_site runs=/tmp/neumip_gpu_runs
-mkdir -p "$site/neumip" "$out"
-for area in core client server training; do ln -sfn "$PWD/$area" "$site/neumip/$area"; done
-export PYTHONPATH=$site PYTHONUNBUFFERED=1 OMP_WAIT_POLICY=PASSIVE
+source benchmarks/gpu_site.sh
+mkdir -p "$out"
 nvidia-smi -L
 last=60
 for variant in "$@"; do

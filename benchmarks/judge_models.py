@@ -21,6 +21,7 @@ def main() -> None:
     import onnxruntime as ort
 
     from neumip.training.dataset import open_dataset
+    from neumip.training.validation import errors as error_figures
 
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("reference")
@@ -32,7 +33,7 @@ def main() -> None:
     for path in args.models:
         session = ort.InferenceSession(path, providers=["CPUExecutionProvider"])
         answer = session.run(None, {"queries": queries})[0].astype(np.float64)
-        log_mse = float(np.mean((np.log1p(np.maximum(answer, -0.1)) - np.log1p(target)) ** 2))
+        log_mse = error_figures(answer, target)["log_mse"]  # what fit.reference_error computes
         relative = float(np.mean((answer - target) ** 2 / (target ** 2 + 0.01)))
         errors.append((log_mse, relative))
         print(f"{path}: log MSE {log_mse * 1e3:.4f}e-3, relative MSE {relative:.5f}")
