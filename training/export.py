@@ -32,6 +32,7 @@ import json
 import logging
 import math
 import os
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -46,7 +47,8 @@ from neumip.core.config import (BASE_ALPHA2_FLOOR, BASE_AZIMUTH_FLOOR, BASE_AZIM
                                 BASE_CHANNELS, BASE_COS_FLOOR, BASE_HORIZONS, BASE_LOG_CEILING, BASE_OUTPUTS,
                                 BASE_SHADOW_SOFTNESS, BASE_WI_FLOOR, HALF_FLOOR, RELIEF_DIVISION_FLOOR,
                                 RELIEF_MIN_COS, MaterialConfig)
-from .export_lookup import footprint_texels, pyramid_footprint, pyramid_texels, texture_texels
+from .export_lookup import (expand_table, footprint_read, footprint_rows, footprint_texels, pyramid_footprint,
+                            pyramid_texels, texture_texels)
 from .onnx_graph import GraphWriter
 
 log = logging.getLogger(__name__)
@@ -185,28 +187,126 @@ def _lift(g: GraphWriter, w: str) -> str:
     return g.op("Concat", w, g.op("Sqrt", g.op("Max", g.op("Sub", g.scalar(1.0), r2), g.scalar(0.0))), axis=1)
 
 
-def _base_maps(g: GraphWriter, config: MaterialConfig, weights: dict, uv: str, sigma: str) -> str:
-    """The base maps' trilinear lookup: uv (N, 2) in [0, 1), sigma (N, 1) -> (N, BASE_CHANNELS)."""
+MAP_CHANNELS = BASE_CHANNELS - BASE_HORIZONS
+"""The base pyramid's channels that the BSDF reads once per group (colours, F0, slopes, alpha^2); the
+horizons after them are read per light."""
+
+
+@dataclass(frozen=True)
+class _BaseRead:
+    """The base pyramid read once per query group (`_base_maps`)."""
+
+    maps: str
+    """(N, MAP_CHANNELS) the BSDF's maps at the group's footprint."""
+    rows: str
+    """(N, 2) the footprint's quad rows of levels lo, hi (float), where `_horizon` reads per light."""
+    taps: str
+    """(N, 8) the footprint's tap weights."""
+    horizons: str
+    """(R BASE_HORIZONS, 4) horizon table: row r BASE_HORIZONS + j holds azimuth j's sine at quad row r's 4 taps."""
+
+
+def _base_maps(g: GraphWriter, config: MaterialConfig, weights: dict, uv: str, sigma: str) -> _BaseRead:
+    """The base pyramid's trilinear footprint at uv (N, 2) in [0, 1), sigma (N, 1): the maps, and where the
+    horizons are read per light.
+
+    A map channel that is the same in every texel (F0 of a material without metal, the colour of a plain
+    one) is a constant of the graph, not read: the lookup of a constant answers it. The stored atlas is
+    the whole one (`export_read` reads it back)."""
     base = config.base_pyramid()
-    atlas = g.const(weights[W.BASE], name=W.BASE)
-    texels, tap_w = pyramid_texels(g, base, atlas, base.channels, uv, sigma, prefix="base.")  # (N, 8 C), (N, 8)
-    spread = np.kron(np.eye(8, dtype=np.float32), np.ones((1, base.channels), np.float32))  # (8, 8 C)
-    weighted = g.op("Mul", texels, g.op("MatMul", tap_w, g.const(spread)))
-    return g.op("MatMul", weighted, g.const(np.tile(np.eye(base.channels, dtype=np.float32), (8, 1))))
+    atlas = weights[W.BASE]
+    stored = g.const(atlas, name=W.BASE)
+    varying = [c for c in range(MAP_CHANNELS) if not np.all(atlas[:, c] == atlas[0, c])]
+    fp = pyramid_footprint(g, base, g.op("Gather", stored, g.const(varying, np.int64), axis=1), len(varying),
+                           sigma, prefix="base.")
+    rows, taps = footprint_rows(g, fp, uv)  # (N, 2), (N, 8)
+    index = g.const(fp.rows, np.int32)  # (R, 4) the quad table's texels, shared by both tables
+    constants = np.where(np.isin(np.arange(MAP_CHANNELS), varying), 0.0, atlas[0, :MAP_CHANNELS])[None]
+    if varying:
+        fp.table = expand_table(g, fp.atlas, index, len(varying))
+        texels = footprint_read(g, fp, len(varying), rows)  # (N, 8 V)
+        spread = np.kron(np.eye(8, dtype=np.float32), np.ones((1, len(varying)), np.float32))  # (8, 8 V)
+        weighted = g.op("Mul", texels, g.op("MatMul", taps, g.const(spread)))
+        summed = g.op("MatMul", weighted, g.const(np.tile(np.eye(len(varying), dtype=np.float32), (8, 1))))
+        place = np.zeros((len(varying), MAP_CHANNELS), np.float32)
+        place[np.arange(len(varying)), varying] = 1.0
+        maps = g.op("Add", g.op("MatMul", summed, g.const(place)), g.const(constants))
+    else:
+        maps = g.op("Add", g.op("MatMul", taps, g.const(np.zeros((8, MAP_CHANNELS), np.float32))), g.const(constants))
+    return _BaseRead(maps, rows, taps, _horizon_table(g, stored, index, len(fp.rows)))
 
 
-def _base_answer(g: GraphWriter, maps: str, wi: str, wo: str) -> str:
-    """maps (M, BASE_CHANNELS), wi, wo (M, 2) -> (M, 3): the base's answer, as `base.base_answer` computes it."""
+def _horizon_table(g: GraphWriter, atlas: str, index: str, rows: int) -> str:
+    """Constant subgraph: the base atlas (T, BASE_CHANNELS) and its quad index table (R, 4) -> (R BASE_HORIZONS,
+    4) the horizons' quad table, one row per quad row and azimuth (`_BaseRead.horizons`)."""
+    if rows * BASE_HORIZONS >= 2**24:
+        raise ValueError(f"{rows} base table rows: the horizons' float32 row arithmetic is exact only below "
+                         f"2^24 / {BASE_HORIZONS}")
+    columns = g.const(np.arange(MAP_CHANNELS, BASE_CHANNELS), np.int64)
+    flat = g.shape(g.op("Gather", atlas, columns, axis=1), [-1])  # (T BASE_HORIZONS,): texel t, azimuth j at t H + j
+    texel = g.op("Cast", g.shape(index, [-1, 1, 4]), to=TensorProto.INT64)  # (R, 1, 4)
+    azimuths = g.const(np.arange(BASE_HORIZONS).reshape(1, -1, 1), np.int64)  # (1, H, 1)
+    entries = g.op("Add", g.op("Mul", texel, g.const([BASE_HORIZONS], np.int64)), azimuths)  # (R, H, 4)
+    return g.op("Gather", flat, g.shape(entries, [-1, 4]), axis=0)
+
+
+def _horizon(g: GraphWriter, read: _BaseRead, rows: str, taps: str, wi: str) -> str:
+    """The sine of the horizon's elevation towards each light, as `base.visibility` interpolates it: (M, 2)
+    quad rows and (M, 8) tap weights of the base footprint, (M, 2) wi -> (M, 1).
+
+    Of the BASE_HORIZONS azimuths' weights max(cos(phi - phi_j) - cos(45 deg), 0) only the two azimuths
+    around wi's can be nonzero (j0 = floor(phi / 45 deg) and j0 + 1), so only their columns are read, per
+    light: 16 texels, not the 64 of all eight azimuths at the footprint's 8 taps."""
+    if BASE_HORIZONS != 8:
+        raise ValueError("the octant arithmetic below assumes 8 horizon azimuths")
+    x, y = g.pick(wi, 2, [0]), g.pick(wi, 2, [1])
+    below = g.op("Less", y, g.scalar(0.0))  # phi in [180, 360): turn by 180 degrees
+    x1, y1 = g.op("Where", below, g.op("Neg", x), x), g.op("Where", below, g.op("Neg", y), y)
+    left = g.op("LessOrEqual", x1, g.scalar(0.0))  # phi in [90, 180]: turn by -90 degrees
+    x2, y2 = g.op("Where", left, y1, x1), g.op("Where", left, g.op("Neg", x1), y1)
+    upper = g.op("GreaterOrEqual", y2, x2)  # phi in [45, 90]
+
+    def count(b: str, k: float) -> str:
+        return g.op("Mul", g.op("Cast", b, to=TensorProto.FLOAT), g.scalar(k))
+
+    j0 = g.op("Add", g.op("Add", count(below, 4.0), count(left, 2.0)), count(upper, 1.0))  # (M, 1) in 0..7
+    j1 = g.op("Sub", g.op("Add", j0, g.scalar(1.0)), count(g.op("GreaterOrEqual", j0, g.scalar(7.0)), 8.0))
+    pair = g.op("Concat", j0, j1, axis=1)  # (M, 2)
+    # cos(phi - phi_j) for j0, j1: phi turned by the octant's quarter turns is in [0, 90], phi_j0 in it is 45 upper
+    diagonal = g.op("Mul", g.op("Add", x2, y2), g.scalar(math.sqrt(0.5)))
+    r2 = g.op("MatMul", g.op("Mul", wi, wi), g.const(np.ones((2, 1), np.float32)))
+    r = g.op("Sqrt", g.op("Max", r2, g.scalar(BASE_AZIMUTH_FLOOR * BASE_AZIMUTH_FLOOR)))
+    cosines = [g.op("Div", g.op("Where", upper, diagonal, x2), r), g.op("Div", g.op("Where", upper, y2, diagonal), r)]
+    kernel = g.op("Max", g.op("Sub", g.op("Concat", *cosines, axis=1), g.scalar(BASE_AZIMUTH_KERNEL)), g.scalar(0.0))
+    total = g.op("MatMul", kernel, g.const(np.ones((2, 1), np.float32)))
+    weight = g.op("Div", kernel, g.op("Max", total, g.scalar(BASE_AZIMUTH_FLOOR)))  # (M, 2)
+    # table rows (M, 4): (lo, j0), (lo, j1), (hi, j0), (hi, j1); each holds 4 taps
+    at = np.array([[8.0, 8.0, 0.0, 0.0], [0.0, 0.0, 8.0, 8.0]], np.float32)
+    of = np.array([[1.0, 0.0, 1.0, 0.0], [0.0, 1.0, 0.0, 1.0]], np.float32)
+    line = g.op("Add", g.op("MatMul", rows, g.const(at)), g.op("MatMul", pair, g.const(of)))
+    texels = g.shape(g.op("Gather", read.horizons, g.op("Cast", line, to=TensorProto.INT64), axis=0), [-1, 16])
+    spread = np.zeros((8, 16), np.float32)  # tap weight (level l, tap t) -> columns (l, a, t) for a = j0, j1
+    pick = np.zeros((16, 2), np.float32)  # columns (l, a, t) -> azimuth a
+    for level in range(2):
+        for a in range(2):
+            for t in range(4):
+                spread[4 * level + t, 8 * level + 4 * a + t] = 1.0
+                pick[8 * level + 4 * a + t, a] = 1.0
+    sines = g.op("MatMul", g.op("Mul", texels, g.op("MatMul", taps, g.const(spread))), g.const(pick))  # (M, 2)
+    return g.op("MatMul", g.op("Mul", weight, sines), g.const(np.ones((2, 1), np.float32)))
+
+
+def _base_answer(g: GraphWriter, maps: str, horizon: str, wi: str, wo: str) -> str:
+    """maps (M, MAP_CHANNELS), the horizon's sine towards wi (M, 1) (`_horizon`), wi, wo (M, 2) -> (M, 3): the
+    base's answer, as `base.base_answer` computes it."""
     def columns(lo: int, hi: int) -> str:
-        pick = np.zeros((BASE_CHANNELS, hi - lo), np.float32)
-        pick[np.arange(lo, hi), np.arange(hi - lo)] = 1.0
-        return g.op("MatMul", maps, g.const(pick))
+        return g.pick(maps, MAP_CHANNELS, list(range(lo, hi)))
 
     def clamp_low(x: str, low: float) -> str:
         return g.op("Max", x, g.scalar(low))
 
     wi3, wo3 = _lift(g, wi), _lift(g, wo)
-    to_normal = np.zeros((BASE_CHANNELS, 3), np.float32)
+    to_normal = np.zeros((MAP_CHANNELS, 3), np.float32)
     to_normal[6, 0] = to_normal[7, 1] = -1.0
     n = g.op("Add", g.op("MatMul", maps, g.const(to_normal)), g.const(np.array([[0.0, 0.0, 1.0]], np.float32)))
     n = g.op("Div", n, g.op("Sqrt", _dot(g, n, n)))
@@ -233,21 +333,9 @@ def _base_answer(g: GraphWriter, maps: str, wi: str, wo: str) -> str:
     terminator = g.op("Min", g.op("Div", wi_z, clamp_low(g.op("Mul", cos_i, g.op("MatMul", n, z)), BASE_COS_FLOOR)),
                       g.scalar(1.0))
     soften = g.op("Mul", terminator, g.op("Sub", g.op("Add", g.scalar(1.0), terminator), g.op("Mul", terminator, terminator)))
-    lit = _visibility(g, columns(9, BASE_CHANNELS), wi, wi_z)
-    return g.op("Div", g.op("Mul", g.op("Mul", g.op("Add", diffuse, specular), soften), lit), clamp_low(wi_z, BASE_WI_FLOOR))
-
-
-def _visibility(g: GraphWriter, horizons: str, wi: str, wi_z: str) -> str:
-    """(M, BASE_HORIZONS) sines of the horizon, (M, 2) wi, (M, 1) its z -> (M, 1) as `base.visibility`."""
-    r2 = g.op("MatMul", g.op("Mul", wi, wi), g.const(np.ones((2, 1), np.float32)))
-    r = g.op("Sqrt", g.op("Max", r2, g.scalar(BASE_AZIMUTH_FLOOR * BASE_AZIMUTH_FLOOR)))
-    cosines = g.op("Div", g.op("MatMul", wi, g.const(np.array(BASE_AZIMUTHS, np.float32).T)), r)
-    kernel = g.op("Max", g.op("Sub", cosines, g.scalar(BASE_AZIMUTH_KERNEL)), g.scalar(0.0))
-    total = g.op("MatMul", kernel, g.const(np.ones((BASE_HORIZONS, 1), np.float32)))
-    weights = g.op("Div", kernel, g.op("Max", total, g.scalar(BASE_AZIMUTH_FLOOR)))
-    horizon = g.op("MatMul", g.op("Mul", weights, horizons), g.const(np.ones((BASE_HORIZONS, 1), np.float32)))
     lit = g.op("Add", g.op("Div", g.op("Sub", wi_z, horizon), g.scalar(BASE_SHADOW_SOFTNESS)), g.scalar(0.5))
-    return g.op("Min", g.op("Max", lit, g.scalar(0.0)), g.scalar(1.0))
+    lit = g.op("Min", g.op("Max", lit, g.scalar(0.0)), g.scalar(1.0))  # the visibility V(wi), `base.visibility`
+    return g.op("Div", g.op("Mul", g.op("Mul", g.op("Add", diffuse, specular), soften), lit), clamp_low(wi_z, BASE_WI_FLOOR))
 
 
 def _corrected(g: GraphWriter, base: str, out: str) -> str:
@@ -351,8 +439,9 @@ def material_graph(g: GraphWriter, config: MaterialConfig, weights: dict,
     out = g.op("Transpose", g.mlp(hidden, weights, W.DECODER, config.layers, first=1), perm=[1, 0])  # (K N, O)
     size = head.outputs(config.head)
     if config.base:  # per light: the base's answer from the group's maps, corrected by the decoder
-        maps = each_light(_base_maps(g, config, weights, uvw, sigma))  # (K N, BASE_CHANNELS)
-        out = _corrected(g, _base_answer(g, maps, wi, each_light(wo)), out)
+        read = _base_maps(g, config, weights, uvw, sigma)
+        horizon = _horizon(g, read, each_light(read.rows), each_light(read.taps), wi)  # (K N, 1)
+        out = _corrected(g, _base_answer(g, each_light(read.maps), horizon, wi, each_light(wo)), out)
     rows = _reshape(g, out, k, n, size)  # (K, N, O)
     rows = _reshape(g, g.op("Transpose", rows, perm=[1, 0, 2]), kn, size)  # (N K, O)
     return rows, [n, g.op("Mul", k, g.const([C.RGB_DIM], np.int64))]

@@ -94,12 +94,14 @@ def level_tables(config: MaterialConfig, finest_level: int = 0) -> dict[str, np.
 # --- graph stages ----------------------------------------------------------------------------------
 
 
-def expand_table(g: GraphWriter, texels: str, index_rows: np.ndarray, width: int) -> str:
-    """Constant subgraph: (T, width) texels and (R, 4) index table -> (R, 4 width) quad table.
+def expand_table(g: GraphWriter, texels: str, index_rows: np.ndarray | str, width: int) -> str:
+    """Constant subgraph: (T, width) texels and (R, 4) index table (or the name of its initializer) ->
+    (R, 4 width) quad table.
 
     Only initializers feed it, so ONNX Runtime computes it once when the session loads.
     """
-    table = g.op("Gather", texels, g.const(index_rows, np.int32), axis=0)
+    index = index_rows if isinstance(index_rows, str) else g.const(index_rows, np.int32)
+    table = g.op("Gather", texels, index, axis=0)
     return g.shape(table, [-1, 4 * width])
 
 
@@ -134,9 +136,9 @@ def tap_weights(g: GraphWriter, frac: str, levels: int, t: str | None) -> str:
     return weights if t is None else g.op("Mul", weights, level_weights(g, t, 4))
 
 
-def _gather(g: GraphWriter, table: str, line: str, bases: str, levels: int, width: int) -> str:
-    """Rows (N, L) float -> (N, 4 L width) texels in tap order, level by level."""
-    rows = g.op("Cast", g.op("Add", line, bases), to=TensorProto.INT64)
+def _gather(g: GraphWriter, table: str, rows: str, levels: int, width: int) -> str:
+    """Table rows (N, L) float -> (N, 4 L width) texels in tap order, level by level."""
+    rows = g.op("Cast", rows, to=TensorProto.INT64)
     return g.shape(g.op("Gather", table, rows, axis=0), [-1, 4 * levels * width])
 
 
@@ -172,17 +174,28 @@ def pyramid_footprint(g: GraphWriter, config: MaterialConfig, atlas: str, width:
     return Footprint(rows["size"], rows["coef"], rows["base"], t, atlas, tables.rows)
 
 
-def footprint_texels(g: GraphWriter, fp: Footprint, width: int, uvw: str) -> tuple[str, str]:
-    """uvw (N, 2) in [0, 1] read at footprint `fp` -> texels (N, 8 width), weights (N, 8)."""
+def footprint_rows(g: GraphWriter, fp: Footprint, uvw: str) -> tuple[str, str]:
+    """uvw (N, 2) in [0, 1] at footprint `fp` -> the quad table's rows of levels lo, hi (N, 2), float (whole
+    numbers), and the taps' weights (N, 8)."""
     both = g.op("MatMul", uvw, g.const(np.tile(np.eye(2, dtype=np.float32), (1, 2))))  # (N, 4) u v u v
     x = g.op("Sub", g.op("Mul", both, fp.size), g.scalar(0.5))  # (N, 4) texel coordinates per level
     x0 = g.op("Floor", x)
     spread = np.kron(np.eye(2, dtype=np.float32), np.ones((2, 1), np.float32))  # (4, 2): x0 + W y0
     line = g.op("MatMul", g.op("Mul", x0, fp.coef), g.const(spread))  # (N, 2)
+    return g.op("Add", line, fp.bases), tap_weights(g, g.op("Sub", x, x0), 2, fp.t)
+
+
+def footprint_read(g: GraphWriter, fp: Footprint, width: int, rows: str) -> str:
+    """Quad table rows (N, 2) of `fp`'s levels lo, hi (`footprint_rows`) -> texels (N, 8 width)."""
     if fp.table is None:
         fp.table = expand_table(g, fp.atlas, fp.rows, width)
-    texels = _gather(g, fp.table, line, fp.bases, 2, width)
-    return texels, tap_weights(g, g.op("Sub", x, x0), 2, fp.t)
+    return _gather(g, fp.table, rows, 2, width)
+
+
+def footprint_texels(g: GraphWriter, fp: Footprint, width: int, uvw: str) -> tuple[str, str]:
+    """uvw (N, 2) in [0, 1] read at footprint `fp` -> texels (N, 8 width), weights (N, 8)."""
+    rows, weights = footprint_rows(g, fp, uvw)
+    return footprint_read(g, fp, width, rows), weights
 
 
 def pyramid_texels(g: GraphWriter, config: MaterialConfig, atlas: str, width: int, uvw: str,
@@ -202,7 +215,7 @@ def texture_texels(g: GraphWriter, texture: str, size: int, width: int, uvw: str
     x0 = g.op("Floor", x)
     line = g.op("MatMul", x0, g.const(np.asarray([[1.0], [w]])))  # (N, 1): x0 + W y0
     table = expand_table(g, texture, tables.rows, width)
-    texels = _gather(g, table, line, g.const([base]), 1, width)
+    texels = _gather(g, table, g.op("Add", line, g.const([base])), 1, width)
     return texels, tap_weights(g, g.op("Sub", x, x0), 1, None)
 
 

@@ -18,6 +18,7 @@ import onnx
 import pytest
 
 from neumip.core import contract as C
+from neumip.core import weights as W
 from neumip.client.local import LocalMaterials, ModelError, UnknownMaterial
 
 pytest.importorskip("neumip.client.kernel")  # drjit, after the libLLVM check
@@ -69,7 +70,8 @@ def random_queries(n: int, seed: int, lights: int = 1) -> np.ndarray:
 @pytest.fixture(scope="module")
 def layouts(tmp_path_factory):
     """One file per layout: offset (64^2 and 16^2, and one clamped only at grazing angles), no offset,
-    YUV head, one- and two-layer MLPs, and trimmed."""
+    YUV head, one- and two-layer MLPs, a base and a relief (with a ceiling; with constant map channels), and
+    trimmed."""
     folder = tmp_path_factory.mktemp("kernel_models")
     configs = {
         "offset64": MaterialConfig(resolution=64),
@@ -91,6 +93,11 @@ def layouts(tmp_path_factory):
     save_onnx(build_onnx(replace(relief, ceiling=median), random_weights(relief, seed=list(configs).index("relief"))),
               folder / "ceiling.onnx")
     save_onnx(trim_model(onnx.load(folder / "offset64.onnx"), 2), folder / "trimmed.onnx")
+    # base maps with channels the same in every texel, which the graph holds as constants: F0 (a dielectric), all
+    for name, last in (("dielectric", 6), ("plain", 9)):
+        weights = random_weights(relief, seed=len(configs))
+        weights[W.BASE][:, 3:last] = weights[W.BASE][0, 3:last]
+        save_onnx(build_onnx(relief, weights), folder / f"{name}.onnx")
     return folder
 
 

@@ -158,3 +158,62 @@ def test_random_material_answers_positive_and_varied_in_every_channel(cfg):
         rgb = session.run(None, {C.ONNX_INPUT: q})[0]
         assert (rgb > 0).all(), f"seed {seed}: zero answers"
         assert rgb.std(axis=0).min() > 0.02, f"seed {seed}: a channel barely varies, std {rgb.std(axis=0)}"
+
+
+def _base_pair(atlas_edit) -> tuple[NeuMIPMaterial, ort.InferenceSession, onnx.ModelProto]:
+    """A material with a base (random maps, edited by `atlas_edit`) and a decoder that corrects it; its session."""
+    torch.manual_seed(6)
+    cfg = MaterialConfig(resolution=16, offset=False, base=32)
+    material = NeuMIPMaterial(cfg, init_std=0.5)
+    atlas = random_weights(cfg, seed=7)[W.BASE]
+    atlas_edit(atlas)
+    with torch.no_grad():
+        material.base_maps.copy_(torch.from_numpy(atlas))
+        material.decoder[-1].weight.normal_(0.0, 0.2)
+    model = build_onnx(cfg, weights_from_state(material.state_dict(), cfg), "test")
+    return material, ort.InferenceSession(model.SerializeToString(), providers=["CPUExecutionProvider"]), model
+
+
+def _base_channels_read(model: onnx.ModelProto) -> list[int]:
+    """The map channels the graph's per-group table takes from the stored base atlas (the constant Gather on axis 1
+    whose indices start at channel 0)."""
+    inits = {i.name: onnx.numpy_helper.to_array(i) for i in model.graph.initializer}
+    reads = [inits[n.input[1]].tolist() for n in model.graph.node
+             if n.op_type == "Gather" and n.input[0] == W.BASE and n.input[1] in inits]
+    return [r for r in reads if r and r[0] < 9 and r[-1] < 9] or [[]]
+
+
+@pytest.mark.parametrize("edit, channels", [
+    (lambda a: None, list(range(9))),
+    (lambda a: a.__setitem__((slice(None), slice(3, 6)), 0.04), [0, 1, 2, 6, 7, 8]),  # F0 of a dielectric
+    (lambda a: a.__setitem__((slice(None), slice(0, 9)), [0.3, 0.2, 0.1, 0.04, 0.04, 0.04, 0.0, 0.0, 0.25]), []),
+], ids=["all-vary", "constant-f0", "all-constant"])
+def test_a_base_reads_only_its_varying_map_channels_and_answers_as_torch(edit, channels, assert_parity, edge_queries):
+    """A map channel that is the same in every texel is a constant of the graph (not read), and the answers are
+    the torch material's, which reads every channel."""
+    material, session, model = _base_pair(edit)
+    assert _base_channels_read(model)[0] == channels
+    for q in (random_queries(20000, seed=14), edge_queries(material.config.resolution)):
+        assert_parity(session.run(None, {C.ONNX_INPUT: q})[0], torch_eval(material, q))
+
+
+def test_the_horizon_read_per_light_answers_as_all_eight_azimuths(assert_parity):
+    """The graph reads the horizons of the two azimuths around each light's (`export._horizon`); torch weighs all
+    eight. Lights at every multiple of 22.5 degrees (on an azimuth, between two, either side of the +-x axis), at the
+    zenith, and random, with horizons high enough to shadow: the same answers."""
+    def tall_horizons(a):
+        a[:, 9:] = np.random.default_rng(8).uniform(0.0, 0.9, a[:, 9:].shape)
+
+    material, session, _ = _base_pair(tall_horizons)
+    q = random_queries(4000, seed=15)
+    phi = np.repeat(np.arange(16) * np.pi / 8, 250)
+    phi[::2] += np.float32(1e-6) * np.where(np.arange(len(phi))[::2] % 4 == 0, 1, -1)
+    s = np.sin(np.deg2rad(np.random.default_rng(9).uniform(0.0, 80.0, len(phi))))
+    q[:, C.WI_X], q[:, C.WI_Y] = s * np.cos(phi), s * np.sin(phi)
+    q[:10, C.WI_X:C.WI_Y + 1] = 0.0  # the zenith: no azimuth, unshadowed
+    q[10:20, C.WI_Y] = -0.0  # -x axis from below and above
+    q[10:20, C.WI_X] = -0.5
+    want = torch_eval(material, q)
+    lit = q[:, C.WI_X] ** 2 + q[:, C.WI_Y] ** 2 > 0.8  # low lights: most are shadowed somewhere
+    assert (want[lit] == 0).any() and (want[lit] > 0).any(), "the test's horizons must shadow some lights"
+    assert_parity(session.run(None, {C.ONNX_INPUT: q})[0], want)
