@@ -14,7 +14,11 @@ render's own kernels, `KernelMaterials`, the default; and its ONNX graph in ONNX
   the scatter of the answers), against stock `path` with a `diffuse` BSDF on the same plane. Target:
   <= 1.5.
 
-Both integrators run at the same spp, ``max_depth`` and ``rr_depth``. Section ``demo`` renders the
+Both integrators run at the same spp, ``max_depth`` and ``rr_depth``. Section ``stages`` renders the same
+neural plane with the model as is and without each of its stages (the relief, half its steps, the neural
+offset, the classical base: the same weights, the graph of the config without the stage), and with the same
+material from the ``--compare`` folders (another export of it), interleaved with the reference geometry, each
+round in another order: what each stage costs, as a share of the geometry's time. Section ``demo`` renders the
 demo scene in-process (both engines) and through a real `neumip serve` process and prints the HTTP /
 in-process ratio; the renders use the same seed, so their largest image difference is printed too. CPU
 seconds (this process, plus the server process for HTTP) are printed beside wall time: on a shared
@@ -24,6 +28,7 @@ whole in-process render: a smaller one left kernels to compile inside the timed 
     .venv/bin/python benchmarks/bench_render.py                         # ratios, rock from models/
     .venv/bin/python benchmarks/bench_render.py --sections ratios,demo  # and the demo in-process vs HTTP
     .venv/bin/python benchmarks/bench_render.py --sections demo --stand-in   # untrained stand-ins
+    .venv/bin/python benchmarks/bench_render.py --sections stages --compare /tmp/before   # stage costs
     .venv/bin/python benchmarks/bench_render.py --kernel-before /tmp/kernel_before.py  # and another checkout's kernel
 
 ``--stand-in`` builds constant-colour materials of the default architecture (256^2 pyramid,
@@ -216,6 +221,83 @@ def ratios(args) -> None:
     print(f"[{load_avg()}]", flush=True)
 
 
+# --- stages: what each stage of the model costs in the render -------------------------------------------
+
+
+def stage_variants(model_path: Path, folder: Path) -> dict[str, Path]:
+    """Write the model at `model_path` as is and without each of its stages (the same weights, the graph of the
+    config without the stage: its answers are wrong, its cost is the rest's) into subfolders of `folder`, one
+    file of the material's name each; -> {label: subfolder}."""
+    from dataclasses import replace
+
+    import onnx
+
+    from neumip.core import weights as W
+    from neumip.training.export import build_onnx, save_onnx
+    from neumip.training.export_read import read_model
+
+    config, weights, _, finest = read_model(onnx.load(str(model_path)))
+    configs = {"as is": config}
+    if config.relief:
+        configs["no relief"] = replace(config, relief=0)
+        if config.relief_steps > 1:
+            configs[f"relief {config.relief_steps // 2} steps"] = replace(config, relief_steps=config.relief_steps // 2)
+    if config.offset:
+        configs["no neural offset"] = replace(config, offset=False)
+    if config.base:  # the decoder's additive outputs answer alone
+        configs["no classical base"] = replace(config, base=0)
+    out = {}
+    for label, cfg in configs.items():
+        w = dict(weights)
+        if config.base and not cfg.base:
+            last = config.layers - 1
+            w[W.weight(W.DECODER, last)] = weights[W.weight(W.DECODER, last)][3:]
+            w[W.bias(W.DECODER, last)] = weights[W.bias(W.DECODER, last)][3:]
+        sub = folder / label.replace(" ", "_")
+        sub.mkdir()
+        save_onnx(build_onnx(cfg, w, finest_level=finest), sub / model_path.name)
+        out[label] = sub
+    return out
+
+
+def stages(args) -> None:
+    """The neural plane of the ratios section rendered with the model as is, without each of its stages, and with
+    the same material from the ``--compare`` folders, in interleaved rounds with the reference geometry."""
+    from neumip.client.kernel import KernelMaterials, namespace_of
+    from neumip.client.local import LocalMaterials
+    from neumip.client.mitsuba.render import mi
+
+    material = material_name(args)
+    with tempfile.TemporaryDirectory() as tmp:
+        folders = stage_variants(args.models / f"{material}.onnx", Path(tmp))
+        folders.update({str(d): d for d in args.compare})
+        scenes = ratio_scenes(mi, LocalMaterials(args.models).get(material), args)
+        reference, neural = (mi.load_dict(scenes[name][0]) for name in ("reference (path)", "neural (neumip_path)"))
+        runs = {"reference (path)": (reference, None),
+                **{label: (neural, KernelMaterials(d, namespace_of(mi.Float))) for label, d in folders.items()}}
+        print(f"## stages: {args.material} on a plane at {ZENITH_DEG:g} deg, {args.tiles} x {args.tiles} tiles, "
+              f"{args.size}^2 px, {args.spp} spp; median of {args.rounds} interleaved rounds   [{load_avg()}]",
+              flush=True)
+        for scene, evaluator in runs.values():  # warm-up: compile (or load cached) kernels
+            time_render(mi, scene, evaluator, args.spp, 0, args.max_lanes)
+        wall = {name: [] for name in runs}
+        inside = {name: [] for name in runs}
+        names = list(runs)
+        for r in range(args.rounds):  # each round in another order: the render after the reference's runs slower
+            for name in names[r % len(names):] + names[:r % len(names)]:
+                scene, evaluator = runs[name]
+                w, _, e = time_render(mi, scene, evaluator, args.spp, r + 1, args.max_lanes)
+                wall[name].append(w)
+                inside[name].append(e)
+    med = {name: statistics.median(v) for name, v in wall.items()}
+    ref, whole = med["reference (path)"], med["as is"]
+    print(f"  {'':<32} {'wall s':>8} {'/ reference':>12} {'evaluation s':>13} {'stage: / reference':>19}")
+    for name in runs:
+        stage = f"{(whole - med[name]) / ref:19.3f}" if name not in ("reference (path)", "as is") else ""
+        print(f"  {name:<32} {med[name]:8.3f} {med[name] / ref:12.3f} {statistics.median(inside[name]):13.3f} {stage}")
+    print(f"[{load_avg()}]", flush=True)
+
+
 # --- demo: in-process vs HTTP -------------------------------------------------------------------------
 
 
@@ -308,7 +390,7 @@ def set_variant(variant: str | None) -> None:
 
 def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--sections", default="ratios", help="comma-separated: ratios, demo")
+    parser.add_argument("--sections", default="ratios", help="comma-separated: ratios, stages, demo")
     parser.add_argument("--models", type=Path, default=ROOT / "models", help="model folder")
     parser.add_argument("--material", default="rock",
                         help="ratios: a shipped material, or a description file NAME.toml with NAME.onnx in --models")
@@ -327,6 +409,8 @@ def main() -> int:
                         "passes of 2^21 lanes leave it idle between them")
     parser.add_argument("--kernel-before", metavar="FILE", help="ratios: also render in-kernel with another checkout's "
                         "client/kernel.py (git show 906263c:client/kernel.py > FILE), interleaved")
+    parser.add_argument("--compare", type=Path, nargs="*", default=[], metavar="DIR",
+                        help="stages: also render the material's file in these folders (another export of it)")
     parser.add_argument("--variant", help="Mitsuba variant of every render (default: the renderer's, llvm_ad_rgb; "
                         "cuda_ad_rgb on an NVIDIA GPU)")
     args = parser.parse_args()
@@ -335,6 +419,8 @@ def main() -> int:
     sections = args.sections.split(",")
     if "ratios" in sections:
         ratios(args)
+    if "stages" in sections:
+        stages(args)
     if "demo" in sections:
         demo(args)
     return 0

@@ -26,8 +26,8 @@ class ReportConfig:
     ladder: tuple[int, ...] = (1, 4, 16, 64)
     """spp ladder of every method (error against time), in the views of the ladder light; R's time
     beyond its last rung is extrapolated (it is unbiased: its error above R's noise falls as 1/spp)."""
-    rounds: int = 2
-    """Timed interleaved rounds of the ladder, after one untimed round (the median is reported)."""
+    rounds: int = 3
+    """Timed interleaved rounds of the ladder, after one untimed round (the fastest is reported)."""
     smoke: bool = False
     """A smoke run (tiny sizes): its timings mean nothing and the report draws no timing verdicts."""
     max_lanes: int = 1 << 20

@@ -10,8 +10,10 @@ and 1 at ``spp`` are the two scored renders). Only the method being rendered has
 the process: it is built, warmed up by an untimed 1-spp render, rendered at every rung, and
 released (drjit's virtual calls dispatch over every live shape, so the reference's many instances
 slowed every other render in the process by up to 9x while they existed). Round 0 is untimed (it
-compiles the kernels); the reported seconds are the median over the ``rounds`` timed rounds, with the
-machine's load average beside them, and a linear fit gives the per-spp slope and the fixed cost.
+compiles the kernels); the reported seconds are the fastest of the ``rounds`` timed rounds (a shared machine
+only adds time: one render slowed 5x in one of two rounds moved their median enough to turn a time-to-error
+ratio from 0.23x into 0.80x), with the machine's load average beside them, and a linear fit gives the per-spp
+slope and the fixed cost.
 The timed rounds of a view come from one run: where any of them is not in the cache, all are rendered
 anew (a cached R timed on a quiet machine against an N timed now on a busy one halved the ratios once).
 """
@@ -111,13 +113,14 @@ def score_view(renderer: MaterialRenderer, view: View, images: dict, timings: di
 
 
 def _ladder(entries: dict, method: str, reference, exposure: float, images: dict, timings: dict, cfg) -> dict:
-    """Scores and median timed seconds (and load) of every rung; returns the linear fit of seconds on spp."""
+    """Scores and the fastest timed seconds (and the median load) of every rung; returns the linear fit of
+    seconds on spp."""
     timed = range(1, cfg.rounds + 1)
     for spp in cfg.ladder:
         e = entries.setdefault(spp, {})
         if "mse" not in e:
             e.update(Q.score(reference, images[(method, spp, 0)], exposure)[0].to_dict())
-        e["seconds"] = float(np.median([timings[(method, spp, r)][0] for r in timed]))
+        e["seconds"] = float(min(timings[(method, spp, r)][0] for r in timed))
         e["load"] = float(np.median([timings[(method, spp, r)][1] for r in timed]))
     secs = [entries[s]["seconds"] for s in cfg.ladder]
     slope, fixed = np.polyfit(np.array(cfg.ladder, float), np.array(secs), 1) if len(cfg.ladder) > 1 else (secs[0], 0.0)

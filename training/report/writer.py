@@ -185,7 +185,7 @@ def write_markdown(out: Path, results: dict, config: ReportConfig) -> Path:
          f"- **Error against time** (the {LADDER_LIGHT} light's views): every method, R included, at {list(cfg.ladder)} "
          f"spp in interleaved rounds (R, N, ..., R, N, ...), one untimed round then {cfg.rounds} timed; only the "
          "method being timed has a scene alive in the process (built, warmed up by an untimed 1-spp render, "
-         "rendered, released); median seconds, with the 1-minute load average. R's time beyond its 64-spp rung is "
+         "rendered, released); the fastest round's seconds, with the 1-minute load average. R's time beyond its 64-spp rung is "
          "extrapolated (unbiased: its error above R's noise falls as 1/time).", ""]
     L += ["## Summary", "", "What holds under every light (read from the tables below):", ""]
     L += summary(results, cfg) + [""]

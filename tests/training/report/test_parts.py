@@ -90,6 +90,27 @@ def test_time_to_reach_interpolates_log_log():
     assert analysis.winning_footprint(rows, "C") == 4
 
 
+def test_a_rung_s_time_is_its_fastest_round_so_one_slow_render_moves_no_fit():
+    """A shared machine only adds time: one render slowed 5x in one timed round leaves the rung's seconds, and the
+    fit of seconds on spp, where the other rounds put them."""
+    from neumip.training.report import pipeline
+    from neumip.training.report.config import ReportConfig
+
+    cfg = ReportConfig()
+    clean = {(m, spp, r): (0.02 + 0.01 * spp, 1.0) for m in "R" for spp in cfg.ladder for r in range(cfg.rounds + 1)}
+    slowed = dict(clean)
+    slowed[("R", 4, 2)] = (5 * clean[("R", 4, 2)][0], 3.0)
+
+    def fit(timings):
+        entries = {spp: {"mse": 1.0} for spp in cfg.ladder}
+        return pipeline._ladder(entries, "R", None, 1.0, {}, timings, cfg), entries
+
+    (want, _), (got, entries) = fit(clean), fit(slowed)
+    assert cfg.rounds >= 3
+    assert got["seconds_per_spp"] == pytest.approx(0.01) and got["fixed_seconds"] == pytest.approx(0.02)
+    assert got == want and entries[4]["seconds"] == pytest.approx(0.06)
+
+
 def test_close_up_checks_read_the_offset_gain_and_the_highlights():
     def entry(mse, mean=1.0, p99=1.0):
         return {64: {"mse": mse, "mean_ratio": mean, "p99_ratio": p99}}
