@@ -16,7 +16,7 @@ render's own kernels, `KernelMaterials`, the default; and its ONNX graph in ONNX
 
 Both integrators run at the same spp, ``max_depth`` and ``rr_depth``. Section ``stages`` renders the same
 neural plane with the model as is and without each of its stages (the relief, half its steps, the neural
-offset, the classical base: the same weights, the graph of the config without the stage), and with the same
+offset, the local frame, the classical base: the same weights, the graph of the config without the stage), and with the same
 material from the ``--compare`` folders (another export of it), interleaved with the reference geometry, each
 round in another order: what each stage costs, as a share of the geometry's time. Section ``demo`` renders the
 demo scene in-process (both engines) and through a real `neumip serve` process and prints the HTTP /
@@ -244,11 +244,17 @@ def stage_variants(model_path: Path, folder: Path) -> dict[str, Path]:
             configs[f"relief {config.relief_steps // 2} steps"] = replace(config, relief_steps=config.relief_steps // 2)
     if config.offset:
         configs["no neural offset"] = replace(config, offset=False)
+    if config.local_frame:
+        configs["no local frame"] = replace(config, local_frame=False)
     if config.base:  # the decoder's additive outputs answer alone
-        configs["no classical base"] = replace(config, base=0)
+        configs["no classical base"] = replace(config, base=0, local_frame=False)
     out = {}
     for label, cfg in configs.items():
         w = dict(weights)
+        if config.local_frame and not cfg.local_frame:  # the decoder's first layer without its frame columns
+            first = config.channels + (W.HALF_INPUTS if config.half_vector else 0)
+            keep = [i for i in range(weights[W.weight(W.DECODER, 0)].shape[1]) if not first <= i < first + W.FRAME_INPUTS]
+            w[W.weight(W.DECODER, 0)] = weights[W.weight(W.DECODER, 0)][:, keep]
         if config.base and not cfg.base:
             last = config.layers - 1
             w[W.weight(W.DECODER, last)] = weights[W.weight(W.DECODER, last)][3:]

@@ -96,6 +96,10 @@ VARIANTS: dict[str, tuple[dict, MapConfig | None, object]] = {
        for k in (1, 2, 3)},
     # ... from where the blur schedule ends (step ~1 420 of 2 400)
     "Nbr_fin40_rel": ({"base": "maps", "relief": "maps"}, None, replace(SHIP, finish_loss="relative", finish_fraction=0.4)),
+    # the decoder also reads wi and wo in the base normal's frame (MaterialConfig.local_frame; results/frame.txt)
+    "Nbr_frame": ({"base": "maps", "relief": "maps", "local_frame": True}, None, SHIP),
+    **{f"Nbr_frame_seed{k}": ({"base": "maps", "relief": "maps", "local_frame": True}, None, replace(SHIP, seed=k))
+       for k in range(1, 4)},
     "M_hz_rel": ({}, MapConfig(horizons=8), replace(SHIP, loss="relative")),
     "N128": ({"resolution": 128}, None, SHIP),
     "M128": ({"resolution": 128}, MapConfig(), SHIP),

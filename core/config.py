@@ -87,6 +87,11 @@ class MaterialConfig:
     power of two), 0: none. With a base the answer is base(maps, wi, wo) * exp(c) + a, with c and a the
     decoder's 6 outputs (`BASE_OUTPUTS`): the classical material as a start that the decoder corrects
     (training/base.py has the formula and the pyramid's channels)."""
+    local_frame: bool = False
+    """The decoder also reads wi and wo in the shading frame of the base's normal (the base maps' mean slopes where
+    the lookups land): 6 inputs, `weights.FRAME_INPUTS`. A normal tilted by the texel's slopes is then a rotation of
+    the inputs, not something every texel's features must teach the decoder. Needs a base
+    (`benchmarks/results/frame.txt`)."""
     relief: int = 0
     """Texels per side of the finest level of the height pyramid the relief stage marches (the material's
     height map's resolution; a power of two), 0: none. With it, every lookup reads where the view ray
@@ -118,6 +123,8 @@ class MaterialConfig:
             raise ValueError(f"base must be 0 or a power of two, got {self.base}")
         if self.base and self.head != "relu":
             raise ValueError(f"a base works with the relu head only, got head {self.head!r}")
+        if self.local_frame and not self.base:
+            raise ValueError("local_frame reads the base's normal: it needs a base")
         if self.relief < 0 or self.relief & (self.relief - 1):
             raise ValueError(f"relief must be 0 or a power of two, got {self.relief}")
         if self.relief_steps < 1:
@@ -157,13 +164,15 @@ class MaterialConfig:
         return MaterialConfig(resolution=self.relief, channels=1, offset=False) if self.relief else None
 
     def to_json(self) -> str:
-        """The fields as JSON; `half_vector`, `base`, the relief's and `ceiling` only when on, so the paper's
+        """The fields as JSON; `half_vector`, `base`, `local_frame`, the relief's and `ceiling` only when on, so the paper's
         models read as before they existed."""
         fields_ = asdict(self)
         if not self.half_vector:
             del fields_["half_vector"]
         if not self.base:
             del fields_["base"]
+        if not self.local_frame:
+            del fields_["local_frame"]
         if not self.relief:
             del fields_["relief"], fields_["relief_steps"]
         if not self.ceiling:

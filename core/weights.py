@@ -12,7 +12,8 @@ Two views of the same numbers, both from a `MaterialConfig`:
   (``{mlp}.{i}.half_weight``; the graph's Gemm multiplies by 2), biases as columns (out, 1); a first
   layer is split by what it reads (``{mlp}.0.half_weight.texture``, ``.query``: a (hidden, 7) matrix
   over the whole query row, zero but for the columns it reads, the decoder's ``.light``: its
-  columns on a light's wi, and with `MaterialConfig.half_vector` its ``.half_vector``: on the light's half vector); the offset MLP's last layer is stored with ``offset_scale`` folded in and
+  columns on a light's wi, and with `MaterialConfig.half_vector` its ``.half_vector``: on the light's half vector;
+  with `MaterialConfig.local_frame` its ``.frame``: on wi and wo in the base normal's frame); the offset MLP's last layer is stored with ``offset_scale`` folded in and
   its one output twice (the depth beside each of wo_x, wo_y).
 
 Names and shapes only: no numpy, no arithmetic.
@@ -49,10 +50,16 @@ HALF_INPUTS = 4
 """Decoder inputs of `MaterialConfig.half_vector`: h_x, h_y, h_z, cos(theta_d); they follow the texture
 features in the decoder's first layer, before the query columns."""
 
+FRAME_INPUTS = 6
+"""Decoder inputs of `MaterialConfig.local_frame`: wi and wo (x, y, z each) in the base normal's shading frame;
+they follow the half-vector inputs (or the texture features), before the query columns."""
+
 
 def first_layer_parts(mlp: str, config: MaterialConfig) -> tuple[str, ...]:
     """The parts the stored first layer of `mlp` is split into."""
-    extra = ("half_vector",) if mlp == DECODER and config.half_vector else ()
+    extra = ()
+    if mlp == DECODER:
+        extra = ("half_vector",) * config.half_vector + ("frame",) * config.local_frame
     return FIRST_LAYER_PARTS[mlp] + extra
 
 
@@ -82,9 +89,9 @@ def half_weight(mlp: str, layer: int, part: str | None = None) -> str:
 
 def mlps(config: MaterialConfig) -> dict[str, tuple[int, int]]:
     """The material's MLPs -> (inputs, outputs): texture features plus query columns in, answer out."""
-    half = HALF_INPUTS if config.half_vector else 0
+    extra = (HALF_INPUTS if config.half_vector else 0) + (FRAME_INPUTS if config.local_frame else 0)
     answers = BASE_OUTPUTS if config.base else outputs(config.head)
-    found = {DECODER: (config.channels + half + len(MLP_QUERY_COLUMNS[DECODER]), answers)}
+    found = {DECODER: (config.channels + extra + len(MLP_QUERY_COLUMNS[DECODER]), answers)}
     if config.offset:
         found[OFFSET_MLP] = (config.offset_channels + len(MLP_QUERY_COLUMNS[OFFSET_MLP]), 1)
     return found
@@ -141,7 +148,8 @@ def initializer_shapes(config: MaterialConfig, finest_level: int = 0) -> dict[st
     shapes.update(_maps_shapes(config))
     for mlp, (inputs, answers) in mlps(config).items():
         widths = _widths(config, inputs, DEPTH_COPIES if mlp == OFFSET_MLP else answers)
-        first = {"texture": texture_inputs(mlp, config), "query": C.QUERY_DIM, "light": 2, "half_vector": HALF_INPUTS}
+        first = {"texture": texture_inputs(mlp, config), "query": C.QUERY_DIM, "light": 2, "half_vector": HALF_INPUTS,
+                 "frame": FRAME_INPUTS}
         for part in first_layer_parts(mlp, config):
             shapes[half_weight(mlp, 0, part)] = (widths[1], first[part])
         shapes[bias(mlp, 0)] = (widths[1], 1)

@@ -129,6 +129,23 @@ def base_answer(features: torch.Tensor, wi: torch.Tensor, wo: torch.Tensor) -> t
     return (diffuse + specular) * (g * (1.0 + g - g * g)) * lit / torch.clamp(wi_z, min=BASE_WI_FLOOR)
 
 
+def frame_inputs(features: torch.Tensor, wi: torch.Tensor, wo: torch.Tensor) -> torch.Tensor:
+    """(N, BASE_CHANNELS) looked-up base maps, (N, 2) wi, wo -> (N, 6) wi and wo in the shading frame of the base's
+    normal n (`MaterialConfig.local_frame`): (w.t, w.b, w.n) each, the tangents those of Frisvad's basis (Duff et
+    al. 2017, n_z > 0 here): with a = 1 / (1 + n_z), t = (1 - n_x^2 a, -n_x n_y a, -n_x), b = (-n_x n_y a,
+    1 - n_y^2 a, -n_y); a flat texel's frame is the plane's."""
+    slopes = features[:, 6:8]
+    n = torch.cat([-slopes, torch.ones_like(slopes[:, :1])], dim=1)
+    n = n / torch.sqrt(_dot(n, n))
+    nx, ny, nz = n[:, 0:1], n[:, 1:2], n[:, 2:3]
+    a = 1.0 / (1.0 + nz)
+    cross = -nx * ny * a
+    t = torch.cat([1.0 - nx * nx * a, cross, -nx], dim=1)
+    b = torch.cat([cross, 1.0 - ny * ny * a, -ny], dim=1)
+    wi3, wo3 = lift(wi), lift(wo)
+    return torch.cat([_dot(wi3, t), _dot(wi3, b), _dot(wi3, n), _dot(wo3, t), _dot(wo3, b), _dot(wo3, n)], dim=1)
+
+
 def visibility(horizons: torch.Tensor, wi: torch.Tensor, wi_z: torch.Tensor) -> torch.Tensor:
     """(N, BASE_HORIZONS) sines of the horizon, (N, 2) wi, (N, 1) its z -> (N, 1) the light's visibility."""
     r = torch.sqrt(torch.clamp((wi * wi).sum(1, keepdim=True), min=BASE_AZIMUTH_FLOOR * BASE_AZIMUTH_FLOOR))

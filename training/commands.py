@@ -12,6 +12,8 @@ from .train_config import LOSSES, PRESETS  # torch-free
 
 HALF_VECTOR_HELP = ("the decoder also reads each light's half vector and cos(theta_d) (MaterialConfig.half_vector; "
                     "glossy materials: benchmarks/results/maps.txt)")
+LOCAL_FRAME_HELP = ("with the classical base: the decoder also reads wi and wo in the frame of the base's normal "
+                    "(MaterialConfig.local_frame; benchmarks/results/frame.txt)")
 BASE_HELP = ("the classical material as the base: the answer is the principled BSDF on the material's maps (a "
              "pyramid at the maps' resolution) times exp(the decoder's correction), plus its additive term "
              "(MaterialConfig.base, training/TRAINING.md)")
@@ -58,6 +60,7 @@ def register(sub: argparse._SubParsersAction) -> None:
                    help="decoder output head: relu (paper) or yuv (authors' exp(YUV) - 1 with a shadow mask)")
     p.add_argument("--hidden", type=int, default=MaterialConfig.hidden, help=HIDDEN_HELP)
     p.add_argument("--half-vector", action="store_true", help=HALF_VECTOR_HELP)
+    p.add_argument("--local-frame", action="store_true", help=LOCAL_FRAME_HELP)
     p.add_argument("--base", action="store_true", help=BASE_HELP + "; the maps are the data's material's, or --maps'")
     add_relief_argument(p)
     p.add_argument("--views-material", metavar="NAME_OR_TOML",
@@ -240,7 +243,7 @@ def _train(args: argparse.Namespace) -> int:
         resolution = args.resolution or _budget_resolution(args, output) or _data_resolution(args.data)
         maps = _map_source(args)
         material = MaterialConfig(resolution=resolution, offset=not args.no_offset, head=args.head,
-                                  half_vector=args.half_vector, hidden=args.hidden,
+                                  half_vector=args.half_vector, hidden=args.hidden, local_frame=args.local_frame,
                                   base=base_resolution(maps[1]) if args.base else 0,
                                   relief=relief_resolution(maps[1]) if args.relief else 0,
                                   relief_steps=args.relief or MaterialConfig.relief_steps)

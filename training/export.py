@@ -296,6 +296,26 @@ def _horizon(g: GraphWriter, read: _BaseRead, rows: str, taps: str, wi: str) -> 
     return g.op("MatMul", g.op("Mul", weight, sines), g.const(np.ones((2, 1), np.float32)))
 
 
+def _base_normal(g: GraphWriter, maps: str) -> str:
+    """maps (M, MAP_CHANNELS) -> (M, 3) the base's normal normalize(-dh/du, -dh/dv, 1)."""
+    to_normal = np.zeros((MAP_CHANNELS, 3), np.float32)
+    to_normal[6, 0] = to_normal[7, 1] = -1.0
+    n = g.op("Add", g.op("MatMul", maps, g.const(to_normal)), g.const(np.array([[0.0, 0.0, 1.0]], np.float32)))
+    return g.op("Div", n, g.op("Sqrt", _dot(g, n, n)))
+
+
+def _frame_inputs(g: GraphWriter, maps: str, wi: str, wo: str) -> str:
+    """maps (M, MAP_CHANNELS), wi, wo (M, 2) -> (M, 6) wi and wo in the base normal's frame, as
+    `base.frame_inputs` computes them."""
+    n = _base_normal(g, maps)
+    nx, ny, nz = (g.pick(n, 3, [i]) for i in range(3))
+    a = g.op("Div", g.scalar(1.0), g.op("Add", nz, g.scalar(1.0)))
+    cross = g.op("Mul", g.op("Mul", g.op("Neg", nx), ny), a)
+    t = g.op("Concat", g.op("Sub", g.scalar(1.0), g.op("Mul", g.op("Mul", nx, nx), a)), cross, g.op("Neg", nx), axis=1)
+    b = g.op("Concat", cross, g.op("Sub", g.scalar(1.0), g.op("Mul", g.op("Mul", ny, ny), a)), g.op("Neg", ny), axis=1)
+    return g.op("Concat", *(_dot(g, w, f) for w in (_lift(g, wi), _lift(g, wo)) for f in (t, b, n)), axis=1)
+
+
 def _base_answer(g: GraphWriter, maps: str, horizon: str, wi: str, wo: str) -> str:
     """maps (M, MAP_CHANNELS), the horizon's sine towards wi (M, 1) (`_horizon`), wi, wo (M, 2) -> (M, 3): the
     base's answer, as `base.base_answer` computes it."""
@@ -306,10 +326,7 @@ def _base_answer(g: GraphWriter, maps: str, horizon: str, wi: str, wo: str) -> s
         return g.op("Max", x, g.scalar(low))
 
     wi3, wo3 = _lift(g, wi), _lift(g, wo)
-    to_normal = np.zeros((MAP_CHANNELS, 3), np.float32)
-    to_normal[6, 0] = to_normal[7, 1] = -1.0
-    n = g.op("Add", g.op("MatMul", maps, g.const(to_normal)), g.const(np.array([[0.0, 0.0, 1.0]], np.float32)))
-    n = g.op("Div", n, g.op("Sqrt", _dot(g, n, n)))
+    n = _base_normal(g, maps)
     h = _half_direction(g, wi3, wo3)
     alpha2 = clamp_low(columns(8, 9), BASE_ALPHA2_FLOOR)
     cos_i, cos_o, cos_h = (clamp_low(_dot(g, n, w), 0.0) for w in (wi3, wo3, h))
@@ -416,7 +433,10 @@ def material_graph(g: GraphWriter, config: MaterialConfig, weights: dict,
     uvw = g.wrap(uv)
     texels, tap_w = pyramid_texels(g, config, atlas, config.channels, uvw, sigma, finest_level)
     half_inputs = W.HALF_INPUTS if config.half_vector else 0
-    shared = _first_layer(g, q, texels, tap_w, 8, [C.WO_X, C.WO_Y], weights, W.DECODER, 4 + half_inputs)  # (hidden, N)
+    frame_inputs = W.FRAME_INPUTS if config.local_frame else 0
+    shared = _first_layer(g, q, texels, tap_w, 8, [C.WO_X, C.WO_Y], weights, W.DECODER,
+                          4 + half_inputs + frame_inputs)  # (hidden, N)
+    read = _base_maps(g, config, weights, uvw, sigma) if config.local_frame else None  # (the decoder reads it)
     wi, n, k, kn = _lights(g, q)  # (K N, 2)
     per_light: list[str] = []  # Tile repeats of a group's row, light-major (made when a stage needs it)
 
@@ -434,12 +454,17 @@ def material_graph(g: GraphWriter, config: MaterialConfig, weights: dict,
         half = g.product(w[:, texture : texture + half_inputs], _half_vector(g, wi, each_light(wo)), rows=True,
                          name=W.half_weight(W.DECODER, 0, "half_vector"))  # (hidden, K N)
         hidden = g.op("Add", hidden, half)
+    if config.local_frame:  # per light: wi and the group's wo in the frame of the group's base normal
+        first = config.channels + half_inputs
+        frame = g.product(w[:, first : first + frame_inputs], _frame_inputs(g, each_light(read.maps), wi, each_light(wo)),
+                          rows=True, name=W.half_weight(W.DECODER, 0, "frame"))  # (hidden, K N)
+        hidden = g.op("Add", hidden, frame)
     if config.layers > 1:
         hidden = g.op("Relu", hidden)
     out = g.op("Transpose", g.mlp(hidden, weights, W.DECODER, config.layers, first=1), perm=[1, 0])  # (K N, O)
     size = head.outputs(config.head)
     if config.base:  # per light: the base's answer from the group's maps, corrected by the decoder
-        read = _base_maps(g, config, weights, uvw, sigma)
+        read = read or _base_maps(g, config, weights, uvw, sigma)
         horizon = _horizon(g, read, each_light(read.rows), each_light(read.taps), wi)  # (K N, 1)
         out = _corrected(g, _base_answer(g, each_light(read.maps), horizon, wi, each_light(wo)), out)
     rows = _reshape(g, out, k, n, size)  # (K, N, O)

@@ -11,7 +11,7 @@ from neumip.core import contract as C
 from neumip.core import head
 from neumip.core import weights as W
 from neumip.core.config import MaterialConfig
-from .base import base_answer, corrected, half_direction, lift
+from .base import base_answer, corrected, frame_inputs, half_direction, lift
 from .maps import MapConfig, level_feature
 from .offset import parallax_shift
 from .pyramid import pyramid_lookup, texture_lookup
@@ -114,12 +114,16 @@ class NeuMIPMaterial(nn.Module):
         atlas = torch.cat([lvl.reshape(-1, self.config.channels) for lvl in levels], dim=0)
         features = pyramid_lookup(atlas, self.config, u, v, sigma)
         directions = queries[:, C.WI_X : C.WO_Y + 1]
-        if self.config.half_vector:
-            features = torch.cat([features, half_vector(directions[:, :2], directions[:, 2:])], dim=1)
-        out = self.decoder(torch.cat([features, directions], dim=1))
+        wi, wo = directions[:, :2], directions[:, 2:]
         if self.config.base:
             maps = pyramid_lookup(self.base_maps, self.config.base_pyramid(), u, v, sigma)
-            out = corrected(base_answer(maps, directions[:, :2], directions[:, 2:]), out)
+        if self.config.half_vector:
+            features = torch.cat([features, half_vector(wi, wo)], dim=1)
+        if self.config.local_frame:
+            features = torch.cat([features, frame_inputs(maps, wi, wo)], dim=1)
+        out = self.decoder(torch.cat([features, directions], dim=1))
+        if self.config.base:
+            out = corrected(base_answer(maps, wi, wo), out)
         if self.config.head == "yuv":  # exp(YUV) - 1 times the shadow mask (core/head.py)
             shadow = head.SHADOW_FLOOR + torch.sigmoid(out[:, 3:])
             out = torch.expm1(out[:, :3] @ self.yuv_to_rgb) * shadow

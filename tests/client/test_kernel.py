@@ -84,6 +84,7 @@ def layouts(tmp_path_factory):
         "half": MaterialConfig(resolution=16, half_vector=True),
         "base": MaterialConfig(resolution=16, base=32),
         "relief": MaterialConfig(resolution=16, base=32, relief=32),
+        "frame": MaterialConfig(resolution=16, base=32, local_frame=True, half_vector=True),
     }
     for seed, (name, cfg) in enumerate(configs.items()):
         save_onnx(build_onnx(cfg, random_weights(cfg, seed=seed)), folder / f"{name}.onnx")

@@ -12,7 +12,7 @@ import torch
 from neumip.core import contract as C
 from neumip.core import weights as W
 from neumip.core.config import BASE_CHANNELS, BASE_HORIZONS, MaterialConfig
-from neumip.training.base import base_answer, base_maps, base_resolution, visibility
+from neumip.training.base import base_answer, base_maps, base_resolution, frame_inputs, visibility
 from neumip.training.material import NeuMIPMaterial
 from neumip.training.microgeometry.description import Microgeometry
 
@@ -92,3 +92,27 @@ def test_a_new_material_with_a_base_answers_the_base():
     torch.testing.assert_close(got, want)
     with pytest.raises(ValueError, match="base_maps of"):
         material.set_maps(W.BASE, base_maps(geometry(height), 8))
+
+
+def test_the_local_frame_is_the_plane_s_on_a_flat_texel_and_turns_with_the_normal():
+    """`MaterialConfig.local_frame`'s inputs: on a flat texel wi and wo as they are (z from the unit length); on a
+    tilted one an orthonormal frame whose z is the normal, so a direction along the normal reads (0, 0, 1), and
+    lengths and the angle between wi and wo are kept."""
+    features = torch.zeros(3, BASE_CHANNELS)
+    features[1, 6:8] = torch.tensor([0.5, -0.3])  # slopes: n = normalize(-0.5, 0.3, 1)
+    features[2, 6:8] = torch.tensor([-2.0, 1.5])
+    wi = torch.tensor([[0.3, -0.4], [0.1, 0.2], [-0.6, 0.5]])
+    wo = torch.tensor([[-0.2, 0.1], [0.5, 0.5], [0.0, -0.7]])
+    out = frame_inputs(features, wi, wo)
+    z = lambda w: torch.sqrt(1 - (w * w).sum(1, keepdim=True))
+    wi3, wo3 = torch.cat([wi, z(wi)], 1), torch.cat([wo, z(wo)], 1)
+    torch.testing.assert_close(out[0], torch.cat([wi3[0], wo3[0]]))
+    li, lo = out[:, :3], out[:, 3:]
+    torch.testing.assert_close(li.norm(dim=1), torch.ones(3))
+    torch.testing.assert_close(lo.norm(dim=1), torch.ones(3))
+    torch.testing.assert_close((li * lo).sum(1), (wi3 * wo3).sum(1))
+    n = torch.tensor([[-0.5, 0.3, 1.0]]) / math.sqrt(0.25 + 0.09 + 1.0)
+    along = frame_inputs(features[1:2], n[:, :2], n[:, :2])
+    torch.testing.assert_close(along, torch.tensor([[0.0, 0.0, 1.0, 0.0, 0.0, 1.0]]), atol=1e-6, rtol=0)
+    with pytest.raises(ValueError, match="needs a base"):
+        MaterialConfig(local_frame=True)

@@ -30,6 +30,7 @@ CONFIGS = {
     "half-vector": replace(BASE, half_vector=True, channels=5),
     "base": replace(BASE, base=32),
     "relief": replace(BASE, relief=32, relief_steps=4),
+    "local-frame": replace(BASE, base=32, local_frame=True, half_vector=True),
 }
 SHIPPED = sorted(Path("models").glob("*.onnx"))
 

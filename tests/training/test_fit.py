@@ -176,18 +176,20 @@ def test_fit_samples_the_maps_footprints_and_trains_a_map_model(material, tmp_pa
 
 def test_fit_base_auto_keeps_the_base_only_where_it_lowers_the_reference_error(material, tmp_path, capsys):
     """--base auto trains without and with the classical base on the same data and keeps the base only where
-    it lowers the MSE on a low-noise reference set by the margin."""
+    it lowers the MSE on a low-noise reference set by the margin; --local-frame goes with the base (the model
+    without it has no frame)."""
     from neumip.client.local import load_material
 
     out = tmp_path / "auto.onnx"
     argv = ["fit", str(material), "-o", str(out), "--preset", "test", "--steps", "10", "--spp", "2",
-            "--queries-per-texel", "32", "--resolution", "4", "--base", "auto", "--threads", "1"]
+            "--queries-per-texel", "32", "--resolution", "4", "--base", "auto", "--local-frame", "--threads", "1"]
     assert main(argv) == 0
     record = json.loads(out.with_suffix(".json").read_text())
     choice = record["validation"]["base_choice"]
     with_base = choice["reference_log_mse_with"] < (1 - choice["margin"]) * choice["reference_log_mse_without"]
     assert choice["kept"] == ("with" if with_base else "without")
     assert record["material_config"].get("base", 0) == (8 if with_base else 0)
+    assert record["material_config"].get("local_frame", False) == with_base
     run = tmp_path / "auto.run"
     assert (run / "checkpoint.pt").exists() and (run / "base" / "checkpoint.pt").exists()
     reference = json.loads((run / "reference" / "meta.json").read_text())
