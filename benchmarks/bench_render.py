@@ -257,8 +257,8 @@ def stage_variants(model_path: Path, folder: Path) -> dict[str, Path]:
             w[W.weight(W.DECODER, 0)] = weights[W.weight(W.DECODER, 0)][:, keep]
         if config.base and not cfg.base:
             last = config.layers - 1
-            w[W.weight(W.DECODER, last)] = weights[W.weight(W.DECODER, last)][3:]
-            w[W.bias(W.DECODER, last)] = weights[W.bias(W.DECODER, last)][3:]
+            w[W.weight(W.DECODER, last)] = w[W.weight(W.DECODER, last)][3:]
+            w[W.bias(W.DECODER, last)] = w[W.bias(W.DECODER, last)][3:]
         sub = folder / label.replace(" ", "_")
         sub.mkdir()
         save_onnx(build_onnx(cfg, w, finest_level=finest), sub / model_path.name)

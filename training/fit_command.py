@@ -147,7 +147,7 @@ def _fit(args: argparse.Namespace) -> int:
         raise CommandError(str(exc)) from exc
     kind = ("neural offset" if material.offset else "no neural offset") + (", map-informed" if args.maps else "") \
         + (", half vector" if material.half_vector else "") + (", classical base" if args.base == "on" else "") \
-        + (", local frame" if material.local_frame else "") \
+        + ((", local frame with the base" if args.base == "auto" else ", local frame") if material.local_frame else "") \
         + (f", relief ({material.relief_steps} steps)" if material.relief else "") \
         + (", classical base if it lowers the held-out error" if args.base == "auto" else "") \
         + (f", best of {args.seeds} initial weights" if args.seeds > 1 else "")

@@ -95,9 +95,9 @@ def layouts(tmp_path_factory):
               folder / "ceiling.onnx")
     save_onnx(trim_model(onnx.load(folder / "offset64.onnx"), 2), folder / "trimmed.onnx")
     # base maps with channels the same in every texel, which the graph holds as constants: F0 (a dielectric), all
-    for name, last in (("dielectric", 6), ("plain", 9)):
+    for name, first, last in (("dielectric", 3, 6), ("plain", 0, 9)):
         weights = random_weights(relief, seed=len(configs))
-        weights[W.BASE][:, 3:last] = weights[W.BASE][0, 3:last]
+        weights[W.BASE][:, first:last] = weights[W.BASE][0, first:last]
         save_onnx(build_onnx(relief, weights), folder / f"{name}.onnx")
     return folder
 

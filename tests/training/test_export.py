@@ -24,7 +24,7 @@ def torch_eval(material: NeuMIPMaterial, q: np.ndarray) -> np.ndarray:
 
 @pytest.fixture(scope="module", params=[(True, False, 0, 0, False), (False, False, 0, 0, False), (True, True, 0, 0, False),
                                         (True, False, 64, 0, False), (True, False, 0, 64, False),
-                                        (False, False, 64, 64, False), (True, False, 64, 64, True)],
+                                        (False, False, 64, 64, False), (True, True, 64, 64, True)],
                 ids=["offset", "no-offset", "half-vector", "base", "relief", "relief-base", "local-frame"])
 def pair(request):
     torch.manual_seed(3)
