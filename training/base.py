@@ -30,7 +30,7 @@ with the GGX distribution D, Smith's G1 and Schlick's Fresnel on h.wi, and the s
 softening of a normal map (Chiang, Li and Burley 2019): g = min(1, wi_z / max(n.wi n_z, BASE_COS_FLOOR)),
 S(g) = g + g^2 - g^3. Without it a bump's side facing a grazing light answers up to 1 / wi_z times its
 flat value (the report's 85-degree light: 11x), far above what the relief, which shadows it, reflects. `base_maps` is numpy; `base_answer`
-torch; `export._base_answer` writes the same formula into the graph.
+torch; `export_base.base_answer` writes the same formula into the graph.
 """
 
 from __future__ import annotations

@@ -200,7 +200,7 @@ def test_a_base_reads_only_its_varying_map_channels_and_answers_as_torch(edit, c
 
 
 def test_the_horizon_read_per_light_answers_as_all_eight_azimuths(assert_parity):
-    """The graph reads the horizons of the two azimuths around each light's (`export._horizon`); torch weighs all
+    """The graph reads the horizons of the two azimuths around each light's (`export_base.horizon_sine`); torch weighs all
     eight. Lights at every multiple of 22.5 degrees (on an azimuth, between two, either side of the +-x axis), at the
     zenith, and random, with horizons high enough to shadow: the same answers."""
     def tall_horizons(a):
