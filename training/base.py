@@ -104,12 +104,17 @@ def smith_g1(cos: torch.Tensor, alpha2: torch.Tensor) -> torch.Tensor:
     return 2.0 * cos / (cos + torch.sqrt(alpha2 + (1.0 - alpha2) * cos * cos))
 
 
+def base_normal(features: torch.Tensor) -> torch.Tensor:
+    """(N, BASE_CHANNELS) looked-up base maps -> (N, 3) the normal normalize(-dh/du, -dh/dv, 1) of their mean slopes."""
+    slopes = features[:, 6:8]
+    n = torch.cat([-slopes, torch.ones_like(slopes[:, :1])], dim=1)
+    return n / torch.sqrt(_dot(n, n))
+
+
 def base_answer(features: torch.Tensor, wi: torch.Tensor, wo: torch.Tensor) -> torch.Tensor:
     """(N, BASE_CHANNELS) looked-up base maps, (N, 2) wi, wo -> (N, 3) the base's answer (module docstring)."""
     wi3, wo3 = lift(wi), lift(wo)
-    slopes = features[:, 6:8]
-    n = torch.cat([-slopes, torch.ones_like(slopes[:, :1])], dim=1)
-    n = n / torch.sqrt(_dot(n, n))
+    n = base_normal(features)
     h = half_direction(wi3, wo3)
     alpha2 = torch.clamp(features[:, 8:9], min=BASE_ALPHA2_FLOOR)
     cos_i = torch.clamp(_dot(n, wi3), min=0.0)
@@ -134,9 +139,7 @@ def frame_inputs(features: torch.Tensor, wi: torch.Tensor, wo: torch.Tensor) -> 
     normal n (`MaterialConfig.local_frame`): (w.t, w.b, w.n) each, the tangents those of Frisvad's basis (Duff et
     al. 2017, n_z > 0 here): with a = 1 / (1 + n_z), t = (1 - n_x^2 a, -n_x n_y a, -n_x), b = (-n_x n_y a,
     1 - n_y^2 a, -n_y); a flat texel's frame is the plane's."""
-    slopes = features[:, 6:8]
-    n = torch.cat([-slopes, torch.ones_like(slopes[:, :1])], dim=1)
-    n = n / torch.sqrt(_dot(n, n))
+    n = base_normal(features)
     nx, ny, nz = n[:, 0:1], n[:, 1:2], n[:, 2:3]
     a = 1.0 / (1.0 + nz)
     cross = -nx * ny * a

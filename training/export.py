@@ -237,6 +237,7 @@ def material_graph(g: GraphWriter, config: MaterialConfig, weights: dict,
     shared = _first_layer(g, q, texels, tap_w, 8, [C.WO_X, C.WO_Y], weights, W.DECODER,
                           4 + half_inputs + frame_inputs)  # (hidden, N)
     read = B.read_base(g, config, weights, uvw, sigma) if config.local_frame else None  # (the decoder reads it)
+    normal = None
     wi, n, k, kn = _lights(g, q)  # (K N, 2)
     per_light: list[str] = []  # Tile repeats of a group's row, light-major (made when a stage needs it)
 
@@ -256,7 +257,8 @@ def material_graph(g: GraphWriter, config: MaterialConfig, weights: dict,
         hidden = g.op("Add", hidden, half)
     if config.local_frame:  # per light: wi and the group's wo in the frame of the group's base normal
         first = config.channels + half_inputs
-        frame = g.product(w[:, first : first + frame_inputs], B.frame_inputs(g, each_light(read.maps), wi, each_light(wo)),
+        normal = B.base_normal(g, each_light(read.maps))  # (K N, 3), the base's too
+        frame = g.product(w[:, first : first + frame_inputs], B.frame_inputs(g, normal, wi, each_light(wo)),
                           rows=True, name=W.half_weight(W.DECODER, 0, "frame"))  # (hidden, K N)
         hidden = g.op("Add", hidden, frame)
     if config.layers > 1:
@@ -266,7 +268,7 @@ def material_graph(g: GraphWriter, config: MaterialConfig, weights: dict,
     if config.base:  # per light: the base's answer from the group's maps, corrected by the decoder
         read = read or B.read_base(g, config, weights, uvw, sigma)
         horizon = B.horizon_sine(g, read, each_light(read.rows), each_light(read.taps), wi)  # (K N, 1)
-        out = B.corrected(g, B.base_answer(g, each_light(read.maps), horizon, wi, each_light(wo)), out)
+        out = B.corrected(g, B.base_answer(g, each_light(read.maps), horizon, wi, each_light(wo), normal), out)
     rows = _reshape(g, out, k, n, size)  # (K, N, O)
     rows = _reshape(g, g.op("Transpose", rows, perm=[1, 0, 2]), kn, size)  # (N K, O)
     return rows, [n, g.op("Mul", k, g.const([C.RGB_DIM], np.int64))]

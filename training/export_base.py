@@ -156,10 +156,9 @@ def base_normal(g: GraphWriter, maps: str) -> str:
     return g.op("Div", n, g.op("Sqrt", dot(g, n, n)))
 
 
-def frame_inputs(g: GraphWriter, maps: str, wi: str, wo: str) -> str:
-    """maps (M, MAP_CHANNELS), wi, wo (M, 2) -> (M, 6) wi and wo in the base normal's frame, as
+def frame_inputs(g: GraphWriter, n: str, wi: str, wo: str) -> str:
+    """The base's normal (M, 3) (`base_normal`), wi, wo (M, 2) -> (M, 6) wi and wo in its frame, as
     `base.frame_inputs` computes them."""
-    n = base_normal(g, maps)
     nx, ny, nz = (g.pick(n, 3, [i]) for i in range(3))
     a = g.op("Div", g.scalar(1.0), g.op("Add", nz, g.scalar(1.0)))
     cross = g.op("Mul", g.op("Mul", g.op("Neg", nx), ny), a)
@@ -168,7 +167,7 @@ def frame_inputs(g: GraphWriter, maps: str, wi: str, wo: str) -> str:
     return g.op("Concat", *(dot(g, w, f) for w in (lift(g, wi), lift(g, wo)) for f in (t, b, n)), axis=1)
 
 
-def base_answer(g: GraphWriter, maps: str, horizon: str, wi: str, wo: str) -> str:
+def base_answer(g: GraphWriter, maps: str, horizon: str, wi: str, wo: str, n: str | None = None) -> str:
     """maps (M, MAP_CHANNELS), the horizon's sine towards wi (M, 1) (`horizon_sine`), wi, wo (M, 2) -> (M, 3): the
     base's answer, as `base.base_answer` computes it."""
     def columns(lo: int, hi: int) -> str:
@@ -178,7 +177,7 @@ def base_answer(g: GraphWriter, maps: str, horizon: str, wi: str, wo: str) -> st
         return g.op("Max", x, g.scalar(low))
 
     wi3, wo3 = lift(g, wi), lift(g, wo)
-    n = base_normal(g, maps)
+    n = n or base_normal(g, maps)  # (given where the local frame computed it)
     h = half_direction(g, wi3, wo3)
     alpha2 = clamp_low(columns(8, 9), BASE_ALPHA2_FLOOR)
     cos_i, cos_o, cos_h = (clamp_low(dot(g, n, w), 0.0) for w in (wi3, wo3, h))
