@@ -100,6 +100,10 @@ VARIANTS: dict[str, tuple[dict, MapConfig | None, object]] = {
     "Nbr_frame": ({"base": "maps", "relief": "maps", "local_frame": True}, None, SHIP),
     **{f"Nbr_frame_seed{k}": ({"base": "maps", "relief": "maps", "local_frame": True}, None, replace(SHIP, seed=k))
        for k in range(1, 4)},
+    # the base without the shadow terminator's S(g): its horizon visibility alone shadows it (results/terminator.txt)
+    "Nbr_vis": ({"base": "maps", "relief": "maps", "terminator": False}, None, SHIP),
+    **{f"Nbr_vis_seed{k}": ({"base": "maps", "relief": "maps", "terminator": False}, None, replace(SHIP, seed=k))
+       for k in range(1, 4)},
     "M_hz_rel": ({}, MapConfig(horizons=8), replace(SHIP, loss="relative")),
     "N128": ({"resolution": 128}, None, SHIP),
     "M128": ({"resolution": 128}, MapConfig(), SHIP),

@@ -87,6 +87,11 @@ class MaterialConfig:
     power of two), 0: none. With a base the answer is base(maps, wi, wo) * exp(c) + a, with c and a the
     decoder's 6 outputs (`BASE_OUTPUTS`): the classical material as a start that the decoder corrects
     (training/base.py has the formula and the pyramid's channels)."""
+    terminator: bool = True
+    """The base's shadow-terminator softening S(g) of a normal map (Chiang, Li and Burley 2019; training/base.py): it
+    bounds a bump's side facing a grazing light near its flat value. Off: the base's only shadow is its horizon
+    visibility, so a resolved facet facing a grazing light answers cos(n, wi) / wi_z times its flat value, as
+    the real geometry's lit faces do (`benchmarks/results/terminator.txt`). Needs a base to mean anything."""
     local_frame: bool = False
     """The decoder also reads wi and wo in the shading frame of the base's normal (the base maps' mean slopes where
     the lookups land): 6 inputs, `weights.FRAME_INPUTS`. A normal tilted by the texel's slopes is then a rotation of
@@ -164,8 +169,8 @@ class MaterialConfig:
         return MaterialConfig(resolution=self.relief, channels=1, offset=False) if self.relief else None
 
     def to_json(self) -> str:
-        """The fields as JSON; `half_vector`, `base`, `local_frame`, the relief's and `ceiling` only when on, so the paper's
-        models read as before they existed."""
+        """The fields as JSON; `half_vector`, `base`, `local_frame`, the relief's and `ceiling` only when on, and
+        `terminator` only when off, so that models made before each existed read as they did."""
         fields_ = asdict(self)
         if not self.half_vector:
             del fields_["half_vector"]
@@ -173,6 +178,8 @@ class MaterialConfig:
             del fields_["base"]
         if not self.local_frame:
             del fields_["local_frame"]
+        if self.terminator:
+            del fields_["terminator"]
         if not self.relief:
             del fields_["relief"], fields_["relief_steps"]
         if not self.ceiling:

@@ -111,8 +111,9 @@ def base_normal(features: torch.Tensor) -> torch.Tensor:
     return n / torch.sqrt(_dot(n, n))
 
 
-def base_answer(features: torch.Tensor, wi: torch.Tensor, wo: torch.Tensor) -> torch.Tensor:
-    """(N, BASE_CHANNELS) looked-up base maps, (N, 2) wi, wo -> (N, 3) the base's answer (module docstring)."""
+def base_answer(features: torch.Tensor, wi: torch.Tensor, wo: torch.Tensor, terminator: bool = True) -> torch.Tensor:
+    """(N, BASE_CHANNELS) looked-up base maps, (N, 2) wi, wo -> (N, 3) the base's answer (module docstring); without
+    `terminator` (`MaterialConfig.terminator`), S(g) = 1."""
     wi3, wo3 = lift(wi), lift(wo)
     n = base_normal(features)
     h = half_direction(wi3, wo3)
@@ -129,9 +130,11 @@ def base_answer(features: torch.Tensor, wi: torch.Tensor, wo: torch.Tensor) -> t
         4.0 * torch.clamp(cos_o, min=BASE_COS_FLOOR))
     diffuse = features[:, 0:3] * (cos_i / math.pi)
     wi_z = wi3[:, 2:3]
-    g = torch.clamp(wi_z / torch.clamp(cos_i * n[:, 2:3], min=BASE_COS_FLOOR), max=1.0)
     lit = visibility(features[:, 9:], wi, wi_z)
-    return (diffuse + specular) * (g * (1.0 + g - g * g)) * lit / torch.clamp(wi_z, min=BASE_WI_FLOOR)
+    if terminator:
+        g = torch.clamp(wi_z / torch.clamp(cos_i * n[:, 2:3], min=BASE_COS_FLOOR), max=1.0)
+        lit = lit * (g * (1.0 + g - g * g))
+    return (diffuse + specular) * lit / torch.clamp(wi_z, min=BASE_WI_FLOOR)
 
 
 def frame_inputs(features: torch.Tensor, wi: torch.Tensor, wo: torch.Tensor) -> torch.Tensor:

@@ -268,7 +268,8 @@ def material_graph(g: GraphWriter, config: MaterialConfig, weights: dict,
     if config.base:  # per light: the base's answer from the group's maps, corrected by the decoder
         read = read or B.read_base(g, config, weights, uvw, sigma)
         horizon = B.horizon_sine(g, read, each_light(read.rows), each_light(read.taps), wi)  # (K N, 1)
-        out = B.corrected(g, B.base_answer(g, each_light(read.maps), horizon, wi, each_light(wo), normal), out)
+        out = B.corrected(g, B.base_answer(g, each_light(read.maps), horizon, wi, each_light(wo), normal,
+                                                terminator=config.terminator), out)
     rows = _reshape(g, out, k, n, size)  # (K, N, O)
     rows = _reshape(g, g.op("Transpose", rows, perm=[1, 0, 2]), kn, size)  # (N K, O)
     return rows, [n, g.op("Mul", k, g.const([C.RGB_DIM], np.int64))]

@@ -167,7 +167,8 @@ def frame_inputs(g: GraphWriter, n: str, wi: str, wo: str) -> str:
     return g.op("Concat", *(dot(g, w, f) for w in (lift(g, wi), lift(g, wo)) for f in (t, b, n)), axis=1)
 
 
-def base_answer(g: GraphWriter, maps: str, horizon: str, wi: str, wo: str, n: str | None = None) -> str:
+def base_answer(g: GraphWriter, maps: str, horizon: str, wi: str, wo: str, n: str | None = None,
+                terminator: bool = True) -> str:
     """maps (M, MAP_CHANNELS), the horizon's sine towards wi (M, 1) (`horizon_sine`), wi, wo (M, 2) -> (M, 3): the
     base's answer, as `base.base_answer` computes it."""
     def columns(lo: int, hi: int) -> str:
@@ -198,12 +199,16 @@ def base_answer(g: GraphWriter, maps: str, horizon: str, wi: str, wo: str, n: st
     diffuse = g.op("Mul", columns(0, 3), g.op("Div", cos_i, g.scalar(math.pi)))
     z = g.const(np.array([[0.0], [0.0], [1.0]], np.float32))
     wi_z = g.op("MatMul", wi3, z)
-    terminator = g.op("Min", g.op("Div", wi_z, clamp_low(g.op("Mul", cos_i, g.op("MatMul", n, z)), BASE_COS_FLOOR)),
-                      g.scalar(1.0))
-    soften = g.op("Mul", terminator, g.op("Sub", g.op("Add", g.scalar(1.0), terminator), g.op("Mul", terminator, terminator)))
+    if terminator:  # S(g) (`MaterialConfig.terminator`)
+        s_g = g.op("Min", g.op("Div", wi_z, clamp_low(g.op("Mul", cos_i, g.op("MatMul", n, z)), BASE_COS_FLOOR)),
+                   g.scalar(1.0))
+        soften = g.op("Mul", s_g, g.op("Sub", g.op("Add", g.scalar(1.0), s_g), g.op("Mul", s_g, s_g)))
     lit = g.op("Add", g.op("Div", g.op("Sub", wi_z, horizon), g.scalar(BASE_SHADOW_SOFTNESS)), g.scalar(0.5))
     lit = g.op("Min", g.op("Max", lit, g.scalar(0.0)), g.scalar(1.0))  # the visibility V(wi), `base.visibility`
-    return g.op("Div", g.op("Mul", g.op("Mul", g.op("Add", diffuse, specular), soften), lit), clamp_low(wi_z, BASE_WI_FLOOR))
+    reflected = g.op("Add", diffuse, specular)
+    if terminator:
+        reflected = g.op("Mul", reflected, soften)
+    return g.op("Div", g.op("Mul", reflected, lit), clamp_low(wi_z, BASE_WI_FLOOR))
 
 
 def corrected(g: GraphWriter, base: str, out: str) -> str:

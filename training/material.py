@@ -123,7 +123,7 @@ class NeuMIPMaterial(nn.Module):
             features = torch.cat([features, frame_inputs(maps, wi, wo)], dim=1)
         out = self.decoder(torch.cat([features, directions], dim=1))
         if self.config.base:
-            out = corrected(base_answer(maps, wi, wo), out)
+            out = corrected(base_answer(maps, wi, wo, self.config.terminator), out)
         if self.config.head == "yuv":  # exp(YUV) - 1 times the shadow mask (core/head.py)
             shadow = head.SHADOW_FLOOR + torch.sigmoid(out[:, 3:])
             out = torch.expm1(out[:, :3] @ self.yuv_to_rgb) * shadow

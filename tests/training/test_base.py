@@ -74,6 +74,29 @@ def test_a_light_below_the_horizon_of_its_azimuth_is_shadowed():
     assert float(zenith[0]) == 1.0  # straight above clears every horizon
 
 
+def test_without_the_terminator_a_facet_facing_a_grazing_light_answers_its_own_irradiance():
+    """`MaterialConfig.terminator` off: a lit facet tilted towards a light 85 degrees from the plane's normal
+    answers cos(n, wi) / wi_z times a flat texel's diffuse answer, as the real geometry's lit faces do; with S(g) it
+    answers about 1 / n_z times it (the soft normal map's bound), a quarter of that here."""
+    tilt = math.radians(20.0)
+    maps = torch.zeros(2, BASE_CHANNELS)
+    maps[:, 0:3] = 0.5
+    maps[:, 8] = 1.0  # alpha^2 = 1: a lobe too wide to matter
+    maps[1, 6] = -math.tan(tilt)  # slopes dh/du < 0: the normal leans towards +u
+    zenith = math.radians(85.0)
+    wi = torch.tensor([[math.sin(zenith), 0.0]] * 2)
+    wo = torch.zeros(2, 2)
+    maps[:, 3:6] = 0.0  # F0 = 0: the diffuse part alone
+    flat, tilted = base_answer(maps, wi, wo, terminator=False)[:, 0]
+    irradiance = math.cos(zenith - tilt) / math.cos(zenith)
+    assert float(tilted / flat) == pytest.approx(irradiance, rel=1e-3)  # (float32 near the horizon)
+    soft = base_answer(maps, wi, wo)[:, 0]
+    assert float(soft[0]) == pytest.approx(float(flat), rel=1e-6)  # a flat texel: g = 1, S(g) = 1
+    assert float(soft[1] / flat) < 0.3 * irradiance
+    assert "terminator" not in MaterialConfig(base=8).to_json()
+    assert MaterialConfig.from_json(MaterialConfig(base=8, terminator=False).to_json()).terminator is False
+
+
 def test_a_new_material_with_a_base_answers_the_base():
     """The decoder's last layer starts at zero: exp(0) times the base, plus 0."""
     from neumip.training.pyramid import pyramid_lookup

@@ -22,15 +22,17 @@ def torch_eval(material: NeuMIPMaterial, q: np.ndarray) -> np.ndarray:
         return material(torch.from_numpy(q)).numpy()
 
 
-@pytest.fixture(scope="module", params=[(True, False, 0, 0, False), (False, False, 0, 0, False), (True, True, 0, 0, False),
-                                        (True, False, 64, 0, False), (True, False, 0, 64, False),
-                                        (False, False, 64, 64, False), (True, True, 64, 64, True)],
-                ids=["offset", "no-offset", "half-vector", "base", "relief", "relief-base", "local-frame"])
+@pytest.fixture(scope="module", params=[(True, False, 0, 0, False, True), (False, False, 0, 0, False, True),
+                                        (True, True, 0, 0, False, True), (True, False, 64, 0, False, True),
+                                        (True, False, 0, 64, False, True), (False, False, 64, 64, False, True),
+                                        (True, True, 64, 64, True, True), (False, False, 64, 64, False, False)],
+                ids=["offset", "no-offset", "half-vector", "base", "relief", "relief-base", "local-frame",
+                     "no-terminator"])
 def pair(request):
     torch.manual_seed(3)
-    offset, half_vector, base, relief, local_frame = request.param
+    offset, half_vector, base, relief, local_frame, terminator = request.param
     cfg = MaterialConfig(resolution=32, offset=offset, half_vector=half_vector, base=base, relief=relief,
-                         local_frame=local_frame)
+                         local_frame=local_frame, terminator=terminator)
     material = NeuMIPMaterial(cfg, init_std=0.5)
     if cfg.relief:  # a relief 0.125 tile deep: its shifts span many texels
         material.set_maps(W.RELIEF, [random_weights(cfg, seed=5)[W.RELIEF]])

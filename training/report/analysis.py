@@ -73,7 +73,12 @@ def time_to_error(material_result: dict, spp: int) -> list[dict]:
     seconds of that render, every method's seconds to reach that MSE (from the timed ladders; R
     extrapolated beyond its ladder), ``ratio`` = R's seconds to reach X's MSE / X's seconds at ``spp``
     (how much longer the real geometry needs for X's error; the issue's goal is at least 2), and the
-    machine's load average during each method's renders."""
+    machine's load average during each method's renders.
+
+    ``rungs``: the same ratio at each rung n of X's own ladder (R's seconds to reach X's n-spp MSE / X's n-spp
+    seconds), and ``best_spp`` / ``best_ratio`` the rung where it is largest. A neural lookup prefilters the
+    pixel's footprint, so X's error falls faster at few samples than the geometry's, and ``spp`` (where X is
+    near its bias floor) is its least favourable operating point; each rung is a render a user could stop at."""
     rows = []
     for view in DISTANCE_VIEWS:
         res = material_result.get(view.name)
@@ -88,9 +93,16 @@ def time_to_error(material_result: dict, spp: int) -> list[dict]:
                 continue
             seconds = {m: time_to_reach(ladder, own["mse"], floor if m == "R" else None) for m, ladder in ladders.items()}
             r = seconds.get("R")
+            rungs = {}
+            for n, e in sorted(ladders.get(method, {}).items()):
+                t = time_to_reach(ladders["R"], e["mse"], floor) if "R" in ladders else None
+                rungs[n] = None if t is None or e["seconds"] <= 0 else t / e["seconds"]
+            known = {n: x for n, x in rungs.items() if x is not None}
+            best = max(known, key=known.get) if known else None
             rows.append({"view": view.name, "texels": view.footprint_texels, "method": method,
                          "target_mse": own["mse"], "own_seconds": own["seconds"], "seconds": seconds,
                          "ratio": r / own["seconds"] if r is not None and own["seconds"] > 0 else None,
+                         "rungs": rungs, "best_spp": best, "best_ratio": known.get(best),
                          "load": {m: max(e.get("load", float("nan")) for e in ladder.values())
                                   for m, ladder in ladders.items()}})
     return rows

@@ -5,6 +5,7 @@ and the trade-off's map-informed stages with what they cost."""
 from __future__ import annotations
 
 import json
+import math
 
 import pytest
 
@@ -67,6 +68,12 @@ def test_time_to_error_is_the_geometry_over_each_method():
     assert by["N"]["seconds"]["C"] == pytest.approx(0.05) and by["Nmaps"]["seconds"]["C"] is None
     assert (by["N"]["target_mse"], by["N"]["own_seconds"]) == (4e-3, 2.0)
     assert by["N"]["load"]["R"] == 2.0 and by["Nmaps"]["load"]["Nmaps"] == 3.0
+    # each rung of N's own ladder: its 1-spp error (9e-3, above R's first rung) R reaches only with its 1-spp
+    # render, 1 s: 10x N's 0.1 s; its 64-spp error, the ratio above
+    assert by["N"]["rungs"] == {1: pytest.approx(10.0), SPP: pytest.approx(1.0)}
+    assert (by["N"]["best_spp"], by["N"]["best_ratio"]) == (1, pytest.approx(10.0))
+    # Nmaps' 1-spp error 5e-3: R between its rungs, log-log, 4^(ln(5/8) / ln(1/4)) s
+    assert by["Nmaps"]["rungs"][1] == pytest.approx(4 ** (math.log(5 / 8) / math.log(1 / 4)) / 0.1)
 
 
 def _close_ups() -> dict:
@@ -135,14 +142,16 @@ def test_the_tables_show_each_method_side_by_side(tmp_path):
     assert [line.split(" | ")[1] for line in winners[2:]] == ["N", "Nmaps"]
     times = writer.time_table(results)
     assert "R's s / X's s" in times[0]
-    assert "| rock | 1 | N | 4.000 | 2.00 | 2.00 | **1.00** | 0.05 | - |" in times[2]
+    assert "| rock | 1 | N | 4.000 | 2.00 | 2.00 | **1.00** | 0.05 | - | 10.00 / 1.00 |" in times[2]
+    assert "at X's 1 / 64-spp error" in times[0]
     assert "| rock | 1 | Nmaps | 1.000 | 0.50 | 8.00 | **16.00** | - | - |" in times[3]
     close = writer.close_up_table(results)
     assert [line.split(" | ")[1] for line in close[2:]] == ["N", "Nmaps"]
     assert "| **1.33** | 1 of 6 |" in close[2]  # N: 4e-3 against C's 3e-3 at 1 texel (side), its FLIP below C's there only
     assert "| **0.75** | 5 of 6 | 0.97 | 0.95 |" in close[3]  # Nmaps: at most 3/4 of C's MSE (level2_high)
     assert "- **rock, Nmaps**: beats C by MSE at 64 spp from 1 map texels under every light" in text
-    assert "16.00x its time to reach its error at 1 texels" in text
+    assert f"16.00x its time to reach its {SPP}-spp error at 1 texels" in text
+    assert "at its most favourable rung, at least 10.00x at every footprint (the least at 1 texels, at 1 spp)" in text
     assert "Nmaps0 and Nmaps's offset gain not shown" in text
     smoke = writer.write_markdown(tmp_path, results, QUICK).read_text()
     assert "R's s / X's s" not in smoke  # a smoke run draws no timing verdicts
