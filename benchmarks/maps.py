@@ -101,9 +101,14 @@ VARIANTS: dict[str, tuple[dict, MapConfig | None, object]] = {
     **{f"Nbr_frame_seed{k}": ({"base": "maps", "relief": "maps", "local_frame": True}, None, replace(SHIP, seed=k))
        for k in range(1, 4)},
     # the base without the shadow terminator's S(g): its horizon visibility alone shadows it (results/terminator.txt)
-    "Nbr_vis": ({"base": "maps", "relief": "maps", "terminator": False}, None, SHIP),
-    **{f"Nbr_vis_seed{k}": ({"base": "maps", "relief": "maps", "terminator": False}, None, replace(SHIP, seed=k))
+    "Nbr_vis": ({"base": "maps", "relief": "maps", "terminator": "none"}, None, SHIP),
+    **{f"Nbr_vis_seed{k}": ({"base": "maps", "relief": "maps", "terminator": "none"}, None, replace(SHIP, seed=k))
        for k in range(1, 4)},
+    # S(g) on the specular lobe only: the diffuse term's lit faces as the geometry's, the glossy lobe still bounded
+    "Nbr_spec": ({"base": "maps", "relief": "maps", "terminator": "specular"}, None, SHIP),
+    **{f"Nbr_spec_seed{k}": ({"base": "maps", "relief": "maps", "terminator": "specular"}, None, replace(SHIP, seed=k))
+       for k in range(1, 4)},
+    "Nbr_vis_frame": ({"base": "maps", "relief": "maps", "terminator": "none", "local_frame": True}, None, SHIP),
     "M_hz_rel": ({}, MapConfig(horizons=8), replace(SHIP, loss="relative")),
     "N128": ({"resolution": 128}, None, SHIP),
     "M128": ({"resolution": 128}, MapConfig(), SHIP),

@@ -38,6 +38,8 @@ BASE_AZIMUTH_FLOOR = 1e-6
 """|wi_xy| and the azimuth weights' sum are clamped to at least this (a light at the zenith clears every horizon)."""
 BASE_SHADOW_SOFTNESS = 0.1
 """The base's shadow from its horizons: visibility clamp((wi_z - sin(horizon)) / softness + 1/2, 0, 1)."""
+TERMINATORS = ("all", "specular", "none")
+"""`MaterialConfig.terminator`'s values: the base's terms that S(g) multiplies."""
 BASE_OUTPUTS = 6
 """Decoder outputs with a base: a log-scale correction per RGB channel, then an additive term per channel."""
 BASE_ALPHA2_FLOOR = 1e-4
@@ -87,11 +89,12 @@ class MaterialConfig:
     power of two), 0: none. With a base the answer is base(maps, wi, wo) * exp(c) + a, with c and a the
     decoder's 6 outputs (`BASE_OUTPUTS`): the classical material as a start that the decoder corrects
     (training/base.py has the formula and the pyramid's channels)."""
-    terminator: bool = True
-    """The base's shadow-terminator softening S(g) of a normal map (Chiang, Li and Burley 2019; training/base.py): it
-    bounds a bump's side facing a grazing light near its flat value. Off: the base's only shadow is its horizon
-    visibility, so a resolved facet facing a grazing light answers cos(n, wi) / wi_z times its flat value, as
-    the real geometry's lit faces do (`benchmarks/results/terminator.txt`). Needs a base to mean anything."""
+    terminator: str = "all"
+    """Which of the base's terms the shadow terminator's softening S(g) of a normal map (Chiang, Li and Burley 2019;
+    training/base.py) multiplies: "all" (the models made before the choice existed), "specular" or "none". S(g)
+    bounds a bump's side facing a grazing light near its flat value; without it the base's only shadow is its
+    horizon visibility, so a resolved facet facing a grazing light answers cos(n, wi) / wi_z times its flat value,
+    as the real geometry's lit faces do (`benchmarks/results/terminator.txt`). Meaningful with a base only."""
     local_frame: bool = False
     """The decoder also reads wi and wo in the shading frame of the base's normal (the base maps' mean slopes where
     the lookups land): 6 inputs, `weights.FRAME_INPUTS`. A normal tilted by the texel's slopes is then a rotation of
@@ -128,6 +131,8 @@ class MaterialConfig:
             raise ValueError(f"base must be 0 or a power of two, got {self.base}")
         if self.base and self.head != "relu":
             raise ValueError(f"a base works with the relu head only, got head {self.head!r}")
+        if self.terminator not in TERMINATORS:
+            raise ValueError(f"terminator must be one of {TERMINATORS}, got {self.terminator!r}")
         if self.local_frame and not self.base:
             raise ValueError("local_frame reads the base's normal: it needs a base")
         if self.relief < 0 or self.relief & (self.relief - 1):
@@ -170,7 +175,7 @@ class MaterialConfig:
 
     def to_json(self) -> str:
         """The fields as JSON; `half_vector`, `base`, `local_frame`, the relief's and `ceiling` only when on, and
-        `terminator` only when off, so that models made before each existed read as they did."""
+        `terminator` only when not "all" with a base, so that models made before each existed read as they did."""
         fields_ = asdict(self)
         if not self.half_vector:
             del fields_["half_vector"]
@@ -178,7 +183,7 @@ class MaterialConfig:
             del fields_["base"]
         if not self.local_frame:
             del fields_["local_frame"]
-        if self.terminator:
+        if self.terminator == "all" or not self.base:
             del fields_["terminator"]
         if not self.relief:
             del fields_["relief"], fields_["relief_steps"]

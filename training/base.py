@@ -28,8 +28,10 @@ elevation towards wi's azimuth, interpolated between its two nearest azimuths by
 phi_j) - cos(45 deg), 0), normalised; V = clamp((wi_z - sin(horizon)) / BASE_SHADOW_SOFTNESS + 1/2, 0, 1)),
 with the GGX distribution D, Smith's G1 and Schlick's Fresnel on h.wi, and the shadow terminator's
 softening of a normal map (Chiang, Li and Burley 2019): g = min(1, wi_z / max(n.wi n_z, BASE_COS_FLOOR)),
-S(g) = g + g^2 - g^3. Without it a bump's side facing a grazing light answers up to 1 / wi_z times its
-flat value (the report's 85-degree light: 11x), far above what the relief, which shadows it, reflects. `base_maps` is numpy; `base_answer`
+S(g) = g + g^2 - g^3, on the terms `MaterialConfig.terminator` names (both by default; the specular lobe only;
+none). Without it a bump's side facing a grazing light answers up to 1 / wi_z times its flat value (the
+report's 85-degree light: 11x), as a lit face of the real geometry does; the horizon's visibility is then its
+only shadow (`benchmarks/results/terminator.txt`). `base_maps` is numpy; `base_answer`
 torch; `export_base.base_answer` writes the same formula into the graph.
 """
 
@@ -111,9 +113,9 @@ def base_normal(features: torch.Tensor) -> torch.Tensor:
     return n / torch.sqrt(_dot(n, n))
 
 
-def base_answer(features: torch.Tensor, wi: torch.Tensor, wo: torch.Tensor, terminator: bool = True) -> torch.Tensor:
-    """(N, BASE_CHANNELS) looked-up base maps, (N, 2) wi, wo -> (N, 3) the base's answer (module docstring); without
-    `terminator` (`MaterialConfig.terminator`), S(g) = 1."""
+def base_answer(features: torch.Tensor, wi: torch.Tensor, wo: torch.Tensor, terminator: str = "all") -> torch.Tensor:
+    """(N, BASE_CHANNELS) looked-up base maps, (N, 2) wi, wo -> (N, 3) the base's answer (module docstring); S(g)
+    multiplies the terms `terminator` names (`MaterialConfig.terminator`: "all", "specular", "none")."""
     wi3, wo3 = lift(wi), lift(wo)
     n = base_normal(features)
     h = half_direction(wi3, wo3)
@@ -130,11 +132,15 @@ def base_answer(features: torch.Tensor, wi: torch.Tensor, wo: torch.Tensor, term
         4.0 * torch.clamp(cos_o, min=BASE_COS_FLOOR))
     diffuse = features[:, 0:3] * (cos_i / math.pi)
     wi_z = wi3[:, 2:3]
-    lit = visibility(features[:, 9:], wi, wi_z)
-    if terminator:
-        g = torch.clamp(wi_z / torch.clamp(cos_i * n[:, 2:3], min=BASE_COS_FLOOR), max=1.0)
-        lit = lit * (g * (1.0 + g - g * g))
-    return (diffuse + specular) * lit / torch.clamp(wi_z, min=BASE_WI_FLOOR)
+    g = torch.clamp(wi_z / torch.clamp(cos_i * n[:, 2:3], min=BASE_COS_FLOOR), max=1.0)
+    soften = g * (1.0 + g - g * g)
+    if terminator == "all":
+        reflected = (diffuse + specular) * soften
+    elif terminator == "specular":
+        reflected = diffuse + specular * soften
+    else:
+        reflected = diffuse + specular
+    return reflected * visibility(features[:, 9:], wi, wi_z) / torch.clamp(wi_z, min=BASE_WI_FLOOR)
 
 
 def frame_inputs(features: torch.Tensor, wi: torch.Tensor, wo: torch.Tensor) -> torch.Tensor:

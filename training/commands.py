@@ -7,19 +7,27 @@ import os
 from pathlib import Path
 
 from . import fit_command, trim_command
-from neumip.core.config import MaterialConfig  # torch-free
+from neumip.core.config import TERMINATORS, MaterialConfig  # torch-free
 from .train_config import LOSSES, PRESETS  # torch-free
 
 HALF_VECTOR_HELP = ("the decoder also reads each light's half vector and cos(theta_d) (MaterialConfig.half_vector; "
                     "glossy materials: benchmarks/results/maps.txt)")
 LOCAL_FRAME_HELP = ("with the classical base: the decoder also reads wi and wo in the frame of the base's normal "
                     "(MaterialConfig.local_frame; benchmarks/results/frame.txt)")
+TERMINATOR_HELP = ("with the classical base: the base's terms that the shadow terminator's softening S(g) multiplies "
+                   "(MaterialConfig.terminator; none: a facet facing a grazing light answers as the real geometry's "
+                   "lit faces do; benchmarks/results/terminator.txt)")
 BASE_HELP = ("the classical material as the base: the answer is the principled BSDF on the material's maps (a "
              "pyramid at the maps' resolution) times exp(the decoder's correction), plus its additive term "
              "(MaterialConfig.base, training/TRAINING.md)")
 RELIEF_HELP = ("parallax and occlusion from the material's height map: every lookup reads where the view ray "
                "first meets the height field, marched in STEPS steps on a height pyramid at the map's resolution, "
                "before the neural offset (MaterialConfig.relief, training/TRAINING.md)")
+
+
+def add_terminator_argument(p: argparse.ArgumentParser) -> None:
+    """`--terminator {all,specular,none}` (default `MaterialConfig.terminator`)."""
+    p.add_argument("--terminator", choices=TERMINATORS, default=MaterialConfig.terminator, help=TERMINATOR_HELP)
 
 
 def add_relief_argument(p: argparse.ArgumentParser, help_tail: str = "") -> None:
@@ -61,6 +69,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--hidden", type=int, default=MaterialConfig.hidden, help=HIDDEN_HELP)
     p.add_argument("--half-vector", action="store_true", help=HALF_VECTOR_HELP)
     p.add_argument("--local-frame", action="store_true", help=LOCAL_FRAME_HELP)
+    add_terminator_argument(p)
     p.add_argument("--base", action="store_true", help=BASE_HELP + "; the maps are the data's material's, or --maps'")
     add_relief_argument(p)
     p.add_argument("--views-material", metavar="NAME_OR_TOML",
@@ -244,6 +253,7 @@ def _train(args: argparse.Namespace) -> int:
         maps = _map_source(args)
         material = MaterialConfig(resolution=resolution, offset=not args.no_offset, head=args.head,
                                   half_vector=args.half_vector, hidden=args.hidden, local_frame=args.local_frame,
+                                  terminator=args.terminator,
                                   base=base_resolution(maps[1]) if args.base else 0,
                                   relief=relief_resolution(maps[1]) if args.relief else 0,
                                   relief_steps=args.relief or MaterialConfig.relief_steps)

@@ -168,7 +168,7 @@ def frame_inputs(g: GraphWriter, n: str, wi: str, wo: str) -> str:
 
 
 def base_answer(g: GraphWriter, maps: str, horizon: str, wi: str, wo: str, n: str | None = None,
-                terminator: bool = True) -> str:
+                terminator: str = "all") -> str:
     """maps (M, MAP_CHANNELS), the horizon's sine towards wi (M, 1) (`horizon_sine`), wi, wo (M, 2) -> (M, 3): the
     base's answer, as `base.base_answer` computes it."""
     def columns(lo: int, hi: int) -> str:
@@ -199,15 +199,18 @@ def base_answer(g: GraphWriter, maps: str, horizon: str, wi: str, wo: str, n: st
     diffuse = g.op("Mul", columns(0, 3), g.op("Div", cos_i, g.scalar(math.pi)))
     z = g.const(np.array([[0.0], [0.0], [1.0]], np.float32))
     wi_z = g.op("MatMul", wi3, z)
-    if terminator:  # S(g) (`MaterialConfig.terminator`)
+    if terminator != "none":  # S(g) (`MaterialConfig.terminator`)
         s_g = g.op("Min", g.op("Div", wi_z, clamp_low(g.op("Mul", cos_i, g.op("MatMul", n, z)), BASE_COS_FLOOR)),
                    g.scalar(1.0))
         soften = g.op("Mul", s_g, g.op("Sub", g.op("Add", g.scalar(1.0), s_g), g.op("Mul", s_g, s_g)))
     lit = g.op("Add", g.op("Div", g.op("Sub", wi_z, horizon), g.scalar(BASE_SHADOW_SOFTNESS)), g.scalar(0.5))
     lit = g.op("Min", g.op("Max", lit, g.scalar(0.0)), g.scalar(1.0))  # the visibility V(wi), `base.visibility`
-    reflected = g.op("Add", diffuse, specular)
-    if terminator:
-        reflected = g.op("Mul", reflected, soften)
+    if terminator == "all":
+        reflected = g.op("Mul", g.op("Add", diffuse, specular), soften)
+    elif terminator == "specular":
+        reflected = g.op("Add", diffuse, g.op("Mul", specular, soften))
+    else:
+        reflected = g.op("Add", diffuse, specular)
     return g.op("Div", g.op("Mul", reflected, lit), clamp_low(wi_z, BASE_WI_FLOOR))
 
 

@@ -49,6 +49,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--hidden", type=int, default=MaterialConfig.hidden, help=commands.HIDDEN_HELP)
     p.add_argument("--half-vector", action="store_true", help=commands.HALF_VECTOR_HELP)
     p.add_argument("--local-frame", action="store_true", help=commands.LOCAL_FRAME_HELP)
+    commands.add_terminator_argument(p)
     p.add_argument("--base", nargs="?", const="on", choices=("on", "auto"),
                    help=commands.BASE_HELP + "; --base auto trains the model without and with it and keeps the base only "
                    "where it lowers the (log-space) error on a low-noise reference set by 10 %% (fit.BASE_MARGIN; "
@@ -136,7 +137,7 @@ def _fit(args: argparse.Namespace) -> int:
         material = MaterialConfig(resolution=resolution, offset=not args.no_offset, hidden=args.hidden,
                                   half_vector=args.half_vector,
                                   base=base_resolution(resolve(desc)) if args.base else 0,
-                                  local_frame=args.local_frame,
+                                  local_frame=args.local_frame, terminator=args.terminator,
                                   relief=relief_resolution(resolve(desc)) if args.relief else 0,
                                   relief_steps=args.relief or MaterialConfig.relief_steps)
         generate = GenerateSettings(spp=args.spp, sampling=QuerySampling(queries_per_texel=args.queries_per_texel))
@@ -148,6 +149,7 @@ def _fit(args: argparse.Namespace) -> int:
     kind = ("neural offset" if material.offset else "no neural offset") + (", map-informed" if args.maps else "") \
         + (", half vector" if material.half_vector else "") + (", classical base" if args.base == "on" else "") \
         + ((", local frame with the base" if args.base == "auto" else ", local frame") if material.local_frame else "") \
+        + (f", terminator softening {material.terminator}" if args.base and material.terminator != "all" else "") \
         + (f", relief ({material.relief_steps} steps)" if material.relief else "") \
         + (", classical base if it lowers the held-out error" if args.base == "auto" else "") \
         + (f", best of {args.seeds} initial weights" if args.seeds > 1 else "")

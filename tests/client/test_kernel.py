@@ -85,7 +85,7 @@ def layouts(tmp_path_factory):
         "base": MaterialConfig(resolution=16, base=32),
         "relief": MaterialConfig(resolution=16, base=32, relief=32),
         "frame": MaterialConfig(resolution=16, base=32, local_frame=True, half_vector=True),
-        "visibility": MaterialConfig(resolution=16, base=32, relief=32, terminator=False),
+        "visibility": MaterialConfig(resolution=16, base=32, relief=32, terminator="none"),
     }
     for seed, (name, cfg) in enumerate(configs.items()):
         save_onnx(build_onnx(cfg, random_weights(cfg, seed=seed)), folder / f"{name}.onnx")

@@ -87,14 +87,26 @@ def test_without_the_terminator_a_facet_facing_a_grazing_light_answers_its_own_i
     wi = torch.tensor([[math.sin(zenith), 0.0]] * 2)
     wo = torch.zeros(2, 2)
     maps[:, 3:6] = 0.0  # F0 = 0: the diffuse part alone
-    flat, tilted = base_answer(maps, wi, wo, terminator=False)[:, 0]
+    flat, tilted = base_answer(maps, wi, wo, terminator="none")[:, 0]
     irradiance = math.cos(zenith - tilt) / math.cos(zenith)
     assert float(tilted / flat) == pytest.approx(irradiance, rel=1e-3)  # (float32 near the horizon)
     soft = base_answer(maps, wi, wo)[:, 0]
     assert float(soft[0]) == pytest.approx(float(flat), rel=1e-6)  # a flat texel: g = 1, S(g) = 1
     assert float(soft[1] / flat) < 0.3 * irradiance
+    assert float(base_answer(maps, wi, wo, terminator="specular")[1, 0] / flat) == pytest.approx(irradiance, rel=1e-3)
+    maps[:, 3:6] = 0.04  # a lobe: "specular" softens it as "all" does and leaves the diffuse term as "none" does
+    no_colour = maps.clone()
+    no_colour[:, 0:3] = 0.0  # the lobe alone
+    answer = {kind: base_answer(maps, wi, wo, terminator=kind) for kind in ("all", "specular", "none")}
+    lobe = {kind: base_answer(no_colour, wi, wo, terminator=kind) for kind in ("all", "specular", "none")}
+    torch.testing.assert_close(lobe["specular"], lobe["all"])
+    assert float(lobe["none"][1, 0]) > 2 * float(lobe["all"][1, 0])
+    torch.testing.assert_close(answer["specular"] - lobe["specular"], answer["none"] - lobe["none"])
     assert "terminator" not in MaterialConfig(base=8).to_json()
-    assert MaterialConfig.from_json(MaterialConfig(base=8, terminator=False).to_json()).terminator is False
+    assert "terminator" not in MaterialConfig(terminator="none").to_json()  # without a base it means nothing
+    assert MaterialConfig.from_json(MaterialConfig(base=8, terminator="specular").to_json()).terminator == "specular"
+    with pytest.raises(ValueError, match="terminator must be one of"):
+        MaterialConfig(base=8, terminator="off")
 
 
 def test_a_new_material_with_a_base_answers_the_base():

@@ -22,12 +22,13 @@ def torch_eval(material: NeuMIPMaterial, q: np.ndarray) -> np.ndarray:
         return material(torch.from_numpy(q)).numpy()
 
 
-@pytest.fixture(scope="module", params=[(True, False, 0, 0, False, True), (False, False, 0, 0, False, True),
-                                        (True, True, 0, 0, False, True), (True, False, 64, 0, False, True),
-                                        (True, False, 0, 64, False, True), (False, False, 64, 64, False, True),
-                                        (True, True, 64, 64, True, True), (False, False, 64, 64, False, False)],
+@pytest.fixture(scope="module", params=[(True, False, 0, 0, False, "all"), (False, False, 0, 0, False, "all"),
+                                        (True, True, 0, 0, False, "all"), (True, False, 64, 0, False, "all"),
+                                        (True, False, 0, 64, False, "all"), (False, False, 64, 64, False, "all"),
+                                        (True, True, 64, 64, True, "all"), (False, False, 64, 64, False, "none"),
+                                        (False, False, 64, 64, False, "specular")],
                 ids=["offset", "no-offset", "half-vector", "base", "relief", "relief-base", "local-frame",
-                     "no-terminator"])
+                     "no-terminator", "specular-terminator"])
 def pair(request):
     torch.manual_seed(3)
     offset, half_vector, base, relief, local_frame, terminator = request.param

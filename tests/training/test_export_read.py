@@ -31,7 +31,7 @@ CONFIGS = {
     "base": replace(BASE, base=32),
     "relief": replace(BASE, relief=32, relief_steps=4),
     "local-frame": replace(BASE, base=32, local_frame=True, half_vector=True),
-    "no-terminator": replace(BASE, base=32, terminator=False),
+    "no-terminator": replace(BASE, base=32, terminator="none"),
 }
 SHIPPED = sorted(Path("models").glob("*.onnx"))
 
