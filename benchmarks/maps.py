@@ -108,7 +108,9 @@ VARIANTS: dict[str, tuple[dict, MapConfig | None, object]] = {
     "Nbr_spec": ({"base": "maps", "relief": "maps", "terminator": "specular"}, None, SHIP),
     **{f"Nbr_spec_seed{k}": ({"base": "maps", "relief": "maps", "terminator": "specular"}, None, replace(SHIP, seed=k))
        for k in range(1, 4)},
-    "Nbr_vis_frame": ({"base": "maps", "relief": "maps", "terminator": "none", "local_frame": True}, None, SHIP),
+    **{f"Nbr_vis_frame{'' if k == 0 else f'_seed{k}'}": ({"base": "maps", "relief": "maps", "terminator": "none",
+                                                           "local_frame": True}, None, replace(SHIP, seed=k))
+       for k in range(4)},
     "M_hz_rel": ({}, MapConfig(horizons=8), replace(SHIP, loss="relative")),
     "N128": ({"resolution": 128}, None, SHIP),
     "M128": ({"resolution": 128}, MapConfig(), SHIP),

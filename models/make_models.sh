@@ -8,6 +8,8 @@
 # on the height map, before the neural offset; NAME_nooffset has neither, so its gain is the parallax stages'.
 # Materials defined by maps are fitted with --base auto (with and without the classical base, the one with the
 # lower reference error kept); NAME_nooffset then takes NAME's choice, so the offset's gain compares like with like.
+# A base is fitted with $SHADING: the decoder also reads the directions in the base normal's frame, and the base's only
+# shadow is its horizon's (no terminator softening): benchmarks/results/terminator.txt.
 # SEEDS=K trains each model from K initial weights (fit --seeds) and keeps the one with the lowest error on a
 # low-noise reference set: a first run in runs/NAME[/base], the others in its seedK/ folders.
 # Defaults reproduce the models shipped now (`ship` preset, 64^2, 256 queries per texel, 16 spp).
@@ -26,6 +28,7 @@ PRESET=${PRESET:-ship}
 HIDDEN=${HIDDEN:-25}  # MLP width, the paper's; 48 was 0-32 % more accurate in images and 1.34x the render time (models/README.md)
 THREADS=${THREADS:-1}  # the shipped models were trained with one torch thread
 BASE=${BASE:-auto}  # classical base (fit --base): auto keeps it where it lowers the held-out MSE; NAME_nooffset follows NAME's choice; on; off
+SHADING=${SHADING:---local-frame --terminator none}  # with the base: the decoder reads the directions in the base normal's frame, and no S(g) (benchmarks/results/terminator.txt)
 RELIEF=${RELIEF:-8}  # relief steps (fit --relief) for every material with a height map, 0: none; NAME_nooffset has neither relief nor offset
 HORIZONS=${HORIZONS:-8}  # NAME_maps: horizon features towards 8 azimuths (rock: better than none in all 8 close-up views, benchmarks/results/maps.txt)
 SEEDS=${SEEDS:-1}  # fit --seeds: each model from this many initial weights, the lowest reference error kept; 3 was measured, not shipped (TRAINING.md)
@@ -45,17 +48,17 @@ generate_data() {  # MATERIAL [--ray=ADDRESS]: the data `neumip fit` makes (foot
 has_maps() {  # MATERIAL: whether it is defined by principled maps (a base needs them; flat's [bsdf] is not)
   "${NEUMIP%neumip}python" -c "import sys; from neumip.training.microgeometry.description import find_description, resolve; sys.exit(resolve(find_description(sys.argv[1])).bsdf is not None)" "$1"
 }
-base_flags() {  # NAME: the --base flags of its fit
+base_flags() {  # NAME: the --base flags of its fit, with the base's shading ($SHADING)
   local parent=${1%_nooffset}
   [ "$BASE" = off ] && return 0
   has_maps "$(material_of "$1")" || return 0
-  if [ "$BASE" = on ]; then echo --base; return 0; fi
+  if [ "$BASE" = on ]; then echo --base $SHADING; return 0; fi
   if [ "$parent" != "$1" ] && [ -f "models/$parent.json" ]; then  # an ablation keeps its model's choice
     "${NEUMIP%neumip}python" -c "import json, sys; sys.exit(not json.load(open(sys.argv[1]))['material_config'].get('base'))" \
-      "models/$parent.json" && echo --base
+      "models/$parent.json" && echo --base $SHADING
     return 0
   fi
-  echo --base auto
+  echo --base auto $SHADING
 }
 has_height() {  # MATERIAL: whether it has a height map to march (flat's is 1 x 1)
   "${NEUMIP%neumip}python" -c "import sys; from neumip.training.microgeometry.description import find_description, resolve; sys.exit(resolve(find_description(sys.argv[1])).height.shape[0] <= 1)" "$1"
@@ -92,7 +95,7 @@ for name in "${names[@]}"; do
   read -r -a relief <<< "$(relief_flags "$name")"
   flags+=(${relief[@]+"${relief[@]}"})
   work="runs/$name"
-  [ "${base[*]-}" = --base ] && work="runs/$name/base"  # where --base auto trains its base candidate too
+  [ "${base[0]-}" = --base ] && [ "${base[1]-}" != auto ] && work="runs/$name/base"  # where --base auto trains its base candidate too
   "$NEUMIP" fit "$material" -o "models/$name.onnx" --force --work "$work" --data "$(data_dir "$material")" \
     --resolution "$RES" --queries-per-texel "$QPT" --spp "$SPP" --preset "$PRESET" --threads "$THREADS" \
     --hidden "$HIDDEN" --seeds "$SEEDS" ${flags[@]+"${flags[@]}"} --description "$(describe "$name")"

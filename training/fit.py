@@ -149,7 +149,8 @@ def fit(description, output: str | Path, settings: FitSettings, report: Report |
     maps = (settings.maps, geo)
     if settings.choose_base:
         from .base import base_resolution
-        candidates = [(replace(settings.material, base=0, local_frame=False), work),  # (the frame is the base's)
+        candidates = [(replace(settings.material, base=0, local_frame=False, terminator=MaterialConfig.terminator),
+                       work),  # (the frame and the terminator are the base's)
                       (replace(settings.material, base=base_resolution(geo)), work / "base")]
     else:
         candidates = [(settings.material, work)]
