@@ -247,7 +247,7 @@ def stage_variants(model_path: Path, folder: Path) -> dict[str, Path]:
     if config.local_frame:
         configs["no local frame"] = replace(config, local_frame=False)
     if config.base:  # the decoder's additive outputs answer alone
-        configs["no classical base"] = replace(config, base=0, local_frame=False)
+        configs["no classical base"] = replace(config, base=0, local_frame=False, terminator="all")
     out = {}
     for label, cfg in configs.items():
         w = dict(weights)

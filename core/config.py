@@ -94,7 +94,7 @@ class MaterialConfig:
     training/base.py) multiplies: "all" (the models made before the choice existed), "specular" or "none". S(g)
     bounds a bump's side facing a grazing light near its flat value; without it the base's only shadow is its
     horizon visibility, so a resolved facet facing a grazing light answers cos(n, wi) / wi_z times its flat value,
-    as the real geometry's lit faces do (`benchmarks/results/terminator.txt`). Meaningful with a base only."""
+    as the real geometry's lit faces do (`benchmarks/results/terminator.txt`). Needs a base."""
     local_frame: bool = False
     """The decoder also reads wi and wo in the shading frame of the base's normal (the base maps' mean slopes where
     the lookups land): 6 inputs, `weights.FRAME_INPUTS`. A normal tilted by the texel's slopes is then a rotation of
@@ -133,6 +133,8 @@ class MaterialConfig:
             raise ValueError(f"a base works with the relu head only, got head {self.head!r}")
         if self.terminator not in TERMINATORS:
             raise ValueError(f"terminator must be one of {TERMINATORS}, got {self.terminator!r}")
+        if self.terminator != "all" and not self.base:
+            raise ValueError("terminator softens the base's terms: it needs a base")
         if self.local_frame and not self.base:
             raise ValueError("local_frame reads the base's normal: it needs a base")
         if self.relief < 0 or self.relief & (self.relief - 1):
@@ -175,7 +177,7 @@ class MaterialConfig:
 
     def to_json(self) -> str:
         """The fields as JSON; `half_vector`, `base`, `local_frame`, the relief's and `ceiling` only when on, and
-        `terminator` only when not "all" with a base, so that models made before each existed read as they did."""
+        `terminator` only when not "all", so that models made before each existed read as they did."""
         fields_ = asdict(self)
         if not self.half_vector:
             del fields_["half_vector"]
@@ -183,7 +185,7 @@ class MaterialConfig:
             del fields_["base"]
         if not self.local_frame:
             del fields_["local_frame"]
-        if self.terminator == "all" or not self.base:
+        if self.terminator == "all":
             del fields_["terminator"]
         if not self.relief:
             del fields_["relief"], fields_["relief_steps"]
