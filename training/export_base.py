@@ -199,7 +199,7 @@ def base_answer(g: GraphWriter, maps: str, horizon: str, wi: str, wo: str, n: st
     diffuse = g.op("Mul", columns(0, 3), g.op("Div", cos_i, g.scalar(math.pi)))
     z = g.const(np.array([[0.0], [0.0], [1.0]], np.float32))
     wi_z = g.op("MatMul", wi3, z)
-    if terminator != "none":  # S(g) (`MaterialConfig.terminator`)
+    if terminator != "none":  # S(g) (`MaterialConfig.terminator`), written before V: the node order of older files
         s_g = g.op("Min", g.op("Div", wi_z, clamp_low(g.op("Mul", cos_i, g.op("MatMul", n, z)), BASE_COS_FLOOR)),
                    g.scalar(1.0))
         soften = g.op("Mul", s_g, g.op("Sub", g.op("Add", g.scalar(1.0), s_g), g.op("Mul", s_g, s_g)))
