@@ -111,6 +111,9 @@ VARIANTS: dict[str, tuple[dict, MapConfig | None, object]] = {
     **{f"Nbr_vis_frame{'' if k == 0 else f'_seed{k}'}": ({"base": "maps", "relief": "maps", "terminator": "none",
                                                            "local_frame": True}, None, replace(SHIP, seed=k))
        for k in range(4)},
+    # the shipped recipe with losses unbiased under noisy targets (the low light's highlights: results/terminator.txt)
+    **{f"Nbr_vis_frame_{loss}": ({"base": "maps", "relief": "maps", "terminator": "none", "local_frame": True}, None,
+                                 replace(SHIP, loss=name)) for loss, name in (("rel", "relative"), ("logw", "log_weighted"))},
     "M_hz_rel": ({}, MapConfig(horizons=8), replace(SHIP, loss="relative")),
     "N128": ({"resolution": 128}, None, SHIP),
     "M128": ({"resolution": 128}, MapConfig(), SHIP),
