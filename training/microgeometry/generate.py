@@ -16,7 +16,7 @@ import json
 import logging
 import time
 from contextlib import closing
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
 from typing import Callable, Iterator
 
@@ -57,9 +57,12 @@ class GenerateSettings:
     tracer: TracerConfig = field(default_factory=TracerConfig)
     """Path tracing settings."""
     tiling: TilingConfig = field(default_factory=TilingConfig)
-    """Tiled geometry around the central tile."""
+    """Tiled geometry around the central tile; its margin is widened for the sampling's largest zenith angle
+    where that is larger (a grazing shadow ray must cross geometry, not leave it)."""
 
     def __post_init__(self) -> None:
+        if self.sampling.max_zenith_deg > self.tiling.max_zenith_deg:
+            self.tiling = replace(self.tiling, max_zenith_deg=self.sampling.max_zenith_deg)
         if self.queries is not None and self.queries < 1:
             raise ValueError(f"queries must be >= 1, got {self.queries}")
         if self.spp < 1 or self.chunk < 1:

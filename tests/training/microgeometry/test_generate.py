@@ -99,3 +99,17 @@ def test_default_directions_keep_older_data_sets_valid():
     solid = GenerateSettings(queries=64, seed=0, sampling=QuerySampling(directions="solid_angle")).to_meta(desc)
     assert solid["sampling"]["directions"] == "solid_angle"
     assert {k: v for k, v in solid["sampling"].items() if k != "directions"} == disk["sampling"]
+
+
+def test_tiled_margin_follows_the_sampled_directions():
+    """Directions sampled beyond the tiling's zenith widen its margin (a shadow ray towards an 88-degree light must
+    cross the neighbouring tiles' geometry, not leave it); the default sampling keeps the default margin, so older
+    data sets' metadata are unchanged."""
+    from neumip.training.microgeometry.mesh import TilingConfig, margin_tiles
+    from neumip.training.microgeometry.sampling import QuerySampling
+
+    assert GenerateSettings().tiling == TilingConfig()
+    grazing = GenerateSettings(sampling=QuerySampling(max_zenith_deg=88.0))
+    assert grazing.tiling.max_zenith_deg == 88.0
+    assert margin_tiles(0.12, 256, grazing.tiling) == pytest.approx(0.12 * math.tan(math.radians(88.0)))
+    assert margin_tiles(0.12, 256, grazing.tiling) > 2.5 * margin_tiles(0.12, 256, TilingConfig())
