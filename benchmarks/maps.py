@@ -115,6 +115,14 @@ VARIANTS: dict[str, tuple[dict, MapConfig | None, object]] = {
     **{f"Nbr_vis_frame_{loss}": ({"base": "maps", "relief": "maps", "terminator": "none", "local_frame": True}, None,
                                  replace(SHIP, loss=name)) for loss, name in (("rel", "relative"), ("logw", "log_weighted"))},
     "M_hz_rel": ({}, MapConfig(horizons=8), replace(SHIP, loss="relative")),
+    # the shipped recipe on data whose directions reach 88 degrees (`train --data` names them; results/grazing.txt):
+    # Z88 on the projected disk as now, SA88 uniform in solid angle
+    **{f"{name}{'' if k == 0 else f'_seed{k}'}": ({"base": "maps", "relief": "maps", "terminator": "none",
+                                                   "local_frame": True}, None, replace(SHIP, seed=k))
+       for name in ("Z88", "SA88") for k in range(4)},
+    # the shipped recipe after the base's coarse levels took their own heights' horizons (results/grazing.txt)
+    **{f"HL{'' if k == 0 else f'_seed{k}'}": ({"base": "maps", "relief": "maps", "terminator": "none",
+                                               "local_frame": True}, None, replace(SHIP, seed=k)) for k in range(4)},
     "N128": ({"resolution": 128}, None, SHIP),
     "M128": ({"resolution": 128}, MapConfig(), SHIP),
     "N256": ({"resolution": 256}, None, SHIP),
