@@ -5,8 +5,9 @@ base * exp(c) + a. Where the base's prefiltered answer drifts from the data's wi
 must learn that drift from 64^2 latents and 16-spp targets. This prints, per bin of the light's zenith angle
 and of the footprint sigma (in map texels), the mean luminance of the data's targets and of the base's
 answers (an untrained material with the base and the relief, no neural offset: its decoder's last layer is
-zero), with the base's horizons as `base.base_maps` builds them and, for comparison, as the mean of the
-finest level's horizons (how they were built before).
+zero), with the base's horizons as `base.base_maps` builds them (a coarse texel's horizon the mean of its finest
+texels') and as the horizons of each level's own area-averaged heights (`level_horizon_maps`: the base of
+benchmarks/maps.py's HL variants, measured and not shipped).
 
     .venv/bin/python benchmarks/base_footprints.py data/rock_n1048576_s16 rock
 
@@ -40,12 +41,13 @@ FOOTPRINTS = ((0, 0.01), (0.5, 1.5), (1.5, 3), (3, 6), (6, 12), (12, 48), (48, 2
 LUMINANCE = np.array([0.2126, 0.7152, 0.0722])
 
 
-def mean_horizon_maps(geo, resolution: int) -> list[np.ndarray]:
-    """`base_maps` with each coarse level's horizons the mean of the finest level's (the former prefilter)."""
+def level_horizon_maps(geo, resolution: int) -> list[np.ndarray]:
+    """`base.base_maps` with each level's horizons those of the level's own area-averaged heights (a bump narrower
+    than the texel casts none there), not the mean of the finest level's horizons."""
     levels = base_maps(geo, resolution)
-    finest = np.sin(horizon_angles(geo.height.astype(np.float64), BASE_HORIZONS) * (np.pi / 2))
+    height = geo.height.astype(np.float64)
     for level in levels:
-        level[..., 9:] = resize(finest, level.shape[0])
+        level[..., 9:] = np.sin(horizon_angles(resize(height, level.shape[0]), BASE_HORIZONS) * (np.pi / 2))
     return levels
 
 
@@ -61,7 +63,7 @@ def main() -> None:
                             local_frame=True)
     material = NeuMIPMaterial(config).eval()
     material.set_maps(W.RELIEF, relief_heights(geo, config.relief))
-    pyramids = {"base": base_maps(geo, res), "mean horizons": mean_horizon_maps(geo, res)}
+    pyramids = {"base": base_maps(geo, res), "level horizons": level_horizon_maps(geo, res)}
     data = open_dataset(args.data)
     queries, targets = np.asarray(data.queries), np.asarray(data.rgb) @ LUMINANCE
     wi_z = np.sqrt(np.clip(1 - queries[:, C.WI_X] ** 2 - queries[:, C.WI_Y] ** 2, 0, 1))

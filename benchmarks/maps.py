@@ -120,7 +120,8 @@ VARIANTS: dict[str, tuple[dict, MapConfig | None, object]] = {
     **{f"{name}{'' if k == 0 else f'_seed{k}'}": ({"base": "maps", "relief": "maps", "terminator": "none",
                                                    "local_frame": True}, None, replace(SHIP, seed=k))
        for name in ("Z88", "SA88") for k in range(4)},
-    # the shipped recipe after the base's coarse levels took their own heights' horizons (results/grazing.txt)
+    # the shipped recipe on a base whose coarse levels shadow by their own heights' horizons
+    # (base_footprints.level_horizon_maps, set by `train`; results/grazing.txt: not shipped)
     **{f"HL{'' if k == 0 else f'_seed{k}'}": ({"base": "maps", "relief": "maps", "terminator": "none",
                                                "local_frame": True}, None, replace(SHIP, seed=k)) for k in range(4)},
     "N128": ({"resolution": 128}, None, SHIP),
@@ -173,6 +174,11 @@ def train(variant: str, data: str, material: str, runs: Path, threads: int, vali
         overrides = {**overrides, "relief": relief_resolution(geo)}
     trainer = Trainer(data, checkpoint, MaterialConfig(**{**RECIPE, **overrides}), config,
                       maps=(maps, geo) if maps is not None or overrides.get("base") or overrides.get("relief") else None)
+    if variant.split("_seed")[0] == "HL":
+        from base_footprints import level_horizon_maps
+
+        from neumip.core import weights as W
+        trainer.material.set_maps(W.BASE, level_horizon_maps(geo, overrides["base"]))
     start, cpu = time.perf_counter(), time.process_time()
     held = trainer.run()
     seconds, cpu = time.perf_counter() - start, time.process_time() - cpu

@@ -13,17 +13,12 @@ answers a prefiltered version of it:
  6-7  the mean slopes dh/du, dh/dv of the height (tile units), the normal map's
  8    alpha^2 = roughness^4, plus the slopes' variance within the texel (LEAN mapping: a texel
       over bumps answers a wider lobe, not a flatter one)
- 9-   sin of the horizon's elevation towards each of BASE_HORIZONS azimuths (`maps.horizon_angles`)
-      over the level's own heights (the finest heights' area average): the height field's shadows, which
-      C lacks, cast by what is at least a texel wide
+ 9-   sin of the horizon's elevation towards each of BASE_HORIZONS azimuths (`maps.horizon_angles`,
+      averaged over the texel): the height field's own shadows, which C lacks
 ====  =======================================================================================
 
 Each level is the area average of the finest one's colour channels and of the height's slopes and their
-squares. Its horizons are not the average of the finest ones: a bump narrower than the texel shadows part of
-the texel and lights its own face facing the light all the more, so that the light landing on the texel is
-about what crosses its plane. The average horizon instead shadowed a whole coarse texel under a light 5
-degrees above the horizon (rock: the base's mean answer at a 12-48-texel footprint 0.003 against the data's
-0.086; with the level's own horizons 0.098; `benchmarks/results/grazing.txt`). The BSDF, on the normal n = normalize(-dh/du, -dh/dv, 1), under unit irradiance on the
+squares. The BSDF, on the normal n = normalize(-dh/du, -dh/dv, 1), under unit irradiance on the
 reference plane (`contract`)::
 
     base = (kd / pi * max(n.wi, 0) + D G1(n.wi) G1(n.wo) F / (4 max(n.wo, BASE_COS_FLOOR))) * S(g) / max(wi_z, BASE_WI_FLOOR)
@@ -77,16 +72,15 @@ def base_maps(geo: Microgeometry, resolution: int) -> list[np.ndarray]:
     finest = np.concatenate([colour * (1 - metal), DIELECTRIC_F0 * geo.specular * (1 - metal) + colour * metal,
                              (rough**4)[..., None]], axis=2)  # (R, R, 7): kd, F0, alpha^2
     stats = finest_statistics(geo)[..., 1:6]  # slopes and their raw second moments
-    height = geo.height.astype(np.float64)
+    horizons = np.sin(horizon_angles(geo.height.astype(np.float64), BASE_HORIZONS) * (np.pi / 2))
     out = []
     for size in MaterialConfig(resolution=resolution).level_sizes():
-        horizons = np.sin(horizon_angles(resize(height, size), BASE_HORIZONS) * (np.pi / 2))
         colours = resize(finest, size).astype(np.float64)
         m = resize(stats, size).astype(np.float64)
         sx, sy = m[..., 0], m[..., 1]
         variance = np.maximum(m[..., 2] - sx * sx, 0.0) + np.maximum(m[..., 3] - sy * sy, 0.0)
         level = np.concatenate([colours[..., :6], sx[..., None], sy[..., None], (colours[..., 6] + variance)[..., None],
-                                horizons], axis=2)
+                                resize(horizons, size)], axis=2)
         out.append(level.astype(np.float32))
     assert out[0].shape[2] == BASE_CHANNELS
     return out

@@ -49,19 +49,6 @@ def test_bumps_widen_the_coarse_lobe_and_cast_horizons():
     assert levels[0][..., 9:].max() > 0.3 and base_resolution(geometry(height)) == 16
 
 
-def test_a_coarse_level_shadows_by_what_is_at_least_its_texel_wide():
-    """A coarse level's horizons are those of its own (averaged) heights: bumps finer than its texel cast none
-    there (the light they block lands on their lit faces), a ridge wider than it still does."""
-    x = np.arange(32) / 32
-    fine = 0.02 * np.cos(2 * np.pi * 16 * x)[None, :].repeat(32, 0)  # ridges 2 finest texels apart
-    broad = 0.05 * np.sin(2 * np.pi * 2 * x)[None, :].repeat(32, 0)  # ridges 16 finest texels apart
-    fine_levels, broad_levels = base_maps(geometry(fine), 32), base_maps(geometry(broad), 32)
-    assert fine_levels[0][..., 9:].max() > 0.2  # the finest level sees the bumps' walls
-    assert np.abs(fine_levels[2][..., 9:]).max() < 1e-6  # 8 x 8: each texel spans two ridges, flat on average
-    assert broad_levels[2][..., 9:].max() > 0.2  # the broad ridges still shadow at 8 x 8
-    assert broad_levels[0][..., 9:].max() == pytest.approx(broad_levels[2][..., 9:].max(), rel=0.25)
-
-
 def test_a_homogeneous_bsdf_material_has_no_base():
     with pytest.raises(ValueError, match="principled maps"):
         base_resolution(geometry(np.zeros((4, 4)), bsdf={"type": "diffuse"}))
