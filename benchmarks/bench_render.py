@@ -246,14 +246,22 @@ def stage_variants(model_path: Path, folder: Path) -> dict[str, Path]:
         configs["no neural offset"] = replace(config, offset=False)
     if config.local_frame:
         configs["no local frame"] = replace(config, local_frame=False)
+    if config.visibility_input:
+        configs["no visibility input"] = replace(config, visibility_input=False)
     if config.base:  # the decoder's additive outputs answer alone
-        configs["no classical base"] = replace(config, base=0, local_frame=False, terminator="all")
+        configs["no classical base"] = replace(config, base=0, local_frame=False, terminator="all", visibility_input=False)
     out = {}
+    frame = config.channels + (W.HALF_INPUTS if config.half_vector else 0)  # the decoder's first frame column
+    visibility = frame + (W.FRAME_INPUTS if config.local_frame else 0)
     for label, cfg in configs.items():
         w = dict(weights)
-        if config.local_frame and not cfg.local_frame:  # the decoder's first layer without its frame columns
-            first = config.channels + (W.HALF_INPUTS if config.half_vector else 0)
-            keep = [i for i in range(weights[W.weight(W.DECODER, 0)].shape[1]) if not first <= i < first + W.FRAME_INPUTS]
+        drop = set()  # the decoder's first-layer columns of the inputs this stage goes without
+        if config.local_frame and not cfg.local_frame:
+            drop |= set(range(frame, frame + W.FRAME_INPUTS))
+        if config.visibility_input and not cfg.visibility_input:
+            drop |= set(range(visibility, visibility + W.VISIBILITY_INPUTS))
+        if drop:
+            keep = [i for i in range(weights[W.weight(W.DECODER, 0)].shape[1]) if i not in drop]
             w[W.weight(W.DECODER, 0)] = weights[W.weight(W.DECODER, 0)][:, keep]
         if config.base and not cfg.base:
             last = config.layers - 1

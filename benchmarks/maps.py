@@ -120,6 +120,14 @@ VARIANTS: dict[str, tuple[dict, MapConfig | None, object]] = {
     **{f"{name}{'' if k == 0 else f'_seed{k}'}": ({"base": "maps", "relief": "maps", "terminator": "none",
                                                    "local_frame": True}, None, replace(SHIP, seed=k))
        for name in ("Z88", "SA88") for k in range(4)},
+    # the shipped recipe with the decoder reading the base's visibility of the light (`--visibility-input`, grazing.txt)
+    **{f"VIS{'' if k == 0 else f'_seed{k}'}": ({"base": "maps", "relief": "maps", "terminator": "none",
+                                                "local_frame": True, "visibility_input": True}, None, replace(SHIP, seed=k))
+       for k in range(4)},
+    # the same on the level-horizon base (below): a visibility that holds at every footprint
+    **{f"VISHL{'' if k == 0 else f'_seed{k}'}": ({"base": "maps", "relief": "maps", "terminator": "none",
+                                                  "local_frame": True, "visibility_input": True}, None,
+                                                 replace(SHIP, seed=k)) for k in range(4)},
     # the shipped recipe on a base whose coarse levels shadow by their own heights' horizons
     # (base_footprints.level_horizon_maps, set by `train`; results/grazing.txt: not shipped)
     **{f"HL{'' if k == 0 else f'_seed{k}'}": ({"base": "maps", "relief": "maps", "terminator": "none",
@@ -174,7 +182,7 @@ def train(variant: str, data: str, material: str, runs: Path, threads: int, vali
         overrides = {**overrides, "relief": relief_resolution(geo)}
     trainer = Trainer(data, checkpoint, MaterialConfig(**{**RECIPE, **overrides}), config,
                       maps=(maps, geo) if maps is not None or overrides.get("base") or overrides.get("relief") else None)
-    if variant.split("_seed")[0] == "HL":
+    if variant.split("_seed")[0] in ("HL", "VISHL"):
         from base_footprints import level_horizon_maps
 
         from neumip.core import weights as W

@@ -100,6 +100,10 @@ class MaterialConfig:
     the lookups land): 6 inputs, `weights.FRAME_INPUTS`. A normal tilted by the texel's slopes is then a rotation of
     the inputs, not something every texel's features must teach the decoder. Needs a base
     (`benchmarks/results/frame.txt`)."""
+    visibility_input: bool = False
+    """The decoder also reads the base's visibility V(wi) of each light (`base.visibility`: the horizon test at the
+    maps' resolution where the lookups land), so that its correction, whose features are the latents' (coarser than
+    the maps), can tell a lit facet from a shadowed one (`benchmarks/results/grazing.txt`). Needs a base."""
     relief: int = 0
     """Texels per side of the finest level of the height pyramid the relief stage marches (the material's
     height map's resolution; a power of two), 0: none. With it, every lookup reads where the view ray
@@ -137,6 +141,8 @@ class MaterialConfig:
             raise ValueError("terminator softens the base's terms: it needs a base")
         if self.local_frame and not self.base:
             raise ValueError("local_frame reads the base's normal: it needs a base")
+        if self.visibility_input and not self.base:
+            raise ValueError("visibility_input reads the base's horizons: it needs a base")
         if self.relief < 0 or self.relief & (self.relief - 1):
             raise ValueError(f"relief must be 0 or a power of two, got {self.relief}")
         if self.relief_steps < 1:
@@ -176,7 +182,7 @@ class MaterialConfig:
         return MaterialConfig(resolution=self.relief, channels=1, offset=False) if self.relief else None
 
     def to_json(self) -> str:
-        """The fields as JSON; `half_vector`, `base`, `local_frame`, the relief's and `ceiling` only when on, and
+        """The fields as JSON; `half_vector`, `base`, `local_frame`, `visibility_input`, the relief's and `ceiling` only when on, and
         `terminator` only when not "all", so that models made before each existed read as they did."""
         fields_ = asdict(self)
         if not self.half_vector:
@@ -185,6 +191,8 @@ class MaterialConfig:
             del fields_["base"]
         if not self.local_frame:
             del fields_["local_frame"]
+        if not self.visibility_input:
+            del fields_["visibility_input"]
         if self.terminator == "all":
             del fields_["terminator"]
         if not self.relief:

@@ -13,7 +13,8 @@ Two views of the same numbers, both from a `MaterialConfig`:
   layer is split by what it reads (``{mlp}.0.half_weight.texture``, ``.query``: a (hidden, 7) matrix
   over the whole query row, zero but for the columns it reads, the decoder's ``.light``: its
   columns on a light's wi, and with `MaterialConfig.half_vector` its ``.half_vector``: on the light's half vector;
-  with `MaterialConfig.local_frame` its ``.frame``: on wi and wo in the base normal's frame); the offset MLP's last layer is stored with ``offset_scale`` folded in and
+  with `MaterialConfig.local_frame` its ``.frame``: on wi and wo in the base normal's frame; with
+  `MaterialConfig.visibility_input` its ``.visibility``: on the base's visibility of the light); the offset MLP's last layer is stored with ``offset_scale`` folded in and
   its one output twice (the depth beside each of wo_x, wo_y).
 
 Names and shapes only: no numpy, no arithmetic.
@@ -55,11 +56,17 @@ FRAME_INPUTS = 6
 they follow the half-vector inputs (or the texture features), before the query columns."""
 
 
+VISIBILITY_INPUTS = 1
+"""Decoder inputs of `MaterialConfig.visibility_input`: the base's visibility V(wi) of the light; it follows the
+local frame's inputs (or the half vector's, or the texture features), before the query columns."""
+
+
 def first_layer_parts(mlp: str, config: MaterialConfig) -> tuple[str, ...]:
     """The parts the stored first layer of `mlp` is split into."""
     extra = ()
     if mlp == DECODER:
-        extra = ("half_vector",) * config.half_vector + ("frame",) * config.local_frame
+        extra = (("half_vector",) * config.half_vector + ("frame",) * config.local_frame
+                 + ("visibility",) * config.visibility_input)
     return FIRST_LAYER_PARTS[mlp] + extra
 
 
@@ -87,9 +94,15 @@ def half_weight(mlp: str, layer: int, part: str | None = None) -> str:
     return f"{mlp}.{layer}.half_weight" + (f".{part}" if part else "")
 
 
+def decoder_extra_inputs(config: MaterialConfig) -> int:
+    """The decoder's inputs between its texture features and its query columns (the optional ones, in order)."""
+    return ((HALF_INPUTS if config.half_vector else 0) + (FRAME_INPUTS if config.local_frame else 0)
+            + (VISIBILITY_INPUTS if config.visibility_input else 0))
+
+
 def mlps(config: MaterialConfig) -> dict[str, tuple[int, int]]:
     """The material's MLPs -> (inputs, outputs): texture features plus query columns in, answer out."""
-    extra = (HALF_INPUTS if config.half_vector else 0) + (FRAME_INPUTS if config.local_frame else 0)
+    extra = decoder_extra_inputs(config)
     answers = BASE_OUTPUTS if config.base else outputs(config.head)
     found = {DECODER: (config.channels + extra + len(MLP_QUERY_COLUMNS[DECODER]), answers)}
     if config.offset:
@@ -149,7 +162,7 @@ def initializer_shapes(config: MaterialConfig, finest_level: int = 0) -> dict[st
     for mlp, (inputs, answers) in mlps(config).items():
         widths = _widths(config, inputs, DEPTH_COPIES if mlp == OFFSET_MLP else answers)
         first = {"texture": texture_inputs(mlp, config), "query": C.QUERY_DIM, "light": 2, "half_vector": HALF_INPUTS,
-                 "frame": FRAME_INPUTS}
+                 "frame": FRAME_INPUTS, "visibility": VISIBILITY_INPUTS}
         for part in first_layer_parts(mlp, config):
             shapes[half_weight(mlp, 0, part)] = (widths[1], first[part])
         shapes[bias(mlp, 0)] = (widths[1], 1)

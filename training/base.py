@@ -143,6 +143,12 @@ def base_answer(features: torch.Tensor, wi: torch.Tensor, wo: torch.Tensor, term
     return reflected * visibility(features[:, 9:], wi, wi_z) / torch.clamp(wi_z, min=BASE_WI_FLOOR)
 
 
+def light_visibility(features: torch.Tensor, wi: torch.Tensor) -> torch.Tensor:
+    """(N, BASE_CHANNELS) looked-up base maps, (N, 2) wi -> (N, 1) the base's visibility of the light (the decoder's
+    input with `MaterialConfig.visibility_input`)."""
+    return visibility(features[:, 9:], wi, lift(wi)[:, 2:3])
+
+
 def frame_inputs(features: torch.Tensor, wi: torch.Tensor, wo: torch.Tensor) -> torch.Tensor:
     """(N, BASE_CHANNELS) looked-up base maps, (N, 2) wi, wo -> (N, 6) wi and wo in the shading frame of the base's
     normal n (`MaterialConfig.local_frame`): (w.t, w.b, w.n) each, the tangents those of Frisvad's basis (Duff et

@@ -14,6 +14,9 @@ HALF_VECTOR_HELP = ("the decoder also reads each light's half vector and cos(the
                     "glossy materials: benchmarks/results/maps.txt)")
 LOCAL_FRAME_HELP = ("with the classical base: the decoder also reads wi and wo in the frame of the base's normal "
                     "(MaterialConfig.local_frame; benchmarks/results/frame.txt)")
+VISIBILITY_INPUT_HELP = ("with the classical base: the decoder also reads the base's visibility of each light, its "
+                         "horizon test at the maps' resolution (MaterialConfig.visibility_input; "
+                         "benchmarks/results/grazing.txt)")
 TERMINATOR_HELP = ("with the classical base: the base's terms that the shadow terminator's softening S(g) multiplies "
                    "(MaterialConfig.terminator; none: a facet facing a grazing light answers as the real geometry's "
                    "lit faces do; benchmarks/results/terminator.txt)")
@@ -69,6 +72,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--hidden", type=int, default=MaterialConfig.hidden, help=HIDDEN_HELP)
     p.add_argument("--half-vector", action="store_true", help=HALF_VECTOR_HELP)
     p.add_argument("--local-frame", action="store_true", help=LOCAL_FRAME_HELP)
+    p.add_argument("--visibility-input", action="store_true", help=VISIBILITY_INPUT_HELP)
     add_terminator_argument(p)
     p.add_argument("--base", action="store_true", help=BASE_HELP + "; the maps are the data's material's, or --maps'")
     add_relief_argument(p)
@@ -253,7 +257,7 @@ def _train(args: argparse.Namespace) -> int:
         maps = _map_source(args)
         material = MaterialConfig(resolution=resolution, offset=not args.no_offset, head=args.head,
                                   half_vector=args.half_vector, hidden=args.hidden, local_frame=args.local_frame,
-                                  terminator=args.terminator,
+                                  terminator=args.terminator, visibility_input=args.visibility_input,
                                   base=base_resolution(maps[1]) if args.base else 0,
                                   relief=relief_resolution(maps[1]) if args.relief else 0,
                                   relief_steps=args.relief or MaterialConfig.relief_steps)

@@ -235,8 +235,9 @@ def material_graph(g: GraphWriter, config: MaterialConfig, weights: dict,
     half_inputs = W.HALF_INPUTS if config.half_vector else 0
     frame_inputs = W.FRAME_INPUTS if config.local_frame else 0
     shared = _first_layer(g, q, texels, tap_w, 8, [C.WO_X, C.WO_Y], weights, W.DECODER,
-                          4 + half_inputs + frame_inputs)  # (hidden, N)
-    read = B.read_base(g, config, weights, uvw, sigma) if config.local_frame else None  # (the decoder reads it)
+                          4 + W.decoder_extra_inputs(config))  # (hidden, N)
+    reads_base = config.local_frame or config.visibility_input  # (the decoder reads the base's maps)
+    read = B.read_base(g, config, weights, uvw, sigma) if reads_base else None
     normal = None
     wi, n, k, kn = _lights(g, q)  # (K N, 2)
     per_light: list[str] = []  # Tile repeats of a group's row, light-major (made when a stage needs it)
@@ -261,15 +262,22 @@ def material_graph(g: GraphWriter, config: MaterialConfig, weights: dict,
         frame = g.product(w[:, first : first + frame_inputs], B.frame_inputs(g, normal, wi, each_light(wo)),
                           rows=True, name=W.half_weight(W.DECODER, 0, "frame"))  # (hidden, K N)
         hidden = g.op("Add", hidden, frame)
+    lit = None
+    if config.visibility_input:  # per light: the base's visibility of it, at the group's maps
+        first = config.channels + half_inputs + frame_inputs
+        horizon = B.horizon_sine(g, read, each_light(read.rows), each_light(read.taps), wi)  # (K N, 1)
+        lit = B.light_visibility(g, horizon, wi)
+        hidden = g.op("Add", hidden, g.product(w[:, first : first + W.VISIBILITY_INPUTS], lit, rows=True,
+                                               name=W.half_weight(W.DECODER, 0, "visibility")))  # (hidden, K N)
     if config.layers > 1:
         hidden = g.op("Relu", hidden)
     out = g.op("Transpose", g.mlp(hidden, weights, W.DECODER, config.layers, first=1), perm=[1, 0])  # (K N, O)
     size = head.outputs(config.head)
     if config.base:  # per light: the base's answer from the group's maps, corrected by the decoder
         read = read or B.read_base(g, config, weights, uvw, sigma)
-        horizon = B.horizon_sine(g, read, each_light(read.rows), each_light(read.taps), wi)  # (K N, 1)
+        horizon = None if lit else B.horizon_sine(g, read, each_light(read.rows), each_light(read.taps), wi)  # (K N, 1)
         out = B.corrected(g, B.base_answer(g, each_light(read.maps), horizon, wi, each_light(wo), normal,
-                                                terminator=config.terminator), out)
+                                                terminator=config.terminator, lit=lit), out)
     rows = _reshape(g, out, k, n, size)  # (K, N, O)
     rows = _reshape(g, g.op("Transpose", rows, perm=[1, 0, 2]), kn, size)  # (N K, O)
     return rows, [n, g.op("Mul", k, g.const([C.RGB_DIM], np.int64))]

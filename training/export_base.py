@@ -167,10 +167,23 @@ def frame_inputs(g: GraphWriter, n: str, wi: str, wo: str) -> str:
     return g.op("Concat", *(dot(g, w, f) for w in (lift(g, wi), lift(g, wo)) for f in (t, b, n)), axis=1)
 
 
-def base_answer(g: GraphWriter, maps: str, horizon: str, wi: str, wo: str, n: str | None = None,
-                terminator: str = "all") -> str:
+def _visibility(g: GraphWriter, wi_z: str, horizon: str) -> str:
+    """wi_z, the horizon's sine towards wi (M, 1) -> (M, 1) the visibility V(wi), `base.visibility`."""
+    lit = g.op("Add", g.op("Div", g.op("Sub", wi_z, horizon), g.scalar(BASE_SHADOW_SOFTNESS)), g.scalar(0.5))
+    return g.op("Min", g.op("Max", lit, g.scalar(0.0)), g.scalar(1.0))
+
+
+def light_visibility(g: GraphWriter, horizon: str, wi: str) -> str:
+    """The horizon's sine towards wi (M, 1) (`horizon_sine`), wi (M, 2) -> (M, 1) the base's visibility of the light,
+    as `base.light_visibility` computes it (the decoder's input with `MaterialConfig.visibility_input`)."""
+    return _visibility(g, g.op("MatMul", lift(g, wi), g.const(np.array([[0.0], [0.0], [1.0]], np.float32))), horizon)
+
+
+def base_answer(g: GraphWriter, maps: str, horizon: str | None, wi: str, wo: str, n: str | None = None,
+                terminator: str = "all", lit: str | None = None) -> str:
     """maps (M, MAP_CHANNELS), the horizon's sine towards wi (M, 1) (`horizon_sine`), wi, wo (M, 2) -> (M, 3): the
-    base's answer, as `base.base_answer` computes it."""
+    base's answer, as `base.base_answer` computes it. `lit`: its visibility of the light where the decoder's input
+    computed it (`light_visibility`; `horizon` is then not read)."""
     def columns(lo: int, hi: int) -> str:
         return g.pick(maps, MAP_CHANNELS, list(range(lo, hi)))
 
@@ -203,8 +216,7 @@ def base_answer(g: GraphWriter, maps: str, horizon: str, wi: str, wo: str, n: st
         s_g = g.op("Min", g.op("Div", wi_z, clamp_low(g.op("Mul", cos_i, g.op("MatMul", n, z)), BASE_COS_FLOOR)),
                    g.scalar(1.0))
         soften = g.op("Mul", s_g, g.op("Sub", g.op("Add", g.scalar(1.0), s_g), g.op("Mul", s_g, s_g)))
-    lit = g.op("Add", g.op("Div", g.op("Sub", wi_z, horizon), g.scalar(BASE_SHADOW_SOFTNESS)), g.scalar(0.5))
-    lit = g.op("Min", g.op("Max", lit, g.scalar(0.0)), g.scalar(1.0))  # the visibility V(wi), `base.visibility`
+    lit = lit or _visibility(g, wi_z, horizon)
     if terminator == "all":
         reflected = g.op("Mul", g.op("Add", diffuse, specular), soften)
     elif terminator == "specular":

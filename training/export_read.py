@@ -73,7 +73,7 @@ def _layer(inits: dict, mlp: str, i: int) -> tuple[np.ndarray, np.ndarray]:
         if mlp == W.DECODER:
             query[:, [C.WI_X, C.WI_Y]] = inits[W.half_weight(mlp, 0, "light")] * alpha
         texture = [inits[W.half_weight(mlp, 0, "texture")] * alpha]
-        for part in ("half_vector", "frame"):  # the decoder's optional inputs, in their order
+        for part in ("half_vector", "frame", "visibility"):  # the decoder's optional inputs, in their order
             if W.half_weight(mlp, 0, part) in inits:
                 texture.append(inits[W.half_weight(mlp, 0, part)] * alpha)
         weight = np.concatenate([*texture, query[:, list(W.MLP_QUERY_COLUMNS[mlp])]], axis=1)

@@ -49,6 +49,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--hidden", type=int, default=MaterialConfig.hidden, help=commands.HIDDEN_HELP)
     p.add_argument("--half-vector", action="store_true", help=commands.HALF_VECTOR_HELP)
     p.add_argument("--local-frame", action="store_true", help=commands.LOCAL_FRAME_HELP)
+    p.add_argument("--visibility-input", action="store_true", help=commands.VISIBILITY_INPUT_HELP)
     commands.add_terminator_argument(p)
     p.add_argument("--base", nargs="?", const="on", choices=("on", "auto"),
                    help=commands.BASE_HELP + "; --base auto trains the model without and with it and keeps the base only "
@@ -138,6 +139,7 @@ def _fit(args: argparse.Namespace) -> int:
                                   half_vector=args.half_vector,
                                   base=base_resolution(resolve(desc)) if args.base else 0,
                                   local_frame=args.local_frame, terminator=args.terminator,
+                                  visibility_input=args.visibility_input,
                                   relief=relief_resolution(resolve(desc)) if args.relief else 0,
                                   relief_steps=args.relief or MaterialConfig.relief_steps)
         generate = GenerateSettings(spp=args.spp, sampling=QuerySampling(queries_per_texel=args.queries_per_texel))
@@ -150,6 +152,7 @@ def _fit(args: argparse.Namespace) -> int:
         + (", half vector" if material.half_vector else "") + (", classical base" if args.base == "on" else "") \
         + ((", local frame with the base" if args.base == "auto" else ", local frame") if material.local_frame else "") \
         + (f", terminator softening {material.terminator}" if args.base and material.terminator != "all" else "") \
+        + (", visibility input" if material.visibility_input else "") \
         + (f", relief ({material.relief_steps} steps)" if material.relief else "") \
         + (", classical base if it lowers the held-out error" if args.base == "auto" else "") \
         + (f", best of {args.seeds} initial weights" if args.seeds > 1 else "")

@@ -11,7 +11,7 @@ from neumip.core import contract as C
 from neumip.core import head
 from neumip.core import weights as W
 from neumip.core.config import MaterialConfig
-from .base import base_answer, corrected, frame_inputs, half_direction, lift
+from .base import base_answer, corrected, frame_inputs, half_direction, lift, light_visibility
 from .maps import MapConfig, level_feature
 from .offset import parallax_shift
 from .pyramid import pyramid_lookup, texture_lookup
@@ -121,6 +121,8 @@ class NeuMIPMaterial(nn.Module):
             features = torch.cat([features, half_vector(wi, wo)], dim=1)
         if self.config.local_frame:
             features = torch.cat([features, frame_inputs(maps, wi, wo)], dim=1)
+        if self.config.visibility_input:
+            features = torch.cat([features, light_visibility(maps, wi)], dim=1)
         out = self.decoder(torch.cat([features, directions], dim=1))
         if self.config.base:
             out = corrected(base_answer(maps, wi, wo, self.config.terminator), out)

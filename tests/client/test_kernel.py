@@ -86,6 +86,8 @@ def layouts(tmp_path_factory):
         "relief": MaterialConfig(resolution=16, base=32, relief=32),
         "frame": MaterialConfig(resolution=16, base=32, local_frame=True, half_vector=True),
         "visibility": MaterialConfig(resolution=16, base=32, relief=32, terminator="none"),
+        "visibility-input": MaterialConfig(resolution=16, base=32, relief=32, terminator="none", local_frame=True,
+                                           visibility_input=True),
     }
     for seed, (name, cfg) in enumerate(configs.items()):
         save_onnx(build_onnx(cfg, random_weights(cfg, seed=seed)), folder / f"{name}.onnx")

@@ -4,6 +4,7 @@ material answering the base."""
 from __future__ import annotations
 
 import math
+from dataclasses import replace
 
 import numpy as np
 import pytest
@@ -12,7 +13,7 @@ import torch
 from neumip.core import contract as C
 from neumip.core import weights as W
 from neumip.core.config import BASE_CHANNELS, BASE_HORIZONS, MaterialConfig
-from neumip.training.base import base_answer, base_maps, base_resolution, frame_inputs, visibility
+from neumip.training.base import base_answer, base_maps, base_resolution, frame_inputs, light_visibility, visibility
 from neumip.training.material import NeuMIPMaterial
 from neumip.training.microgeometry.description import Microgeometry
 
@@ -152,3 +153,21 @@ def test_the_local_frame_is_the_plane_s_on_a_flat_texel_and_turns_with_the_norma
     torch.testing.assert_close(along, torch.tensor([[0.0, 0.0, 1.0, 0.0, 0.0, 1.0]]), atol=1e-6, rtol=0)
     with pytest.raises(ValueError, match="needs a base"):
         MaterialConfig(local_frame=True)
+
+
+def test_the_visibility_input_is_the_base_s_own_shadow_test():
+    """`MaterialConfig.visibility_input`: the decoder reads V(wi), 0 for a light below its azimuth's horizon, 1 above
+    it, as the base's answer is shadowed; a material with it answers the base until trained."""
+    features = torch.zeros(2, BASE_CHANNELS)
+    features[:, 9] = 0.8  # a wall towards +u only
+    wi = torch.tensor([[0.85, 0.0], [0.0, 0.85]])
+    torch.testing.assert_close(light_visibility(features, wi), torch.tensor([[0.0], [1.0]]))
+    config = MaterialConfig(resolution=8, base=16, offset=False, visibility_input=True, local_frame=True)
+    assert W.mlps(config)[W.DECODER][0] == W.mlps(replace(config, visibility_input=False))[W.DECODER][0] + 1
+    material = NeuMIPMaterial(config)
+    material.set_maps(W.BASE, base_maps(geometry(np.zeros((16, 16))), 16))
+    queries = torch.tensor([[0.3, 0.6, 0.0, 0.2, 0.1, -0.3, 0.2]])
+    want = base_answer(material.base_maps[:1].expand(1, -1), queries[:, 3:5], queries[:, 5:7], "all")
+    torch.testing.assert_close(material(queries), want)
+    with pytest.raises(ValueError, match="needs a base"):
+        MaterialConfig(visibility_input=True)

@@ -26,14 +26,15 @@ def torch_eval(material: NeuMIPMaterial, q: np.ndarray) -> np.ndarray:
                                         (True, True, 0, 0, False, "all"), (True, False, 64, 0, False, "all"),
                                         (True, False, 0, 64, False, "all"), (False, False, 64, 64, False, "all"),
                                         (True, True, 64, 64, True, "all"), (False, False, 64, 64, False, "none"),
-                                        (False, False, 64, 64, False, "specular")],
+                                        (False, False, 64, 64, False, "specular"),
+                                        (True, False, 64, 64, True, "none", True), (True, False, 64, 0, False, "all", True)],
                 ids=["offset", "no-offset", "half-vector", "base", "relief", "relief-base", "local-frame",
-                     "no-terminator", "specular-terminator"])
+                     "no-terminator", "specular-terminator", "visibility-input", "visibility-input-alone"])
 def pair(request):
     torch.manual_seed(3)
-    offset, half_vector, base, relief, local_frame, terminator = request.param
+    offset, half_vector, base, relief, local_frame, terminator, *visibility = request.param
     cfg = MaterialConfig(resolution=32, offset=offset, half_vector=half_vector, base=base, relief=relief,
-                         local_frame=local_frame, terminator=terminator)
+                         local_frame=local_frame, terminator=terminator, visibility_input=bool(visibility))
     material = NeuMIPMaterial(cfg, init_std=0.5)
     if cfg.relief:  # a relief 0.125 tile deep: its shifts span many texels
         material.set_maps(W.RELIEF, [random_weights(cfg, seed=5)[W.RELIEF]])

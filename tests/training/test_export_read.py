@@ -32,6 +32,7 @@ CONFIGS = {
     "relief": replace(BASE, relief=32, relief_steps=4),
     "local-frame": replace(BASE, base=32, local_frame=True, half_vector=True),
     "no-terminator": replace(BASE, base=32, terminator="none"),
+    "visibility-input": replace(BASE, base=32, local_frame=True, half_vector=True, visibility_input=True),
 }
 SHIPPED = sorted(Path("models").glob("*.onnx"))
 

@@ -56,12 +56,12 @@ def test_train_views_find_the_maps_of_data_made_in_another_folder(material, tmp_
     caplog.set_level(logging.WARNING)
     argv = ["train", str(data), "-o", str(tmp_path / "my.onnx"), "--preset", "test", "--steps", "10",
             "--batch", "256", "--checkpoint", str(tmp_path / "run" / "ck.pt"), "--threads", "1", "--base",
-            "--terminator", "specular"]
+            "--terminator", "specular", "--visibility-input"]
     assert main(argv) == 0
     assert "no ground truth for the progress grid" not in caplog.text
     record = json.loads((tmp_path / "my.json").read_text())
     assert record["material_config"]["base"] == 8  # the data's material's maps make the base
-    assert record["material_config"]["terminator"] == "specular"
+    assert record["material_config"]["terminator"] == "specular" and record["material_config"]["visibility_input"]
     views = json.loads((tmp_path / "run" / "views" / "meta.json").read_text())
     assert views["complete"] and views["material"]["name"] == "my"
 
@@ -178,14 +178,14 @@ def test_fit_samples_the_maps_footprints_and_trains_a_map_model(material, tmp_pa
 
 def test_fit_base_auto_keeps_the_base_only_where_it_lowers_the_reference_error(material, tmp_path, capsys):
     """--base auto trains without and with the classical base on the same data and keeps the base only where
-    it lowers the MSE on a low-noise reference set by the margin; --local-frame and --terminator go with the base
-    (the model without it has no frame, and no terminator to soften)."""
+    it lowers the MSE on a low-noise reference set by the margin; --local-frame, --terminator and --visibility-input
+    go with the base (the model without it has no frame, no terminator to soften, no visibility to read)."""
     from neumip.client.local import load_material
 
     out = tmp_path / "auto.onnx"
     argv = ["fit", str(material), "-o", str(out), "--preset", "test", "--steps", "10", "--spp", "2",
             "--queries-per-texel", "32", "--resolution", "4", "--base", "auto", "--local-frame", "--terminator", "none",
-            "--threads", "1"]
+            "--visibility-input", "--threads", "1"]
     assert main(argv) == 0
     record = json.loads(out.with_suffix(".json").read_text())
     choice = record["validation"]["base_choice"]
@@ -194,6 +194,7 @@ def test_fit_base_auto_keeps_the_base_only_where_it_lowers_the_reference_error(m
     assert record["material_config"].get("base", 0) == (8 if with_base else 0)
     assert record["material_config"].get("local_frame", False) == with_base
     assert record["material_config"].get("terminator", "all") == ("none" if with_base else "all")
+    assert record["material_config"].get("visibility_input", False) == with_base
     run = tmp_path / "auto.run"
     assert (run / "checkpoint.pt").exists() and (run / "base" / "checkpoint.pt").exists()
     reference = json.loads((run / "reference" / "meta.json").read_text())
