@@ -101,7 +101,7 @@ class MaterialConfig:
     the inputs, not something every texel's features must teach the decoder. Needs a base
     (`benchmarks/results/frame.txt`)."""
     visibility_input: bool = False
-    """The decoder also reads the base's visibility V(wi) of each light (`base.visibility`: the horizon test at the
+    """The decoder also reads the base's visibility V(wi) of each light (`base.light_visibility`: the horizon test at the
     maps' resolution where the lookups land), so that its correction, whose features are the latents' (coarser than
     the maps), can tell a lit facet from a shadowed one (`benchmarks/results/grazing.txt`). Needs a base."""
     relief: int = 0
