@@ -124,6 +124,9 @@ VARIANTS: dict[str, tuple[dict, MapConfig | None, object]] = {
     **{f"VIS{'' if k == 0 else f'_seed{k}'}": ({"base": "maps", "relief": "maps", "terminator": "none",
                                                 "local_frame": True, "visibility_input": True}, None, replace(SHIP, seed=k))
        for k in range(4)},
+    # the same on the 88-degree solid-angle data (`train --data`: more queries under the low light)
+    "VISSA88": ({"base": "maps", "relief": "maps", "terminator": "none", "local_frame": True, "visibility_input": True},
+                None, SHIP),
     # the same on the level-horizon base (below): a visibility that holds at every footprint
     **{f"VISHL{'' if k == 0 else f'_seed{k}'}": ({"base": "maps", "relief": "maps", "terminator": "none",
                                                   "local_frame": True, "visibility_input": True}, None,
