@@ -113,9 +113,11 @@ def base_normal(features: torch.Tensor) -> torch.Tensor:
     return n / torch.sqrt(_dot(n, n))
 
 
-def base_answer(features: torch.Tensor, wi: torch.Tensor, wo: torch.Tensor, terminator: str = "all") -> torch.Tensor:
+def base_answer(features: torch.Tensor, wi: torch.Tensor, wo: torch.Tensor, terminator: str = "all",
+                lit: torch.Tensor | None = None) -> torch.Tensor:
     """(N, BASE_CHANNELS) looked-up base maps, (N, 2) wi, wo -> (N, 3) the base's answer (module docstring); S(g)
-    multiplies the terms `terminator` names (`MaterialConfig.terminator`: "all", "specular", "none")."""
+    multiplies the terms `terminator` names (`MaterialConfig.terminator`: "all", "specular", "none"). `lit`: the
+    light's visibility where the decoder's input computed it (`light_visibility`), else computed here."""
     wi3, wo3 = lift(wi), lift(wo)
     n = base_normal(features)
     h = half_direction(wi3, wo3)
@@ -140,7 +142,8 @@ def base_answer(features: torch.Tensor, wi: torch.Tensor, wo: torch.Tensor, term
         reflected = diffuse + specular * soften
     else:
         reflected = diffuse + specular
-    return reflected * visibility(features[:, 9:], wi, wi_z) / torch.clamp(wi_z, min=BASE_WI_FLOOR)
+    lit = visibility(features[:, 9:], wi, wi_z) if lit is None else lit
+    return reflected * lit / torch.clamp(wi_z, min=BASE_WI_FLOOR)
 
 
 def light_visibility(features: torch.Tensor, wi: torch.Tensor) -> torch.Tensor:

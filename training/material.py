@@ -121,11 +121,12 @@ class NeuMIPMaterial(nn.Module):
             features = torch.cat([features, half_vector(wi, wo)], dim=1)
         if self.config.local_frame:
             features = torch.cat([features, frame_inputs(maps, wi, wo)], dim=1)
-        if self.config.visibility_input:
-            features = torch.cat([features, light_visibility(maps, wi)], dim=1)
+        lit = light_visibility(maps, wi) if self.config.visibility_input else None  # (the base's too)
+        if lit is not None:
+            features = torch.cat([features, lit], dim=1)
         out = self.decoder(torch.cat([features, directions], dim=1))
         if self.config.base:
-            out = corrected(base_answer(maps, wi, wo, self.config.terminator), out)
+            out = corrected(base_answer(maps, wi, wo, self.config.terminator, lit), out)
         if self.config.head == "yuv":  # exp(YUV) - 1 times the shadow mask (core/head.py)
             shadow = head.SHADOW_FLOOR + torch.sigmoid(out[:, 3:])
             out = torch.expm1(out[:, :3] @ self.yuv_to_rgb) * shadow
