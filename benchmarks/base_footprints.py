@@ -26,7 +26,9 @@ import torch  # noqa: E402
 
 from neumip.core import contract as C  # noqa: E402
 from neumip.core import weights as W  # noqa: E402
-from neumip.core.config import BASE_HORIZONS, MaterialConfig  # noqa: E402
+from neumip.core.config import (BASE_AZIMUTH_FLOOR, BASE_AZIMUTH_KERNEL, BASE_AZIMUTHS, BASE_HORIZONS,  # noqa: E402
+                                BASE_SHADOW_SOFTNESS, MaterialConfig)
+from neumip.training import base as B  # noqa: E402
 from neumip.training.base import base_maps, base_resolution  # noqa: E402
 from neumip.training.dataset import open_dataset  # noqa: E402
 from neumip.training.maps import horizon_angles, resize  # noqa: E402
@@ -38,6 +40,7 @@ ZENITHS = ((0, 45), (60, 75), (80, 88))
 """Bins of the light's zenith angle, degrees."""
 FOOTPRINTS = ((0, 0.01), (0.5, 1.5), (1.5, 3), (3, 6), (6, 12), (12, 48), (48, 256))
 """Bins of the footprint sigma, in texels of the material's maps."""
+_visibility = B.visibility
 LUMINANCE = np.array([0.2126, 0.7152, 0.0722])
 
 
@@ -49,6 +52,34 @@ def level_horizon_maps(geo, resolution: int) -> list[np.ndarray]:
     for level in levels:
         level[..., 9:] = np.sin(horizon_angles(resize(height, level.shape[0]), BASE_HORIZONS) * (np.pi / 2))
     return levels
+
+
+def horizon_moment_maps(geo, resolution: int) -> list[np.ndarray]:
+    """`base.base_maps` with BASE_HORIZONS more channels: each level's mean of its finest texels' squared horizon
+    sines, so that `spread_visibility` can read the horizons' spread within a texel."""
+    levels = base_maps(geo, resolution)
+    squares = np.sin(horizon_angles(geo.height.astype(np.float64), BASE_HORIZONS) * (np.pi / 2)) ** 2
+    return [np.concatenate([level, resize(squares, level.shape[0])], axis=2) for level in levels]
+
+
+def spread_visibility(horizons: torch.Tensor, wi: torch.Tensor, wi_z: torch.Tensor) -> torch.Tensor:
+    """`base.visibility`, and with 2 BASE_HORIZONS columns (`horizon_moment_maps`) the share of the texel's finest
+    texels that see the light if their horizon sines spread uniformly about the mean: the ramp widens to
+    sqrt(BASE_SHADOW_SOFTNESS^2 + 12 variance)."""
+    if horizons.shape[1] == BASE_HORIZONS:
+        return _visibility(horizons, wi, wi_z)
+    mean, square = horizons[:, :BASE_HORIZONS], horizons[:, BASE_HORIZONS:]
+    r = torch.sqrt(torch.clamp((wi * wi).sum(1, keepdim=True), min=BASE_AZIMUTH_FLOOR ** 2))
+    azimuths = torch.tensor(BASE_AZIMUTHS, dtype=wi.dtype, device=wi.device).T
+    kernel = torch.clamp(wi @ azimuths / r - BASE_AZIMUTH_KERNEL, min=0.0)
+    weights = kernel / torch.clamp(kernel.sum(1, keepdim=True), min=BASE_AZIMUTH_FLOOR)
+    horizon = (weights * mean).sum(1, keepdim=True)
+    variance = (weights * torch.clamp(square - mean * mean, min=0.0)).sum(1, keepdim=True)
+    width = torch.sqrt(BASE_SHADOW_SOFTNESS ** 2 + 12.0 * variance)
+    return torch.clamp((wi_z - horizon) / width + 0.5, min=0.0, max=1.0)
+
+
+B.visibility = spread_visibility  # (base_answer looks it up in its module)
 
 
 def main() -> None:
@@ -63,7 +94,8 @@ def main() -> None:
                             local_frame=True)
     material = NeuMIPMaterial(config).eval()
     material.set_maps(W.RELIEF, relief_heights(geo, config.relief))
-    pyramids = {"base": base_maps(geo, res), "level horizons": level_horizon_maps(geo, res)}
+    pyramids = {"base": base_maps(geo, res), "level horizons": level_horizon_maps(geo, res),
+                "horizon spread": horizon_moment_maps(geo, res)}
     data = open_dataset(args.data)
     queries, targets = np.asarray(data.queries), np.asarray(data.rgb) @ LUMINANCE
     wi_z = np.sqrt(np.clip(1 - queries[:, C.WI_X] ** 2 - queries[:, C.WI_Y] ** 2, 0, 1))
@@ -80,7 +112,7 @@ def main() -> None:
             batch = torch.as_tensor(queries[rows])
             answers = []
             for levels in pyramids.values():
-                material.set_maps(W.BASE, levels)
+                material.base_maps = torch.as_tensor(np.concatenate([lvl.reshape(-1, lvl.shape[2]) for lvl in levels]))
                 with torch.no_grad():
                     answers.append(float((material(batch).numpy() @ LUMINANCE).mean()))
             print(f"{f'{lo}-{hi}':>13} {f'{s0}-{s1}':>13} {rows.sum():8d} {targets[rows].mean():8.4f}" +

@@ -135,6 +135,13 @@ VARIANTS: dict[str, tuple[dict, MapConfig | None, object]] = {
     # (base_footprints.level_horizon_maps, set by `train`; results/grazing.txt: not shipped)
     **{f"HL{'' if k == 0 else f'_seed{k}'}": ({"base": "maps", "relief": "maps", "terminator": "none",
                                                "local_frame": True}, None, replace(SHIP, seed=k)) for k in range(4)},
+    # the shipped map-informed recipe (`fit --maps --horizons 8` on the shipped recipe), at 64^2 and at the maps'
+    # 256^2, where the encoder leaves nothing per texel to fit from noisy queries (issue 25, lever 1), and with
+    # the free residual per texel and the `quality` schedule (GPU runs: results/gpu.txt)
+    **{f"Mship{res}{suffix}": ({"base": "maps", "relief": "maps", "terminator": "none", "local_frame": True,
+                                "resolution": int(res or 64)}, MapConfig(horizons=8, residual=residual), schedule)
+       for res in ("", "256") for suffix, residual, schedule in (("", False, SHIP), ("_res", True, SHIP),
+                                                                 ("_quality", False, QUALITY))},
     "N128": ({"resolution": 128}, None, SHIP),
     "M128": ({"resolution": 128}, MapConfig(), SHIP),
     "N256": ({"resolution": 256}, None, SHIP),

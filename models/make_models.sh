@@ -12,7 +12,8 @@
 # shadow is its horizon's (no terminator softening): benchmarks/results/terminator.txt.
 # SEEDS=K trains each model from K initial weights (fit --seeds) and keeps the one with the lowest error on a
 # low-noise reference set: a first run in runs/NAME[/base], the others in its seedK/ folders.
-# Defaults reproduce the models shipped now (`ship` preset, 64^2, 256 queries per texel, 16 spp).
+# Defaults reproduce the models shipped now (`ship` preset, 64^2, 256 queries per texel of it, 16 spp; the
+# map-informed models at their maps' resolution, on the same data).
 # PRESET=quality is the longer recipe measured in benchmarks/results/quality_levers_log.md ("Quality levers"): 10 000 steps of 16 384.
 # Run from the repository root: [PRESET=ship|quality] [RES=64] [THREADS=1] bash models/make_models.sh [NAME ...]
 # RAY=auto (or HOST:PORT, or local) runs data chunks and then one training per material as Ray tasks
@@ -30,6 +31,7 @@ THREADS=${THREADS:-1}  # the shipped models were trained with one torch thread
 BASE=${BASE:-auto}  # classical base (fit --base): auto keeps it where it lowers the held-out MSE; NAME_nooffset follows NAME's choice; on; off
 SHADING=${SHADING---local-frame --terminator none}  # with the base: the decoder reads the directions in the base normal's frame, and no S(g) (benchmarks/results/terminator.txt)
 RELIEF=${RELIEF:-8}  # relief steps (fit --relief) for every material with a height map, 0: none; NAME_nooffset has neither relief nor offset
+MAPS_RES=${MAPS_RES:-}  # NAME_maps: finest latent level of the map-informed models; empty: the material's maps' (256^2 shipped: results/gpu.txt)
 HORIZONS=${HORIZONS:-8}  # NAME_maps: horizon features towards 8 azimuths (rock: better than none in all 8 close-up views, benchmarks/results/maps.txt)
 SEEDS=${SEEDS:-1}  # fit --seeds: each model from this many initial weights, the lowest reference error kept; 3 was measured, not shipped (TRAINING.md)
 RAY=${RAY:-}
@@ -69,8 +71,13 @@ relief_flags() {  # NAME: the --relief flags of its fit (none for an ablation: N
   return 0
 }
 material_of() { local m=${1%_nooffset}; echo "${m%_maps}"; }  # rock_maps_nooffset -> rock
+resolution_of() {  # NAME: its finest latent level (RES; a map-informed model's MAPS_RES, else its maps' resolution)
+  if [[ "$1" != *_maps* ]]; then echo "$RES"; elif [ -n "$MAPS_RES" ]; then echo "$MAPS_RES"; else
+    "${NEUMIP%neumip}python" -c "import sys; from neumip.training.microgeometry.description import find_description as f; print(f(sys.argv[1]).resolution)" "$(material_of "$1")"
+  fi
+}
 describe() {  # NAME
-  echo "$(material_of "$1"), ${RES}^2, $([[ "$1" == *_nooffset ]] && echo 'no relief, no neural offset' || echo "$([ -n "$(relief_flags "$1")" ] && echo 'relief, ')neural offset"),$([[ "$1" == *_maps* ]] && echo ' map-informed,')$([ "$HIDDEN" != 25 ] && echo " MLP width $HIDDEN,") $PRESET preset"
+  echo "$(material_of "$1"), $(resolution_of "$1")^2, $([[ "$1" == *_nooffset ]] && echo 'no relief, no neural offset' || echo "$([ -n "$(relief_flags "$1")" ] && echo 'relief, ')neural offset"),$([[ "$1" == *_maps* ]] && echo ' map-informed,')$([ "$HIDDEN" != 25 ] && echo " MLP width $HIDDEN,") $PRESET preset"
 }
 if [ -n "$RAY" ]; then
   jobs=() flags=()
@@ -97,6 +104,6 @@ for name in "${names[@]}"; do
   work="runs/$name"
   [ "${base[0]-}" = --base ] && [ "${base[1]-}" != auto ] && work="runs/$name/base"  # where --base auto trains its base candidate too
   "$NEUMIP" fit "$material" -o "models/$name.onnx" --force --work "$work" --data "$(data_dir "$material")" \
-    --resolution "$RES" --queries-per-texel "$QPT" --spp "$SPP" --preset "$PRESET" --threads "$THREADS" \
+    --resolution "$(resolution_of "$name")" --queries "$QUERIES" --queries-per-texel "$QPT" --spp "$SPP" --preset "$PRESET" --threads "$THREADS" \
     --hidden "$HIDDEN" --seeds "$SEEDS" ${flags[@]+"${flags[@]}"} --description "$(describe "$name")"
 done

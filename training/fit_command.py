@@ -40,6 +40,8 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--queries-per-texel", type=float, default=QuerySampling.queries_per_texel,
                    help="ground-truth queries per texel of the model's finest level (their footprints are "
                         "sampled for the material's own resolution)")
+    p.add_argument("--queries", type=int, help="ground-truth queries (default: --queries-per-texel per texel of "
+                   "the finest level); models of other resolutions can so share one data set")
     p.add_argument("--spp", type=int, default=GenerateSettings.spp, help="path samples per ground-truth query")
     p.add_argument("--no-offset", action="store_true", help="train without the neural offset")
     p.add_argument("--maps", action="store_true", help="map-informed model: its textures are encoded from the "
@@ -142,7 +144,8 @@ def _fit(args: argparse.Namespace) -> int:
                                   visibility_input=args.visibility_input,
                                   relief=relief_resolution(resolve(desc)) if args.relief else 0,
                                   relief_steps=args.relief or MaterialConfig.relief_steps)
-        generate = GenerateSettings(spp=args.spp, sampling=QuerySampling(queries_per_texel=args.queries_per_texel))
+        generate = GenerateSettings(spp=args.spp, sampling=QuerySampling(queries_per_texel=args.queries_per_texel),
+                                    queries=args.queries)
         if args.horizons and not args.maps:
             raise ValueError("--horizons is a feature of the map-informed model: pass --maps too")
         maps = MapConfig(horizons=args.horizons) if args.maps else None

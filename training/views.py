@@ -8,6 +8,7 @@ training run renders with its model and compares with ground truth as it goes.
 from __future__ import annotations
 
 import logging
+import shutil
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -128,4 +129,5 @@ def trace_views(material_meta: dict, grid: ViewGrid, resolution: int, out: str |
         return None
     rgb = QueryTracer(geo).estimate(queries, grid.spp, seed=1)
     meta = {"material": material_meta, "generator": {"name": "progress views", "spp": grid.spp}}
+    shutil.rmtree(out, ignore_errors=True)  # another grid's views (a model of another resolution): a stale cache
     return write_dataset(out, queries, rgb, meta)

@@ -176,6 +176,21 @@ def test_fit_samples_the_maps_footprints_and_trains_a_map_model(material, tmp_pa
 
 
 
+def test_fit_queries_lets_a_finer_model_share_a_coarser_models_data(material, tmp_path, capsys):
+    """--queries fixes the ground truth's size whatever --resolution is: a model at the maps' resolution trains on
+    the data set a coarser model made, which it finds complete and does not trace again."""
+    data = tmp_path / "data"
+    common = ["--preset", "test", "--steps", "5", "--spp", "2", "--queries-per-texel", "32", "--data", str(data),
+              "--threads", "1"]
+    assert main(["fit", str(material), "-o", str(tmp_path / "coarse.onnx"), "--resolution", "4", *common]) == 0
+    traced = (data / "rgb.npy").stat().st_mtime_ns
+    assert main(["fit", str(material), "-o", str(tmp_path / "fine.onnx"), "--resolution", "8", "--queries", "512",
+                 *common]) == 0
+    assert (data / "rgb.npy").stat().st_mtime_ns == traced
+    assert json.loads((data / "meta.json").read_text())["generator"]["queries"] == 32 * 4 * 4
+    assert json.loads((tmp_path / "fine.json").read_text())["material_config"]["resolution"] == 8
+
+
 def test_fit_base_auto_keeps_the_base_only_where_it_lowers_the_reference_error(material, tmp_path, capsys):
     """--base auto trains without and with the classical base on the same data and keeps the base only where
     it lowers the MSE on a low-noise reference set by the margin; --local-frame, --terminator and --visibility-input

@@ -392,15 +392,18 @@ def test_progress_views_ground_truth_of_the_flat_plane(tmp_path):
     """trace_views path-traces the view grid once (the flat plane: exactly albedo / pi) and reuses it;
     a material whose map files changed since the data was made gets no ground truth."""
     from neumip.training.microgeometry.description import find_description
-    from neumip.training.views import ViewGrid, trace_views
+    from neumip.training.views import ViewGrid, trace_views, view_queries
 
-    grid = ViewGrid(pixels=4, levels=(0,), spp=4)
+    grid = ViewGrid(pixels=4, levels=(1,), spp=4)
     meta = find_description("flat").to_dict()
     views = trace_views(meta, grid, 16, tmp_path / "views")
     np.testing.assert_allclose(np.asarray(views.rgb), 0.5 / np.pi, rtol=1e-4)
     stamp = (tmp_path / "views" / "meta.json").stat().st_mtime_ns
     assert trace_views(meta, grid, 16, tmp_path / "views") is not None
     assert (tmp_path / "views" / "meta.json").stat().st_mtime_ns == stamp  # reused, not traced again
+    finer = trace_views(meta, grid, 32, tmp_path / "views")  # a model of another resolution: traced anew there
+    assert np.array_equal(np.asarray(finer.queries), view_queries(grid, 32))
+    assert not np.array_equal(view_queries(grid, 32), view_queries(grid, 16))
     assert trace_views({**meta, "map_sha256": {"height": "0" * 64}}, grid, 16, tmp_path / "v2") is None
     assert trace_views("analytic-plane", grid, 16, tmp_path / "v3") is None
 
