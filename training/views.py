@@ -7,8 +7,8 @@ training run renders with its model and compares with ground truth as it goes.
 
 from __future__ import annotations
 
+import json
 import logging
-import shutil
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -17,6 +17,9 @@ import numpy as np
 from neumip.core import contract as C
 
 log = logging.getLogger(__name__)
+
+VIEWS_GENERATOR = "progress views"
+"""meta.json generator name of a progress-view data set (`trace_views`)."""
 
 
 @dataclass(frozen=True)
@@ -128,6 +131,18 @@ def trace_views(material_meta: dict, grid: ViewGrid, resolution: int, out: str |
                     "--views-material PATH.toml names the material's description file", exc)
         return None
     rgb = QueryTracer(geo).estimate(queries, grid.spp, seed=1)
-    meta = {"material": material_meta, "generator": {"name": "progress views", "spp": grid.spp}}
-    shutil.rmtree(out, ignore_errors=True)  # another grid's views (a model of another resolution): a stale cache
+    meta = {"material": material_meta, "generator": {"name": VIEWS_GENERATOR, "spp": grid.spp}}
+    clear_stale_views(out)
     return write_dataset(out, queries, rgb, meta)
+
+
+def clear_stale_views(out: Path) -> None:
+    """Remove the data set files of another grid's progress views at `out` (a model of another resolution traced
+    there: same count, same meta, other queries), so they are written anew; anything else there is left alone."""
+    try:
+        stale = json.loads((out / "meta.json").read_text())["generator"]["name"] == VIEWS_GENERATOR
+    except (OSError, ValueError, KeyError, TypeError):
+        return
+    if stale:
+        for name in ("meta.json", "progress.json", "queries.npy", "rgb.npy"):
+            (out / name).unlink(missing_ok=True)

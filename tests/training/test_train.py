@@ -392,7 +392,7 @@ def test_progress_views_ground_truth_of_the_flat_plane(tmp_path):
     """trace_views path-traces the view grid once (the flat plane: exactly albedo / pi) and reuses it;
     a material whose map files changed since the data was made gets no ground truth."""
     from neumip.training.microgeometry.description import find_description
-    from neumip.training.views import ViewGrid, trace_views, view_queries
+    from neumip.training.views import ViewGrid, clear_stale_views, trace_views, view_queries
 
     grid = ViewGrid(pixels=4, levels=(1,), spp=4)
     meta = find_description("flat").to_dict()
@@ -404,6 +404,12 @@ def test_progress_views_ground_truth_of_the_flat_plane(tmp_path):
     finer = trace_views(meta, grid, 32, tmp_path / "views")  # a model of another resolution: traced anew there
     assert np.array_equal(np.asarray(finer.queries), view_queries(grid, 32))
     assert not np.array_equal(view_queries(grid, 32), view_queries(grid, 16))
+    mine = tmp_path / "mine"  # a folder that holds something else is not emptied
+    mine.mkdir()
+    (mine / "notes.txt").write_text("mine")
+    (mine / "meta.json").write_text('{"generator": {"name": "my data"}}')
+    clear_stale_views(mine)
+    assert sorted(p.name for p in mine.iterdir()) == ["meta.json", "notes.txt"]
     assert trace_views({**meta, "map_sha256": {"height": "0" * 64}}, grid, 16, tmp_path / "v2") is None
     assert trace_views("analytic-plane", grid, 16, tmp_path / "v3") is None
 
