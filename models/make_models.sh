@@ -3,11 +3,12 @@
 # model, footprints sampled for the material's maps' resolution where finer, $SPP spp) in data/MATERIAL_nQUERIES_sSPP
 # (shared by NAME, NAME_nooffset, NAME_maps), then training with the preset $PRESET, replacing
 # models/NAME.onnx (--force). Each step resumes if interrupted (a checkpoint in runs/NAME/ from another
-# preset is refused: move it away). NAME_maps is the map-informed model (`neumip fit --maps`).
+# preset or resolution is refused: move it away). NAME_maps is the map-informed model (`neumip fit --maps`).
 # Materials with a height map are fitted with the relief stage (--relief $RELIEF): parallax and occlusion marched
 # on the height map, before the neural offset; NAME_nooffset has neither, so its gain is the parallax stages'.
 # Materials defined by maps are fitted with --base auto (with and without the classical base, the one with the
 # lower reference error kept); NAME_nooffset then takes NAME's choice, so the offset's gain compares like with like.
+# The map-informed models (NAME_maps) always stand on the base ($MAPS_BASE).
 # A base is fitted with $SHADING: the decoder also reads the directions in the base normal's frame, and the base's only
 # shadow is its horizon's (no terminator softening): benchmarks/results/terminator.txt.
 # SEEDS=K trains each model from K initial weights (fit --seeds) and keeps the one with the lowest error on a
@@ -29,6 +30,7 @@ PRESET=${PRESET:-ship}
 HIDDEN=${HIDDEN:-25}  # MLP width, the paper's; 48 was 0-32 % more accurate in images and 1.34x the render time (models/README.md)
 THREADS=${THREADS:-1}  # the shipped models were trained with one torch thread
 BASE=${BASE:-auto}  # classical base (fit --base): auto keeps it where it lowers the held-out MSE; NAME_nooffset follows NAME's choice; on; off
+MAPS_BASE=${MAPS_BASE:-on}  # the same for the map-informed models: at 256^2 auto would drop it on rock (7 % lower reference error), where the report's close-ups are 1.2-1.6x better with it (models/README.md)
 SHADING=${SHADING---local-frame --terminator none}  # with the base: the decoder reads the directions in the base normal's frame, and no S(g) (benchmarks/results/terminator.txt)
 RELIEF=${RELIEF:-8}  # relief steps (fit --relief) for every material with a height map, 0: none; NAME_nooffset has neither relief nor offset
 MAPS_RES=${MAPS_RES:-}  # NAME_maps: finest latent level of the map-informed models; empty: the material's maps' (256^2 shipped: results/gpu.txt)
@@ -51,10 +53,11 @@ has_maps() {  # MATERIAL: whether it is defined by principled maps (a base needs
   "${NEUMIP%neumip}python" -c "import sys; from neumip.training.microgeometry.description import find_description, resolve; sys.exit(resolve(find_description(sys.argv[1])).bsdf is not None)" "$1"
 }
 base_flags() {  # NAME: the --base flags of its fit, with the base's shading ($SHADING)
-  local parent=${1%_nooffset}
-  [ "$BASE" = off ] && return 0
+  local parent=${1%_nooffset} base=$BASE
+  [[ "$1" == *_maps* ]] && base=$MAPS_BASE
+  [ "$base" = off ] && return 0
   has_maps "$(material_of "$1")" || return 0
-  if [ "$BASE" = on ]; then echo --base $SHADING; return 0; fi
+  if [ "$base" = on ]; then echo --base $SHADING; return 0; fi
   if [ "$parent" != "$1" ] && [ -f "models/$parent.json" ]; then  # an ablation keeps its model's choice
     "${NEUMIP%neumip}python" -c "import json, sys; sys.exit(not json.load(open(sys.argv[1]))['material_config'].get('base'))" \
       "models/$parent.json" && echo --base $SHADING
@@ -71,9 +74,10 @@ relief_flags() {  # NAME: the --relief flags of its fit (none for an ablation: N
   return 0
 }
 material_of() { local m=${1%_nooffset}; echo "${m%_maps}"; }  # rock_maps_nooffset -> rock
-resolution_of() {  # NAME: its finest latent level (RES; a map-informed model's MAPS_RES, else its maps' resolution)
+resolution_of() {  # NAME: its finest latent level (RES; a map-informed model's MAPS_RES, else its maps' resolution,
+  # at least RES: the data set's footprints are sampled for max(RES, the maps'), and every model of a material shares it)
   if [[ "$1" != *_maps* ]]; then echo "$RES"; elif [ -n "$MAPS_RES" ]; then echo "$MAPS_RES"; else
-    "${NEUMIP%neumip}python" -c "import sys; from neumip.training.microgeometry.description import find_description as f; print(f(sys.argv[1]).resolution)" "$(material_of "$1")"
+    "${NEUMIP%neumip}python" -c "import sys; from neumip.training.microgeometry.description import find_description as f; print(max($RES, f(sys.argv[1]).resolution))" "$(material_of "$1")"
   fi
 }
 describe() {  # NAME
