@@ -43,6 +43,16 @@ class DatasetError(NeumipError, RuntimeError):
     """A data set folder that is missing, incomplete or inconsistent."""
 
 
+FILES = ("meta.json", "progress.json", "queries.npy", "rgb.npy")
+"""The files of a data set folder (the layout above)."""
+
+
+def remove_dataset(path: str | Path) -> None:
+    """Delete the data set files at `path` (a stale cache), leaving anything else in the folder."""
+    for name in FILES:
+        (Path(path) / name).unlink(missing_ok=True)
+
+
 def _identity(meta: dict) -> dict:
     """What identifies a data set in its meta (JSON-normalised): all but completion and location."""
     return json.loads(json.dumps({k: v for k, v in meta.items() if k != "complete" and k not in LOCATION_KEYS}))

@@ -139,10 +139,11 @@ def trace_views(material_meta: dict, grid: ViewGrid, resolution: int, out: str |
 def clear_stale_views(out: Path) -> None:
     """Remove the data set files of another grid's progress views at `out` (a model of another resolution traced
     there: same count, same meta, other queries), so they are written anew; anything else there is left alone."""
+    from .dataset import remove_dataset
+
     try:
         stale = json.loads((out / "meta.json").read_text())["generator"]["name"] == VIEWS_GENERATOR
     except (OSError, ValueError, KeyError, TypeError):
         return
     if stale:
-        for name in ("meta.json", "progress.json", "queries.npy", "rgb.npy"):
-            (out / name).unlink(missing_ok=True)
+        remove_dataset(out)
