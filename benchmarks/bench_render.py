@@ -8,7 +8,10 @@ render's own kernels, `KernelMaterials`, the default; and its ONNX graph in ONNX
 
 - **neural / reference**: `neumip_path` with the material on a flat rectangle, against Mitsuba's stock
   `path` on the material's real displaced microgeometry (`training.microgeometry.mesh.reference_surface`,
-  at the resolution the model was trained at) filling the same rectangle. Target: <= 1.0.
+  at its description's resolution: the geometry `neumip generate` traced the model's data on and the
+  report renders as R, whatever the model's own resolution) filling the same rectangle. Target: <= 1.0.
+  ``--geometry-resolution R`` traces the height field resampled to R^2 instead (a coarser, cheaper mesh:
+  64 gives the 64^2 mesh of `results/render.txt`'s figures before 2026-11-26).
 - **overhead / diffuse**: `neumip_path` with a material that answers a constant at no cost (so
   everything but evaluation: the wavefront loop, the lanes' compaction, the query buffers or gathers,
   the scatter of the answers), against stock `path` with a `diffuse` BSDF on the same plane. Target:
@@ -135,13 +138,20 @@ def material_name(args) -> str:
     return Path(args.material).stem
 
 
+def geometry_resolution(args) -> int:
+    """Height samples per tile side of the reference geometry: ``--geometry-resolution``, else the description's."""
+    from neumip.training.microgeometry.description import find_description
+
+    return args.geometry_resolution or find_description(args.material).resolution
+
+
 def ratio_scenes(mi, material, args) -> dict:
     """name -> (scene, evaluator or None) of the four renders the ratios section times."""
     from neumip.training.microgeometry import mesh
     from neumip.training.microgeometry.description import find_description, resolve
 
     desc = find_description(args.material)
-    desc.resolution = int(material.config["resolution"])  # the geometry the model was trained on
+    desc.resolution = geometry_resolution(args)
     to_world = mi.ScalarTransform4f().scale([2.0, 2.0, 2.0])
     depth = {"max_depth": args.max_depth, "rr_depth": args.rr_depth}
     neural_bsdf = {"type": "neumip", "material": material_name(args), "uv_scale": float(args.tiles)}
@@ -193,7 +203,8 @@ def ratios(args) -> None:
     scenes = {name: (mi.load_dict(scene), evaluators[ev])
               for name, (scene, ev) in ratio_scenes(mi, local.get(material), args).items()}
     print(f"## ratios: {args.material} on a plane at {ZENITH_DEG:g} deg, {args.tiles} x {args.tiles} tiles, "
-          f"{args.size}^2 px, {args.spp} spp, max_depth {args.max_depth}, rr_depth {args.rr_depth}; "
+          f"{args.size}^2 px, {args.spp} spp, max_depth {args.max_depth}, rr_depth {args.rr_depth}, "
+          f"geometry {geometry_resolution(args)}^2 per tile, model {local.get(material).config['resolution']}^2; "
           f"median of {args.rounds} interleaved rounds   [{load_avg()}]", flush=True)
     for scene, evaluator in scenes.values():  # warm-up: compile (or load cached) kernels
         time_render(mi, scene, evaluator, args.spp, 0, args.max_lanes)
@@ -291,7 +302,8 @@ def stages(args) -> None:
         runs = {"reference (path)": (reference, None),
                 **{label: (neural, KernelMaterials(d, namespace_of(mi.Float))) for label, d in folders.items()}}
         print(f"## stages: {args.material} on a plane at {ZENITH_DEG:g} deg, {args.tiles} x {args.tiles} tiles, "
-              f"{args.size}^2 px, {args.spp} spp; median of {args.rounds} interleaved rounds   [{load_avg()}]",
+              f"{args.size}^2 px, {args.spp} spp, geometry {geometry_resolution(args)}^2 per tile; median of "
+              f"{args.rounds} interleaved rounds   [{load_avg()}]",
               flush=True)
         for scene, evaluator in runs.values():  # warm-up: compile (or load cached) kernels
             time_render(mi, scene, evaluator, args.spp, 0, args.max_lanes)
@@ -413,6 +425,9 @@ def main() -> int:
     parser.add_argument("--size", type=int, default=256, help="ratios: image width and height")
     parser.add_argument("--spp", type=int, default=64, help="ratios: samples per pixel")
     parser.add_argument("--max-depth", type=int, default=6, help="ratios: longest path (both integrators)")
+    parser.add_argument("--geometry-resolution", type=int, metavar="R",
+                        help="ratios, stages: trace the reference geometry's height field at R^2 per tile "
+                        "(default: the description's, the material's real geometry)")
     parser.add_argument("--rr-depth", type=int, default=4, help="ratios: Russian roulette depth (both)")
     parser.add_argument("--rounds", type=int, default=5, help="ratios: interleaved rounds")
     parser.add_argument("--stand-in", action="store_true", help="demo: use untrained stand-in materials")
