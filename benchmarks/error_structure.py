@@ -1,0 +1,140 @@
+"""Where a report view's remaining error sits: brightness, pixel-scale detail, a few pixels, or the texel grid.
+
+The report splits each method's image MSE into noise and bias (`training/report/metrics.bias_noise`). Some
+materials keep a bias that no model lowers (foam: about 0.14e-3 for every neural model at 4, 16 and 64 texels per
+pixel). Two ways to look at it:
+
+``images MATERIAL VIEWS METHODS``: renders the report's views as `neumip report` does (R at the report's spp, two
+seeds; each method at 64 spp, two seeds; cached in ``--cache``) and prints, per method, the MSE of the two seeds'
+mean and its bias, the MSE left after the best per-channel gain (a brightness error), the MSE of the error blurred
+by 4 and 16 pixels (its low-frequency part), and the share of the squared error in the worst 1 % of pixels
+(fireflies); and for R, that share of its two seeds' difference.
+
+``phase DATA MODELS``: each model's MSE on a held-out data set (``neumip generate ... --seed 7``) by where the
+query falls in the texel grid of the level it reads (queries within 0.15 of a whole level; distance from the
+nearest texel centre in texels, the larger of the two axes). A bilinear pyramid that cannot reconstruct its level's
+detail errs more half-way between texel centres. Use models without the parallax stages (``NAME_nooffset``): the
+relief moves the lookup away from the query's uv.
+
+    .venv/bin/python benchmarks/error_structure.py images foam level0_high,level2_high,level4_high C,N,Nmaps,Nmaps0
+    neumip generate foam -o runs/floor/foam_q --queries 262144 --resolution 256 --spp 16 --seed 7
+    .venv/bin/python benchmarks/error_structure.py phase runs/floor/foam_q models/foam_maps_nooffset.onnx
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+from pathlib import Path
+
+import numpy as np
+
+
+def top_share(squared: np.ndarray, share: float = 0.01) -> float:
+    """Share of the sum of per-pixel squared errors (H, W, 3) held by the worst `share` of pixels."""
+    per_pixel = np.sort(squared.sum(-1).ravel())
+    return float(per_pixel[-max(1, int(len(per_pixel) * share)):].sum() / max(per_pixel.sum(), 1e-30))
+
+
+def box_blur(image: np.ndarray, size: int) -> np.ndarray:
+    """(H, W, C) -> its mean over a size x size box around each pixel (edges repeated)."""
+    lo = size // 2
+    padded = np.pad(image, ((lo, size - 1 - lo), (lo, size - 1 - lo), (0, 0)), mode="edge").astype(np.float64)
+    for axis in (0, 1):
+        total = np.cumsum(np.insert(padded, 0, 0.0, axis=axis), axis=axis)
+        n = padded.shape[axis] - size + 1
+        padded = (np.take(total, range(size, size + n), axis=axis) - np.take(total, range(n), axis=axis)) / size
+    return padded
+
+
+def images(args) -> None:
+    from neumip.client.kernel import KernelMaterials
+    from neumip.training.microgeometry.description import resolve
+    from neumip.training.report import metrics as Q
+    from neumip.training.report.cache import RenderCache
+    from neumip.training.report.config import ReportConfig
+    from neumip.training.report.pipeline import REFERENCE_SEEDS
+    from neumip.training.report.renderer import MaterialRenderer
+    from neumip.training.report.run import find_materials
+    from neumip.training.report.views import DISTANCE_VIEWS, EXTRA_VIEWS
+
+    desc = find_materials([args.material], args.models)[Path(args.material).stem]
+    cfg = ReportConfig()
+    renderer = MaterialRenderer(Path(args.material).stem, desc, resolve(desc), args.models, KernelMaterials(args.models),
+                                cfg, RenderCache(args.cache))
+    views = {v.name: v for v in DISTANCE_VIEWS + EXTRA_VIEWS}
+    for name in args.views.split(","):
+        view = views[name]
+        r0, r1 = (renderer.render(view, "R", cfg.reference_spp, s)[0] for s in REFERENCE_SEEDS)
+        ref = (r0 + r1) / 2
+        ref_noise = Q.noise_mse(r0, r1) / 2
+        print(f"== {args.material} {name}: film {ref.shape[1]} x {ref.shape[0]}, R mean {ref.mean():.4f}, "
+              f"R noise {ref_noise * 1e3:.4f}e-3; R's two seeds: worst 1 % of pixels hold "
+              f"{top_share((r0 - r1) ** 2):.2f} of their squared difference")
+        print(f"   {'method':<7} {'MSE x1e-3':>9} {'bias':>7} {'mean/R':>7} {'after gain':>10} "
+              f"{'blurred 4 px':>12} {'16 px':>7} {'worst 1 %':>9}")
+        for method in args.methods.split(","):
+            a, b = (renderer.render(view, method, cfg.spp, s)[0] for s in (0, 1))
+            mean = (a + b) / 2
+            error = mean - ref
+            mse = float((error ** 2).mean())
+            bias = mse - Q.noise_mse(a, b) / 2 - ref_noise  # the mean of two seeds has half one render's noise
+            gain = (mean * ref).sum((0, 1)) / np.maximum((mean * mean).sum((0, 1)), 1e-30)
+            after_gain = float(((mean * gain - ref) ** 2).mean())
+            blurred = [float((box_blur(error, k) ** 2).mean()) for k in (4, 16)]
+            print(f"   {method:<7} {mse * 1e3:9.4f} {bias * 1e3:7.4f} {mean.mean() / ref.mean():7.4f} "
+                  f"{after_gain * 1e3:10.4f} {blurred[0] * 1e3:12.4f} {blurred[1] * 1e3:7.4f} "
+                  f"{top_share(error ** 2):9.2f}")
+        renderer.release()
+
+
+def phase(args) -> None:
+    import onnx
+    import onnxruntime as ort
+
+    from neumip.core import contract as C
+    from neumip.training.dataset import open_dataset
+
+    data = open_dataset(args.data)
+    queries, target = np.asarray(data.queries), np.asarray(data.rgb, np.float64)
+    bins = ((0.0, 0.125), (0.125, 0.25), (0.25, 0.375), (0.375, 0.5))
+    for path in args.models:
+        model = onnx.load(str(path))
+        config = json.loads({p.key: p.value for p in model.metadata_props}[C.META_CONFIG])
+        resolution = int(config["resolution"])
+        answer = ort.InferenceSession(str(path), providers=["CPUExecutionProvider"]).run(
+            None, {C.ONNX_INPUT: queries})[0].astype(np.float64)
+        error = ((answer - target) ** 2).mean(1)
+        lod = C.level_of_detail(queries[:, C.SIGMA], resolution)
+        print(f"== {path} ({resolution}^2): MSE x1e-3 {error.mean() * 1e3:.4f} on {len(queries)} queries; by distance "
+              f"from the nearest texel centre (texels): " + ", ".join(f"[{lo}, {hi})" for lo, hi in bins))
+        for level in range(int(np.log2(resolution)) - 1):
+            near = np.abs(lod - level) < 0.15
+            size = resolution >> level
+            x, y = ((queries[:, c] * size - 0.5) % 1.0 for c in (C.U, C.V))  # 0: on a texel centre
+            distance = np.maximum(np.minimum(x, 1 - x), np.minimum(y, 1 - y))
+            cells = []
+            for lo, hi in bins:
+                sel = near & (distance >= lo) & (distance < hi)
+                cells.append(f"{error[sel].mean() * 1e3:8.4f} ({sel.sum():5d})" if sel.sum() >= 50 else f"{'-':>16}")
+            print(f"   level {level} ({size}^2)  " + "  ".join(cells))
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    sub = parser.add_subparsers(dest="command", required=True)
+    p = sub.add_parser("images", help="a report view's error in image space")
+    p.add_argument("material", help="a shipped material or a description file (.toml)")
+    p.add_argument("views", help="comma-separated report views (level4_high, low_light, ...)")
+    p.add_argument("methods", help="comma-separated report methods (C, N, Nmaps, ...)")
+    p.add_argument("--models", type=Path, default=Path("models"))
+    p.add_argument("--cache", type=Path, default=Path("runs/floor/renders"))
+    p = sub.add_parser("phase", help="models' error on data by position in the texel grid")
+    p.add_argument("data", help="a `neumip generate` data set (held out: another seed than the training data's)")
+    p.add_argument("models", type=Path, nargs="+")
+    args = parser.parse_args()
+    {"images": images, "phase": phase}[args.command](args)
+
+
+if __name__ == "__main__":
+    main()
