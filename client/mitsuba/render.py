@@ -2,7 +2,7 @@
 
 Memory of a wavefront grows with its lane count (about 680 MiB per million lanes), so an image of
 ``W x H`` pixels at ``spp`` samples is rendered as several `mi.render` passes of at most
-``RenderConfig.max_lanes`` lanes each (different seeds), averaged. The image file is written only
+``RenderConfig.max_lanes`` lanes each (each its own seed, `pass_seed`), averaged. The image file is written only
 after every pass succeeded, through a temporary file and an atomic rename: a failed render leaves
 no file behind (and never a partial one under the requested name).
 """
@@ -43,7 +43,7 @@ class RenderConfig:
     max_lanes: int = 2**21
     """Most lanes (pixels x samples) in one pass; bounds memory (~680 MiB per million lanes)."""
     seed: int = 0
-    """Seed of the first pass; pass i uses seed + i."""
+    """Seed of the render: its first pass's; the others' follow from it (`pass_seed`)."""
     threads: int = 0
     """Mitsuba worker threads (0: leave drjit's default)."""
     footprint_spp: int | None = None
@@ -129,12 +129,21 @@ def render_scene(
     start = time.perf_counter()
     total = None
     for i, k in enumerate(plan):
-        image = _render_pass(scene, integrator, k, config.seed + i)
+        image = _render_pass(scene, integrator, k, pass_seed(config.seed, i))
         total = image * k if total is None else total + image * k
         if on_pass:
             on_pass(i + 1, len(plan))
     stats = integrator.shading.stats if neural else ShadingStats()
     return RenderResult(total / spp, time.perf_counter() - start, len(plan), spp, stats)
+
+
+def pass_seed(seed: int, index: int) -> int:
+    """Seed of pass `index` of a render seeded `seed`: `seed` itself for the first pass, a 32-bit mix of
+    (seed, index) for the others. Renders of nearby seeds share no pass: with ``seed + index``, two-pass renders
+    of seeds 0 and 1 both held the pass of seed 1, and their difference saw half their noise."""
+    if index == 0:
+        return seed
+    return int(np.random.SeedSequence([seed, index]).generate_state(1)[0])
 
 
 def _render_pass(scene, integrator, spp: int, seed: int) -> np.ndarray:

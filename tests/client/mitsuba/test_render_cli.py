@@ -10,9 +10,19 @@ import pytest
 from neumip.client import cli
 from neumip.client.local import LocalMaterials
 from neumip.client.mitsuba.bsdf import mi
-from neumip.client.mitsuba.render import RenderConfig, RenderError, load_scene, pass_plan, render_scene
+from neumip.client.mitsuba.render import RenderConfig, RenderError, load_scene, pass_plan, pass_seed, render_scene
 
 from .scenes import write_xml
+
+
+def test_pass_seeds_of_nearby_renders_are_disjoint():
+    """Renders of seeds 0, 1, ... share no pass (the report's two seeds of a view estimate its noise from their
+    difference); the first pass keeps the render's own seed."""
+    seeds = {s: [pass_seed(s, i) for i in range(8)] for s in range(64)}
+    assert all(passes[0] == s for s, passes in seeds.items())
+    every = [x for passes in seeds.values() for x in passes]
+    assert len(set(every)) == len(every)
+    assert all(0 <= x < 2**32 for x in every)
 
 
 def test_pass_plan_bounds_lanes_and_sums_to_spp():
