@@ -10,6 +10,10 @@ mean and its bias, the MSE left after the best per-channel gain (a brightness er
 by 4 and 16 pixels (its low-frequency part), and the share of the squared error in the worst 1 % of pixels
 (fireflies); and for R, that share of its two seeds' difference.
 
+``--footprint-spp K`` renders the neural methods with each sample's footprint that of a K-spp render
+(`RenderConfig.footprint_spp`; the report's is its own spp, 64: an eighth of the pixel's), not cached: a wider
+footprint prefilters more of the pixel in the lookup (less noise), and the samples' spread blurs it once more.
+
 ``phase DATA MODELS``: each model's MSE on a held-out data set (``neumip generate ... --seed 7``) by where the
 query falls in the texel grid of the level it reads (queries within 0.15 of a whole level; distance from the
 nearest texel centre in texels, the larger of the two axes). A bilinear pyramid that cannot reconstruct its level's
@@ -17,6 +21,7 @@ detail errs more half-way between texel centres. Use models without the parallax
 relief moves the lookup away from the query's uv.
 
     .venv/bin/python benchmarks/error_structure.py images foam level0_high,level2_high,level4_high C,N,Nmaps,Nmaps0
+    .venv/bin/python benchmarks/error_structure.py images foam level2_high Nmaps --footprint-spp 4
     neumip generate foam -o runs/floor/foam_q --queries 262144 --resolution 256 --spp 16 --seed 7
     .venv/bin/python benchmarks/error_structure.py phase runs/floor/foam_q models/foam_maps_nooffset.onnx
 """
@@ -49,8 +54,10 @@ def box_blur(image: np.ndarray, size: int) -> np.ndarray:
 
 def images(args) -> None:
     from neumip.client.kernel import KernelMaterials
+    from neumip.client.mitsuba.render import RenderConfig, render_scene
     from neumip.training.microgeometry.description import resolve
     from neumip.training.report import metrics as Q
+    from neumip.training.report.methods import NEURAL
     from neumip.training.report.cache import RenderCache
     from neumip.training.report.config import ReportConfig
     from neumip.training.report.pipeline import REFERENCE_SEEDS
@@ -68,13 +75,19 @@ def images(args) -> None:
         r0, r1 = (renderer.render(view, "R", cfg.reference_spp, s)[0] for s in REFERENCE_SEEDS)
         ref = (r0 + r1) / 2
         ref_noise = Q.noise_mse(r0, r1) / 2
-        print(f"== {args.material} {name}: film {ref.shape[1]} x {ref.shape[0]}, R mean {ref.mean():.4f}, "
+        footprint = f", neural footprints of {args.footprint_spp} spp" if args.footprint_spp else ""
+        print(f"== {args.material} {name}{footprint}: film {ref.shape[1]} x {ref.shape[0]}, R mean {ref.mean():.4f}, "
               f"R noise {ref_noise * 1e3:.4f}e-3; R's two seeds: worst 1 % of pixels hold "
               f"{top_share((r0 - r1) ** 2):.2f} of their squared difference")
         print(f"   {'method':<7} {'MSE x1e-3':>9} {'bias':>7} {'mean/R':>7} {'after gain':>10} "
               f"{'blurred 4 px':>12} {'16 px':>7} {'worst 1 %':>9}")
         for method in args.methods.split(","):
-            a, b = (renderer.render(view, method, cfg.spp, s)[0] for s in (0, 1))
+            if args.footprint_spp and method in NEURAL:
+                a, b = (render_scene(renderer.scene(view, method), renderer.evaluator, RenderConfig(
+                    spp=cfg.spp, seed=s, max_lanes=cfg.max_lanes, footprint_spp=args.footprint_spp)).image[..., :3]
+                    for s in (0, 1))
+            else:
+                a, b = (renderer.render(view, method, cfg.spp, s)[0] for s in (0, 1))
             mean = (a + b) / 2
             error = mean - ref
             mse = float((error ** 2).mean())
@@ -129,6 +142,8 @@ def main() -> None:
     p.add_argument("methods", help="comma-separated report methods (C, N, Nmaps, ...)")
     p.add_argument("--models", type=Path, default=Path("models"))
     p.add_argument("--cache", type=Path, default=Path("runs/floor/renders"))
+    p.add_argument("--footprint-spp", type=int, metavar="K", help="neural methods: each sample's footprint that of "
+                   "a K-spp render (default: the report's, its own spp)")
     p = sub.add_parser("phase", help="models' error on data by position in the texel grid")
     p.add_argument("data", help="a `neumip generate` data set (held out: another seed than the training data's)")
     p.add_argument("models", type=Path, nargs="+")
