@@ -145,8 +145,8 @@ def geometry_resolution(args) -> int:
     return args.geometry_resolution or find_description(args.material).resolution
 
 
-def ratio_scenes(mi, material, args) -> dict:
-    """name -> (scene, evaluator or None) of the four renders the ratios section times."""
+def ratio_scenes(mi, args) -> dict:
+    """name -> (scene, evaluator key or None) of the renders the ratios section times."""
     from neumip.training.microgeometry import mesh
     from neumip.training.microgeometry.description import find_description, resolve
 
@@ -201,7 +201,7 @@ def ratios(args) -> None:
 
         evaluators["kernel before"] = Before(args.kernel_before, args.models, namespace_of(mi.Float))
     scenes = {name: (mi.load_dict(scene), evaluators[ev])
-              for name, (scene, ev) in ratio_scenes(mi, local.get(material), args).items()}
+              for name, (scene, ev) in ratio_scenes(mi, args).items()}
     print(f"## ratios: {args.material} on a plane at {ZENITH_DEG:g} deg, {args.tiles} x {args.tiles} tiles, "
           f"{args.size}^2 px, {args.spp} spp, max_depth {args.max_depth}, rr_depth {args.rr_depth}, "
           f"geometry {geometry_resolution(args)}^2 per tile, model {local.get(material).config['resolution']}^2; "
@@ -290,14 +290,13 @@ def stages(args) -> None:
     """The neural plane of the ratios section rendered with the model as is, without each of its stages, and with
     the same material from the ``--compare`` folders, in interleaved rounds with the reference geometry."""
     from neumip.client.kernel import KernelMaterials, namespace_of
-    from neumip.client.local import LocalMaterials
     from neumip.client.mitsuba.render import mi
 
     material = material_name(args)
     with tempfile.TemporaryDirectory() as tmp:
         folders = stage_variants(args.models / f"{material}.onnx", Path(tmp))
         folders.update({str(d): d for d in args.compare})
-        scenes = ratio_scenes(mi, LocalMaterials(args.models).get(material), args)
+        scenes = ratio_scenes(mi, args)
         reference, neural = (mi.load_dict(scenes[name][0]) for name in ("reference (path)", "neural (neumip_path)"))
         runs = {"reference (path)": (reference, None),
                 **{label: (neural, KernelMaterials(d, namespace_of(mi.Float))) for label, d in folders.items()}}

@@ -1,8 +1,8 @@
 """Where a report view's remaining error sits: brightness, pixel-scale detail, a few pixels, or the texel grid.
 
-The report splits each method's image MSE into noise and bias (`training/report/metrics.bias_noise`). Some
-materials keep a bias that no model lowers (foam: about 0.14e-3 for every neural model at 4, 16 and 64 texels per
-pixel). Two ways to look at it:
+The report splits each method's image MSE into noise and bias (`training/report/metrics.bias_noise`). Where a
+bias stays put whatever the model (as foam's 0.14e-3 did at 4-64 texels per pixel, before `render.pass_seed`: it was
+noise the seed pairs missed, `results/floor.txt`), two ways to look at it:
 
 ``images MATERIAL VIEWS METHODS``: renders the report's views as `neumip report` does (R at the report's spp, two
 seeds; each method at 64 spp, two seeds; cached in ``--cache``) and prints, per method, the MSE of the two seeds'
@@ -12,7 +12,8 @@ by 4 and 16 pixels (its low-frequency part), and the share of the squared error 
 
 ``--footprint-spp K`` renders the neural methods with each sample's footprint that of a K-spp render
 (`RenderConfig.footprint_spp`; the report's is its own spp, 64: an eighth of the pixel's), not cached: a wider
-footprint prefilters more of the pixel in the lookup (less noise), and the samples' spread blurs it once more.
+footprint prefilters more of the pixel in the lookup (less of the texture's noise, where that is the render's
+noise), and the samples' spread blurs it once more.
 
 ``phase DATA MODELS``: each model's MSE on a held-out data set (``neumip generate ... --seed 7``) by where the
 query falls in the texel grid of the level it reads (queries within 0.15 of a whole level; distance from the
@@ -63,13 +64,13 @@ def images(args) -> None:
     from neumip.training.report.pipeline import REFERENCE_SEEDS
     from neumip.training.report.renderer import MaterialRenderer
     from neumip.training.report.run import find_materials
-    from neumip.training.report.views import DISTANCE_VIEWS, EXTRA_VIEWS
+    from neumip.training.report.views import VIEWS
 
     desc = find_materials([args.material], args.models)[Path(args.material).stem]
     cfg = ReportConfig()
     renderer = MaterialRenderer(Path(args.material).stem, desc, resolve(desc), args.models, KernelMaterials(args.models),
                                 cfg, RenderCache(args.cache))
-    views = {v.name: v for v in DISTANCE_VIEWS + EXTRA_VIEWS}
+    views = {v.name: v for v in VIEWS}
     for name in args.views.split(","):
         view = views[name]
         r0, r1 = (renderer.render(view, "R", cfg.reference_spp, s)[0] for s in REFERENCE_SEEDS)
@@ -91,7 +92,7 @@ def images(args) -> None:
             mean = (a + b) / 2
             error = mean - ref
             mse = float((error ** 2).mean())
-            bias = mse - Q.noise_mse(a, b) / 2 - ref_noise  # the mean of two seeds has half one render's noise
+            bias = mse - Q.noise_mse(a, b) / 2 - ref_noise  # signed (Q.bias_noise clamps at 0); the mean of two seeds has half one render's noise
             gain = (mean * ref).sum((0, 1)) / np.maximum((mean * mean).sum((0, 1)), 1e-30)
             after_gain = float(((mean * gain - ref) ** 2).mean())
             blurred = [float((box_blur(error, k) ** 2).mean()) for k in (4, 16)]

@@ -80,7 +80,7 @@ def main() -> None:
     from neumip.training.report.pipeline import REFERENCE_SEEDS
     from neumip.training.report.renderer import MaterialRenderer
     from neumip.training.report.run import find_materials
-    from neumip.training.report.views import DISTANCE_VIEWS, EXTRA_VIEWS
+    from neumip.training.report.views import VIEWS
 
     name = Path(args.material).stem
     desc = find_materials([args.material], args.models)[name]
@@ -90,7 +90,7 @@ def main() -> None:
     scratch = RenderCache(args.scratch) if args.scratch else renderer.cache
     settings = GenerateSettings()  # the tracer and tiling of `neumip generate` (the training data's)
     tracer = QueryTracer(geo, settings.tracer, settings.tiling)
-    views = {v.name: v for v in DISTANCE_VIEWS + EXTRA_VIEWS}
+    views = {v.name: v for v in VIEWS}
 
     def cached_render(view, method: str, spp: int, seed: int) -> np.ndarray:
         main_cache = renderer.cache

@@ -34,7 +34,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     )
     p.add_argument("--max-lanes", type=int, default=None, help="most pixels x samples per pass (memory bound)")
     _scene_params(p)
-    p.add_argument("--seed", type=int, default=0, help="seed of the first pass")
+    p.add_argument("--seed", type=int, default=0, help="seed of the render (renders of different seeds share no pass)")
     p.add_argument("--engine", choices=("kernel", "onnxruntime"), default="kernel",
                    help="in-process evaluation: the material's ONNX graph traced into the render's drjit "
                    "kernels (default), or run by ONNX Runtime (the server's engine)")

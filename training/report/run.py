@@ -24,7 +24,7 @@ from .cache import RenderCache
 from .config import ReportConfig
 from .methods import NEURAL_MODELS, NO_OFFSET, neural_models
 from .pipeline import REFERENCE_SEEDS, run_material, view_steps
-from .renderer import NEURAL_VERSION, file_digest
+from .renderer import CACHE_VERSION, NEURAL_VERSION, file_digest
 from .views import DISTANCE_VIEWS, LADDER_LIGHT, VIEWS, View
 
 log = logging.getLogger(__name__)
@@ -197,7 +197,7 @@ def horizon(out, desc, config, evaluator, renders, cache, progress) -> dict:
     }
     images, rows = {}, {}
     for method, make in bsdfs.items():
-        key = {"horizon": HORIZON_MATERIAL, "method": method, "film": asdict(config.horizon_film), "spp": config.spp}
+        key = {"version": CACHE_VERSION, "horizon": HORIZON_MATERIAL, "method": method, "film": asdict(config.horizon_film), "spp": config.spp}
         if method == "N":
             key["model"], key["neural_version"] = file_digest(evaluator.get(HORIZON_MATERIAL).path), NEURAL_VERSION
         cached = cache.get(key)
@@ -260,7 +260,7 @@ def _render_variant(renderer, spec, renders, name, onnx, config, view) -> np.nda
 
     from .methods import neural_scene
 
-    key = {"tradeoff": name, "model": file_digest(onnx), "view": asdict(view), "film": asdict(spec.film),
+    key = {"version": CACHE_VERSION, "tradeoff": name, "model": file_digest(onnx), "view": asdict(view), "film": asdict(spec.film),
            "spp": config.spp, "resolution": spec.resolution, "neural_version": NEURAL_VERSION}
     cached = renderer.cache.get(key)
     if cached is not None:

@@ -109,6 +109,24 @@ def test_evaluator_failure_mid_render_writes_nothing(model_dir, tmp_path):
     assert isinstance(info.value.__cause__, RuntimeError)
 
 
+def test_renders_of_nearby_seeds_share_no_pass(model_dir, tmp_path, monkeypatch):
+    """Renders of seeds 0 and 1, four passes each, draw on eight different pass seeds (`pass_seed`): with
+    ``seed + i`` they shared three, and the difference of two such renders saw a quarter of their noise."""
+    from neumip.client.mitsuba import render as R
+
+    real, seeds = R._render_pass, []
+
+    def recording(scene, integrator, spp, seed):
+        seeds.append(seed)
+        return real(scene, integrator, spp, seed)
+
+    monkeypatch.setattr(R, "_render_pass", recording)
+    scene = load_scene(write_xml(tmp_path))
+    for seed in (0, 1):
+        assert render_scene(scene, LocalMaterials(model_dir), RenderConfig(spp=4, seed=seed, max_lanes=1)).passes == 4
+    assert seeds[0] == 0 and seeds[4] == 1 and len(set(seeds)) == 8
+
+
 def test_neural_scene_needs_neumip_path(model_dir, tmp_path):
     scene = load_scene(write_xml(tmp_path))
     with pytest.raises(RenderError, match="neumip_path"):
