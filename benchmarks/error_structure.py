@@ -15,6 +15,10 @@ by 4 and 16 pixels (its low-frequency part), and the share of the squared error 
 footprint prefilters more of the pixel in the lookup (less of the texture's noise, where that is the render's
 noise), and the samples' spread blurs it once more.
 
+``--light sun`` or ``--light sky`` renders every method under the report's directional light alone or its dim
+constant environment alone (the report's scenes with the other emitter left out; cached in a subfolder of
+``--cache`` of that name): which light a method's error comes with.
+
 ``phase DATA MODELS``: each model's MSE on a held-out data set (``neumip generate ... --seed 7``) by where the
 query falls in the texel grid of the level it reads (queries within 0.15 of a whole level; distance from the
 nearest texel centre in texels, the larger of the two axes). A bilinear pyramid that cannot reconstruct its level's
@@ -68,8 +72,15 @@ def images(args) -> None:
 
     desc = find_materials([args.material], args.models)[Path(args.material).stem]
     cfg = ReportConfig()
+    cache = args.cache
+    if args.light != "both":  # the report's scenes with one emitter: a cache of their own (keys do not name lights)
+        from neumip.training.report import methods
+
+        both = methods.emitter_dicts
+        methods.emitter_dicts = lambda view: {name: e for name, e in both(view).items() if name == args.light}
+        cache = args.cache / f"light-{args.light}"
     renderer = MaterialRenderer(Path(args.material).stem, desc, resolve(desc), args.models, KernelMaterials(args.models),
-                                cfg, RenderCache(args.cache))
+                                cfg, RenderCache(cache))
     views = {v.name: v for v in VIEWS}
     for name in args.views.split(","):
         view = views[name]
@@ -77,6 +88,7 @@ def images(args) -> None:
         ref = (r0 + r1) / 2
         ref_noise = Q.noise_mse(r0, r1) / 2
         footprint = f", neural footprints of {args.footprint_spp} spp" if args.footprint_spp else ""
+        footprint += f", {args.light} alone" if args.light != "both" else ""
         print(f"== {args.material} {name}{footprint}: film {ref.shape[1]} x {ref.shape[0]}, R mean {ref.mean():.4f}, "
               f"R noise {ref_noise * 1e3:.4f}e-3; R's two seeds: worst 1 % of pixels hold "
               f"{top_share((r0 - r1) ** 2):.2f} of their squared difference")
@@ -143,6 +155,8 @@ def main() -> None:
     p.add_argument("methods", help="comma-separated report methods (C, N, Nmaps, ...)")
     p.add_argument("--models", type=Path, default=Path("models"))
     p.add_argument("--cache", type=Path, default=Path("runs/floor/renders"))
+    p.add_argument("--light", choices=("both", "sun", "sky"), default="both",
+                   help="render under the report's directional light (sun) or its environment (sky) alone")
     p.add_argument("--footprint-spp", type=int, metavar="K", help="neural methods: each sample's footprint that of "
                    "a K-spp render (default: the report's, its own spp)")
     p = sub.add_parser("phase", help="models' error on data by position in the texel grid")
