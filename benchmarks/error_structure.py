@@ -29,6 +29,14 @@ relief moves the lookup away from the query's uv.
     .venv/bin/python benchmarks/error_structure.py images foam level2_high Nmaps --footprint-spp 4
     neumip generate foam -o runs/floor/foam_q --queries 262144 --resolution 256 --spp 16 --seed 7
     .venv/bin/python benchmarks/error_structure.py phase runs/floor/foam_q models/foam_maps_nooffset.onnx
+
+``directions MATERIAL VIEW MODELS``: the models' answers against the training data's own estimator (`QueryTracer`,
+``--spp`` samples a query) on queries at one report view's directions alone (its light, and the view direction
+at the image centre), at random positions and a footprint of ``--texels`` map texels: is a model off there in
+query space too, or only in the render?
+
+    .venv/bin/python benchmarks/error_structure.py directions benchmarks/materials/planks.toml level2_high \
+        benchmarks/materials/planks_models/planks_maps.onnx
 """
 
 from __future__ import annotations
@@ -146,6 +154,39 @@ def phase(args) -> None:
             print(f"   level {level} ({size}^2)  " + "  ".join(cells))
 
 
+def directions(args) -> None:
+    import math
+
+    import onnxruntime as ort
+
+    from neumip.core import contract as C
+    from neumip.training.microgeometry.description import find_description, resolve
+    from neumip.training.microgeometry.generate import GenerateSettings
+    from neumip.training.microgeometry.tracer import QueryTracer
+    from neumip.training.report.views import VIEWS, light_direction
+
+    view = {v.name: v for v in VIEWS}[args.view]
+    desc = find_description(args.material)
+    wi = light_direction(view)
+    t = math.radians(view.theta)
+    rng = np.random.default_rng(args.seed)
+    queries = np.zeros((args.queries, C.QUERY_DIM), np.float32)
+    queries[:, [C.U, C.V]] = rng.random((args.queries, 2))
+    queries[:, C.SIGMA] = args.texels / desc.resolution
+    queries[:, [C.WI_X, C.WI_Y]] = wi[:2]
+    queries[:, [C.WO_X, C.WO_Y]] = (0.0, -math.sin(t))  # towards the camera, at the image centre
+    settings = GenerateSettings()
+    target = QueryTracer(resolve(desc), settings.tracer, settings.tiling).estimate(queries, args.spp, args.seed)
+    target = target.astype(np.float64)
+    print(f"== {args.material} {args.view}: {args.queries} queries at wi {np.round(wi, 3)}, view zenith {view.theta:g} "
+          f"degrees, {args.texels:g} texels; target mean {np.round(target.mean(0), 4)} ({args.spp} spp)")
+    for path in args.models:
+        answer = ort.InferenceSession(str(path), providers=["CPUExecutionProvider"]).run(
+            None, {C.ONNX_INPUT: queries})[0].astype(np.float64)
+        print(f"   {path}: mean target / answer {np.round(target.mean(0) / np.maximum(answer.mean(0), 1e-30), 3)}, "
+              f"MSE x1e-3 {((answer - target) ** 2).mean() * 1e3:.4f}")
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     sub = parser.add_subparsers(dest="command", required=True)
@@ -162,8 +203,17 @@ def main() -> None:
     p = sub.add_parser("phase", help="models' error on data by position in the texel grid")
     p.add_argument("data", help="a `neumip generate` data set (held out: another seed than the training data's)")
     p.add_argument("models", type=Path, nargs="+")
+    p = sub.add_parser("directions", help="models against the data's estimator at one report view's directions")
+    p.add_argument("material", help="a shipped material or a description file (.toml)")
+    p.add_argument("view", help="a report view (level2_high, ...)")
+    p.add_argument("models", type=Path, nargs="+")
+    p.add_argument("--queries", type=int, default=16384)
+    p.add_argument("--spp", type=int, default=256, help="path samples a query")
+    p.add_argument("--texels", type=float, default=0.5, help="footprint (std) in map texels (the report's 64-spp "
+                   "samples at 4 texels a pixel read about half a texel)")
+    p.add_argument("--seed", type=int, default=1)
     args = parser.parse_args()
-    {"images": images, "phase": phase}[args.command](args)
+    {"images": images, "phase": phase, "directions": directions}[args.command](args)
 
 
 if __name__ == "__main__":
