@@ -17,7 +17,9 @@ noise), and the samples' spread blurs it once more.
 
 ``--light sun`` or ``--light sky`` renders every method under the report's directional light alone or its dim
 constant environment alone (the report's scenes with the other emitter left out; cached in a subfolder of
-``--cache`` of that name): which light a method's error comes with.
+``--cache`` of that name): which light a method's error comes with. ``--light uniform`` keeps both but lets a
+light sample choose either with probability 1/2 (Mitsuba's default; the report's scenes choose in proportion to
+the irradiance each gives).
 
 ``phase DATA MODELS``: each model's MSE on a held-out data set (``neumip generate ... --seed 7``) by where the
 query falls in the texel grid of the level it reads (queries within 0.15 of a whole level; distance from the
@@ -85,7 +87,11 @@ def images(args) -> None:
         from neumip.training.report import methods
 
         both = methods.emitter_dicts
-        methods.emitter_dicts = lambda view: {name: e for name, e in both(view).items() if name == args.light}
+        if args.light == "uniform":  # both, each chosen with probability 1/2 (Mitsuba's default)
+            methods.emitter_dicts = lambda view: {name: {k: v for k, v in e.items() if k != "sampling_weight"}
+                                                  for name, e in both(view).items()}
+        else:
+            methods.emitter_dicts = lambda view: {name: e for name, e in both(view).items() if name == args.light}
         cache = args.cache / f"light-{args.light}"
     renderer = MaterialRenderer(Path(args.material).stem, desc, resolve(desc), args.models, KernelMaterials(args.models),
                                 cfg, RenderCache(cache))
@@ -96,7 +102,7 @@ def images(args) -> None:
         ref = (r0 + r1) / 2
         ref_noise = Q.noise_mse(r0, r1) / 2
         footprint = f", neural footprints of {args.footprint_spp} spp" if args.footprint_spp else ""
-        footprint += f", {args.light} alone" if args.light != "both" else ""
+        footprint += {"both": "", "uniform": ", either light chosen with probability 1/2"}.get(args.light, f", {args.light} alone")
         print(f"== {args.material} {name}{footprint}: film {ref.shape[1]} x {ref.shape[0]}, R mean {ref.mean():.4f}, "
               f"R noise {ref_noise * 1e3:.4f}e-3; R's two seeds: worst 1 % of pixels hold "
               f"{top_share((r0 - r1) ** 2):.2f} of their squared difference")
@@ -196,8 +202,9 @@ def main() -> None:
     p.add_argument("methods", help="comma-separated report methods (C, N, Nmaps, ...)")
     p.add_argument("--models", type=Path, default=Path("models"))
     p.add_argument("--cache", type=Path, default=Path("runs/floor/renders"))
-    p.add_argument("--light", choices=("both", "sun", "sky"), default="both",
-                   help="render under the report's directional light (sun) or its environment (sky) alone")
+    p.add_argument("--light", choices=("both", "sun", "sky", "uniform"), default="both",
+                   help="render under the report's directional light (sun) or its environment (sky) alone, or under "
+                        "both with each light sample choosing either with probability 1/2 (uniform: Mitsuba's default)")
     p.add_argument("--footprint-spp", type=int, metavar="K", help="neural methods: each sample's footprint that of "
                    "a K-spp render (default: the report's, its own spp)")
     p = sub.add_parser("phase", help="models' error on data by position in the texel grid")

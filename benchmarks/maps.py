@@ -37,7 +37,7 @@ os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
 import numpy as np  # noqa: E402
 
 from neumip.core.config import MaterialConfig  # noqa: E402
-from neumip.training.maps import MapConfig  # noqa: E402
+from neumip.training.maps import RESIDUAL_EVERY_LEVEL, MapConfig  # noqa: E402
 from neumip.training.train_config import PRESETS  # noqa: E402
 
 SHIP = replace(PRESETS["ship"], validate_every=0)
@@ -61,7 +61,7 @@ VARIANTS: dict[str, tuple[dict, MapConfig | None, object]] = {
     "M_k4": ({}, MapConfig(), replace(SHIP, candidates=4)),
     "M_hz_k4": ({}, MapConfig(horizons=8), replace(SHIP, candidates=4)),
     "M_1x1": ({}, MapConfig(neighbourhood=1), SHIP),
-    "M_residual": ({}, MapConfig(residual=True), SHIP),
+    "M_residual": ({}, MapConfig(residual=RESIDUAL_EVERY_LEVEL), SHIP),
     "M_noblur": ({}, MapConfig(), replace(SHIP, blur_start=0.0)),
     # the classical base (MaterialConfig.base at the maps' resolution): base(maps) * exp(c) + a
     "Nb": ({"base": "maps"}, None, SHIP),
@@ -136,12 +136,17 @@ VARIANTS: dict[str, tuple[dict, MapConfig | None, object]] = {
     **{f"HL{'' if k == 0 else f'_seed{k}'}": ({"base": "maps", "relief": "maps", "terminator": "none",
                                                "local_frame": True}, None, replace(SHIP, seed=k)) for k in range(4)},
     # the shipped map-informed recipe (`fit --maps --horizons 8` on the shipped recipe), at 64^2 and at the maps'
-    # 256^2, where the encoder leaves nothing per texel to fit from noisy queries (issue 25, lever 1), and with
-    # the free residual per texel and the `quality` schedule (GPU runs: results/gpu.txt)
-    **{f"Mship{res}{suffix}": ({"base": "maps", "relief": "maps", "terminator": "none", "local_frame": True,
-                                "resolution": int(res or 64)}, MapConfig(horizons=8, residual=residual), schedule)
-       for res in ("", "256") for suffix, residual, schedule in (("", False, SHIP), ("_res", True, SHIP),
-                                                                 ("_quality", False, QUALITY))},
+    # 256^2, where the encoder leaves nothing per texel to fit from noisy queries (issue 25, lever 1), with
+    # the free residual on every level (_res), or on the levels of at most 8 or 16 texels a side (_r8, _r16: where
+    # the data hold hundreds of queries per texel; results/residual.txt), and the `quality` schedule (GPU runs:
+    # results/gpu.txt)
+    **{f"Mship{res}{suffix}{seed_suffix}": ({"base": "maps", "relief": "maps", "terminator": "none", "local_frame": True,
+                                             "resolution": int(res or 64)}, MapConfig(horizons=8, residual=residual),
+                                            replace(schedule, seed=seed))
+       for res in ("", "256") for suffix, residual, schedule in (("", 0, SHIP), ("_res", RESIDUAL_EVERY_LEVEL, SHIP),
+                                                                 ("_r8", 8, SHIP), ("_r16", 16, SHIP),
+                                                                 ("_quality", 0, QUALITY))
+       for seed, seed_suffix in ((0, ""), (1, "_seed1"))},
     "N128": ({"resolution": 128}, None, SHIP),
     "M128": ({"resolution": 128}, MapConfig(), SHIP),
     "N256": ({"resolution": 256}, None, SHIP),

@@ -39,6 +39,8 @@ def add_relief_argument(p: argparse.ArgumentParser, help_tail: str = "") -> None
                    help=RELIEF_HELP + help_tail + f"; STEPS defaults to {MaterialConfig.relief_steps}")
 
 
+RESIDUAL_HELP = ("with --maps: also train a free texture, added to the encoded one, on every level of at most SIZE "
+                 "texels per side (MapConfig.residual; default 0: none), where the data hold many queries per texel")
 HIDDEN_HELP = (f"width of the hidden layers of both MLPs (default {MaterialConfig.hidden}, the paper's; "
                "the shipped materials too; 48 was measured, not shipped: benchmarks/results/quality_levers_log.md)")
 
@@ -66,6 +68,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--horizons", type=int, default=0, metavar="K",
                    help="with --maps: the horizon's elevation towards K azimuths among the map features "
                         "(shadows cast from afar; MapConfig.horizons)")
+    p.add_argument("--residual", type=int, default=0, metavar="SIZE", help=RESIDUAL_HELP)
     p.add_argument("--description", default="", help="short description stored in the model metadata")
     p.add_argument("--head", choices=("relu", "yuv"), default="relu",
                    help="decoder output head: relu (paper) or yuv (authors' exp(YUV) - 1 with a shadow mask)")
@@ -124,13 +127,26 @@ def train_settings(args: argparse.Namespace):
 def _map_source(args: argparse.Namespace):
     """(MapConfig or None, Microgeometry) of `--maps`, `--base` and `--relief`: the material's maps (the data's own
     material's, or the one `--maps` names), with the map encoder's config under `--maps`; None without either."""
-    if args.maps is None and args.horizons:
-        raise ValueError("--horizons is a feature of the map-informed model: pass --maps too")
     if args.maps is None and not args.base and not args.relief:
+        check_map_options(args, False)
+        return None
+    return map_config(args, args.maps is not None), data_geometry(args.data, args.maps)
+
+
+def map_config(args: argparse.Namespace, maps: bool):
+    """The map encoder's `MapConfig` of `--maps`, `--horizons` and `--residual` (None without `--maps`)."""
+    check_map_options(args, maps)
+    if not maps:
         return None
     from .maps import MapConfig
 
-    return (MapConfig(horizons=args.horizons) if args.maps is not None else None), data_geometry(args.data, args.maps)
+    return MapConfig(horizons=args.horizons, residual=args.residual)
+
+
+def check_map_options(args: argparse.Namespace, maps: bool) -> None:
+    for flag in ("horizons", "residual"):
+        if getattr(args, flag) and not maps:
+            raise ValueError(f"--{flag} is a feature of the map-informed model: pass --maps too")
 
 
 def data_geometry(data: str | Path, material: str | None = None):

@@ -48,6 +48,7 @@ def register(sub: argparse._SubParsersAction) -> None:
                    "material's prefiltered maps (training/TRAINING.md); the export is the paper's graph")
     p.add_argument("--horizons", type=int, default=0, metavar="K",
                    help="with --maps: the horizon's elevation towards K azimuths among the map features")
+    p.add_argument("--residual", type=int, default=0, metavar="SIZE", help=commands.RESIDUAL_HELP)
     p.add_argument("--hidden", type=int, default=MaterialConfig.hidden, help=commands.HIDDEN_HELP)
     p.add_argument("--half-vector", action="store_true", help=commands.HALF_VECTOR_HELP)
     p.add_argument("--local-frame", action="store_true", help=commands.LOCAL_FRAME_HELP)
@@ -124,7 +125,6 @@ def _fit(args: argparse.Namespace) -> int:
     from .fit import FitSettings, fit, work_folder
     from .base import base_resolution
     from .relief import relief_resolution
-    from .maps import MapConfig
     from .microgeometry.description import DescriptionError, find_description, resolve
     from .microgeometry.generate import GenerateSettings
     from .microgeometry.sampling import QuerySampling
@@ -146,9 +146,7 @@ def _fit(args: argparse.Namespace) -> int:
                                   relief_steps=args.relief or MaterialConfig.relief_steps)
         generate = GenerateSettings(spp=args.spp, sampling=QuerySampling(queries_per_texel=args.queries_per_texel),
                                     queries=args.queries)
-        if args.horizons and not args.maps:
-            raise ValueError("--horizons is a feature of the map-informed model: pass --maps too")
-        maps = MapConfig(horizons=args.horizons) if args.maps else None
+        maps = commands.map_config(args, args.maps)
     except (DescriptionError, ValueError) as exc:
         raise CommandError(str(exc)) from exc
     kind = ("neural offset" if material.offset else "no neural offset") + (", map-informed" if args.maps else "") \

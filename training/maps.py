@@ -151,8 +151,10 @@ class MapConfig:
     """Width of the encoder's hidden layers."""
     layers: int = 3
     """Linear layers of the encoder MLP."""
-    residual: bool = False
-    """Also train a free texture per level, added to the encoded one (the paper's latents as a residual)."""
+    residual: int = 0
+    """Also train a free texture, added to the encoded one, on every level of at most this many texels per side
+    (0: none): the paper's latents as a correction where the data hold many queries per texel. On the finest
+    levels it relearns the targets' noise (training/TRAINING.md)."""
     horizons: int = 0
     """Horizon elevations per texel, towards this many azimuths (0: none), among the features."""
 
@@ -161,6 +163,8 @@ class MapConfig:
             raise ValueError(f"neighbourhood must be 1 or 3, got {self.neighbourhood}")
         if self.horizons < 0:
             raise ValueError(f"horizons must be >= 0, got {self.horizons}")
+        if isinstance(self.residual, bool) or self.residual < 0:
+            raise ValueError(f"residual is a level size (texels per side, 0: none), got {self.residual!r}")
         if self.hidden < 1 or self.layers < 1:
             raise ValueError(f"hidden and layers must be >= 1, got {self.hidden}, {self.layers}")
 
@@ -179,4 +183,11 @@ class MapConfig:
 
     @classmethod
     def from_json(cls, text: str) -> "MapConfig":
-        return dataclass_from_dict(cls, json.loads(text))
+        data = json.loads(text)
+        if isinstance(data.get("residual"), bool):  # before it was a size: a free texture on every level, or none
+            data["residual"] = RESIDUAL_EVERY_LEVEL if data["residual"] else 0
+        return dataclass_from_dict(cls, data)
+
+
+RESIDUAL_EVERY_LEVEL = 1 << 16
+"""`MapConfig.residual` of a free texture on every level (larger than any pyramid)."""

@@ -157,7 +157,7 @@ class MapMaterial(NeuMIPMaterial):
     prefiltered map features (`maps.prefilter`, buffers ``map_features_{i}``) and the level feature
     to the level's latent texture; a second one (`offset_encoder`) maps the finest level's to the
     offset texture. `pyramid` and `offset_texture` hold a free part added to them: zero, and trained
-    only with `MapConfig.residual` (or set by `store_textures`).
+    only on the levels `MapConfig.residual` names (or set by `store_textures`).
 
     The decoder, the offset MLP and the lookups are the paper model's, so its export is the paper's
     graph with these textures baked in: `state_dict()` holds the textures the material answers with
@@ -174,9 +174,9 @@ class MapMaterial(NeuMIPMaterial):
             raise ValueError(f"map features of shapes {[tuple(f.shape) for f in features]} do not match "
                              f"the pyramid's levels {sizes}")
         with torch.no_grad():
-            for param in self.free_parameters():
+            for param, size in zip(self.free_parameters(), sizes + sizes[:1]):  # the offset texture: the finest size
                 param.zero_()
-                param.requires_grad_(maps.residual)
+                param.requires_grad_(size <= maps.residual)
         for i, size in enumerate(sizes):
             value = torch.zeros(size, size, maps.features) if features is None else torch.as_tensor(features[i])
             self.register_buffer(f"map_features_{i}", value.to(torch.float32).clone())

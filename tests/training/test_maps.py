@@ -126,7 +126,7 @@ def test_export_bakes_the_encoded_textures_and_answers_as_torch(offset, tmp_path
 
 def test_checkpoint_round_trip_keeps_the_encoder_and_the_free_parts(tmp_path):
     config = MaterialConfig(resolution=8)
-    material = random_map_material(config, MapConfig(neighbourhood=1, residual=True))
+    material = random_map_material(config, MapConfig(neighbourhood=1, residual=8))
     checkpoint.save(tmp_path / "c.pt", material)
     again, _ = checkpoint.load(tmp_path / "c.pt")
     assert isinstance(again, MapMaterial) and again.maps == material.maps
@@ -134,6 +134,25 @@ def test_checkpoint_round_trip_keeps_the_encoder_and_the_free_parts(tmp_path):
         torch.testing.assert_close(a, b, rtol=0, atol=0)
     q = random_queries(3000, seed=1)
     np.testing.assert_array_equal(answers(again.eval(), q), answers(material, q))
+
+
+def test_residual_trains_free_textures_on_the_coarse_levels_only():
+    config = MaterialConfig(resolution=16)  # levels 16, 8, 4, 2, 1
+    trained = [p.requires_grad for p in random_map_material(config, MapConfig(residual=4)).free_parameters()]
+    assert trained == [False, False, True, True, True, False]  # the offset texture is the finest level's
+    every = MapConfig(residual=16)
+    assert all(p.requires_grad for p in random_map_material(config, every).free_parameters())
+    assert not any(p.requires_grad for p in random_map_material(config).free_parameters())
+
+
+def test_map_config_reads_the_residual_of_older_files_and_refuses_a_flag():
+    assert MapConfig.from_json('{"residual": false}').residual == 0
+    assert MapConfig.from_json('{"residual": true}').residual >= 1 << 16  # every level, as it meant
+    assert MapConfig.from_json(MapConfig(residual=8).to_json()) == MapConfig(residual=8)
+    with pytest.raises(ValueError, match="level size"):
+        MapConfig(residual=True)
+    with pytest.raises(ValueError, match="level size"):
+        MapConfig(residual=-1)
 
 
 def test_store_textures_makes_the_material_answer_with_them():
@@ -194,8 +213,11 @@ def test_cli_trains_a_map_informed_model_from_a_description(plane, tmp_path, cap
     out = tmp_path / "plane.onnx"
     argv = ["train", str(plane.path), "-o", str(out), "--preset", "test", "--resolution", "8", "--steps", "5",
             "--batch", "256", "--checkpoint", str(tmp_path / "ck.pt")]
-    assert main([*argv, "--maps", str(bumps)]) == 0 and out.exists()
-    assert isinstance(checkpoint.load(tmp_path / "ck.pt")[0], MapMaterial)
+    assert main([*argv, "--maps", str(bumps), "--residual", "2"]) == 0 and out.exists()
+    material = checkpoint.load(tmp_path / "ck.pt")[0]
+    assert isinstance(material, MapMaterial) and material.maps.residual == 2
+    assert main([*argv, "--residual", "2", "--force"]) == 2  # a free residual is the map encoder's
+    assert "--residual is a feature of the map-informed model" in capsys.readouterr().err
     # the plane's data set names no material description to take the maps from
     assert main([*argv, "--maps", "--force"]) == 2
     assert "does not describe its material" in capsys.readouterr().err

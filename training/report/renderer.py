@@ -21,9 +21,10 @@ from .views import View, film_for_tiles
 
 log = logging.getLogger(__name__)
 
-CACHE_VERSION = 5
+CACHE_VERSION = 6
 """Bump when a change in this package (or in `render_scene`) changes what a cached render would hold (5: a
-render's passes after its first have seeds of their own, `render.pass_seed`, not the next renders')."""
+render's passes after its first have seeds of their own, `render.pass_seed`, not the next renders'; 6: light
+samples choose the sun or the environment in proportion to their irradiance, `views.emitter_dicts`)."""
 NEURAL_VERSION = 6
 """Bump when `neumip_path` renders a neural material differently, or at another cost: the cached
 renders hold their times (2: per-sample footprints; 3: query groups, whose graph rounds the decoder's

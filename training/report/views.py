@@ -162,12 +162,19 @@ ENV_RADIANCE = 0.05
 
 
 def emitter_dicts(view: View) -> dict:
-    """A directional light giving **unit irradiance on the plane** plus the dim environment."""
+    """A directional light giving **unit irradiance on the plane** plus the dim environment.
+
+    A light sample picks one of them in proportion to the irradiance it gives the plane (1 and pi ENV_RADIANCE;
+    pbrt's power light distribution). Mitsuba's default picks each with probability 1/2: half the samples went to an
+    environment that gives 0.16 of the light, and the other half counted the sun twice, which made the renders'
+    noise several times what it is now, every method's alike (benchmarks/results/floor.txt)."""
     wi = light_direction(view)
     cos_i = max(float(wi[2]), 1e-3)
     return {
-        "sun": {"type": "directional", "direction": (-wi).tolist(), "irradiance": {"type": "rgb", "value": 1.0 / cos_i}},
-        "sky": {"type": "constant", "radiance": {"type": "rgb", "value": ENV_RADIANCE}},
+        "sun": {"type": "directional", "direction": (-wi).tolist(), "irradiance": {"type": "rgb", "value": 1.0 / cos_i},
+                "sampling_weight": 1.0},
+        "sky": {"type": "constant", "radiance": {"type": "rgb", "value": ENV_RADIANCE},
+                "sampling_weight": math.pi * ENV_RADIANCE},
     }
 
 

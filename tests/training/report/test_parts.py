@@ -34,6 +34,21 @@ def test_view_footprint_at_the_image_centre(level):
     assert sigma_texels == pytest.approx(2.0**level, rel=0.02)
 
 
+def test_light_samples_choose_a_light_by_the_irradiance_it_gives_the_plane():
+    """Mitsuba's own emitter choice in a report scene: the sun (unit irradiance on the plane) is picked
+    1 / (1 + pi ENV_RADIANCE) of the time, not half of it; its sample is weighted by the inverse."""
+    from neumip.client.mitsuba.render import mi  # registers the plugins
+
+    spec = methods.SceneSpec(views.View("v", 55.0, 0, light_zenith=60.0), views.Film(16, 12), 64)
+    scene = mi.load_dict(methods.neural_scene(mi, spec, "flat"))
+    sun_share = 1.0 / (1.0 + math.pi * views.ENV_RADIANCE)
+    suns = [i for i, e in enumerate(scene.emitters()) if not e.is_environment()]
+    for sample, want in ((0.5 * sun_share, sun_share), (0.5 * (1 + sun_share), 1 - sun_share)):
+        index, weight, _ = scene.sample_emitter(mi.Float(sample))
+        assert (index.numpy()[0] in suns) == (want == sun_share)
+        assert weight.numpy()[0] == pytest.approx(1.0 / want, rel=1e-5)
+
+
 def test_visible_corners_and_block_cover():
     view, film = views.DISTANCE_VIEWS[1], views.Film(64, 48)
     d = views.camera_distance(view, film, 64)
