@@ -127,26 +127,22 @@ def train_settings(args: argparse.Namespace):
 def _map_source(args: argparse.Namespace):
     """(MapConfig or None, Microgeometry) of `--maps`, `--base` and `--relief`: the material's maps (the data's own
     material's, or the one `--maps` names), with the map encoder's config under `--maps`; None without either."""
-    if args.maps is None and not args.base and not args.relief:
-        check_map_options(args, False)
+    maps = map_config(args, args.maps is not None)
+    if maps is None and not args.base and not args.relief:
         return None
-    return map_config(args, args.maps is not None), data_geometry(args.data, args.maps)
+    return maps, data_geometry(args.data, args.maps)
 
 
 def map_config(args: argparse.Namespace, maps: bool):
     """The map encoder's `MapConfig` of `--maps`, `--horizons` and `--residual` (None without `--maps`)."""
-    check_map_options(args, maps)
+    for flag in ("horizons", "residual"):
+        if getattr(args, flag) and not maps:
+            raise ValueError(f"--{flag} is a feature of the map-informed model: pass --maps too")
     if not maps:
         return None
     from .maps import MapConfig
 
     return MapConfig(horizons=args.horizons, residual=args.residual)
-
-
-def check_map_options(args: argparse.Namespace, maps: bool) -> None:
-    for flag in ("horizons", "residual"):
-        if getattr(args, flag) and not maps:
-            raise ValueError(f"--{flag} is a feature of the map-informed model: pass --maps too")
 
 
 def data_geometry(data: str | Path, material: str | None = None):
