@@ -146,7 +146,7 @@ VARIANTS: dict[str, tuple[dict, MapConfig | None, object]] = {
        for res in ("", "256") for suffix, residual, schedule in (("", 0, SHIP), ("_res", RESIDUAL_EVERY_LEVEL, SHIP),
                                                                  ("_r8", 8, SHIP), ("_r16", 16, SHIP),
                                                                  ("_quality", 0, QUALITY))
-       for seed, seed_suffix in ((0, ""), (1, "_seed1"))},
+       for seed, seed_suffix in ((0, ""), (1, "_seed1"), (2, "_seed2"))},
     "N128": ({"resolution": 128}, None, SHIP),
     "M128": ({"resolution": 128}, MapConfig(), SHIP),
     "N256": ({"resolution": 256}, None, SHIP),

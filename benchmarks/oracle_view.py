@@ -100,6 +100,9 @@ def main() -> None:
         finally:
             renderer.cache = main_cache
 
+    def p99(image: np.ndarray) -> float:  # the report's highlight figure (`metrics.score`'s p99_ratio)
+        return float(np.percentile(Q.luminance(image), 99))
+
     def passes(view, spp: int) -> int:
         film = renderer.spec(view).film
         return len(R.pass_plan(film.width * film.height, spp, cfg.max_lanes))
@@ -137,7 +140,7 @@ def main() -> None:
         oracle = {s: oracle_render(view, s) for s in sorted({*seeds["report"], *seeds["indep."]})}
         rows.append((f"oracle{args.tracer_spp}", oracle))
         print(f"   {'method':<8} {'pairing':<7} {'seeds':>7} {'R seeds':>11} {'MSE x1e-3':>9} {'noise':>7} {'R noise':>7} "
-              f"{'bias':>7} {'mean/R':>7}")
+              f"{'bias':>7} {'mean/R':>7} {'p99/R':>7}")
         for method, images in rows:
             for pairing, (s0, s1) in seeds.items():
                 a, b = images[s0], images[s1]
@@ -147,7 +150,7 @@ def main() -> None:
                 noise = Q.noise_mse(a, b) / 2  # the mean of two seeds has half one render's noise
                 print(f"   {method:<8} {pairing:<7} {f'{s0},{s1}':>7} {','.join(map(str, ref_seeds[pairing])):>11} "
                       f"{mse * 1e3:9.4f} {noise * 1e3:7.4f} {ref_noise * 1e3:7.4f} {(mse - noise - ref_noise) * 1e3:7.4f} "
-                      f"{mean.mean() / ref.mean():7.4f}")
+                      f"{mean.mean() / ref.mean():7.4f} {p99(mean) / p99(ref):7.4f}")
         renderer.release()
 
 
