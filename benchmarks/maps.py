@@ -147,6 +147,10 @@ VARIANTS: dict[str, tuple[dict, MapConfig | None, object]] = {
                                                                  ("_r8", 8, SHIP), ("_r16", 16, SHIP),
                                                                  ("_quality", 0, QUALITY))
        for seed, seed_suffix in ((0, ""), (1, "_seed1"), (2, "_seed2"))},
+    # the shipped map-informed recipe with a decoder 48 wide (25: the paper's), the directions' capacity at coarse
+    # footprints and under a grazing light (results/grazing.txt, section 10)
+    "Mship256_h48": ({"base": "maps", "relief": "maps", "terminator": "none", "local_frame": True, "resolution": 256,
+                      "hidden": 48}, MapConfig(horizons=8), SHIP),
     "N128": ({"resolution": 128}, None, SHIP),
     "M128": ({"resolution": 128}, MapConfig(), SHIP),
     "N256": ({"resolution": 256}, None, SHIP),
