@@ -147,10 +147,13 @@ VARIANTS: dict[str, tuple[dict, MapConfig | None, object]] = {
                                                                  ("_r8", 8, SHIP), ("_r16", 16, SHIP),
                                                                  ("_quality", 0, QUALITY))
        for seed, seed_suffix in ((0, ""), (1, "_seed1"), (2, "_seed2"))},
-    # the shipped map-informed recipe with a decoder 48 wide (25: the paper's), the directions' capacity at coarse
+    # the shipped map-informed recipe with MLPs 32 or 48 wide (25: the paper's), the directions' capacity at coarse
     # footprints and under a grazing light (results/grazing.txt, section 10)
-    "Mship256_h48": ({"base": "maps", "relief": "maps", "terminator": "none", "local_frame": True, "resolution": 256,
-                      "hidden": 48}, MapConfig(horizons=8), SHIP),
+    # (Mmaps_h48: at the material's own maps' resolution, as make_models.sh fits NAME_maps: planks' 128^2)
+    **{f"{name}_h{hidden}{suffix}": ({"base": "maps", "relief": "maps", "terminator": "none", "local_frame": True,
+                                      "resolution": res, "hidden": hidden}, MapConfig(horizons=8), replace(SHIP, seed=seed))
+       for name, res in (("Mship256", 256), ("Mmaps", "maps")) for hidden in (32, 48)
+       for seed, suffix in ((0, ""), (1, "_seed1"))},
     "N128": ({"resolution": 128}, None, SHIP),
     "M128": ({"resolution": 128}, MapConfig(), SHIP),
     "N256": ({"resolution": 256}, None, SHIP),
@@ -199,6 +202,8 @@ def train(variant: str, data: str, material: str, runs: Path, threads: int, vali
         overrides = {**overrides, "base": base_resolution(geo)}
     if overrides.get("relief") == "maps":
         overrides = {**overrides, "relief": relief_resolution(geo)}
+    if overrides.get("resolution") == "maps":
+        overrides = {**overrides, "resolution": base_resolution(geo)}
     trainer = Trainer(data, checkpoint, MaterialConfig(**{**RECIPE, **overrides}), config,
                       maps=(maps, geo) if maps is not None or overrides.get("base") or overrides.get("relief") else None)
     if variant.split("_seed")[0] in ("HL", "VISHL"):
