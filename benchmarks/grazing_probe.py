@@ -36,8 +36,9 @@ def lattice(grid: int, lod: float, resolution: int, light: tuple[float, float], 
 
 def figures(answer: np.ndarray, truth: np.ndarray) -> str:
     """One model's luminance figures over the truth's."""
-    ratio = [np.percentile(answer, p) / max(np.percentile(truth, p), 1e-12) for p in (50, 90, 99)]
-    return (f"mean {answer.mean() / truth.mean():.3f}  p50 {ratio[0]:.3f}  p90 {ratio[1]:.3f}  p99 {ratio[2]:.3f}  "
+    ratio = [f"{np.percentile(answer, p) / np.percentile(truth, p):.3f}" if np.percentile(truth, p) > 0 else "-"
+             for p in (50, 90, 99)]  # (a truth's percentile of 0: no ratio)
+    return (f"mean {answer.mean() / truth.mean():.3f}  p50 {ratio[0]}  p90 {ratio[1]}  p99 {ratio[2]}  "
             f"corr {np.corrcoef(answer, truth)[0, 1]:.3f}  MSE {np.mean((answer - truth) ** 2) * 1e3:.3f}e-3")
 
 
