@@ -37,12 +37,8 @@ def material_from_file(path: Path):
     if finest:
         raise SystemExit(f"{path}: a trimmed model (finest level {finest}); refit the untrimmed one")
     material = NeuMIPMaterial(config)
-    state = {}
-    atlas = weights[W.PYRAMID]
-    start = 0
-    for i, size in enumerate(config.level_sizes()):
-        state[f"pyramid.{i}"] = torch.from_numpy(atlas[start:start + size * size].reshape(size, size, -1).copy())
-        start += size * size
+    state = {f"pyramid.{i}": torch.from_numpy(level.copy())
+             for i, level in enumerate(split_atlas(weights[W.PYRAMID], config.level_sizes()))}
     for prefix in W.mlps(config):
         for i in range(config.layers):
             state[f"{prefix}.{2 * i}.weight"] = torch.from_numpy(weights[W.weight(prefix, i)].copy())
@@ -55,6 +51,15 @@ def material_from_file(path: Path):
             state[name] = torch.from_numpy(weights[name].copy())
     material.load_state_dict(state)
     return material, config, meta, finest
+
+
+def split_atlas(atlas: np.ndarray, sizes: list[int]) -> list[np.ndarray]:
+    """(sum S^2, C) texels of a pyramid, finest first -> one (S, S, C) array per level."""
+    out, start = [], 0
+    for size in sizes:
+        out.append(atlas[start:start + size * size].reshape(size, size, -1))
+        start += size * size
+    return out
 
 
 def main() -> None:
@@ -93,7 +98,10 @@ def main() -> None:
     train_idx, _ = split_indices(len(data), train_config)
     landed = None
     if config.relief:
-        landed = landed_positions(_relief_levels(material, config), config, data.queries)
+        from neumip.core import weights as W
+
+        heights = split_atlas(getattr(material, W.RELIEF).numpy(), config.relief_pyramid().level_sizes())
+        landed = landed_positions(heights, config, data.queries)
     sampler = BatchSampler(data, train_idx, args.batch, seed=1, preload_mb=2048, landed=landed)
     optimizer = torch.optim.Adam(params, lr=args.lr)
     start, window = time.perf_counter(), []
@@ -113,18 +121,6 @@ def main() -> None:
     args.out.parent.mkdir(parents=True, exist_ok=True)
     save_onnx(build_onnx(config, weights, meta.get(C.META_DESCRIPTION, ""), extra, finest), args.out)
     print(f"levels {[sizes[i] for i in coarse]} refit in {time.perf_counter() - start:.0f} s -> {args.out}")
-
-
-def _relief_levels(material, config) -> list[np.ndarray]:
-    """The relief's height pyramid of `material` as `relief.landed_positions` takes it (finest first)."""
-    from neumip.core import weights as W
-
-    atlas = getattr(material, W.RELIEF).numpy()
-    out, start = [], 0
-    for size in config.relief_pyramid().level_sizes():
-        out.append(atlas[start:start + size * size].reshape(size, size, -1))
-        start += size * size
-    return out
 
 
 if __name__ == "__main__":
