@@ -62,31 +62,61 @@ def split_atlas(atlas: np.ndarray, sizes: list[int]) -> list[np.ndarray]:
     return out
 
 
-def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+def arguments(description: str, steps: int, lr: float) -> argparse.ArgumentParser:
+    """The options every refit of an exported model takes (this script's and `prune.py`'s)."""
+    parser = argparse.ArgumentParser(description=description, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("model", type=Path)
     parser.add_argument("data", help="the model's training data (a `neumip generate` folder)")
     parser.add_argument("-o", "--out", type=Path, required=True)
-    parser.add_argument("--size", type=int, default=16, help="refit the levels of at most this many texels a side")
-    parser.add_argument("--steps", type=int, default=400)
+    parser.add_argument("--steps", type=int, default=steps)
     parser.add_argument("--batch", type=int, default=16384)
-    parser.add_argument("--lr", type=float, default=1e-3)
+    parser.add_argument("--lr", type=float, default=lr)
     parser.add_argument("--threads", type=int, default=1)
-    args = parser.parse_args()
+    return parser
 
-    import torch
 
-    from neumip.core import contract as C
+def batches(material, config, data_dir: str, batch: int, seed: int):
+    """(`BatchSampler` over DATA's training split, with the relief's landed positions where the model has a relief;
+    the ship preset at this batch: the loss's settings)."""
+    from neumip.core import weights as W
     from neumip.training.dataset import open_dataset
-    from neumip.training.export import build_onnx, save_onnx, weights_from_state
-    from neumip.training.losses import training_loss
     from neumip.training.relief import landed_positions
     from neumip.training.train import BatchSampler, split_indices
     from neumip.training.train_config import PRESETS
 
+    train_config = replace(PRESETS["ship"], batch=batch)
+    data = open_dataset(data_dir)
+    train_idx, _ = split_indices(len(data), train_config)
+    landed = None
+    if config.relief:
+        heights = split_atlas(getattr(material, W.RELIEF).numpy(), config.relief_pyramid().level_sizes())
+        landed = landed_positions(heights, config, data.queries)
+    return BatchSampler(data, train_idx, batch, seed=seed, preload_mb=2048, landed=landed), train_config
+
+
+def save_like(material, config, meta: dict, finest: int, out: Path) -> None:
+    """Write `material` with the graph and the metadata of the file it was read from."""
+    from neumip.core import contract as C
+    from neumip.training.export import build_onnx, save_onnx, weights_from_state
+
+    weights = weights_from_state(material.state_dict(), config)
+    owned = {C.META_CONTRACT, C.META_CONFIG, C.META_DESCRIPTION}
+    extra = {key: value for key, value in meta.items() if key not in owned}
+    out.parent.mkdir(parents=True, exist_ok=True)
+    save_onnx(build_onnx(config, weights, meta.get(C.META_DESCRIPTION, ""), extra, finest), out)
+
+
+def main() -> None:
+    parser = arguments(__doc__, steps=400, lr=1e-3)
+    parser.add_argument("--size", type=int, default=16, help="refit the levels of at most this many texels a side")
+    args = parser.parse_args()
+
+    import torch
+
+    from neumip.training.losses import training_loss
+
     torch.set_num_threads(args.threads)
     material, config, meta, finest = material_from_file(args.model)
-    train_config = replace(PRESETS["ship"], batch=args.batch)
     sizes = config.level_sizes()
     coarse = [i for i, s in enumerate(sizes) if s <= args.size]
     for p in material.parameters():
@@ -94,15 +124,7 @@ def main() -> None:
     params = [material.pyramid[i] for i in coarse]
     for p in params:
         p.requires_grad_(True)
-    data = open_dataset(args.data)
-    train_idx, _ = split_indices(len(data), train_config)
-    landed = None
-    if config.relief:
-        from neumip.core import weights as W
-
-        heights = split_atlas(getattr(material, W.RELIEF).numpy(), config.relief_pyramid().level_sizes())
-        landed = landed_positions(heights, config, data.queries)
-    sampler = BatchSampler(data, train_idx, args.batch, seed=1, preload_mb=2048, landed=landed)
+    sampler, train_config = batches(material, config, args.data, args.batch, seed=1)
     optimizer = torch.optim.Adam(params, lr=args.lr)
     start, window = time.perf_counter(), []
     for step in range(args.steps):
@@ -115,11 +137,7 @@ def main() -> None:
         if (step + 1) % 100 == 0:
             print(f"step {step + 1}: loss {np.mean(window):.6f} ({time.perf_counter() - start:.0f} s)", flush=True)
             window = []
-    weights = weights_from_state(material.state_dict(), config)
-    owned = {C.META_CONTRACT, C.META_CONFIG, C.META_DESCRIPTION}
-    extra = {key: value for key, value in meta.items() if key not in owned}
-    args.out.parent.mkdir(parents=True, exist_ok=True)
-    save_onnx(build_onnx(config, weights, meta.get(C.META_DESCRIPTION, ""), extra, finest), args.out)
+    save_like(material, config, meta, finest, args.out)
     print(f"levels {[sizes[i] for i in coarse]} refit in {time.perf_counter() - start:.0f} s -> {args.out}")
 
 

@@ -154,6 +154,11 @@ VARIANTS: dict[str, tuple[dict, MapConfig | None, object]] = {
                                       "resolution": res, "hidden": hidden}, MapConfig(horizons=8), replace(SHIP, seed=seed))
        for name, res in (("Mship256", 256), ("Mmaps", "maps")) for hidden in (32, 48)
        for seed, suffix in ((0, ""), (1, "_seed1"))},
+    # the same 48 wide, pruned while it trains to a third of its weights, the 25-wide's fmas (benchmarks/prune.py does it
+    # after the run instead; results/grazing.txt, section 11)
+    **{f"Mship256_h48_p67{suffix}": ({"base": "maps", "relief": "maps", "terminator": "none", "local_frame": True,
+                                      "resolution": 256, "hidden": 48}, MapConfig(horizons=8), replace(SHIP, seed=seed))
+       for seed, suffix in ((0, ""), (1, "_seed1"))},
     "N128": ({"resolution": 128}, None, SHIP),
     "M128": ({"resolution": 128}, MapConfig(), SHIP),
     "N256": ({"resolution": 256}, None, SHIP),
@@ -176,6 +181,35 @@ def views(levels=LEVELS):
 
     return [View(f"level{lv}_{light}", 55.0, lv, light_zenith=z, light_azimuth=a)
             for light, (z, a) in LIGHTS.items() for lv in levels]
+
+
+PRUNED = {"Mship256_h48_p67": (0.67, 600, 1800)}
+"""Variant (before any _seedN): (sparsity, first step, step it is reached): gradual magnitude pruning of the
+decoder's and the offset network's weight matrices while the model trains (`prune.py`'s ramp, masks redrawn every
+25 steps, the masked weights zeroed after every step from the first)."""
+
+
+def pruning_callback(trainer, sparsity: float, first: int, last: int):
+    """A `Trainer.run` callback that prunes the trainer's MLPs on `PRUNED`'s schedule."""
+    import torch
+
+    from prune import magnitude_masks, weight_matrices
+
+    masks = []
+
+    def prune(_done: int, _loss: float) -> None:
+        step = trainer.state.step
+        if step < first:
+            return
+        matrices = [w for ws in weight_matrices(trainer.material, trainer.material.config).values() for w in ws]
+        if step <= last and (step - first) % 25 == 0:
+            ramp = 1.0 - (1.0 - min(step - first + 25, last - first) / (last - first)) ** 3
+            masks[:] = magnitude_masks(matrices, sparsity * ramp)
+        with torch.no_grad():
+            for w, m in zip(matrices, masks):
+                w.mul_(m)
+
+    return prune
 
 
 def train(variant: str, data: str, material: str, runs: Path, threads: int, validate_every: int = 0,
@@ -212,7 +246,8 @@ def train(variant: str, data: str, material: str, runs: Path, threads: int, vali
         from neumip.core import weights as W
         trainer.material.set_maps(W.BASE, level_horizon_maps(geo, overrides["base"]))
     start, cpu = time.perf_counter(), time.process_time()
-    held = trainer.run()
+    pruned = PRUNED.get(variant.split("_seed")[0])
+    held = trainer.run(pruning_callback(trainer, *pruned) if pruned else None)
     seconds, cpu = time.perf_counter() - start, time.process_time() - cpu
     export_material(trainer.material, out, f"benchmarks/maps.py {variant}", held)
     record = {"variant": variant, "data": data, "queries": len(trainer.data), "steps": trainer.state.step,
