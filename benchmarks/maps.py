@@ -186,7 +186,10 @@ def views(levels=LEVELS):
 PRUNED = {"Mship256_h48_p67": (0.67, 600, 1800)}
 """Variant (before any _seedN): (sparsity, first step, step it is reached): gradual magnitude pruning of the
 decoder's and the offset network's weight matrices while the model trains (`prune.py`'s ramp, masks redrawn every
-25 steps, the masked weights zeroed after every step from the first)."""
+25 steps, the masked weights zeroed after every step from the first). The callback runs after `Trainer.run`'s
+progress validation and checkpoint of a step, so those see the step's weights before masking; the masks live in
+the callback, so a run resumed mid-pruning goes unmasked until its next 25-step mark; and with `average_fraction`
+the average would be of unmasked weights. `train` starts every run afresh, and SHIP averages nothing."""
 
 
 def pruning_callback(trainer, sparsity: float, first: int, last: int):

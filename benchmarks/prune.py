@@ -8,8 +8,9 @@ they are (ONNX Runtime multiplies the zeros as it did).
 
 Gradual magnitude pruning (Zhu and Gupta 2017): every weight matrix of every MLP (the decoder, the offset
 network) loses its smallest-magnitude weights, the sparsity rising as s (1 - (1 - t / T)^3) over the first
-``--prune-fraction`` of the ``--steps``, the mask redrawn every ``--every`` steps; the rest of the steps fine-tune
-the survivors. The MLPs' weights and biases are the only parameters: the pyramid, the offset texture, the base and
+``--prune-fraction`` of the ``--steps``, the mask redrawn every ``--every`` steps at the ramp's value at the end of
+its interval (so the first mask, before any step, already cuts s (1 - (1 - every / T)^3)); the rest of the steps
+fine-tune the survivors. The MLPs' weights and biases are the only parameters: the pyramid, the offset texture, the base and
 the relief are frozen, as they were exported. Loss, batches and the training split are `neumip fit`'s (comb2, 16 384
 queries, the held-out split left out). No blur: the exported textures are what it answers.
 
@@ -37,7 +38,7 @@ def weight_matrices(material, config) -> dict[str, list]:
 
 
 def magnitude_masks(matrices: list, sparsity: float) -> list:
-    """Per matrix: keep the largest-magnitude (1 - sparsity) of its weights (at least one a row)."""
+    """Per matrix: keep the largest-magnitude (1 - sparsity) of its weights (at least as many as it has rows)."""
     import torch
 
     masks = []
