@@ -14,11 +14,14 @@ fine-tune the survivors. The MLPs' weights and biases are the only parameters: t
 the relief are frozen, as they were exported. Loss, batches and the training split are `neumip fit`'s (comb2, 16 384
 queries, the held-out split left out). No blur: the exported textures are what it answers.
 
+    # the best of results/grazing.txt section 11 (Ld50o85): the decoder, which the render asks once per light,
+    # at half its weights, the offset network at 0.15, pruned slowly
     .venv/bin/python benchmarks/prune.py runs/seeds/Mship256_h48/rock.onnx data/rock_n1048576_s16 \\
-        --sparsity 0.6 -o runs/prune/rock_h48_s60.onnx
+        --sparsity 0.5 --offset-sparsity 0.85 --steps 4000 --prune-fraction 0.75 -o runs/prune/rock_Ld50o85.onnx
 
 ``--teacher`` distils: the targets are the dense source model's answers to the data's queries, not the data's
-16-spp estimates. ``--offset-sparsity`` sets the offset network's apart. ``--sparsity 0`` fine-tunes with the same steps and nothing pruned: the control.
+16-spp estimates. ``--offset-sparsity`` sets the offset network's apart. ``--sparsity 0`` fine-tunes with the
+same steps and nothing pruned: the control.
 """
 
 from __future__ import annotations
