@@ -194,9 +194,7 @@ the average would be of unmasked weights. `train` starts every run afresh, and S
 
 def pruning_callback(trainer, sparsity: float, first: int, last: int):
     """A `Trainer.run` callback that prunes the trainer's MLPs on `PRUNED`'s schedule."""
-    import torch
-
-    from prune import magnitude_masks, weight_matrices
+    from prune import apply_masks, magnitude_masks, ramp, weight_matrices
 
     masks = []
 
@@ -206,11 +204,8 @@ def pruning_callback(trainer, sparsity: float, first: int, last: int):
             return
         matrices = [w for ws in weight_matrices(trainer.material, trainer.material.config).values() for w in ws]
         if step <= last and (step - first) % 25 == 0:
-            ramp = 1.0 - (1.0 - min(step - first + 25, last - first) / (last - first)) ** 3
-            masks[:] = magnitude_masks(matrices, sparsity * ramp)
-        with torch.no_grad():
-            for w, m in zip(matrices, masks):
-                w.mul_(m)
+            masks[:] = magnitude_masks(matrices, sparsity * ramp(step - first, 25, last - first))
+        apply_masks(matrices, masks)
 
     return prune
 

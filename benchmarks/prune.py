@@ -52,6 +52,21 @@ def magnitude_masks(matrices: list, sparsity: float) -> list:
     return masks
 
 
+def ramp(done: int, every: int, span: int) -> float:
+    """The share of the final sparsity for the mask drawn `done` steps into a ramp of `span` steps: the cubic
+    1 - (1 - t)^3 at the end of the mask's `every`-step interval."""
+    return 1.0 - (1.0 - min(done + every, span) / span) ** 3
+
+
+def apply_masks(matrices: list, masks: list) -> None:
+    """Zero the pruned weights (after every optimiser step: Adam's momentum moves them off zero)."""
+    import torch
+
+    with torch.no_grad():
+        for w, m in zip(matrices, masks):
+            w.mul_(m)
+
+
 def fmas(matrices: list) -> tuple[int, int]:
     """(nonzero weights, all weights): the kernel's fmas a query against a dense evaluation's."""
     return sum(int((w != 0).sum()) for w in matrices), sum(w.numel() for w in matrices)
@@ -96,8 +111,8 @@ def main() -> None:
     start, window = time.perf_counter(), []
     for step in range(args.steps):
         if max(sparsity.values()) > 0 and step <= prune_steps and step % args.every == 0:
-            ramp = 1.0 - (1.0 - min(step + args.every, prune_steps) / prune_steps) ** 3
-            masks = [m for prefix, ws in by_mlp.items() for m in magnitude_masks(ws, sparsity[prefix] * ramp)]
+            share = ramp(step, args.every, prune_steps)
+            masks = [m for prefix, ws in by_mlp.items() for m in magnitude_masks(ws, sparsity[prefix] * share)]
         q, rgb = sampler.draw(torch.device("cpu"))
         if teacher is not None:
             with torch.no_grad():
@@ -107,9 +122,7 @@ def main() -> None:
         loss.backward()
         optimizer.step()
         if masks is not None:
-            with torch.no_grad():
-                for w, m in zip(matrices, masks):
-                    w.mul_(m)
+            apply_masks(matrices, masks)
         window.append(float(loss.detach()))
         if (step + 1) % 100 == 0:
             nonzero, total = fmas(matrices)
