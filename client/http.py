@@ -19,6 +19,7 @@ the Open Inference Protocol's ``/v2`` binary tensors (``protocol="v2"``), both l
 
 from __future__ import annotations
 
+import json
 import logging
 import time
 from dataclasses import dataclass
@@ -157,6 +158,7 @@ class MaterialClient:
             trust_env=False,  # no proxies from the environment: the server is named by its URL
         )
         self._names: list[str] | None = None
+        self._lobes: dict[str, C.SamplingLobe | None] = {}
         self.server_timing: dict[str, float] = {}
         """Stage durations (ms) the server reported for the last evaluation (``Server-Timing``)."""
 
@@ -167,7 +169,14 @@ class MaterialClient:
             listing = self._request("GET", wire.MATERIALS_PATH, what="list materials").json()
             entries = listing.get("materials", []) if isinstance(listing, dict) else listing
             self._names = sorted(e["name"] if isinstance(e, dict) else str(e) for e in entries)
+            self._lobes = {e["name"]: _listed_lobe(e) for e in entries if isinstance(e, dict)}
         return list(self._names)
+
+    def sampling(self, material: str) -> C.SamplingLobe | None:
+        """The sampling lobe the server's listing gives for the material's model (None: none listed, or
+        the material is not loaded yet; the renderer then samples the cosine alone)."""
+        self.materials()
+        return self._lobes.get(material)
 
     def evaluate(self, material: str, queries: np.ndarray) -> np.ndarray:
         """(N, 7) float32 queries -> (N, 3) float32 RGB, or query groups (N, 5 + 2 K) -> (N, 3 K), in
@@ -267,6 +276,19 @@ class MaterialClient:
         raise AssertionError("unreachable")  # pragma: no cover
 
 
+def _listed_lobe(entry: dict) -> C.SamplingLobe | None:
+    """The sampling lobe of one listing entry (`client.local.Material.info`); a malformed one is
+    ignored with a warning (it only moves noise)."""
+    lobe = entry.get("sampling")
+    if not lobe:
+        return None
+    try:
+        return C.sampling_lobe({C.META_SAMPLING: json.dumps(lobe)})
+    except (C.SamplingLobeError, TypeError) as exc:
+        log.warning("material %r: ignoring its listed sampling lobe: %s", entry.get("name"), exc)
+        return None
+
+
 def _describe(exc: Exception) -> str:
     return f"{type(exc).__name__}: {exc}" if str(exc) else type(exc).__name__
 
@@ -327,6 +349,10 @@ class FallbackEvaluator:
 
     def evaluate(self, material: str, queries: np.ndarray) -> np.ndarray:
         return self._call(lambda ev: ev.evaluate(material, queries))
+
+    def sampling(self, material: str) -> C.SamplingLobe | None:
+        """The material's sampling lobe, from whichever evaluator serves (None where it knows none)."""
+        return self._call(lambda ev: ev.sampling(material) if hasattr(ev, "sampling") else None)
 
     def _call(self, fn):
         if not self.switched:

@@ -99,6 +99,8 @@ class KernelMaterial:
         self.config = _config(path, self.metadata)
         """The material's config from its metadata (resolution, levels...), for callers that need it
         (a report's scenes); None for a graph without it. The kernel itself reads only the graph."""
+        self.sampling = C.sampling_lobe(self.metadata)
+        """The sampling lobe the model declares (`contract.SamplingLobe`; None: the cosine alone)."""
         self.backend = backend or importlib.import_module(DEFAULT_BACKEND)
         """The drjit namespace whose arrays `answers` takes and gives (``drjit.llvm.ad``)."""
         self.name = path.stem
@@ -218,3 +220,7 @@ class KernelMaterials:
     def evaluate(self, material: str, queries: np.ndarray) -> np.ndarray:
         """(N, 7) queries -> (N, 3) float32 RGB; query groups (N, 5 + 2 K) -> (N, 3 K)."""
         return self.kernel(material).evaluate(queries)
+
+    def sampling(self, material: str) -> C.SamplingLobe | None:
+        """The sampling lobe the material's model declares (`contract.SamplingLobe`; None: the cosine)."""
+        return self.kernel(material).sampling

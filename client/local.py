@@ -89,6 +89,11 @@ class Material:
     def config(self) -> dict:
         return json.loads(self.metadata.get(C.META_CONFIG, "{}"))
 
+    @property
+    def sampling(self) -> C.SamplingLobe | None:
+        """The sampling lobe the model declares (`contract.SamplingLobe`; None: the cosine alone)."""
+        return C.sampling_lobe(self.metadata)
+
     def run(self, queries: np.ndarray) -> np.ndarray:
         """One call: validated (n, 5 + 2 K) float32 queries -> (n, 3 K) float32 RGB (`run_call`)."""
         if self.single_queries and queries.shape[1] != C.QUERY_DIM:
@@ -106,6 +111,7 @@ class Material:
             "config": self.config,
             "validation": json.loads(validation) if validation else None,
             "trim": json.loads(trim) if trim else None,
+            "sampling": self.sampling._asdict() if self.sampling else None,
             "bytes": self.bytes,
         }
 
@@ -293,6 +299,10 @@ class LocalMaterials:
 
     def get(self, name: str) -> Material:
         return self._models.get(name)
+
+    def sampling(self, material: str) -> C.SamplingLobe | None:
+        """The sampling lobe the material's model declares (`contract.SamplingLobe`; None: the cosine)."""
+        return self.get(material).sampling
 
     def evaluate(self, material: str, queries: np.ndarray) -> np.ndarray:
         """(N, 7) queries -> (N, 3) float32 RGB; query groups (N, 5 + 2 K) -> (N, 3 K). Raises

@@ -37,8 +37,9 @@ are refused by every engine with one error that names the command that upgrades 
 
 from __future__ import annotations
 
+import json
 import math
-from typing import Protocol
+from typing import NamedTuple, Protocol
 
 import numpy as np
 
@@ -78,6 +79,48 @@ META_DESCRIPTION = "neumip.description"
 META_VALIDATION = "neumip.validation"
 META_TRIM = "neumip.trim"
 """JSON of what `neumip trim` cut from a model (absent: an untrimmed model)."""
+META_SAMPLING = "neumip.sampling"
+"""JSON ``{"alpha": a, "weight": w}`` of the material's sampling lobe (`SamplingLobe`); absent: sample
+the cosine alone."""
+
+
+class SamplingLobe(NamedTuple):
+    """Where a renderer should send the directions it samples at a neural surface, besides the cosine.
+
+    A GGX lobe of roughness ``alpha`` about the mirror direction of the macro normal, sampled with
+    probability ``weight`` and the cosine otherwise (a defensive mixture: the pdf is never below
+    ``(1 - weight) cos / pi``). It only moves noise; the answers and the image's mean stay the same.
+    Written at training from the material's maps (`training.microgeometry.lobe`).
+    """
+
+    alpha: float
+    weight: float
+
+    def to_json(self) -> str:
+        return json.dumps({"alpha": self.alpha, "weight": self.weight})
+
+
+class SamplingLobeError(NeumipError, ValueError):
+    """A model file's `META_SAMPLING` that is not a valid lobe."""
+
+
+def sampling_lobe(metadata: dict[str, str]) -> SamplingLobe | None:
+    """The `SamplingLobe` a model file's metadata declares (None: none, sample the cosine).
+
+    Raises SamplingLobeError on a value that is not ``{"alpha": 0 < a <= 1, "weight": 0 <= w < 1}``.
+    """
+    text = metadata.get(META_SAMPLING)
+    if not text:
+        return None
+    try:
+        data = json.loads(text)
+        lobe = SamplingLobe(float(data["alpha"]), float(data["weight"]))
+    except (ValueError, TypeError, KeyError) as exc:
+        raise SamplingLobeError(f"bad {META_SAMPLING} metadata {text[:80]!r}: {exc}") from exc
+    if not (0 < lobe.alpha <= 1 and 0 <= lobe.weight < 1):
+        raise SamplingLobeError(f"bad {META_SAMPLING} metadata {text[:80]!r}: alpha must be in (0, 1] and "
+                                "weight in [0, 1)")
+    return lobe if lobe.weight > 0 else None
 
 
 class QueryError(NeumipError, ValueError):
@@ -105,8 +148,14 @@ def engine_problem(metadata: dict[str, str], source: str = "OLD.onnx") -> str | 
     """Why an engine cannot serve a model file whose ONNX metadata is `metadata` (None: it can). A file
     that declares a contract version must declare this one (`version_problem`); a graph made by another
     tool may declare none, and is then judged by its graph alone (every engine: ONNX Runtime, the
-    server, the in-kernel engine)."""
-    return version_problem(metadata, source) if META_CONTRACT in metadata else None
+    server, the in-kernel engine). A malformed sampling lobe (`sampling_lobe`) is a problem too."""
+    problem = version_problem(metadata, source) if META_CONTRACT in metadata else None
+    if problem is None:
+        try:
+            sampling_lobe(metadata)
+        except SamplingLobeError as exc:
+            return str(exc)
+    return problem
 
 
 def level_of_detail(sigma: np.ndarray, resolution: int) -> np.ndarray:

@@ -100,6 +100,10 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("-o", "--output", required=True, help="output .onnx path (e.g. models/NAME.onnx)")
     p.add_argument("--force", action="store_true", help="replace the output model if it exists")
     p.add_argument("--description", default="", help="short description stored in the metadata")
+    p.add_argument("--material", metavar="NAME_OR_TOML",
+                   help="declare the sampling lobe of this material's maps (library name or .toml; a renderer "
+                        "samples the model's directions from it: client/mitsuba/bsdf.py), in place of the "
+                        "file's or checkpoint's own")
     p.set_defaults(func=_export)
     _register_train_many(sub)
     trim_command.register(sub)
@@ -308,6 +312,16 @@ def _export(args: argparse.Namespace) -> int:
 
     if Path(args.output).exists() and not args.force:
         raise CommandError(f"{args.output} exists: pass --force to replace it, or choose another --output")
+    sampling = "keep"
+    if args.material:
+        from .microgeometry.description import DescriptionError
+        from .microgeometry.lobe import material_lobe
+
+        try:
+            sampling = material_lobe(args.material)
+        except (DescriptionError, OSError, ValueError) as exc:
+            raise CommandError(f"--material {args.material}: {exc}") from exc
+        print(f"sampling lobe of {args.material}: {sampling or 'none (the cosine alone)'}")
 
     if args.checkpoint.endswith(".onnx"):
         from google.protobuf.message import DecodeError
@@ -315,13 +329,13 @@ def _export(args: argparse.Namespace) -> int:
         from .export_read import CHECK_QUERIES, reexport_file
 
         try:
-            path, difference = reexport_file(args.checkpoint, args.output, args.description)
+            path, difference = reexport_file(args.checkpoint, args.output, args.description, sampling)
         except (OSError, ValueError, DecodeError) as exc:  # ModelLayoutError, unreadable or corrupt file
             raise CommandError(f"{args.checkpoint}: cannot re-export: {exc}") from exc
         print(f"wrote {path} ({path.stat().st_size / 1e6:.2f} MB); largest answer difference from "
               f"{args.checkpoint} on {CHECK_QUERIES:,} random queries: {difference:.3g}")
         return 0
-    path = export_checkpoint(args.checkpoint, args.output, args.description)
+    path = export_checkpoint(args.checkpoint, args.output, args.description, sampling)
     print(f"wrote {path} ({path.stat().st_size / 1e6:.2f} MB)")
     return 0
 

@@ -337,19 +337,24 @@ def save_onnx(model: onnx.ModelProto, path: str | Path) -> Path:
     return path
 
 
-def export_material(material, out: str | Path, description: str = "", validation: dict | None = None) -> Path:
+def export_material(material, out: str | Path, description: str = "", validation: dict | None = None,
+                    sampling: C.SamplingLobe | None = None) -> Path:
     """Write a torch `NeuMIPMaterial` (its weights as they are) to `out` as an ONNX model, with its
-    validation table (if given) in the metadata."""
+    validation table and sampling lobe (where given) in the metadata."""
     meta = {C.META_VALIDATION: json.dumps(validation)} if validation is not None else {}
+    if sampling is not None:
+        meta[C.META_SAMPLING] = sampling.to_json()
     weights = weights_from_state(material.state_dict(), material.config)
     return save_onnx(build_onnx(material.config, weights, description, meta), out)
 
 
-def export_checkpoint(checkpoint: str | Path, out: str | Path, description: str = "") -> Path:
+def export_checkpoint(checkpoint: str | Path, out: str | Path, description: str = "",
+                      sampling: C.SamplingLobe | None | str = "keep") -> Path:
     """`neumip export`: read a training checkpoint, write the ONNX model.
 
     A checkpoint written mid-run holds raw textures while training evaluated blurred copies: the
-    blur of its step is baked in first, so the model computes what training computed.
+    blur of its step is baked in first, so the model computes what training computed. `sampling`: the
+    sampling lobe to declare (None: none), or ``"keep"`` the checkpoint's.
     """
     from .blur import bake_checkpoint_textures  # torch only here
     from .checkpoint import load
@@ -361,7 +366,9 @@ def export_checkpoint(checkpoint: str | Path, out: str | Path, description: str 
             checkpoint, extra["state"]["step"],
         )
     description = description or extra.get("description", "")
-    return export_material(material, out, description, extra.get("validation"))
+    if sampling == "keep":  # the checkpoint's own (`Trainer.sampling`)
+        sampling = C.SamplingLobe(**extra["sampling"]) if extra.get("sampling") else None
+    return export_material(material, out, description, extra.get("validation"), sampling)
 
 
 # --- weight factories (no torch): known-answer and random materials for tests and benchmarks ------

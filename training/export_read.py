@@ -153,11 +153,20 @@ def answer_difference(old: onnx.ModelProto, new: onnx.ModelProto, n: int = CHECK
     return float(np.abs(old_rgb - new_rgb).max())
 
 
-def reexport_file(source: str | Path, out: str | Path, description: str = "") -> tuple[Path, float]:
+def reexport_file(source: str | Path, out: str | Path, description: str = "",
+                  sampling: C.SamplingLobe | None | str = "keep") -> tuple[Path, float]:
     """`neumip export MODEL.onnx`: rewrite the model at `source` with this version's graph to `out`
-    (atomically); returns the path and the largest answer difference on random queries."""
+    (atomically); returns the path and the largest answer difference on random queries. `sampling`:
+    the sampling lobe to declare (None: none), or ``"keep"`` the file's own."""
     old = onnx.load(str(source))
     new = reexport(old)
+    meta = metadata(new)
     if description:
-        onnx.helper.set_model_props(new, {**metadata(new), C.META_DESCRIPTION: description})
+        meta[C.META_DESCRIPTION] = description
+    if sampling != "keep":
+        meta.pop(C.META_SAMPLING, None)
+        if sampling is not None:
+            meta[C.META_SAMPLING] = sampling.to_json()
+    del new.metadata_props[:]
+    onnx.helper.set_model_props(new, meta)
     return save_onnx(new, out), answer_difference(old, new)

@@ -139,7 +139,7 @@ def write_outputs(trainer: Trainer, table: dict, output: str | Path, views=None)
         "train_config": trainer.config.to_dict(),
         "validation": table,
     }
-    onnx_path = export_material(trainer.material, output, trainer.description, table)
+    onnx_path = export_material(trainer.material, output, trainer.description, table, trainer.sampling)
     json_path.write_text(json.dumps(record, indent=2) + "\n")
     write_loss_curve(trainer.state.history, png_path, f"{output.stem}: {trainer.config.loss} loss")
     progress = write_progress(trainer, progress_path(output), views)

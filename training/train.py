@@ -34,6 +34,7 @@ from .maps import MapConfig, prefilter
 from .material import MapMaterial, NeuMIPMaterial
 from .relief import landed_positions, relief_heights
 from .microgeometry.description import Microgeometry
+from .microgeometry.lobe import sampling_lobe
 from .train_config import TrainConfig
 from .validation import predict, validation_table
 
@@ -113,6 +114,19 @@ def data_ceiling(data: Dataset) -> float:
     """The data's largest target (`MaterialConfig.ceiling`), read in chunks of the memory-mapped file."""
     rgb = data.rgb
     return float(max(np.max(rgb[lo:lo + (1 << 20)]) for lo in range(0, len(rgb), 1 << 20)))
+
+
+def data_lobe(data: Dataset) -> C.SamplingLobe | None:
+    """The sampling lobe of a data set's material, rebuilt from its meta.json (None where it cannot be)."""
+    from .microgeometry.description import DescriptionError, resolve
+    from .views import data_material
+
+    try:
+        geo = resolve(data_material(data.meta.get("material") or {}, None, data.meta.get("description_dir")))
+    except (DescriptionError, OSError, ValueError) as exc:
+        log.info("%s: no sampling lobe (its material cannot be rebuilt: %s)", data.path, exc)
+        return None
+    return sampling_lobe(geo)
 
 
 def resolve_device(name: str) -> torch.device:
@@ -217,6 +231,9 @@ class Trainer:
         if (material_config.base or material_config.relief) and maps is None:
             raise TrainingError("a material with a base or a relief needs the material's maps (the data's description)")
         self._geometry = maps[1] if maps is not None else None
+        self.sampling = sampling_lobe(self._geometry) if self._geometry is not None else data_lobe(self.data)
+        """The sampling lobe the export declares (`contract.SamplingLobe`), from the material's maps
+        (None where the data's material cannot be rebuilt, e.g. imported queries: the cosine alone)."""
         self.checkpoint_path = Path(checkpoint_path)
         self._claim = claim_checkpoint(self.checkpoint_path)
         self.config, self.description = config, description
@@ -322,6 +339,7 @@ class Trainer:
             "train_config": self.config.to_dict(),
             "data": self._data_identity(),
             "description": self.description,
+            "sampling": self.sampling._asdict() if self.sampling else None,
         }
         if self._average:
             extra["average"] = self._average

@@ -3,11 +3,12 @@
 Each bounce of the Python loop below is one wavefront over every lane of the image (`mi.render`
 calls `sample()` once with all rays). Per bounce, every shading query that lands on a `neumip`
 surface - two per shading point, as in the paper: the next-event light direction and the
-cosine-sampled direction - is collected and evaluated per material (`shading.NeuralShading`): in a
-kernel over that material's lanes, its ONNX graph traced into it (`client.kernel.KernelMaterials`), or
-through an evaluator in at most two calls: the shading points where both directions count as query
-groups of two, the others' single queries. Stock Mitsuba BSDFs on other shapes are called as the stock `path`
-integrator calls them; next-event estimation goes to all of Mitsuba's emitters with MIS (power
+sampled direction (the paper's cosine, mixed with the model's sampling lobe where it declares one:
+`bsdf`) - is collected and evaluated per material (`shading.NeuralShading`): in a kernel over
+that material's lanes, its ONNX graph traced into it (`client.kernel.KernelMaterials`), or through
+an evaluator in at most two calls: the shading points where both directions count as query groups
+of two, the others' single queries. Stock Mitsuba BSDFs on other shapes are called as the stock
+`path` integrator calls them; next-event estimation goes to all of Mitsuba's emitters with MIS (power
 heuristic) against BSDF sampling.
 
 Kernels per bounce. drjit evaluates only what a barrier asks for and traces again whatever a later
@@ -216,10 +217,11 @@ class NeuMIPPathIntegrator(mi.SamplingIntegrator):
                     hits, si.uv, sigma_uv, to_query(si, frame, si.wi),
                     [(to_query(si, frame, wo_light), light_ok), (to_query(si, frame, bs.wo), sample_ok)],
                 )
-                # BTF under unit irradiance is used like a BRDF: f * cos for NEE, pi * f for a
-                # cosine-sampled direction (pdf cos / pi); f multiplies in once it is known.
+                # BTF under unit irradiance is used like a BRDF: f * cos for NEE, f * cos / pdf for the
+                # sampled direction (pi f where the cosine is sampled); f multiplies in once it is known.
                 bsdf_val = dr.select(hits.any, dr.maximum(mi.Frame3f.cos_theta(wo_light), 0.0), bsdf_val)
-                bsdf_weight = dr.select(hits.any, dr.pi, bsdf_weight)
+                sampled = dr.select(bs.pdf > 0, mi.Frame3f.cos_theta(bs.wo) / bs.pdf, 0.0)
+                bsdf_weight = dr.select(hits.any, sampled, bsdf_weight)
 
             # --- next-event estimation (the neural factor f is still missing) --------------------
             mis_em = dr.select(ds.delta, 1.0, mis_weight(ds.pdf, bsdf_pdf))

@@ -90,6 +90,15 @@ class InKernelEvaluator(Protocol):
         """The material `material`, ready to be traced into a bounce's kernel."""
 
 
+@runtime_checkable
+class DeclaresLobes(Protocol):
+    """An evaluator that knows each material's sampling lobe (`contract.SamplingLobe`, from the model
+    file's metadata): `client.kernel.KernelMaterials`, `client.local.LocalMaterials`."""
+
+    def sampling(self, material: str) -> C.SamplingLobe | None:
+        """The lobe the material's model declares (None: the cosine alone)."""
+
+
 class NestedNeuralBSDF(NeumipError, ValueError):
     """A `neumip` BSDF inside another BSDF (twosided, blend, mask...): not supported."""
 
@@ -174,6 +183,9 @@ class NeuralShading:
                 f"the scene uses neural material(s) {', '.join(missing)} that the evaluator does not "
                 f"serve (it has: {known})"
             )
+        for bsdf in self.bsdfs:  # the model's sampling lobe, where the scene does not set one
+            if not bsdf.lobe_fixed:
+                bsdf.set_lobe(evaluator.sampling(bsdf.material) if isinstance(evaluator, DeclaresLobes) else None)
 
     @property
     def materials(self) -> list[str]:

@@ -89,3 +89,18 @@ def test_version_problem_names_the_upgrade_of_a_version_1_file():
     assert "no neumip.contract_version" in C.version_problem({}, "m.onnx")
     other = C.version_problem({C.META_CONTRACT: "99"}, "m.onnx")
     assert "version '99'" in other and "reads version 2" in other
+
+
+def test_sampling_lobe_metadata():
+    """The model's sampling lobe: absent or weight 0 is the cosine alone; a malformed one is an engine problem."""
+    assert C.sampling_lobe({}) is None
+    lobe = C.SamplingLobe(0.2, 0.5)
+    assert C.sampling_lobe({C.META_SAMPLING: lobe.to_json()}) == lobe
+    assert C.sampling_lobe({C.META_SAMPLING: C.SamplingLobe(0.2, 0.0).to_json()}) is None
+    for bad in ('{"alpha": 0.2}', "not json", '{"alpha": 0, "weight": 0.5}', '{"alpha": 0.2, "weight": 1}',
+                '{"alpha": "NaN", "weight": 0.5}', "[1, 2]"):
+        with pytest.raises(C.SamplingLobeError, match="neumip.sampling"):
+            C.sampling_lobe({C.META_SAMPLING: bad})
+        problem = C.engine_problem({C.META_CONTRACT: C.CONTRACT_VERSION, C.META_SAMPLING: bad})
+        assert problem and "neumip.sampling" in problem
+    assert C.engine_problem({C.META_CONTRACT: C.CONTRACT_VERSION, C.META_SAMPLING: lobe.to_json()}) is None

@@ -392,3 +392,19 @@ def test_real_server_refuses_a_version_1_file_naming_its_upgrade_and_takes_group
             np.testing.assert_array_equal(rgb, local.evaluate("rand16", groups))
         # old: refused once; rand16: 3000 groups of two (6000 answers) in two requests
         assert sent_widths(transport.requests) == [9, 9, 9], protocol
+
+
+def test_sampling_lobe_comes_from_the_listing(model_dir):
+    """The server's listing carries each loaded model's sampling lobe (`Material.info`); a malformed
+    one is ignored (it only moves noise), a material without one has None."""
+    lobe = {"alpha": 0.2, "weight": 0.5}
+
+    def handler(request: httpx.Request) -> httpx.Response:
+        return httpx.Response(200, json={"materials": [
+            {"name": "glossy", "sampling": lobe}, {"name": "odd", "sampling": {"alpha": "x"}},
+            {"name": "matte", "sampling": None}, {"name": "lazy"}]})
+
+    client = client_for(handler)
+    assert client.sampling("glossy") == C.SamplingLobe(0.2, 0.5)
+    assert client.sampling("odd") is None and client.sampling("matte") is None and client.sampling("lazy") is None
+    assert client.sampling("unknown") is None

@@ -100,3 +100,26 @@ def test_a_version_1_file_is_refused_naming_its_upgrade_and_the_others_serve(mod
     np.testing.assert_array_equal(mats.evaluate("rand16", groups),
                                   mats.evaluate("rand16", C.ungroup(groups)).reshape(5000, 6))
 
+
+
+def test_sampling_lobe_is_read_and_a_malformed_one_refused(tmp_path):
+    """Both engines read the model's sampling lobe; a malformed one refuses the file with its key named."""
+    from onnx import helper
+
+    from neumip.client.kernel import KernelMaterials
+    from neumip.core.config import MaterialConfig
+    from neumip.training.export import build_onnx, random_weights, save_onnx
+
+    cfg = MaterialConfig(resolution=4)
+    lobe = C.SamplingLobe(0.15, 0.4)
+    save_onnx(build_onnx(cfg, random_weights(cfg), extra_metadata={C.META_SAMPLING: lobe.to_json()}),
+              tmp_path / "glossy.onnx")
+    model = build_onnx(cfg, random_weights(cfg))
+    helper.set_model_props(model, {C.META_CONTRACT: C.CONTRACT_VERSION, C.META_SAMPLING: '{"alpha": -1}'})
+    save_onnx(model, tmp_path / "broken.onnx")
+    local, kernel = LocalMaterials(tmp_path), KernelMaterials(tmp_path)
+    assert local.sampling("glossy") == lobe == kernel.sampling("glossy")
+    assert local.get("glossy").info()["sampling"] == {"alpha": 0.15, "weight": 0.4}
+    assert "neumip.sampling" in local.errors["broken"]
+    with pytest.raises(ModelError, match="neumip.sampling"):
+        kernel.kernel("broken")

@@ -18,7 +18,7 @@ from neumip.client.local import ModelError, load_material, run_chunked
 from neumip.core import weights as W
 from neumip.core.config import MaterialConfig
 from neumip.training.export import build_onnx, random_weights, save_onnx
-from neumip.training.export_read import ModelLayoutError, answer_difference, read_model, reexport
+from neumip.training.export_read import ModelLayoutError, answer_difference, metadata, read_model, reexport
 from neumip.training.trim import trim_model
 
 BASE = MaterialConfig(resolution=16)
@@ -168,3 +168,21 @@ def test_a_version_1_file_made_from_a_shipped_model_is_refused_then_upgraded_to_
     assert "largest answer difference from" in capsys.readouterr().out
     assert new.read_bytes() == Path("models/rock.onnx").read_bytes()
     assert answer_difference(model, onnx.load(str(new)), n=1 << 14) == 0.0
+
+
+def test_cli_declares_a_materials_sampling_lobe(tmp_path, capsys):
+    """`neumip export M.onnx -o NEW.onnx --material NAME` writes the lobe of NAME's maps (or removes the
+    file's own where NAME's maps have none); the answers stay the same."""
+    from neumip.training.microgeometry.lobe import material_lobe
+
+    config = CONFIGS["offset"]
+    source = save_onnx(build_onnx(config, random_weights(config, seed=2), "cli"), tmp_path / "m.onnx")
+    glossy, matte = tmp_path / "glossy.onnx", tmp_path / "matte.onnx"
+    assert main(["export", str(source), "-o", str(glossy), "--material", "turtle"]) == 0
+    assert "sampling lobe of turtle: SamplingLobe(alpha=" in capsys.readouterr().out
+    lobe = C.sampling_lobe(metadata(onnx.load(str(glossy))))
+    assert lobe is not None and lobe == material_lobe("turtle")
+    assert main(["export", str(glossy), "-o", str(matte), "--material", "flat"]) == 0
+    assert C.META_SAMPLING not in metadata(onnx.load(str(matte)))
+    assert main(["export", str(glossy), "-o", str(tmp_path / "x.onnx"), "--material", "no-such-material"]) != 0
+    assert "--material no-such-material" in capsys.readouterr().err

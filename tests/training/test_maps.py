@@ -14,6 +14,7 @@ from neumip.core.contract import random_queries
 from neumip.training import checkpoint
 from neumip.training.blur import blur_pyramid, blur_texture
 from neumip.training.export import export_checkpoint, export_material
+from neumip.training.microgeometry.lobe import sampling_lobe
 from neumip.training.maps import FEATURES, HEIGHT_UNIT, MapConfig, prefilter, resize
 from neumip.training.material import MapMaterial, NeuMIPMaterial, neighbourhood
 from neumip.training.microgeometry.description import Microgeometry
@@ -199,6 +200,9 @@ def test_a_map_informed_material_learns_the_plane_and_its_checkpoint_exports(pla
     q = random_queries(5000, seed=2)
     session = ort.InferenceSession(str(out), providers=["CPUExecutionProvider"])
     assert_parity(session.run(None, {C.ONNX_INPUT: q})[0], answers(trainer.material.eval(), q))
+    # the maps' sampling lobe (roughness 0.4: alpha 0.16) travels from the run to the file
+    assert trainer.sampling == sampling_lobe(plane_geometry()) == C.SamplingLobe(pytest.approx(0.16), 0.5)
+    assert C.sampling_lobe(dict(session.get_modelmeta().custom_metadata_map)) == trainer.sampling
     # the checkpoint is a map-informed run: resuming it as the paper's model is refused
     with pytest.raises(TrainingError, match="map encoder"):
         Trainer(plane.path, tmp_path / "c.pt", MaterialConfig(resolution=16), config)

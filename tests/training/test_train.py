@@ -71,6 +71,7 @@ def test_export_passes_parity_and_carries_the_table(trained, tmp_path, assert_pa
     model = onnx.load(paths["onnx"])
     meta = {p.key: p.value for p in model.metadata_props}
     assert json.loads(meta[C.META_VALIDATION]) == json.loads(json.dumps(table))
+    assert trainer.sampling is None and C.META_SAMPLING not in meta  # an analytic plane: no maps to read
     assert json.loads(paths["json"].read_text())["validation"]["overall"] == pytest.approx(table["overall"])
     assert paths["png"].stat().st_size > 1000
     session = ort.InferenceSession(str(paths["onnx"]), providers=["CPUExecutionProvider"])
