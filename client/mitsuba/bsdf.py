@@ -91,7 +91,8 @@ class NeuMIPBSDF(mi.BSDF):
     def set_lobe(self, lobe: SamplingLobe | None) -> None:
         """Sample ``lobe`` besides the cosine (None: the cosine alone)."""
         self.lobe = lobe
-        self._distribution = None if lobe is None else mi.MicrofacetDistribution(mi.MicrofacetType.GGX, lobe.alpha, True)
+        self._distribution = (None if lobe is None
+                              else mi.MicrofacetDistribution(mi.MicrofacetType.GGX, lobe.alpha, True))
 
     def sample(self, ctx, si, sample1, sample2, active=True):
         """A direction from the cosine, or (with probability ``lobe.weight``) from the sampling lobe."""

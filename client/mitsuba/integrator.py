@@ -11,6 +11,16 @@ of two, the others' single queries. Stock Mitsuba BSDFs on other shapes are call
 `path` integrator calls them; next-event estimation goes to all of Mitsuba's emitters with MIS (power
 heuristic) against BSDF sampling.
 
+Next-event estimation at neural surfaces. The stock `path` picks one emitter per shading point (in
+proportion to its `sampling_weight`), and its choice is noise: under a sun and a dim sky, a sample
+that picks the sky loses the sun. A query group answers K directions for about the price of one
+(the offset and the lookups run once), so at neural surfaces of a scene with at most
+`MAX_ALL_EMITTERS` emitters every emitter gets a direction of its own (`PathConfig.all_emitters`):
+each is one more shadow ray and one more decoder pass. Its MIS weight uses that emitter's own pdf,
+and so does a later emission hit of the sampled direction (`prev_all`). Stock BSDFs keep the one
+choice. The extra samples are drawn after the bounce's stock dimensions, so those stay where the
+stock `path` draws them.
+
 Kernels per bounce. drjit evaluates only what a barrier asks for and traces again whatever a later
 barrier needs, so a bounce computes everything that does not depend on the neural answers (the
 intersection, emission, emitter and BSDF samples, the next ray, the query columns) and schedules all
@@ -57,6 +67,10 @@ log = logging.getLogger(__name__)
 
 PLUGIN_NAME = "neumip_path"
 
+MAX_ALL_EMITTERS = 4
+"""Most emitters a scene may have for `PathConfig.all_emitters` to sample each one at neural surfaces (a
+query group then has one light per emitter plus the sampled direction); above it, one is chosen."""
+
 
 @dataclass
 class PathConfig:
@@ -70,6 +84,11 @@ class PathConfig:
     """Hide directly visible emitters (as the stock `path` integrator's option)."""
     footprint_spread: float = 0.1
     """Radians the footprint cone widens per non-specular bounce (see the module docstring)."""
+    all_emitters: bool = True
+    """At neural surfaces, next-event estimation samples every emitter of a scene with at most
+    `MAX_ALL_EMITTERS` (one direction each, in the same query group), not one chosen at random: no
+    light-choice noise, at the cost of a shadow ray and a decoder pass per emitter (see the module
+    docstring). False: one emitter, as the stock `path` integrator chooses it."""
 
     @classmethod
     def from_properties(cls, props: mi.Properties) -> "PathConfig":
@@ -78,6 +97,7 @@ class PathConfig:
             rr_depth=int(props.get("rr_depth", cls.rr_depth)),
             hide_emitters=bool(props.get("hide_emitters", cls.hide_emitters)),
             footprint_spread=float(props.get("footprint_spread", cls.footprint_spread)),
+            all_emitters=bool(props.get("all_emitters", cls.all_emitters)),
         )
         if cfg.max_depth < -1 or cfg.max_depth == 0:
             raise ValueError(f"neumip_path: max_depth must be -1 or >= 1, got {cfg.max_depth}")
@@ -157,6 +177,9 @@ class NeuMIPPathIntegrator(mi.SamplingIntegrator):
         prev_si = dr.zeros(mi.Interaction3f, width)  # only what emitter pdfs need, not a full si
         prev_bsdf_pdf = dr.full(mi.Float, 1.0, width)
         prev_bsdf_delta = dr.full(mi.Bool, True, width)
+        emitters = scene.emitters()
+        all_emitters = bool(cfg.all_emitters and shading.bsdfs and 1 < len(emitters) <= MAX_ALL_EMITTERS)
+        prev_all = dr.zeros(mi.Bool, width)  # the previous vertex sampled every emitter (a neural surface)
         # Footprint cone: world width at the current ray's origin and angular spread (radians).
         cone_width = dr.zeros(mi.Float, width)
         filter_std = self.filter_std
@@ -177,6 +200,9 @@ class NeuMIPPathIntegrator(mi.SamplingIntegrator):
             if not (cfg.hide_emitters and depth == 0):
                 ds = mi.DirectionSample3f(scene, si=si, ref=prev_si)
                 em_pdf = scene.pdf_emitter_direction(prev_si, ds, active & ~prev_bsdf_delta)
+                if all_emitters:  # every emitter was sampled there: its own pdf, without the choice of one
+                    own_pdf = ds.emitter.pdf_direction(prev_si, ds, active & prev_all & ~prev_bsdf_delta)
+                    em_pdf = dr.select(prev_all, own_pdf, em_pdf)
                 em_pdf = dr.select(prev_bsdf_delta, 0.0, em_pdf)
                 mis_bsdf = mis_weight(prev_bsdf_pdf, em_pdf)
                 emitted = ds.emitter.eval(si, active & (prev_bsdf_pdf > 0))
@@ -195,7 +221,10 @@ class NeuMIPPathIntegrator(mi.SamplingIntegrator):
 
             # --- stock BSDFs: emitter sample, BSDF eval + sample ---------------------------------
             bsdf = si.bsdf()
+            hits = shading.classify(si, active_next) if shading.bsdfs else None
             active_em = active_next & mi.has_flag(bsdf.flags(), mi.BSDFFlags.Smooth)
+            if all_emitters:  # neural lanes sample every emitter below instead
+                active_em &= ~hits.any
             ds, em_weight = scene.sample_emitter_direction(si, sampler.next_2d(), True, active_em)
             active_em &= ds.pdf != 0.0
             wo_light = si.to_local(ds.d)
@@ -203,19 +232,24 @@ class NeuMIPPathIntegrator(mi.SamplingIntegrator):
             bsdf_val, bsdf_pdf, bs, bsdf_weight = bsdf.eval_pdf_sample(
                 ctx, si, wo_light, sample1, sample2, active_next
             )
+            rr_sample = sampler.next_1d()  # drawn where the stock `path` draws it: the dimensions agree
 
             # --- neural surfaces: this bounce's queries (scheduled, evaluated below) -------------
-            queries = None
-            if shading.bsdfs:
-                hits = shading.classify(si, active_next)
+            queries, lights = None, []
+            if hits is not None:
                 front = mi.Frame3f.cos_theta(si.wi) > 0
-                light_ok = active_em & front & (mi.Frame3f.cos_theta(wo_light) > 0)
+                if all_emitters:  # one direction towards each emitter: (direction, valid, nee without f)
+                    lights = [_emitter_sample(scene, emitter, si, bsdf, ctx, sampler.next_2d(), beta,
+                                              active_next & hits.any & front) for emitter in emitters]
+                else:
+                    lights = [(wo_light, active_em & front & (mi.Frame3f.cos_theta(wo_light) > 0), None)]
                 sample_ok = front & (mi.Frame3f.cos_theta(bs.wo) > 0) & (bs.pdf > 0)
                 # Mitsuba's shading frame (y = n x dp_du) -> the contract's (x along +u, y along +v).
                 frame = query_frame(si)
                 queries = shading.queries(
                     hits, si.uv, sigma_uv, to_query(si, frame, si.wi),
-                    [(to_query(si, frame, wo_light), light_ok), (to_query(si, frame, bs.wo), sample_ok)],
+                    [(to_query(si, frame, wo), ok) for wo, ok, _ in lights]
+                    + [(to_query(si, frame, bs.wo), sample_ok)],
                 )
                 # BTF under unit irradiance is used like a BRDF: f * cos for NEE, f * cos / pdf for the
                 # sampled direction (pi f where the cosine is sampled); f multiplies in once it is known.
@@ -235,19 +269,25 @@ class NeuMIPPathIntegrator(mi.SamplingIntegrator):
             prev_si = mi.Interaction3f(si.t, si.time, si.wavelengths, si.p, si.n)
             prev_bsdf_pdf = bs.pdf
             prev_bsdf_delta = mi.has_flag(bs.sampled_type, mi.BSDFFlags.Delta)
+            if all_emitters:
+                prev_all = hits.any
             cone_spread = dr.select(prev_bsdf_delta, cone_spread, cone_spread + cfg.footprint_spread)
-            rr_sample = sampler.next_1d()
 
             # --- one kernel: everything above that the rest of the bounce needs --------------------
             # (the intersection is traced once; the neural queries come out of the same kernel)
             dr.schedule(L, nee, beta, eta, active_em, active_next, valid_ray, ray_d, prev_si, prev_bsdf_pdf,
-                        prev_bsdf_delta, cone_width, cone_spread, rr_sample)
+                        prev_bsdf_delta, prev_all, cone_width, cone_spread, rr_sample,
+                        [term for _, _, term in lights if term is not None])
             sampler.schedule_state()
             if queries is not None:
                 dr.schedule(hits.any)
                 if dr.any(hits.any):
-                    rho_light, rho_sample = shading.evaluate(queries)
-                    nee = dr.select(hits.any, nee * rho_light, nee)
+                    *rho_lights, rho_sample = shading.evaluate(queries)
+                    if all_emitters:  # each emitter's term times its answer (zero where it does not count)
+                        L = L + sum((term * rho for (_, _, term), rho in zip(lights, rho_lights)),
+                                    mi.Spectrum(0.0))
+                    else:
+                        nee = dr.select(hits.any, nee * rho_lights[0], nee)
                     beta = dr.select(hits.any, beta * rho_sample, beta)
             L = dr.select(active_em, L + nee, L)
 
@@ -263,6 +303,21 @@ class NeuMIPPathIntegrator(mi.SamplingIntegrator):
                 break
 
         return L, valid_ray, []
+
+
+def _emitter_sample(scene, emitter, si, bsdf, ctx, sample, beta, active):
+    """Next-event estimation towards one ``emitter`` at neural lanes ``active``: ``(wo, valid, term)``,
+    the direction (shading frame), where it counts (the emitter sampled, unoccluded, above the
+    horizon) and its contribution without the neural answer: ``beta * cos * L / pdf * mis``, the MIS
+    weight against the neural BSDF's sampling (power heuristic) with the emitter's own pdf."""
+    ds, weight = emitter.sample_direction(si, sample, active)
+    ok = active & (ds.pdf > 0)
+    ok &= ~scene.ray_test(si.spawn_ray_to(ds.p), active=ok)
+    wo = si.to_local(ds.d)
+    cos = mi.Frame3f.cos_theta(wo)
+    ok &= cos > 0
+    mis = dr.select(ds.delta, 1.0, mis_weight(ds.pdf, bsdf.pdf(ctx, si, wo, ok)))
+    return wo, ok, dr.select(ok, beta * weight * cos * mis, 0.0)
 
 
 def register() -> None:

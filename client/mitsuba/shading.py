@@ -274,6 +274,8 @@ class NeuralShading:
                     out[j] = [dr.select(mask, x, o) for x, o in zip(rgb, out[j])]
             else:
                 lanes = dr.compress(mask)
+                if count == 1:  # `dr.freeze` would record a width-1 call anew: take the lane twice
+                    lanes = dr.gather(mi.UInt32, lanes, dr.zeros(mi.UInt32, 2))
                 for j, rgb in enumerate(kernel.answers([dr.gather(mi.Float, c, lanes) for c in cols])):
                     for ch in range(C.RGB_DIM):
                         dr.scatter(out[j][ch], rgb[ch], lanes)

@@ -57,7 +57,7 @@ def test_flat_neural_equals_the_reference_within_its_noise(report):
     ref_noise = results["materials"]["flat"][VIEW]["reference"]["noise_mse"]
     assert n["mse"] <= 1.2 * (n["noise"] + ref_noise)  # nothing left but the two images' noise
     assert n["mean_ratio"] == pytest.approx(1.0, abs=0.02)
-    assert n["bias"] < 0.2 * n["noise"]
+    assert n["bias"] < 0.2 * (n["noise"] + ref_noise)  # what is left: the trained model's own small error
 
 
 def test_reference_noise_is_below_the_differences_reported(report):
