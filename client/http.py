@@ -19,7 +19,6 @@ the Open Inference Protocol's ``/v2`` binary tensors (``protocol="v2"``), both l
 
 from __future__ import annotations
 
-import json
 import logging
 import time
 from dataclasses import dataclass
@@ -168,14 +167,20 @@ class MaterialClient:
         if self._names is None:
             listing = self._request("GET", wire.MATERIALS_PATH, what="list materials").json()
             entries = listing.get("materials", []) if isinstance(listing, dict) else listing
-            self._names = sorted(e["name"] if isinstance(e, dict) else str(e) for e in entries)
-            self._lobes = {e["name"]: _listed_lobe(e) for e in entries if isinstance(e, dict)}
+            names = sorted(e["name"] if isinstance(e, dict) else str(e) for e in entries)
+            self._lobes = {e["name"]: _listed_lobe(e) for e in entries if isinstance(e, dict) and "sampling" in e}
+            self._names = names
         return list(self._names)
 
     def sampling(self, material: str) -> C.SamplingLobe | None:
-        """The sampling lobe the server's listing gives for the material's model (None: none listed, or
-        the material is not loaded yet; the renderer then samples the cosine alone)."""
-        self.materials()
+        """The sampling lobe of the material's model, from the server's listing, or for a material the
+        listing shows unloaded (a lazy server) from ``GET /v1/materials/{name}``, which loads it. None
+        where the model declares none (the renderer then samples the cosine alone)."""
+        if material not in self.materials():
+            return None
+        if material not in self._lobes and NAME_PATTERN.match(material):
+            info = self._request("GET", f"{wire.MATERIALS_PATH}/{material}", what=f"describe {material!r}").json()
+            self._lobes[material] = _listed_lobe(info if isinstance(info, dict) else {})
         return self._lobes.get(material)
 
     def evaluate(self, material: str, queries: np.ndarray) -> np.ndarray:
@@ -283,9 +288,9 @@ def _listed_lobe(entry: dict) -> C.SamplingLobe | None:
     if not lobe:
         return None
     try:
-        return C.sampling_lobe({C.META_SAMPLING: json.dumps(lobe)})
-    except (C.SamplingLobeError, TypeError) as exc:
-        log.warning("material %r: ignoring its listed sampling lobe: %s", entry.get("name"), exc)
+        return C.as_sampling_lobe(lobe, "listed sampling lobe")
+    except C.SamplingLobeError as exc:
+        log.warning("material %r: ignoring it: %s", entry.get("name"), exc)
         return None
 
 

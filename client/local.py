@@ -274,8 +274,8 @@ class LocalMaterials:
     ``LocalMaterials("models/")`` loads every ``.onnx`` file there; files that fail to load are
     logged and listed in :attr:`errors`, the others still serve. `threads` (0: one per CPU) chunks
     of a batch run at once, each on a single-threaded session. With ``lazy=True`` only the folder is
-    listed, and a material loads on its first evaluation (a render loads only its scene's materials);
-    a file that fails to load then raises ModelError at that evaluation.
+    listed, and a material loads on its first use (a render loads only its scene's materials, when it
+    binds them); a file that fails to load then raises ModelError there.
     """
 
     def __init__(self, folder: str | Path, threads: int = 0, chunk: int = DEFAULT_CHUNK, lazy: bool = False) -> None:

@@ -114,13 +114,24 @@ def sampling_lobe(metadata: dict[str, str]) -> SamplingLobe | None:
         return None
     try:
         data = json.loads(text)
-        lobe = SamplingLobe(float(data["alpha"]), float(data["weight"]))
-    except (ValueError, TypeError, KeyError) as exc:
-        raise SamplingLobeError(f"bad {META_SAMPLING} metadata {text[:80]!r}: {exc}") from exc
-    if not (0 < lobe.alpha <= 1 and 0 <= lobe.weight < 1):
-        raise SamplingLobeError(f"bad {META_SAMPLING} metadata {text[:80]!r}: alpha must be in (0, 1] and "
-                                "weight in [0, 1)")
-    return lobe if lobe.weight > 0 else None
+    except (ValueError, RecursionError) as exc:
+        raise SamplingLobeError(f"bad {META_SAMPLING} metadata {text[:80]!r}: not JSON ({exc})") from exc
+    return as_sampling_lobe(data, f"{META_SAMPLING} metadata {text[:80]!r}")
+
+
+def as_sampling_lobe(data: object, what: str = "sampling lobe") -> SamplingLobe | None:
+    """``{"alpha": 0 < a <= 1, "weight": 0 <= w < 1}`` (decoded JSON) -> its `SamplingLobe` (None where
+    the weight is 0); anything else raises SamplingLobeError naming ``what``."""
+    values = [data.get(key) for key in ("alpha", "weight")] if isinstance(data, dict) else []
+    if len(values) != 2 or not all(isinstance(v, (int, float)) and not isinstance(v, bool) for v in values):
+        raise SamplingLobeError(f"bad {what}: it must be {{\"alpha\": number, \"weight\": number}}")
+    try:
+        alpha, weight = (float(v) for v in values)
+    except OverflowError:  # an integer beyond float range
+        alpha = weight = math.nan
+    if not (0 < alpha <= 1 and 0 <= weight < 1):
+        raise SamplingLobeError(f"bad {what}: alpha must be in (0, 1] and weight in [0, 1)")
+    return SamplingLobe(alpha, weight) if weight > 0 else None
 
 
 class QueryError(NeumipError, ValueError):

@@ -80,8 +80,11 @@ class NeuMIPBSDF(mi.BSDF):
         self._distribution = None
         if self.lobe_fixed:
             weight = float(props.get("lobe_weight", 0.5))
-            alpha = float(props.get("lobe_alpha", 0.0 if weight == 0 else -1.0))
-            if weight and not (0 < alpha <= 1 and 0 < weight < 1):
+            alpha = float(props["lobe_alpha"]) if "lobe_alpha" in props else None
+            if alpha is None and weight:
+                raise ValueError(f"neumip BSDF {self.material!r}: lobe_weight {weight} needs a lobe_alpha "
+                                 "(or lobe_weight 0: the cosine alone)")
+            if not (0 <= weight < 1) or (alpha is not None and not 0 < alpha <= 1):
                 raise ValueError(f"neumip BSDF {self.material!r}: lobe_alpha must be in (0, 1] and lobe_weight "
                                  f"in [0, 1), got {alpha} and {weight}")
             self.set_lobe(SamplingLobe(alpha, weight) if weight else None)
@@ -124,7 +127,7 @@ class NeuMIPBSDF(mi.BSDF):
             lobe = self._distribution.pdf(si.wi, m) / (4 * dr.abs(dr.dot(wo, m)))
             lobe = dr.select((mi.Frame3f.cos_theta(wo) > 0) & dr.isfinite(lobe), lobe, 0.0)
             pdf = dr.lerp(pdf, lobe, self.lobe.weight)
-        return dr.select(active & (cos_i > 0), pdf, 0.0)
+        return dr.select(active & (cos_i > 0) & (mi.Frame3f.cos_theta(wo) > 0), pdf, 0.0)
 
     def eval_pdf(self, ctx, si, wo, active=True):
         return self.eval(ctx, si, wo, active), self.pdf(ctx, si, wo, active)

@@ -183,9 +183,10 @@ class NeuralShading:
                 f"the scene uses neural material(s) {', '.join(missing)} that the evaluator does not "
                 f"serve (it has: {known})"
             )
-        for bsdf in self.bsdfs:  # the model's sampling lobe, where the scene does not set one
-            if not bsdf.lobe_fixed:
-                bsdf.set_lobe(evaluator.sampling(bsdf.material) if isinstance(evaluator, DeclaresLobes) else None)
+        if isinstance(evaluator, DeclaresLobes):  # the model's sampling lobe, where the scene does not set one
+            for bsdf in self.bsdfs:
+                if not bsdf.lobe_fixed:
+                    bsdf.set_lobe(evaluator.sampling(bsdf.material))
 
     @property
     def materials(self) -> list[str]:

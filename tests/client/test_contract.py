@@ -98,7 +98,9 @@ def test_sampling_lobe_metadata():
     assert C.sampling_lobe({C.META_SAMPLING: lobe.to_json()}) == lobe
     assert C.sampling_lobe({C.META_SAMPLING: C.SamplingLobe(0.2, 0.0).to_json()}) is None
     for bad in ('{"alpha": 0.2}', "not json", '{"alpha": 0, "weight": 0.5}', '{"alpha": 0.2, "weight": 1}',
-                '{"alpha": "NaN", "weight": 0.5}', "[1, 2]"):
+                '{"alpha": "0.2", "weight": 0.5}', '{"alpha": NaN, "weight": 0.5}', "[1, 2]",
+                '{"alpha": true, "weight": 0.5}', '{"alpha": 1' + "0" * 400 + ', "weight": 0.5}',
+                "[" * 100_000 + "]" * 100_000):
         with pytest.raises(C.SamplingLobeError, match="neumip.sampling"):
             C.sampling_lobe({C.META_SAMPLING: bad})
         problem = C.engine_problem({C.META_CONTRACT: C.CONTRACT_VERSION, C.META_SAMPLING: bad})

@@ -400,11 +400,15 @@ def test_sampling_lobe_comes_from_the_listing(model_dir):
     lobe = {"alpha": 0.2, "weight": 0.5}
 
     def handler(request: httpx.Request) -> httpx.Response:
+        if request.url.path == wire.MATERIALS_PATH + "/lazy":  # describing it loads it
+            return httpx.Response(200, json={"name": "lazy", "sampling": {"alpha": 0.3, "weight": 0.25}})
         return httpx.Response(200, json={"materials": [
             {"name": "glossy", "sampling": lobe}, {"name": "odd", "sampling": {"alpha": "x"}},
+            {"name": "huge", "sampling": {"alpha": 10**400, "weight": 0.5}},
             {"name": "matte", "sampling": None}, {"name": "lazy"}]})
 
     client = client_for(handler)
     assert client.sampling("glossy") == C.SamplingLobe(0.2, 0.5)
-    assert client.sampling("odd") is None and client.sampling("matte") is None and client.sampling("lazy") is None
+    assert client.sampling("odd") is None and client.sampling("huge") is None and client.sampling("matte") is None
+    assert client.sampling("lazy") == C.SamplingLobe(0.3, 0.25)
     assert client.sampling("unknown") is None
