@@ -25,13 +25,14 @@ CACHE_VERSION = 6
 """Bump when a change in this package (or in `render_scene`) changes what a cached render would hold (5: a
 render's passes after its first have seeds of their own, `render.pass_seed`, not the next renders'; 6: light
 samples choose the sun or the environment in proportion to their irradiance, `views.emitter_dicts`)."""
-NEURAL_VERSION = 7
+NEURAL_VERSION = 8
 """Bump when `neumip_path` renders a neural material differently, or at another cost: the cached
 renders hold their times (2: per-sample footprints; 3: query groups, whose graph rounds the decoder's
 first sum in another order; 4: answers computed in the render's kernels, `client.kernel`, which round
 in their own order; 5: their parallax in the graph's order; 6: a material on nearly every lane
 computed without compaction, the same images sooner; 7: directions sampled from the model's sampling
-lobe as well as the cosine, `client.mitsuba.bsdf`)."""
+lobe as well as the cosine, `client.mitsuba.bsdf`; 8: next-event estimation towards every emitter,
+`PathConfig.all_emitters`)."""
 
 
 def file_digest(path: Path) -> str:
