@@ -1,7 +1,7 @@
 """Benchmark: what a neural material costs to render, against the geometry it replaces.
 
 Section ``ratios`` (default) renders one view - a plane seen at 55 degrees from its normal, lit by a
-directional light and a dim constant environment - six ways in one process, in interleaved rounds,
+directional light and a dim constant environment - seven ways in one process, in interleaved rounds,
 and prints the median seconds of each and two ratios for each in-process engine (the material in the
 render's own kernels, `KernelMaterials`, the default; and its ONNX graph in ONNX Runtime,
 `LocalMaterials`, buffered per bounce):
@@ -12,6 +12,8 @@ render's own kernels, `KernelMaterials`, the default; and its ONNX graph in ONNX
   report renders as R, whatever the model's own resolution) filling the same rectangle. Target: <= 1.0.
   ``--geometry-resolution R`` traces the height field resampled to R^2 instead (a coarser, cheaper mesh:
   64 gives the 64^2 mesh of `results/render.txt`'s figures before 2026-11-26).
+- **one emitter chosen**: the same neural render with `all_emitters` off (next-event estimation towards
+  one emitter chosen per shading point, as the stock `path`): what sampling every emitter costs.
 - **overhead / diffuse**: `neumip_path` with a material that answers a constant at no cost (so
   everything but evaluation: the wavefront loop, the lanes' compaction, the query buffers or gathers,
   the scatter of the answers), against stock `path` with a `diffuse` BSDF on the same plane. Target:
@@ -161,10 +163,13 @@ def ratio_scenes(mi, args) -> dict:
 
     reference = mesh.reference_surface(mi, resolve(desc), args.tiles, to_world)
     neural = view(mi, plane(neural_bsdf), {"type": "neumip_path", **depth}, args.size, args.spp)
+    one_emitter = view(mi, plane(neural_bsdf), {"type": "neumip_path", "all_emitters": False, **depth}, args.size,
+                       args.spp)
     before = {"neural, kernel before": (neural, "kernel before")} if args.kernel_before else {}
     return {
         "reference (path)": (view(mi, reference, {"type": "path", **depth}, args.size, args.spp), None),
         "neural (neumip_path)": (neural, "kernel"),
+        "neural, one emitter": (one_emitter, "kernel"),
         **before,
         "neural, ONNX Runtime": (neural, "local"),
         "constant (neumip_path)": (neural, "constant kernel"),
@@ -225,7 +230,9 @@ def ratios(args) -> None:
           + ", ".join(f"{key} {statistics.median(values):.3f} s" for key, values in evaluation.items()) + ")")
     before = [("kernel before: neural / reference", "neural, kernel before", "reference (path)", 1.0),
               ("in-kernel after / before", "neural (neumip_path)", "neural, kernel before", 1.05)] if args.kernel_before else []
-    for label, a, b, target in (("neural / reference", "neural (neumip_path)", "reference (path)", 1.0), *before,
+    for label, a, b, target in (("neural / reference", "neural (neumip_path)", "reference (path)", 1.0),
+                                ("one emitter chosen: neural / reference", "neural, one emitter", "reference (path)",
+                                 1.0), *before,
                                 ("overhead / diffuse", "constant (neumip_path)", "diffuse (path)", 1.5),
                                 ("ONNX Runtime: neural / reference", "neural, ONNX Runtime", "reference (path)", 1.0),
                                 ("ONNX Runtime: overhead / diffuse", "constant, buffered", "diffuse (path)", 1.5)):

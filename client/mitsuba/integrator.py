@@ -312,11 +312,13 @@ def _emitter_sample(scene, emitter, si, bsdf, ctx, sample, beta, active):
     weight against the neural BSDF's sampling (power heuristic) with the emitter's own pdf."""
     ds, weight = emitter.sample_direction(si, sample, active)
     ok = active & (ds.pdf > 0)
-    ok &= ~scene.ray_test(si.spawn_ray_to(ds.p), active=ok)
     wo = si.to_local(ds.d)
     cos = mi.Frame3f.cos_theta(wo)
     ok &= cos > 0
-    mis = dr.select(ds.delta, 1.0, mis_weight(ds.pdf, bsdf.pdf(ctx, si, wo, ok)))
+    ok &= ~scene.ray_test(si.spawn_ray_to(ds.p), active=ok)
+    if mi.has_flag(emitter.flags(), mi.EmitterFlags.Delta):  # no BSDF sample reaches it: no MIS
+        return wo, ok, dr.select(ok, beta * weight * cos, 0.0)
+    mis = mis_weight(ds.pdf, bsdf.pdf(ctx, si, wo, ok))
     return wo, ok, dr.select(ok, beta * weight * cos * mis, 0.0)
 
 
