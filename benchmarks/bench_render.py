@@ -24,7 +24,7 @@ neural plane with the model as is and without each of its stages (the relief, ha
 offset, the local frame, the classical base: the same weights, the graph of the config without the stage), and with the same
 material from the ``--compare`` folders (another export of it), interleaved with the reference geometry, each
 round in another order: what each stage costs, as a share of the geometry's time. Section ``demo`` renders the
-demo scene in-process (both engines) and through a real `neumip serve` process and prints the HTTP /
+demo scene in-process (both engines; in the kernels also with one emitter chosen) and through a real `neumip serve` process and prints the HTTP /
 in-process ratio; the renders use the same seed, so their largest image difference is printed too. CPU
 seconds (this process, plus the server process for HTTP) are printed beside wall time: on a shared
 machine they are the steadier figure. A warm-up render first compiles the kernels (for the demo, one
@@ -352,11 +352,13 @@ def process_cpu_seconds(pid: int) -> float:
     return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
 
 
-def render_demo(evaluator, args, size: int, spp: int, server_pid: int | None = None):
-    """Render the demo; returns (result, CPU seconds of this process plus the server's)."""
+def render_demo(evaluator, args, size: int, spp: int, server_pid: int | None = None, all_emitters: bool = True):
+    """Render the demo; returns (result, CPU seconds of this process plus the server's). ``all_emitters``
+    False: `neumip_path` chooses one emitter per shading point (`PathConfig.all_emitters`)."""
     from neumip.client.mitsuba.render import RenderConfig, load_scene, render_scene
 
     scene = load_scene(SCENE, resx=str(size), resy=str(size), spp=str(spp))
+    scene.integrator().config.all_emitters = all_emitters
     cpu = time.process_time() + (process_cpu_seconds(server_pid) if server_pid else 0.0)
     result = render_scene(scene, evaluator, RenderConfig(spp=spp, seed=args.seed, max_lanes=args.max_lanes))
     cpu = time.process_time() + (process_cpu_seconds(server_pid) if server_pid else 0.0) - cpu
@@ -389,6 +391,11 @@ def demo(args) -> None:
         render_demo(kernel, args, args.demo_size, args.demo_spp)  # warm-up: compiles every kernel
         in_kernel, cpu_kernel = render_demo(kernel, args, args.demo_size, args.demo_spp)
         report("in-kernel", in_kernel, cpu_kernel)
+        render_demo(kernel, args, args.demo_size, args.demo_spp, all_emitters=False)
+        one, cpu_one = render_demo(kernel, args, args.demo_size, args.demo_spp, all_emitters=False)
+        report("one emitter", one, cpu_one)
+        print(f"in-kernel, every emitter / one emitter chosen: {in_kernel.seconds / one.seconds:.2f}x wall time, "
+              f"{cpu_kernel / cpu_one:.2f}x CPU time", flush=True)
         render_demo(local, args, args.demo_size, args.demo_spp)
         in_process, cpu_local = render_demo(local, args, args.demo_size, args.demo_spp)
         report("in-process", in_process, cpu_local)
