@@ -93,7 +93,8 @@ class InKernelEvaluator(Protocol):
 @runtime_checkable
 class DeclaresLobes(Protocol):
     """An evaluator that knows each material's sampling lobe (`contract.SamplingLobe`, from the model
-    file's metadata): `client.kernel.KernelMaterials`, `client.local.LocalMaterials`."""
+    file's metadata): `client.kernel.KernelMaterials`, `client.local.LocalMaterials`, and over HTTP
+    `client.http.MaterialClient` and `FallbackEvaluator`."""
 
     def sampling(self, material: str) -> C.SamplingLobe | None:
         """The lobe the material's model declares (None: the cosine alone)."""
