@@ -238,11 +238,16 @@ class NeuMIPPathIntegrator(mi.SamplingIntegrator):
             queries, lights = None, []
             if hits is not None:
                 front = mi.Frame3f.cos_theta(si.wi) > 0
-                if all_emitters:  # one direction towards each emitter: (direction, valid, nee without f)
+                # NEE: (direction, where it counts, its term without the neural answer f) per light sample
+                if all_emitters:  # one towards each emitter
                     lights = [_emitter_sample(scene, emitter, si, bsdf, ctx, sampler.next_2d(), beta,
                                               active_next & hits.any & front) for emitter in emitters]
-                else:
-                    lights = [(wo_light, active_em & front & (mi.Frame3f.cos_theta(wo_light) > 0), None)]
+                else:  # the stock sample of one emitter
+                    cos_light = mi.Frame3f.cos_theta(wo_light)
+                    ok = active_em & hits.any & front & (cos_light > 0)
+                    mis = dr.select(ds.delta, 1.0, mis_weight(ds.pdf, bsdf_pdf))
+                    lights = [(wo_light, ok, dr.select(ok, beta * em_weight * cos_light * mis, 0.0))]
+                active_em &= ~hits.any  # the stock NEE below is for stock BSDFs only
                 sample_ok = front & (mi.Frame3f.cos_theta(bs.wo) > 0) & (bs.pdf > 0)
                 # Mitsuba's shading frame (y = n x dp_du) -> the contract's (x along +u, y along +v).
                 frame = query_frame(si)
@@ -253,11 +258,10 @@ class NeuMIPPathIntegrator(mi.SamplingIntegrator):
                 )
                 # BTF under unit irradiance is used like a BRDF: f * cos for NEE, f * cos / pdf for the
                 # sampled direction (pi f where the cosine is sampled); f multiplies in once it is known.
-                bsdf_val = dr.select(hits.any, dr.maximum(mi.Frame3f.cos_theta(wo_light), 0.0), bsdf_val)
                 sampled = dr.select(bs.pdf > 0, mi.Frame3f.cos_theta(bs.wo) / bs.pdf, 0.0)
                 bsdf_weight = dr.select(hits.any, sampled, bsdf_weight)
 
-            # --- next-event estimation (the neural factor f is still missing) --------------------
+            # --- next-event estimation at stock BSDFs ---------------------------------------------
             mis_em = dr.select(ds.delta, 1.0, mis_weight(ds.pdf, bsdf_pdf))
             nee = beta * bsdf_val * em_weight * mis_em
 
@@ -277,17 +281,14 @@ class NeuMIPPathIntegrator(mi.SamplingIntegrator):
             # (the intersection is traced once; the neural queries come out of the same kernel)
             dr.schedule(L, nee, beta, eta, active_em, active_next, valid_ray, ray_d, prev_si, prev_bsdf_pdf,
                         prev_bsdf_delta, prev_all, cone_width, cone_spread, rr_sample,
-                        [term for _, _, term in lights if term is not None])
+                        [term for _, _, term in lights])
             sampler.schedule_state()
             if queries is not None:
                 dr.schedule(hits.any)
                 if dr.any(hits.any):
                     *rho_lights, rho_sample = shading.evaluate(queries)
-                    if all_emitters:  # each emitter's term times its answer (zero where it does not count)
-                        L = L + sum((term * rho for (_, _, term), rho in zip(lights, rho_lights)),
-                                    mi.Spectrum(0.0))
-                    else:
-                        nee = dr.select(hits.any, nee * rho_lights[0], nee)
+                    # each light sample's term times its answer (zero where it does not count)
+                    L = L + sum((term * rho for (_, _, term), rho in zip(lights, rho_lights)), mi.Spectrum(0.0))
                     beta = dr.select(hits.any, beta * rho_sample, beta)
             L = dr.select(active_em, L + nee, L)
 
