@@ -111,6 +111,15 @@ class MaterialConfig:
     learned offset (if any) corrects from there."""
     relief_steps: int = 8
     """Linear-search steps of the relief stage (each one height lookup), refined by one secant step."""
+    lod_bias: int = 0
+    """Levels by which a footprint's level of detail is raised: level = clamp(log2(sigma R) + lod_bias, 0, log2 R),
+    for every pyramid of the model (the latents', the base maps', the relief's heights). 0 is the paper's convention:
+    a footprint of one texel's std reads the finest level, so the finest level also answers every sharper query -
+    the sharp samples of a close-up render (an eighth of a pixel) read the appearance filtered by a Gaussian of a
+    texel's std, blurred by about a texel. A Gaussian of std s weighs about as much as a box sqrt(12) s ~ 2^1.8 s
+    wide, so with 2 level L is the footprint of a box of about 2^L texels (the maps' prefiltered level L) and the
+    finest level the footprints of a quarter texel and less. The data must then hold footprints that fine
+    (`QuerySampling.sub_texel_levels`; `neumip fit` generates them). Issue 25: `benchmarks/results/lod_bias.txt`."""
     ceiling: float = 0.0
     """The largest answer (every channel), 0: none. A trainer sets it to its data's largest target
     (`train.data_ceiling`): each target is an unbiased estimate of an answer, so an answer above all of them is
@@ -149,6 +158,8 @@ class MaterialConfig:
             raise ValueError(f"relief_steps must be >= 1, got {self.relief_steps}")
         if not (self.ceiling >= 0 and math.isfinite(self.ceiling)):
             raise ValueError(f"ceiling must be 0 (none) or a finite positive answer, got {self.ceiling}")
+        if not (isinstance(self.lod_bias, int) and 0 <= self.lod_bias <= 8):
+            raise ValueError(f"lod_bias must be a whole number of levels in [0, 8], got {self.lod_bias!r}")
         if not 0 < self.offset_min_cos <= 1:
             raise ValueError(f"offset_min_cos must be in (0, 1], got {self.offset_min_cos}")
 
@@ -175,14 +186,16 @@ class MaterialConfig:
 
     def base_pyramid(self) -> "MaterialConfig | None":
         """The base maps' pyramid as a config of its own (its resolution and channels), or None without a base."""
-        return MaterialConfig(resolution=self.base, channels=BASE_CHANNELS, offset=False) if self.base else None
+        return MaterialConfig(resolution=self.base, channels=BASE_CHANNELS, offset=False,
+                              lod_bias=self.lod_bias) if self.base else None
 
     def relief_pyramid(self) -> "MaterialConfig | None":
         """The relief's height pyramid as a config of its own (one channel), or None without a relief."""
-        return MaterialConfig(resolution=self.relief, channels=1, offset=False) if self.relief else None
+        return MaterialConfig(resolution=self.relief, channels=1, offset=False,
+                              lod_bias=self.lod_bias) if self.relief else None
 
     def to_json(self) -> str:
-        """The fields as JSON; `half_vector`, `base`, `local_frame`, `visibility_input`, the relief's and `ceiling` only when on, and
+        """The fields as JSON; `half_vector`, `base`, `local_frame`, `visibility_input`, the relief's, `lod_bias` and `ceiling` only when on, and
         `terminator` only when not "all", so that models made before each existed read as they did."""
         fields_ = asdict(self)
         if not self.half_vector:
@@ -199,6 +212,8 @@ class MaterialConfig:
             del fields_["relief"], fields_["relief_steps"]
         if not self.ceiling:
             del fields_["ceiling"]
+        if not self.lod_bias:
+            del fields_["lod_bias"]
         return json.dumps(fields_, sort_keys=True)
 
     @classmethod

@@ -8,9 +8,11 @@ else restates the layout. A query is 7 float32 values::
 - ``u, v``: position on the material in tile units; the material repeats with period 1.
   Any finite magnitude is accepted; the model reads ``u - floor(u)``.
 - ``sigma``: standard deviation of the Gaussian pixel footprint, in tile units. With a finest level of
-  ``R x R`` texels (``R = 2**k``) the level of detail is ``clamp(log2(sigma * R), 0, k)``
+  ``R x R`` texels (``R = 2**k``) the paper's models read the level of detail ``clamp(log2(sigma * R), 0, k)``
   (:func:`level_of_detail`): one finest texel or less reads the finest level, a whole tile or more
-  reads the 1 x 1 level. ``sigma <= 0`` therefore means "finest"; huge sigma means "coarsest".
+  reads the 1 x 1 level; a model may raise it by whole levels (`MaterialConfig.lod_bias`: its finest
+  level then answers a quarter texel and less, say). ``sigma <= 0`` therefore means "finest"; huge sigma
+  means "coarsest". The footprint's meaning is the same for every model: the engine need not know.
 - ``wi`` (towards the light) and ``wo`` (towards the viewer): unit vectors in the local frame
   (z = normal, x along +u, y along +v), given by x and y; ``z = sqrt(1 - x^2 - y^2)``.
   ``x^2 + y^2`` up to ``1 + DIRECTION_TOLERANCE`` is accepted (a grazing direction, z = 0);
@@ -169,20 +171,22 @@ def engine_problem(metadata: dict[str, str], source: str = "OLD.onnx") -> str | 
     return problem
 
 
-def level_of_detail(sigma: np.ndarray, resolution: int) -> np.ndarray:
-    """Continuous level of detail for footprint ``sigma`` on a pyramid whose finest level is ``resolution``.
+def level_of_detail(sigma: np.ndarray, resolution: int, bias: int = 0) -> np.ndarray:
+    """Continuous level of detail for footprint ``sigma`` on a pyramid whose finest level is ``resolution``,
+    raised by ``bias`` levels (a model's `MaterialConfig.lod_bias`: its finest level answers footprints of
+    ``2^-bias`` texels and less).
 
     (N,) float -> (N,) float in ``[0, log2(resolution)]``; 0 is the finest level.
     """
     levels = int(math.log2(resolution))
     with np.errstate(divide="ignore", invalid="ignore"):
-        lod = np.log2(np.maximum(sigma, 0) * resolution)
+        lod = np.log2(np.maximum(sigma, 0) * resolution) + bias
     return np.clip(np.nan_to_num(lod, nan=0.0, neginf=0.0), 0, levels)
 
 
-def sigma_for_level(level: float, resolution: int) -> float:
+def sigma_for_level(level: float, resolution: int, bias: int = 0) -> float:
     """Inverse of :func:`level_of_detail`: the footprint whose level is exactly ``level``."""
-    return 2.0**level / resolution
+    return 2.0 ** (level - bias) / resolution
 
 
 MIN_SAMPLE_FOOTPRINT = 1 / 8

@@ -35,6 +35,7 @@ SHADING=${SHADING---local-frame --terminator none}  # with the base: the decoder
 RELIEF=${RELIEF:-8}  # relief steps (fit --relief) for every material with a height map, 0: none; NAME_nooffset has neither relief nor offset
 MAPS_RES=${MAPS_RES:-}  # NAME_maps: finest latent level of the map-informed models; empty: the material's maps' (256^2 shipped: results/gpu.txt)
 HORIZONS=${HORIZONS:-8}  # NAME_maps: horizon features towards 8 azimuths (rock: better than none in all 8 close-up views, benchmarks/results/maps.txt)
+LOD_BIAS=${LOD_BIAS:-0}  # NAME_maps: fit --lod-bias K (the finest level answers footprints of 2^-K texel and less, on data of their own with footprints that fine, data/MATERIAL_nQUERIES_sSPP_stK); the shipped files have 0; 1 and 2 were measured: benchmarks/results/lod_bias.txt
 SEEDS=${SEEDS:-1}  # fit --seeds: each model from this many initial weights, the lowest reference error kept; 3 was measured, not shipped (TRAINING.md)
 RAY=${RAY:-}
 names=("$@")
@@ -100,14 +101,16 @@ for name in "${names[@]}"; do
   material=$(material_of "$name")
   flags=()
   [[ "$name" == *_nooffset ]] && flags+=(--no-offset)
+  data=$(data_dir "$material")
   [[ "$name" == *_maps* ]] && flags+=(--maps --horizons "$HORIZONS")
+  [[ "$name" == *_maps* ]] && [ "$LOD_BIAS" != 0 ] && flags+=(--lod-bias "$LOD_BIAS") && data+="_st$LOD_BIAS"
   read -r -a base <<< "$(base_flags "$name")"
   flags+=(${base[@]+"${base[@]}"})
   read -r -a relief <<< "$(relief_flags "$name")"
   flags+=(${relief[@]+"${relief[@]}"})
   work="runs/$name"
   [ "${base[0]-}" = --base ] && [ "${base[1]-}" != auto ] && work="runs/$name/base"  # where --base auto trains its base candidate too
-  "$NEUMIP" fit "$material" -o "models/$name.onnx" --force --work "$work" --data "$(data_dir "$material")" \
+  "$NEUMIP" fit "$material" -o "models/$name.onnx" --force --work "$work" --data "$data" \
     --resolution "$(resolution_of "$name")" --queries "$QUERIES" --queries-per-texel "$QPT" --spp "$SPP" --preset "$PRESET" --threads "$THREADS" \
     --hidden "$HIDDEN" --seeds "$SEEDS" ${flags[@]+"${flags[@]}"} --description "$(describe "$name")"
 done

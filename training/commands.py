@@ -39,6 +39,16 @@ def add_relief_argument(p: argparse.ArgumentParser, help_tail: str = "") -> None
                    help=RELIEF_HELP + help_tail + f"; STEPS defaults to {MaterialConfig.relief_steps}")
 
 
+LOD_BIAS_HELP = ("raise every footprint's level of detail by K levels (MaterialConfig.lod_bias): the finest level then "
+                 "answers footprints of 2^-K texels and less, the sharp samples of a close-up render, instead of "
+                 "the appearance filtered by a texel; the data need footprints that fine (generate --sub-texel-levels K)")
+
+
+def add_lod_bias_argument(p: argparse.ArgumentParser, default: int = 0) -> None:
+    """`--lod-bias K` (`MaterialConfig.lod_bias`)."""
+    p.add_argument("--lod-bias", type=int, default=default, metavar="K", help=LOD_BIAS_HELP + f" (default {default})")
+
+
 RESIDUAL_HELP = ("with --maps: also train a free texture, added to the encoded one, on every level of at most SIZE "
                  "texels per side (MapConfig.residual; default 0: none), where the data hold many queries per texel")
 HIDDEN_HELP = (f"width of the hidden layers of both MLPs (default {MaterialConfig.hidden}, the paper's; "
@@ -77,6 +87,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--local-frame", action="store_true", help=LOCAL_FRAME_HELP)
     p.add_argument("--visibility-input", action="store_true", help=VISIBILITY_INPUT_HELP)
     add_terminator_argument(p)
+    add_lod_bias_argument(p)
     p.add_argument("--base", action="store_true", help=BASE_HELP + "; the maps are the data's material's, or --maps'")
     add_relief_argument(p)
     p.add_argument("--views-material", metavar="NAME_OR_TOML",
@@ -276,7 +287,7 @@ def _train(args: argparse.Namespace) -> int:
                                   terminator=args.terminator, visibility_input=args.visibility_input,
                                   base=base_resolution(maps[1]) if args.base else 0,
                                   relief=relief_resolution(maps[1]) if args.relief else 0,
-                                  relief_steps=args.relief or MaterialConfig.relief_steps)
+                                  relief_steps=args.relief or MaterialConfig.relief_steps, lod_bias=args.lod_bias)
         trainer = Trainer(args.data, checkpoint, material, config, args.description, maps)
     except (ValueError, DatasetError, CheckpointError) as exc:
         raise CommandError(str(exc)) from exc

@@ -1,4 +1,5 @@
-"""ONNX stage of the level of detail, clamp(log2(sigma * R), 0, L), from element-exact ops only.
+"""ONNX stage of the level of detail, clamp(log2(sigma * R) + b, 0, L), from element-exact ops only
+(b: `MaterialConfig.lod_bias`; R 2^b is a power of two, so the product stays exact).
 
 ONNX Runtime's ``Log`` kernel computes the last few elements of a call (the remainder after its
 vector blocks) differently from the others, so a query's answer would depend in its last bits on
@@ -8,7 +9,7 @@ and powers of two (Gemm, exact in any order), so a query's level of detail is th
 batch, and it reads no table with Gather (ONNX Runtime's Gather costs ~8 ns a row even from a table
 in L1):
 
-- x = clip(sigma * R, 1, 2^L); log2 of it is the clamped level (log2 is monotonic).
+- x = clip(sigma * R 2^b, 1, 2^L); log2 of it is the clamped level (log2 is monotonic).
 - the level steps s_j = min(floor(x 2^-j), 1), j = 1..L: s_j = 1 exactly for j <= lo = floor(log2 x).
 - a per-level table's row lo is then row 0 plus the sum of its row differences up to lo:
   ``table[0] + steps @ diff(table)``, one Gemm (`level_rows`); the tables hold integers below 2^24
@@ -100,7 +101,7 @@ def level_rows(g: GraphWriter, steps: str, tables: dict[str, np.ndarray], prefix
 def level_of_detail(g: GraphWriter, sigma: str, config: MaterialConfig, finest_level: int = 0,
                     tables: dict[str, np.ndarray] | None = None, prefix: str = "") -> tuple[dict[str, str], str]:
     """sigma (N, 1) -> (row lo (N, k) of each per-level table (L + 1, k) of `tables`, the fraction
-    t (N, 1) in [0, 1) towards level lo + 1); lo + t = clamp(log2(sigma * R), K, L), sigma <= 0
+    t (N, 1) in [0, 1) towards level lo + 1); lo + t = clamp(log2(sigma * R) + b, K, L), sigma <= 0
     reading the finest level K.
 
     K = ``finest_level`` (> 0 for a trimmed model) only raises the Clip's lower bound from 1 to 2^K
@@ -108,7 +109,7 @@ def level_of_detail(g: GraphWriter, sigma: str, config: MaterialConfig, finest_l
     the same bits as in the untrimmed graph.
     """
     levels = config.levels
-    x = g.op("Clip", g.op("Mul", sigma, g.scalar(config.resolution)), g.const(clip_min(finest_level)),
+    x = g.op("Clip", g.op("Mul", sigma, g.scalar(config.resolution * 2**config.lod_bias)), g.const(clip_min(finest_level)),
              g.const(2.0**levels))
     inverse = (2.0 ** -np.arange(1, max(levels, 1) + 1))[None, :]  # (1, L): x 2^-j, exact
     steps = g.op("Min", g.op("Floor", g.op("MatMul", x, g.const(inverse))), g.scalar(1.0))  # (N, L)

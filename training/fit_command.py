@@ -59,6 +59,7 @@ def register(sub: argparse._SubParsersAction) -> None:
                    "where it lowers the (log-space) error on a low-noise reference set by 10 %% (fit.BASE_MARGIN; "
                    "twice the training time)")
     commands.add_relief_argument(p)
+    commands.add_lod_bias_argument(p)
     p.add_argument("--steps", type=int, help="override the preset's TrainConfig.steps")
     p.add_argument("--candidates", type=int, help="override the preset's TrainConfig.candidates (best of this "
                    "many initial weights, compared after TrainConfig.candidate_steps steps)")
@@ -143,8 +144,9 @@ def _fit(args: argparse.Namespace) -> int:
                                   local_frame=args.local_frame, terminator=args.terminator,
                                   visibility_input=args.visibility_input,
                                   relief=relief_resolution(resolve(desc)) if args.relief else 0,
-                                  relief_steps=args.relief or MaterialConfig.relief_steps)
-        generate = GenerateSettings(spp=args.spp, sampling=QuerySampling(queries_per_texel=args.queries_per_texel),
+                                  relief_steps=args.relief or MaterialConfig.relief_steps, lod_bias=args.lod_bias)
+        generate = GenerateSettings(spp=args.spp, sampling=QuerySampling(queries_per_texel=args.queries_per_texel,
+                                                                         sub_texel_levels=args.lod_bias),
                                     queries=args.queries)
         maps = commands.map_config(args, args.maps)
     except (DescriptionError, ValueError) as exc:

@@ -14,13 +14,13 @@ import torch
 from neumip.core.config import MaterialConfig
 
 
-def level_of_detail(sigma: torch.Tensor, resolution: int) -> torch.Tensor:
-    """(N,) footprint sigma in tile units -> (N,) continuous level, clamp(log2(sigma * R), 0, log2 R).
+def level_of_detail(sigma: torch.Tensor, resolution: int, bias: int = 0) -> torch.Tensor:
+    """(N,) footprint sigma in tile units -> (N,) continuous level, clamp(log2(sigma * R) + bias, 0, log2 R).
 
     Same convention as `neumip.core.contract.level_of_detail`; sigma <= 0 reads the finest level.
     """
     tiny = torch.finfo(sigma.dtype).tiny
-    lod = torch.log2(torch.clamp(sigma, min=tiny) * resolution)
+    lod = torch.log2(torch.clamp(sigma, min=tiny) * (resolution * 2**bias))
     return torch.clamp(lod, 0.0, float(math.log2(resolution)))
 
 
@@ -100,7 +100,7 @@ def pyramid_lookup(
     device = atlas.device
     sizes = torch.tensor(config.level_sizes(), dtype=torch.long, device=device)
     starts = torch.tensor(config.level_starts(), dtype=torch.long, device=device)
-    lod = level_of_detail(sigma, config.resolution)
+    lod = level_of_detail(sigma, config.resolution, config.lod_bias)
     lo = torch.floor(lod)
     t = (lod - lo).unsqueeze(1)  # (N, 1)
     lo_i = lo.long()

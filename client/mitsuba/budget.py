@@ -88,6 +88,8 @@ class ModelFacts:
     maps_resolution: int = 0
     """Texels per side at which the model reads the material's own maps (its classical base's or relief's
     pyramid, `MaterialConfig.base` / `relief`), 0: none."""
+    lod_bias: int = 0
+    """Levels the model raises every footprint's level of detail by (`MaterialConfig.lod_bias`)."""
 
 
 @dataclass
@@ -126,9 +128,10 @@ class MaterialBudget:
 
 
 def material_budget(material: str, sigma: np.ndarray, resolution: int, coverage: float = 0.999,
-                    sample_share: float = 1.0, maps_resolution: int = 0) -> MaterialBudget:
-    """Levels read by queries of footprints ``sigma`` (N,) on a model of finest ``resolution``, which reads
-    the material's maps at ``maps_resolution`` (0: none; a finer one resolves the closest pixels too).
+                    sample_share: float = 1.0, maps_resolution: int = 0, lod_bias: int = 0) -> MaterialBudget:
+    """Levels read by queries of footprints ``sigma`` (N,) on a model of finest ``resolution`` and level-of-detail
+    bias ``lod_bias``, which reads the material's maps at ``maps_resolution`` (0: none; a finer one resolves the
+    closest pixels too).
 
     ``sample_share``: the share of the pixel footprint each query read (`contract.sample_footprint`
     of the render's spp). The levels read (and so the trim) follow the queries; the resolution a
@@ -144,13 +147,13 @@ def material_budget(material: str, sigma: np.ndarray, resolution: int, coverage:
     if sigma.size == 0:
         return MaterialBudget(material, 0, resolution, (levels, levels), [0.0] * (levels + 1), levels, coverage,
                               0.0, 1, False, maps_resolution)
-    lod = C.level_of_detail(sigma, resolution)
+    lod = C.level_of_detail(sigma, resolution, lod_bias)
     finer = np.floor(lod).astype(np.int64)
     coarser = np.minimum(finer + (lod > finer), levels)
     histogram = np.bincount(finer, minlength=levels + 1) / sigma.size
     # the (1 - coverage) quantile of the footprint: `coverage` of the queries are at least this wide
     closest = float(np.quantile(sigma, 1.0 - coverage, method="lower"))
-    finest = int(np.floor(C.level_of_detail(np.asarray([closest]), resolution)[0]))
+    finest = int(np.floor(C.level_of_detail(np.asarray([closest]), resolution, lod_bias)[0]))
     pixel = sigma / sample_share
     recommended = 2 ** max(0, math.ceil(math.log2(1.0 / max(closest / sample_share, 2.0**-24))))
     return MaterialBudget(
@@ -176,7 +179,8 @@ def model_facts(path: Path) -> ModelFacts:
     config = material.config
     trim = json.loads(material.metadata.get(C.META_TRIM, "{}"))
     return ModelFacts(int(config["resolution"]), int(config["channels"]), path.stat().st_size,
-                      int(trim.get("finest_level", 0)), max(int(config.get("base", 0)), int(config.get("relief", 0))))
+                      int(trim.get("finest_level", 0)), max(int(config.get("base", 0)), int(config.get("relief", 0))),
+                      int(config.get("lod_bias", 0)))
 
 
 def trimmed_size(facts: ModelFacts, finest_level: int) -> int:
@@ -216,7 +220,8 @@ def scene_budget(scene: mi.Scene, models: Path | None, spp: int = 4, coverage: f
         path = Path(models) / f"{name}.onnx" if models else None
         facts = model_facts(path) if path is not None and path.is_file() else None
         budget = material_budget(name, sigma, facts.resolution if facts else DEFAULT_RESOLUTION, coverage,
-                                 sample_footprint(render_spp), facts.maps_resolution if facts else 0)
+                                 sample_footprint(render_spp), facts.maps_resolution if facts else 0,
+                                 facts.lod_bias if facts else 0)
         if facts is not None:
             budget.model_bytes = facts.bytes
             budget.trimmed_bytes = trimmed_size(facts, budget.finest_level)

@@ -63,3 +63,24 @@ def test_parallax_shift_follows_view_direction():
     # grazing: wo_z is clamped at min_cos, so the shift stays bounded
     du, _ = parallax_shift(torch.tensor([0.1]), torch.tensor([1.0]), torch.tensor([0.0]), 0.6)
     assert du.item() == pytest.approx(0.1 / 0.6, rel=1e-5)
+
+
+def test_lod_bias_raises_every_footprints_level():
+    """`MaterialConfig.lod_bias` 2: a footprint of one texel's std reads level 2, a quarter texel the finest;
+    torch and the contract agree, and the coarsest level still ends the range."""
+    sigma = np.array([0.0, 0.1 / 256, 0.25 / 256, 0.5 / 256, 1 / 256, 4 / 256, 64 / 256, 1.0], np.float32)
+    want = C.level_of_detail(sigma, 256, 2)
+    np.testing.assert_allclose(want, [0, 0, 0, 1, 2, 4, 8, 8], atol=1e-6)
+    np.testing.assert_allclose(level_of_detail(torch.from_numpy(sigma), 256, 2).numpy(), want, atol=1e-6)
+    assert C.sigma_for_level(2, 256, 2) == pytest.approx(1 / 256)
+    cfg = MaterialConfig(resolution=4, channels=1, lod_bias=1)
+    atlas = torch.cat([torch.full((s * s, 1), float(i)) for i, s in enumerate(cfg.level_sizes())])
+    out = pyramid_lookup(atlas, cfg, torch.rand(3), torch.rand(3), torch.tensor([0.125, 0.25, 0.5]))[:, 0]
+    torch.testing.assert_close(out, torch.tensor([0.0, 1.0, 2.0]))
+    assert cfg.base_pyramid() is None and MaterialConfig(base=8, lod_bias=1).base_pyramid().lod_bias == 1
+    assert MaterialConfig(relief=8, lod_bias=1).relief_pyramid().lod_bias == 1
+    assert "lod_bias" not in MaterialConfig().to_json()
+    assert MaterialConfig.from_json(MaterialConfig(lod_bias=2).to_json()).lod_bias == 2
+    for bad in (-1, 9, 1.5):
+        with pytest.raises(ValueError, match="lod_bias"):
+            MaterialConfig(lod_bias=bad)

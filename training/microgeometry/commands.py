@@ -45,6 +45,8 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--resolution", type=int, help="finest texels per tile side for sigma (default: the material's)")
     p.add_argument("--levels-resolution", type=int, help="the log-uniform share of sigma spans the levels of a "
                    "pyramid this fine (a model coarser than --resolution; default: --resolution's)")
+    p.add_argument("--sub-texel-levels", type=int, default=QuerySampling.sub_texel_levels, metavar="K",
+                   help="footprints down to 2^-K texel (for a model trained with --lod-bias K; QuerySampling.sub_texel_levels)")
     p.add_argument("--chunk", type=int, default=GenerateSettings.chunk,
                    help="queries per chunk, the unit of resumption")
     p.add_argument("--lanes", type=int, default=TracerConfig.lanes,
@@ -102,6 +104,7 @@ def _settings(args: argparse.Namespace):
         heavy_fraction=args.heavy_fraction,
         directions=args.directions,
         levels_resolution=args.levels_resolution,
+        sub_texel_levels=args.sub_texel_levels,
         **({} if args.max_zenith is None else {"max_zenith_deg": args.max_zenith}),
     )
     return GenerateSettings(

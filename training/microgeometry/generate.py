@@ -86,6 +86,8 @@ class GenerateSettings:
             del sampling["directions"]
         if sampling["levels_resolution"] is None:  # likewise
             del sampling["levels_resolution"]
+        if not sampling["sub_texel_levels"]:  # likewise
+            del sampling["sub_texel_levels"]
         return {
             "name": GENERATOR,
             "queries": self.query_count(desc),

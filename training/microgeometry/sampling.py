@@ -11,7 +11,9 @@ Defaults follow the NeuMIP authors' code:
   ``level_fraction`` log-uniform over all levels (``sigma = 2^L t``, ``L ~ U(0, log2 R)``; with
   ``levels_resolution`` R' over the levels of an R' pyramid instead, ``t' = 1 / R'``),
   ``heavy_fraction`` heavy-tailed ``sigma = t / sqrt(U)`` (most mass near the finest level),
-  and the rest ``sigma = 0`` (the unfiltered BTF).
+  and the rest ``sigma = 0`` (the unfiltered BTF); with ``sub_texel_levels`` k both shares move k levels
+  finer, from ``2^-k t`` (for a model whose finest level answers such footprints, `MaterialConfig.lod_bias`
+  k: each of its levels gets the share the authors' sampling gives a level).
 """
 
 from __future__ import annotations
@@ -44,6 +46,10 @@ class QuerySampling:
     levels_resolution: int | None = None
     """The log-uniform share spans the levels of a pyramid of this many texels per side (a model
     coarser than the material's maps keeps its coarse levels' share); None: the sampling resolution's."""
+    sub_texel_levels: int = 0
+    """Levels below the finest texel that the footprints reach: both shares are scaled by ``2^-k`` (the
+    heavy-tailed one is ``2^-k t / sqrt(U)``), for a model with `MaterialConfig.lod_bias` k, whose level L is
+    the footprint 2^(L - k) t; 0: the authors' sampling."""
 
     def __post_init__(self) -> None:
         if not 0 < self.max_zenith_deg < 90:
@@ -56,6 +62,8 @@ class QuerySampling:
             raise ValueError("queries_per_texel must be positive")
         if self.levels_resolution is not None and self.levels_resolution < 1:
             raise ValueError(f"levels_resolution must be >= 1, got {self.levels_resolution}")
+        if not (isinstance(self.sub_texel_levels, int) and 0 <= self.sub_texel_levels <= 8):
+            raise ValueError(f"sub_texel_levels must be a whole number in [0, 8], got {self.sub_texel_levels!r}")
 
 
 def sample_directions(
@@ -74,10 +82,11 @@ def sample_directions(
 
 def sample_sigma(n: int, rng: np.random.Generator, resolution: int, config: QuerySampling) -> np.ndarray:
     """(n,) footprints in tile units drawn from the level mixture of `config`."""
-    texel = 1.0 / resolution
+    finer = 2.0 ** -config.sub_texel_levels
+    texel = finer / resolution
     coarse = config.levels_resolution or resolution
     kind = rng.random(n)
-    log_uniform = 2.0 ** (math.log2(coarse) * rng.random(n)) / coarse
+    log_uniform = 2.0 ** (math.log2(coarse) * rng.random(n)) * finer / coarse
     heavy = texel / np.sqrt(1.0 - rng.random(n))  # 1 - U in (0, 1]: no division by zero
     sigma = np.where(kind < config.level_fraction, log_uniform, 0.0)
     heavy_kind = (kind >= config.level_fraction) & (kind < config.level_fraction + config.heavy_fraction)

@@ -99,6 +99,9 @@ def test_default_directions_keep_older_data_sets_valid():
     solid = GenerateSettings(queries=64, seed=0, sampling=QuerySampling(directions="solid_angle")).to_meta(desc)
     assert solid["sampling"]["directions"] == "solid_angle"
     assert {k: v for k, v in solid["sampling"].items() if k != "directions"} == disk["sampling"]
+    assert "sub_texel_levels" not in disk["sampling"]  # likewise the footprints' reach (a lod-biased model's data)
+    finer = GenerateSettings(queries=64, seed=0, sampling=QuerySampling(sub_texel_levels=2)).to_meta(desc)
+    assert finer["sampling"] == {**disk["sampling"], "sub_texel_levels": 2}
 
 
 def test_tiled_margin_follows_the_sampled_directions():

@@ -84,3 +84,24 @@ def test_the_log_uniform_share_can_span_a_coarser_pyramids_levels():
     assert sample_queries(20_000, np.random.default_rng(1), 256, heavy)[:, C.SIGMA].min() < 1.01 / 256
     with pytest.raises(ValueError, match="levels_resolution"):
         QuerySampling(levels_resolution=0)
+
+
+def test_sub_texel_levels_reach_finer_footprints(queries):
+    """`sub_texel_levels` k (for a model with `MaterialConfig.lod_bias` k): both shares move k levels finer, so
+    each level of the biased model gets the share the paper's sampling gives its own. 0 draws exactly the
+    authors' queries."""
+    assert QuerySampling().sub_texel_levels == 0
+    k = 2
+    q = sample_queries(N, np.random.default_rng(0), RES, QuerySampling(sub_texel_levels=k))
+    sigma, before = q[:, C.SIGMA].astype(np.float64), queries[:, C.SIGMA].astype(np.float64)
+    np.testing.assert_array_equal(q[:, [C.U, C.V, C.WI_X, C.WO_Y]], queries[:, [C.U, C.V, C.WI_X, C.WO_Y]])
+    assert (sigma == 0).mean() == pytest.approx((before == 0).mean(), abs=1e-9)
+    heavy = sigma[(sigma > 0) & (sigma < 2.0**-k * 1.01 / RES)]
+    assert len(heavy) > 0 and sigma[sigma > 0].min() >= 2.0**-k / RES * (1 - 1e-6)
+    # the biased levels of the new queries are distributed as the paper's levels of the old ones
+    for lo, hi in ((0, 0.5), (0.5, 1), (1, 3), (3, 8)):
+        new = ((l := C.level_of_detail(sigma[sigma > 0], RES, k)) >= lo) & (l < hi)
+        old = ((m := C.level_of_detail(before[before > 0], RES)) >= lo) & (m < hi)
+        assert new.mean() == pytest.approx(old.mean(), abs=0.01)
+    with pytest.raises(ValueError, match="sub_texel_levels"):
+        QuerySampling(sub_texel_levels=-1)
