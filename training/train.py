@@ -244,6 +244,12 @@ class Trainer:
             landed = landed_positions(relief_heights(self._geometry, material_config.relief), material_config,
                                       self.data.queries)
         self.sampler = BatchSampler(self.data, self.train_idx, config.batch, config.seed, config.preload_mb, landed)
+        generator = self.data.meta.get("generator")
+        reach = (generator.get("sampling") or {}).get("sub_texel_levels", 0) if isinstance(generator, dict) else None
+        if reach is not None and reach != material_config.lod_bias:  # (imported or hand-made data: not known)
+            log.warning("the model's finest level answers footprints of 2^-%d texel (lod_bias), the data's reach 2^-%d "
+                        "(neumip generate --sub-texel-levels %d draws them for it)", material_config.lod_bias, reach,
+                        material_config.lod_bias)
         self.state = TrainState()
         self._average: dict[str, torch.Tensor] = {}  # running mean of the weights (a resumed run's: `_resume`)
         if self.checkpoint_path.exists():

@@ -544,3 +544,18 @@ def test_a_diverging_start_is_dropped_and_an_interrupted_comparison_restarts_in_
     whole = Trainer(data.path, tmp_path / "w.pt", TINY, config)
     whole.run()
     assert again.state.candidates == whole.state.candidates and again.state.step == whole.state.step == 60
+
+
+def test_a_lod_bias_the_data_were_not_drawn_for_is_named(tmp_path, plane_data, caplog):
+    """A model whose finest level answers 2^-K texel (`MaterialConfig.lod_bias`) on generated data whose footprints do
+    not reach it: the run goes on (the level mapping is the model's), with a warning naming the generate option."""
+    data = plane_data(tmp_path / "data", 2_000, seed=1)
+    meta_path = data.path / "meta.json"
+    meta = json.loads(meta_path.read_text())
+    meta["generator"] = {"name": "neumip.microgeometry/1", "sampling": {"sub_texel_levels": 1}}
+    meta_path.write_text(json.dumps(meta))
+    with caplog.at_level("WARNING", logger="neumip.training.train"):
+        Trainer(data.path, tmp_path / "a.pt", replace(TINY, lod_bias=1), FAST)
+    assert not caplog.records
+    Trainer(data.path, tmp_path / "b.pt", replace(TINY, lod_bias=2), FAST)
+    assert "--sub-texel-levels 2" in caplog.text and "2^-1" in caplog.text
