@@ -1,7 +1,7 @@
 #!/usr/bin/env bash
 # Reproduce the shipped materials with `neumip fit`: path-traced data ($QPT queries per texel of the $RES^2
 # model, footprints sampled for the material's maps' resolution where finer, $SPP spp) in data/MATERIAL_nQUERIES_sSPP
-# (shared by NAME, NAME_nooffset, NAME_maps), then training with the preset $PRESET, replacing
+# (shared by NAME and NAME_nooffset; NAME_maps* on data/MATERIAL_nQUERIES_sSPP_stK, footprints K = $LOD_BIAS levels finer), then training with the preset $PRESET, replacing
 # models/NAME.onnx (--force). Each step resumes if interrupted (a checkpoint in runs/NAME/ from another
 # preset or resolution is refused: move it away). NAME_maps is the map-informed model (`neumip fit --maps`).
 # Materials with a height map are fitted with the relief stage (--relief $RELIEF): parallax and occlusion marched
@@ -14,7 +14,7 @@
 # SEEDS=K trains each model from K initial weights (fit --seeds) and keeps the one with the lowest error on a
 # low-noise reference set: a first run in runs/NAME[/base], the others in its seedK/ folders.
 # Defaults reproduce the models shipped now (`ship` preset, 64^2, 256 queries per texel of it, 16 spp; the
-# map-informed models at their maps' resolution, on the same data).
+# map-informed models at their maps' resolution with --lod-bias $LOD_BIAS, on data as large, footprints a level finer).
 # PRESET=quality is the longer recipe measured in benchmarks/results/quality_levers_log.md ("Quality levers"): 10 000 steps of 16 384.
 # Run from the repository root: [PRESET=ship|quality] [RES=64] [THREADS=1] bash models/make_models.sh [NAME ...]
 # RAY=auto (or HOST:PORT, or local) runs data chunks and then one training per material as Ray tasks
@@ -35,7 +35,7 @@ SHADING=${SHADING---local-frame --terminator none}  # with the base: the decoder
 RELIEF=${RELIEF:-8}  # relief steps (fit --relief) for every material with a height map, 0: none; NAME_nooffset has neither relief nor offset
 MAPS_RES=${MAPS_RES:-}  # NAME_maps: finest latent level of the map-informed models; empty: the material's maps' (256^2 shipped: results/gpu.txt)
 HORIZONS=${HORIZONS:-8}  # NAME_maps: horizon features towards 8 azimuths (rock: better than none in all 8 close-up views, benchmarks/results/maps.txt)
-LOD_BIAS=${LOD_BIAS:-0}  # NAME_maps: fit --lod-bias K (the finest level answers footprints of 2^-K texel and less, on data of their own with footprints that fine, data/MATERIAL_nQUERIES_sSPP_stK); the shipped files have 0; 1 and 2 were measured: benchmarks/results/lod_bias.txt
+LOD_BIAS=${LOD_BIAS:-1}  # NAME_maps: fit --lod-bias K (the finest level answers footprints of 2^-K texel and less, on data of their own with footprints that fine, data/MATERIAL_nQUERIES_sSPP_stK); 0 is the paper's level of detail, 2 was measured too: benchmarks/results/lod_bias.txt
 SEEDS=${SEEDS:-1}  # fit --seeds: each model from this many initial weights, the lowest reference error kept; 3 was measured, not shipped (TRAINING.md)
 RAY=${RAY:-}
 names=("$@")
