@@ -119,7 +119,8 @@ class MaterialConfig:
     texel's std, blurred by about a texel. A Gaussian of std s weighs about as much as a box sqrt(12) s ~ 2^1.8 s
     wide, so with 2 level L is the footprint of a box of about 2^L texels (the maps' prefiltered level L) and the
     finest level the footprints of a quarter texel and less. The data must then hold footprints that fine
-    (`QuerySampling.sub_texel_levels`; `neumip fit` generates them). Issue 25: `benchmarks/results/lod_bias.txt`."""
+    (`QuerySampling.sub_texel_levels`; `neumip fit` generates them). The shipped map-informed files use 1
+    (`benchmarks/results/lod_bias.txt`)."""
     ceiling: float = 0.0
     """The largest answer (every channel), 0: none. A trainer sets it to its data's largest target
     (`train.data_ceiling`): each target is an unbiased estimate of an answer, so an answer above all of them is
