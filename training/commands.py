@@ -44,9 +44,9 @@ LOD_BIAS_HELP = ("raise every footprint's level of detail by K levels (MaterialC
                  "the appearance filtered by a texel; the data need footprints that fine (generate --sub-texel-levels K)")
 
 
-def add_lod_bias_argument(p: argparse.ArgumentParser, default: int = 0) -> None:
-    """`--lod-bias K` (`MaterialConfig.lod_bias`)."""
-    p.add_argument("--lod-bias", type=int, default=default, metavar="K", help=LOD_BIAS_HELP + f" (default {default})")
+def add_lod_bias_argument(p: argparse.ArgumentParser) -> None:
+    """`--lod-bias K` (`MaterialConfig.lod_bias`, default 0: the paper's level of detail)."""
+    p.add_argument("--lod-bias", type=int, default=0, metavar="K", help=LOD_BIAS_HELP + " (default 0)")
 
 
 RESIDUAL_HELP = ("with --maps: also train a free texture, added to the encoded one, on every level of at most SIZE "

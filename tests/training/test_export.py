@@ -34,7 +34,7 @@ def torch_eval(material: NeuMIPMaterial, q: np.ndarray) -> np.ndarray:
 def pair(request):
     torch.manual_seed(3)
     offset, half_vector, base, relief, local_frame, terminator, *extra = request.param
-    visibility, lod_bias = (extra + [False, 0])[:2] if len(extra) < 2 else extra
+    visibility, lod_bias = [*extra, False, 0][:2]
     cfg = MaterialConfig(resolution=32, offset=offset, half_vector=half_vector, base=base, relief=relief,
                          local_frame=local_frame, terminator=terminator, visibility_input=bool(visibility),
                          lod_bias=lod_bias)
