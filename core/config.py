@@ -56,13 +56,6 @@ its depth sideways (`MaterialConfig.relief`). 0.1 was measured: rock's 85-degree
 but turtle's reference error 1.27x (`benchmarks/results/relief.txt`)."""
 RELIEF_DIVISION_FLOOR = 1e-12
 """The relief's secant step divides by at least this (its weight is 0 where the floor acts)."""
-SHADOW_MIN_COS = 0.1
-"""The shadow march (`MaterialConfig.shadow_steps`) goes along wi_xy / max(wi_z, this): a light less than ~6 degrees
-above the horizon is followed as if it were at ~6 degrees (at most ~10x the relief's depth sideways)."""
-SHADOW_SOFTNESS = 0.5
-"""The shadow march's visibility clamp(c / (this * s_1) + 1, 0, 1) of the ray's least clearance c above the heights
-(tile units; s_1 = depth / steps^2, the first step's rise): lit where the ray clears every step, dark where it passes
-half the first step's rise below one."""
 
 
 @dataclass(frozen=True)
@@ -118,11 +111,6 @@ class MaterialConfig:
     learned offset (if any) corrects from there."""
     relief_steps: int = 8
     """Linear-search steps of the relief stage (each one height lookup), refined by one secant step."""
-    shadow_steps: int = 0
-    """Steps of the shadow march, 0: none. With it the base's visibility of each light V(wi) is not its horizons' (a
-    texel's 8 azimuths, prefiltered) but a march from where the relief stage lands towards the light over the relief's
-    heights, read at the query's footprint (`relief.shadow_visibility`): a close-up's shadow edges are then as sharp as
-    the height field's, not a texel's blend. Needs a base and a relief."""
     lod_bias: int = 0
     """Levels by which a footprint's level of detail is raised: level = clamp(log2(sigma R) + lod_bias, 0, log2 R),
     for every pyramid of the model (the latents', the base maps', the relief's heights). 0 is the paper's convention:
@@ -171,11 +159,6 @@ class MaterialConfig:
             raise ValueError(f"relief_steps must be >= 1, got {self.relief_steps}")
         if not (self.ceiling >= 0 and math.isfinite(self.ceiling)):
             raise ValueError(f"ceiling must be 0 (none) or a finite positive answer, got {self.ceiling}")
-        if self.shadow_steps < 0:
-            raise ValueError(f"shadow_steps must be >= 0, got {self.shadow_steps}")
-        if self.shadow_steps and not (self.base and self.relief):
-            raise ValueError("shadow_steps replaces the base's visibility by a march over the relief's heights: it needs "
-                             "a base and a relief")
         if not (isinstance(self.lod_bias, int) and 0 <= self.lod_bias <= 8):
             raise ValueError(f"lod_bias must be a whole number of levels in [0, 8], got {self.lod_bias!r}")
         if not 0 < self.offset_min_cos <= 1:
@@ -213,7 +196,7 @@ class MaterialConfig:
                               lod_bias=self.lod_bias) if self.relief else None
 
     def to_json(self) -> str:
-        """The fields as JSON; `half_vector`, `base`, `local_frame`, `visibility_input`, the relief's, `lod_bias`, `shadow_steps` and `ceiling` only when on, and
+        """The fields as JSON; `half_vector`, `base`, `local_frame`, `visibility_input`, the relief's, `lod_bias` and `ceiling` only when on, and
         `terminator` only when not "all", so that models made before each existed read as they did."""
         fields_ = asdict(self)
         if not self.half_vector:
@@ -232,8 +215,6 @@ class MaterialConfig:
             del fields_["ceiling"]
         if not self.lod_bias:
             del fields_["lod_bias"]
-        if not self.shadow_steps:
-            del fields_["shadow_steps"]
         return json.dumps(fields_, sort_keys=True)
 
     @classmethod

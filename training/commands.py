@@ -39,16 +39,6 @@ def add_relief_argument(p: argparse.ArgumentParser, help_tail: str = "") -> None
                    help=RELIEF_HELP + help_tail + f"; STEPS defaults to {MaterialConfig.relief_steps}")
 
 
-SHADOW_HELP = ("with the classical base and --relief: the base's visibility of each light by a march of STEPS height "
-               "lookups from where the view ray lands towards the light (MaterialConfig.shadow_steps), in place of its "
-               "horizons; 0 (the default): the horizons")
-
-
-def add_shadow_argument(p: argparse.ArgumentParser) -> None:
-    """`--shadow STEPS` (`MaterialConfig.shadow_steps`, default 0: the base's horizons)."""
-    p.add_argument("--shadow", type=int, default=0, metavar="STEPS", help=SHADOW_HELP)
-
-
 LOD_BIAS_HELP = ("raise every footprint's level of detail by K levels (MaterialConfig.lod_bias): the finest level then "
                  "answers footprints of 2^-K texels and less, the sharp samples of a close-up render, instead of "
                  "the appearance filtered by a texel; the data need footprints that fine (generate --sub-texel-levels K)")
@@ -98,7 +88,6 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--visibility-input", action="store_true", help=VISIBILITY_INPUT_HELP)
     add_terminator_argument(p)
     add_lod_bias_argument(p)
-    add_shadow_argument(p)
     p.add_argument("--base", action="store_true", help=BASE_HELP + "; the maps are the data's material's, or --maps'")
     add_relief_argument(p)
     p.add_argument("--views-material", metavar="NAME_OR_TOML",
@@ -298,8 +287,7 @@ def _train(args: argparse.Namespace) -> int:
                                   terminator=args.terminator, visibility_input=args.visibility_input,
                                   base=base_resolution(maps[1]) if args.base else 0,
                                   relief=relief_resolution(maps[1]) if args.relief else 0,
-                                  relief_steps=args.relief or MaterialConfig.relief_steps, lod_bias=args.lod_bias,
-                                  shadow_steps=args.shadow)
+                                  relief_steps=args.relief or MaterialConfig.relief_steps, lod_bias=args.lod_bias)
         trainer = Trainer(args.data, checkpoint, material, config, args.description, maps)
     except (ValueError, DatasetError, CheckpointError) as exc:
         raise CommandError(str(exc)) from exc

@@ -31,7 +31,6 @@ from __future__ import annotations
 import json
 import logging
 import os
-from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -42,10 +41,9 @@ from neumip.core import contract as C
 
 from neumip.core import head
 from neumip.core import weights as W
-from neumip.core.config import (RELIEF_DIVISION_FLOOR, RELIEF_MIN_COS, SHADOW_MIN_COS, SHADOW_SOFTNESS,
-                                MaterialConfig)
+from neumip.core.config import RELIEF_DIVISION_FLOOR, RELIEF_MIN_COS, MaterialConfig
 from . import export_base as B
-from .export_lookup import Footprint, footprint_texels, pyramid_footprint, pyramid_texels, texture_texels
+from .export_lookup import footprint_texels, pyramid_footprint, pyramid_texels, texture_texels
 from .onnx_graph import GraphWriter
 
 log = logging.getLogger(__name__)
@@ -167,27 +165,20 @@ def _half_vector(g: GraphWriter, wi: str, wo: str) -> str:
     return g.op("Concat", h, B.dot(g, h, wi3), axis=1)
 
 
-def _relief_depth(weights: dict) -> np.float32:
-    """The relief's depth D: -min height, as `relief` computes it."""
-    return np.float32(max(-float(weights[W.RELIEF].min()), 0.0))
-
-
-def _height(g: GraphWriter, fp: Footprint, uv: str) -> str:
-    """The heights at footprint `fp`, read at uv (M, 2) (wrapped here) -> (M, 1)."""
-    texels, tap_w = footprint_texels(g, fp, 1, g.wrap(uv))
-    return g.op("MatMul", g.op("Mul", texels, tap_w), g.const(np.ones((8, 1), np.float32)))
-
-
-def _relief(g: GraphWriter, config: MaterialConfig, weights: dict, fp: Footprint, uv: str, wo: str) -> str:
-    """uv (N, 2), wo (N, 2) -> (N, 2) the relief's shift of the lookups, as `relief.relief_shift` computes it: the
-    height pyramid's footprint `fp` (the queries' sigma), read at each step's position."""
-    depth = _relief_depth(weights)
+def _relief(g: GraphWriter, config: MaterialConfig, weights: dict, uv: str, sigma: str, wo: str) -> str:
+    """uv (N, 2), sigma (N, 1), wo (N, 2) -> (N, 2) the relief's shift of the lookups, as `relief.relief_shift`
+    computes it: one footprint of the height pyramid, read at each step's position."""
+    heights = weights[W.RELIEF]
+    depth = np.float32(max(-float(heights.min()), 0.0))
     steps = config.relief_steps
+    fp = pyramid_footprint(g, config.relief_pyramid(), g.const(heights, name=W.RELIEF), 1, sigma, prefix="relief.")
     d = g.op("Div", wo, _clamped_wo_z(g, wo, RELIEF_MIN_COS))
+    ones = g.const(np.ones((8, 1), np.float32))
     found = missed = s_prev = t_prev = None
     for k in range(steps + 1):
         t = np.float32(depth * np.float32(k / steps))
-        s = g.op("Add", _height(g, fp, g.op("Sub", uv, g.op("Mul", d, g.scalar(t)))), g.scalar(t))  # (N, 1)
+        texels, tap_w = footprint_texels(g, fp, 1, g.wrap(g.op("Sub", uv, g.op("Mul", d, g.scalar(t)))))
+        s = g.op("Add", g.op("MatMul", g.op("Mul", texels, tap_w), ones), g.scalar(t))  # (N, 1)
         below = g.op("Cast", g.op("GreaterOrEqual", s, g.scalar(0.0)), to=TensorProto.FLOAT)
         if k == 0:
             found, missed = g.op("Mul", below, g.scalar(0.0)), g.op("Sub", g.scalar(1.0), below)
@@ -200,22 +191,6 @@ def _relief(g: GraphWriter, config: MaterialConfig, weights: dict, fp: Footprint
         s_prev, t_prev = s, t
     found = g.op("Add", found, g.op("Mul", missed, g.scalar(depth)))
     return g.op("Mul", d, g.op("Neg", found))
-
-
-def _shadow(g: GraphWriter, config: MaterialConfig, weights: dict, fp: Footprint, uv: str, wi: str) -> str:
-    """uv (M, 2) where the lookups land, wi (M, 2) -> (M, 1) the light's visibility by the shadow march, as
-    `relief.shadow_visibility` computes it; `fp`: the height pyramid's footprint of the M rows."""
-    depth, steps = _relief_depth(weights), config.shadow_steps
-    softness = np.float32(max(float(depth * np.float32(SHADOW_SOFTNESS / steps**2)), RELIEF_DIVISION_FLOOR))
-    d = g.op("Div", wi, _clamped_wo_z(g, wi, SHADOW_MIN_COS))
-    start = _height(g, fp, uv)
-    clearance = None
-    for k in range(1, steps + 1):
-        s = np.float32(depth * np.float32((k / steps) ** 2))
-        c = g.op("Sub", g.op("Add", start, g.scalar(s)), _height(g, fp, g.op("Add", uv, g.op("Mul", d, g.scalar(s)))))
-        clearance = c if clearance is None else g.op("Min", clearance, c)
-    return g.op("Clip", g.op("Add", g.op("Div", clearance, g.scalar(softness)), g.scalar(1.0)),
-                g.const(np.float32(0.0)), g.const(np.float32(1.0)))
 
 
 def _query_columns(g: GraphWriter, q: str) -> tuple[str, str, str]:
@@ -239,11 +214,8 @@ def material_graph(g: GraphWriter, config: MaterialConfig, weights: dict,
     uv, sigma, wo = _query_columns(g, q)
 
     # --- relief: uv moves to where the view ray first meets the height field --------------------
-    heights = None  # the height pyramid's footprint (the relief's and the shadow march's)
     if config.relief:
-        heights = pyramid_footprint(g, config.relief_pyramid(), g.const(weights[W.RELIEF], name=W.RELIEF), 1, sigma,
-                                    prefix="relief.")
-        uv = g.op("Add", uv, _relief(g, config, weights, heights, uv, wo))
+        uv = g.op("Add", uv, _relief(g, config, weights, uv, sigma, wo))
 
     # --- neural offset: uv += r * wo_xy / max(wo_z, min_cos) -----------------------------------
     if config.offset:
@@ -291,15 +263,10 @@ def material_graph(g: GraphWriter, config: MaterialConfig, weights: dict,
                           rows=True, name=W.half_weight(W.DECODER, 0, "frame"))  # (hidden, K N)
         hidden = g.op("Add", hidden, frame)
     lit = None
-    if config.shadow_steps:  # per light: the march from where the group's lookups land towards it
-        fp = replace(heights, size=each_light(heights.size), coef=each_light(heights.coef),
-                     bases=each_light(heights.bases), t=each_light(heights.t))  # (the same table)
-        lit = _shadow(g, config, weights, fp, each_light(uv), wi)  # (K N, 1)
     if config.visibility_input:  # per light: the base's visibility of it, at the group's maps
         first = config.channels + half_inputs + frame_inputs
-        if lit is None:
-            horizon = B.horizon_sine(g, read, each_light(read.rows), each_light(read.taps), wi)  # (K N, 1)
-            lit = B.light_visibility(g, horizon, wi)
+        horizon = B.horizon_sine(g, read, each_light(read.rows), each_light(read.taps), wi)  # (K N, 1)
+        lit = B.light_visibility(g, horizon, wi)
         hidden = g.op("Add", hidden, g.product(w[:, first : first + W.VISIBILITY_INPUTS], lit, rows=True,
                                                name=W.half_weight(W.DECODER, 0, "visibility")))  # (hidden, K N)
     if config.layers > 1:

@@ -149,7 +149,7 @@ def fit(description, output: str | Path, settings: FitSettings, report: Report |
     maps = (settings.maps, geo)
     if settings.choose_base:
         from .base import base_resolution
-        candidates = [(replace(settings.material, base=0, local_frame=False, terminator=MaterialConfig.terminator, shadow_steps=0,
+        candidates = [(replace(settings.material, base=0, local_frame=False, terminator=MaterialConfig.terminator,
                                visibility_input=False), work),  # (the frame, the terminator, the visibility: the base's)
                       (replace(settings.material, base=base_resolution(geo)), work / "base")]
     else:

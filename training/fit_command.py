@@ -60,7 +60,6 @@ def register(sub: argparse._SubParsersAction) -> None:
                    "twice the training time)")
     commands.add_relief_argument(p)
     commands.add_lod_bias_argument(p)
-    commands.add_shadow_argument(p)
     p.add_argument("--steps", type=int, help="override the preset's TrainConfig.steps")
     p.add_argument("--candidates", type=int, help="override the preset's TrainConfig.candidates (best of this "
                    "many initial weights, compared after TrainConfig.candidate_steps steps)")
@@ -145,8 +144,7 @@ def _fit(args: argparse.Namespace) -> int:
                                   local_frame=args.local_frame, terminator=args.terminator,
                                   visibility_input=args.visibility_input,
                                   relief=relief_resolution(resolve(desc)) if args.relief else 0,
-                                  relief_steps=args.relief or MaterialConfig.relief_steps, lod_bias=args.lod_bias,
-                                  shadow_steps=args.shadow)
+                                  relief_steps=args.relief or MaterialConfig.relief_steps, lod_bias=args.lod_bias)
         generate = GenerateSettings(spp=args.spp, sampling=QuerySampling(queries_per_texel=args.queries_per_texel,
                                                                          sub_texel_levels=args.lod_bias),
                                     queries=args.queries)
@@ -159,7 +157,6 @@ def _fit(args: argparse.Namespace) -> int:
         + (f", terminator softening {material.terminator}" if args.base and material.terminator != "all" else "") \
         + (", visibility input" if material.visibility_input else "") \
         + (f", relief ({material.relief_steps} steps)" if material.relief else "") \
-        + (f", shadow march ({material.shadow_steps} steps)" if material.shadow_steps else "") \
         + (", classical base if it lowers the held-out error" if args.base == "auto" else "") \
         + (f", best of {args.seeds} initial weights" if args.seeds > 1 else "")
     description = args.description or f"{desc.name}: {desc.summary or 'fitted'}, {resolution}^2, {kind}, " \

@@ -15,7 +15,7 @@ from .base import base_answer, corrected, frame_inputs, half_direction, lift, li
 from .maps import MapConfig, level_feature
 from .offset import parallax_shift
 from .pyramid import pyramid_lookup, texture_lookup
-from .relief import relief_shift, shadow_visibility
+from .relief import relief_shift
 
 
 def mlp(inputs: int, outputs: int, layers: int, hidden: int) -> nn.Sequential:
@@ -121,12 +121,8 @@ class NeuMIPMaterial(nn.Module):
             features = torch.cat([features, half_vector(wi, wo)], dim=1)
         if self.config.local_frame:
             features = torch.cat([features, frame_inputs(maps, wi, wo)], dim=1)
-        lit = None  # the base's visibility of the light, where computed here (the decoder's input reads it too)
-        if self.config.shadow_steps:
-            lit = shadow_visibility(self.relief_heights, self.config, u, v, sigma, wi)
-        elif self.config.visibility_input:
-            lit = light_visibility(maps, wi)
-        if self.config.visibility_input:
+        lit = light_visibility(maps, wi) if self.config.visibility_input else None  # (the base's too)
+        if lit is not None:
             features = torch.cat([features, lit], dim=1)
         out = self.decoder(torch.cat([features, directions], dim=1))
         if self.config.base:

@@ -28,8 +28,7 @@ import math
 import numpy as np
 import torch
 
-from neumip.core.config import (RELIEF_DIVISION_FLOOR, RELIEF_MIN_COS, SHADOW_MIN_COS, SHADOW_SOFTNESS,
-                                MaterialConfig)
+from neumip.core.config import RELIEF_DIVISION_FLOOR, RELIEF_MIN_COS, MaterialConfig
 
 from .maps import resize
 from .microgeometry.description import Microgeometry
@@ -51,11 +50,11 @@ def relief_heights(geo: Microgeometry, resolution: int) -> list[np.ndarray]:
             for size in MaterialConfig(resolution=resolution).level_sizes()]
 
 
-def march_direction(wo: torch.Tensor, min_cos: float = RELIEF_MIN_COS) -> torch.Tensor:
-    """(N, 2) x, y of unit directions -> (N, 2) d = wo_xy / max(wo_z, min_cos), with the max taken under the
-    root (sqrt(max(1 - |wo_xy|^2, min_cos^2)): the same for a correctly rounded sqrt, and what the graph
-    computes)."""
-    floor = min_cos * min_cos
+def march_direction(wo: torch.Tensor) -> torch.Tensor:
+    """(N, 2) x, y of unit view directions -> (N, 2) d = wo_xy / max(wo_z, RELIEF_MIN_COS), with the max
+    taken under the root (sqrt(max(1 - |wo_xy|^2, RELIEF_MIN_COS^2)): the same for a correctly rounded sqrt,
+    and what the graph computes)."""
+    floor = RELIEF_MIN_COS * RELIEF_MIN_COS
     return wo / torch.sqrt(torch.clamp(1.0 - (wo * wo).sum(1, keepdim=True), min=floor))
 
 
@@ -98,30 +97,6 @@ def relief_shift(heights: torch.Tensor, config: MaterialConfig, u: torch.Tensor,
     d = march_direction(wo)
     t = _march(heights, config.relief_pyramid(), u, v, sigma, d, config.relief_steps)
     return -t * d[:, 0], -t * d[:, 1]
-
-
-@torch.no_grad()
-def shadow_visibility(heights: torch.Tensor, config: MaterialConfig, u: torch.Tensor, v: torch.Tensor,
-                      sigma: torch.Tensor, wi: torch.Tensor) -> torch.Tensor:
-    """The shadow march of `config` (with `shadow_steps` n): heights (T, 1) atlas, (N,) u, v where the relief
-    stage lands, sigma, (N, 2) wi -> (N, 1) the light's visibility.
-
-    From the landed point p at height h0 = H(p) the ray towards the light rises by s over l s sideways, l =
-    wi_xy / max(wi_z, SHADOW_MIN_COS); at s_k = D (k / n)^2 (k = 1..n, D the relief's depth: above it nothing
-    occludes; the steps are finest near p, where a bump's own shadow starts) its clearance is c_k = h0 + s_k -
-    H(p + s_k l), the heights read at the query's footprint, and V = clamp(min_k c_k / (SHADOW_SOFTNESS s_1) + 1,
-    0, 1). `export._shadow` writes the same arithmetic."""
-    pyramid, steps = config.relief_pyramid(), config.shadow_steps
-    depth = torch.clamp(-heights.min(), min=0.0)
-    softness = torch.clamp(depth * (SHADOW_SOFTNESS / steps**2), min=RELIEF_DIVISION_FLOOR)
-    d = march_direction(wi, SHADOW_MIN_COS)
-    start = pyramid_lookup(heights, pyramid, u, v, sigma)[:, 0]
-    clearance = None
-    for k in range(1, steps + 1):
-        s = depth * (k / steps) ** 2
-        c = start + s - pyramid_lookup(heights, pyramid, u + s * d[:, 0], v + s * d[:, 1], sigma)[:, 0]
-        clearance = c if clearance is None else torch.minimum(clearance, c)
-    return torch.clamp(clearance / softness + 1.0, min=0.0, max=1.0).unsqueeze(1)
 
 
 @torch.no_grad()

@@ -147,8 +147,8 @@ def test_fit_command_imports_torch_only_after_setting_its_threads():
 
 def test_fit_samples_the_maps_footprints_and_trains_a_map_model(material, tmp_path, capsys):
     """A model coarser than the maps: its queries (per model texel) have footprints sampled for the
-    maps' resolution; --maps trains the map-informed model, with --base on the maps' base and --relief (and the
-    shadow march) on their height, whose export answers as its checkpoint."""
+    maps' resolution; --maps trains the map-informed model, with --base on the maps' base and --relief on
+    their height, whose export answers as its checkpoint."""
     from neumip.client.local import LocalMaterials, load_material
     from neumip.core.contract import random_queries
     from neumip.training import checkpoint
@@ -156,7 +156,7 @@ def test_fit_samples_the_maps_footprints_and_trains_a_map_model(material, tmp_pa
     out = tmp_path / "my.onnx"
     argv = ["fit", str(material), "-o", str(out), "--preset", "test", "--steps", "10", "--spp", "2",
             "--queries-per-texel", "32", "--resolution", "4", "--maps", "--half-vector", "--base", "--relief", "3",
-            "--shadow", "2", "--threads", "1"]
+            "--threads", "1"]
     assert main(argv) == 0
     meta = json.loads((tmp_path / "my.run" / "data" / "meta.json").read_text())
     assert (meta["generator"]["resolution"], meta["generator"]["queries"]) == (8, 32 * 4 * 4)
@@ -164,9 +164,8 @@ def test_fit_samples_the_maps_footprints_and_trains_a_map_model(material, tmp_pa
     assert record["material_config"]["resolution"] == 4 and record["material_config"]["half_vector"]
     assert record["material_config"]["base"] == 8  # the maps' resolution
     assert (record["material_config"]["relief"], record["material_config"]["relief_steps"]) == (8, 3)
-    assert record["material_config"]["shadow_steps"] == 2
     assert "map-informed" in load_material(out).info()["description"]
-    assert "relief (3 steps), shadow march (2 steps)" in load_material(out).info()["description"]
+    assert "relief (3 steps)" in load_material(out).info()["description"]
     trained, _ = checkpoint.load(tmp_path / "my.run" / "checkpoint.pt")
     assert trained.maps is not None  # a MapMaterial
     queries = random_queries(2048, seed=4)

@@ -17,7 +17,6 @@ from neumip.training.relief import (
     relief_heights,
     relief_resolution,
     relief_shift,
-    shadow_visibility,
 )
 
 from .test_base import geometry
@@ -87,48 +86,6 @@ def test_a_ridge_hides_what_lies_behind_it():
     assert float(u + t * 1.0) < 36 / 64  # it stopped at the wall (t d_x = t), not past it on the floor
     open_ = relief_depth(heights, pyramid, torch.tensor([10.0 / 64]), torch.tensor([0.5]), torch.zeros(1), wo, steps=32)
     assert float(open_) == pytest.approx(0.1, abs=0.1 / 32)  # no wall in the way: the floor
-
-
-def wall_config(steps: int, size: int = 64) -> MaterialConfig:
-    return MaterialConfig(resolution=size, relief=size, base=size, offset=False, shadow_steps=steps)
-
-
-def test_a_wall_shadows_the_floor_before_it_and_not_the_floor_behind_it():
-    """A full-height wall along v, 4 texels thick; the light comes from +u, 45 degrees up."""
-    height = np.full((64, 64), -0.1)
-    height[:, 32:36] = 0.0
-    heights, _ = pyramid_of(height)
-    wi = torch.tensor([[0.7071, 0.0]] * 3)
-    u = torch.tensor([28.0, 10.0, 40.0]) / 64  # 4 texels before the wall (its shadow is 0.1 = 6.4 texels long),
-    v, sigma = torch.full((3,), 0.5), torch.zeros(3)  # 22 texels before it, and behind it
-    lit = shadow_visibility(heights, wall_config(32), u, v, sigma, wi)[:, 0]
-    assert lit.tolist() == [0.0, 1.0, 1.0]
-    zenith = shadow_visibility(heights, wall_config(32), u, v, sigma, torch.zeros(3, 2))
-    assert (zenith == 1).all()  # a light at the zenith clears every wall
-    flat, _ = pyramid_of(np.full((8, 8), -0.05))
-    u, v, sigma, wi = rays(500, 4, zenith_max=89.0)
-    assert (shadow_visibility(flat, wall_config(4, 8), u, v, sigma, wi) == 1).all()  # nothing to cast a shadow
-
-
-def test_the_shadow_march_replaces_the_horizons_in_the_base():
-    torch.manual_seed(0)
-    height = 0.05 * (np.random.default_rng(3).standard_normal((64, 64)) - 3)
-    config = wall_config(6)
-    material = NeuMIPMaterial(config)
-    horizons = NeuMIPMaterial(MaterialConfig(resolution=64, relief=64, base=64, offset=False))
-    material.set_maps(W.RELIEF, relief_heights(geometry(height), 64))
-    horizons.load_state_dict(material.state_dict())
-    with torch.no_grad():
-        material.base_maps[:, :3] = 0.5  # a grey diffuse base, no horizons: only the march shadows it
-        horizons.base_maps.copy_(material.base_maps)
-    q = torch.from_numpy(C.random_queries(2000, seed=5))
-    with torch.no_grad():
-        shadowed, unshadowed = material(q), horizons(q)
-    assert (shadowed <= unshadowed + 1e-6).all() and (shadowed < 0.5 * unshadowed).float().mean() > 0.01
-    with pytest.raises(ValueError, match="needs a base and a relief"):
-        MaterialConfig(relief=64, shadow_steps=4)
-    assert "shadow_steps" not in MaterialConfig().to_json()
-    assert MaterialConfig.from_json(config.to_json()) == config
 
 
 def test_a_material_with_a_relief_reads_where_the_ray_lands():
