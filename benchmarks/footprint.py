@@ -14,7 +14,8 @@ whose finest level is blurred answers a sixteenth of a texel as it answers a who
 ``views MATERIAL CACHE VIEWS METHOD FOLDER...``: the report's views rendered as `neumip report` renders them (R and
 the method cached in ``CACHE``, as the report's), the method's model taken from each folder in turn (a folder holds
 ``NAME.onnx`` and the method's file, e.g. ``NAME_maps.onnx`` for Nmaps): the two seeds' mean's MSE against R
-(x1e-3), its mean and 99th-percentile luminance over R's, and the last folder's MSE over the first's.
+(x1e-3), its mean and 99th-percentile luminance over R's, and the last folder's MSE over the first's; ``--where``
+adds where each image's error sits (R's shadowed pixels and the rest; its MSE against R blurred by 1 px).
 
     .venv/bin/python benchmarks/footprint.py query rock level0_side models/rock.onnx models/rock_maps.onnx
     .venv/bin/python benchmarks/footprint.py views rock runs/report-final/cache/renders level0_side,level2_side \\
@@ -100,12 +101,28 @@ def views(args) -> None:
             lr, lm = ref @ LUMINANCE, mean @ LUMINANCE
             rows.setdefault(name, []).append((((mean - ref) ** 2).mean() * 1e3, lm.mean() / lr.mean(),
                                               np.quantile(lm, 0.99) / np.quantile(lr, 0.99)))
+            if args.where:
+                print(f"   {name} {str(folder)[-30:]}: {where(mean, ref)}")
         renderer.release()
     print(f"== {args.material}, {args.method}: the two seeds' mean against R; MSE x1e-3, mean and p99 luminance over R's")
     print(f"   {'view':<13} " + "  ".join(f"{str(f)[-30:]:>30}" for f in args.folders) + "  last / first")
     for name, cells in rows.items():
         print(f"   {name:<13} " + "  ".join(f"{e:9.4f} mean {m:5.3f} p99 {p:5.3f}" for e, m, p in cells)
               + f"  {cells[-1][0] / cells[0][0]:12.2f}")
+
+
+def where(mean: np.ndarray, ref: np.ndarray) -> str:
+    """Where an image's error against R sits: R's shadowed pixels (luminance under 0.4 of its median) and the rest,
+    and the MSE against R blurred by a Gaussian of 1 px (lower than against R: the image is blurred)."""
+    from scipy.ndimage import gaussian_filter
+
+    err = ((mean - ref) ** 2).mean(axis=2)
+    lm, lr = mean @ LUMINANCE, ref @ LUMINANCE
+    dark = lr < 0.4 * np.median(lr)
+    blurred = np.stack([gaussian_filter(ref[..., c], 1.0, mode="nearest") for c in range(3)], axis=2)
+    return (f"R's shadowed pixels {dark.mean():.2f} of the image, {err[dark].sum() / err.sum():.2f} of the error, "
+            f"mean over R's there {lm[dark].mean() / lr[dark].mean():.3f} (elsewhere {lm[~dark].mean() / lr[~dark].mean():.3f}); "
+            f"MSE against R blurred by 1 px {((mean - blurred) ** 2).mean() * 1e3:.4f}e-3")
 
 
 def main() -> None:
@@ -124,6 +141,7 @@ def main() -> None:
     v.add_argument("views", help="comma-separated report views")
     v.add_argument("method", help="a report method (Nmaps, N, ...)")
     v.add_argument("folders", type=Path, nargs="+", help="model folders, the first the baseline")
+    v.add_argument("--where", action="store_true", help="also where each image's error sits (shadows, blur)")
     v.set_defaults(func=views)
     args = p.parse_args()
     args.func(args)
