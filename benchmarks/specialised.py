@@ -31,9 +31,12 @@ import numpy as np
 
 def view_directions(view, n: int, rng: np.random.Generator) -> np.ndarray:
     """(n, 2) x, y of unit directions towards the camera, uniform in a cone of half the field of view's diagonal
-    around the image centre's."""
+    (the report's film) around the image centre's."""
+    from neumip.training.report.config import ReportConfig
+
+    film = ReportConfig().film
     t = math.radians(view.theta)
-    half = math.radians(view.fov) / 2 * math.hypot(1.0, 4.0 / 3.0)  # (the report's films are 4:3)
+    half = math.radians(view.fov) / 2 * math.hypot(1.0, film.width / film.height)
     cos_max = math.cos(half)
     z = rng.uniform(cos_max, 1.0, n)
     phi = rng.uniform(0.0, 2 * math.pi, n)
