@@ -16,7 +16,7 @@ from __future__ import annotations
 import json
 
 from neumip.core import contract as C
-from neumip.client import wire
+from neumip.core import wire
 
 
 async def _answer(send, status: int, body: bytes | memoryview, media: str) -> None:

@@ -1,6 +1,6 @@
 """The classical base alone against the ground truth, by footprint and by the light's zenith angle.
 
-The base (`training/base.py`) is what a model with `--base` starts from: its decoder then learns
+The base (`training/model/base.py`) is what a model with `--base` starts from: its decoder then learns
 base * exp(c) + a. Where the base's prefiltered answer drifts from the data's with the footprint, the decoder
 must learn that drift from 64^2 latents and 16-spp targets. This prints, per bin of the light's zenith angle
 and of the footprint sigma (in map texels), the mean luminance of the data's targets and of the base's
@@ -28,13 +28,13 @@ from neumip.core import contract as C  # noqa: E402
 from neumip.core import weights as W  # noqa: E402
 from neumip.core.config import (BASE_AZIMUTH_FLOOR, BASE_AZIMUTH_KERNEL, BASE_AZIMUTHS, BASE_HORIZONS,  # noqa: E402
                                 BASE_SHADOW_SOFTNESS, MaterialConfig)
-from neumip.training import base as B  # noqa: E402
-from neumip.training.base import base_maps, base_resolution  # noqa: E402
-from neumip.training.dataset import open_dataset  # noqa: E402
-from neumip.training.maps import horizon_angles, resize  # noqa: E402
-from neumip.training.material import NeuMIPMaterial  # noqa: E402
-from neumip.training.microgeometry.description import find_description, resolve  # noqa: E402
-from neumip.training.relief import relief_heights, relief_resolution  # noqa: E402
+from neumip.training.model import base as B  # noqa: E402
+from neumip.training.model.base import base_maps, base_resolution  # noqa: E402
+from neumip.groundtruth.dataset import open_dataset  # noqa: E402
+from neumip.training.model.maps import horizon_angles, resize  # noqa: E402
+from neumip.training.model.material import NeuMIPMaterial  # noqa: E402
+from neumip.groundtruth.description import find_description, resolve  # noqa: E402
+from neumip.training.model.relief import relief_heights, relief_resolution  # noqa: E402
 
 ZENITHS = ((0, 45), (60, 75), (80, 88))
 """Bins of the light's zenith angle, degrees."""

@@ -16,10 +16,10 @@ import tempfile
 import time
 from pathlib import Path
 
-from neumip.training.microgeometry.description import find_description, resolve
-from neumip.training.microgeometry.generate import GenerateSettings, generate
-from neumip.training.microgeometry.mesh import TilingConfig, query_scene
-from neumip.training.microgeometry.tracer import TracerConfig
+from neumip.groundtruth.description import find_description, resolve
+from neumip.groundtruth.generate import GenerateSettings, generate
+from neumip.groundtruth.mesh import TilingConfig, query_scene
+from neumip.groundtruth.tracer import TracerConfig
 
 
 def parse_args() -> argparse.Namespace:

@@ -12,7 +12,7 @@ round and reports the median of the rounds, twice: queries per wall-clock second
 CPU second of this process (what a query costs, whatever the other jobs take). Compare ratios within
 one table, and read the load average printed with it. Sections:
 
-- graphs:  the shipped graph (`neumip.training.export`), the first export's graph (`export_modulo.py`,
+- graphs:  the shipped graph (`neumip.training.export.graph`), the first export's graph (`export_modulo.py`,
            int64 Mod on single texels), `LocalMaterials.evaluate` and torch eager, one call per batch
            of 2^10 ... 2^20 queries; and `LocalMaterials.evaluate` on query groups of two lights (what
            the renderer sends: 2^(k-1) groups, counted as 2^k answers), random and coherent; the same
@@ -23,8 +23,8 @@ one table, and read the load average printed with it. Sections:
            build_onnx(m.config, weights_from_state(m.state_dict(), m.config)).SerializeToString())"``
            run in benchmarks/).
 - kernel:  the in-kernel engine (`KernelMaterials.evaluate`: the shipped graph interpreted as drjit
-           arithmetic, `client/onnx_kernel.py`) against another checkout's (``--kernel-before FILE``,
-           its ``client/kernel.py``; `kernel_before.py`), single queries and groups of two lights,
+           arithmetic, `engines/onnx_kernel.py`) against another checkout's (``--kernel-before FILE``,
+           its ``engines/kernel.py``; `kernel_before.py`), single queries and groups of two lights,
            interleaved in one process, with the largest difference from torch.
 - session: the shipped graph on 2 cores: ONNX Runtime's intra-op pool (spinning or not, arena,
            optimization level) against one-thread sessions running chunks on 2 threads.
@@ -71,10 +71,10 @@ import torch  # noqa: E402
 
 from neumip.core import contract as C  # noqa: E402
 from neumip.core.contract import random_queries  # noqa: E402
-from neumip.client.local import LocalMaterials, run_call, run_chunked, split_chunk  # noqa: E402
+from neumip.engines.local import LocalMaterials, run_call, run_chunked, split_chunk  # noqa: E402
 from neumip.core.config import MaterialConfig  # noqa: E402
-from neumip.training.export import build_onnx, weights_from_state  # noqa: E402
-from neumip.training.material import NeuMIPMaterial  # noqa: E402
+from neumip.training.export.graph import build_onnx, weights_from_state  # noqa: E402
+from neumip.training.model.material import NeuMIPMaterial  # noqa: E402
 
 from bench_render import set_variant  # noqa: E402  (benchmarks/, beside this script)
 from export_modulo import modulo_onnx  # noqa: E402
@@ -265,7 +265,7 @@ def kernel_materials(folder: str, variant: str | None = None):
     """The renderer's in-kernel evaluator over `folder` (the material's arithmetic compiled by drjit,
     numpy in and out), or None without the `kernel` extra."""
     try:
-        from neumip.client.kernel import KernelMaterials, namespace_of
+        from neumip.engines.kernel import KernelMaterials, namespace_of
     except ImportError:
         return None
     if variant:  # that Mitsuba variant's arrays (drjit.cuda.ad for cuda_ad_rgb)
@@ -453,8 +453,8 @@ def mlps_only_onnx(config: MaterialConfig, weights: dict) -> bytes:
     of detail, no parallax): what the MLPs cost in the graph's own shapes."""
     from onnx import helper
 
-    from neumip.training.export import IR_VERSION, OPSET
-    from neumip.training.onnx_graph import GraphWriter
+    from neumip.training.export.graph import IR_VERSION, OPSET
+    from neumip.training.export.onnx_graph import GraphWriter
 
     g, rng = GraphWriter(), np.random.default_rng(0)
     widths = {"decoder": config.channels + 4, "offset_mlp": config.offset_channels + 2}
@@ -500,8 +500,8 @@ def quantized_section(mat, args) -> None:
     from onnxruntime.quantization import (CalibrationDataReader, QuantFormat, QuantType, quantize_dynamic,
                                           quantize_static)
 
-    from neumip.training.export import IR_VERSION, OPSET
-    from neumip.training.onnx_graph import GraphWriter
+    from neumip.training.export.graph import IR_VERSION, OPSET
+    from neumip.training.export.onnx_graph import GraphWriter
 
     config = mat.config
     weights = weights_from_state(mat.state_dict(), config)
@@ -571,8 +571,8 @@ def main() -> None:
     parser.add_argument("--rounds", type=int, default=3)
     parser.add_argument("--model", type=lambda t: tuple(t.split("=", 1)), action="append", default=[],
                         metavar="NAME=FILE", help="another model file of the same material for the graphs section")
-    parser.add_argument("--kernel-before", metavar="FILE", help="kernel section: another checkout's client/kernel.py "
-                        "(git show 906263c:client/kernel.py > FILE)")
+    parser.add_argument("--kernel-before", metavar="FILE", help="kernel section: another checkout's engines/kernel.py "
+                        "(git show 906263c:engines/kernel.py > FILE)")
     parser.add_argument("--variant", help="Mitsuba variant of the drjit kernel rows (default llvm_ad_rgb; cuda_ad_rgb "
                         "on an NVIDIA GPU)")
     args = parser.parse_args()

@@ -26,7 +26,7 @@ from pathlib import Path
 import httpx
 import numpy as np
 
-from neumip.client import wire
+from neumip.core import wire
 from neumip.core.contract import random_queries
 from neumip.server.process import ServerProcess
 

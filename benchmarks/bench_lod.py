@@ -1,4 +1,4 @@
-"""Benchmark: the export's level of detail (`training/export_lod.py`) against two former ones.
+"""Benchmark: the export's level of detail (`training/export/lod.py`) against two former ones.
 
 Builds the default graph of a 256^2 material with random weights three times - as exported (the
 per-level tables read by one exact Gemm of level steps), with the former exact stage (floor(log2) and
@@ -31,11 +31,11 @@ from onnx import TensorProto
 
 from neumip.core import contract as C
 from neumip.core.contract import random_queries
-from neumip.training import export_lookup
+from neumip.training.export import lookup as export_lookup
 from neumip.core.config import MaterialConfig
-from neumip.training.export import build_onnx, random_weights
-from neumip.training.export_lod import clip_min, log2_mantissa
-from neumip.training.onnx_graph import GraphWriter
+from neumip.training.export.graph import build_onnx, random_weights
+from neumip.training.export.lod import clip_min, log2_mantissa
+from neumip.training.export.onnx_graph import GraphWriter
 
 
 def _table_rows(g: GraphWriter, lo: str, tables: dict | None) -> dict:

@@ -19,8 +19,8 @@ import time
 
 import numpy as np
 
-from neumip.client.kernel import KernelMaterials
-from neumip.client.local import LocalMaterials
+from neumip.engines.kernel import KernelMaterials
+from neumip.engines.local import LocalMaterials
 from neumip.core.contract import random_queries
 
 

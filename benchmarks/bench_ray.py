@@ -27,12 +27,12 @@ from pathlib import Path
 import numpy as np
 
 from neumip.client.mitsuba.runtime import import_mitsuba
-from neumip.training import cluster
-from neumip.training.cluster import RayConfig
-from neumip.training.dataset import DatasetWriter
-from neumip.training.microgeometry.description import find_description, resolve
-from neumip.training.microgeometry.generate import GenerateSettings, generate, trace_chunk
-from neumip.training.microgeometry.tracer import QueryTracer
+from neumip.core import cluster
+from neumip.core.cluster import RayConfig
+from neumip.groundtruth.dataset import DatasetWriter
+from neumip.groundtruth.description import find_description, resolve
+from neumip.groundtruth.generate import GenerateSettings, generate, trace_chunk
+from neumip.groundtruth.tracer import QueryTracer
 
 FULL_SET = 256 * 256 * 200
 """Queries of a full 256^2 training set at 200 queries per texel (the paper's size)."""

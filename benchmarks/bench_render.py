@@ -142,15 +142,15 @@ def material_name(args) -> str:
 
 def geometry_resolution(args) -> int:
     """Height samples per tile side of the reference geometry: ``--geometry-resolution``, else the description's."""
-    from neumip.training.microgeometry.description import find_description
+    from neumip.groundtruth.description import find_description
 
     return args.geometry_resolution or find_description(args.material).resolution
 
 
 def ratio_scenes(mi, args) -> dict:
     """name -> (scene, evaluator key or None) of the renders the ratios section times."""
-    from neumip.training.microgeometry import mesh
-    from neumip.training.microgeometry.description import find_description, resolve
+    from neumip.groundtruth import mesh
+    from neumip.groundtruth.description import find_description, resolve
 
     desc = find_description(args.material)
     desc.resolution = geometry_resolution(args)
@@ -193,8 +193,8 @@ def time_render(mi, scene, evaluator, spp: int, seed: int, max_lanes: int) -> tu
 
 
 def ratios(args) -> None:
-    from neumip.client.local import LocalMaterials
-    from neumip.client.kernel import KernelMaterials, namespace_of
+    from neumip.engines.local import LocalMaterials
+    from neumip.engines.kernel import KernelMaterials, namespace_of
     from neumip.client.mitsuba.render import mi
 
     local = LocalMaterials(args.models)
@@ -252,8 +252,8 @@ def stage_variants(model_path: Path, folder: Path) -> dict[str, Path]:
     import onnx
 
     from neumip.core import weights as W
-    from neumip.training.export import build_onnx, save_onnx
-    from neumip.training.export_read import read_model
+    from neumip.training.export.graph import build_onnx, save_onnx
+    from neumip.training.export.read import read_model
 
     config, weights, _, finest = read_model(onnx.load(str(model_path)))
     configs = {"as is": config}
@@ -270,15 +270,13 @@ def stage_variants(model_path: Path, folder: Path) -> dict[str, Path]:
     if config.base:  # the decoder's additive outputs answer alone
         configs["no classical base"] = replace(config, base=0, local_frame=False, terminator="all", visibility_input=False)
     out = {}
-    frame = config.channels + (W.HALF_INPUTS if config.half_vector else 0)  # the decoder's first frame column
-    visibility = frame + (W.FRAME_INPUTS if config.local_frame else 0)
+    columns, first = {}, config.channels  # each optional input's first-layer columns of the decoder
+    for row in config.decoder_inputs():
+        columns[row.name], first = range(first, first + row.width), first + row.width
     for label, cfg in configs.items():
         w = dict(weights)
-        drop = set()  # the decoder's first-layer columns of the inputs this stage goes without
-        if config.local_frame and not cfg.local_frame:
-            drop |= set(range(frame, frame + W.FRAME_INPUTS))
-        if config.visibility_input and not cfg.visibility_input:
-            drop |= set(range(visibility, visibility + W.VISIBILITY_INPUTS))
+        kept = {row.name for row in cfg.decoder_inputs()}
+        drop = {i for name, cols in columns.items() if name not in kept for i in cols}  # the inputs it goes without
         if drop:
             keep = [i for i in range(weights[W.weight(W.DECODER, 0)].shape[1]) if i not in drop]
             w[W.weight(W.DECODER, 0)] = weights[W.weight(W.DECODER, 0)][:, keep]
@@ -296,7 +294,7 @@ def stage_variants(model_path: Path, folder: Path) -> dict[str, Path]:
 def stages(args) -> None:
     """The neural plane of the ratios section rendered with the model as is, without each of its stages, and with
     the same material from the ``--compare`` folders, in interleaved rounds with the reference geometry."""
-    from neumip.client.kernel import KernelMaterials, namespace_of
+    from neumip.engines.kernel import KernelMaterials, namespace_of
     from neumip.client.mitsuba.render import mi
 
     material = material_name(args)
@@ -337,7 +335,7 @@ def stages(args) -> None:
 def stand_in_models(folder: Path) -> Path:
     """Write constant-colour materials of the default architecture under the demo's names."""
     from neumip.core.config import MaterialConfig
-    from neumip.training.export import build_onnx, constant_weights, save_onnx
+    from neumip.training.export.graph import build_onnx, constant_weights, save_onnx
 
     cfg = MaterialConfig()
     for name, rgb in DEMO_MATERIALS.items():
@@ -377,8 +375,8 @@ def report(label: str, result, cpu: float) -> None:
 
 def demo(args) -> None:
     from neumip.client.http import MaterialClient
-    from neumip.client.local import LocalMaterials
-    from neumip.client.kernel import KernelMaterials, namespace_of
+    from neumip.engines.local import LocalMaterials
+    from neumip.engines.kernel import KernelMaterials, namespace_of
     from neumip.client.mitsuba.render import mi
     from bench_server import Server  # this folder is on sys.path when run as a script
 
@@ -451,7 +449,7 @@ def main() -> int:
                         help="lanes per render pass of neumip_path (stock path renders in one pass); on a GPU, "
                         "passes of 2^21 lanes leave it idle between them")
     parser.add_argument("--kernel-before", metavar="FILE", help="ratios: also render in-kernel with another checkout's "
-                        "client/kernel.py (git show 906263c:client/kernel.py > FILE), interleaved")
+                        "engines/kernel.py (git show 906263c:engines/kernel.py > FILE), interleaved")
     parser.add_argument("--compare", type=Path, nargs="*", default=[], metavar="DIR",
                         help="stages: also render the material's file in these folders (another export of it)")
     parser.add_argument("--variant", help="Mitsuba variant of every render (default: the renderer's, llvm_ad_rgb; "

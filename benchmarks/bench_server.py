@@ -55,9 +55,9 @@ from pathlib import Path
 import numpy as np
 
 from neumip.core import contract as C
-from neumip.client import wire
+from neumip.core import wire
 from neumip.client.http import ClientConfig, MaterialClient, ServerError
-from neumip.client.local import LocalMaterials
+from neumip.engines.local import LocalMaterials
 from neumip.server.process import ServerProcess
 from neumip.server.uvicorn_run import ServeError
 
@@ -92,7 +92,7 @@ def model_folder(args: argparse.Namespace, scratch: Path) -> tuple[Path, str]:
         (folder / args.model.name).symlink_to(args.model.resolve())
         return folder, args.model.stem
     from neumip.core.config import MaterialConfig
-    from neumip.training.export import build_onnx, random_weights, save_onnx
+    from neumip.training.export.graph import build_onnx, random_weights, save_onnx
 
     config = MaterialConfig()
     save_onnx(build_onnx(config, random_weights(config, seed=0), "benchmark: 256^2, random weights"), folder / "bench256.onnx")
@@ -332,7 +332,7 @@ def kernel_throughput(args, name, folder, server, bare, pool, swap=None) -> None
     the processes on their cores before each round."""
     from concurrent.futures import ThreadPoolExecutor
 
-    from neumip.client.kernel import KernelMaterials
+    from neumip.engines.kernel import KernelMaterials
 
     kernel = KernelMaterials(folder)
     config = ClientConfig(timeout_s=120)

@@ -29,7 +29,7 @@ from pathlib import Path
 
 from neumip.core import contract as C
 from neumip.client.http import ClientConfig, MaterialClient
-from neumip.client.local import LocalMaterials
+from neumip.engines.local import LocalMaterials
 from neumip.server.process import ServerProcess
 from neumip.server.uvicorn_run import ServeError
 
@@ -71,7 +71,7 @@ def start(folder: Path, pythonpath: Path | None, log: Path) -> ServerProcess:
 def main() -> None:
     args = parse_args()
     from neumip.core.config import MaterialConfig
-    from neumip.training.export import build_onnx, random_weights, save_onnx
+    from neumip.training.export.graph import build_onnx, random_weights, save_onnx
 
     with tempfile.TemporaryDirectory() as tmp:
         scratch = Path(tmp)

@@ -30,13 +30,13 @@ from dataclasses import replace
 import numpy as np
 import torch
 
-import neumip.training.blur as blur_mod
-import neumip.training.pyramid as pyramid_mod
+import neumip.training.loop.blur as blur_mod
+import neumip.training.model.pyramid as pyramid_mod
 from neumip.core.contract import random_queries
 from neumip.core.config import MaterialConfig
-from neumip.training.dataset import write_dataset
-from neumip.training.train import Trainer
-from neumip.training.train_config import QUICK, SHIP
+from neumip.groundtruth.dataset import write_dataset
+from neumip.training.loop.train import Trainer
+from neumip.training.loop.config import QUICK, SHIP
 
 
 def reference_gather_blend(atlas, rows, weights):
@@ -66,7 +66,7 @@ def reference_implementation():
     pyramid_mod.gather_blend = reference_gather_blend
     pyramid_mod.wrap = reference_wrap
     blur_mod.blur_texture = reference_blur_texture
-    import neumip.training.train as train_mod
+    import neumip.training.loop.train as train_mod
 
     train_saved = train_mod.blur_texture
     train_mod.blur_texture = reference_blur_texture

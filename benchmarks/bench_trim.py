@@ -20,10 +20,10 @@ from pathlib import Path
 
 import numpy as np
 
-from neumip.client.local import LocalMaterials
+from neumip.engines.local import LocalMaterials
 from neumip.client.mitsuba.budget import scene_budget
 from neumip.client.mitsuba.render import RenderConfig, load_scene, render_scene
-from neumip.training.trim import trim_file
+from neumip.training.export.trim import trim_file
 
 
 def render(scene_path: str, params: dict, folder: Path, spp: int, seed: int) -> np.ndarray:

@@ -30,8 +30,8 @@ def material_from_file(path: Path):
     import torch
 
     from neumip.core import weights as W
-    from neumip.training.export_read import read_model
-    from neumip.training.material import NeuMIPMaterial
+    from neumip.training.export.read import read_model
+    from neumip.training.model.material import NeuMIPMaterial
 
     config, weights, meta, finest = read_model(onnx.load(str(path)), str(path))
     if finest:
@@ -79,10 +79,10 @@ def batches(material, config, data_dir: str, batch: int, seed: int):
     """(`BatchSampler` over DATA's training split, with the relief's landed positions where the model has a relief;
     the ship preset at this batch: the loss's settings)."""
     from neumip.core import weights as W
-    from neumip.training.dataset import open_dataset
-    from neumip.training.relief import landed_positions
-    from neumip.training.train import BatchSampler, split_indices
-    from neumip.training.train_config import PRESETS
+    from neumip.groundtruth.dataset import open_dataset
+    from neumip.training.model.relief import landed_positions
+    from neumip.training.loop.train import BatchSampler, split_indices
+    from neumip.training.loop.config import PRESETS
 
     train_config = replace(PRESETS["ship"], batch=batch)
     data = open_dataset(data_dir)
@@ -97,7 +97,7 @@ def batches(material, config, data_dir: str, batch: int, seed: int):
 def save_like(material, config, meta: dict, finest: int, out: Path) -> None:
     """Write `material` with the graph and the metadata of the file it was read from."""
     from neumip.core import contract as C
-    from neumip.training.export import build_onnx, save_onnx, weights_from_state
+    from neumip.training.export.graph import build_onnx, save_onnx, weights_from_state
 
     weights = weights_from_state(material.state_dict(), config)
     owned = {C.META_CONTRACT, C.META_CONFIG, C.META_DESCRIPTION}
@@ -113,7 +113,7 @@ def main() -> None:
 
     import torch
 
-    from neumip.training.losses import training_loss
+    from neumip.training.loop.losses import training_loss
 
     torch.set_num_threads(args.threads)
     material, config, meta, finest = material_from_file(args.model)

@@ -1,6 +1,6 @@
 """Where a report view's remaining error sits: brightness, pixel-scale detail, a few pixels, or the texel grid.
 
-The report splits each method's image MSE into noise and bias (`training/report/metrics.bias_noise`). Where a
+The report splits each method's image MSE into noise and bias (`report/metrics.bias_noise`). Where a
 bias stays put whatever the model (as foam's 0.14e-3 did at 4-64 texels per pixel, before `render.pass_seed`: it was
 noise the seed pairs missed, `results/floor.txt`), two ways to look at it:
 
@@ -68,23 +68,23 @@ def box_blur(image: np.ndarray, size: int) -> np.ndarray:
 
 
 def images(args) -> None:
-    from neumip.client.kernel import KernelMaterials
+    from neumip.engines.kernel import KernelMaterials
     from neumip.client.mitsuba.render import RenderConfig, render_scene
-    from neumip.training.microgeometry.description import resolve
-    from neumip.training.report import metrics as Q
-    from neumip.training.report.methods import NEURAL
-    from neumip.training.report.cache import RenderCache
-    from neumip.training.report.config import ReportConfig
-    from neumip.training.report.pipeline import REFERENCE_SEEDS
-    from neumip.training.report.renderer import MaterialRenderer
-    from neumip.training.report.run import find_materials
-    from neumip.training.report.views import VIEWS
+    from neumip.groundtruth.description import resolve
+    from neumip.report import metrics as Q
+    from neumip.report.methods import NEURAL
+    from neumip.report.cache import RenderCache
+    from neumip.report.config import ReportConfig
+    from neumip.report.pipeline import REFERENCE_SEEDS
+    from neumip.report.renderer import MaterialRenderer
+    from neumip.report.run import find_materials
+    from neumip.report.views import VIEWS
 
     desc = find_materials([args.material], args.models)[Path(args.material).stem]
     cfg = ReportConfig()
     cache = args.cache
     if args.light != "both":  # the report's scenes with one emitter: a cache of their own (keys do not name lights)
-        from neumip.training.report import methods
+        from neumip.report import methods
 
         both = methods.emitter_dicts
         if args.light == "uniform":  # both, each chosen with probability 1/2 (Mitsuba's default)
@@ -133,7 +133,7 @@ def phase(args) -> None:
     import onnxruntime as ort
 
     from neumip.core import contract as C
-    from neumip.training.dataset import open_dataset
+    from neumip.groundtruth.dataset import open_dataset
 
     data = open_dataset(args.data)
     queries, target = np.asarray(data.queries), np.asarray(data.rgb, np.float64)
@@ -166,10 +166,10 @@ def directions(args) -> None:
     import onnxruntime as ort
 
     from neumip.core import contract as C
-    from neumip.training.microgeometry.description import find_description, resolve
-    from neumip.training.microgeometry.generate import GenerateSettings
-    from neumip.training.microgeometry.tracer import QueryTracer
-    from neumip.training.report.views import VIEWS, light_direction
+    from neumip.groundtruth.description import find_description, resolve
+    from neumip.groundtruth.generate import GenerateSettings
+    from neumip.groundtruth.tracer import QueryTracer
+    from neumip.report.views import VIEWS, light_direction
 
     view = {v.name: v for v in VIEWS}[args.view]
     desc = find_description(args.material)

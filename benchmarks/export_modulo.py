@@ -1,9 +1,9 @@
 """The first export's graph, kept as the baseline `bench_inference.py` compares the shipped one with.
 
 It gathers 8 single texels per query from the flat atlas (+4 from the offset texture) and does the
-wrap-around index arithmetic in int64 with Mod, as `training/pyramid.py` writes it. Like the shipped
+wrap-around index arithmetic in int64 with Mod, as `training/model/pyramid.py` writes it. Like the shipped
 graph it reads the level of detail from `export_lod.py` and sums taps with a 0/1 MatMul, so its
-answers do not depend on the batch. The shipped graph (`neumip.training.export`) reads wrap-padded
+answers do not depend on the batch. The shipped graph (`neumip.training.export.graph`) reads wrap-padded
 quad tables instead: one Gather row per level footprint, no Mod, and runs its MLPs column-major.
 """
 
@@ -15,9 +15,9 @@ from onnx import TensorProto, helper
 
 from neumip.core import contract as C
 from neumip.core.config import MaterialConfig
-from neumip.training.export import IR_VERSION, OPSET
-from neumip.training.export_lod import level_of_detail
-from neumip.training.onnx_graph import GraphWriter
+from neumip.training.export.graph import IR_VERSION, OPSET
+from neumip.training.export.lod import level_of_detail
+from neumip.training.export.onnx_graph import GraphWriter
 
 
 def _bilinear(g: GraphWriter, u: str, v: str, size: str, start: str) -> tuple[str, str]:

@@ -38,7 +38,7 @@ FOOTPRINTS = (0.0, 0.125, 0.5, 1.0, 2.0)
 def patch_queries(desc, view, sigma_texels: float, texels: int = 24, per_texel: int = 4) -> np.ndarray:
     """(texels per_texel)^2 queries on a patch at ``per_texel``^2 positions a map texel, at one view's directions."""
     from neumip.core import contract as C
-    from neumip.training.report.views import light_direction
+    from neumip.report.views import light_direction
 
     g = (np.arange(texels * per_texel) + 0.5) / per_texel / desc.resolution + 0.3
     u, v = np.meshgrid(g, g)
@@ -54,10 +54,10 @@ def query(args) -> None:
     import onnxruntime as ort
 
     from neumip.core import contract as C
-    from neumip.training.microgeometry.description import find_description, resolve
-    from neumip.training.microgeometry.generate import GenerateSettings
-    from neumip.training.microgeometry.tracer import QueryTracer
-    from neumip.training.report.views import VIEWS
+    from neumip.groundtruth.description import find_description, resolve
+    from neumip.groundtruth.generate import GenerateSettings
+    from neumip.groundtruth.tracer import QueryTracer
+    from neumip.report.views import VIEWS
 
     view = {v.name: v for v in VIEWS}[args.view]
     desc = find_description(args.material)
@@ -78,14 +78,14 @@ def query(args) -> None:
 
 
 def views(args) -> None:
-    from neumip.client.kernel import KernelMaterials
-    from neumip.training.microgeometry.description import resolve
-    from neumip.training.report.cache import RenderCache
-    from neumip.training.report.config import ReportConfig
-    from neumip.training.report.pipeline import REFERENCE_SEEDS
-    from neumip.training.report.renderer import MaterialRenderer
-    from neumip.training.report.run import find_materials
-    from neumip.training.report.views import VIEWS
+    from neumip.engines.kernel import KernelMaterials
+    from neumip.groundtruth.description import resolve
+    from neumip.report.cache import RenderCache
+    from neumip.report.config import ReportConfig
+    from neumip.report.pipeline import REFERENCE_SEEDS
+    from neumip.report.renderer import MaterialRenderer
+    from neumip.report.run import find_materials
+    from neumip.report.views import VIEWS
 
     cfg = ReportConfig()
     by_name = {v.name: v for v in VIEWS}

@@ -1,6 +1,6 @@
 """Issue 25's goals, read from one or more report results.json files: one row per material and judged method.
 
-Columns (every figure is the report's own, `training/report/analysis.py`):
+Columns (every figure is the report's own, `report/analysis.py`):
 - close-ups: the largest image MSE over C's in the six close-ups (1 and 4 map texels, three lights; goal <= 0.5),
   and in how many of them the method's FLIP is below C's;
 - noise / C: in the close-up where MSE / C is largest, the method's and R's render noise over C's MSE (what a model

@@ -1,8 +1,8 @@
 #!/usr/bin/env bash
 # The checks that need an NVIDIA GPU, in one short run (benchmarks/results/gpu.txt has the last one's figures):
 #   1. CUDA parity: the in-kernel engine on drjit's CUDA backend against ONNX Runtime
-#      (tests/client/test_kernel.py), the material on the GPU against its graph (tests/training/test_export.py)
-#      and a run trained on the GPU that resumes on the CPU and exports what it computed (tests/training/test_train.py);
+#      (tests/engines/test_kernel.py), the material on the GPU against its graph (tests/training/export/test_graph.py)
+#      and a run trained on the GPU that resumes on the CPU and exports what it computed (tests/training/loop/test_train.py);
 #   2. training on the GPU: benchmarks/maps.py's relief + base recipe at 64^2 (the shipped one), at the maps'
 #      256^2, and both with the `quality` schedule (4.2x the steps), each judged on a low-noise reference set;
 #   3. the kernel's throughput on the GPU beside the CPU's (benchmarks/bench_models.py).
@@ -26,8 +26,8 @@ left() { echo $((budget - (SECONDS - start))); }
 '| drjit', dr.__version__, 'CUDA backend', dr.has_backend(dr.JitBackend.CUDA))"; } 2>&1 | tee "$out/device.txt"
 
 echo "== 1. CUDA parity"
-timeout $(( $(left) / 3 )) python3 -m pytest -q -rs -p no:cacheprovider tests/client/test_kernel.py \
-    tests/training/test_export.py tests/training/test_train.py -k "cuda or gpu" 2>&1 | tee "$out/parity.txt"
+timeout $(( $(left) / 3 )) python3 -m pytest -q -rs -p no:cacheprovider tests/engines/test_kernel.py \
+    tests/training/export/test_graph.py tests/training/loop/test_train.py -k "cuda or gpu" 2>&1 | tee "$out/parity.txt"
 
 train() {  # benchmarks/maps.py train VARIANT on the GPU, cut 45 s before the budget ends
     [ "$(left)" -gt 60 ] || { echo "$1: skipped, $(left) s left"; return; }

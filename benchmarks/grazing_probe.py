@@ -57,9 +57,9 @@ def main() -> None:
 
     import onnxruntime as ort
 
-    from neumip.training.microgeometry.description import find_description, resolve
-    from neumip.training.microgeometry.generate import GenerateSettings
-    from neumip.training.microgeometry.tracer import QueryTracer
+    from neumip.groundtruth.description import find_description, resolve
+    from neumip.groundtruth.generate import GenerateSettings
+    from neumip.groundtruth.tracer import QueryTracer
 
     desc = find_description(args.material)
     geo = resolve(desc)

@@ -27,9 +27,9 @@ LUMINANCE = np.array([0.2126, 0.7152, 0.0722])
 
 
 def judge(data: str, reference: str, checkpoint_path: str) -> None:
-    from neumip.training import checkpoint
-    from neumip.training.dataset import open_dataset
-    from neumip.training.fit import reference_error
+    from neumip.training.loop import checkpoint
+    from neumip.groundtruth.dataset import open_dataset
+    from neumip.training.loop.fit import reference_error
 
     torch.set_num_threads(1)
     model, _ = checkpoint.load(checkpoint_path)

@@ -15,7 +15,7 @@ import argparse
 
 import numpy as np
 
-from neumip.client.local import LocalMaterials
+from neumip.engines.local import LocalMaterials
 
 
 def stress_queries(n: int = 200_000, seed: int = 0) -> np.ndarray:

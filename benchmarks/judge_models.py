@@ -21,8 +21,8 @@ import numpy as np
 def main() -> None:
     import onnxruntime as ort
 
-    from neumip.training.dataset import open_dataset
-    from neumip.training.validation import errors as error_figures
+    from neumip.groundtruth.dataset import open_dataset
+    from neumip.training.loop.validation import errors as error_figures
 
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("reference")

@@ -1,6 +1,6 @@
 """Another checkout's in-kernel engine, for before/after runs in one process (``--kernel-before``).
 
-    git show 906263c:client/kernel.py > /tmp/kernel_before.py
+    git show 906263c:engines/kernel.py > /tmp/kernel_before.py
     .venv/bin/python benchmarks/bench_inference.py --sections kernel --kernel-before /tmp/kernel_before.py
     .venv/bin/python benchmarks/bench_render.py --kernel-before /tmp/kernel_before.py
 
@@ -21,7 +21,7 @@ from neumip.core import contract as C
 
 
 def load(path: str | Path):
-    """The module of another checkout's ``client/kernel.py``."""
+    """The module of another checkout's ``engines/kernel.py``."""
     spec = importlib.util.spec_from_file_location("neumip_kernel_before", Path(path))
     module = importlib.util.module_from_spec(spec)
     sys.modules[spec.name] = module  # its dataclasses look their module up

@@ -7,7 +7,7 @@ and exports ``RUNS/VARIANT/MATERIAL.onnx``; the run's wall time and held-out MSE
 
 `score` renders R (stock `path` on the displaced geometry, the mean of two seeds), C (the principled
 BSDF with the full-resolution maps and a normal map, stock `path`) and every variant (`neumip_path`)
-with the report's building blocks (`training/report/`: views, scenes, renderer, metrics), in oblique
+with the report's building blocks (`report/`: views, scenes, renderer, metrics), in oblique
 views (55 degrees) whose pixel footprint covers 1 and 4 texels of a ``--camera-res`` texel grid,
 each under the lights of `LIGHTS`. Renders are cached (``--cache``). One JSON line per
 (variant, view) is appended to --out; ``--table`` prints them.
@@ -37,8 +37,8 @@ os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
 import numpy as np  # noqa: E402
 
 from neumip.core.config import MaterialConfig  # noqa: E402
-from neumip.training.maps import RESIDUAL_EVERY_LEVEL, MapConfig  # noqa: E402
-from neumip.training.train_config import PRESETS  # noqa: E402
+from neumip.training.model.maps import RESIDUAL_EVERY_LEVEL, MapConfig  # noqa: E402
+from neumip.training.loop.config import PRESETS  # noqa: E402
 
 SHIP = replace(PRESETS["ship"], validate_every=0)
 QUICK = replace(PRESETS["quick"], validate_every=0)
@@ -183,7 +183,7 @@ SPP, REFERENCE_SPP, SEED = 64, 256, 0
 
 
 def views(levels=LEVELS):
-    from neumip.training.report.views import View
+    from neumip.report.views import View
 
     return [View(f"level{lv}_{light}", 55.0, lv, light_zenith=z, light_azimuth=a)
             for light, (z, a) in LIGHTS.items() for lv in levels]
@@ -222,11 +222,11 @@ def train(variant: str, data: str, material: str, runs: Path, threads: int, vali
     folder, e.g. make_models.sh's runs/NAME/reference), the record has its `fit.reference_error` too."""
     import torch
 
-    from neumip.training.base import base_resolution
-    from neumip.training.export import export_material
-    from neumip.training.relief import relief_resolution
-    from neumip.training.microgeometry.description import find_description, resolve
-    from neumip.training.train import Trainer
+    from neumip.training.model.base import base_resolution
+    from neumip.training.export.graph import export_material
+    from neumip.training.model.relief import relief_resolution
+    from neumip.groundtruth.description import find_description, resolve
+    from neumip.training.loop.train import Trainer
 
     torch.set_num_threads(threads)
     overrides, maps, config = VARIANTS[variant]
@@ -260,8 +260,8 @@ def train(variant: str, data: str, material: str, runs: Path, threads: int, vali
               "progress": [[step, overall] for step, _, overall in trainer.state.progress],
               "device": str(trainer.device)}
     if reference is not None:
-        from neumip.training.dataset import open_dataset
-        from neumip.training.fit import reference_error
+        from neumip.groundtruth.dataset import open_dataset
+        from neumip.training.loop.fit import reference_error
 
         record["reference_log_mse"] = reference_error(trainer.material, open_dataset(reference))
     (runs / variant / f"{desc.name}.json").write_text(json.dumps(record, indent=1) + "\n")
@@ -276,11 +276,11 @@ def bake(variant: str, material: str, runs: Path, resolution: int) -> None:
     texels per side (its decoder and offset network unchanged) -> RUNS/VARIANT_bRESOLUTION/MATERIAL.onnx."""
     import torch
 
-    from neumip.training import checkpoint
-    from neumip.training.export import export_material
-    from neumip.training.maps import prefilter
-    from neumip.training.material import MapMaterial
-    from neumip.training.microgeometry.description import find_description, resolve
+    from neumip.training.loop import checkpoint
+    from neumip.training.export.graph import export_material
+    from neumip.training.model.maps import prefilter
+    from neumip.training.model.material import MapMaterial
+    from neumip.groundtruth.description import find_description, resolve
 
     desc = find_description(material)
     trained, _ = checkpoint.load(runs / variant / f"{desc.name}.pt")
@@ -304,8 +304,8 @@ def speed(variants: list[str], data: str, material: str, rounds: int, steps: int
 
     import torch
 
-    from neumip.training.microgeometry.description import find_description, resolve
-    from neumip.training.train import Trainer
+    from neumip.groundtruth.description import find_description, resolve
+    from neumip.training.loop.train import Trainer
 
     torch.set_num_threads(1)
     geo = resolve(find_description(material))
@@ -330,13 +330,13 @@ def speed(variants: list[str], data: str, material: str, rounds: int, steps: int
 
 def score(variants: list[str], material: str, runs: Path, cache_dir: str, camera_res: int, out: str,
           levels=LEVELS) -> None:
-    from neumip.client.kernel import KernelMaterials
-    from neumip.training.microgeometry.description import find_description, resolve
-    from neumip.training.report import metrics as Q
-    from neumip.training.report.cache import RenderCache
-    from neumip.training.report.config import FULL
-    from neumip.training.report.pipeline import REFERENCE_SEEDS
-    from neumip.training.report.renderer import MaterialRenderer
+    from neumip.engines.kernel import KernelMaterials
+    from neumip.groundtruth.description import find_description, resolve
+    from neumip.report import metrics as Q
+    from neumip.report.cache import RenderCache
+    from neumip.report.config import FULL
+    from neumip.report.pipeline import REFERENCE_SEEDS
+    from neumip.report.renderer import MaterialRenderer
 
     desc = find_description(material)
     geo, name = resolve(desc), desc.name
@@ -430,7 +430,7 @@ def spread(path: str, seeds: list[str]) -> None:
 def ensemble(renders: list[str], members: list[str]) -> None:
     """The image of K runs' mean answer, against each run's: `score`'s saved renders (RUNS... .npz) of `members`
     averaged (the render is linear in the material's answers; the runs' renders share their sample paths)."""
-    from neumip.training.report import metrics as Q
+    from neumip.report import metrics as Q
 
     ratios = []
     for path in renders:
@@ -451,7 +451,7 @@ def strip(out: str, renders: list[str], methods: list[str], scale: int = 3) -> N
     tone-mapped with R's exposure (the report's tone mapping)."""
     from PIL import Image
 
-    from neumip.training.report.metrics import exposure_for, tonemap
+    from neumip.report.metrics import exposure_for, tonemap
 
     rows = []
     for path in renders:

@@ -2,7 +2,7 @@
 how far its bias must fall for the issue's 2x.
 
 Time to error compares R's seconds to reach the method's error with the method's seconds, at the report's spp
-(`training/report/analysis.time_to_error`). The method's error there is bias + its render noise + R's (the reference's)
+(`report/analysis.time_to_error`). The method's error there is bias + its render noise + R's (the reference's)
 noise, each measured by the report (the noise from two renders with different seeds). With the bias at 0, R
 reaches the remaining noise in some seconds: that ratio is the most any model rendered at the same cost and noise
 can reach ("cap"); above it only a cheaper or less noisy sample goes. The 2x goal holds if the method's error is at
@@ -19,7 +19,7 @@ import argparse
 import json
 import math
 
-from neumip.training.report.analysis import time_to_reach
+from neumip.report.analysis import time_to_reach
 
 GOAL_RATIO = 2.0
 

@@ -69,18 +69,18 @@ def main() -> None:
     parser.add_argument("--scratch", type=Path, help="where renders missing from --cache go (default: --cache)")
     args = parser.parse_args()
 
-    from neumip.client.kernel import KernelMaterials
+    from neumip.engines.kernel import KernelMaterials
     from neumip.client.mitsuba import render as R
-    from neumip.training.microgeometry.description import resolve
-    from neumip.training.microgeometry.generate import GenerateSettings
-    from neumip.training.microgeometry.tracer import QueryTracer
-    from neumip.training.report import metrics as Q
-    from neumip.training.report.cache import RenderCache
-    from neumip.training.report.config import ReportConfig
-    from neumip.training.report.pipeline import REFERENCE_SEEDS
-    from neumip.training.report.renderer import MaterialRenderer
-    from neumip.training.report.run import find_materials
-    from neumip.training.report.views import VIEWS
+    from neumip.groundtruth.description import resolve
+    from neumip.groundtruth.generate import GenerateSettings
+    from neumip.groundtruth.tracer import QueryTracer
+    from neumip.report import metrics as Q
+    from neumip.report.cache import RenderCache
+    from neumip.report.config import ReportConfig
+    from neumip.report.pipeline import REFERENCE_SEEDS
+    from neumip.report.renderer import MaterialRenderer
+    from neumip.report.run import find_materials
+    from neumip.report.views import VIEWS
 
     name = Path(args.material).stem
     desc = find_materials([args.material], args.models)[name]

@@ -2,7 +2,7 @@
 
 Issue 25's wider MLPs (48 wide, results/grazing.txt section 10) lowered the reference error on four of five
 materials, but the render's kernels unroll every MLP into one fma per weight, so the neural plane cost 1.05x the
-geometry's time (the goal: at most 0.8x). The kernel skips zero coefficients (`client/onnx_ops.py`, `Ops._rows`),
+geometry's time (the goal: at most 0.8x). The kernel skips zero coefficients (`engines/onnx_ops.py`, `Ops._rows`),
 so a sparse weight matrix costs only its nonzeros there, with the graph, the file format and every engine as
 they are (ONNX Runtime multiplies the zeros as it did).
 
@@ -90,7 +90,7 @@ def main() -> None:
     import torch
 
     from neumip.core import weights as W
-    from neumip.training.losses import training_loss
+    from neumip.training.loop.losses import training_loss
 
     torch.set_num_threads(args.threads)
     torch.manual_seed(args.seed)

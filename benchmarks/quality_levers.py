@@ -1,6 +1,6 @@
 """Material-quality levers (issue 11), one change at a time against the current recipe.
 
-Each variant trains one 64^2 material in-process (`neumip.training.train.Trainer`) with one change to
+Each variant trains one 64^2 material in-process (`neumip.training.loop.train.Trainer`) with one change to
 the current recipe (the `ship` preset's schedule at a quarter of its queries, `BASE`, on 256
 queries/texel x 16 spp data, as models/make_models.sh generates), then measures its MSE per
 level against a low-noise reference query set (>= 256 spp, made by `neumip generate ... --spp 256`).
@@ -36,7 +36,7 @@ import numpy as np  # noqa: E402
 
 from neumip.core import contract as C  # noqa: E402
 from neumip.core.config import MaterialConfig  # noqa: E402
-from neumip.training.train_config import PRESETS  # noqa: E402
+from neumip.training.loop.config import PRESETS  # noqa: E402
 
 GRAZING_DEG = 70.0
 """Views further than this from the normal count as grazing (reported apart: the offset's weak spot)."""
@@ -83,9 +83,9 @@ VARIANTS: dict[str, tuple[dict, object, str]] = {
 def run_variant(name: str, data: str, ref: str, label: str, threads: int) -> dict:
     import torch
 
-    from neumip.training.dataset import open_dataset
-    from neumip.training.train import Trainer
-    from neumip.training.validation import predict, validation_table
+    from neumip.groundtruth.dataset import open_dataset
+    from neumip.training.loop.train import Trainer
+    from neumip.training.loop.validation import predict, validation_table
 
     torch.set_num_threads(threads)
     overrides, config, data_kind = VARIANTS[name]
@@ -140,9 +140,9 @@ def print_table(path: str) -> None:
 def target_noise(material: str, n: int, spp: int, budget_samples: float) -> None:
     """Per-sample variance of the MBTF estimate on n queries of the default distribution, and the
     target noise (MSE of an s-spp mean) against the query count a fixed sample budget buys."""
-    from neumip.training.microgeometry.description import find_description, resolve
-    from neumip.training.microgeometry.sampling import QuerySampling, sample_queries
-    from neumip.training.microgeometry.tracer import QueryTracer
+    from neumip.groundtruth.description import find_description, resolve
+    from neumip.groundtruth.sampling import QuerySampling, sample_queries
+    from neumip.groundtruth.tracer import QueryTracer
 
     desc = find_description(material)
     queries = sample_queries(n, np.random.default_rng(5), BIN_RESOLUTION, QuerySampling())

@@ -3,7 +3,7 @@ the largest pixel difference from the cached render of the same key (model, view
 
 A change to `neumip_path` that should only move cost (not the images) leaves the report's figures valid
 where the differences are float rounding (about 1e-7); a larger one means the report must be regenerated with
-the renderer's cache version bumped (`training/report/renderer.NEURAL_VERSION`).
+the renderer's cache version bumped (`report/renderer.NEURAL_VERSION`).
 
     .venv/bin/python benchmarks/report_current.py rock turtle --cache runs/report-final/cache
     .venv/bin/python benchmarks/report_current.py benchmarks/materials/planks.toml \
@@ -17,12 +17,12 @@ from pathlib import Path
 
 import numpy as np
 
-from neumip.client.kernel import KernelMaterials
-from neumip.training.microgeometry.description import find_description, resolve
-from neumip.training.report.cache import RenderCache
-from neumip.training.report.config import ReportConfig
-from neumip.training.report.renderer import MaterialRenderer
-from neumip.training.report.views import VIEWS
+from neumip.engines.kernel import KernelMaterials
+from neumip.groundtruth.description import find_description, resolve
+from neumip.report.cache import RenderCache
+from neumip.report.config import ReportConfig
+from neumip.report.renderer import MaterialRenderer
+from neumip.report.views import VIEWS
 
 
 def main() -> None:

@@ -25,17 +25,17 @@ import numpy as np
 
 from neumip.core import contract as C
 from neumip.core.contract import random_queries
-from neumip.client.local import LocalMaterials
-from neumip.training.validation import format_table
+from neumip.engines.local import LocalMaterials
+from neumip.training.loop.validation import format_table
 
 FLAT_ALBEDO = 0.5
-"""Albedo of the shipped `flat` material (training/microgeometry/library/flat.toml)."""
+"""Albedo of the shipped `flat` material (groundtruth/library/flat.toml)."""
 
 
 def report_reference(folder: Path, material: str, data_path: str) -> None:
     """MSE per level of MATERIAL and MATERIAL_nooffset against a low-noise reference data set."""
-    from neumip.training.dataset import open_dataset
-    from neumip.training.validation import validation_table
+    from neumip.groundtruth.dataset import open_dataset
+    from neumip.training.loop.validation import validation_table
 
     data = open_dataset(data_path)
     queries, target = np.asarray(data.queries), np.asarray(data.rgb)

@@ -25,12 +25,12 @@ from pathlib import Path
 
 import numpy as np
 
-from neumip.client.kernel import KernelMaterials
+from neumip.engines.kernel import KernelMaterials
 from neumip.client.mitsuba import render as R
-from neumip.training.microgeometry.description import find_description, resolve
-from neumip.training.report import methods as M
-from neumip.training.report.config import ReportConfig
-from neumip.training.report.views import VIEWS, film_for_tiles
+from neumip.groundtruth.description import find_description, resolve
+from neumip.report import methods as M
+from neumip.report.config import ReportConfig
+from neumip.report.views import VIEWS, film_for_tiles
 
 SETTINGS = {"paper": ({"lobe_weight": 0.0}, {"all_emitters": False}), "lobe": ({}, {"all_emitters": False}),
             "lobe+all": ({}, {})}

@@ -32,7 +32,7 @@ import numpy as np
 def view_directions(view, n: int, rng: np.random.Generator) -> np.ndarray:
     """(n, 2) x, y of unit directions towards the camera, uniform in a cone of half the field of view's diagonal
     (the report's film) around the image centre's."""
-    from neumip.training.report.config import ReportConfig
+    from neumip.report.config import ReportConfig
 
     film = ReportConfig().film
     t = math.radians(view.theta)
@@ -48,11 +48,11 @@ def view_directions(view, n: int, rng: np.random.Generator) -> np.ndarray:
 
 def make(args) -> None:
     from neumip.core import contract as C
-    from neumip.training.dataset import open_dataset, write_dataset
-    from neumip.training.microgeometry.description import find_description, resolve
-    from neumip.training.microgeometry.generate import GenerateSettings
-    from neumip.training.microgeometry.tracer import QueryTracer
-    from neumip.training.report.views import VIEWS, light_direction
+    from neumip.groundtruth.dataset import open_dataset, write_dataset
+    from neumip.groundtruth.description import find_description, resolve
+    from neumip.groundtruth.generate import GenerateSettings
+    from neumip.groundtruth.tracer import QueryTracer
+    from neumip.report.views import VIEWS, light_direction
 
     view = {v.name: v for v in VIEWS}[args.view]
     source = open_dataset(args.source)

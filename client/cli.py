@@ -8,21 +8,19 @@ import importlib.metadata
 import logging
 import sys
 
-from neumip.core.errors import NeumipError
+from neumip.core.errors import CommandError, NeumipError  # noqa: F401  (CommandError: re-exported)
 
 AREAS = (
     "neumip.client.commands",
     "neumip.client.mitsuba.commands",
     "neumip.training.commands",
-    "neumip.training.microgeometry.commands",
-    "neumip.training.report.commands",
+    "neumip.training.fit_command",
+    "neumip.training.trim_command",
+    "neumip.groundtruth.commands",
+    "neumip.report.commands",
     "neumip.server.commands",
 )
 """Modules with a `register(subparsers)` function adding that area's subcommands."""
-
-
-class CommandError(NeumipError):
-    """An error a command reports to the user as one line, exit status 2."""
 
 
 class HelpFormatter(argparse.ArgumentDefaultsHelpFormatter):

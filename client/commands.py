@@ -41,7 +41,7 @@ def register(sub: argparse._SubParsersAction) -> None:
 
 def model_path(material: str, models: Path) -> Path:
     """`material` as given (a .onnx file) or looked up by name in `models`; a clear error otherwise."""
-    from .cli import CommandError
+    from neumip.core.errors import CommandError
 
     path = Path(material)
     if path.is_dir():
@@ -60,7 +60,7 @@ def model_path(material: str, models: Path) -> Path:
 
 
 def _query(args: argparse.Namespace) -> int:
-    from .local import load_material, run_chunked
+    from neumip.engines.local import load_material, run_chunked
 
     material = load_material(model_path(args.material, args.models))
     row = C.as_queries([[getattr(args, f) for f in C.QUERY_FIELDS]])

@@ -8,12 +8,12 @@ number of times with exponential backoff; anything else fails at once with an er
 the server answered. Large buffers are sent as several requests of at most ``ClientConfig.max_rows``
 rows. Query groups (N, 5 + 2 K) travel as they are (`neumip.core.contract`) and answer (N, 3 K);
 a row is a group, so a split never cuts one. A material name
-goes into the URL path, so a name that is not a material name (`neumip.client.local.NAME_PATTERN`) is
+goes into the URL path, so a name that is not a material name (`neumip.engines.local.NAME_PATTERN`) is
 refused before anything is sent.
 
 How queries and answers travel is a `Codec` (`PROTOCOLS`): the msgpack ``/v1`` format by default, or
 the Open Inference Protocol's ``/v2`` binary tensors (``protocol="v2"``), both laid out in
-`neumip.client.wire`; the retries and the transport are the same for both. Tests inject an httpx transport (``httpx.MockTransport``) into the same
+`neumip.core.wire`; the retries and the transport are the same for both. Tests inject an httpx transport (``httpx.MockTransport``) into the same
 ``httpx.Client`` path, and run against a real server process.
 """
 
@@ -27,9 +27,9 @@ from typing import Protocol
 import numpy as np
 
 from neumip.core import contract as C
-from . import wire
+from neumip.core import wire
 from neumip.core.errors import NeumipError
-from .local import NAME_PATTERN, UnknownMaterial
+from neumip.engines.local import NAME_PATTERN, UnknownMaterial
 
 log = logging.getLogger(__name__)
 
@@ -92,7 +92,7 @@ class Codec(Protocol):
 
 
 class MsgpackCodec:
-    """The ``/v1`` msgpack format (`neumip.client.wire`): the rows go out and come back as raw float32."""
+    """The ``/v1`` msgpack format (`neumip.core.wire`): the rows go out and come back as raw float32."""
 
     def path(self, material: str) -> str:
         return wire.EVALUATE_PATH.format(name=material)

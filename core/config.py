@@ -9,7 +9,7 @@ import json
 import math
 from dataclasses import asdict, dataclass, fields
 
-from .head import HEADS
+from neumip.core.head import HEADS
 
 
 def dataclass_from_dict(cls, data: dict):
@@ -54,6 +54,38 @@ RELIEF_MIN_COS = 0.25
 """The relief stage marches along wo_xy / max(wo_z, this): a grazing view's ray is followed at most ~3.9x
 its depth sideways (`MaterialConfig.relief`). 0.1 was measured: rock's 85-degree view 0.66x the image MSE,
 but turtle's reference error 1.27x (`benchmarks/results/relief.txt`)."""
+@dataclass(frozen=True)
+class DecoderInput:
+    """One of the decoder's optional inputs: a row of `DECODER_INPUTS`."""
+
+    name: str
+    """Its part of the decoder's stored first layer (``decoder.0.half_weight.NAME``) and its key in the torch
+    model's and the graph writer's tables of how it is computed."""
+    width: int
+    """Inputs it adds to the decoder's first layer, per light."""
+    switch: str
+    """The `MaterialConfig` field (a bool) that turns it on."""
+    reads_base: bool
+    """It reads the base maps' pyramid, so it needs a base (`MaterialConfig.base`)."""
+
+
+DECODER_INPUTS = (
+    DecoderInput("half_vector", 4, "half_vector", reads_base=False),  # h_x, h_y, h_z, cos(theta_d)
+    DecoderInput("frame", 6, "local_frame", reads_base=True),  # wi, wo (x, y, z) in the base normal's frame
+    DecoderInput("visibility", 1, "visibility_input", reads_base=True),  # the base's visibility V(wi)
+)
+"""The decoder's optional inputs, in the order its first layer reads them: after the texture features, before
+the query columns. Every one is computed per light. The torch model (`training/model/material.py`) and the graph
+writer (`training/export/graph.py`) each hold how a row is computed; the weights' shapes, the graph reader and
+the command-line flags iterate this table."""
+
+
+DERIVED_FIELDS = ("resolution", "base", "relief", "relief_steps", "ceiling")
+"""`MaterialConfig` fields a command derives instead of taking each as a flag of its own (`core.flags`): the
+pyramids' resolutions (from the data and the material's maps: `--base`, `--relief [STEPS]`) and the trainer's
+ceiling. Every other field is a flag of `neumip train`, `fit` and `train-many`."""
+FIELD_CHOICES = {"terminator": TERMINATORS, "head": HEADS}
+"""The values a string field of `MaterialConfig` takes."""
 RELIEF_DIVISION_FLOOR = 1e-12
 """The relief's secant step divides by at least this (its weight is 0 where the floor acts)."""
 
@@ -88,16 +120,16 @@ class MaterialConfig:
     """Texels per side of the finest level of the base maps' pyramid (the material's maps' resolution; a
     power of two), 0: none. With a base the answer is base(maps, wi, wo) * exp(c) + a, with c and a the
     decoder's 6 outputs (`BASE_OUTPUTS`): the classical material as a start that the decoder corrects
-    (training/base.py has the formula and the pyramid's channels)."""
+    (training/model/base.py has the formula and the pyramid's channels)."""
     terminator: str = "all"
     """Which of the base's terms the shadow terminator's softening S(g) of a normal map (Chiang, Li and Burley 2019;
-    training/base.py) multiplies: "all" (the models made before the choice existed), "specular" or "none". S(g)
+    training/model/base.py) multiplies: "all" (the models made before the choice existed), "specular" or "none". S(g)
     bounds a bump's side facing a grazing light near its flat value; without it the base's only shadow is its
     horizon visibility, so a resolved facet facing a grazing light answers cos(n, wi) / wi_z times its flat value,
     as the real geometry's lit faces do (`benchmarks/results/terminator.txt`). Needs a base."""
     local_frame: bool = False
     """The decoder also reads wi and wo in the shading frame of the base's normal (the base maps' mean slopes where
-    the lookups land): 6 inputs, `weights.FRAME_INPUTS`. A normal tilted by the texel's slopes is then a rotation of
+    the lookups land): 6 inputs (`DECODER_INPUTS`). A normal tilted by the texel's slopes is then a rotation of
     the inputs, not something every texel's features must teach the decoder. Needs a base
     (`benchmarks/results/frame.txt`)."""
     visibility_input: bool = False
@@ -107,7 +139,7 @@ class MaterialConfig:
     relief: int = 0
     """Texels per side of the finest level of the height pyramid the relief stage marches (the material's
     height map's resolution; a power of two), 0: none. With it, every lookup reads where the view ray
-    first meets the height field, prefiltered at the query's footprint (`training/relief.py`), and the
+    first meets the height field, prefiltered at the query's footprint (`training/model/relief.py`), and the
     learned offset (if any) corrects from there."""
     relief_steps: int = 8
     """Linear-search steps of the relief stage (each one height lookup), refined by one secant step."""
@@ -149,10 +181,9 @@ class MaterialConfig:
             raise ValueError(f"terminator must be one of {TERMINATORS}, got {self.terminator!r}")
         if self.terminator != "all" and not self.base:
             raise ValueError("terminator softens the base's terms: it needs a base")
-        if self.local_frame and not self.base:
-            raise ValueError("local_frame reads the base's normal: it needs a base")
-        if self.visibility_input and not self.base:
-            raise ValueError("visibility_input reads the base's horizons: it needs a base")
+        for row in DECODER_INPUTS:
+            if row.reads_base and getattr(self, row.switch) and not self.base:
+                raise ValueError(f"{row.switch} reads the base's maps: it needs a base")
         if self.relief < 0 or self.relief & (self.relief - 1):
             raise ValueError(f"relief must be 0 or a power of two, got {self.relief}")
         if self.relief_steps < 1:
@@ -163,6 +194,10 @@ class MaterialConfig:
             raise ValueError(f"lod_bias must be a whole number of levels in [0, 8], got {self.lod_bias!r}")
         if not 0 < self.offset_min_cos <= 1:
             raise ValueError(f"offset_min_cos must be in (0, 1], got {self.offset_min_cos}")
+
+    def decoder_inputs(self) -> tuple[DecoderInput, ...]:
+        """The rows of `DECODER_INPUTS` this material's decoder reads, in their order."""
+        return tuple(row for row in DECODER_INPUTS if getattr(self, row.switch))
 
     @property
     def levels(self) -> int:
@@ -196,17 +231,14 @@ class MaterialConfig:
                               lod_bias=self.lod_bias) if self.relief else None
 
     def to_json(self) -> str:
-        """The fields as JSON; `half_vector`, `base`, `local_frame`, `visibility_input`, the relief's, `lod_bias` and `ceiling` only when on, and
-        `terminator` only when not "all", so that models made before each existed read as they did."""
+        """The fields as JSON; each decoder input's switch, `base`, the relief's, `lod_bias` and `ceiling` only when
+        on, and `terminator` only when not "all", so that models made before each existed read as they did."""
         fields_ = asdict(self)
-        if not self.half_vector:
-            del fields_["half_vector"]
+        for row in DECODER_INPUTS:
+            if not getattr(self, row.switch):
+                del fields_[row.switch]
         if not self.base:
             del fields_["base"]
-        if not self.local_frame:
-            del fields_["local_frame"]
-        if not self.visibility_input:
-            del fields_["visibility_input"]
         if self.terminator == "all":
             del fields_["terminator"]
         if not self.relief:

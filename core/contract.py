@@ -45,7 +45,7 @@ from typing import NamedTuple, Protocol
 
 import numpy as np
 
-from .errors import NeumipError
+from neumip.core.errors import NeumipError
 
 CONTRACT_VERSION = "2"
 """Version of the query contract; travels in every model's metadata. 2: query groups are part of it."""

@@ -8,3 +8,7 @@ checkpoint, an incomplete data set, an unreachable server, a missing LLVM) deriv
 
 class NeumipError(Exception):
     """An error whose message alone tells the user what went wrong and what to do."""
+
+
+class CommandError(NeumipError):
+    """An error a command reports to the user as one line, exit status 2."""

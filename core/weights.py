@@ -12,9 +12,8 @@ Two views of the same numbers, both from a `MaterialConfig`:
   (``{mlp}.{i}.half_weight``; the graph's Gemm multiplies by 2), biases as columns (out, 1); a first
   layer is split by what it reads (``{mlp}.0.half_weight.texture``, ``.query``: a (hidden, 7) matrix
   over the whole query row, zero but for the columns it reads, the decoder's ``.light``: its
-  columns on a light's wi, and with `MaterialConfig.half_vector` its ``.half_vector``: on the light's half vector;
-  with `MaterialConfig.local_frame` its ``.frame``: on wi and wo in the base normal's frame; with
-  `MaterialConfig.visibility_input` its ``.visibility``: on the base's visibility of the light); the offset MLP's last layer is stored with ``offset_scale`` folded in and
+  columns on a light's wi, and a part per optional input, ``.NAME`` for each row of `config.DECODER_INPUTS`
+  it reads); the offset MLP's last layer is stored with ``offset_scale`` folded in and
   its one output twice (the depth beside each of wo_x, wo_y).
 
 Names and shapes only: no numpy, no arithmetic.
@@ -22,9 +21,9 @@ Names and shapes only: no numpy, no arithmetic.
 
 from __future__ import annotations
 
-from . import contract as C
-from .config import BASE_OUTPUTS, MaterialConfig
-from .head import outputs
+from neumip.core import contract as C
+from neumip.core.config import BASE_OUTPUTS, MaterialConfig
+from neumip.core.head import outputs
 
 PYRAMID = "pyramid"
 """The neural texture pyramid: the rows of every level, finest first (`MaterialConfig.level_starts`)."""
@@ -44,29 +43,13 @@ MLP_QUERY_COLUMNS = {DECODER: (C.WI_X, C.WI_Y, C.WO_X, C.WO_Y), OFFSET_MLP: (C.W
 """The query columns each MLP's first layer reads after its texture's features."""
 
 FIRST_LAYER_PARTS = {DECODER: ("texture", "query", "light"), OFFSET_MLP: ("texture", "query")}
-"""What each MLP's stored first layer is split into (`half_weight`); with `MaterialConfig.half_vector`
-the decoder's has a fourth part, "half_vector", its columns on a light's half vector and cos(theta_d)."""
-
-HALF_INPUTS = 4
-"""Decoder inputs of `MaterialConfig.half_vector`: h_x, h_y, h_z, cos(theta_d); they follow the texture
-features in the decoder's first layer, before the query columns."""
-
-FRAME_INPUTS = 6
-"""Decoder inputs of `MaterialConfig.local_frame`: wi and wo (x, y, z each) in the base normal's shading frame;
-they follow the half-vector inputs (or the texture features), before the query columns."""
-
-
-VISIBILITY_INPUTS = 1
-"""Decoder inputs of `MaterialConfig.visibility_input`: the base's visibility V(wi) of the light; it follows the
-local frame's inputs (or the half vector's, or the texture features), before the query columns."""
+"""What each MLP's stored first layer is split into (`half_weight`); the decoder's also has a part per optional
+input it reads (`MaterialConfig.decoder_inputs`), after these."""
 
 
 def first_layer_parts(mlp: str, config: MaterialConfig) -> tuple[str, ...]:
     """The parts the stored first layer of `mlp` is split into."""
-    extra = ()
-    if mlp == DECODER:
-        extra = (("half_vector",) * config.half_vector + ("frame",) * config.local_frame
-                 + ("visibility",) * config.visibility_input)
+    extra = tuple(row.name for row in config.decoder_inputs()) if mlp == DECODER else ()
     return FIRST_LAYER_PARTS[mlp] + extra
 
 
@@ -96,8 +79,7 @@ def half_weight(mlp: str, layer: int, part: str | None = None) -> str:
 
 def decoder_extra_inputs(config: MaterialConfig) -> int:
     """The decoder's inputs between its texture features and its query columns (the optional ones, in order)."""
-    return ((HALF_INPUTS if config.half_vector else 0) + (FRAME_INPUTS if config.local_frame else 0)
-            + (VISIBILITY_INPUTS if config.visibility_input else 0))
+    return sum(row.width for row in config.decoder_inputs())
 
 
 def mlps(config: MaterialConfig) -> dict[str, tuple[int, int]]:
@@ -161,8 +143,8 @@ def initializer_shapes(config: MaterialConfig, finest_level: int = 0) -> dict[st
     shapes.update(_maps_shapes(config))
     for mlp, (inputs, answers) in mlps(config).items():
         widths = _widths(config, inputs, DEPTH_COPIES if mlp == OFFSET_MLP else answers)
-        first = {"texture": texture_inputs(mlp, config), "query": C.QUERY_DIM, "light": 2, "half_vector": HALF_INPUTS,
-                 "frame": FRAME_INPUTS, "visibility": VISIBILITY_INPUTS}
+        first = {"texture": texture_inputs(mlp, config), "query": C.QUERY_DIM, "light": 2,
+                 **{row.name: row.width for row in config.decoder_inputs()}}
         for part in first_layer_parts(mlp, config):
             shapes[half_weight(mlp, 0, part)] = (widths[1], first[part])
         shapes[bias(mlp, 0)] = (widths[1], 1)

@@ -14,7 +14,7 @@ import numpy as np
 
 def make_models(folder: Path) -> None:
     from neumip.core.config import MaterialConfig
-    from neumip.training.export import build_onnx, random_weights, save_onnx
+    from neumip.training.export.graph import build_onnx, random_weights, save_onnx
 
     folder.mkdir(parents=True, exist_ok=True)
     for name, cfg in (("smoke64", MaterialConfig(resolution=64)), ("smoke16", MaterialConfig(resolution=16, offset=False))):
@@ -30,8 +30,8 @@ def check(url: str, folder: Path) -> None:
     import tritonclient.http as triton
 
     from neumip.core import contract as C
-    from neumip.client import wire
-    from neumip.client.local import LocalMaterials
+    from neumip.core import wire
+    from neumip.engines.local import LocalMaterials
 
     # The exported graph answers each row with the same bits however a batch is cut, so the
     # default multi-worker evaluator must match the server exactly.

@@ -46,12 +46,12 @@ QUERIES=$(( QPT * RES * RES ))
 data_dir() { echo "data/$1_n${QUERIES}_s${SPP}"; }
 generate_data() {  # MATERIAL [--ray=ADDRESS]: the data `neumip fit` makes (footprints for max(RES, the maps'))
   local data res; data=$(data_dir "$1")
-  res=$("${NEUMIP%neumip}python" -c "import sys; from neumip.training.microgeometry.description import find_description as f; print(max($RES, f(sys.argv[1]).resolution))" "$1")
+  res=$("${NEUMIP%neumip}python" -c "import sys; from neumip.groundtruth.description import find_description as f; print(max($RES, f(sys.argv[1]).resolution))" "$1")
   [ -f "$data/meta.json" ] && grep -q '"complete": true' "$data/meta.json" ||
     "$NEUMIP" generate "$1" -o "$data" --queries "$QUERIES" --queries-per-texel "$QPT" --resolution "$res" --spp "$SPP" --seed 0 "${@:2}"
 }
 has_maps() {  # MATERIAL: whether it is defined by principled maps (a base needs them; flat's [bsdf] is not)
-  "${NEUMIP%neumip}python" -c "import sys; from neumip.training.microgeometry.description import find_description, resolve; sys.exit(resolve(find_description(sys.argv[1])).bsdf is not None)" "$1"
+  "${NEUMIP%neumip}python" -c "import sys; from neumip.groundtruth.description import find_description, resolve; sys.exit(resolve(find_description(sys.argv[1])).bsdf is not None)" "$1"
 }
 base_flags() {  # NAME: the --base flags of its fit, with the base's shading ($SHADING)
   local parent=${1%_nooffset} base=$BASE
@@ -67,7 +67,7 @@ base_flags() {  # NAME: the --base flags of its fit, with the base's shading ($S
   echo --base auto $SHADING
 }
 has_height() {  # MATERIAL: whether it has a height map to march (flat's is 1 x 1)
-  "${NEUMIP%neumip}python" -c "import sys; from neumip.training.microgeometry.description import find_description, resolve; sys.exit(resolve(find_description(sys.argv[1])).height.shape[0] <= 1)" "$1"
+  "${NEUMIP%neumip}python" -c "import sys; from neumip.groundtruth.description import find_description, resolve; sys.exit(resolve(find_description(sys.argv[1])).height.shape[0] <= 1)" "$1"
 }
 relief_flags() {  # NAME: the --relief flags of its fit (none for an ablation: NAME_nooffset has no parallax stage)
   [[ "$1" == *_nooffset ]] || [ "$RELIEF" = 0 ] && return 0
@@ -78,7 +78,7 @@ material_of() { local m=${1%_nooffset}; echo "${m%_maps}"; }  # rock_maps_nooffs
 resolution_of() {  # NAME: its finest latent level (RES; a map-informed model's MAPS_RES, else its maps' resolution,
   # at least RES: the data set's footprints are sampled for max(RES, the maps'), and every model of a material shares it)
   if [[ "$1" != *_maps* ]]; then echo "$RES"; elif [ -n "$MAPS_RES" ]; then echo "$MAPS_RES"; else
-    "${NEUMIP%neumip}python" -c "import sys; from neumip.training.microgeometry.description import find_description as f; print(max($RES, f(sys.argv[1]).resolution))" "$(material_of "$1")"
+    "${NEUMIP%neumip}python" -c "import sys; from neumip.groundtruth.description import find_description as f; print(max($RES, f(sys.argv[1]).resolution))" "$(material_of "$1")"
   fi
 }
 describe() {  # NAME

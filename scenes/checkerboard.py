@@ -2,7 +2,7 @@
 
 It follows the query contract (`neumip.core.contract`: input ``queries`` (N, 7) float32, output
 ``rgb`` (N, 3)) and carries no neumip metadata; the in-kernel engine renders it as it renders an
-exported material, from its graph (`neumip.client.onnx_kernel`):
+exported material, from its graph (`neumip.engines.onnx_kernel`):
 
     .venv/bin/python scenes/checkerboard.py /tmp/foreign/checker.onnx
     .venv/bin/neumip render scenes/closeup.xml -D material=checker --models /tmp/foreign -o checker.png

@@ -31,12 +31,12 @@ from dataclasses import dataclass
 from fastapi import Request
 from starlette.requests import ClientDisconnect
 
-from neumip.client.wire import ROW_BYTES
+from neumip.core.wire import ROW_BYTES
 
-from .body import header_int
-from .errors import ApiError, QueueFull
-from .metrics import Metrics
-from .settings import ANSWER_BYTES, JSON_MEMORY_FACTOR, Settings
+from neumip.server.body import header_int
+from neumip.server.errors import ApiError, QueueFull
+from neumip.server.metrics import Metrics
+from neumip.server.settings import ANSWER_BYTES, JSON_MEMORY_FACTOR, Settings
 
 MIN_JSON_ROW_BYTES = 14
 """Fewest bytes a query row takes in JSON (``0,0,0,0,0,0,0,`` in v2's flat data): rows <= length / 14."""

@@ -20,8 +20,8 @@ naming the material (counted in ``neumip_nonfinite_answers_total``), never a sil
 Only pieces of the same width share a call (one queue per material and width).
 
 Merging and splitting keep answers bit-identical to evaluating each request on its own, in one call or
-in process (`neumip.client.local`): the exported graph answers a row with the same bits wherever it
-sits in a call and however many rows the call has (`neumip.training.export`), and so does the kernel
+in process (`neumip.engines.local`): the exported graph answers a row with the same bits wherever it
+sits in a call and however many rows the call has (`neumip.training.export.graph`), and so does the kernel
 engine (each row is computed alone), so pieces go into calls in any cut.
 
 How many rows may be queued is decided before a request gets here (`neumip.server.admission`).
@@ -42,13 +42,13 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from neumip.core import contract as C
-from neumip.client.local import Material
+from neumip.engines.local import Material
 
-from .engine import Engine
-from .errors import ApiError
-from .metrics import Metrics
-from .model_stats import ModelStats
-from .settings import Settings
+from neumip.server.engine import Engine
+from neumip.server.errors import ApiError
+from neumip.server.metrics import Metrics
+from neumip.server.model_stats import ModelStats
+from neumip.server.settings import Settings
 
 log = logging.getLogger(__name__)
 

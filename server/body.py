@@ -9,7 +9,7 @@ from fastapi import Request
 
 from neumip.core import contract as C
 
-from .errors import ApiError
+from neumip.server.errors import ApiError
 
 MSGPACK_TYPES = ("application/msgpack", "application/x-msgpack", "application/vnd.msgpack")
 """Content types taken as msgpack (the first is `wire.MSGPACK_MEDIA_TYPE`)."""

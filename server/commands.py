@@ -25,10 +25,10 @@ def register(sub: argparse._SubParsersAction) -> None:
 
 
 def serve(args: argparse.Namespace) -> int:
-    from .uvicorn_run import run
+    from neumip.server.uvicorn_run import run
 
     if args.list_settings:
-        from .settings import Settings
+        from neumip.server.settings import Settings
 
         print(Settings.describe())
         return 0
@@ -57,9 +57,9 @@ def register_export_repository(sub: argparse._SubParsersAction) -> None:
 
 
 def export_repository_command(args: argparse.Namespace) -> int:
-    from .model_config import TritonOptions
-    from .model_repository import RepositoryError, export_repository
-    from .settings import Settings
+    from neumip.server.model_config import TritonOptions
+    from neumip.server.model_repository import RepositoryError, export_repository
+    from neumip.server.settings import Settings
 
     try:
         options = TritonOptions.from_settings(

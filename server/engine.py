@@ -1,10 +1,10 @@
 """The engine: what evaluates the server's materials (``NEUMIP_ENGINE``).
 
 - ``onnxruntime`` (default): each material is an ONNX Runtime session running the file's graph
-  (`neumip.client.local.load_material`); ``NEUMIP_ORT_WORKERS`` calls run at once (default one per
+  (`neumip.engines.local.load_material`); ``NEUMIP_ORT_WORKERS`` calls run at once (default one per
   core), each of at most ``NEUMIP_CHUNK_ROWS`` answers on ``NEUMIP_ORT_THREADS`` threads.
 - ``kernel``: each material's graph, the same file's, is interpreted as drjit LLVM kernels
-  (`neumip.client.kernel.KernelMaterial`, the renderer's in-process engine; needs the ``kernel``
+  (`neumip.engines.kernel.KernelMaterial`, the renderer's in-process engine; needs the ``kernel``
   extra). One call runs at a time: drjit runs one frozen call at a time per process and
   spreads each call over every core itself. Calls hold up to ``NEUMIP_KERNEL_CHUNK_ROWS`` answers
   (default 2^18: fewer, larger calls than ONNX Runtime's, so the batcher's work between calls, while
@@ -40,9 +40,9 @@ import numpy as np
 
 from neumip.core import contract as C
 from neumip.core.errors import NeumipError
-from neumip.client.local import Material, ModelError, load_material
+from neumip.engines.local import Material, ModelError, load_material
 
-from .settings import Settings, available_cores
+from neumip.server.settings import Settings, available_cores
 
 log = logging.getLogger(__name__)
 
@@ -67,7 +67,7 @@ material is loaded."""
 
 @dataclass
 class KernelModel(Material):
-    """A material of the ``kernel`` engine: ``session`` is its `neumip.client.kernel.KernelMaterial`."""
+    """A material of the ``kernel`` engine: ``session`` is its `neumip.engines.kernel.KernelMaterial`."""
 
     def run(self, queries: np.ndarray) -> np.ndarray:
         """One call: validated (n, 5 + 2 K) float32 queries -> (n, 3 K) float32 RGB; groups of more than
@@ -191,7 +191,7 @@ class Engine:
         turns, and each spins for 20 ms after a call (nanothread's ``NANOTHREAD_MAX_IDLE_MS``) on the
         cores the event loop needs."""
         try:
-            from neumip.client.kernel import KernelMaterial
+            from neumip.engines.kernel import KernelMaterial
         except ImportError as exc:  # drjit or onnx missing, or only a libLLVM < 16: the message says which
             raise EngineUnavailable(f"NEUMIP_ENGINE=kernel cannot run: {exc}") from None
         import drjit as dr

@@ -14,7 +14,7 @@ from fastapi.responses import JSONResponse
 from starlette.exceptions import HTTPException as StarletteHTTPException
 
 from neumip.core.contract import QueryError
-from neumip.client.local import UnknownMaterial
+from neumip.engines.local import UnknownMaterial
 
 log = logging.getLogger(__name__)
 

@@ -13,8 +13,8 @@ from dataclasses import dataclass
 
 from neumip.core import contract as C
 
-from .engine import ONNX_PLATFORM
-from .registry import MODEL_VERSION
+from neumip.server.engine import ONNX_PLATFORM
+from neumip.server.registry import MODEL_VERSION
 
 BACKENDS = ("onnxruntime", "python")
 """Triton backends a material can be served by: ONNX Runtime itself, or the python backend running a

@@ -26,10 +26,10 @@ from pathlib import Path
 
 from neumip.core import contract as C
 from neumip.core.errors import NeumipError
-from neumip.client.local import Material, load_folder
+from neumip.engines.local import Material, load_folder
 
-from .model_config import TritonOptions, model_config, to_pbtxt
-from .registry import MODEL_VERSION
+from neumip.server.model_config import TritonOptions, model_config, to_pbtxt
+from neumip.server.registry import MODEL_VERSION
 
 log = logging.getLogger(__name__)
 

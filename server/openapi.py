@@ -7,7 +7,7 @@ every body themselves.
 from __future__ import annotations
 
 from neumip.core import contract as C
-from neumip.client import wire
+from neumip.core import wire
 
 ERROR_SCHEMA = {
     "type": "object",
@@ -23,7 +23,7 @@ ERROR_RESPONSES = {
         (413, "Body, JSON or row count over the limit"),
         (415, "Unsupported Content-Type or Content-Encoding"),
         (500, "The model failed or answered NaN/Inf (the message names the material)"),
-        (503, "Queue or body budget full (see Retry-After), or server starting"),
+        (503, "Queue or body budget full, or models still loading (see Retry-After); or the server stopping"),
     )
 }
 

@@ -24,7 +24,7 @@ import urllib.request
 from dataclasses import dataclass
 from pathlib import Path
 
-from .uvicorn_run import ServeError
+from neumip.server.uvicorn_run import ServeError
 
 
 def free_port() -> int:

@@ -30,8 +30,8 @@ import logging
 
 from uvicorn.protocols.http.httptools_impl import HttpToolsProtocol
 
-from .answer import PIECE_BYTES
-from .settings import Settings
+from neumip.server.answer import PIECE_BYTES
+from neumip.server.settings import Settings
 
 STATUS_TEXT = {400: "Bad Request", 408: "Request Timeout", 431: "Request Header Fields Too Large"}
 

@@ -43,11 +43,11 @@ from pathlib import Path
 import numpy as np
 
 from neumip.core import contract as C
-from neumip.client.local import NAME_PATTERN, Material, ModelError, UnknownMaterial
+from neumip.engines.local import NAME_PATTERN, Material, ModelError, UnknownMaterial
 
-from .engine import WARM_LIGHTS, Engine
-from .errors import ApiError
-from .metrics import Metrics
+from neumip.server.engine import WARM_LIGHTS, Engine
+from neumip.server.errors import ApiError
+from neumip.server.metrics import Metrics
 
 log = logging.getLogger(__name__)
 

@@ -44,6 +44,9 @@ class Settings(BaseSettings):
     """TCP port `neumip serve` listens on."""
     log_level: str = "info"
     """Log level of the server and uvicorn (debug, info, warning, error)."""
+    access_log: bool = False
+    """Log every request at INFO (method, path, status); off: only 4xx and 5xx answers are logged (with
+    their message). /metrics counts every request either way."""
 
     engine: Literal["onnxruntime", "kernel"] = "onnxruntime"
     """What evaluates the materials: onnxruntime (the file's graph in ONNX Runtime sessions) or kernel (the

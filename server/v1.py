@@ -5,7 +5,7 @@
 takes ``{"queries": [[u, v, sigma, wi_x, wi_y, wo_x, wo_y], ...]}`` and answers
 ``{"n": N, "rgb": [[r, g, b], ...]}``. Query groups (`neumip.core.contract`) go the same way: rows of
 ``5 + 2 K`` values in (msgpack: the width stated by ``"lights": K``, or read from the byte count,
-`neumip.client.wire`), ``3 K`` out. ``GET /v1/materials`` lists the materials with their metadata.
+`neumip.core.wire`), ``3 K`` out. ``GET /v1/materials`` lists the materials with their metadata.
 """
 
 from __future__ import annotations
@@ -16,15 +16,15 @@ import numpy as np
 from fastapi import APIRouter, Depends, Request, Response
 
 from neumip.core import contract as C
-from neumip.client import wire
+from neumip.core import wire
 
-from .admission import plan, read_body
-from .answer import BufferAnswer, JsonAnswer, freed_on_failure
-from .body import JSON_TYPE, MSGPACK_TYPES, check_rows, media_type, parse_json
-from .errors import ApiError
-from .metrics import StageTimer
-from .openapi import ERROR_RESPONSES, EVALUATE_BODY, EVALUATE_RESPONSE
-from .state import ServerState, serving
+from neumip.server.admission import plan, read_body
+from neumip.server.answer import BufferAnswer, JsonAnswer, freed_on_failure
+from neumip.server.body import JSON_TYPE, MSGPACK_TYPES, check_rows, media_type, parse_json
+from neumip.server.errors import ApiError
+from neumip.server.metrics import StageTimer
+from neumip.server.openapi import ERROR_RESPONSES, EVALUATE_BODY, EVALUATE_RESPONSE
+from neumip.server.state import ServerState, serving
 
 router = APIRouter(tags=["v1 (renderer fast path)"])
 

@@ -18,17 +18,17 @@ import numpy as np
 from fastapi import APIRouter, Depends, Request, Response
 
 from neumip.core import contract as C
-from neumip.client import wire
+from neumip.core import wire
 
-from .admission import plan, read_body
-from .answer import Answer, BufferAnswer, JsonAnswer, freed_on_failure
-from .body import JSON_TYPE, check_rows, header_int, media_type, parse_json
-from .errors import ApiError
-from .metrics import StageTimer
-from .openapi import ERROR_RESPONSES, INFER_BODY
-from .registry import MODEL_VERSION
-from .state import ServerState, get_state, serving
-from .v1 import OFFLOAD_BYTES
+from neumip.server.admission import plan, read_body
+from neumip.server.answer import Answer, BufferAnswer, JsonAnswer, freed_on_failure
+from neumip.server.body import JSON_TYPE, check_rows, header_int, media_type, parse_json
+from neumip.server.errors import ApiError
+from neumip.server.metrics import StageTimer
+from neumip.server.openapi import ERROR_RESPONSES, INFER_BODY
+from neumip.server.registry import MODEL_VERSION
+from neumip.server.state import ServerState, get_state, serving
+from neumip.server.v1 import OFFLOAD_BYTES
 
 router = APIRouter(prefix="/v2", tags=["v2 (Open Inference Protocol)"])
 

@@ -19,14 +19,14 @@ import hmac
 
 from fastapi import APIRouter, Depends, Request
 
-from .admission import plan, read_body
-from .body import parse_json
-from .errors import ApiError
-from .model_config import TritonOptions, model_config
-from .openapi import ERROR_RESPONSES
-from .registry import MODEL_VERSION, check_name
-from .state import ServerState, serving
-from .v2 import check_version
+from neumip.server.admission import plan, read_body
+from neumip.server.body import parse_json
+from neumip.server.errors import ApiError
+from neumip.server.model_config import TritonOptions, model_config
+from neumip.server.openapi import ERROR_RESPONSES
+from neumip.server.registry import MODEL_VERSION, check_name
+from neumip.server.state import ServerState, serving
+from neumip.server.v2 import check_version
 
 router = APIRouter(prefix="/v2", tags=["v2 (Open Inference Protocol)"])
 

@@ -94,8 +94,8 @@ def _image(path: Path) -> np.ndarray:
 
 def test_generate_train_export_serve_render(tmp_path, capsys):
     from neumip.client.http import MaterialClient
-    from neumip.client.local import LocalMaterials
-    from neumip.training.dataset import open_dataset
+    from neumip.engines.local import LocalMaterials
+    from neumip.groundtruth.dataset import open_dataset
 
     data, models = tmp_path / "data", tmp_path / "models"
 

@@ -1,4 +1,6 @@
-"""Training-side subcommands: `train` and `export`. Torch is imported lazily."""
+"""Training-side subcommands: `train`, `export` and `train-many`, and what `fit` shares with them: the flags of
+`MaterialConfig`, `TrainConfig` and `MapConfig`, generated from their fields (`core.flags`). Torch is imported
+lazily."""
 
 from __future__ import annotations
 
@@ -6,53 +8,43 @@ import argparse
 import os
 from pathlib import Path
 
-from . import fit_command, trim_command
-from neumip.core.config import TERMINATORS, MaterialConfig  # torch-free
-from .train_config import LOSSES, PRESETS  # torch-free
+from neumip.core import flags
+from neumip.core.config import DERIVED_FIELDS, FIELD_CHOICES, MaterialConfig  # torch-free
+from neumip.training.loop.config import LOSSES, PRESETS, TrainConfig  # torch-free
 
-HALF_VECTOR_HELP = ("the decoder also reads each light's half vector and cos(theta_d) (MaterialConfig.half_vector; "
-                    "glossy materials: benchmarks/results/maps.txt)")
-LOCAL_FRAME_HELP = ("with the classical base: the decoder also reads wi and wo in the frame of the base's normal "
-                    "(MaterialConfig.local_frame; benchmarks/results/frame.txt)")
-VISIBILITY_INPUT_HELP = ("with the classical base: the decoder also reads the base's visibility of each light, its "
-                         "horizon test at the maps' resolution (MaterialConfig.visibility_input; "
-                         "benchmarks/results/grazing.txt)")
-TERMINATOR_HELP = ("with the classical base: the base's terms that the shadow terminator's softening S(g) multiplies "
-                   "(MaterialConfig.terminator; none: a facet facing a grazing light answers as the real geometry's "
-                   "lit faces do; benchmarks/results/terminator.txt)")
 BASE_HELP = ("the classical material as the base: the answer is the principled BSDF on the material's maps (a "
              "pyramid at the maps' resolution) times exp(the decoder's correction), plus its additive term "
              "(MaterialConfig.base, training/TRAINING.md)")
 RELIEF_HELP = ("parallax and occlusion from the material's height map: every lookup reads where the view ray "
                "first meets the height field, marched in STEPS steps on a height pyramid at the map's resolution, "
                "before the neural offset (MaterialConfig.relief, training/TRAINING.md)")
+TRAIN_CHOICES = {"loss": LOSSES, "finish_loss": LOSSES + ("",), "device": ("auto", "cpu", "cuda"),
+                 "lr_schedule": ("constant", "cosine")}
+"""The values a string field of `TrainConfig` takes."""
+MAP_FLAGS = {"hidden": "map_hidden", "layers": "map_layers"}
+"""`MapConfig` fields whose flags are renamed (`MaterialConfig` has fields of the same names)."""
 
 
-def add_terminator_argument(p: argparse.ArgumentParser) -> None:
-    """`--terminator {all,specular,none}` (default `MaterialConfig.terminator`)."""
-    p.add_argument("--terminator", choices=TERMINATORS, default=MaterialConfig.terminator, help=TERMINATOR_HELP)
+def add_material_flags(p: argparse.ArgumentParser, skip: tuple[str, ...] = ()) -> None:
+    """A flag for each `MaterialConfig` field a user sets (not `DERIVED_FIELDS`), `--relief [STEPS]`, and the
+    `TrainConfig` fields as overrides of the preset."""
+    model = p.add_argument_group("model (MaterialConfig)")
+    flags.add_flags(model, MaterialConfig, skip=DERIVED_FIELDS + skip, choices=FIELD_CHOICES,
+                    metavars={"lod_bias": "K"})
+    model.add_argument("--relief", type=int, nargs="?", const=MaterialConfig.relief_steps, default=0, metavar="STEPS",
+                       help=RELIEF_HELP + f"; STEPS defaults to {MaterialConfig.relief_steps}")
+    schedule = p.add_argument_group("training (TrainConfig, over the --preset's values)")
+    schedule.add_argument("--config", help="JSON file of TrainConfig fields (applied over the preset)")
+    flags.add_flags(schedule, TrainConfig, choices=TRAIN_CHOICES, overrides=True)
 
 
-def add_relief_argument(p: argparse.ArgumentParser, help_tail: str = "") -> None:
-    """`--relief [STEPS]` (0, the default: none; alone: `MaterialConfig.relief_steps`)."""
-    p.add_argument("--relief", type=int, nargs="?", const=MaterialConfig.relief_steps, default=0, metavar="STEPS",
-                   help=RELIEF_HELP + help_tail + f"; STEPS defaults to {MaterialConfig.relief_steps}")
+def add_map_flags(p: argparse.ArgumentParser) -> None:
+    """The `MapConfig` fields, for a map-informed model (`--maps`)."""
+    from neumip.training.model.maps import MapConfig  # (torch-free at import)
 
-
-LOD_BIAS_HELP = ("raise every footprint's level of detail by K levels (MaterialConfig.lod_bias): the finest level then "
-                 "answers footprints of 2^-K texels and less, the sharp samples of a close-up render, instead of "
-                 "the appearance filtered by a texel; the data need footprints that fine (generate --sub-texel-levels K)")
-
-
-def add_lod_bias_argument(p: argparse.ArgumentParser) -> None:
-    """`--lod-bias K` (`MaterialConfig.lod_bias`, default 0: the paper's level of detail)."""
-    p.add_argument("--lod-bias", type=int, default=0, metavar="K", help=LOD_BIAS_HELP + " (default 0)")
-
-
-RESIDUAL_HELP = ("with --maps: also train a free texture, added to the encoded one, on every level of at most SIZE "
-                 "texels per side (MapConfig.residual; default 0: none), where the data hold many queries per texel")
-HIDDEN_HELP = (f"width of the hidden layers of both MLPs (default {MaterialConfig.hidden}, the paper's; "
-               "the shipped materials too; 48 was measured, not shipped: benchmarks/results/quality_levers_log.md)")
+    group = p.add_argument_group("map encoder (MapConfig, with --maps)")
+    flags.add_flags(group, MapConfig, overrides=True, rename=MAP_FLAGS,
+                    metavars={"horizons": "K", "residual": "SIZE"})
 
 
 def register(sub: argparse._SubParsersAction) -> None:
@@ -62,7 +54,6 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--force", action="store_true", help="replace the output model if it exists")
     p.add_argument("--preset", choices=tuple(PRESETS), default="ship",
                    help="training schedule preset (training/TRAINING.md)")
-    p.add_argument("--config", help="JSON file of TrainConfig fields (applied over the preset)")
     p.add_argument("--checkpoint", help="checkpoint path (default NAME.run/checkpoint.pt beside the output); "
                    "resumes if it exists")
     level = p.add_mutually_exclusive_group()
@@ -71,38 +62,19 @@ def register(sub: argparse._SubParsersAction) -> None:
     level.add_argument("--budget", type=Path,
                        help="`neumip budget --json` output: train at its recommended finest resolution for the material")
     p.add_argument("--material", help="material name to look up in --budget (default: the output's file stem)")
-    p.add_argument("--no-offset", action="store_true", help="train without the neural offset")
     p.add_argument("--maps", nargs="?", const="", metavar="NAME_OR_TOML",
                    help="map-informed model: its textures are encoded from the material's prefiltered maps "
                         "(the data's own material, or this library name / .toml); the export is the paper's graph")
-    p.add_argument("--horizons", type=int, default=0, metavar="K",
-                   help="with --maps: the horizon's elevation towards K azimuths among the map features "
-                        "(shadows cast from afar; MapConfig.horizons)")
-    p.add_argument("--residual", type=int, default=0, metavar="SIZE", help=RESIDUAL_HELP)
     p.add_argument("--description", default="", help="short description stored in the model metadata")
-    p.add_argument("--head", choices=("relu", "yuv"), default="relu",
-                   help="decoder output head: relu (paper) or yuv (authors' exp(YUV) - 1 with a shadow mask)")
-    p.add_argument("--hidden", type=int, default=MaterialConfig.hidden, help=HIDDEN_HELP)
-    p.add_argument("--half-vector", action="store_true", help=HALF_VECTOR_HELP)
-    p.add_argument("--local-frame", action="store_true", help=LOCAL_FRAME_HELP)
-    p.add_argument("--visibility-input", action="store_true", help=VISIBILITY_INPUT_HELP)
-    add_terminator_argument(p)
-    add_lod_bias_argument(p)
     p.add_argument("--base", action="store_true", help=BASE_HELP + "; the maps are the data's material's, or --maps'")
-    add_relief_argument(p)
     p.add_argument("--views-material", metavar="NAME_OR_TOML",
                    help="material whose ground truth the progress grid NAME.progress.png shows (default: the "
                         "data's own, when its description can be rebuilt from meta.json)")
-    for name, kind in (("steps", int), ("batch", int), ("lr", float), ("seed", int), ("blur-half-life", float),
-                       ("candidates", int)):
-        p.add_argument(f"--{name}", type=kind, help=f"override TrainConfig.{name.replace('-', '_')}")
-    p.add_argument("--loss", choices=LOSSES, help="override TrainConfig.loss")
-    p.add_argument("--device", choices=("auto", "cpu", "cuda"), help="override TrainConfig.device")
-    p.add_argument("--compile", action="store_true", help="torch.compile the step (~1.5x faster on CPU after ~15 s)")
     p.add_argument("--threads", type=int, help="torch CPU threads (default: one per core; idle threads sleep "
                    "instead of spinning, so this holds up on a busy machine: training/TRAINING.md)")
+    add_material_flags(p)
+    add_map_flags(p)
     p.set_defaults(func=_train)
-    fit_command.register(sub)
 
     p = sub.add_parser("export", help="export a training checkpoint to an ONNX material, or rewrite an "
                        "exported .onnx material with this version's graph (same weights and metadata; "
@@ -117,31 +89,39 @@ def register(sub: argparse._SubParsersAction) -> None:
                         "file's or checkpoint's own")
     p.set_defaults(func=_export)
     _register_train_many(sub)
-    trim_command.register(sub)
 
 
-def train_settings(args: argparse.Namespace):
+def train_settings(args: argparse.Namespace) -> TrainConfig:
+    """The `TrainConfig` of a command line: the preset, then --config's JSON, then each flag given."""
     import json
     from dataclasses import replace
 
-    from .train_config import PRESETS, TrainConfig
-
     config = PRESETS[args.preset]
-    if args.config:
+    if getattr(args, "config", None):
         config = TrainConfig.from_dict({**config.to_dict(), **json.loads(Path(args.config).read_text())})
-    overrides = {
-        k: getattr(args, k)
-        for k in ("steps", "batch", "lr", "seed", "blur_half_life", "loss", "device", "candidates")
-        if getattr(args, k) is not None
-    }
-    if args.compile:
-        overrides["compile"] = True
-    return replace(config, **overrides)
+    return replace(config, **flags.values(args, TrainConfig))
+
+
+def material_config(args: argparse.Namespace, resolution: int, geometry=None, **fields) -> MaterialConfig:
+    """The `MaterialConfig` of a command line: its generated flags, the finest `resolution`, and the pyramids
+    the material's maps (`geometry`, a `Microgeometry`) give with --base and --relief; `fields` override."""
+    from neumip.training.model.base import base_resolution
+    from neumip.training.model.relief import relief_resolution
+
+    chosen = flags.values(args, MaterialConfig, skip=DERIVED_FIELDS)
+    if "base" not in fields:
+        fields["base"] = base_resolution(geometry) if getattr(args, "base", False) else 0
+    if "relief" not in fields:
+        fields["relief"] = relief_resolution(geometry) if args.relief else 0
+    return MaterialConfig(resolution=resolution, relief_steps=args.relief or MaterialConfig.relief_steps,
+                          **{**chosen, **fields})
 
 
 def _map_source(args: argparse.Namespace):
     """(MapConfig or None, Microgeometry) of `--maps`, `--base` and `--relief`: the material's maps (the data's own
     material's, or the one `--maps` names), with the map encoder's config under `--maps`; None without either."""
+    from neumip.training.loop.views import data_geometry
+
     maps = map_config(args, args.maps is not None)
     if maps is None and not args.base and not args.relief:
         return None
@@ -149,26 +129,14 @@ def _map_source(args: argparse.Namespace):
 
 
 def map_config(args: argparse.Namespace, maps: bool):
-    """The map encoder's `MapConfig` of `--maps`, `--horizons` and `--residual` (None without `--maps`)."""
-    for flag in ("horizons", "residual"):
-        if getattr(args, flag) and not maps:
-            raise ValueError(f"--{flag} is a feature of the map-informed model: pass --maps too")
-    if not maps:
-        return None
-    from .maps import MapConfig
+    """The map encoder's `MapConfig` of `--maps` and the map flags (None without `--maps`)."""
+    from neumip.training.model.maps import MapConfig
 
-    return MapConfig(horizons=args.horizons, residual=args.residual)
-
-
-def data_geometry(data: str | Path, material: str | None = None):
-    """The `Microgeometry` (maps) of a data set's material, rebuilt from its meta.json (or of `material`, a
-    name or description file, when given)."""
-    from .dataset import open_dataset
-    from .microgeometry.description import resolve
-    from .views import data_material
-
-    meta = open_dataset(data).meta
-    return resolve(data_material(meta.get("material") or {}, material or None, meta.get("description_dir")))
+    chosen = flags.values(args, MapConfig, rename=MAP_FLAGS)
+    if chosen and not maps:
+        given = ", ".join(flags.flag(MAP_FLAGS.get(name, name)) for name in chosen)
+        raise ValueError(f"{given} is a feature of the map-informed model: pass --maps too")
+    return MapConfig(**chosen) if maps else None
 
 
 def _data_resolution(data: str, default: int = 128) -> int:
@@ -187,7 +155,7 @@ def _budget_resolution(args: argparse.Namespace, output: Path) -> int | None:
     when that is finer than the data was sampled for (regenerate it with --resolution)."""
     import json
 
-    from .trim import finest_level_from_budget
+    from neumip.training.export.trim import finest_level_from_budget
 
     if args.budget is None:
         return None
@@ -203,7 +171,7 @@ def _budget_resolution(args: argparse.Namespace, output: Path) -> int | None:
 
 def output_path(args: argparse.Namespace, done: bool) -> Path:
     """--output as a .onnx path that may be written (`done`: a model is already there)."""
-    from neumip.client.cli import CommandError
+    from neumip.core.errors import CommandError
 
     output = Path(args.output)
     if output.suffix != ".onnx":
@@ -241,7 +209,7 @@ def progress_line(trainer, progress_png: Path) -> str:
 
 def print_finished(table: dict, paths: dict, kept: str) -> None:
     """Print the validation table, the files written and the run's length (`kept`: where its state is)."""
-    from .validation import format_table
+    from neumip.training.loop.validation import format_table
 
     print(format_table(table))
     size = paths["onnx"].stat().st_size / 1e6
@@ -261,33 +229,26 @@ def print_finished(table: dict, paths: dict, kept: str) -> None:
 
 
 def _train(args: argparse.Namespace) -> int:
-    from neumip.client.cli import CommandError
+    from neumip.core.errors import CommandError
 
-    from .fit import work_folder
+    from neumip.training.loop.fit import work_folder
 
     output = output_path(args, Path(args.output).exists())
     import_torch(args.threads)
     from tqdm import tqdm
 
-    from .checkpoint import CheckpointError
-    from .dataset import DatasetError
-    from .outputs import install_outputs, progress_path, write_progress
-    from .base import base_resolution
-    from .relief import relief_resolution
-    from .train import Trainer, TrainingDiverged, TrainingError
-    from .views import ViewGrid, trace_views
+    from neumip.training.loop.checkpoint import CheckpointError
+    from neumip.groundtruth.dataset import DatasetError
+    from neumip.training.loop.outputs import install_outputs, progress_path, write_progress
+    from neumip.training.loop.train import Trainer, TrainingDiverged, TrainingError
+    from neumip.training.loop.views import ViewGrid, trace_views
 
     checkpoint = Path(args.checkpoint or work_folder(output) / "checkpoint.pt")
     try:
         config = train_settings(args)
         resolution = args.resolution or _budget_resolution(args, output) or _data_resolution(args.data)
         maps = _map_source(args)
-        material = MaterialConfig(resolution=resolution, offset=not args.no_offset, head=args.head,
-                                  half_vector=args.half_vector, hidden=args.hidden, local_frame=args.local_frame,
-                                  terminator=args.terminator, visibility_input=args.visibility_input,
-                                  base=base_resolution(maps[1]) if args.base else 0,
-                                  relief=relief_resolution(maps[1]) if args.relief else 0,
-                                  relief_steps=args.relief or MaterialConfig.relief_steps, lod_bias=args.lod_bias)
+        material = material_config(args, resolution, maps[1] if maps else None)
         trainer = Trainer(args.data, checkpoint, material, config, args.description, maps)
     except (ValueError, DatasetError, CheckpointError) as exc:
         raise CommandError(str(exc)) from exc
@@ -317,16 +278,16 @@ def _train(args: argparse.Namespace) -> int:
 
 
 def _export(args: argparse.Namespace) -> int:
-    from neumip.client.cli import CommandError
+    from neumip.core.errors import CommandError
 
-    from .export import export_checkpoint
+    from neumip.training.loop.outputs import export_checkpoint
 
     if Path(args.output).exists() and not args.force:
         raise CommandError(f"{args.output} exists: pass --force to replace it, or choose another --output")
     sampling = "keep"
     if args.material:
-        from .microgeometry.description import DescriptionError
-        from .microgeometry.lobe import material_lobe
+        from neumip.groundtruth.description import DescriptionError
+        from neumip.groundtruth.lobe import material_lobe
 
         try:
             sampling = material_lobe(args.material)
@@ -337,7 +298,7 @@ def _export(args: argparse.Namespace) -> int:
     if args.checkpoint.endswith(".onnx"):
         from google.protobuf.message import DecodeError
 
-        from .export_read import CHECK_QUERIES, reexport_file
+        from neumip.training.export.upgrade import CHECK_QUERIES, reexport_file
 
         try:
             path, difference = reexport_file(args.checkpoint, args.output, args.description, sampling)
@@ -354,55 +315,53 @@ def _export(args: argparse.Namespace) -> int:
 # --- train-many: a material library, in this process or one Ray task per material ----------------
 
 def _register_train_many(sub: argparse._SubParsersAction) -> None:
-    from .cluster import add_ray_arguments
+    from neumip.core.cluster import add_ray_arguments
 
     p = sub.add_parser(
         "train-many", help="train a library of materials (one `neumip train` each), optionally as Ray tasks",
         description="Train every [NAME=]DATA (NAME defaults to the folder's name) into MODELS/NAME.onnx. "
         "Finished materials (NAME.onnx and NAME.json present) are skipped, interrupted ones resume from "
-        "RUNS/NAME/checkpoint.pt; outputs are moved into place only when whole.",
+        "RUNS/NAME/checkpoint.pt; outputs are moved into place only when whole. The model and training flags "
+        "are those of `neumip train`, for every material.",
     )
     p.add_argument("jobs", nargs="+", metavar="[NAME=]DATA", help="data set folder, optionally named")
     p.add_argument("-o", "--models", required=True, help="folder of the exported materials")
     p.add_argument("--runs", default="runs", help="folder of the checkpoints (default runs)")
     p.add_argument("--preset", choices=tuple(PRESETS), default="ship", help="training schedule preset")
-    p.add_argument("--config", help="JSON file of TrainConfig fields (applied over the preset)")
     p.add_argument("--resolution", type=int, help="finest pyramid level (default: each data set's resolution)")
-    p.add_argument("--hidden", type=int, default=MaterialConfig.hidden, help=HIDDEN_HELP)
-    p.add_argument("--half-vector", action="store_true", help=HALF_VECTOR_HELP)
     p.add_argument("--no-offset", action="append", default=[], metavar="NAME",
-                   help="train NAME without the neural offset (repeatable)")
-    add_relief_argument(p, " (every material with a height map but those trained with --no-offset)")
-    p.add_argument("--steps", type=int, help="override TrainConfig.steps")
-    p.add_argument("--candidates", type=int, help="override TrainConfig.candidates")
-    p.add_argument("--device", choices=("auto", "cpu", "cuda"), help="override TrainConfig.device")
+                   help="train NAME without the neural offset (repeatable); with --relief, NAME has no relief either")
+    p.add_argument("--maps", action="store_true", help="map-informed models: each encoded from its data's material's "
+                   "prefiltered maps")
+    p.add_argument("--base", action="store_true", help=BASE_HELP + "; each data set's material's maps")
     p.add_argument("--threads", type=int, default=1, help="torch threads of each material (default 1; "
                    "with --ray the CPUs each task reserves)")
+    add_material_flags(p, skip=("offset",))
+    add_map_flags(p)
     add_ray_arguments(p, "material", per_task=False)
-    p.set_defaults(func=_train_many, batch=None, lr=None, seed=None, blur_half_life=None, loss=None, compile=False)
+    p.set_defaults(func=_train_many)
 
 
 def _library_jobs(args: argparse.Namespace) -> list:
     """The MaterialJob of every [NAME=]DATA, described as models/make_models.sh describes them."""
-    from neumip.client.cli import CommandError
+    from neumip.core.errors import CommandError
+    from neumip.training.loop.library import MaterialJob
+    from neumip.training.loop.views import data_geometry
 
-    from .library import MaterialJob
-    from .relief import relief_resolution
-
+    maps = map_config(args, args.maps)
     jobs = []
     for spec in args.jobs:
         name, _, data = spec.rpartition("=")
         name = name or Path(data).name
         resolution = args.resolution or _data_resolution(data)
         offset = name not in args.no_offset
-        relief = relief_resolution(data_geometry(data)) if args.relief and offset else 0
-        kind = ("relief, " if relief else "") + ("neural offset" if offset else "no neural offset")
-        material = MaterialConfig(resolution=resolution, offset=offset, hidden=args.hidden,
-                                  half_vector=args.half_vector, relief=relief,
-                                  relief_steps=args.relief or MaterialConfig.relief_steps)
-        width = f"MLP width {args.hidden}, " if args.hidden != MaterialConfig.hidden else ""
+        geometry = data_geometry(data) if args.maps or args.base or (args.relief and offset) else None
+        material = material_config(args, resolution, geometry, offset=offset,
+                                   **({} if offset else {"relief": 0}))
+        kind = ("relief, " if material.relief else "") + ("neural offset" if offset else "no neural offset")
+        width = f"MLP width {material.hidden}, " if material.hidden != MaterialConfig.hidden else ""
         description = f"{Path(data).name}, {resolution}^2, {kind}, {width}{args.preset} preset"
-        jobs.append(MaterialJob(name, data, material, description))
+        jobs.append(MaterialJob(name, data, material, description, maps))
     unknown = set(args.no_offset) - {job.name for job in jobs}
     if unknown:
         raise CommandError(f"--no-offset names no material: {', '.join(sorted(unknown))}")
@@ -412,11 +371,11 @@ def _library_jobs(args: argparse.Namespace) -> list:
 def _train_many(args: argparse.Namespace) -> int:
     from tqdm import tqdm
 
-    from neumip.client.cli import CommandError
+    from neumip.core.errors import CommandError
 
-    from .cluster import ray_config
-    from .library import LibrarySettings, finished, train_library
-    from .validation import format_table
+    from neumip.core.cluster import ray_config
+    from neumip.training.loop.library import LibrarySettings, finished, train_library
+    from neumip.training.loop.validation import format_table
 
     ray = ray_config(args)
     try:

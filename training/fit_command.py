@@ -1,20 +1,18 @@
-"""`neumip fit`: the command line of `fit.py` (registered by `training.commands`): a material
-description to a model in one command, with one progress bar for the whole run."""
+"""`neumip fit`: the command line of `training/loop/fit.py`: a material description to a model in one command,
+with one progress bar for the whole run. Its model and training flags are `neumip train`'s (`commands`)."""
 
 from __future__ import annotations
 
 import argparse
 from pathlib import Path
 
-from neumip.core.config import MaterialConfig  # torch-free
-
-from . import commands
-from .train_config import PRESETS  # torch-free
+from neumip.training import commands
+from neumip.training.loop.config import PRESETS  # torch-free
 
 
 def register(sub: argparse._SubParsersAction) -> None:
-    from neumip.training.microgeometry.generate import GenerateSettings
-    from neumip.training.microgeometry.sampling import QuerySampling
+    from neumip.groundtruth.generate import GenerateSettings
+    from neumip.groundtruth.sampling import QuerySampling
 
     p = sub.add_parser(
         "fit", help="material description -> model in one command: ground truth, training, validation, export",
@@ -24,7 +22,7 @@ def register(sub: argparse._SubParsersAction) -> None:
         "checkpoint and progress views go into the work folder (default NAME.run/ beside the output); "
         "an interrupted fit resumes where it stopped when the same command is run again.",
     )
-    p.add_argument("material", help="a .toml material description (training/microgeometry/MATERIALS.md) "
+    p.add_argument("material", help="a .toml material description (groundtruth/MATERIALS.md) "
                    "or a shipped material name (neumip generate --list)")
     p.add_argument("-o", "--output", required=True, help="output .onnx path (e.g. models/NAME.onnx)")
     p.add_argument("--force", action="store_true", help="replace a finished model at the output")
@@ -43,26 +41,12 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--queries", type=int, help="ground-truth queries (default: --queries-per-texel per texel of "
                    "the finest level); models of other resolutions can so share one data set")
     p.add_argument("--spp", type=int, default=GenerateSettings.spp, help="path samples per ground-truth query")
-    p.add_argument("--no-offset", action="store_true", help="train without the neural offset")
     p.add_argument("--maps", action="store_true", help="map-informed model: its textures are encoded from the "
                    "material's prefiltered maps (training/TRAINING.md); the export is the paper's graph")
-    p.add_argument("--horizons", type=int, default=0, metavar="K",
-                   help="with --maps: the horizon's elevation towards K azimuths among the map features")
-    p.add_argument("--residual", type=int, default=0, metavar="SIZE", help=commands.RESIDUAL_HELP)
-    p.add_argument("--hidden", type=int, default=MaterialConfig.hidden, help=commands.HIDDEN_HELP)
-    p.add_argument("--half-vector", action="store_true", help=commands.HALF_VECTOR_HELP)
-    p.add_argument("--local-frame", action="store_true", help=commands.LOCAL_FRAME_HELP)
-    p.add_argument("--visibility-input", action="store_true", help=commands.VISIBILITY_INPUT_HELP)
-    commands.add_terminator_argument(p)
     p.add_argument("--base", nargs="?", const="on", choices=("on", "auto"),
                    help=commands.BASE_HELP + "; --base auto trains the model without and with it and keeps the base only "
                    "where it lowers the (log-space) error on a low-noise reference set by 10 %% (fit.BASE_MARGIN; "
                    "twice the training time)")
-    commands.add_relief_argument(p)
-    commands.add_lod_bias_argument(p)
-    p.add_argument("--steps", type=int, help="override the preset's TrainConfig.steps")
-    p.add_argument("--candidates", type=int, help="override the preset's TrainConfig.candidates (best of this "
-                   "many initial weights, compared after TrainConfig.candidate_steps steps)")
     p.add_argument("--seeds", type=int, default=1, help="train the model from this many initial weights and keep the "
                    "one with the lowest error on a low-noise reference set (FitSettings.seeds; this many times the "
                    "training time; default 1)")
@@ -71,8 +55,9 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--views-material", metavar="NAME_OR_TOML",
                    help="material whose ground truth the progress grid shows (default: the fitted one)")
     p.add_argument("--threads", type=int, help="torch CPU threads (default: one per core)")
-    p.set_defaults(func=_fit, config=None, batch=None, lr=None, seed=None, blur_half_life=None, loss=None,
-                   device=None, compile=False)
+    commands.add_material_flags(p)
+    commands.add_map_flags(p)
+    p.set_defaults(func=_fit)
 
 
 class StageBar:
@@ -89,7 +74,7 @@ class StageBar:
     def report(self, stage: str, done: int, total: int | None) -> None:
         from tqdm import tqdm
 
-        from .fit import STAGES
+        from neumip.training.loop.fit import STAGES
 
         if stage != self.stage:
             self.stage = stage
@@ -114,23 +99,21 @@ class StageBar:
 
 
 def _fit(args: argparse.Namespace) -> int:
-    from .fit import fitted
+    from neumip.training.loop.fit import fitted
 
     output = commands.output_path(args, fitted(args.output))
     commands.import_torch(args.threads)  # first: its OpenMP threads read OMP_WAIT_POLICY once, at import
-    from neumip.client.cli import CommandError
+    from neumip.core.errors import CommandError
     from neumip.client.mitsuba.runtime import MitsubaUnavailable
 
-    from .checkpoint import CheckpointError
-    from .dataset import DatasetError
-    from .fit import FitSettings, fit, work_folder
-    from .base import base_resolution
-    from .relief import relief_resolution
-    from .microgeometry.description import DescriptionError, find_description, resolve
-    from .microgeometry.generate import GenerateSettings
-    from .microgeometry.sampling import QuerySampling
-    from .outputs import progress_path
-    from .train import TrainingDiverged, TrainingError
+    from neumip.training.loop.checkpoint import CheckpointError
+    from neumip.groundtruth.dataset import DatasetError
+    from neumip.training.loop.fit import FitSettings, fit, work_folder
+    from neumip.groundtruth.description import DescriptionError, find_description, resolve
+    from neumip.groundtruth.generate import GenerateSettings
+    from neumip.groundtruth.sampling import QuerySampling
+    from neumip.training.loop.outputs import progress_path
+    from neumip.training.loop.train import TrainingDiverged, TrainingError
     from tqdm import tqdm
 
     work = work_folder(output, args.work)
@@ -138,13 +121,7 @@ def _fit(args: argparse.Namespace) -> int:
         desc = find_description(args.material)
         config = commands.train_settings(args)
         resolution = args.resolution or desc.resolution
-        material = MaterialConfig(resolution=resolution, offset=not args.no_offset, hidden=args.hidden,
-                                  half_vector=args.half_vector,
-                                  base=base_resolution(resolve(desc)) if args.base else 0,
-                                  local_frame=args.local_frame, terminator=args.terminator,
-                                  visibility_input=args.visibility_input,
-                                  relief=relief_resolution(resolve(desc)) if args.relief else 0,
-                                  relief_steps=args.relief or MaterialConfig.relief_steps, lod_bias=args.lod_bias)
+        material = commands.material_config(args, resolution, resolve(desc) if args.base or args.relief else None)
         generate = GenerateSettings(spp=args.spp, sampling=QuerySampling(queries_per_texel=args.queries_per_texel,
                                                                          sub_texel_levels=args.lod_bias),
                                     queries=args.queries)

@@ -26,9 +26,9 @@ def register(sub: argparse._SubParsersAction) -> None:
 
 
 def _trim(args: argparse.Namespace) -> int:
-    from neumip.client.cli import CommandError
+    from neumip.core.errors import CommandError
 
-    from .trim import TrimError, finest_level_from_budget, trim_file
+    from neumip.training.export.trim import TrimError, finest_level_from_budget, trim_file
 
     if not args.model.is_file():
         raise CommandError(f"model {args.model} does not exist")

@@ -1,7 +1,7 @@
 """Write the texture maps of `stones.toml`: a periodic stones-and-mortar tile (experiment material).
 
 Not a shipped material: it exists to test training changes on texture maps made outside the
-procedural library (training/microgeometry/README.md, "your own texture maps"). Periodic Voronoi
+procedural library (groundtruth/README.md, "your own texture maps"). Periodic Voronoi
 cells (the stones) with domed, bevelled tops separated by recessed mortar; each stone has its own
 albedo tint and a smoother (glossier) surface than the mortar.
 

@@ -24,7 +24,7 @@ import sys
 
 from neumip.core.contract import SamplingLobe
 
-from .runtime import DEFAULT_VARIANT, import_mitsuba
+from neumip.client.mitsuba.runtime import DEFAULT_VARIANT, import_mitsuba
 
 log = logging.getLogger(__name__)
 

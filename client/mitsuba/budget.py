@@ -32,9 +32,9 @@ import numpy as np
 from neumip.core import contract as C
 from neumip.core.contract import sample_footprint
 
-from .bsdf import mi
-from .render import RenderConfig, render_scene
-from .shading import neural_bsdfs
+from neumip.client.mitsuba.bsdf import mi
+from neumip.client.mitsuba.render import RenderConfig, render_scene
+from neumip.client.mitsuba.shading import neural_bsdfs
 
 log = logging.getLogger(__name__)
 
@@ -173,7 +173,7 @@ def material_budget(material: str, sigma: np.ndarray, resolution: int, coverage:
 
 def model_facts(path: Path) -> ModelFacts:
     """Resolution, channels, bytes and trim of the model at ``path`` (its ONNX metadata)."""
-    from neumip.client.local import load_material
+    from neumip.engines.local import load_material
 
     material = load_material(path, threads=1)
     config = material.config

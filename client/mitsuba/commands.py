@@ -76,7 +76,7 @@ def _scene_params(p: argparse.ArgumentParser) -> None:
 
 
 def _parse_params(items: list[str]) -> dict[str, str]:
-    from neumip.client.cli import CommandError
+    from neumip.core.errors import CommandError
 
     params = {}
     for item in items:
@@ -88,7 +88,7 @@ def _parse_params(items: list[str]) -> dict[str, str]:
 
 
 def _scene_file(path: Path) -> None:
-    from neumip.client.cli import CommandError
+    from neumip.core.errors import CommandError
 
     if path.is_dir():
         scenes = ", ".join(sorted(p.name for p in path.glob("*.xml"))) or "none"
@@ -96,9 +96,9 @@ def _scene_file(path: Path) -> None:
 
 
 def _budget(args: argparse.Namespace) -> int:
-    from neumip.client.cli import CommandError
+    from neumip.core.errors import CommandError
 
-    from .runtime import MitsubaUnavailable
+    from neumip.client.mitsuba.runtime import MitsubaUnavailable
 
     _scene_file(args.scene)
     for flag, value in (("--spp", args.spp), ("--render-spp", args.render_spp)):
@@ -108,8 +108,8 @@ def _budget(args: argparse.Namespace) -> int:
         raise CommandError(f"--coverage must be in (0, 1], got {args.coverage}")
     params = _parse_params(args.params)
     try:
-        from . import budget as B
-        from . import render as R
+        from neumip.client.mitsuba import budget as B
+        from neumip.client.mitsuba import render as R
     except MitsubaUnavailable as exc:
         raise CommandError(str(exc)) from exc
     try:
@@ -131,10 +131,10 @@ def _budget(args: argparse.Namespace) -> int:
 def _render(args: argparse.Namespace) -> int:
     from tqdm import tqdm
 
-    from neumip.client.cli import CommandError
+    from neumip.core.errors import CommandError
     from neumip.client.http import ServerError
 
-    from .runtime import MitsubaUnavailable
+    from neumip.client.mitsuba.runtime import MitsubaUnavailable
 
     _scene_file(args.scene)
     if args.fallback and not args.server:
@@ -144,7 +144,7 @@ def _render(args: argparse.Namespace) -> int:
     try:
         if args.variant:
             _select_variant(args.variant)
-        from . import render as R
+        from neumip.client.mitsuba import render as R
     except MitsubaUnavailable as exc:
         raise CommandError(str(exc)) from exc
     if args.output.suffix.lower() not in R.IMAGE_SUFFIXES:
@@ -190,10 +190,10 @@ def _load_scene_materials(evaluator, scene) -> None:
     """Load the scene's neural materials from the model folder before rendering (the evaluators load
     lazily): model files that fail are reported now, all of them, as the server reports them at
     start-up, never in the middle of a render."""
-    from neumip.client.cli import CommandError
-    from neumip.client.local import ModelError
+    from neumip.core.errors import CommandError
+    from neumip.engines.local import ModelError
 
-    from .shading import scene_materials
+    from neumip.client.mitsuba.shading import scene_materials
 
     load = getattr(evaluator, "kernel", None) or evaluator.get
     failed = {}
@@ -214,9 +214,9 @@ def _select_variant(variant: str) -> None:
     already renders with another one."""
     import sys
 
-    from neumip.client.cli import CommandError
+    from neumip.core.errors import CommandError
 
-    from .runtime import import_mitsuba
+    from neumip.client.mitsuba.runtime import import_mitsuba
 
     loaded = sys.modules.get("neumip.client.mitsuba.bsdf")
     if loaded is not None and loaded.mi.variant() != variant:
@@ -227,12 +227,12 @@ def _select_variant(variant: str) -> None:
 
 def _evaluator(args: argparse.Namespace):
     """The in-process evaluator over --models (--engine), or a MaterialClient for --server."""
-    from neumip.client.local import LocalMaterials
+    from neumip.engines.local import LocalMaterials
 
     if not args.server and args.engine == "kernel":
-        from neumip.client.kernel import KernelMaterials, namespace_of
+        from neumip.engines.kernel import KernelMaterials, namespace_of
 
-        from .render import mi
+        from neumip.client.mitsuba.render import mi
 
         return KernelMaterials(args.models, backend=namespace_of(mi.Float))  # the variant's arrays
     if not args.server:  # lazy: only the scene's materials load

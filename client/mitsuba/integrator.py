@@ -58,8 +58,8 @@ from dataclasses import dataclass
 
 from neumip.core.contract import sample_footprint
 
-from .bsdf import dr, mi
-from .shading import NeuralShading, query_frame, to_query
+from neumip.client.mitsuba.bsdf import dr, mi
+from neumip.client.mitsuba.shading import NeuralShading, query_frame, to_query
 
 from mitsuba.ad.integrators.common import mis_weight  # noqa: E402,I001 (needs a variant set first)
 

@@ -21,9 +21,9 @@ import numpy as np
 
 from neumip.core.errors import NeumipError
 
-from .bsdf import dr, mi
-from .integrator import NeuMIPPathIntegrator
-from .shading import NestedNeuralBSDF, ShadingStats, neural_bsdfs
+from neumip.client.mitsuba.bsdf import dr, mi
+from neumip.client.mitsuba.integrator import NeuMIPPathIntegrator
+from neumip.client.mitsuba.shading import NestedNeuralBSDF, ShadingStats, neural_bsdfs
 
 log = logging.getLogger(__name__)
 

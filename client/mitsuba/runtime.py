@@ -1,13 +1,13 @@
 """Import Mitsuba 3 safely: a libLLVM >= 16 found (`client.llvm`) *before* drjit loads one.
 
 drjit's llvm backend aborts the whole process (no Python exception) when it loads LLVM 15 or older.
-`import_mitsuba` checks LLVM first (`neumip.client.llvm.ensure_llvm`) and raises `MitsubaUnavailable`
+`import_mitsuba` checks LLVM first (`neumip.engines.llvm.ensure_llvm`) and raises `MitsubaUnavailable`
 with an actionable message where Mitsuba cannot run.
 """
 
 from __future__ import annotations
 
-from neumip.client.llvm import LLVMUnavailable, ensure_llvm
+from neumip.engines.llvm import LLVMUnavailable, ensure_llvm
 
 DEFAULT_VARIANT = "llvm_ad_rgb"
 

@@ -34,7 +34,7 @@ import numpy as np
 from neumip.core import contract as C
 from neumip.core.errors import NeumipError
 
-from .bsdf import NeuMIPBSDF, dr, mi
+from neumip.client.mitsuba.bsdf import NeuMIPBSDF, dr, mi
 
 log = logging.getLogger(__name__)
 

@@ -1,4 +1,4 @@
-"""Write the texture maps of `bricks.toml`, the worked example of training/microgeometry/MATERIALS.md.
+"""Write the texture maps of `bricks.toml`, the worked example of groundtruth/MATERIALS.md.
 
 A periodic tile of glazed bricks in running bond: four courses of two bricks each, every other course
 shifted by half a brick, set in recessed mortar. Each brick has a bevelled top, its own tint and a

@@ -12,14 +12,14 @@ import numpy as np
 import pytest
 
 from neumip.core import contract as C
-from neumip.client import wire
+from neumip.core import wire
 from neumip.client.http import ClientConfig, MaterialClient, ServerError, ServerUnavailable
-from neumip.client.local import LocalMaterials, UnknownMaterial
+from neumip.engines.local import LocalMaterials, UnknownMaterial
 
 from neumip.core.contract import random_queries
 
 FAST = dict(backoff_s=0.001, max_backoff_s=0.01)
-PRE_GROUPS = Path(__file__).parents[1] / "training" / "data" / "pre_groups_offset.onnx"
+PRE_GROUPS = Path(__file__).parents[1] / "data" / "pre_groups_offset.onnx"
 """A model file of query contract version 1 (exported before query groups)."""
 
 

@@ -26,6 +26,6 @@ def reference(model_dir):
     (one chunk worker per core, chunks cut unlike the server's). The exported graph answers a row with
     the same bits in any batch, so no alignment of the server's calls to the reference's is needed.
     """
-    from neumip.client.local import LocalMaterials
+    from neumip.engines.local import LocalMaterials
 
     return LocalMaterials(model_dir)

@@ -18,10 +18,10 @@ import httpx
 import numpy as np
 import pytest
 
-from neumip.client import wire
+from neumip.core import wire
 from neumip.core.contract import random_queries
 
-from .test_hardening import answer, connect, metric
+from .raw_http import answer, connect, metric
 
 MiB = 1 << 20
 

@@ -7,7 +7,7 @@ import asyncio
 import numpy as np
 import pytest
 
-from neumip.client.local import LocalMaterials, load_material
+from neumip.engines.local import LocalMaterials, load_material
 from neumip.server.batching import Batcher, split
 from neumip.server.engine import Engine
 from neumip.server.metrics import Metrics

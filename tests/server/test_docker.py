@@ -61,7 +61,7 @@ def container_memory_mib(name: str) -> float:
 def non_reading_request(kind: str) -> bytes:
     """A whole request that asks for a large answer: "msgpack" 200k rows (2.4 MB answer), "json" a v2
     infer of 2M binary rows answered as JSON (about 120 MB of text)."""
-    from neumip.client import wire
+    from neumip.core import wire
     from neumip.core.contract import random_queries
 
     if kind == "msgpack":

@@ -17,14 +17,14 @@ import numpy as np
 import pytest
 
 from neumip.core import contract as C
-from neumip.client import wire
+from neumip.core import wire
 from neumip.core.contract import random_queries
 from neumip.client.http import MaterialClient
-from neumip.client.local import LocalMaterials
+from neumip.engines.local import LocalMaterials
 
-pytest.importorskip("neumip.client.kernel")  # drjit, after the libLLVM check
+pytest.importorskip("neumip.engines.kernel")  # drjit, after the libLLVM check
 
-from neumip.client.kernel import KernelMaterials  # noqa: E402
+from neumip.engines.kernel import KernelMaterials  # noqa: E402
 from neumip.server.engine import Engine, EngineUnavailable  # noqa: E402
 from neumip.server.registry import Registry  # noqa: E402
 
@@ -147,7 +147,7 @@ def test_a_missing_drjit_is_one_line_at_start_up(monkeypatch, folder, capsys):
     from neumip.client.cli import main
 
     monkeypatch.setitem(sys.modules, "drjit", None)  # import drjit raises ImportError
-    monkeypatch.delitem(sys.modules, "neumip.client.kernel")
+    monkeypatch.delitem(sys.modules, "neumip.engines.kernel")
     with pytest.raises(EngineUnavailable, match=r"drjit is not installed: pip install 'neumip\[kernel\]'"):
         Engine.kernel()
     assert main(["serve", "--engine", "kernel", "--model-dir", str(folder), "--port", "0"]) == 2

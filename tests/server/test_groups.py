@@ -14,11 +14,11 @@ import numpy as np
 import pytest
 
 from neumip.core import contract as C
-from neumip.client import wire
+from neumip.core import wire
 from neumip.client.http import ClientConfig, MaterialClient
-from neumip.client.local import LocalMaterials
+from neumip.engines.local import LocalMaterials
 
-OLD_MODEL = Path(__file__).parents[1] / "training" / "data" / "pre_issue12_offset.onnx"
+OLD_MODEL = Path(__file__).parents[1] / "data" / "pre_issue12_offset.onnx"
 
 
 @pytest.fixture(scope="module")

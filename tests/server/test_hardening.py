@@ -7,7 +7,6 @@ with raw sockets on 127.0.0.1, in bounded loops: every socket has a timeout and 
 
 from __future__ import annotations
 
-import json
 import shutil
 import socket
 import statistics
@@ -21,9 +20,11 @@ import numpy as np
 import pytest
 
 from neumip.core import contract as C
-from neumip.client import wire
+from neumip.core import wire
 from neumip.core.contract import random_queries
 from neumip.client.http import ClientConfig, MaterialClient, ServerUnavailable
+
+from .raw_http import answer, connect, metric
 
 PATH = wire.EVALUATE_PATH.format(name="rand16")
 MiB = 1 << 20
@@ -35,46 +36,9 @@ SMALL = dict(
 request held back by a batch would show."""
 
 
-def connect(server) -> socket.socket:
-    host, port = server.host_port.split(":")
-    return socket.create_connection((host, int(port)), timeout=10)
-
-
 def post_head(length: int, path: str = PATH, content_type: str = wire.MSGPACK_MEDIA_TYPE) -> bytes:
     return (f"POST {path} HTTP/1.1\r\nHost: x\r\nContent-Type: {content_type}\r\n"
             f"Content-Length: {length}\r\n\r\n").encode()
-
-
-def answer(sock: socket.socket, wait_s: float) -> tuple[int, dict] | None:
-    """(status, JSON body) of the answer on `sock` within `wait_s` seconds; None if none came."""
-    sock.settimeout(wait_s)
-    data = b""
-    try:
-        while b"\r\n\r\n" not in data or len(data) < _length(data):
-            chunk = sock.recv(65536)
-            if not chunk:
-                break
-            data += chunk
-    except (TimeoutError, ConnectionResetError):
-        pass
-    if not data:
-        return None
-    head, _, body = data.partition(b"\r\n\r\n")
-    return int(head.split(b" ", 2)[1]), json.loads(body) if body else {}
-
-
-def _length(data: bytes) -> int:
-    head, _, _ = data.partition(b"\r\n\r\n")
-    for line in head.split(b"\r\n")[1:]:
-        name, _, value = line.partition(b":")
-        if name.strip().lower() == b"content-length":
-            return len(head) + 4 + int(value)
-    return len(data)
-
-
-def metric(server, name: str) -> float:
-    text = httpx.get(server.url + "/metrics", timeout=10).text
-    return sum(float(line.rsplit(" ", 1)[1]) for line in text.splitlines() if line.startswith(name))
 
 
 def live_in(server, bound_s: float = 1.0) -> float:

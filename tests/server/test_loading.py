@@ -15,12 +15,12 @@ import httpx
 import numpy as np
 import pytest
 
-from neumip.client import wire
+from neumip.core import wire
 from neumip.core.contract import random_queries
 from neumip.client.http import MaterialClient
-from neumip.client.local import LocalMaterials
+from neumip.engines.local import LocalMaterials
 from neumip.core.config import MaterialConfig
-from neumip.training.export import build_onnx, random_weights, save_onnx
+from neumip.training.export.graph import build_onnx, random_weights, save_onnx
 
 
 def metric(server, name: str, **labels) -> float:
@@ -213,7 +213,7 @@ def test_the_listing_shows_what_a_trim_cut(model_dir, tmp_path):
 
     from neumip.server.app import create_app
     from neumip.server.settings import Settings
-    from neumip.training.trim import trim_file
+    from neumip.training.export.trim import trim_file
 
     folder = tmp_path / "trimmed"
     folder.mkdir()

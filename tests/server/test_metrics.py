@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 from neumip.core import contract as C
-from neumip.client import wire
+from neumip.core import wire
 from neumip.core.contract import random_queries
 
 

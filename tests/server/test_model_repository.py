@@ -71,7 +71,7 @@ def test_a_model_file_of_contract_version_1_is_refused_naming_its_upgrade(tmp_pa
     names the command that upgrades the file."""
     models = tmp_path / "models"
     models.mkdir()
-    shutil.copy(Path(__file__).parents[1] / "training" / "data" / "pre_issue12_offset.onnx", models / "old.onnx")
+    shutil.copy(Path(__file__).parents[1] / "data" / "pre_issue12_offset.onnx", models / "old.onnx")
     assert main(["export-repository", str(models), "-o", str(tmp_path / "repo")]) != 0
     assert f"neumip export {models / 'old.onnx'} -o NEW.onnx" in capsys.readouterr().err
     assert not (tmp_path / "repo").exists()

@@ -9,7 +9,7 @@ import pytest
 from fastapi.testclient import TestClient
 
 from neumip.core import contract as C
-from neumip.client import wire
+from neumip.core import wire
 from neumip.server.app import create_app
 from neumip.server.registry import Registry
 from neumip.server.settings import Settings

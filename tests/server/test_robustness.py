@@ -10,7 +10,7 @@ import httpx
 import pytest
 
 from neumip.core import contract as C
-from neumip.client import wire
+from neumip.core import wire
 
 PATH = wire.EVALUATE_PATH.format(name="rand16")
 RAW = {

@@ -23,7 +23,7 @@ import numpy as np
 import pytest
 
 from neumip.core.contract import random_queries
-from neumip.client.local import LocalMaterials
+from neumip.engines.local import LocalMaterials
 
 pytestmark = pytest.mark.slow
 

@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 
 from neumip.core import contract as C
-from neumip.client import wire
+from neumip.core import wire
 from neumip.core.contract import random_queries
 
 MSGPACK = {"content-type": wire.MSGPACK_MEDIA_TYPE}

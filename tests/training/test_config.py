@@ -3,7 +3,7 @@
 import pytest
 
 from neumip.core.config import MaterialConfig
-from neumip.training.train_config import SHIP, TrainConfig
+from neumip.training.loop.config import SHIP, TrainConfig
 
 
 def test_material_config_roundtrip_and_unknown_keys():

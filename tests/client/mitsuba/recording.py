@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from neumip.client.local import LocalMaterials
+from neumip.engines.local import LocalMaterials
 
 
 class Recording(LocalMaterials):

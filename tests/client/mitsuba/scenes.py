@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import numpy as np
+
 from neumip.client.mitsuba.bsdf import mi
 
 LAMBERT = {"type": "neumip", "material": "lambert", "uv_scale": 2.0}
@@ -106,3 +108,26 @@ def write_xml(folder, a: str = "lambert", b: str = "rand16") -> str:
     path = folder / "scene.xml"
     path.write_text(SCENE_XML.replace("{a}", a).replace("{b}", b))
     return str(path)
+
+
+BLOCK = 8
+"""Side of the blocks whose means the known-answer renders compare."""
+MAX_DEPTH = 6
+"""Path depth of the known-answer renders."""
+
+
+def block_means(image: np.ndarray) -> np.ndarray:
+    """(H, W, C) -> (H/BLOCK, W/BLOCK, 3) block means."""
+    h, w = image.shape[0] // BLOCK, image.shape[1] // BLOCK
+    rgb = image[: h * BLOCK, : w * BLOCK, :3]
+    return rgb.reshape(h, BLOCK, w, BLOCK, 3).mean(axis=(1, 3))
+
+
+def stock(scene_fn, bsdf, seed: int) -> np.ndarray:
+    scene = mi.load_dict(scene_fn(bsdf, {"type": "path", "max_depth": MAX_DEPTH}))
+    return np.array(mi.render(scene, spp=64, seed=seed))
+
+
+def block_error(a: np.ndarray, b: np.ndarray) -> float:
+    """Root-mean-square difference of the block means."""
+    return float(np.sqrt(np.mean((block_means(a) - block_means(b)) ** 2)))

@@ -7,13 +7,12 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from neumip.client.local import LocalMaterials
+from neumip.engines.local import LocalMaterials
 from neumip.client.mitsuba.bsdf import mi
 from neumip.client.mitsuba.integrator import MAX_ALL_EMITTERS
 from neumip.client.mitsuba.render import RenderConfig, render_scene
 
-from .scenes import DIFFUSE, LAMBERT, simple
-from .test_known_answer import MAX_DEPTH, stock
+from .scenes import DIFFUSE, LAMBERT, MAX_DEPTH, simple, stock
 
 
 def sun_and_sky(bsdf: dict, integrator: dict, lights: int = 1) -> dict:

@@ -13,7 +13,7 @@ from neumip.core import contract as C
 from neumip.client.cli import main
 from neumip.client.mitsuba.budget import material_budget, trace_footprints
 from neumip.core.config import MaterialConfig
-from neumip.training.export import build_onnx, random_weights, save_onnx
+from neumip.training.export.graph import build_onnx, random_weights, save_onnx
 from neumip.client.mitsuba.bsdf import mi
 from neumip.client.mitsuba.render import RenderConfig, render_scene
 

@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 from neumip.client import cli
-from neumip.client.local import LocalMaterials
+from neumip.engines.local import LocalMaterials
 from neumip.client.mitsuba.bsdf import mi
 from neumip.client.mitsuba.render import RenderConfig, load_scene, render_scene
 from neumip.client.mitsuba.shading import scene_materials

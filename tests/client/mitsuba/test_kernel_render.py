@@ -1,16 +1,16 @@
-"""The render with in-kernel evaluation (`client/kernel.py`) matches the buffered render (ONNX
-Runtime); the evaluation itself is tested in tests/client/test_kernel.py."""
+"""The render with in-kernel evaluation (`engines/kernel.py`) matches the buffered render (ONNX
+Runtime); the evaluation itself is tested in tests/engines/test_kernel.py."""
 
 from __future__ import annotations
 
 import numpy as np
 import pytest
 
-from neumip.client.local import LocalMaterials
+from neumip.engines.local import LocalMaterials
 
 pytest.importorskip("mitsuba")
 
-from neumip.client.kernel import KernelMaterial, KernelMaterials, namespace_of  # noqa: E402
+from neumip.engines.kernel import KernelMaterial, KernelMaterials, namespace_of  # noqa: E402
 from neumip.client.mitsuba.render import RenderConfig, mi, render_scene  # noqa: E402
 
 from .scenes import simple  # noqa: E402

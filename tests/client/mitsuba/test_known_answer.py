@@ -14,36 +14,17 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from neumip.client.local import LocalMaterials
+from neumip.engines.local import LocalMaterials
 from neumip.client.mitsuba.bsdf import mi
 from neumip.client.mitsuba.render import RenderConfig, render_scene
 
-from .scenes import DIFFUSE, LAMBERT, mixed, simple
+from .scenes import DIFFUSE, LAMBERT, MAX_DEPTH, block_error, mixed, simple, stock
 
-BLOCK = 8
-MAX_DEPTH = 6
-
-
-def block_means(image: np.ndarray) -> np.ndarray:
-    """(H, W, C) -> (H/BLOCK, W/BLOCK, 3) block means."""
-    h, w = image.shape[0] // BLOCK, image.shape[1] // BLOCK
-    rgb = image[: h * BLOCK, : w * BLOCK, :3]
-    return rgb.reshape(h, BLOCK, w, BLOCK, 3).mean(axis=(1, 3))
-
-
-def stock(scene_fn, bsdf, seed: int) -> np.ndarray:
-    scene = mi.load_dict(scene_fn(bsdf, {"type": "path", "max_depth": MAX_DEPTH}))
-    return np.array(mi.render(scene, spp=64, seed=seed))
 
 
 def neural(scene_fn, evaluator, seed: int) -> np.ndarray:
     scene = mi.load_dict(scene_fn(LAMBERT, {"type": "neumip_path", "max_depth": MAX_DEPTH}))
     return render_scene(scene, evaluator, RenderConfig(spp=64, seed=seed)).image
-
-
-def block_error(a: np.ndarray, b: np.ndarray) -> float:
-    """Root-mean-square difference of the block means."""
-    return float(np.sqrt(np.mean((block_means(a) - block_means(b)) ** 2)))
 
 
 @pytest.mark.parametrize(

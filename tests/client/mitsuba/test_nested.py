@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import pytest
 
-from neumip.client.local import LocalMaterials
+from neumip.engines.local import LocalMaterials
 from neumip.client.mitsuba.bsdf import mi
 from neumip.client.mitsuba.render import RenderConfig, RenderError, load_scene, render_scene
 from neumip.client.mitsuba.shading import NestedNeuralBSDF

@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from neumip.client import cli
-from neumip.client.local import LocalMaterials
+from neumip.engines.local import LocalMaterials
 from neumip.client.mitsuba.bsdf import mi
 from neumip.client.mitsuba.render import RenderConfig, RenderError, load_scene, pass_plan, pass_seed, render_scene
 

@@ -11,7 +11,7 @@ import pytest
 
 from neumip.client import cli
 from neumip.client.http import ClientConfig, MaterialClient
-from neumip.client.local import LocalMaterials
+from neumip.engines.local import LocalMaterials
 from neumip.client.mitsuba.render import RenderConfig, load_scene, render_scene
 
 from .scenes import write_xml

@@ -7,14 +7,13 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from neumip.client.kernel import KernelMaterials
-from neumip.client.local import LocalMaterials
+from neumip.engines.kernel import KernelMaterials
+from neumip.engines.local import LocalMaterials
 from neumip.client.mitsuba.bsdf import dr, mi
 from neumip.client.mitsuba.render import RenderConfig, render_scene
 from neumip.core import contract as C
 
-from .scenes import DIFFUSE, LAMBERT, simple
-from .test_known_answer import MAX_DEPTH, block_error, stock
+from .scenes import DIFFUSE, LAMBERT, MAX_DEPTH, block_error, simple, stock
 
 LOBE = C.SamplingLobe(0.2, 0.5)
 N = 1 << 20
@@ -24,7 +23,7 @@ N = 1 << 20
 def lobe_dir(tmp_path_factory):
     """The Lambertian test material (0.5 / pi) whose file declares `LOBE`."""
     from neumip.core.config import MaterialConfig
-    from neumip.training.export import build_onnx, constant_weights, save_onnx
+    from neumip.training.export.graph import build_onnx, constant_weights, save_onnx
 
     folder = tmp_path_factory.mktemp("lobe_models")
     cfg = MaterialConfig(resolution=16)

@@ -6,10 +6,10 @@ from __future__ import annotations
 
 import numpy as np
 
-from neumip.client.local import LocalMaterials
+from neumip.engines.local import LocalMaterials
 from neumip.client.mitsuba.budget import scene_budget
 from neumip.client.mitsuba.render import RenderConfig, load_scene, render_scene
-from neumip.training.trim import trim_file
+from neumip.training.export.trim import trim_file
 
 PARAMS = {"resx": "32", "resy": "32", "max_depth": "4"}
 SPP = 4

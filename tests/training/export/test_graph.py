@@ -1,0 +1,240 @@
+"""ONNX export: graph structure, metadata, and torch vs ONNX Runtime parity on random and edge queries."""
+
+import json
+from dataclasses import replace
+
+import numpy as np
+import onnx
+import onnxruntime as ort
+import pytest
+import torch
+
+from neumip.core import contract as C
+from neumip.core import weights as W
+from neumip.training.loop import checkpoint
+from neumip.core.config import MaterialConfig
+from neumip.training.export.graph import build_onnx, constant_weights, random_weights, weights_from_state
+from neumip.training.loop.outputs import export_checkpoint
+from neumip.training.model.material import NeuMIPMaterial
+from neumip.core.contract import random_queries
+
+def torch_eval(material: NeuMIPMaterial, q: np.ndarray) -> np.ndarray:
+    with torch.no_grad():
+        return material(torch.from_numpy(q)).numpy()
+
+
+@pytest.fixture(scope="module", params=[(True, False, 0, 0, False, "all"), (False, False, 0, 0, False, "all"),
+                                        (True, True, 0, 0, False, "all"), (True, False, 64, 0, False, "all"),
+                                        (True, False, 0, 64, False, "all"), (False, False, 64, 64, False, "all"),
+                                        (True, True, 64, 64, True, "all"), (False, False, 64, 64, False, "none"),
+                                        (False, False, 64, 64, False, "specular"),
+                                        (True, False, 64, 64, True, "none", True), (True, False, 64, 0, False, "all", True),
+                                        (True, False, 64, 64, True, "none", False, 2)],
+                ids=["offset", "no-offset", "half-vector", "base", "relief", "relief-base", "local-frame",
+                     "no-terminator", "specular-terminator", "visibility-input", "visibility-input-alone", "lod-bias"])
+def pair(request):
+    torch.manual_seed(3)
+    offset, half_vector, base, relief, local_frame, terminator, *extra = request.param
+    visibility, lod_bias = [*extra, False, 0][:2]
+    cfg = MaterialConfig(resolution=32, offset=offset, half_vector=half_vector, base=base, relief=relief,
+                         local_frame=local_frame, terminator=terminator, visibility_input=bool(visibility),
+                         lod_bias=lod_bias)
+    material = NeuMIPMaterial(cfg, init_std=0.5)
+    if cfg.relief:  # a relief 0.125 tile deep: its shifts span many texels
+        material.set_maps(W.RELIEF, [random_weights(cfg, seed=5)[W.RELIEF]])
+    if cfg.base:  # maps of a base's ranges, and a decoder that corrects the base (its last layer starts at 0)
+        weights = random_weights(cfg, seed=4)
+        with torch.no_grad():
+            material.base_maps.copy_(torch.from_numpy(weights["base_maps"]))
+            material.decoder[-1].weight.normal_(0.0, 0.2)
+    # make the offset large enough to matter (random init gives tiny depths)
+    if cfg.offset:
+        with torch.no_grad():
+            material.offset_mlp[-1].bias.fill_(0.5)
+    model = build_onnx(cfg, weights_from_state(material.state_dict(), cfg), "test")
+    session = ort.InferenceSession(model.SerializeToString(), providers=["CPUExecutionProvider"])
+    return material, model, session
+
+
+def test_parity_random_queries(pair, assert_parity):
+    material, _, session = pair
+    q = random_queries(20000, seed=11)
+    want = torch_eval(material, q)
+    got = session.run(None, {C.ONNX_INPUT: q})[0]
+    assert got.shape == (20000, 3) and got.dtype == np.float32
+    assert want.std() > 1e-3, "test material must not be constant"
+    assert_parity(got, want)
+
+
+def test_parity_edge_queries(pair, edge_queries, assert_parity):
+    material, _, session = pair
+    q = edge_queries(material.config.resolution)
+    want = torch_eval(material, q)
+    got = session.run(None, {C.ONNX_INPUT: q})[0]
+    assert np.isfinite(got).all() and (got >= 0).all()
+    assert_parity(got, want)
+
+
+CUDA = pytest.mark.skipif(not torch.cuda.is_available(), reason="no CUDA device")
+
+
+@CUDA
+def test_cuda_answers_as_the_graph(pair, edge_queries, assert_parity):
+    """The material on a GPU (how `neumip train --device cuda` trains) answers what the exported graph answers."""
+    material, _, session = pair
+    on_gpu = NeuMIPMaterial(material.config).to("cuda")
+    on_gpu.load_state_dict(material.state_dict())
+    for q in (random_queries(20000, seed=12), edge_queries(material.config.resolution)):
+        with torch.no_grad():
+            got = on_gpu(torch.from_numpy(q).to("cuda")).cpu().numpy()
+        assert_parity(got, session.run(None, {C.ONNX_INPUT: q})[0])
+
+
+def test_the_ceiling_clamps_answers_in_torch_and_in_the_graph_alike(assert_parity):
+    """`MaterialConfig.ceiling`: no answer above it, torch and the graph agree, and the loss's unclamped answers
+    (``ceiling=False``) are the same material's."""
+    torch.manual_seed(5)
+    free = NeuMIPMaterial(MaterialConfig(resolution=16), init_std=0.5)
+    q = random_queries(20000, seed=13)
+    unclamped = torch_eval(free, q)
+    ceiling = float(np.float32(np.median(unclamped)))
+    material = NeuMIPMaterial(replace(free.config, ceiling=ceiling))
+    material.load_state_dict(free.state_dict())
+    want = torch_eval(material, q)
+    assert want.max() == ceiling and (unclamped > ceiling).mean() > 0.3
+    np.testing.assert_array_equal(want, np.minimum(unclamped, ceiling))
+    with torch.no_grad():
+        np.testing.assert_array_equal(material(torch.from_numpy(q), ceiling=False).numpy(), unclamped)
+    model = build_onnx(material.config, weights_from_state(material.state_dict(), material.config), "test")
+    got = ort.InferenceSession(model.SerializeToString(), providers=["CPUExecutionProvider"]).run(
+        None, {C.ONNX_INPUT: q})[0]
+    assert got.max() <= ceiling
+    assert_parity(got, want)
+
+
+def test_graph_stores_textures_as_initializers_and_metadata(pair):
+    material, model, _ = pair
+    onnx.checker.check_model(model, full_check=True)
+    assert [i.name for i in model.graph.input] == [C.ONNX_INPUT]
+    assert [o.name for o in model.graph.output] == [C.ONNX_OUTPUT]
+    inits = {i.name: i for i in model.graph.initializer}
+    assert tuple(inits["pyramid"].dims) == (material.config.atlas_rows(), material.config.channels)
+    meta = {p.key: p.value for p in model.metadata_props}
+    assert meta[C.META_CONTRACT] == C.CONTRACT_VERSION
+    assert MaterialConfig.from_json(meta[C.META_CONFIG]) == material.config
+
+
+def test_dynamic_batch_sizes(pair):
+    _, _, session = pair
+    for n in (0, 1, 7, 1025):
+        assert session.run(None, {C.ONNX_INPUT: random_queries(n)})[0].shape == (n, 3)
+
+
+def test_export_checkpoint_roundtrip(tmp_path, assert_parity):
+    cfg = MaterialConfig(resolution=8)
+    material = NeuMIPMaterial(cfg, init_std=0.5)
+    ckpt = checkpoint.save(tmp_path / "m.pt", material, {"validation": {"mse": [1.0]}})
+    out = export_checkpoint(ckpt, tmp_path / "m.onnx", "roundtrip")
+    session = ort.InferenceSession(str(out), providers=["CPUExecutionProvider"])
+    q = random_queries(500, seed=5)
+    assert_parity(session.run(None, {C.ONNX_INPUT: q})[0], torch_eval(material, q))
+    meta = session.get_modelmeta().custom_metadata_map
+    assert meta[C.META_DESCRIPTION] == "roundtrip"
+    assert json.loads(meta[C.META_VALIDATION]) == {"mse": [1.0]}
+
+
+def test_corrupt_checkpoint_is_a_clear_error(tmp_path):
+    bad = tmp_path / "bad.pt"
+    bad.write_bytes(b"not a checkpoint")
+    with pytest.raises(checkpoint.CheckpointError, match="not a readable checkpoint"):
+        export_checkpoint(bad, tmp_path / "x.onnx")
+    assert not (tmp_path / "x.onnx").exists()
+
+
+def test_constant_material_answers_constant():
+    cfg = MaterialConfig(resolution=4)
+    model = build_onnx(cfg, constant_weights(cfg, [0.1, 0.2, 0.3]))
+    session = ort.InferenceSession(model.SerializeToString(), providers=["CPUExecutionProvider"])
+    out = session.run(None, {C.ONNX_INPUT: random_queries(100)})[0]
+    np.testing.assert_allclose(out, np.tile([0.1, 0.2, 0.3], (100, 1)), rtol=1e-6)
+
+
+@pytest.mark.parametrize("cfg", [MaterialConfig(), MaterialConfig(resolution=16, offset=False)], ids=["256", "16-no-offset"])
+def test_random_material_answers_positive_and_varied_in_every_channel(cfg):
+    q = random_queries(2000, seed=3)
+    for seed in range(4):
+        model = build_onnx(cfg, random_weights(cfg, seed=seed))
+        session = ort.InferenceSession(model.SerializeToString(), providers=["CPUExecutionProvider"])
+        rgb = session.run(None, {C.ONNX_INPUT: q})[0]
+        assert (rgb > 0).all(), f"seed {seed}: zero answers"
+        assert rgb.std(axis=0).min() > 0.02, f"seed {seed}: a channel barely varies, std {rgb.std(axis=0)}"
+
+
+def _base_pair(atlas_edit) -> tuple[NeuMIPMaterial, ort.InferenceSession, onnx.ModelProto]:
+    """A material with a base (random maps, edited by `atlas_edit`) and a decoder that corrects it; its session."""
+    torch.manual_seed(6)
+    cfg = MaterialConfig(resolution=16, offset=False, base=32)
+    material = NeuMIPMaterial(cfg, init_std=0.5)
+    atlas = random_weights(cfg, seed=7)[W.BASE]
+    atlas_edit(atlas)
+    with torch.no_grad():
+        material.base_maps.copy_(torch.from_numpy(atlas))
+        material.decoder[-1].weight.normal_(0.0, 0.2)
+    model = build_onnx(cfg, weights_from_state(material.state_dict(), cfg), "test")
+    return material, ort.InferenceSession(model.SerializeToString(), providers=["CPUExecutionProvider"]), model
+
+
+def _base_channels_read(model: onnx.ModelProto) -> list[int]:
+    """The map channels the graph's per-group table takes from the stored base atlas (the constant Gather on axis 1
+    whose indices start at channel 0)."""
+    inits = {i.name: onnx.numpy_helper.to_array(i) for i in model.graph.initializer}
+    reads = [inits[n.input[1]].tolist() for n in model.graph.node
+             if n.op_type == "Gather" and n.input[0] == W.BASE and n.input[1] in inits]
+    return [r for r in reads if r and r[0] < 9 and r[-1] < 9] or [[]]
+
+
+@pytest.mark.parametrize("edit, channels", [
+    (lambda a: None, list(range(9))),
+    (lambda a: a.__setitem__((slice(None), slice(3, 6)), 0.04), [0, 1, 2, 6, 7, 8]),  # F0 of a dielectric
+    (lambda a: a.__setitem__((slice(None), slice(0, 9)), [0.3, 0.2, 0.1, 0.04, 0.04, 0.04, 0.0, 0.0, 0.25]), []),
+], ids=["all-vary", "constant-f0", "all-constant"])
+def test_a_base_reads_only_its_varying_map_channels_and_answers_as_torch(edit, channels, assert_parity, edge_queries):
+    """A map channel that is the same in every texel is a constant of the graph (not read), and the answers are
+    the torch material's, which reads every channel."""
+    material, session, model = _base_pair(edit)
+    assert _base_channels_read(model)[0] == channels
+    for q in (random_queries(20000, seed=14), edge_queries(material.config.resolution)):
+        assert_parity(session.run(None, {C.ONNX_INPUT: q})[0], torch_eval(material, q))
+
+
+def test_the_horizon_read_per_light_answers_as_all_eight_azimuths(assert_parity):
+    """The graph reads the horizons of the two azimuths around each light's (`export_base.horizon_sine`); torch weighs all
+    eight. Lights at every multiple of 22.5 degrees (on an azimuth, between two, either side of the +-x axis), at the
+    zenith, and random, with horizons high enough to shadow: the same answers."""
+    def tall_horizons(a):
+        a[:, 9:] = np.random.default_rng(8).uniform(0.0, 0.9, a[:, 9:].shape)
+
+    material, session, _ = _base_pair(tall_horizons)
+    q = random_queries(4000, seed=15)
+    phi = np.repeat(np.arange(16) * np.pi / 8, 250)
+    phi[::2] += np.float32(1e-6) * np.where(np.arange(len(phi))[::2] % 4 == 0, 1, -1)
+    s = np.sin(np.deg2rad(np.random.default_rng(9).uniform(0.0, 80.0, len(phi))))
+    q[:, C.WI_X], q[:, C.WI_Y] = s * np.cos(phi), s * np.sin(phi)
+    q[:10, C.WI_X:C.WI_Y + 1] = 0.0  # the zenith: no azimuth, unshadowed
+    q[10:20, C.WI_Y] = -0.0  # -x axis from below and above
+    q[10:20, C.WI_X] = -0.5
+    want = torch_eval(material, q)
+    lit = q[:, C.WI_X] ** 2 + q[:, C.WI_Y] ** 2 > 0.8  # low lights: most are shadowed somewhere
+    assert (want[lit] == 0).any() and (want[lit] > 0).any(), "the test's horizons must shadow some lights"
+    assert_parity(session.run(None, {C.ONNX_INPUT: q})[0], want)
+
+
+def test_every_decoder_input_is_computed_in_torch_and_in_the_graph():
+    """A row of `core.config.DECODER_INPUTS` needs its torch computation and its graph's, nothing else."""
+    from neumip.core.config import DECODER_INPUTS
+    from neumip.training.export import graph
+    from neumip.training.model import material
+
+    names = [row.name for row in DECODER_INPUTS]
+    assert len(set(names)) == len(names)
+    assert set(material.DECODER_INPUTS) == set(graph.DECODER_INPUTS) == set(names)

@@ -1,0 +1,233 @@
+"""ONNX stages of the texture lookups: wrap-padded quad tables read with float row arithmetic.
+
+A bilinear wrap-around tap at texel x0 in [-1, S-1] reads texels x0 and x0 + 1 modulo S. Padding each
+level by one texel on every side with the opposite edge (`wrap_pad`) turns both into plain indices
+x0 + 1 and x0 + 2 of the padded level, so the graph needs no modulo, and grouping the 2 x 2 taps of
+each footprint into one row (`quad_table`) lets a query read a level's footprint with one Gather row.
+
+The model file stores the textures once; the tables are built from texel *indices* into the flat
+atlas, and the graph's constant subgraph Gather(atlas, index table) (`expand_table`), which ONNX
+Runtime folds when the session loads, expands them.
+
+Shapes: N queries, L levels read per query (1 for the offset texture, 2 for the pyramid). The stages
+keep every tensor flat, (N, k) with the same k on both sides of each elementwise op: ONNX Runtime's
+broadcasting of small inner dimensions costs more than the arithmetic. Row arithmetic runs in float32
+on integers below 2^24 (exact) and is cast once to int64; column shuffles are MatMuls with 0/1
+matrices (exact for finite values).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from onnx import TensorProto
+
+from neumip.core.config import MaterialConfig
+from neumip.training.export.lod import level_of_detail
+from neumip.training.export.onnx_graph import GraphWriter
+
+# --- the quad tables (numpy, built once at export) -----------------------------------------------
+
+
+def wrap_pad(level: np.ndarray) -> np.ndarray:
+    """(S, S, C) level -> (S + 2, S + 2, C); padded texel (i, j) is texel ((i - 1) % S, (j - 1) % S)."""
+    return np.pad(level, ((1, 1), (1, 1), (0, 0)), mode="wrap")
+
+
+def quad_table(level: np.ndarray) -> np.ndarray:
+    """(S, S, C) level -> ((S + 1)^2, 4C) rows: row y (S + 1) + x holds the wrap-padded texels at
+    (x, y), (x + 1, y), (x, y + 1), (x + 1, y + 1), the footprint whose top-left padded texel is (x, y)."""
+    p = wrap_pad(np.asarray(level))  # (S + 2, S + 2, C)
+    pairs = np.concatenate([p[:, :-1], p[:, 1:]], axis=2)  # (S + 2, S + 1, 2C): texels x, x + 1
+    quads = np.concatenate([pairs[:-1], pairs[1:]], axis=2)  # (S + 1, S + 1, 4C): rows y, y + 1
+    return quads.reshape(-1, quads.shape[2])
+
+
+@dataclass(frozen=True)
+class QuadAtlas:
+    """All pyramid levels' quad tables stacked in one index table, with a per-level parameter table."""
+
+    rows: np.ndarray
+    """(rows, 4) int64: atlas rows (flat texel indices) of each table row's taps, finest level first."""
+    level_params: np.ndarray
+    """(levels, 4) float32 per level: size S, 1, width W = S + 1, and the table row of the footprint
+    at padded (1, 1) (x0 = y0 = 0); a query adds x0 + y0 * W."""
+
+
+def quad_atlas(sizes: list[int]) -> QuadAtlas:
+    """Quad index tables of levels of `sizes` texels per side, stacked flat (finest first) in one atlas."""
+    params, tables, texel, start = [], [], 0, 0
+    for size in sizes:
+        table = quad_table(texel + np.arange(size * size, dtype=np.int64).reshape(size, size, 1))
+        width = size + 1
+        params.append([size, 1, width, start + width + 1])
+        tables.append(table)
+        start += table.shape[0]
+        texel += size * size
+    if start >= 2**24:
+        raise ValueError(f"{start} table rows: float32 row arithmetic is exact only below 2^24")
+    return QuadAtlas(np.concatenate(tables), np.asarray(params, np.float32))
+
+
+def trimmed_atlas(config: MaterialConfig, finest_level: int = 0) -> tuple[QuadAtlas, np.ndarray]:
+    """Quad atlas of levels K..L (K = ``finest_level``) and its per-level parameters indexed by the
+    full level number 0..L (levels finer than K repeat level K's row; the graph never reads them)."""
+    tables = quad_atlas(config.level_sizes()[finest_level:])
+    params = np.concatenate([np.repeat(tables.level_params[:1], finest_level, 0), tables.level_params])
+    return tables, params
+
+
+def level_tables(config: MaterialConfig, finest_level: int = 0) -> dict[str, np.ndarray]:
+    """Per lower level lo (rows 0..L) the parameters of levels lo and hi = min(lo + 1, L) that a
+    query reads, finer levels than K repeating level K's (`trimmed_atlas`): "size" (4,)
+    [S_lo, S_lo, S_hi, S_hi], "coef" (4,) [1, W_lo, 1, W_hi] and "base" (2,) [base_lo, base_hi]."""
+    _, level_params = trimmed_atlas(config, finest_level)
+    lo = np.arange(config.levels + 1)
+    a, b = level_params[lo], level_params[np.minimum(lo + 1, config.levels)]
+    one = np.ones_like(a[:, 0])
+    tables = {"size": [a[:, 0], a[:, 0], b[:, 0], b[:, 0]], "coef": [one, a[:, 2], one, b[:, 2]],
+              "base": [a[:, 3], b[:, 3]]}
+    return {name: np.stack(cols, axis=1).astype(np.float32) for name, cols in tables.items()}
+
+
+# --- graph stages ----------------------------------------------------------------------------------
+
+
+def expand_table(g: GraphWriter, texels: str, index_rows: np.ndarray | str, width: int) -> str:
+    """Constant subgraph: (T, width) texels and (R, 4) index table (or the name of its initializer) ->
+    (R, 4 width) quad table.
+
+    Only initializers feed it, so ONNX Runtime computes it once when the session loads.
+    """
+    index = index_rows if isinstance(index_rows, str) else g.const(index_rows, np.int32)
+    table = g.op("Gather", texels, index, axis=0)
+    return g.shape(table, [-1, 4 * width])
+
+
+def _tap_factors(levels: int, axis: int) -> tuple[np.ndarray, np.ndarray]:
+    """Affine map (2L, 4L), (4L,) from (fx, fy) per level to each tap's factor along `axis` (0: x):
+    f for the far tap (x1 or y1), 1 - f for the near one; taps in order (x0 y0, x1 y0, x0 y1, x1 y1)."""
+    a = np.zeros((2 * levels, 4 * levels), np.float32)
+    b = np.zeros(4 * levels, np.float32)
+    for level in range(levels):
+        for tap in range(4):
+            far = (tap % 2, tap // 2)[axis]
+            a[2 * level + axis, 4 * level + tap] = 1.0 if far else -1.0
+            b[4 * level + tap] = 0.0 if far else 1.0
+    return a, b
+
+
+def level_weights(g: GraphWriter, t: str, repeat: int) -> str:
+    """t (N, 1) -> (N, 2 repeat): 1 - t repeated, then t repeated (one Gemm, exact)."""
+    a = np.asarray([[-1.0] * repeat + [1.0] * repeat], np.float32)
+    b = np.asarray([1.0] * repeat + [0.0] * repeat, np.float32)
+    return g.op("Gemm", t, g.const(a), g.const(b))
+
+
+def tap_weights(g: GraphWriter, frac: str, levels: int, t: str | None) -> str:
+    """frac (N, 2L) = (fx, fy) of each level, level fraction t (N, 1) or None -> (N, 4L) tap weights.
+
+    Each weight is (x factor * y factor) * level weight, the reference's order of products; the
+    factors 1 - f and f come from one Gemm each (f * -1 + 1 rounds as 1 - f does).
+    """
+    wx, wy = (g.op("Gemm", frac, *(g.const(m) for m in _tap_factors(levels, axis))) for axis in (0, 1))
+    weights = g.op("Mul", wx, wy)
+    return weights if t is None else g.op("Mul", weights, level_weights(g, t, 4))
+
+
+def _gather(g: GraphWriter, table: str, rows: str, levels: int, width: int) -> str:
+    """Table rows (N, L) float -> (N, 4 L width) texels in tap order, level by level."""
+    rows = g.op("Cast", rows, to=TensorProto.INT64)
+    return g.shape(g.op("Gather", table, rows, axis=0), [-1, 4 * levels * width])
+
+
+@dataclass
+class Footprint:
+    """A pyramid's level-of-detail rows of N queries (`pyramid_footprint`): what `footprint_texels` reads
+    the pyramid at any (u, v) with."""
+
+    size: str
+    """(N, 4) texels per side of levels lo, lo, hi, hi."""
+    coef: str
+    """(N, 4) row coefficients [1, W_lo, 1, W_hi] (x0 + W y0)."""
+    bases: str
+    """(N, 2) table rows of the footprints at padded (1, 1) of levels lo, hi."""
+    t: str
+    """(N, 1) fraction towards level hi."""
+    atlas: str
+    """The pyramid (T, width), levels flat, finest first."""
+    rows: np.ndarray
+    """Its quad index table (`QuadAtlas.rows`)."""
+    table: str | None = None
+    """The pyramid's quad table (`expand_table`), written by the first `footprint_texels`."""
+
+
+def pyramid_footprint(g: GraphWriter, config: MaterialConfig, atlas: str, width: int, sigma: str,
+                      finest_level: int = 0, prefix: str = "") -> Footprint:
+    """sigma (N, 1) -> the `Footprint` of a trilinear lookup of the pyramid `atlas` (T, width), levels flat,
+    finest first, from level ``finest_level`` on (a trimmed model: only the table rows move, so a query of
+    level >= K reads the same texels with the same weights). `prefix` names a second pyramid's level-of-detail
+    constants (`export_lod.level_rows`)."""
+    tables, _ = trimmed_atlas(config, finest_level)
+    rows, t = level_of_detail(g, sigma, config, finest_level, level_tables(config, finest_level), prefix)
+    return Footprint(rows["size"], rows["coef"], rows["base"], t, atlas, tables.rows)
+
+
+def footprint_rows(g: GraphWriter, fp: Footprint, uvw: str) -> tuple[str, str]:
+    """uvw (N, 2) in [0, 1] at footprint `fp` -> the quad table's rows of levels lo, hi (N, 2), float (whole
+    numbers), and the taps' weights (N, 8)."""
+    both = g.op("MatMul", uvw, g.const(np.tile(np.eye(2, dtype=np.float32), (1, 2))))  # (N, 4) u v u v
+    x = g.op("Sub", g.op("Mul", both, fp.size), g.scalar(0.5))  # (N, 4) texel coordinates per level
+    x0 = g.op("Floor", x)
+    spread = np.kron(np.eye(2, dtype=np.float32), np.ones((2, 1), np.float32))  # (4, 2): x0 + W y0
+    line = g.op("MatMul", g.op("Mul", x0, fp.coef), g.const(spread))  # (N, 2)
+    return g.op("Add", line, fp.bases), tap_weights(g, g.op("Sub", x, x0), 2, fp.t)
+
+
+def footprint_read(g: GraphWriter, fp: Footprint, width: int, rows: str) -> str:
+    """Quad table rows (N, 2) of `fp`'s levels lo, hi (`footprint_rows`) -> texels (N, 8 width)."""
+    if fp.table is None:
+        fp.table = expand_table(g, fp.atlas, fp.rows, width)
+    return _gather(g, fp.table, rows, 2, width)
+
+
+def footprint_texels(g: GraphWriter, fp: Footprint, width: int, uvw: str) -> tuple[str, str]:
+    """uvw (N, 2) in [0, 1] read at footprint `fp` -> texels (N, 8 width), weights (N, 8)."""
+    rows, weights = footprint_rows(g, fp, uvw)
+    return footprint_read(g, fp, width, rows), weights
+
+
+def pyramid_texels(g: GraphWriter, config: MaterialConfig, atlas: str, width: int, uvw: str,
+                   sigma: str, finest_level: int = 0, prefix: str = "") -> tuple[str, str]:
+    """Trilinear footprint: uvw (N, 2) in [0, 1], sigma (N, 1) -> texels (N, 8 width), weights (N, 8)
+    (`pyramid_footprint`, then `footprint_texels`)."""
+    fp = pyramid_footprint(g, config, atlas, width, sigma, finest_level, prefix)
+    return footprint_texels(g, fp, width, uvw)
+
+
+def texture_texels(g: GraphWriter, texture: str, size: int, width: int, uvw: str) -> tuple[str, str]:
+    """Bilinear footprint of one texture, (S * S, width) flat: uvw (N, 2) in [0, 1] -> texels
+    (N, 4 width), weights (N, 4)."""
+    tables = quad_atlas([size])
+    _, _, w, base = tables.level_params[0]
+    x = g.op("Sub", g.op("Mul", uvw, g.scalar(size)), g.scalar(0.5))  # (N, 2)
+    x0 = g.op("Floor", x)
+    line = g.op("MatMul", x0, g.const(np.asarray([[1.0], [w]])))  # (N, 1): x0 + W y0
+    table = expand_table(g, texture, tables.rows, width)
+    texels = _gather(g, table, g.op("Add", line, g.const([base])), 1, width)
+    return texels, tap_weights(g, g.op("Sub", x, x0), 1, None)
+
+
+# --- the inverse: where an exported graph keeps the constants above (`neumip trim`) ---------------
+
+
+def texture_constants(graph, texture: str) -> dict[str, str]:
+    """Initializer names of what the graph built for texture initializer ``texture`` ("pyramid" or
+    "offset_texture"): its quad index table (`expand_table`), found by the graph's structure; the
+    caller checks the values against what the writer would write. (The pyramid's per-level tables
+    are initializers named ``lod.*``, `export_lod.stage_constants`.)"""
+    expand = [n for n in graph.node if n.op_type == "Gather" and n.input[0] == texture]
+    if len(expand) != 1:
+        raise ValueError(f"expected one table expansion of {texture!r}, found {len(expand)}")
+    return {"quads": expand[0].input[1]}
