@@ -113,7 +113,7 @@ def horizon_scene(mi, film, material_bsdf, integrator: str, theta: float = 80.0,
                   height: float = 1.0) -> dict:
     """A huge plane seen from ``height`` tiles above it, looking ``theta`` degrees from the normal:
     the footprint grows from a few texels at the bottom of the image to whole tiles at the horizon."""
-    from neumip.report.views import ENV_RADIANCE
+    from neumip.report.views import ENV_RADIANCE, HORIZON_SUN_DIRECTION, HORIZON_SUN_IRRADIANCE
 
     t = math.radians(theta)
     half = 1 << 15
@@ -128,7 +128,8 @@ def horizon_scene(mi, film, material_bsdf, integrator: str, theta: float = 80.0,
             "film": {"type": "hdrfilm", "width": film.width, "height": film.height, "pixel_format": "rgb"},
         },
         "plane": {"type": "rectangle", "to_world": mi.ScalarTransform4f().scale([half, half, 1.0]), "bsdf": bsdf},
-        "sun": {"type": "directional", "direction": [-0.5, 0.3, -0.6], "irradiance": {"type": "rgb", "value": 1.3}},
+        "sun": {"type": "directional", "direction": list(HORIZON_SUN_DIRECTION),
+                "irradiance": {"type": "rgb", "value": HORIZON_SUN_IRRADIANCE}},
         "sky": {"type": "constant", "radiance": {"type": "rgb", "value": ENV_RADIANCE}},
     }
 

@@ -159,6 +159,11 @@ def sensor_dict(mi, view: View, film: Film, distance: float, spp: int = 1) -> di
 
 ENV_RADIANCE = 0.05
 """Radiance of the dim constant environment (the directional light gives unit irradiance)."""
+HORIZON_SUN_DIRECTION = (-0.5, 0.3, -0.6)
+"""The light of the stability section's plane out to the horizon (`stability.horizon_scene`), beside `LIGHTS`:
+its direction in that scene's world (from the light), with irradiance `HORIZON_SUN_IRRADIANCE`."""
+HORIZON_SUN_IRRADIANCE = 1.3
+"""The horizon scene's sun's irradiance (a plane facing it)."""
 
 
 def emitter_dicts(view: View) -> dict:
