@@ -61,6 +61,7 @@ def test_no_server_errors_were_counted(live_server):
     for payload in RAW.values():
         send_raw(live_server.host_port, payload)
     metrics = httpx.get(live_server.url + "/metrics").text
-    errors = [line for line in metrics.splitlines() if line.startswith("neumip_http_requests_total") and 'status="5' in line]
+    errors = [line for line in metrics.splitlines() if line.startswith("neumip_http_requests_total") and 'status="5' in line
+                     and 'route="/v2/health/ready"' not in line]  # (503 while the models load)
     assert errors == []
     assert "Traceback" not in live_server.log.read_text()
