@@ -73,7 +73,7 @@ def error_time(material_result: dict, views: list[str], path: Path, title: str) 
         ax.xaxis.set_minor_formatter(plt.NullFormatter())
         ax.grid(True, which="both", alpha=0.3)
         ax.tick_params(labelsize=7)
-    axes[0, 0].set_ylabel("MSE x1e-3", fontsize=8)
+    axes[0, 0].set_ylabel("image MSE x1e-3", fontsize=8)
     axes[0, -1].legend(fontsize=7)
     fig.suptitle(title, fontsize=9)
     fig.tight_layout()
@@ -91,7 +91,7 @@ def tradeoff(points: dict, path: Path) -> Path:
     per second) and at training (seconds), one labelled point each; map-informed ones in purple."""
     plt = _plt()
     fig, axes = plt.subplots(1, 3, figsize=(12, 3.4))
-    panels = ((axes[0], "validation_mse", "queries_per_second", "validation MSE x1e-3", "M queries / s (in-process)"),
+    panels = ((axes[0], "validation_mse", "queries_per_second", "query MSE x1e-3 (held out)", "M queries / s (in-process)"),
               (axes[1], "image_mse", "queries_per_second", "image MSE x1e-3", "M queries / s (in-process)"),
               (axes[2], "image_mse", "training_seconds", "image MSE x1e-3", "training seconds (one thread)"))
     for ax, key, cost, xlabel, ylabel in panels:

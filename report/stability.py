@@ -87,13 +87,19 @@ def position_sweep(evaluate) -> dict:
             "interior_step": float(np.abs(inner_l - inner_r).max() / scale)}
 
 
+SUBTEXEL_RANGE_FLOOR = 0.01
+"""The sub-texel sweep's range is at least this fraction of its mean luminance, so that a texel the model answers
+flat (steps of rounding over a range of rounding) reads near 0, not near 1."""
+
+
 def subtexel_sweep(evaluate, points: int, resolution: int) -> dict:
-    """Luminance as u crosses one finest texel at sigma 0: largest step between neighbours / the texel's range."""
+    """Luminance as u crosses one finest texel at sigma 0: largest step between neighbours / the texel's range, the
+    range at least `SUBTEXEL_RANGE_FLOOR` of the mean (a texel the model answers flat has no steps to speak of)."""
     v = 0.37
     us = 0.5 + np.linspace(0, 1, points) / resolution
     rgb = evaluate(_queries(np.stack([us, np.full(points, v)], 1), 0.0, (0.5, 0.2), (-0.3, 0.4)))
     lum = _mean_lum(rgb)
-    span = max(float(lum.max() - lum.min()), 1e-12)
+    span = max(float(lum.max() - lum.min()), SUBTEXEL_RANGE_FLOOR * float(np.abs(lum).mean()), 1e-12)
     return {"u": us.tolist(), "luminance": lum.tolist(),
             "largest_step_over_range": float(np.abs(np.diff(lum)).max() / span)}
 

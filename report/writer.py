@@ -18,7 +18,7 @@ def _f(x, scale: float = 1.0, digits: int = 3) -> str:
 
 
 def headline_table(results: dict, light: str) -> list[str]:
-    """Per material and distance under one light: MSE x1e-3 / FLIP of every judged neural method
+    """Per material and distance under one light: image MSE x1e-3 / FLIP of every judged neural method
     present and of the classical methods, side by side (the ablations are in the per-material tables)."""
     methods = _methods(results, HEADLINE_METHODS)
     lines = ["| material | footprint (map texels) | " + " | ".join(methods) + " | R noise |",
@@ -89,7 +89,7 @@ def time_table(results: dict) -> list[str]:
     spp, R's (and C's, Cmip's) seconds to reach that MSE, the ratio R / X, and the load average."""
     ladder = sorted({int(n) for mat in results["materials"].values() for row in mat.get("time_to_error", [])
                      for n in row.get("rungs", {})})
-    lines = ["| material | footprint (map texels) | method X | X's MSE x1e-3 | X's s | R's s to X's MSE | "
+    lines = ["| material | footprint (map texels) | method X | X's image MSE x1e-3 | X's s | R's s to X's MSE | "
              "**R's s / X's s** | C's s to X's MSE | Cmip's s to X's MSE | "
              f"R's s / X's s at X's {' / '.join(map(str, ladder))}-spp error | load average |",
              "|---|---|---|---|---|---|---|---|---|---|---|"]
@@ -107,7 +107,7 @@ def time_table(results: dict) -> list[str]:
 
 
 def view_table(name: str, mat: dict, spp: int) -> list[str]:
-    lines = [f"| view | film | method | MSE x1e-3 | FLIP | SSIM | mean / R | p99 / R | bias x1e-3 | noise x1e-3 |",
+    lines = [f"| view | film | method | image MSE x1e-3 | FLIP | SSIM | mean / R | p99 / R | bias x1e-3 | noise x1e-3 |",
              "|---|---|---|---|---|---|---|---|---|---|"]
     for view in VIEWS:
         res = mat.get(view.name)
@@ -194,7 +194,8 @@ def write_markdown(out: Path, results: dict, config: ReportConfig) -> Path:
          "extrapolated (unbiased: its error above R's noise falls as 1/time).", ""]
     L += ["## Summary", "", "What holds under every light (read from the tables below):", ""]
     L += summary(results, cfg) + [""]
-    L += ["## Headline", "", f"MSE x1e-3 / FLIP at {cfg.spp} spp, one table per light.", ""]
+    L += ["## Headline", "", f"Image MSE x1e-3 / FLIP at {cfg.spp} spp, one table per light (image MSE: per pixel "
+          "against R; not the query MSE of a fit's table: report/README.md#two-errors).", ""]
     for light in LIGHTS:
         L += [f"### Light: {light.name} (zenith {light.zenith:g}, azimuth {light.azimuth:g})", ""]
         L += headline_table(results, light.name) + [""]
@@ -358,7 +359,7 @@ def tradeoff_section(results: dict) -> list[str]:
          f"queries, and image MSE in the {_image_view(tr)} view against R.", "",
          "![trade-off](tradeoff.png)", "",
          "| configuration | resolution | channels | MLP width | offset | maps | seed | training s (set-up s; load) | M queries/s "
-         "| validation MSE x1e-3 | image MSE x1e-3 |",
+         "| query MSE x1e-3 (held out) | image MSE x1e-3 |",
          "|---|---|---|---|---|---|---|---|---|---|---|"]
     for name, p in tr["points"].items():
         training = _f(p.get("training_seconds"), 1, 1)

@@ -24,5 +24,6 @@ fi
 # finds a local CPU wheel (this project's CI machines) the pin alone does; elsewhere set
 # TORCH_INDEX_URL=https://download.pytorch.org/whl/cpu.
 .venv/bin/python -c "import torch" 2>/dev/null || .venv/bin/pip install -q torch==2.13.0 ${TORCH_INDEX_URL:+--index-url "$TORCH_INDEX_URL"}
-.venv/bin/pip install -q -e '.[all,test]'
+# setuptools tells every editable install of a package-dir mapping to mind same-named folders: ours are the package.
+PYTHONWARNINGS="${PYTHONWARNINGS:+$PYTHONWARNINGS,}ignore:Editable installation" .venv/bin/pip install -q -e '.[all,test]'
 echo "setup: ready (.venv)"

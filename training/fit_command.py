@@ -9,6 +9,9 @@ from pathlib import Path
 from neumip.training import commands
 from neumip.training.loop.config import PRESETS  # torch-free
 
+SHIPPED_MODELS = Path(__file__).resolve().parents[1] / "models"
+"""The shipped models of a checkout (an editable install); a wheel has none, and the verdict then stands alone."""
+
 
 def register(sub: argparse._SubParsersAction) -> None:
     from neumip.groundtruth.generate import GenerateSettings
@@ -55,20 +58,24 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--views-material", metavar="NAME_OR_TOML",
                    help="material whose ground truth the progress grid shows (default: the fitted one)")
     p.add_argument("--threads", type=int, help="torch CPU threads (default: one per core)")
+    p.add_argument("--compare", type=Path, default=SHIPPED_MODELS, metavar="MODELS",
+                   help="folder of model records (NAME.json) the verdict line places the model among (default: "
+                   "the shipped models' folder of this checkout, when there is one)")
     commands.add_material_flags(p)
     commands.add_map_flags(p)
     p.set_defaults(func=_fit)
 
 
 class StageBar:
-    """One progress bar for a whole fit: it restarts at each stage (queries traced, steps trained)."""
+    """The progress of a whole fit: a bar for each stage that counts something (queries traced, steps trained),
+    left at its end when the stage is done, and one line for each stage that does not. A bar never goes back."""
 
     UNITS = {"ground truth": ("query", True), "training": ("step", False)}
     """Unit and unit scaling of the stages that count something."""
 
     def __init__(self, name: str, batch: int) -> None:
         self.name, self.batch = name, batch
-        self.bar = None  # made at the first report
+        self.bar = None  # the current stage's bar, if it counts
         self.stage = None
 
     def report(self, stage: str, done: int, total: int | None) -> None:
@@ -78,15 +85,16 @@ class StageBar:
 
         if stage != self.stage:
             self.stage = stage
-            unit, scale = self.UNITS.get(stage, ("", False))
+            self.close()
             desc = f"{self.name} [{STAGES.index(stage) + 1}/{len(STAGES)}] {stage}"
-            if self.bar is None:
-                self.bar = tqdm(total=total, unit=unit, unit_scale=scale, desc=desc, dynamic_ncols=True)
-            else:
-                self.bar.reset(total)
-                self.bar.total, self.bar.unit, self.bar.unit_scale = total, unit, scale
-                self.bar.set_description(desc)
+            if stage not in self.UNITS:
+                tqdm.write(desc)
+                return
+            unit, scale = self.UNITS[stage]
+            self.bar = tqdm(total=total, unit=unit, unit_scale=scale, desc=desc, dynamic_ncols=True)
         bar = self.bar
+        if bar is None:
+            return
         if total is not None and bar.total != total:  # a stage that grows (the reference set after the data)
             bar.total = total
         bar.update(done - bar.n)
@@ -96,6 +104,7 @@ class StageBar:
     def close(self) -> None:
         if self.bar is not None:
             self.bar.close()
+            self.bar = None
 
 
 def _fit(args: argparse.Namespace) -> int:
@@ -154,4 +163,7 @@ def _fit(args: argparse.Namespace) -> int:
     finally:
         bar.close()
     commands.print_finished(table, paths, f"work folder {work}")
+    from neumip.training.loop.verdict import shipped_ratios, verdict_line
+
+    print(verdict_line(table["noise"], shipped_ratios(args.compare)))
     return 0

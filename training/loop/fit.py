@@ -34,15 +34,14 @@ log = logging.getLogger(__name__)
 
 BASE_MARGIN = 0.10
 """`FitSettings.choose_base` keeps the base only when its error on the reference queries (`reference_error`) is
-this much lower (a fraction) than the model's without it: a new stage is kept for a clear gain. Set from the
-report's images on turtle, yarn and rock (benchmarks/results/base.txt): a 5 % gain did not show in images
-(yarn: better in 2 of its 18 views, worse in 10), 35 % did (turtle: 13 and 3)."""
+this much lower (a fraction) than the model's without it: a new stage is kept for a clear gain (why this
+margin: training/TRAINING.md)."""
 REFERENCE_QUERIES = 1 << 14
 """Queries of the low-noise reference set that `FitSettings.choose_base` compares on (``WORK/reference``)."""
 REFERENCE_SPP = 256
 """Path samples per reference query (16x the training data's: its noise adds 1/16 of theirs to an MSE)."""
 
-STAGES = ("ground truth", "progress views", "training", "export")
+STAGES = ("ground truth", "progress views", "training", "noise check", "export")
 """The stages of a fit, in order, as `Report` names them."""
 
 Report = Callable[[str, int, int | None], None]
@@ -83,10 +82,7 @@ class FitSettings:
     seeds: int = 1
     """Train the model (with `choose_base`, the kept one's configuration) from this many initial weights, seeds
     ``train.seed``, ``train.seed + 1``, ... (``FOLDER/seedK/checkpoint.pt`` beside its first run's), on the same data,
-    and keep the one with the lowest error on the reference set (`reference_error`). One run's far views and low
-    lights depend on its initial weights (image MSE up to 5x from seed to seed), but this judge barely sees them:
-    the shipped models refitted with 3 seeds were no better in the report on the whole (0.993x), so the recipe
-    keeps one (benchmarks/results/seeds.txt)."""
+    and keep the one with the lowest error on the reference set (`reference_error`)."""
 
 
 def reference_error(material, data) -> float:
@@ -192,6 +188,11 @@ def fit(description, output: str | Path, settings: FitSettings, report: Report |
         trainer, table = runs_of_seeds[best]
         choices["seed_choice"] = {"seeds": seeds, "reference_log_mse": errors, "kept": seeds[best]}
         log.info("kept seed %d of %s (reference log MSE %s)", seeds[best], seeds, errors)
-    table = {**table, **choices}
     report(STAGES[3], 0, None)
+    from neumip.training.loop.validation import predict
+    from neumip.training.loop.verdict import noise_check
+
+    choices["noise"] = noise_check(lambda q: predict(trainer.material, q), description, data.meta["generator"])
+    table = {**table, **choices}
+    report(STAGES[4], 0, None)
     return table, install_outputs(trainer, table, output, views)

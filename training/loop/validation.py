@@ -64,12 +64,12 @@ def validation_table(
 
 def format_table(table: dict) -> str:
     """The validation table as aligned text lines (for logs, the CLI and the README)."""
-    lines = [f"{'level':>5} {'texels':>7} {'n':>8} {'MSE x1e-3':>10} {'rel L1':>8} {'log MSE':>9}"]
+    lines = [f"{'level':>5} {'texels':>7} {'n':>8} {'query MSE x1e-3':>16} {'rel L1':>8} {'log MSE':>9}"]
     res = table["resolution"]
     for row in table["levels"] + [{"level": "all", **table["overall"]}]:
         texels = f"{res >> row['level']}^2" if isinstance(row["level"], int) else ""
         lines.append(
-            f"{row['level']:>5} {texels:>7} {row['n']:>8} {row['mse'] * 1e3:>10.4f} "
+            f"{row['level']:>5} {texels:>7} {row['n']:>8} {row['mse'] * 1e3:>16.4f} "
             f"{row['rel_l1']:>8.4f} {row['log_mse']:>9.5f}"
         )
     return "\n".join(lines)

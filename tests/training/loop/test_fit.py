@@ -66,11 +66,14 @@ def test_fit_from_another_folder(material, tmp_path, monkeypatch, capsys):
             "--queries-per-texel", "32", "--threads", "1"]
     assert main(argv) == 0
     printed = capsys.readouterr().out
-    assert "MSE x1e-3" in printed and "work folder" in printed
+    assert "query MSE x1e-3" in printed and "work folder" in printed
+    assert "verdict: query MSE" in printed and "the ground truth's own noise" in printed
     for name in ("my.onnx", "my.json", "my.loss.png", "my.progress.png"):
         assert (out.parent / name).is_file(), name
     record = json.loads(out.with_suffix(".json").read_text())
     assert record["validation"]["steps"] == 10 and record["material_config"]["resolution"] == 8
+    noise = record["validation"]["noise"]
+    assert noise["noise_floor"] > 0 and noise["ratio"] == pytest.approx(noise["mse"] / noise["noise_floor"])
     assert (out.parent / "my.run" / "views" / "meta.json").is_file()  # the grid had its ground truth
     assert not list(out.parent.glob(".*.partial"))
     assert main(argv) == 2  # finished: replaced only with --force
