@@ -7,7 +7,7 @@ of interleaved rounds on the same random queries (compare ratios within one run:
 `--backends` names the drjit backends the kernel runs on (cuda: an NVIDIA GPU, as the renderer's
 cuda_ad_rgb variant runs it; its figure includes copying the queries to the GPU and the answers back).
 
-Put the variants to compare in DIR (e.g. a model with and without a stage, `benchmarks/results/relief.txt`).
+Put the variants to compare in DIR (e.g. a model with and without a stage, `experiments/relief/relief.txt`).
 """
 
 from __future__ import annotations

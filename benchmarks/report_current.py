@@ -6,8 +6,8 @@ where the differences are float rounding (about 1e-7); a larger one means the re
 the renderer's cache version bumped (`report/renderer.NEURAL_VERSION`).
 
     .venv/bin/python benchmarks/report_current.py rock turtle --cache runs/report-final/cache
-    .venv/bin/python benchmarks/report_current.py benchmarks/materials/planks.toml \
-        --models benchmarks/materials/planks_models --cache runs/report-planks
+    .venv/bin/python benchmarks/report_current.py docs/materials/planks.toml \
+        --models docs/materials/planks_models --cache runs/report-planks
 """
 
 from __future__ import annotations

@@ -52,8 +52,7 @@ BASE_LOG_CEILING = 8.0
 """The decoder's log-scale correction is clamped to at most this (exp(8) ~ 3000x) before exp."""
 RELIEF_MIN_COS = 0.25
 """The relief stage marches along wo_xy / max(wo_z, this): a grazing view's ray is followed at most ~3.9x
-its depth sideways (`MaterialConfig.relief`). 0.1 was measured: rock's 85-degree view 0.66x the image MSE,
-but turtle's reference error 1.27x (`benchmarks/results/relief.txt`)."""
+its depth sideways (`MaterialConfig.relief`)."""
 @dataclass(frozen=True)
 class DecoderInput:
     """One of the decoder's optional inputs: a row of `DECODER_INPUTS`."""
@@ -110,8 +109,7 @@ class MaterialConfig:
     """Ray depth r = offset_scale * MLP output (author code: 0.1)."""
     offset_min_cos: float = 0.6
     """wo_z is clamped to at least this in offset = r * wo_xy / wo_z (grazing-angle stability; the
-    authors' 0.6). 0.3 was measured in images: within the training-seed spread alone, better only
-    together with 48-wide MLPs (benchmarks/results/quality_levers_log.md, "Quality levers")."""
+    authors' 0.6)."""
     half_vector: bool = False
     """The decoder also reads, per light, the half vector h = normalize(wi + wo) and cos(theta_d) =
     h . wi (the half and difference angles of Rusinkiewicz's parametrisation: a glossy lobe is simple
@@ -123,19 +121,17 @@ class MaterialConfig:
     (training/model/base.py has the formula and the pyramid's channels)."""
     terminator: str = "all"
     """Which of the base's terms the shadow terminator's softening S(g) of a normal map (Chiang, Li and Burley 2019;
-    training/model/base.py) multiplies: "all" (the models made before the choice existed), "specular" or "none". S(g)
-    bounds a bump's side facing a grazing light near its flat value; without it the base's only shadow is its
-    horizon visibility, so a resolved facet facing a grazing light answers cos(n, wi) / wi_z times its flat value,
-    as the real geometry's lit faces do (`benchmarks/results/terminator.txt`). Needs a base."""
+    training/model/base.py) multiplies: "all", "specular" or "none". S(g) bounds a bump's side facing a
+    grazing light near its flat value; without it the base's only shadow is its horizon visibility. Needs a
+    base."""
     local_frame: bool = False
     """The decoder also reads wi and wo in the shading frame of the base's normal (the base maps' mean slopes where
     the lookups land): 6 inputs (`DECODER_INPUTS`). A normal tilted by the texel's slopes is then a rotation of
-    the inputs, not something every texel's features must teach the decoder. Needs a base
-    (`benchmarks/results/frame.txt`)."""
+    the inputs, not something every texel's features must teach the decoder. Needs a base."""
     visibility_input: bool = False
     """The decoder also reads the base's visibility V(wi) of each light (`base.light_visibility`: the horizon test at the
     maps' resolution where the lookups land), so that its correction, whose features are the latents' (coarser than
-    the maps), can tell a lit facet from a shadowed one (`benchmarks/results/grazing.txt`). Needs a base."""
+    the maps), can tell a lit facet from a shadowed one. Needs a base."""
     relief: int = 0
     """Texels per side of the finest level of the height pyramid the relief stage marches (the material's
     height map's resolution; a power of two), 0: none. With it, every lookup reads where the view ray
@@ -145,19 +141,15 @@ class MaterialConfig:
     """Linear-search steps of the relief stage (each one height lookup), refined by one secant step."""
     lod_bias: int = 0
     """Levels by which a footprint's level of detail is raised: level = clamp(log2(sigma R) + lod_bias, 0, log2 R),
-    for every pyramid of the model (the latents', the base maps', the relief's heights). 0 is the paper's convention:
-    a footprint of one texel's std reads the finest level, so the finest level also answers every sharper query -
-    the sharp samples of a close-up render (an eighth of a pixel) read the appearance filtered by a Gaussian of a
-    texel's std, blurred by about a texel. A Gaussian of std s weighs about as much as a box sqrt(12) s ~ 2^1.8 s
-    wide, so with 2 level L is the footprint of a box of about 2^L texels (the maps' prefiltered level L) and the
-    finest level the footprints of a quarter texel and less. The data must then hold footprints that fine
-    (`QuerySampling.sub_texel_levels`; `neumip fit` generates them). The shipped map-informed files use 1
-    (`benchmarks/results/lod_bias.txt`)."""
+    for every pyramid of the model (the latents', the base maps', the relief's heights). 0 is the paper's
+    convention (a footprint of one texel's std, and every sharper one, reads the finest level); with 2, level L
+    answers a box of about 2^L texels (a Gaussian of std s weighs about as a box sqrt(12) s ~ 2^1.8 s wide) and
+    the finest level the footprints of a quarter texel and less. The data must then hold footprints that fine
+    (`QuerySampling.sub_texel_levels`; `neumip fit` generates them)."""
     ceiling: float = 0.0
     """The largest answer (every channel), 0: none. A trainer sets it to its data's largest target
     (`train.data_ceiling`): each target is an unbiased estimate of an answer, so an answer above all of them is
-    the model's extrapolation, not the material's, and renders as fireflies (`benchmarks/results/relief.txt`:
-    a base's lobe at grazing views answered 8x the data's largest target). Training's loss reads the answers
+    the model's extrapolation, not the material's, and renders as fireflies. Training's loss reads the answers
     unclamped, so that a query above the ceiling still learns."""
     head: str = "relu"
     """Decoder output head (core/head.py): "relu" (paper: RGB = max(out, 0)) or "yuv" (authors'

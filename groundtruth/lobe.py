@@ -11,7 +11,7 @@ the texels sharper than that count: the lobe is sampled with probability ``min(M
 share)``, with their median width. A material with no sharp texel (rough stone, foam, cloth) keeps
 the cosine alone, as does one whose sharp share is below ``MIN_WEIGHT``. The lobe's energy (the
 specular's share) is not weighed: a smooth dielectric with a 4 % specular still gets its lobe, which
-under diffuse light costs up to 2x the cosine's noise. Measured in `benchmarks/results/sampling.txt`.
+under diffuse light costs up to 2x the cosine's noise.
 """
 
 from __future__ import annotations

@@ -10,12 +10,12 @@
 # lower reference error kept); NAME_nooffset then takes NAME's choice, so the offset's gain compares like with like.
 # The map-informed models (NAME_maps) always stand on the base ($MAPS_BASE).
 # A base is fitted with $SHADING: the decoder also reads the directions in the base normal's frame, and the base's only
-# shadow is its horizon's (no terminator softening): benchmarks/results/terminator.txt.
+# shadow is its horizon's (no terminator softening): experiments/terminator/terminator.txt.
 # SEEDS=K trains each model from K initial weights (fit --seeds) and keeps the one with the lowest error on a
 # low-noise reference set: a first run in runs/NAME[/base], the others in its seedK/ folders.
 # Defaults reproduce the models shipped now (`ship` preset, 64^2, 256 queries per texel of it, 16 spp; the
 # map-informed models at their maps' resolution with --lod-bias $LOD_BIAS, on data as large, footprints a level finer).
-# PRESET=quality is the longer recipe measured in benchmarks/results/quality_levers_log.md ("Quality levers"): 10 000 steps of 16 384.
+# PRESET=quality is the longer recipe measured in experiments/quality_levers/quality_levers_log.md ("Quality levers"): 10 000 steps of 16 384.
 # Run from the repository root: [PRESET=ship|quality] [RES=64] [THREADS=1] bash models/make_models.sh [NAME ...]
 # RAY=auto (or HOST:PORT, or local) runs data chunks and then one training per material as Ray tasks
 # (`neumip generate --ray`, `neumip train-many --ray`; pip install 'neumip[cluster]'); THREADS is
@@ -31,11 +31,11 @@ HIDDEN=${HIDDEN:-25}  # MLP width, the paper's; 48 was 0-32 % more accurate in i
 THREADS=${THREADS:-1}  # the shipped models were trained with one torch thread
 BASE=${BASE:-auto}  # classical base (fit --base): auto keeps it where it lowers the held-out MSE; NAME_nooffset follows NAME's choice; on; off
 MAPS_BASE=${MAPS_BASE:-on}  # the same for the map-informed models: at 256^2 auto would drop it on rock (7 % lower reference error), where the report's close-ups are 1.2-1.6x better with it (models/README.md)
-SHADING=${SHADING---local-frame --terminator none}  # with the base: the decoder reads the directions in the base normal's frame, and no S(g) (benchmarks/results/terminator.txt)
+SHADING=${SHADING---local-frame --terminator none}  # with the base: the decoder reads the directions in the base normal's frame, and no S(g) (experiments/terminator/terminator.txt)
 RELIEF=${RELIEF:-8}  # relief steps (fit --relief) for every material with a height map, 0: none; NAME_nooffset has neither relief nor offset
-MAPS_RES=${MAPS_RES:-}  # NAME_maps: finest latent level of the map-informed models; empty: the material's maps' (256^2 shipped: results/gpu.txt)
-HORIZONS=${HORIZONS:-8}  # NAME_maps: horizon features towards 8 azimuths (rock: better than none in all 8 close-up views, benchmarks/results/maps.txt)
-LOD_BIAS=${LOD_BIAS:-1}  # NAME_maps: fit --lod-bias K (the finest level answers footprints of 2^-K texel and less, on data of their own with footprints that fine, data/MATERIAL_nQUERIES_sSPP_stK); 0 is the paper's level of detail, 2 was measured too: benchmarks/results/lod_bias.txt
+MAPS_RES=${MAPS_RES:-}  # NAME_maps: finest latent level of the map-informed models; empty: the material's maps' (256^2 shipped: experiments/gpu/gpu.txt)
+HORIZONS=${HORIZONS:-8}  # NAME_maps: horizon features towards 8 azimuths (rock: better than none in all 8 close-up views, experiments/maps/maps.txt)
+LOD_BIAS=${LOD_BIAS:-1}  # NAME_maps: fit --lod-bias K (the finest level answers footprints of 2^-K texel and less, on data of their own with footprints that fine, data/MATERIAL_nQUERIES_sSPP_stK); 0 is the paper's level of detail, 2 was measured too: experiments/lod_bias/lod_bias.txt
 SEEDS=${SEEDS:-1}  # fit --seeds: each model from this many initial weights, the lowest reference error kept; 3 was measured, not shipped (TRAINING.md)
 RAY=${RAY:-}
 names=("$@")

@@ -11,7 +11,7 @@ the process: it is built, warmed up by an untimed 1-spp render, rendered at ever
 released (drjit's virtual calls dispatch over every live shape, so the reference's many instances
 slowed every other render in the process by up to 9x while they existed). Round 0 is untimed (it
 compiles the kernels); the reported seconds are the fastest of the ``rounds`` timed rounds (a shared machine
-only adds time; benchmarks/results/report_timing.txt), with the machine's load average beside them, and a linear
+only adds time), with the machine's load average beside them, and a linear
 fit gives the per-spp slope and the fixed cost.
 The timed rounds of a view come from one run: where any of them is not in the cache, all are rendered
 anew (a cached R timed on a quiet machine against an N timed now on a busy one halved the ratios once).

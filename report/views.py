@@ -171,8 +171,7 @@ def emitter_dicts(view: View) -> dict:
 
     A light sample picks one of them in proportion to the irradiance it gives the plane (1 and pi ENV_RADIANCE;
     pbrt's power light distribution). Mitsuba's default picks each with probability 1/2: half the samples went to an
-    environment that gives 0.16 of the light, and the other half counted the sun twice, which made the renders'
-    noise several times what it is now, every method's alike (benchmarks/results/floor.txt)."""
+    environment that gives 0.16 of the light, and the other half counted the sun twice (report/README.md)."""
     wi = light_direction(view)
     cos_i = max(float(wi[2]), 1e-3)
     return {

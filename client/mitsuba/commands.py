@@ -161,19 +161,24 @@ def _render(args: argparse.Namespace) -> int:
     scene = R.load_scene(args.scene, **params)
     if not args.server:
         _load_scene_materials(evaluator, scene)
-    with tqdm(desc="render passes", unit="pass", total=None) as bar:
+    bars = []  # the bar, made at the first pass, when the number of passes is known (never an empty "0pass")
 
-        def on_pass(done: int, total: int) -> None:
-            bar.total = total
-            bar.update(1)
+    def on_pass(done: int, total: int) -> None:
+        if not bars:
+            bars.append(tqdm(desc="render passes", unit="pass", total=total))
+        bars[0].total = total
+        bars[0].update(done - bars[0].n)
 
-        try:
-            result = R.render_scene(scene, evaluator, config, on_pass=on_pass)
-        except LookupError as exc:
-            where = f"the server {args.server}" if args.server else f"{args.models}/ as <name>.onnx"
-            raise CommandError(f"{exc}; put the trained materials in {where} (no image written)") from exc
-        except (R.RenderError, ServerError) as exc:
-            raise CommandError(f"{exc} (no image written)") from exc
+    try:
+        result = R.render_scene(scene, evaluator, config, on_pass=on_pass)
+    except LookupError as exc:
+        where = f"the server {args.server}" if args.server else f"{args.models}/ as <name>.onnx"
+        raise CommandError(f"{exc}; put the trained materials in {where} (no image written)") from exc
+    except (R.RenderError, ServerError) as exc:
+        raise CommandError(f"{exc} (no image written)") from exc
+    finally:
+        for bar in bars:
+            bar.close()
     path = R.write_image(result.image, args.output)
     s = result.stats
     if getattr(evaluator, "switched", None):

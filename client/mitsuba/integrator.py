@@ -5,7 +5,7 @@ calls `sample()` once with all rays). Per bounce, every shading query that lands
 surface - two per shading point, as in the paper: the next-event light direction and the
 sampled direction (the paper's cosine, mixed with the model's sampling lobe where it declares one:
 `bsdf`) - is collected and evaluated per material (`shading.NeuralShading`): in a kernel over
-that material's lanes, its ONNX graph traced into it (`client.kernel.KernelMaterials`), or through
+that material's lanes, its ONNX graph traced into it (`engines.kernel.KernelMaterials`), or through
 an evaluator in at most two calls: the shading points where both directions count as query groups
 of two, the others' single queries. Stock Mitsuba BSDFs on other shapes are called as the stock
 `path` integrator calls them; next-event estimation goes to all of Mitsuba's emitters with MIS (power
@@ -35,8 +35,7 @@ pixel's ``n`` samples reads a share of it: ``filter_std * sample_footprint(n)``,
 ``contract.sample_footprint(n) = max(1/8, 1/sqrt(n))``, the rule of pbrt-v4 (Mitsuba's own textures use
 1/sqrt(n) unclamped). The samples are spread over the filter and averaged, so the image is already
 the material filtered by the pixel; a query that read the whole pixel footprint would filter it a
-second time (a sqrt(2) wider blur: with the same models, `neumip report` measured 1.2-3.3x the
-image MSE at footprints of 4 texels; README, "Evidence report"). At 1 spp a sample reads the whole
+second time (a sqrt(2) wider blur; client/mitsuba/README.md, "Rendering"). At 1 spp a sample reads the whole
 footprint (no aliasing); the 1/8 floor keeps the lookups prefiltered enough that high spp does not
 fall back to aliased finest-level reads.
 ``n`` is the whole render's spp (`bind`), not one pass's.

@@ -20,6 +20,7 @@ from pathlib import Path
 import numpy as np
 
 from neumip.core.errors import NeumipError
+from neumip.core.files import atomic_write
 
 from neumip.client.mitsuba.bsdf import dr, mi
 from neumip.client.mitsuba.integrator import NeuMIPPathIntegrator
@@ -175,10 +176,4 @@ def write_image(image: np.ndarray, path: str | os.PathLike) -> Path:
     bitmap = mi.Bitmap(rgb, pixel_format=mi.Bitmap.PixelFormat.RGB)
     if suffix == ".png":
         bitmap = bitmap.convert(mi.Bitmap.PixelFormat.RGB, mi.Struct.Type.UInt8, srgb_gamma=True)
-    tmp = path.with_name(f".{path.stem}.partial{os.getpid()}{suffix}")
-    try:
-        bitmap.write(str(tmp))
-        os.replace(tmp, path)
-    finally:
-        tmp.unlink(missing_ok=True)
-    return path
+    return atomic_write(path, lambda tmp: bitmap.write(str(tmp)), keep_suffix=True)  # the format: by the suffix

@@ -8,7 +8,7 @@
   ridge, two colours (`basket.toml`).
 
 Each is a periodic 128 x 128 tile: height (16-bit PNG), albedo (sRGB PNG), roughness (8-bit PNG),
-and for grooves a metallic map. Deterministic. Run: .venv/bin/python benchmarks/materials/make_map_materials.py
+and for grooves a metallic map. Deterministic. Run: .venv/bin/python docs/materials/make_map_materials.py
 """
 
 from __future__ import annotations

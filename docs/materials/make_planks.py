@@ -6,7 +6,7 @@ wood grain along its length (albedo stripes and shallow ridges), slightly rounde
 glossy varnish that is worn (rougher) near the gaps.
 
 Writes, next to this file: planks_height.png (16 bit), planks_albedo.png (sRGB), planks_roughness.png.
-Deterministic (fixed seed). Run: .venv/bin/python benchmarks/materials/make_planks.py
+Deterministic (fixed seed). Run: .venv/bin/python docs/materials/make_planks.py
 """
 
 from __future__ import annotations

@@ -1,12 +1,12 @@
 """Write the texture maps of `stones.toml`: a periodic stones-and-mortar tile (experiment material).
 
 Not a shipped material: it exists to test training changes on texture maps made outside the
-procedural library (groundtruth/README.md, "your own texture maps"). Periodic Voronoi
+procedural library (groundtruth/MATERIALS.md). Periodic Voronoi
 cells (the stones) with domed, bevelled tops separated by recessed mortar; each stone has its own
 albedo tint and a smoother (glossier) surface than the mortar.
 
 Writes, next to this file: stones_height.png (16 bit), stones_albedo.png (sRGB), stones_roughness.png.
-Deterministic (fixed seed). Run: .venv/bin/python benchmarks/materials/make_stones.py
+Deterministic (fixed seed). Run: .venv/bin/python docs/materials/make_stones.py
 """
 
 from __future__ import annotations

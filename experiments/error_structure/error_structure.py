@@ -2,7 +2,7 @@
 
 The report splits each method's image MSE into noise and bias (`report/metrics.bias_noise`). Where a
 bias stays put whatever the model (as foam's 0.14e-3 did at 4-64 texels per pixel, before `render.pass_seed`: it was
-noise the seed pairs missed, `results/floor.txt`), two ways to look at it:
+noise the seed pairs missed, `experiments/error_structure/floor.txt`), two ways to look at it:
 
 ``images MATERIAL VIEWS METHODS``: renders the report's views as `neumip report` does (R at the report's spp, two
 seeds; each method at 64 spp, two seeds; cached in ``--cache``) and prints, per method, the MSE of the two seeds'
@@ -27,18 +27,18 @@ nearest texel centre in texels, the larger of the two axes). A bilinear pyramid 
 detail errs more half-way between texel centres. Use models without the parallax stages (``NAME_nooffset``): the
 relief moves the lookup away from the query's uv.
 
-    .venv/bin/python benchmarks/error_structure.py images foam level0_high,level2_high,level4_high C,N,Nmaps,Nmaps0
-    .venv/bin/python benchmarks/error_structure.py images foam level2_high Nmaps --footprint-spp 4
+    .venv/bin/python experiments/error_structure/error_structure.py images foam level0_high,level2_high,level4_high C,N,Nmaps,Nmaps0
+    .venv/bin/python experiments/error_structure/error_structure.py images foam level2_high Nmaps --footprint-spp 4
     neumip generate foam -o runs/floor/foam_q --queries 262144 --resolution 256 --spp 16 --seed 7
-    .venv/bin/python benchmarks/error_structure.py phase runs/floor/foam_q models/foam_maps_nooffset.onnx
+    .venv/bin/python experiments/error_structure/error_structure.py phase runs/floor/foam_q models/foam_maps_nooffset.onnx
 
 ``directions MATERIAL VIEW MODELS``: the models' answers against the training data's own estimator (`QueryTracer`,
 ``--spp`` samples a query) on queries at one report view's directions alone (its light, and the view direction
 at the image centre), at random positions and a footprint of ``--texels`` map texels: is a model off there in
 query space too, or only in the render?
 
-    .venv/bin/python benchmarks/error_structure.py directions benchmarks/materials/planks.toml level2_high \
-        benchmarks/materials/planks_models/planks_maps.onnx
+    .venv/bin/python experiments/error_structure/error_structure.py directions docs/materials/planks.toml level2_high \
+        docs/materials/planks_models/planks_maps.onnx
 """
 
 from __future__ import annotations

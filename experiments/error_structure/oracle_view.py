@@ -11,15 +11,15 @@ its bias (MSE less the mean's noise, half one render's, and R's), and the mean l
 Two pairings of seeds. Until `render.pass_seed` (2026-11-26) `render_scene` rendered a film in passes with seeds
 ``seed, seed + 1, ...`` (as many as its pass plan), so the report's pairs, methods at seeds 0 and 1 and R at 1000
 and 1001, shared passes: ``noise_mse`` of such a pair saw only the passes they did not share, the noise was
-underestimated and the rest counted as bias (`results/oracle.txt` was measured then). Now no two seeds share a pass
+underestimated and the rest counted as bias (`experiments/error_structure/oracle.txt` was measured then). Now no two seeds share a pass
 and both pairings read the whole noise.
 "report": the report's seeds (N, Nmaps from the cache of ``error_structure.py``; the oracle at the same seeds, its
 tracer samples independent). "indep.": every pair's second seed is the first one past the first render's passes
 (methods 0 and 2, R 1000 and 1004 at the report's film), so the two renders share no sample. Renders missing from
 ``--cache`` are made and stored in ``--scratch`` (default: ``--cache``); the oracle's are not cached.
 
-    .venv/bin/python benchmarks/oracle_view.py foam level4_high,level2_high --scratch /tmp/oracle_renders
-    .venv/bin/python benchmarks/oracle_view.py rock level4_high --scratch /tmp/oracle_renders
+    .venv/bin/python experiments/error_structure/oracle_view.py foam level4_high,level2_high --scratch /tmp/oracle_renders
+    .venv/bin/python experiments/error_structure/oracle_view.py rock level4_high --scratch /tmp/oracle_renders
 """
 
 from __future__ import annotations

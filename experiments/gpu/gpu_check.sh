@@ -1,13 +1,13 @@
 #!/usr/bin/env bash
-# The checks that need an NVIDIA GPU, in one short run (benchmarks/results/gpu.txt has the last one's figures):
+# The checks that need an NVIDIA GPU, in one short run (experiments/gpu/gpu.txt has the last one's figures):
 #   1. CUDA parity: the in-kernel engine on drjit's CUDA backend against ONNX Runtime
 #      (tests/engines/test_kernel.py), the material on the GPU against its graph (tests/training/export/test_graph.py)
 #      and a run trained on the GPU that resumes on the CPU and exports what it computed (tests/training/loop/test_train.py);
-#   2. training on the GPU: benchmarks/maps.py's relief + base recipe at 64^2 (the shipped one), at the maps'
+#   2. training on the GPU: experiments/maps/maps.py's relief + base recipe at 64^2 (the shipped one), at the maps'
 #      256^2, and both with the `quality` schedule (4.2x the steps), each judged on a low-noise reference set;
 #   3. the kernel's throughput on the GPU beside the CPU's (benchmarks/bench_models.py).
 #
-#   bash benchmarks/gpu_check.sh DATA MATERIAL REFERENCE OUT [SECONDS]
+#   bash experiments/gpu/gpu_check.sh DATA MATERIAL REFERENCE OUT [SECONDS]
 #
 # DATA: a `neumip generate` data set of MATERIAL; REFERENCE: its low-noise reference set (make_models.sh's
 # runs/NAME/reference); OUT: where the logs and each run's record go (the models stay in /tmp);
@@ -18,7 +18,7 @@
 set -u
 data=$1 material=$2 reference=$3 out=$4 budget=${5:-420}
 start=$SECONDS
-source benchmarks/gpu_site.sh
+source experiments/gpu/gpu_site.sh
 mkdir -p "$out"
 left() { echo $((budget - (SECONDS - start))); }
 
@@ -29,9 +29,9 @@ echo "== 1. CUDA parity"
 timeout $(( $(left) / 3 )) python3 -m pytest -q -rs -p no:cacheprovider tests/engines/test_kernel.py \
     tests/training/export/test_graph.py tests/training/loop/test_train.py -k "cuda or gpu" 2>&1 | tee "$out/parity.txt"
 
-train() {  # benchmarks/maps.py train VARIANT on the GPU, cut 45 s before the budget ends
+train() {  # experiments/maps/maps.py train VARIANT on the GPU, cut 45 s before the budget ends
     [ "$(left)" -gt 60 ] || { echo "$1: skipped, $(left) s left"; return; }
-    timeout $(( $(left) - 45 )) python3 benchmarks/maps.py train "$1" --data "$data" --material "$material" \
+    timeout $(( $(left) - 45 )) python3 experiments/maps/maps.py train "$1" --data "$data" --material "$material" \
         --runs "$runs" --device cuda --reference "$reference" 2>&1 | grep -v "^\s*$" | tail -3
 }
 

@@ -1,18 +1,18 @@
 #!/usr/bin/env bash
-# benchmarks/maps.py's variants trained on an NVIDIA GPU, each judged on a low-noise reference set: e.g. the
-# spread from seed to seed of the shipped recipe (benchmarks/results/seeds.txt):
+# experiments/maps/maps.py's variants trained on an NVIDIA GPU, each judged on a low-noise reference set: e.g. the
+# spread from seed to seed of the shipped recipe (experiments/seeds/seeds.txt):
 #
-#   bash benchmarks/gpu_train.sh DATA MATERIAL REFERENCE OUT SECONDS VARIANT...
+#   bash experiments/gpu/gpu_train.sh DATA MATERIAL REFERENCE OUT SECONDS VARIANT...
 #
 # OUT gets each run's record (VARIANT.json) and the models with the lowest and the highest reference error
 # (best.onnx, worst.onnx, named in OUT/choice.txt; the device returns 8 files at most, so 6 variants fit), to be
 # scored in images on the CPU (`maps.py score`). Runs as
-# benchmarks/gpu_check.sh does (benchmarks/gpu_site.sh); a variant that would end past SECONDS is not started.
+# experiments/gpu/gpu_check.sh does (experiments/gpu/gpu_site.sh); a variant that would end past SECONDS is not started.
 set -u
 data=$1 material=$2 reference=$3 out=$4 budget=$5
 shift 5
 start=$SECONDS
-source benchmarks/gpu_site.sh
+source experiments/gpu/gpu_site.sh
 mkdir -p "$out"
 nvidia-smi -L
 last=60
@@ -20,7 +20,7 @@ for variant in "$@"; do
     left=$((budget - (SECONDS - start)))
     [ "$left" -gt $((last + 20)) ] || { echo "$variant: not started, $left s left"; continue; }
     began=$SECONDS
-    timeout $((left - 10)) python3 benchmarks/maps.py train "$variant" --data "$data" --material "$material" \
+    timeout $((left - 10)) python3 experiments/maps/maps.py train "$variant" --data "$data" --material "$material" \
         --runs "$runs" --device cuda --reference "$reference" 2>&1 | grep -v "^\s*$" | tail -1
     last=$((SECONDS - began))
     cp "$runs/$variant/"*.json "$out/$variant.json" 2>/dev/null

@@ -7,11 +7,11 @@ and of the footprint sigma (in map texels), the mean luminance of the data's tar
 answers (an untrained material with the base and the relief, no neural offset: its decoder's last layer is
 zero), with the base's horizons as `base.base_maps` builds them (a coarse texel's horizon the mean of its finest
 texels') and as the horizons of each level's own area-averaged heights (`level_horizon_maps`: the base of
-benchmarks/maps.py's HL variants, measured and not shipped).
+experiments/maps/maps.py's HL variants, measured and not shipped).
 
-    .venv/bin/python benchmarks/base_footprints.py data/rock_n1048576_s16 rock
+    .venv/bin/python experiments/grazing/base_footprints.py data/rock_n1048576_s16 rock
 
-Results: benchmarks/results/grazing.txt.
+Results: experiments/grazing/grazing.txt.
 """
 
 from __future__ import annotations

@@ -7,10 +7,10 @@ in map texels), the queries are a GRID x GRID lattice of positions over the tile
 data's estimator) at ``--spp`` samples a query, so it holds directions the data never sampled (the data stop at
 84.26 degrees; the report's low light is at 85). Printed per model: the mean luminance, its median, 90th and
 99th percentile over the truth's, the correlation, and the MSE of the luminance; no render, so a model is judged
-in seconds where `benchmarks/maps.py score` takes minutes.
+in seconds where `experiments/maps/maps.py score` takes minutes.
 
-    .venv/bin/python benchmarks/grazing_probe.py rock models/rock_maps.onnx models/rock.onnx
-    .venv/bin/python benchmarks/grazing_probe.py benchmarks/materials/planks.toml A.onnx B.onnx --lights 85:90,60:90
+    .venv/bin/python experiments/grazing/grazing_probe.py rock models/rock_maps.onnx models/rock.onnx
+    .venv/bin/python experiments/grazing/grazing_probe.py docs/materials/planks.toml A.onnx B.onnx --lights 85:90,60:90
 """
 
 from __future__ import annotations

@@ -2,13 +2,13 @@
 
 Under a light 5 degrees above the horizon the shipped models compress the contrast of rock's close-ups: the
 decoder's correction lives on the 64^2 latents (4 map texels a texel), so it lifts the base's shadows and dims its
-lit ridges together (`benchmarks/results/grazing.txt`). For each checkpoint (a model with a base) this prints the
+lit ridges together (`experiments/grazing/grazing.txt`). For each checkpoint (a model with a base) this prints the
 reference set's log MSE (`fit.reference_error`, what `--base auto` judges) and, over the data's queries with a
 light 78-88 degrees from the normal and a footprint under 2 map texels (the report's low-light close-up), the mean
 target and the model's mean answer per bin of the base's own answer (the model with its decoder's last layer
 zeroed). The targets are unbiased, so a bin's mean target is the answer the model should give there.
 
-    .venv/bin/python benchmarks/grazing_queries.py data/rock_n1048576_s16 runs/rock/reference runs/loss/VIS/rock.pt ...
+    .venv/bin/python experiments/grazing/grazing_queries.py data/rock_n1048576_s16 runs/rock/reference runs/loss/VIS/rock.pt ...
 """
 
 from __future__ import annotations

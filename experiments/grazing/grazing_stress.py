@@ -6,7 +6,7 @@ wi 0-85 degrees, azimuths uniform (seed 0). Printed per model (ONNX Runtime): th
 and 99.9th percentiles of the largest channel; with --data, the same of the data's targets at wo > 80
 degrees beside them.
 
-    .venv/bin/python benchmarks/grazing_stress.py models [--data data/turtle_n1048576_s16]
+    .venv/bin/python experiments/grazing/grazing_stress.py models [--data data/turtle_n1048576_s16]
 """
 
 from __future__ import annotations

@@ -17,8 +17,8 @@ the method cached in ``CACHE``, as the report's), the method's model taken from 
 (x1e-3), its mean and 99th-percentile luminance over R's, and the last folder's MSE over the first's; ``--where``
 adds where each image's error sits (R's shadowed pixels and the rest; its MSE against R blurred by 1 px).
 
-    .venv/bin/python benchmarks/footprint.py query rock level0_side models/rock.onnx models/rock_maps.onnx
-    .venv/bin/python benchmarks/footprint.py views rock runs/report-final/cache/renders level0_side,level2_side \\
+    .venv/bin/python experiments/lod_bias/footprint.py query rock level0_side models/rock.onnx models/rock_maps.onnx
+    .venv/bin/python experiments/lod_bias/footprint.py views rock runs/report-final/cache/renders level0_side,level2_side \\
         Nmaps models /tmp/lod/rock
 """
 

@@ -12,15 +12,15 @@ views (55 degrees) whose pixel footprint covers 1 and 4 texels of a ``--camera-r
 each under the lights of `LIGHTS`. Renders are cached (``--cache``). One JSON line per
 (variant, view) is appended to --out; ``--table`` prints them.
 
-    .venv/bin/python benchmarks/maps.py train --data data/rock --material rock --runs runs/maps N M
-    .venv/bin/python benchmarks/maps.py score --material rock --runs runs/maps N M --out runs/maps/scores.jsonl
-    .venv/bin/python benchmarks/maps.py --table runs/maps/scores.jsonl
-    .venv/bin/python benchmarks/maps.py --spread runs/maps/scores.jsonl Nbr,Nbr_seed1,Nbr_seed2   # against seeds
-    .venv/bin/python benchmarks/maps.py --ensemble Nbr,Nbr_seed1,Nbr_seed2 runs/maps/scores_rock_64_*.npz
-    .venv/bin/python benchmarks/maps.py --strip closeups.png C,N,M runs/maps/scores_rock_64_level0_side.npz ...
-    .venv/bin/python benchmarks/maps.py speed N M --data data/rock --material rock   # seconds per step
+    .venv/bin/python experiments/maps/maps.py train --data data/rock --material rock --runs runs/maps N M
+    .venv/bin/python experiments/maps/maps.py score --material rock --runs runs/maps N M --out runs/maps/scores.jsonl
+    .venv/bin/python experiments/maps/maps.py --table runs/maps/scores.jsonl
+    .venv/bin/python experiments/maps/maps.py --spread runs/maps/scores.jsonl Nbr,Nbr_seed1,Nbr_seed2   # against seeds
+    .venv/bin/python experiments/maps/maps.py --ensemble Nbr,Nbr_seed1,Nbr_seed2 runs/maps/scores_rock_64_*.npz
+    .venv/bin/python experiments/maps/maps.py --strip closeups.png C,N,M runs/maps/scores_rock_64_level0_side.npz ...
+    .venv/bin/python experiments/maps/maps.py speed N M --data data/rock --material rock   # seconds per step
 
-benchmarks/results/maps.txt has every command and figure of the last run.
+experiments/maps/maps.txt has every command and figure of the last run.
 """
 
 from __future__ import annotations
@@ -96,11 +96,11 @@ VARIANTS: dict[str, tuple[dict, MapConfig | None, object]] = {
        for k in (1, 2, 3)},
     # ... from where the blur schedule ends (step ~1 420 of 2 400)
     "Nbr_fin40_rel": ({"base": "maps", "relief": "maps"}, None, replace(SHIP, finish_loss="relative", finish_fraction=0.4)),
-    # the decoder also reads wi and wo in the base normal's frame (MaterialConfig.local_frame; results/frame.txt)
+    # the decoder also reads wi and wo in the base normal's frame (MaterialConfig.local_frame; experiments/frame/frame.txt)
     "Nbr_frame": ({"base": "maps", "relief": "maps", "local_frame": True}, None, SHIP),
     **{f"Nbr_frame_seed{k}": ({"base": "maps", "relief": "maps", "local_frame": True}, None, replace(SHIP, seed=k))
        for k in range(1, 4)},
-    # the base without the shadow terminator's S(g): its horizon visibility alone shadows it (results/terminator.txt)
+    # the base without the shadow terminator's S(g): its horizon visibility alone shadows it (experiments/terminator/terminator.txt)
     "Nbr_vis": ({"base": "maps", "relief": "maps", "terminator": "none"}, None, SHIP),
     **{f"Nbr_vis_seed{k}": ({"base": "maps", "relief": "maps", "terminator": "none"}, None, replace(SHIP, seed=k))
        for k in range(1, 4)},
@@ -111,16 +111,16 @@ VARIANTS: dict[str, tuple[dict, MapConfig | None, object]] = {
     **{f"Nbr_vis_frame{'' if k == 0 else f'_seed{k}'}": ({"base": "maps", "relief": "maps", "terminator": "none",
                                                            "local_frame": True}, None, replace(SHIP, seed=k))
        for k in range(4)},
-    # the shipped recipe with losses unbiased under noisy targets (the low light's highlights: results/terminator.txt)
+    # the shipped recipe with losses unbiased under noisy targets (the low light's highlights: experiments/terminator/terminator.txt)
     **{f"Nbr_vis_frame_{loss}": ({"base": "maps", "relief": "maps", "terminator": "none", "local_frame": True}, None,
                                  replace(SHIP, loss=name)) for loss, name in (("rel", "relative"), ("logw", "log_weighted"))},
     "M_hz_rel": ({}, MapConfig(horizons=8), replace(SHIP, loss="relative")),
-    # the shipped recipe on data whose directions reach 88 degrees (`train --data` names them; results/grazing.txt):
+    # the shipped recipe on data whose directions reach 88 degrees (`train --data` names them; experiments/grazing/grazing.txt):
     # Z88 on the projected disk as now, SA88 uniform in solid angle
     **{f"{name}{'' if k == 0 else f'_seed{k}'}": ({"base": "maps", "relief": "maps", "terminator": "none",
                                                    "local_frame": True}, None, replace(SHIP, seed=k))
        for name in ("Z88", "SA88") for k in range(4)},
-    # the shipped recipe with the decoder reading the base's visibility of the light (`--visibility-input`, grazing.txt)
+    # the shipped recipe with the decoder reading the base's visibility of the light (`--visibility-input`, experiments/grazing/grazing.txt)
     **{f"VIS{'' if k == 0 else f'_seed{k}'}": ({"base": "maps", "relief": "maps", "terminator": "none",
                                                 "local_frame": True, "visibility_input": True}, None, replace(SHIP, seed=k))
        for k in range(4)},
@@ -132,14 +132,14 @@ VARIANTS: dict[str, tuple[dict, MapConfig | None, object]] = {
                                                   "local_frame": True, "visibility_input": True}, None,
                                                  replace(SHIP, seed=k)) for k in range(4)},
     # the shipped recipe on a base whose coarse levels shadow by their own heights' horizons
-    # (base_footprints.level_horizon_maps, set by `train`; results/grazing.txt: not shipped)
+    # (base_footprints.level_horizon_maps, set by `train`; experiments/grazing/grazing.txt: not shipped)
     **{f"HL{'' if k == 0 else f'_seed{k}'}": ({"base": "maps", "relief": "maps", "terminator": "none",
                                                "local_frame": True}, None, replace(SHIP, seed=k)) for k in range(4)},
     # the shipped map-informed recipe (`fit --maps --horizons 8` on the shipped recipe), at 64^2 and at the maps'
     # 256^2, where the encoder leaves nothing per texel to fit from noisy queries (issue 25, lever 1), with
     # the free residual on every level (_res), or on the levels of at most 8 or 16 texels a side (_r8, _r16: where
-    # the data hold hundreds of queries per texel; results/residual.txt), and the `quality` schedule (GPU runs:
-    # results/gpu.txt)
+    # the data hold hundreds of queries per texel; experiments/residual/residual.txt), and the `quality` schedule (GPU runs:
+    # experiments/gpu/gpu.txt)
     **{f"Mship{res}{suffix}{seed_suffix}": ({"base": "maps", "relief": "maps", "terminator": "none", "local_frame": True,
                                              "resolution": int(res or 64)}, MapConfig(horizons=8, residual=residual),
                                             replace(schedule, seed=seed))
@@ -148,19 +148,19 @@ VARIANTS: dict[str, tuple[dict, MapConfig | None, object]] = {
                                                                  ("_quality", 0, QUALITY))
        for seed, seed_suffix in ((0, ""), (1, "_seed1"), (2, "_seed2"))},
     # the shipped map-informed recipe with MLPs 32 or 48 wide (25: the paper's), the directions' capacity at coarse
-    # footprints and under a grazing light (results/grazing.txt, section 10)
+    # footprints and under a grazing light (experiments/grazing/grazing.txt, section 10)
     # (Mmaps_h48: at the material's own maps' resolution, as make_models.sh fits NAME_maps: planks' 128^2)
     **{f"{name}_h{hidden}{suffix}": ({"base": "maps", "relief": "maps", "terminator": "none", "local_frame": True,
                                       "resolution": res, "hidden": hidden}, MapConfig(horizons=8), replace(SHIP, seed=seed))
        for name, res in (("Mship256", 256), ("Mmaps", "maps")) for hidden in (32, 48)
        for seed, suffix in ((0, ""), (1, "_seed1"))},
-    # the same 48 wide, pruned while it trains to a third of its weights, the 25-wide's fmas (benchmarks/prune.py does it
-    # after the run instead; results/grazing.txt, section 11)
+    # the same 48 wide, pruned while it trains to a third of its weights, the 25-wide's fmas (experiments/prune/prune.py does it
+    # after the run instead; experiments/grazing/grazing.txt, section 11)
     **{f"Mship256_h48_p67{suffix}": ({"base": "maps", "relief": "maps", "terminator": "none", "local_frame": True,
                                       "resolution": 256, "hidden": 48}, MapConfig(horizons=8), replace(SHIP, seed=seed))
        for seed, suffix in ((0, ""), (1, "_seed1"))},
     # the shipped map-informed recipe on twice ship's schedule (4 800 steps, the blur's half-life doubled): inside the
-    # 30-minute training budget at 256^2, where Mship256_quality (10 000 steps) is not (results/steps.txt)
+    # 30-minute training budget at 256^2, where Mship256_quality (10 000 steps) is not (experiments/steps/steps.txt)
     **{f"{name}_x2{suffix}": ({"base": "maps", "relief": "maps", "terminator": "none", "local_frame": True,
                                "resolution": res}, MapConfig(horizons=8),
                               replace(SHIP, steps=4800, blur_half_life=534.0, seed=seed))
@@ -198,8 +198,18 @@ the callback, so a run resumed mid-pruning goes unmasked until its next 25-step 
 the average would be of unmasked weights. `train` starts every run afresh, and SHIP averages nothing."""
 
 
+def sibling(topic: str) -> None:
+    """Put another experiment's folder (``experiments/TOPIC``) on the import path, for its script's helpers."""
+    import sys
+
+    folder = str(Path(__file__).resolve().parents[1] / topic)
+    if folder not in sys.path:
+        sys.path.insert(0, folder)
+
+
 def pruning_callback(trainer, sparsity: float, first: int, last: int):
     """A `Trainer.run` callback that prunes the trainer's MLPs on `PRUNED`'s schedule."""
+    sibling("prune")
     from prune import apply_masks, magnitude_masks, ramp, weight_matrices
 
     masks = []
@@ -245,6 +255,7 @@ def train(variant: str, data: str, material: str, runs: Path, threads: int, vali
     trainer = Trainer(data, checkpoint, MaterialConfig(**{**RECIPE, **overrides}), config,
                       maps=(maps, geo) if maps is not None or overrides.get("base") or overrides.get("relief") else None)
     if variant.split("_seed")[0] in ("HL", "VISHL"):
+        sibling("grazing")
         from base_footprints import level_horizon_maps
 
         from neumip.core import weights as W
@@ -253,7 +264,7 @@ def train(variant: str, data: str, material: str, runs: Path, threads: int, vali
     pruned = PRUNED.get(variant.split("_seed")[0])
     held = trainer.run(pruning_callback(trainer, *pruned) if pruned else None)
     seconds, cpu = time.perf_counter() - start, time.process_time() - cpu
-    export_material(trainer.material, out, f"benchmarks/maps.py {variant}", held)
+    export_material(trainer.material, out, f"experiments/maps/maps.py {variant}", held)
     record = {"variant": variant, "data": data, "queries": len(trainer.data), "steps": trainer.state.step,
               "batch": config.batch, "train_seconds": round(seconds, 1), "cpu_seconds": round(cpu, 1), "held_out_mse": held["overall"]["mse"],
               "load_average": os.getloadavg(), "onnx_mb": round(out.stat().st_size / 1e6, 2),
@@ -293,7 +304,7 @@ def bake(variant: str, material: str, runs: Path, resolution: int) -> None:
     assert not missing.unexpected_keys, missing.unexpected_keys
     out = runs / f"{variant}_b{resolution}" / f"{desc.name}.onnx"
     with torch.no_grad():
-        export_material(baked, out, f"benchmarks/maps.py bake {variant} {resolution}")
+        export_material(baked, out, f"experiments/maps/maps.py bake {variant} {resolution}")
     print(f"{variant} baked at {resolution}^2 -> {out} ({out.stat().st_size / 1e6:.2f} MB)")
 
 

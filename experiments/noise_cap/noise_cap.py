@@ -10,7 +10,7 @@ most R's after twice the method's seconds; less the two noises, that is the bias
 R's error between its ladder's rungs is interpolated log-log, and beyond its last rung it falls as 1 / time above
 the reference's noise, as the report does. Read from a report's results.json (the side light's ladder views).
 
-    .venv/bin/python benchmarks/noise_cap.py docs/report/results.json [--method Nmaps] [--view level0_side]
+    .venv/bin/python experiments/noise_cap/noise_cap.py docs/report/results.json [--method Nmaps] [--view level0_side]
 """
 
 from __future__ import annotations

@@ -4,7 +4,7 @@
 no neumip import (random queries in the contract's layout are drawn here):
 
     python3 -m venv /tmp/ov && /tmp/ov/bin/pip install onnxruntime-openvino numpy
-    /tmp/ov/bin/python benchmarks/bench_openvino.py models/rock.onnx
+    /tmp/ov/bin/python experiments/openvino/bench_openvino.py models/rock.onnx
 
 Prints the largest answer difference, whether OpenVINO answers a row the same in a smaller batch,
 and per batch size the median over 3 interleaved rounds of M queries / wall s and / CPU s, both

@@ -1,6 +1,6 @@
 """Prune an exported model's MLPs to a sparsity, then fine-tune them: a wide MLP at a narrow one's render cost?
 
-Issue 25's wider MLPs (48 wide, results/grazing.txt section 10) lowered the reference error on four of five
+Issue 25's wider MLPs (48 wide, experiments/grazing/grazing.txt section 10) lowered the reference error on four of five
 materials, but the render's kernels unroll every MLP into one fma per weight, so the neural plane cost 1.05x the
 geometry's time (the goal: at most 0.8x). The kernel skips zero coefficients (`engines/onnx_ops.py`, `Ops._rows`),
 so a sparse weight matrix costs only its nonzeros there, with the graph, the file format and every engine as
@@ -14,9 +14,9 @@ fine-tune the survivors. The MLPs' weights and biases are the only parameters: t
 the relief are frozen, as they were exported. Loss, batches and the training split are `neumip fit`'s (comb2, 16 384
 queries, the held-out split left out). No blur: the exported textures are what it answers.
 
-    # the best of results/grazing.txt section 11 (Ld50o85): the decoder, which the render asks once per light,
+    # the best of experiments/grazing/grazing.txt section 11 (Ld50o85): the decoder, which the render asks once per light,
     # at half its weights, the offset network at 0.15, pruned slowly
-    .venv/bin/python benchmarks/prune.py runs/seeds/Mship256_h48/rock.onnx data/rock_n1048576_s16 \\
+    .venv/bin/python experiments/prune/prune.py runs/seeds/Mship256_h48/rock.onnx data/rock_n1048576_s16 \\
         --sparsity 0.5 --offset-sparsity 0.85 --steps 4000 --prune-fraction 0.75 -o runs/prune/rock_Ld50o85.onnx
 
 ``--teacher`` distils: the targets are the dense source model's answers to the data's queries, not the data's
@@ -26,11 +26,14 @@ same steps and nothing pruned: the control.
 
 from __future__ import annotations
 
+import sys
 import time
+from pathlib import Path
 
 import numpy as np
 
-from coarse_finish import arguments, batches, material_from_file, save_like
+sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "residual"))  # experiments/residual/coarse_finish.py
+from coarse_finish import arguments, batches, material_from_file, save_like  # noqa: E402
 
 
 def weight_matrices(material, config) -> dict[str, list]:

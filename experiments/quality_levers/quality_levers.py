@@ -7,17 +7,17 @@ level against a low-noise reference query set (>= 256 spp, made by `neumip gener
 Levels are always binned at 64^2 (the data's sampling resolution), so a 128^2 model is compared on
 the same queries. One JSON line per run is appended to --out; `--table` prints them.
 
-    # data (benchmarks/results/quality_levers.txt lists the exact commands used)
-    neumip generate benchmarks/materials/stones.toml -o /tmp/q/stones_ref --queries 40000 --spp 256 \
+    # data (experiments/quality_levers/quality_levers.txt lists the exact commands used)
+    neumip generate docs/materials/stones.toml -o /tmp/q/stones_ref --queries 40000 --spp 256 \
         --seed 1 --resolution 64
-    neumip generate benchmarks/materials/stones.toml -o /tmp/q/stones_q256s16 --queries-per-texel 256 \
+    neumip generate docs/materials/stones.toml -o /tmp/q/stones_q256s16 --queries-per-texel 256 \
         --spp 16 --seed 0 --resolution 64
     # runs (1 torch thread each; several processes may run side by side)
-    .venv/bin/python benchmarks/quality_levers.py --data /tmp/q/stones_q256s16 --ref /tmp/q/stones_ref \
-        --label stones base yuv cosine ... --out benchmarks/results/quality_levers.jsonl
-    .venv/bin/python benchmarks/quality_levers.py --table benchmarks/results/quality_levers.jsonl
+    .venv/bin/python experiments/quality_levers/quality_levers.py --data /tmp/q/stones_q256s16 --ref /tmp/q/stones_ref \
+        --label stones base yuv cosine ... --out experiments/quality_levers/quality_levers.jsonl
+    .venv/bin/python experiments/quality_levers/quality_levers.py --table experiments/quality_levers/quality_levers.jsonl
     # target noise against query count at a fixed sample budget
-    .venv/bin/python benchmarks/quality_levers.py --noise benchmarks/materials/stones.toml
+    .venv/bin/python experiments/quality_levers/quality_levers.py --noise docs/materials/stones.toml
 """
 
 from __future__ import annotations
@@ -170,7 +170,7 @@ def main() -> None:
     parser.add_argument("--data")
     parser.add_argument("--ref")
     parser.add_argument("--label", default="")
-    parser.add_argument("--out", default="benchmarks/results/quality_levers.jsonl")
+    parser.add_argument("--out", default="experiments/quality_levers/quality_levers.jsonl")
     parser.add_argument("--threads", type=int, default=1)
     parser.add_argument("--bin", type=int, default=BIN_RESOLUTION,
                         help="finest resolution levels are binned at (the data's sampling resolution)")

@@ -2,7 +2,7 @@
 
 Issue 25's far views (16-256 map texels a pixel) read a map-informed model's coarse levels, textures its encoder
 computed from the prefiltered maps. There the data hold hundreds to thousands of queries per texel, enough to fit
-a texel freely. A free residual trained with the whole model (`MapConfig.residual`, results/residual.txt) paid on
+a texel freely. A free residual trained with the whole model (`MapConfig.residual`, experiments/residual/residual.txt) paid on
 foam and moved the decoder on rock, whose close-ups got darker. Here the decoder, the fine levels, the offset, the
 base and the relief are frozen: the levels of at most ``--size`` texels a side are the only parameters, so a lookup
 that reads only finer levels answers bit for bit as before.
@@ -11,7 +11,7 @@ The model is read back from its ONNX file (`export_read.read_model`), trained fo
 ``--batch`` queries of DATA's training split (the split `neumip fit` holds out is left out) with the model's own
 loss (comb2), and written with the same graph and metadata. No blur: the exported textures are what it answers.
 
-    .venv/bin/python benchmarks/coarse_finish.py models/rock_maps.onnx data/rock_n1048576_s16 -o runs/finish/rock_maps.onnx
+    .venv/bin/python experiments/residual/coarse_finish.py models/rock_maps.onnx data/rock_n1048576_s16 -o runs/finish/rock_maps.onnx
 """
 
 from __future__ import annotations

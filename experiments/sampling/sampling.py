@@ -13,8 +13,8 @@ with two seeds per setting, in interleaved rounds; the noise is the MSE of the t
 median render's. R's noise (the real geometry, stock `path`) is printed beside them with ``--reference``.
 The stages move noise only: the image means must agree (``mean``).
 
-    .venv/bin/python benchmarks/sampling.py benchmarks/materials/planks.toml benchmarks/materials/planks_models
-    .venv/bin/python benchmarks/sampling.py turtle models --methods Nmaps --views level0_side,low_light
+    .venv/bin/python experiments/sampling/sampling.py docs/materials/planks.toml docs/materials/planks_models
+    .venv/bin/python experiments/sampling/sampling.py turtle models --methods Nmaps --views level0_side,low_light
 """
 
 from __future__ import annotations

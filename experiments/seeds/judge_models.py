@@ -2,13 +2,13 @@
 
 Prints each file's log-space MSE (what `fit.reference_error` computes), a relative MSE, (p - t)^2 / (t^2 + 0.01),
 and the mean target over the mean answer per channel (its brightness), on the queries of REFERENCE (a `neumip
-generate` data set), and the ratio second / first. Used in benchmarks/results/seeds.txt to test a judge of seeds
+generate` data set), and the ratio second / first. Used in experiments/seeds/seeds.txt to test a judge of seeds
 against the report's images, e.g. a reference set uniform over the whole domain rather than sampled like the
 training data:
 
     neumip generate rock -o runs/uref/rock --queries 16384 --spp 256 --seed 1 --resolution 256 \
         --directions solid_angle --max-zenith 85 --level-fraction 1.0 --heavy-fraction 0
-    .venv/bin/python benchmarks/judge_models.py runs/uref/rock models/rock.onnx runs/models-seeds3/rock.onnx
+    .venv/bin/python experiments/seeds/judge_models.py runs/uref/rock models/rock.onnx runs/models-seeds3/rock.onnx
 """
 
 from __future__ import annotations

@@ -13,7 +13,7 @@ direction towards the camera at the image centre; path-traced at SOURCE's spp by
 (`QueryTracer`). OUT is a data set `neumip train` reads, with SOURCE's metadata. Train it with the shipped
 recipe and score it with `footprint.py views`:
 
-    .venv/bin/python benchmarks/specialised.py make rock level0_side data/rock_n1048576_s16_st1 data/rock_side_only
+    .venv/bin/python experiments/specialised/specialised.py make rock level0_side data/rock_n1048576_s16_st1 data/rock_side_only
     neumip train data/rock_side_only -o runs/spec/rock_maps.onnx --maps --horizons 8 --relief 8 --base \\
         --local-frame --terminator none --resolution 256 --lod-bias 1 --threads 1
 """

@@ -17,7 +17,7 @@ from neumip.report.run import ReportError, find_materials, run_report
 
 ROOT = Path(__file__).resolve().parents[2]
 MODELS = ROOT / "models"
-PLANKS = ROOT / "benchmarks" / "materials" / "planks.toml"
+PLANKS = ROOT / "docs" / "materials" / "planks.toml"
 
 
 def user_material(folder: Path, name: str = "mine") -> Path:

@@ -23,8 +23,8 @@ from neumip.report.views import DISTANCE_VIEWS
 
 ROOT = Path(__file__).resolve().parents[2]
 MODELS = ROOT / "models"
-USER_MATERIAL = ROOT / "benchmarks" / "materials" / "planks.toml"
-USER_MODELS = ROOT / "benchmarks" / "materials" / "planks_models"
+USER_MATERIAL = ROOT / "docs" / "materials" / "planks.toml"
+USER_MODELS = ROOT / "docs" / "materials" / "planks_models"
 LADDER_VIEW = next(v for v in DISTANCE_VIEWS if v.ladder and v.level == 0)
 VIEW = LADDER_VIEW.name
 

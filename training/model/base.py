@@ -31,7 +31,7 @@ softening of a normal map (Chiang, Li and Burley 2019): g = min(1, wi_z / max(n.
 S(g) = g + g^2 - g^3, on the terms `MaterialConfig.terminator` names (both by default; the specular lobe only;
 none). Without it a bump's side facing a grazing light answers up to 1 / wi_z times its flat value (the
 report's 85-degree light: 11x), as a lit face of the real geometry does; the horizon's visibility is then its
-only shadow (`benchmarks/results/terminator.txt`). `base_maps` is numpy; `base_answer`
+only shadow. `base_maps` is numpy; `base_answer`
 torch; `export_base.base_answer` writes the same formula into the graph.
 """
 

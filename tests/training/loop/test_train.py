@@ -481,7 +481,7 @@ def test_presets_scale_the_papers_schedule(name):
     cfg = PRESETS[name]
     assert cfg.blur_half_life / cfg.steps == pytest.approx(3333 / 30_000, rel=0.01)
     assert schedule_end(cfg) / cfg.steps == pytest.approx(0.59, abs=0.01)
-    assert cfg.lr_schedule == "constant" and cfg.offset_freeze  # what measured best (benchmarks/quality_levers.py)
+    assert cfg.lr_schedule == "constant" and cfg.offset_freeze  # measured best: experiments/quality_levers/
 
 
 def test_candidates_go_on_with_the_best_start_and_count_every_step(data, tmp_path):

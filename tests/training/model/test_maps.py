@@ -214,7 +214,7 @@ def test_cli_trains_a_map_informed_model_from_a_description(plane, tmp_path, cap
 
     from neumip.client.cli import main
 
-    bumps = Path(__file__).parents[3] / "benchmarks" / "materials" / "bumps.toml"
+    bumps = Path(__file__).parents[3] / "docs" / "materials" / "bumps.toml"
     out = tmp_path / "plane.onnx"
     argv = ["train", str(plane.path), "-o", str(out), "--preset", "test", "--resolution", "8", "--steps", "5",
             "--batch", "256", "--checkpoint", str(tmp_path / "ck.pt")]
