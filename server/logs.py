@@ -33,9 +33,15 @@ def message_of(body: bytes) -> str:
 
 
 def first_line(text: str) -> str:
-    """The first non-empty line of `text`, at most MESSAGE_CHARS long."""
+    """The first non-empty line of `text`, at most MESSAGE_CHARS long, control characters escaped."""
     lines = text.strip().splitlines()
-    return lines[0][:MESSAGE_CHARS] if lines else ""
+    return printable(lines[0][:MESSAGE_CHARS]) if lines else ""
+
+
+def printable(text: str) -> str:
+    """`text` with control characters escaped (``\\n``, ``\\x1b``): a client's path or name cannot forge
+    log lines."""
+    return text if text.isprintable() else "".join(c if c.isprintable() else ascii(c)[1:-1] for c in text)
 
 
 class RequestLogMiddleware:
@@ -64,9 +70,10 @@ class RequestLogMiddleware:
             await self.app(scope, receive, send_and_watch)
         except Exception as exc:  # answered 500 by the app's last-resort handler, outside this middleware
             if status == 0:
-                log.info("%s %s -> 500: %s", scope["method"], scope["path"], first_line(f"{type(exc).__name__}: {exc}"))
+                log.info("%s %s -> 500: %s", scope["method"], printable(scope["path"]),
+                         first_line(f"{type(exc).__name__}: {exc}"))
             raise
         if status >= 400:
-            log.info("%s %s -> %d: %s", scope["method"], scope["path"], status, message_of(bytes(body)))
+            log.info("%s %s -> %d: %s", scope["method"], printable(scope["path"]), status, message_of(bytes(body)))
         elif self.access_log and status:
-            log.info("%s %s -> %d", scope["method"], scope["path"], status)
+            log.info("%s %s -> %d", scope["method"], printable(scope["path"]), status)

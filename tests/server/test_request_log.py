@@ -48,6 +48,13 @@ def test_errors_are_logged_with_their_message_and_successes_are_not(client, capl
     assert all("\n" not in line for line in lines)
 
 
+def test_a_client_cannot_forge_log_lines(client, caplog):
+    caplog.set_level(logging.INFO, logger="neumip.server.logs")
+    assert client.get("/nope%0AINFO%20forged%1b[2K").status_code == 404
+    [line] = logged(caplog)
+    assert line.startswith("GET /nope\\nINFO forged\\x1b[2K -> 404: no such endpoint") and line.isprintable(), line
+
+
 def test_a_5xx_is_logged(client, caplog, monkeypatch):
     """A fault inside the app (here: listing the materials raises) is a 500 and one log line."""
     caplog.set_level(logging.INFO, logger="neumip.server.logs")
