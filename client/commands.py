@@ -53,7 +53,9 @@ def model_path(material: str, models: Path) -> Path:
         return path
     candidate = models / f"{material}.onnx"
     if not candidate.is_file():
-        names = sorted(p.stem for p in models.glob("*.onnx")) if models.is_dir() else []
+        from neumip.engines.folder import list_models
+
+        names = sorted(list_models(models)[0]) if models.is_dir() else []
         there = f"materials there: {', '.join(names)}" if names else "no .onnx files there"
         raise CommandError(f"no material {material!r} in {models} ({there})")
     return candidate

@@ -55,13 +55,15 @@ def flag(name: str, default: object = None) -> str:
 
 def add_flags(parser: argparse.ArgumentParser | argparse._ArgumentGroup, cls: type, *, skip: tuple[str, ...] = (),
               choices: dict[str, tuple] | None = None, overrides: bool = False,
-              metavars: dict[str, str] | None = None, rename: dict[str, str] | None = None) -> list[str]:
+              metavars: dict[str, str] | None = None, rename: dict[str, str] | None = None,
+              show_default: bool = False) -> list[str]:
     """Add a flag for each field of dataclass `cls` but those in `skip`; returns the fields added.
 
     `rename`: field -> the name its flag and its value in the parsed arguments take instead (where two
     configs of one command have a field of the same name).
-    `overrides`: the flags override a preset, so each defaults to None (not given) and its help says which
-    field it overrides; otherwise each defaults to the field's default. A bool is a switch either way.
+    `overrides`: the flags override a preset or a recipe, so each defaults to None (not given); `show_default` then
+    says the field's own default in the help. Otherwise each defaults to the field's default. A bool is a switch
+    either way.
     """
     docs, added = field_docs(cls), []
     for field in dataclasses.fields(cls):
@@ -77,8 +79,9 @@ def add_flags(parser: argparse.ArgumentParser | argparse._ArgumentGroup, cls: ty
                                 help=("turns off what is on by default: " if default else "") + help_text)
         else:
             kind = type(default)
+            shown = f" (default: {default})" if overrides and show_default else ""
             parser.add_argument(flag(name), dest=name, type=kind, choices=options, metavar=metavar,
-                                default=None if overrides else default, help=help_text)
+                                default=None if overrides else default, help=help_text + shown)
         added.append(field.name)
     return added
 

@@ -28,7 +28,6 @@ variant's (`namespace_of(mi.Float)`; ``mi.Float`` in ``llvm_ad_rgb`` is ``drjit.
 
 from __future__ import annotations
 
-import functools
 import gc
 import importlib
 import logging
@@ -39,9 +38,9 @@ from types import ModuleType
 import numpy as np
 
 from neumip.core import contract as C
-from neumip.core.config import MaterialConfig
+from neumip.core.modelfile import ModelError, read_model_file
+from neumip.engines.folder import ModelFolder, read_model_bytes
 from neumip.engines.llvm import ensure_llvm
-from neumip.engines.local import ModelError, ModelFolder
 
 ensure_llvm(required=False)  # drjit's LLVM backend loads libLLVM, and one older than 16 aborts the process
 try:
@@ -85,22 +84,21 @@ class KernelMaterial:
         ModelError if it cannot be evaluated here. `backend`: drjit namespace of the arrays (default
         ``drjit.llvm.ad``)."""
         path = Path(path)
-        try:
-            model = onnx.load_model_from_string(data) if data is not None else onnx.load(str(path))
-        except OSError as exc:
-            raise ModelError(f"{path.name}: cannot read: {exc.strerror or exc}") from exc
-        except Exception as exc:  # onnx's parser raises its own types for a corrupt file
-            raise ModelError(f"{path.name}: cannot load ONNX model: {exc}") from exc
-        self.metadata = {p.key: p.value for p in model.metadata_props}
+        data = read_model_bytes(path) if data is None else data
+        self.file = read_model_file(path, data)
+        """What the file declares (`core.modelfile.read_model_file`: it refuses a file of another
+        contract version, bad metadata or non-finite weights)."""
+        self.metadata = self.file.metadata
         """The model's metadata (a graph made by another tool may have none)."""
-        problem = C.engine_problem(self.metadata, str(path))
-        if problem:
-            raise ModelError(f"{path.name}: {problem}")
-        self.config = _config(path, self.metadata)
+        self.config = self.file.config
         """The material's config from its metadata (resolution, levels...), for callers that need it
         (a report's scenes); None for a graph without it. The kernel itself reads only the graph."""
-        self.sampling = C.sampling_lobe(self.metadata)
+        self.sampling = self.file.sampling
         """The sampling lobe the model declares (`contract.SamplingLobe`; None: the cosine alone)."""
+        try:
+            model = onnx.load_model_from_string(data)
+        except Exception as exc:  # onnx's parser raises its own types for a corrupt file
+            raise ModelError(f"{path.name}: cannot load ONNX model: {exc}") from exc
         self.backend = backend or importlib.import_module(DEFAULT_BACKEND)
         """The drjit namespace whose arrays `answers` takes and gives (``drjit.llvm.ad``)."""
         self.name = path.stem
@@ -186,15 +184,6 @@ class KernelMaterial:
         return self.graph.trace(tables, columns)
 
 
-def _config(path: Path, metadata: dict[str, str]) -> MaterialConfig | None:
-    """The `MaterialConfig` in a model's metadata, or None; raises ModelError if it is malformed."""
-    text = metadata.get(C.META_CONFIG)
-    try:
-        return MaterialConfig.from_json(text) if text is not None else None
-    except (ValueError, TypeError, KeyError) as exc:
-        raise ModelError(f"{path.name}: bad {C.META_CONFIG} metadata: {exc}") from exc
-
-
 class KernelMaterials:
     """The materials of a model folder (``NAME.onnx``), evaluated as drjit kernels.
 
@@ -205,7 +194,7 @@ class KernelMaterials:
 
     def __init__(self, folder: str | Path, backend: ModuleType | None = None) -> None:
         self.backend = backend or importlib.import_module(DEFAULT_BACKEND)
-        self._models = ModelFolder(folder, functools.partial(KernelMaterial, backend=self.backend), lazy=True)
+        self._models = ModelFolder(folder, lambda path, data: KernelMaterial(path, self.backend, data), lazy=True)
         self.folder = self._models.folder
         self.errors = self._models.errors
         """{name: reason} of the files that failed to load."""

@@ -1,9 +1,9 @@
 """In-process evaluation of exported materials with ONNX Runtime (no torch).
 
-`LocalMaterials` loads every ``*.onnx`` in a folder (material name = file stem), checks each file's
-contract version, and evaluates (N, 7) query buffers, or query groups (N, 5 + 2 K) (`contract`), in
-chunks that run concurrently on a small thread pool (``InferenceSession.run`` releases the GIL), each
-chunk on one ONNX Runtime thread.
+`LocalMaterials` loads every ``*.onnx`` in a folder (material name = file stem; `folder.ModelFolder`),
+each read and checked by the one model-file reader (`neumip.core.modelfile`), and evaluates (N, 7)
+query buffers, or query groups (N, 5 + 2 K) (`contract`), in chunks that run concurrently on a small
+thread pool (``InferenceSession.run`` releases the GIL), each chunk on one ONNX Runtime thread.
 How a batch is cut does not change the answers: the exported graph answers a query with the same
 bits in any call (`neumip.training.export.graph`), so the thread count and chunk size only set the speed.
 Measured in ``benchmarks/bench_inference.py`` (sections session and chunk).
@@ -11,20 +11,20 @@ Measured in ``benchmarks/bench_inference.py`` (sections session and chunk).
 
 from __future__ import annotations
 
-import json
 import logging
 import os
-import re
-import threading
 from concurrent.futures import Executor, ThreadPoolExecutor
-from dataclasses import dataclass
+from dataclasses import asdict, dataclass
 from pathlib import Path
-from typing import Callable, Generic, TypeVar
+from typing import Callable
 
 import numpy as np
 
 from neumip.core import contract as C
-from neumip.core.errors import NeumipError
+from neumip.core.modelfile import ModelError, ModelFile, read_model_file
+from neumip.engines.folder import NAME_PATTERN, ModelFolder, UnknownMaterial, open_folder, read_model_bytes
+
+__all__ = ["NAME_PATTERN", "LocalMaterials", "Material", "ModelError", "UnknownMaterial", "load_material"]
 
 log = logging.getLogger(__name__)
 
@@ -42,23 +42,6 @@ SESSION_CONFIG = {"session.intra_op.allow_spinning": "0"}
 with other jobs spinning threads take cores the other threads need (2 intra-op threads ran at about
 half the speed with spinning on under load)."""
 
-T = TypeVar("T")
-
-NAME_PATTERN = re.compile(r"^[A-Za-z0-9][A-Za-z0-9_.-]{0,127}$")
-"""What a material name may look like (also guards paths built from names)."""
-
-
-class ModelError(NeumipError, RuntimeError):
-    """A model file that cannot be used: unreadable, corrupt, or of another contract."""
-
-
-class UnknownMaterial(NeumipError, KeyError):
-    """A material name that is not loaded."""
-
-    def __str__(self) -> str:
-        return str(self.args[0])
-
-
 def _onnxruntime():
     # ONNX Runtime >= 1.29 sends usage telemetry, and where it cannot write its cache (a container
     # user without a home) warns at start-up in raw ANSI colours; ORT_DISABLE_TELEMETRY=0 turns it back on
@@ -72,27 +55,36 @@ def _onnxruntime():
 
 @dataclass
 class Material:
-    """One loaded material: its ONNX Runtime session and the metadata that travelled with it."""
+    """One loaded material: its ONNX Runtime session and what its file declares."""
 
     name: str
     path: Path
     session: object
-    metadata: dict[str, str]
-    bytes: int = 0
-    """Size of the model file it was loaded from."""
+    file: ModelFile
+    """The model file's metadata, config, trim and sampling lobe (`core.modelfile.read_model_file`)."""
     single_queries: bool = False
     """Whether the graph's input is fixed at 7 columns (a graph made by another tool that takes no
     query groups): each light of a group is then answered as its single query, as the in-kernel engine
     answers it."""
 
     @property
+    def metadata(self) -> dict[str, str]:
+        return self.file.metadata
+
+    @property
+    def bytes(self) -> int:
+        """Size of the model file it was loaded from."""
+        return self.file.size
+
+    @property
     def config(self) -> dict:
-        return json.loads(self.metadata.get(C.META_CONFIG, "{}"))
+        """The model's config as a dict ({} for a graph without neumip metadata)."""
+        return self.file.config_dict()
 
     @property
     def sampling(self) -> C.SamplingLobe | None:
         """The sampling lobe the model declares (`contract.SamplingLobe`; None: the cosine alone)."""
-        return C.sampling_lobe(self.metadata)
+        return self.file.sampling
 
     def run(self, queries: np.ndarray) -> np.ndarray:
         """One call: validated (n, 5 + 2 K) float32 queries -> (n, 3 K) float32 RGB (`run_call`)."""
@@ -102,25 +94,28 @@ class Material:
 
     def info(self) -> dict:
         """What a listing shows of this material."""
-        validation = self.metadata.get(C.META_VALIDATION)
-        trim = self.metadata.get(C.META_TRIM)
+        file = self.file
         return {
             "name": self.name,
-            "contract_version": self.metadata.get(C.META_CONTRACT),
-            "description": self.metadata.get(C.META_DESCRIPTION, ""),
+            "contract_version": file.metadata.get(C.META_CONTRACT),
+            "description": file.description,
             "config": self.config,
-            "validation": json.loads(validation) if validation else None,
-            "trim": json.loads(trim) if trim else None,
-            "sampling": self.sampling._asdict() if self.sampling else None,
-            "bytes": self.bytes,
+            "validation": file.validation,
+            "trim": asdict(file.trim) if file.trim else None,
+            "sampling": file.sampling._asdict() if file.sampling else None,
+            "bytes": file.size,
         }
 
 
 def load_material(path: str | Path, threads: int = 0, data: bytes | None = None) -> Material:
     """Open one ``.onnx`` material (from `data`, the file's bytes already read, if given); raises
-    ModelError if unreadable or of another contract version (`contract.version_problem`)."""
+    ModelError for a file the model-file reader refuses (`core.modelfile.read_model_file`: unreadable,
+    corrupt, another contract version, non-finite weights...) or a graph that does not map queries to
+    answers."""
     ort = _onnxruntime()
     path = Path(path)
+    data = read_model_bytes(path) if data is None else data  # read once: for the reader and the session
+    file = read_model_file(path, data)
     opts = ort.SessionOptions()
     opts.intra_op_num_threads = threads
     opts.inter_op_num_threads = 1
@@ -128,16 +123,9 @@ def load_material(path: str | Path, threads: int = 0, data: bytes | None = None)
     for key, value in SESSION_CONFIG.items():
         opts.add_session_config_entry(key, value)
     try:
-        source = data if data is not None else path.read_bytes()
-        session = ort.InferenceSession(source, opts, providers=["CPUExecutionProvider"])
-    except OSError as exc:
-        raise ModelError(f"{path.name}: cannot read: {exc.strerror or exc}") from exc
+        session = ort.InferenceSession(data, opts, providers=["CPUExecutionProvider"])
     except Exception as exc:  # onnxruntime raises its own exception types for corrupt files
         raise ModelError(f"{path.name}: cannot load ONNX model: {exc}") from exc
-    meta = dict(session.get_modelmeta().custom_metadata_map)
-    problem = C.engine_problem(meta, str(path))
-    if problem:
-        raise ModelError(f"{path.name}: {problem}")
     inputs, outputs = session.get_inputs(), session.get_outputs()
     if [i.name for i in inputs] != [C.ONNX_INPUT] or [o.name for o in outputs] != [C.ONNX_OUTPUT]:
         raise ModelError(f"{path.name}: graph must map '{C.ONNX_INPUT}' to '{C.ONNX_OUTPUT}'")
@@ -147,7 +135,7 @@ def load_material(path: str | Path, threads: int = 0, data: bytes | None = None)
     if isinstance(width, int) and width != C.QUERY_DIM:
         raise ModelError(f"{path.name}: '{C.ONNX_INPUT}' must be (N, {C.QUERY_DIM}) or query groups "
                          f"(N, 5 + 2 K), not (N, {width})")
-    return Material(path.stem, path, session, meta, len(source), single_queries=width == C.QUERY_DIM)
+    return Material(path.stem, path, session, file, single_queries=width == C.QUERY_DIM)
 
 
 def run_call(session, queries: np.ndarray) -> np.ndarray:
@@ -196,76 +184,8 @@ def split_chunk(rows: int, workers: int, chunk: int = DEFAULT_CHUNK) -> int:
 
 def load_folder(folder: Path, threads: int = 1) -> tuple[dict[str, Material], dict[str, str]]:
     """Open every ``*.onnx`` in `folder` -> (materials by name, {name: reason} of files that failed)
-    (`open_folder` with `load_material`)."""
-    return open_folder(folder, lambda path: load_material(path, threads))
-
-
-def open_folder(folder: Path, load: Callable[[Path], T]) -> tuple[dict[str, T], dict[str, str]]:
-    """``load`` every ``*.onnx`` in `folder` -> (loaded by name, {name: reason} of files that failed).
-
-    A file fails when it cannot be loaded (`load` raises ModelError: corrupt, another contract
-    version, wrong graph) or when its stem is not a material name (`NAME_PATTERN`); failures are
-    logged, the others still load.
-    """
-    loaded: dict[str, T] = {}
-    failed: dict[str, str] = {}
-    for path in sorted(Path(folder).glob("*.onnx")):
-        if not NAME_PATTERN.match(path.stem):
-            failed[path.stem] = "file name is not a valid material name"
-        else:
-            try:
-                loaded[path.stem] = load(path)
-                continue
-            except ModelError as exc:
-                failed[path.stem] = str(exc)
-        log.error("skipping %s: %s", path.name, failed[path.stem])
-    return loaded, failed
-
-
-class ModelFolder(Generic[T]):
-    """The materials of a model folder (``NAME.onnx``), each opened once by ``load(path)``: every file
-    at once (those that fail are logged and listed in `errors`), or with ``lazy=True`` each on its
-    first `get` (a file that fails then raises ModelError there, and is listed in `errors`). Shared by
-    the evaluators of a folder (`LocalMaterials`, the renderer's `KernelMaterials`)."""
-
-    def __init__(self, folder: str | Path, load: Callable[[Path], T], lazy: bool = False) -> None:
-        self.folder = Path(folder)
-        if not self.folder.is_dir():
-            raise FileNotFoundError(f"model folder {self.folder} does not exist")
-        self._load = load
-        self._lock = threading.Lock()
-        if lazy:
-            self._loaded, self.errors = {}, {}
-            self._listed = sorted(p.stem for p in self.folder.glob("*.onnx") if NAME_PATTERN.match(p.stem))
-        else:
-            self._loaded, self.errors = open_folder(self.folder, load)
-            self._listed = sorted(self._loaded)
-
-    def names(self) -> list[str]:
-        """Names served: loaded ones (lazy: every listed file that has not failed)."""
-        return sorted(set(self._listed) - set(self.errors))
-
-    def loaded(self) -> list[str]:
-        """Names of the materials loaded so far."""
-        return sorted(self._loaded)
-
-    def get(self, name: str) -> T:
-        """Material `name`, loaded on first use; raises UnknownMaterial or ModelError."""
-        material = self._loaded.get(name)
-        if material is not None:
-            return material
-        if name not in self.names():
-            known = ", ".join(self.names()) or "none"
-            raise UnknownMaterial(f"unknown material {name!r} (served: {known})")
-        with self._lock:  # lazy: load once, whichever thread asks first
-            if name not in self._loaded:
-                try:
-                    self._loaded[name] = self._load(self.folder / f"{name}.onnx")
-                except ModelError as exc:
-                    self.errors[name] = str(exc)
-                    raise
-                log.info("loaded %s on first use (as %s)", name, type(self._loaded[name]).__name__)
-            return self._loaded[name]
+    (`folder.open_folder` with `load_material`)."""
+    return open_folder(folder, lambda path, data: load_material(path, threads, data))
 
 
 class LocalMaterials:
@@ -281,7 +201,7 @@ class LocalMaterials:
     def __init__(self, folder: str | Path, threads: int = 0, chunk: int = DEFAULT_CHUNK, lazy: bool = False) -> None:
         if chunk < 1:
             raise ValueError(f"chunk must be at least 1 row, got {chunk}")
-        self._models = ModelFolder(folder, lambda path: load_material(path, threads=1), lazy)
+        self._models = ModelFolder(folder, lambda path, data: load_material(path, 1, data), lazy)
         self.folder = self._models.folder
         self.errors = self._models.errors
         """{name: reason} of the files that failed to load."""

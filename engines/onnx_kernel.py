@@ -56,10 +56,6 @@ class LaneGraph:
                              f"not (N, {width})")
         self.groups = width is None
         """Whether the graph takes query groups (otherwise each light is evaluated as a single query)."""
-        bad = sorted(name for name, value in inits.items()
-                     if value.dtype.kind == "f" and not np.isfinite(value).all())
-        if bad:
-            raise GraphError(f"non-finite weights in {', '.join(bad)}")
         constants, self.nodes = fold_constants(graph.node, inits)
         self.table_names = sorted({n.input[0] for n in self.nodes
                                    if n.op_type == "Gather" and n.input[0] in constants})

@@ -22,7 +22,6 @@ queries in the contract's layout with their (N, 3) RGB.
 from __future__ import annotations
 
 import json
-import os
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -31,6 +30,7 @@ import numpy as np
 
 from neumip.core import contract as C
 from neumip.core.errors import NeumipError
+from neumip.core.files import write_text_atomic
 
 FORMAT = "neumip-mbtf-1"
 
@@ -59,9 +59,7 @@ def _identity(meta: dict) -> dict:
 
 
 def _write_json(path: Path, data: dict) -> None:
-    tmp = path.with_name(path.name + ".tmp")
-    tmp.write_text(json.dumps(data, indent=2, sort_keys=True))
-    os.replace(tmp, path)
+    write_text_atomic(path, json.dumps(data, indent=2, sort_keys=True))
 
 
 @dataclass

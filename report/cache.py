@@ -17,6 +17,8 @@ from pathlib import Path
 
 import numpy as np
 
+from neumip.core.files import atomic_write
+
 log = logging.getLogger(__name__)
 
 
@@ -66,12 +68,11 @@ class RenderCache:
 
     def put(self, params: dict, image: np.ndarray, seconds: float, load: float = float("nan")) -> None:
         path = self.path(params)
-        tmp = path.with_name(f".{path.stem}.{os.getpid()}.partial.npz")
-        try:
-            with open(tmp, "wb") as f:
+
+        def write(tmp: Path) -> None:
+            with open(tmp, "wb") as f:  # a file object: np.savez adds no suffix
                 np.savez(f, image=image.astype(np.float32), seconds=np.float64(seconds), load=np.float64(load),
                          params=json.dumps(params, sort_keys=True, default=str))
-            os.replace(tmp, path)
-            self.seconds += seconds
-        finally:
-            tmp.unlink(missing_ok=True)
+
+        atomic_write(path, write)
+        self.seconds += seconds

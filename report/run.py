@@ -167,7 +167,7 @@ def run_stability(out, materials, config, evaluator, renders, cache, progress, m
     progress.stage("stability", len(names) + 2)
     sweeps = {}
     for name in names:
-        resolution = int(evaluator.get(name).config["resolution"])
+        resolution = evaluator.get(name).file.require_config("the stability sweeps read its resolution").resolution
         sweeps[name] = stability.sweeps(evaluator, name, config.sweep_points, resolution)
         progress.tick()
     charts.sweeps(sweeps, out / "stability_sweeps.png")

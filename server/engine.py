@@ -18,11 +18,10 @@ traced, `WARM_LIGHTS`: a wider group is split into groups of two lights (and one
 odd count), evaluated in one call, and put back together - free, since a group answers with the
 bits of its single queries.
 
-Both engines refuse a file with a non-finite weight (NaN or Inf in any float initializer) when it
-loads, naming the tensors - the kernel engine as it reads them, ONNX Runtime's through
-`nonfinite_initializers` (the ONNX file read as protobuf, with no ``onnx`` package) - and both answer
-500 naming the material and the row for an answer that is not finite (`batching`), e.g. from a graph
-that gives NaN for some inputs.
+Both engines read a file through the one model-file reader (`neumip.core.modelfile`), so both refuse
+a file with a non-finite weight (NaN or Inf in any float initializer) when it loads, naming the
+tensors, and both answer 500 naming the material and the row for an answer that is not finite
+(`batching`), e.g. from a graph that gives NaN for some inputs.
 
 Either way the registry and the batcher see one thing per material: a `Material` whose
 ``run(queries) -> answers`` evaluates one call and whose ``bytes`` count against the memory budget
@@ -40,7 +39,7 @@ import numpy as np
 
 from neumip.core import contract as C
 from neumip.core.errors import NeumipError
-from neumip.engines.local import Material, ModelError, load_material
+from neumip.engines.local import Material, load_material
 
 from neumip.server.settings import Settings, available_cores
 
@@ -93,63 +92,6 @@ def in_pairs(run: Callable[[np.ndarray], np.ndarray], queries: np.ndarray) -> np
     return rgb.reshape(n, lights * C.RGB_DIM)
 
 
-FLOAT_TYPES = {1: "<f4", 11: "<f8"}
-"""ONNX TensorProto data types checked for non-finite values (FLOAT, DOUBLE) and their numpy types."""
-
-
-def _varint(buf: memoryview, i: int) -> tuple[int, int]:
-    value = shift = 0
-    while True:
-        byte = buf[i]
-        value |= (byte & 0x7F) << shift
-        i, shift = i + 1, shift + 7
-        if byte < 0x80:
-            return value, i
-
-
-def _fields(buf: memoryview):
-    """The (field number, wire type, value) of a protobuf message: ints for varints, memoryviews else."""
-    i = 0
-    while i < len(buf):
-        key, i = _varint(buf, i)
-        kind = key & 7
-        if kind == 0:
-            value, i = _varint(buf, i)
-        elif kind == 2:
-            size, i = _varint(buf, i)
-            value, i = buf[i:i + size], i + size
-        elif kind in (1, 5):
-            size = 8 if kind == 1 else 4
-            value, i = buf[i:i + size], i + size
-        else:
-            raise ModelError(f"unsupported protobuf wire type {kind}")
-        yield key >> 3, kind, value
-
-
-def nonfinite_initializers(data: bytes) -> list[str]:
-    """Names of the graph's float initializers holding NaN or Inf, read from the ONNX file's bytes
-    (ModelProto.graph = 7, GraphProto.initializer = 5; TensorProto: data_type = 2, float_data = 4,
-    double_data = 10, name = 8, raw_data = 9)."""
-    bad = []
-    for field, _, graph in _fields(memoryview(data)):
-        if field != 7:
-            continue
-        for field, _, tensor in _fields(graph):
-            if field != 5:
-                continue
-            parts, name, dtype = [], "", None
-            for number, kind, value in _fields(tensor):
-                if number == 2:
-                    dtype = FLOAT_TYPES.get(value)
-                elif number == 8:
-                    name = bytes(value).decode("utf-8", "replace")
-                elif number in (4, 9, 10) and kind != 0:
-                    parts.append(value)  # packed values, raw data, or one unpacked value
-            if dtype is not None and any(not np.isfinite(np.frombuffer(p, dtype)).all() for p in parts if len(p)):
-                bad.append(name)
-    return bad
-
-
 @dataclass(frozen=True)
 class Engine:
     """How materials are loaded and how many rows, and calls at once, one evaluation takes."""
@@ -171,14 +113,11 @@ class Engine:
 
     @classmethod
     def onnxruntime(cls, threads: int = 1, workers: int = 1, chunk_rows: int = 8192) -> "Engine":
-        """ONNX Runtime sessions of `threads` intra-op threads each; files with non-finite weights refused."""
+        """ONNX Runtime sessions of `threads` intra-op threads each (`load_material`: ModelError for a
+        file it cannot run, non-finite weights included)."""
 
         def load(path: Path, data: bytes) -> Material:
-            material = load_material(path, threads, data=data)  # ModelError for a file it cannot run
-            bad = nonfinite_initializers(data)
-            if bad:
-                raise ModelError(f"{path.name}: non-finite weights in {', '.join(sorted(bad))}")
-            return material
+            return load_material(path, threads, data=data)
 
         return cls("onnxruntime", load, workers, chunk_rows)
 
@@ -202,7 +141,7 @@ class Engine:
 
         def load(path: Path, data: bytes) -> Material:
             kernel = KernelMaterial(path, data=data)
-            return KernelModel(path.stem, path, kernel, kernel.metadata, len(data))
+            return KernelModel(path.stem, path, kernel, kernel.file)
 
         return cls("kernel", load, 1, chunk_rows, lambda: dr.set_thread_count(available_cores()),
                    platform=KERNEL_PLATFORM)

@@ -26,6 +26,10 @@ busy; the excess is unloaded when their requests finish. A model's bytes are its
 
 Material names from requests are only ever looked up in dicts, never joined into a path before
 `check_name` accepted them.
+
+The registry builds on the engines' model folder (`neumip.engines.folder`): the same listing and
+names, the same read of a file's bytes, and each file read and checked by the one model-file reader
+(`neumip.core.modelfile`) inside the engine's loader.
 """
 
 from __future__ import annotations
@@ -43,7 +47,9 @@ from pathlib import Path
 import numpy as np
 
 from neumip.core import contract as C
-from neumip.engines.local import NAME_PATTERN, Material, ModelError, UnknownMaterial
+from neumip.core.modelfile import ModelError
+from neumip.engines.folder import BAD_NAME, NAME_PATTERN, FileStamp, UnknownMaterial, list_models, read_model_bytes
+from neumip.engines.local import Material
 
 from neumip.server.engine import WARM_LIGHTS, Engine
 from neumip.server.errors import ApiError
@@ -88,23 +94,6 @@ def check_name(name: str) -> str:
             " (starting with a letter or digit, at most 128 characters)",
         )
     return name
-
-
-@dataclass(frozen=True)
-class FileStamp:
-    """What says a model file changed: modification time, size, inode."""
-
-    mtime_ns: int
-    size: int
-    inode: int
-
-    @classmethod
-    def of(cls, path: Path) -> "FileStamp | None":
-        try:
-            st = path.stat()
-        except FileNotFoundError:
-            return None
-        return cls(st.st_mtime_ns, st.st_size, st.st_ino)
 
 
 @dataclass
@@ -172,15 +161,14 @@ class Registry:
     # --- the folder ------------------------------------------------------------------------------
     def _list(self) -> dict[str, FileStamp | None]:
         """Name -> stamp of every ``*.onnx`` in the folder (None: an invalid name, recorded as failed)."""
-        listing = {}
-        for path in self.folder.glob("*.onnx"):
-            if NAME_PATTERN.match(path.stem):
-                stamp = FileStamp.of(path)
-                if stamp is not None:
-                    listing[path.stem] = stamp
-            else:
-                listing[path.stem] = None
-                self.failed.setdefault(path.stem, "file name is not a valid material name")
+        named, bad = list_models(self.folder)
+        listing: dict[str, FileStamp | None] = dict.fromkeys(bad)
+        for name in bad:
+            self.failed.setdefault(name, BAD_NAME)
+        for name, path in named.items():
+            stamp = FileStamp.of(path)
+            if stamp is not None:
+                listing[name] = stamp
         return listing
 
     def poll(self) -> None:
@@ -260,9 +248,7 @@ class Registry:
     def _read(self, path: Path, stamp: FileStamp) -> Material:
         """Read, load and warm up one file; ApiError(400) with the reason if it cannot be served."""
         try:
-            data = path.read_bytes()
-            if FileStamp.of(path) != stamp or len(data) != stamp.size:
-                raise ModelError(f"{path.name} changed while it was read (still being written?)")
+            data = read_model_bytes(path, stamp)
             material = self.config.engine.load(path, data)
             rows = self.config.warmup_rows
             for lights in WARM_LIGHTS if rows else ():  # the renderer's two shapes (the kernel engine traces each)

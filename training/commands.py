@@ -10,7 +10,7 @@ from pathlib import Path
 
 from neumip.core import flags
 from neumip.core.config import DERIVED_FIELDS, FIELD_CHOICES, MaterialConfig  # torch-free
-from neumip.training.loop.config import LOSSES, PRESETS, TrainConfig  # torch-free
+from neumip.training.loop.config import LOSSES, PRESETS, RECIPES, Recipe, TrainConfig  # torch-free
 
 BASE_HELP = ("the classical material as the base: the answer is the principled BSDF on the material's maps (a "
              "pyramid at the maps' resolution) times exp(the decoder's correction), plus its additive term "
@@ -28,14 +28,31 @@ MAP_FLAGS = {"hidden": "map_hidden", "layers": "map_layers"}
 def add_material_flags(p: argparse.ArgumentParser, skip: tuple[str, ...] = ()) -> None:
     """A flag for each `MaterialConfig` field a user sets (not `DERIVED_FIELDS`), `--relief [STEPS]`, and the
     `TrainConfig` fields as overrides of the preset."""
-    model = p.add_argument_group("model (MaterialConfig)")
+    model = p.add_argument_group("model (MaterialConfig, over the --recipe's values)")
     flags.add_flags(model, MaterialConfig, skip=DERIVED_FIELDS + skip, choices=FIELD_CHOICES,
-                    metavars={"lod_bias": "K"})
-    model.add_argument("--relief", type=int, nargs="?", const=MaterialConfig.relief_steps, default=0, metavar="STEPS",
-                       help=RELIEF_HELP + f"; STEPS defaults to {MaterialConfig.relief_steps}")
+                    metavars={"lod_bias": "K"}, overrides=True, show_default=True)
+    model.add_argument("--relief", type=int, nargs="?", const=MaterialConfig.relief_steps, metavar="STEPS",
+                       help=RELIEF_HELP + f"; STEPS defaults to {MaterialConfig.relief_steps}; 0: none")
     schedule = p.add_argument_group("training (TrainConfig, over the --preset's values)")
     schedule.add_argument("--config", help="JSON file of TrainConfig fields (applied over the preset)")
     flags.add_flags(schedule, TrainConfig, choices=TRAIN_CHOICES, overrides=True)
+
+
+def apply_recipe(args: argparse.Namespace, recipe: Recipe, maps_on=True, base_on=True) -> None:
+    """Fill what the command line left unset with `recipe`'s values: its `MaterialConfig` fields, its map encoder
+    (`args.maps` set to `maps_on`), its base (`args.base` to `base_on`) and its relief. A flag given wins."""
+    for name, value in recipe.material.items():
+        if getattr(args, name, None) is None:
+            setattr(args, name, value)
+    if recipe.maps is not None and not args.maps:
+        args.maps = maps_on
+        for name, value in recipe.maps.items():
+            if getattr(args, MAP_FLAGS.get(name, name), None) is None:
+                setattr(args, MAP_FLAGS.get(name, name), value)
+    if recipe.base and not args.base:
+        args.base = base_on
+    if args.relief is None:
+        args.relief = recipe.relief
 
 
 def add_map_flags(p: argparse.ArgumentParser) -> None:
@@ -62,6 +79,9 @@ def register(sub: argparse._SubParsersAction) -> None:
     level.add_argument("--budget", type=Path,
                        help="`neumip budget --json` output: train at its recommended finest resolution for the material")
     p.add_argument("--material", help="material name to look up in --budget (default: the output's file stem)")
+    p.add_argument("--recipe", choices=tuple(RECIPES), default="paper",
+                   help="what the model is made of where no flag says otherwise (training/loop/config.py RECIPES; "
+                        "maps: the shipped map-informed model, on the data's material's maps)")
     p.add_argument("--maps", nargs="?", const="", metavar="NAME_OR_TOML",
                    help="map-informed model: its textures are encoded from the material's prefiltered maps "
                         "(the data's own material, or this library name / .toml); the export is the paper's graph")
@@ -110,7 +130,7 @@ def material_config(args: argparse.Namespace, resolution: int, geometry=None, **
 
     chosen = flags.values(args, MaterialConfig, skip=DERIVED_FIELDS)
     if "base" not in fields:
-        fields["base"] = base_resolution(geometry) if getattr(args, "base", False) else 0
+        fields["base"] = base_resolution(geometry) if getattr(args, "base", False) not in (False, None, "off") else 0
     if "relief" not in fields:
         fields["relief"] = relief_resolution(geometry) if args.relief else 0
     return MaterialConfig(resolution=resolution, relief_steps=args.relief or MaterialConfig.relief_steps,
@@ -245,6 +265,7 @@ def _train(args: argparse.Namespace) -> int:
 
     checkpoint = Path(args.checkpoint or work_folder(output) / "checkpoint.pt")
     try:
+        apply_recipe(args, RECIPES[args.recipe], maps_on="", base_on=True)
         config = train_settings(args)
         resolution = args.resolution or _budget_resolution(args, output) or _data_resolution(args.data)
         maps = _map_source(args)

@@ -7,7 +7,7 @@ import argparse
 from pathlib import Path
 
 from neumip.training import commands
-from neumip.training.loop.config import PRESETS  # torch-free
+from neumip.training.loop.config import PRESETS, RECIPES  # torch-free
 
 SHIPPED_MODELS = Path(__file__).resolve().parents[1] / "models"
 """The shipped models of a checkout (an editable install); a wheel has none, and the verdict then stands alone."""
@@ -44,9 +44,13 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--queries", type=int, help="ground-truth queries (default: --queries-per-texel per texel of "
                    "the finest level); models of other resolutions can so share one data set")
     p.add_argument("--spp", type=int, default=GenerateSettings.spp, help="path samples per ground-truth query")
+    p.add_argument("--recipe", choices=("auto",) + tuple(RECIPES), default="auto",
+                   help="what the model is made of where no flag says otherwise (training/loop/config.py RECIPES): auto "
+                        "makes the shipped map-informed model (maps) of a material with principled maps, the paper's "
+                        "(paper) of one without; a flag given wins over the recipe's value")
     p.add_argument("--maps", action="store_true", help="map-informed model: its textures are encoded from the "
                    "material's prefiltered maps (training/TRAINING.md); the export is the paper's graph")
-    p.add_argument("--base", nargs="?", const="on", choices=("on", "auto"),
+    p.add_argument("--base", nargs="?", const="on", choices=("on", "auto", "off"),
                    help=commands.BASE_HELP + "; --base auto trains the model without and with it and keeps the base only "
                    "where it lowers the (log-space) error on a low-noise reference set by 10 %% (fit.BASE_MARGIN; "
                    "twice the training time)")
@@ -129,10 +133,12 @@ def _fit(args: argparse.Namespace) -> int:
     try:
         desc = find_description(args.material)
         config = commands.train_settings(args)
+        recipe = args.recipe if args.recipe != "auto" else "maps" if resolve(desc).bsdf is None else "paper"
+        commands.apply_recipe(args, RECIPES[recipe], maps_on=True, base_on="on")
         resolution = args.resolution or desc.resolution
         material = commands.material_config(args, resolution, resolve(desc) if args.base or args.relief else None)
         generate = GenerateSettings(spp=args.spp, sampling=QuerySampling(queries_per_texel=args.queries_per_texel,
-                                                                         sub_texel_levels=args.lod_bias),
+                                                                         sub_texel_levels=material.lod_bias),
                                     queries=args.queries)
         maps = commands.map_config(args, args.maps)
     except (DescriptionError, ValueError) as exc:

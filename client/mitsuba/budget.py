@@ -31,6 +31,7 @@ import numpy as np
 
 from neumip.core import contract as C
 from neumip.core.contract import sample_footprint
+from neumip.core.modelfile import read_model_file
 
 from neumip.client.mitsuba.bsdf import mi
 from neumip.client.mitsuba.render import RenderConfig, render_scene
@@ -120,6 +121,9 @@ class MaterialBudget:
     """Texels per side at which the model reads the material's maps (base, relief), 0: none."""
     model_bytes: int | None = None
     """The model file's size now (None: no model file for this material)."""
+    foreign_graph: bool = False
+    """Whether the model file is a graph without neumip metadata (made by another tool): it has no
+    pyramid to budget, so the levels refer to a `DEFAULT_RESOLUTION` one, as for no model file."""
     trimmed_bytes: int | None = None
     """Its size after trimming to ``finest_level`` (`neumip trim`)."""
 
@@ -171,16 +175,16 @@ def material_budget(material: str, sigma: np.ndarray, resolution: int, coverage:
     )
 
 
-def model_facts(path: Path) -> ModelFacts:
-    """Resolution, channels, bytes and trim of the model at ``path`` (its ONNX metadata)."""
-    from neumip.engines.local import load_material
-
-    material = load_material(path, threads=1)
-    config = material.config
-    trim = json.loads(material.metadata.get(C.META_TRIM, "{}"))
-    return ModelFacts(int(config["resolution"]), int(config["channels"]), path.stat().st_size,
-                      int(trim.get("finest_level", 0)), max(int(config.get("base", 0)), int(config.get("relief", 0))),
-                      int(config.get("lod_bias", 0)))
+def model_facts(path: Path) -> ModelFacts | None:
+    """Resolution, channels, bytes and trim of the model at ``path`` (its ONNX metadata, read by
+    `core.modelfile.read_model_file`: ModelError for a file it refuses); None for a graph without
+    neumip metadata (made by another tool: no pyramid)."""
+    file = read_model_file(path)
+    config = file.config
+    if config is None:
+        return None
+    return ModelFacts(config.resolution, config.channels, file.size, file.finest_level,
+                      max(config.base, config.relief), config.lod_bias)
 
 
 def trimmed_size(facts: ModelFacts, finest_level: int) -> int:
@@ -218,13 +222,16 @@ def scene_budget(scene: mi.Scene, models: Path | None, spp: int = 4, coverage: f
     out = SceneBudget(spp=spp, render_spp=render_spp)
     for name, sigma in footprints.items():
         path = Path(models) / f"{name}.onnx" if models else None
-        facts = model_facts(path) if path is not None and path.is_file() else None
+        present = path is not None and path.is_file()
+        facts = model_facts(path) if present else None
         budget = material_budget(name, sigma, facts.resolution if facts else DEFAULT_RESOLUTION, coverage,
                                  sample_footprint(render_spp), facts.maps_resolution if facts else 0,
                                  facts.lod_bias if facts else 0)
         if facts is not None:
             budget.model_bytes = facts.bytes
             budget.trimmed_bytes = trimmed_size(facts, budget.finest_level)
+        elif present:
+            budget.model_bytes, budget.foreign_graph = path.stat().st_size, True
         out.materials.append(budget)
     return out
 
@@ -233,9 +240,12 @@ def format_budget(budget: SceneBudget, width: int = 40) -> str:
     """A human-readable report: per material the histogram and the recommendations."""
     lines = [f"footprints of a render at {budget.render_spp} spp (traced at {budget.spp} spp)"]
     for m in budget.materials:
+        if m.foreign_graph:
+            about = f" (a foreign graph of {m.model_bytes:,} bytes without neumip metadata: no pyramid to budget)"
+        else:
+            about = f" ({m.model_bytes:,} bytes)" if m.model_bytes is not None else " (no model file)"
         lines.append(f"{m.material}: {m.queries:,} queries, model {m.resolution}^2"
-                     + (f" on its maps at {m.maps_resolution}^2" if m.maps_resolution else "")
-                     + (f" ({m.model_bytes:,} bytes)" if m.model_bytes is not None else " (no model file)"))
+                     + (f" on its maps at {m.maps_resolution}^2" if m.maps_resolution else "") + about)
         lines.append(f"  levels read: {m.level_range[0]}..{m.level_range[1]}")
         for level, share in enumerate(m.histogram):
             bar = "#" * round(share * width)

@@ -123,3 +123,20 @@ def test_sampling_lobe_is_read_and_a_malformed_one_refused(tmp_path):
     assert "neumip.sampling" in local.errors["broken"]
     with pytest.raises(ModelError, match="neumip.sampling"):
         kernel.kernel("broken")
+
+
+def test_a_non_finite_weight_is_refused_as_the_server_refuses_it(model_dir, tmp_path, write_nan_weight):
+    """LocalMaterials loaded a file with a NaN weight and answered NaN for some queries, while the
+    server refused it: both read it through the one model-file reader now, with the one error."""
+    from neumip.core.modelfile import ModelError as ReaderError
+
+    write_nan_weight(model_dir / "rand16.onnx", tmp_path / "nan.onnx")
+    shutil.copy(model_dir / "flat16.onnx", tmp_path)
+    mats = LocalMaterials(tmp_path)
+    assert mats.materials() == ["flat16"]
+    assert mats.errors["nan"] == "nan.onnx: non-finite weights in pyramid"
+    with pytest.raises(ReaderError, match="^nan.onnx: non-finite weights in pyramid$"):
+        load_material(tmp_path / "nan.onnx")
+    assert ModelError is ReaderError
+    with pytest.raises(ReaderError, match="nan.onnx: non-finite"):
+        LocalMaterials(tmp_path, lazy=True).get("nan")

@@ -30,7 +30,6 @@ from __future__ import annotations
 
 import json
 import logging
-import os
 from pathlib import Path
 
 import numpy as np
@@ -353,13 +352,12 @@ def build_onnx(
 
 
 def save_onnx(model: onnx.ModelProto, path: str | Path) -> Path:
-    """Write `model` to `path` atomically (temporary file, then rename)."""
+    """Write `model` to `path` atomically (`core.files.write_bytes_atomic`: temporary file, then rename)."""
+    from neumip.core.files import write_bytes_atomic
+
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(path.name + ".tmp")
-    tmp.write_bytes(model.SerializeToString())
-    os.replace(tmp, path)
-    return path
+    return write_bytes_atomic(path, model.SerializeToString())
 
 
 def export_material(material, out: str | Path, description: str = "", validation: dict | None = None,

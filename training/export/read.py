@@ -7,8 +7,9 @@ function in the same float order - the same answer bits (`reexport_file` checks 
 queries and reports the largest difference). A file of query contract version 1 is read by
 `upgrade.read_v1` instead and comes out in this version (`neumip.core.contract.version_problem`).
 
-The graph's initializers and their shapes are `neumip.core.weights.initializer_shapes`; each is
-checked, so a file this export did not write is refused by name, never guessed at. Matrices are
+The model is read by the one model-file reader (`neumip.core.modelfile`: metadata, config, trim, finite
+weights); the graph's initializers and their shapes are `neumip.core.weights.initializer_shapes`; each
+is checked, so a file this export did not write is refused by name, never guessed at. Matrices are
 stored halved (`onnx_graph.GraphWriter.product`) and doubled back here, exact; a first layer is put
 back together from its parts (texture, query, light columns); the offset MLP's last layer is stored
 folded (`export._depth_weights`) and unfolded to weights that fold to the same bits.
@@ -16,41 +17,35 @@ folded (`export._depth_weights`) and unfolded to weights that fold to the same b
 
 from __future__ import annotations
 
-import json
-
 import numpy as np
 import onnx
-from onnx import numpy_helper
 
 from neumip.core import contract as C
 from neumip.core import weights as W
 from neumip.core.config import DECODER_INPUTS, MaterialConfig
-from neumip.core.errors import NeumipError
+from neumip.core.modelfile import ModelError, ModelFile, read_model_file
 
 from neumip.training.export.graph import _depth_weights
 from neumip.training.export.onnx_graph import COLUMN_ALPHA
 
 
-class ModelLayoutError(NeumipError, ValueError):
-    """A model whose graph is not one `export.build_onnx` wrote (its weights cannot be read back)."""
+ModelLayoutError = ModelError
+"""A model whose graph is not one `export.build_onnx` wrote (its weights cannot be read back): the
+model-file reader's one error."""
+
+NEEDS_CONFIG = "reading its weights back needs the model's config"
+"""What `ModelFile.require_config` says needs it here."""
 
 
-def initializers(model: onnx.ModelProto) -> dict[str, np.ndarray]:
-    """Every initializer of `model` by name."""
-    return {init.name: numpy_helper.to_array(init) for init in model.graph.initializer}
+def model_file(model: onnx.ModelProto, source: str = "model.onnx", any_version: bool = False) -> ModelFile:
+    """In-memory `model` read by the one model-file reader (`core.modelfile.read_model_file`), its
+    initializers included; `source`: the file's path, as its messages name it."""
+    return read_model_file(source, model.SerializeToString(), any_version=any_version, initializers=True)
 
 
 def metadata(model: onnx.ModelProto) -> dict[str, str]:
-    """The model's ONNX metadata."""
-    return {p.key: p.value for p in model.metadata_props}
-
-
-def model_facts(meta: dict[str, str]) -> tuple[MaterialConfig, int]:
-    """(config, finest level: 0 unless trimmed) from a model's metadata; ModelLayoutError without a config."""
-    if C.META_CONFIG not in meta:
-        raise ModelLayoutError(f"not a neumip material (no {C.META_CONFIG} in its ONNX metadata)")
-    finest = json.loads(meta[C.META_TRIM])["finest_level"] if meta.get(C.META_TRIM) else 0
-    return MaterialConfig.from_json(meta[C.META_CONFIG]), finest
+    """The model's ONNX metadata (of any contract version)."""
+    return model_file(model, any_version=True).metadata
 
 
 def check_shapes(inits: dict[str, np.ndarray], want: dict[str, tuple[int, ...]]) -> None:
@@ -103,12 +98,9 @@ def read_model(model: onnx.ModelProto, source: str = "OLD.onnx",
     """Exported `model` of this contract version -> (config, weights as `export.weights_from_state`
     gives them, its metadata, its finest level K: 0 unless trimmed). ModelLayoutError otherwise (of
     another version: `contract.version_problem`, naming `source`)."""
-    meta = metadata(model)
-    problem = C.version_problem(meta, source)
-    if problem:
-        raise ModelLayoutError(problem)
-    config, finest = model_facts(meta)
-    return config, read_weights(initializers(model), config, finest), meta, finest
+    file = model_file(model, source)
+    config = file.require_config(NEEDS_CONFIG)
+    return config, read_weights(file.initializers, config, file.finest_level), file.metadata, file.finest_level
 
 
 def read_weights(inits: dict[str, np.ndarray], config: MaterialConfig, finest: int) -> dict[str, np.ndarray]:

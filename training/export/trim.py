@@ -23,9 +23,7 @@ and adds ``neumip.trim``: the finest level kept, the levels and bytes cut.
 
 from __future__ import annotations
 
-import json
 import logging
-from dataclasses import asdict, dataclass
 from pathlib import Path
 
 import numpy as np
@@ -34,50 +32,37 @@ from onnx import numpy_helper
 
 from neumip.core import contract as C
 from neumip.core import weights as W
-
 from neumip.core.config import MaterialConfig
+from neumip.core.errors import NeumipError
+from neumip.core.modelfile import TrimRecord, read_model_file
+
 from neumip.training.export.graph import save_onnx
 from neumip.training.export.lod import clip_min, clip_node, stage_constants
 from neumip.training.export.lookup import level_tables, texture_constants, trimmed_atlas
-from neumip.training.export.read import metadata
+from neumip.training.export.read import model_file
+
+__all__ = ["TrimError", "TrimRecord", "current_trim", "finest_level_from_budget", "trim_file", "trim_model"]
 
 log = logging.getLogger(__name__)
 
 
-class TrimError(ValueError):
-    """A model that cannot be trimmed as asked (not a neumip graph, or a level it does not have)."""
+class TrimError(NeumipError, ValueError):
+    """A model that cannot be trimmed as asked (a graph of another layout, or a level it does not have);
+    a file the model-file reader refuses (not a neumip material, another contract version...) raises
+    its `ModelError`."""
 
 
-@dataclass
-class TrimRecord:
-    """What `neumip trim` cut from a model (its ``neumip.trim`` metadata, JSON)."""
-
-    finest_level: int
-    """Finest pyramid level the model still holds; finer queries read it."""
-    finest_resolution: int
-    """Texels per side of that level."""
-    levels_cut: list[int]
-    """Sizes (texels per side) of the levels cut, finest first."""
-    texels_cut: int
-    """Pyramid texels cut (each ``channels`` float32)."""
-    bytes_before: int
-    """Size of the serialized model before trimming (this and every earlier trim)."""
-    offset: str = "kept"
-    """The neural offset texture: kept whole (bit-identity above the cut needs it)."""
+NEEDS_CONFIG = "neumip trim needs the model's config (its pyramid's levels)"
+"""What `ModelFile.require_config` says needs it here."""
 
 
 def model_config(model: onnx.ModelProto) -> MaterialConfig:
-    meta = metadata(model)
-    problem = C.version_problem(meta) or (None if C.META_CONFIG in meta else f"no {C.META_CONFIG} metadata")
-    if problem:
-        raise TrimError(f"not a neumip material of this contract version: {problem}")
-    return MaterialConfig.from_json(meta[C.META_CONFIG])
+    return model_file(model).require_config(NEEDS_CONFIG)
 
 
 def current_trim(model: onnx.ModelProto) -> TrimRecord | None:
     """The model's ``neumip.trim`` record (None: never trimmed)."""
-    text = metadata(model).get(C.META_TRIM)
-    return TrimRecord(**json.loads(text)) if text else None
+    return model_file(model).trim
 
 
 def _replace(graph, name: str, expected: np.ndarray, value: np.ndarray) -> None:
@@ -91,10 +76,11 @@ def _replace(graph, name: str, expected: np.ndarray, value: np.ndarray) -> None:
     init.CopyFrom(numpy_helper.from_array(value.astype(current.dtype), name))
 
 
-def trim_model(model: onnx.ModelProto, finest_level: int) -> onnx.ModelProto:
-    """A copy of exported `model` holding pyramid levels ``finest_level``..L only (see the module)."""
-    config = model_config(model)
-    before = current_trim(model)
+def trim_model(model: onnx.ModelProto, finest_level: int, source: str = "model.onnx") -> onnx.ModelProto:
+    """A copy of exported `model` holding pyramid levels ``finest_level``..L only (see the module);
+    `source`: its file's path, as errors name it."""
+    file = model_file(model, source)
+    config, before = file.require_config(NEEDS_CONFIG), file.trim
     old = before.finest_level if before else 0
     if not old <= finest_level <= config.levels:
         raise TrimError(f"finest level must be in [{old}, {config.levels}] for this model, got {finest_level}")
@@ -127,7 +113,7 @@ def trim_model(model: onnx.ModelProto, finest_level: int) -> onnx.ModelProto:
         texels_cut=starts[finest_level],
         bytes_before=before.bytes_before if before else model.ByteSize(),
     )
-    props = {**metadata(model), C.META_TRIM: json.dumps(asdict(record))}
+    props = {**file.metadata, C.META_TRIM: record.to_json()}
     onnx.helper.set_model_props(out, props)
     onnx.checker.check_model(out, full_check=True)
     return out
@@ -144,7 +130,8 @@ def finest_level_from_budget(budget: dict, material: str) -> int:
 
 def trim_file(model_path: str | Path, out: str | Path, finest_level: int) -> TrimRecord:
     """Trim the model file at `model_path` to `finest_level`, written atomically to `out`."""
-    model = onnx.load(str(model_path))
-    trimmed = trim_model(model, finest_level)
+    data = Path(model_path).read_bytes()
+    read_model_file(model_path, data)  # ModelError, naming the file, for one it cannot read
+    trimmed = trim_model(onnx.load_model_from_string(data), finest_level, str(model_path))
     save_onnx(trimmed, out)
     return current_trim(trimmed)

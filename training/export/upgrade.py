@@ -24,19 +24,21 @@ import onnx
 from neumip.core import contract as C
 from neumip.core import weights as W
 from neumip.core.config import MaterialConfig
+from neumip.core.modelfile import read_model_file
 
 from neumip.training.export.graph import build_onnx, save_onnx
-from neumip.training.export.read import (ModelLayoutError, initializers, metadata, model_facts, read_model, read_weights,
+from neumip.training.export.read import (NEEDS_CONFIG, ModelLayoutError, metadata, model_file, read_model, read_weights,
                                          unfold_depth)
 
 
 def read_v1(model: onnx.ModelProto) -> tuple[MaterialConfig, dict[str, np.ndarray], dict[str, str], int]:
     """A version-1 `model` -> what `export_read.read_model` gives for this version's files."""
-    meta = metadata(model)
+    file = model_file(model, any_version=True)
+    meta, finest = file.metadata, file.finest_level
     if meta.get(C.META_CONTRACT) not in C.UPGRADABLE_VERSIONS:
         raise ModelLayoutError(f"not a model file of query contract version {', '.join(C.UPGRADABLE_VERSIONS)}")
-    config, finest = model_facts(meta)
-    inits = initializers(model)
+    config = file.require_config(NEEDS_CONFIG)
+    inits = dict(file.initializers)
     light = W.half_weight(W.DECODER, 0, "light")
     if light in inits or W.half_weight(W.DECODER, 0, "texture") in inits:
         if light not in inits:  # before query groups: wi's columns sat in the query matrix
@@ -110,7 +112,9 @@ def reexport_file(source: str | Path, out: str | Path, description: str = "",
     """`neumip export MODEL.onnx`: rewrite the model at `source` with this version's graph to `out`
     (atomically); returns the path and the largest answer difference on random queries. `sampling`:
     the sampling lobe to declare (None: none), or ``"keep"`` the file's own."""
-    old = onnx.load(str(source))
+    data = Path(source).read_bytes()
+    read_model_file(source, data, any_version=True)  # ModelError for a corrupt file, bad metadata, NaN weights
+    old = onnx.load_model_from_string(data)
     new = reexport(old)
     meta = metadata(new)
     if description:

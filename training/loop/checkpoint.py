@@ -7,13 +7,13 @@ temporary file and renamed into place, so an interrupted write never leaves a tr
 
 from __future__ import annotations
 
-import os
 from pathlib import Path
 from typing import Any
 
 import torch
 
 from neumip.core.errors import NeumipError
+from neumip.core.files import atomic_write
 
 from neumip.core.config import MaterialConfig
 from neumip.training.model.maps import MapConfig
@@ -38,10 +38,7 @@ def save(path: str | Path, material: NeuMIPMaterial, extra: dict[str, Any] | Non
     }
     if isinstance(material, MapMaterial):
         payload["maps"] = material.maps.to_json()
-    tmp = path.with_name(path.name + ".tmp")
-    torch.save(payload, tmp)
-    os.replace(tmp, path)
-    return path
+    return atomic_write(path, lambda tmp: torch.save(payload, tmp))
 
 
 def load(path: str | Path) -> tuple[NeuMIPMaterial, dict[str, Any]]:

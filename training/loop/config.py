@@ -7,7 +7,7 @@ is the `paper` preset, and the shorter presets scale every step count by the sam
 
 from __future__ import annotations
 
-from dataclasses import asdict, dataclass, replace
+from dataclasses import asdict, dataclass, field, replace
 
 from neumip.core.config import dataclass_from_dict
 
@@ -152,3 +152,29 @@ TEST = replace(SHIP, steps=300, batch=4096, blur_start=2.0, blur_half_life=50.0,
 """Unit-test sized: a few seconds for a 16 x 16 material."""
 
 PRESETS = {"paper": PAPER, "quality": QUALITY, "ship": SHIP, "quick": QUICK, "test": TEST}
+
+
+@dataclass(frozen=True)
+class Recipe:
+    """What a model is made of, beyond its schedule: what `neumip fit` (and `train --recipe`) makes when no flag
+    says otherwise. A flag given on the command line wins over the recipe's value."""
+
+    material: dict = field(default_factory=dict)
+    """`MaterialConfig` fields over the config's defaults."""
+    maps: dict | None = None
+    """`MapConfig` fields of the map encoder (None: the paper's free latent textures)."""
+    base: bool = False
+    """The classical material on the material's maps as the base the decoder corrects."""
+    relief: int = 0
+    """Steps of the relief stage's march over the material's height map (0: none)."""
+
+
+RECIPES = {
+    "paper": Recipe(),
+    "maps": Recipe(material={"lod_bias": 1, "local_frame": True, "terminator": "none"}, maps={"horizons": 8},
+                   base=True, relief=8),
+}
+"""`paper`: the paper's model (free latents, neural offset); `maps`: the shipped map-informed model (latents encoded
+from the prefiltered maps with horizons towards 8 azimuths, on the classical base, read in its normal's frame, the
+relief marched in 8 steps, the finest level answering footprints of half a texel). `neumip fit` makes `maps` for a
+material with principled maps and `paper` for one without (a homogeneous [bsdf])."""

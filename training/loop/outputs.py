@@ -18,6 +18,7 @@ from pathlib import Path
 import numpy as np
 
 from neumip.core import contract as C
+from neumip.core.files import atomic_write
 from neumip.training.export.graph import export_material
 from neumip.training.loop.train import Trainer
 from neumip.training.loop.validation import predict
@@ -98,11 +99,10 @@ def write_progress(trainer: Trainer, path: Path, views=None, grid: ViewGrid | No
                     light_az, light_zen, view_az, view_zen = grid.views[i]
                     a.set_ylabel(f"light {light_zen:.0f}\u00b0\nview {view_zen:.0f}\u00b0", fontsize=7)
     path.parent.mkdir(parents=True, exist_ok=True)  # mid-run: the model's folder may not exist yet
-    tmp = path.with_name(path.name + ".tmp.png")
-    fig.savefig(tmp)
-    plt.close(fig)
-    os.replace(tmp, path)
-    return path
+    try:
+        return atomic_write(path, fig.savefig, keep_suffix=True)  # matplotlib's format: by the suffix
+    finally:
+        plt.close(fig)
 
 
 def write_loss_curve(history: list, path: Path, title: str) -> Path:

@@ -104,3 +104,24 @@ def test_cli_refuses_bad_input(capsys):
     assert "--render-spp" in capsys.readouterr().err
     assert main(["budget", "scenes", "--spp", "1"]) != 0
     assert "directory" in capsys.readouterr().err
+
+
+def test_a_foreign_graph_is_a_clean_row_not_a_traceback(tmp_path, capsys, checkerboard):
+    """A graph without neumip metadata (allowed by the contract: scenes/checkerboard.py) has no pyramid:
+    its row says so and refers to the default resolution, as for a material without a model file (it
+    ended in a bare KeyError: 'resolution'). A corrupt model file is one line (the model-file reader's)."""
+    import onnx
+
+    onnx.save(checkerboard(), str(tmp_path / "checker.onnx"))
+    args = ["budget", "scenes/closeup.xml", "-D", "material=checker", "--models", str(tmp_path), "--spp", "1",
+            "-D", "resx=32", "-D", "resy=32"]
+    assert main(args) == 0
+    assert "a foreign graph of" in capsys.readouterr().out
+    assert main([*args, "--json"]) == 0
+    (row,) = json.loads(capsys.readouterr().out)["materials"]
+    assert row["foreign_graph"] and row["trimmed_bytes"] is None and row["resolution"] == 64
+    assert row["model_bytes"] == (tmp_path / "checker.onnx").stat().st_size
+    (tmp_path / "checker.onnx").write_bytes(b"not an onnx file")
+    assert main(args) == 2
+    err = capsys.readouterr().err
+    assert "checker.onnx: cannot load ONNX model" in err and "Traceback" not in err and len(err.strip().splitlines()) == 1

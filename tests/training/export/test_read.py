@@ -84,7 +84,7 @@ def test_a_graph_of_another_layout_is_refused_by_name():
     with pytest.raises(ModelLayoutError, match=r"'decoder.2.bias' of shape \(24, 1\), this export writes \(25, 1\)"):
         read_model(model)
     del model.metadata_props[:]
-    with pytest.raises(ModelLayoutError, match="not a neumip material"):
+    with pytest.raises(ModelLayoutError, match="no neumip metadata"):
         read_model(model)
 
 

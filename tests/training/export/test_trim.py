@@ -13,6 +13,7 @@ from neumip.core import contract as C
 from neumip.client.cli import main
 from neumip.engines.local import load_material, run_chunked
 from neumip.core.config import MaterialConfig
+from neumip.core.modelfile import ModelError
 from neumip.training.export.graph import build_onnx, random_weights, save_onnx
 from neumip.training.export.lod import clip_node
 from neumip.training.export.trim import TrimError, current_trim, trim_model
@@ -106,7 +107,7 @@ def test_refuses_a_graph_of_another_layout(untrimmed):
     no_meta = onnx.ModelProto()
     no_meta.CopyFrom(model)
     del no_meta.metadata_props[:]
-    with pytest.raises(TrimError, match="not a neumip material"):
+    with pytest.raises(ModelError, match="no neumip metadata"):  # the model-file reader's one error
         trim_model(no_meta, 1)
 
 
