@@ -15,6 +15,7 @@
 from __future__ import annotations
 
 import logging
+import os
 import re
 import threading
 from collections.abc import Callable
@@ -63,15 +64,21 @@ class FileStamp:
         return cls(st.st_mtime_ns, st.st_size, st.st_ino)
 
 
-def list_models(folder: Path) -> tuple[dict[str, Path], set[str]]:
-    """The ``*.onnx`` files of `folder` -> ({name: path} of those named as materials, the stems of the
-    others)."""
+def model_folders(spec: str | Path) -> list[Path]:
+    """A model folder, or several joined by `os.pathsep` as in PATH (``mine:models``) -> the folders, in order."""
+    return [Path(part) for part in str(spec).split(os.pathsep) if part]
+
+
+def list_models(folder: str | Path) -> tuple[dict[str, Path], set[str]]:
+    """The ``*.onnx`` files of `folder` (or of several folders, `model_folders`: the first that holds a name
+    serves it) -> ({name: path} of those named as materials, the stems of the others)."""
     named, bad = {}, set()
-    for path in sorted(Path(folder).glob("*.onnx")):
-        if NAME_PATTERN.match(path.stem):
-            named[path.stem] = path
-        else:
-            bad.add(path.stem)
+    for one in model_folders(folder):
+        for path in sorted(one.glob("*.onnx")):
+            if NAME_PATTERN.match(path.stem):
+                named.setdefault(path.stem, path)
+            elif path.stem not in named:
+                bad.add(path.stem)
     return named, bad
 
 
@@ -92,8 +99,9 @@ def load_model(path: Path, load: Loader[T]) -> T:
     return load(path, read_model_bytes(path))
 
 
-def open_folder(folder: Path, load: Loader[T]) -> tuple[dict[str, T], dict[str, str]]:
-    """``load`` every ``*.onnx`` in `folder` -> (loaded by name, {name: reason} of files that failed).
+def open_folder(folder: str | Path, load: Loader[T]) -> tuple[dict[str, T], dict[str, str]]:
+    """``load`` every ``*.onnx`` in `folder` (or folders, `model_folders`) -> (loaded by name, {name: reason} of
+    files that failed).
 
     A file fails when it cannot be loaded (ModelError: unreadable, corrupt, another contract version,
     non-finite weights, a graph the engine cannot run) or when its stem is not a material name
@@ -119,16 +127,20 @@ class ModelFolder(Generic[T]):
     the evaluators of a folder (`LocalMaterials`, the renderer's `KernelMaterials`)."""
 
     def __init__(self, folder: str | Path, load: Loader[T], lazy: bool = False) -> None:
-        self.folder = Path(folder)
-        if not self.folder.is_dir():
-            raise FileNotFoundError(f"model folder {self.folder} does not exist")
+        folders = model_folders(folder)
+        for one in folders or [Path(folder)]:
+            if not one.is_dir():
+                raise FileNotFoundError(f"model folder {one} does not exist")
+        self.folder = folders[0]  # (several: `model_folders`; messages name the first)
+        self._spec = os.pathsep.join(map(str, folders))
         self._load = load
         self._lock = threading.Lock()
+        self._paths = list_models(self._spec)[0]
         if lazy:
             self._loaded, self.errors = {}, {}
-            self._listed = sorted(list_models(self.folder)[0])
+            self._listed = sorted(self._paths)
         else:
-            self._loaded, self.errors = open_folder(self.folder, load)
+            self._loaded, self.errors = open_folder(self._spec, load)
             self._listed = sorted(self._loaded)
 
     def names(self) -> list[str]:
@@ -150,7 +162,7 @@ class ModelFolder(Generic[T]):
         with self._lock:  # lazy: load once, whichever thread asks first
             if name not in self._loaded:
                 try:
-                    self._loaded[name] = load_model(self.folder / f"{name}.onnx", self._load)
+                    self._loaded[name] = load_model(self._paths[name], self._load)
                 except ModelError as exc:
                     self.errors[name] = str(exc)
                     raise

@@ -30,10 +30,10 @@ step "bash scripts/demo.sh --spp 16 -D resx=256 -D resy=256"
 bash scripts/demo.sh --spp 16 -D resx=256 -D resy=256 2>&1 | tail -2
 step "source .venv/bin/activate"
 source .venv/bin/activate
-step "neumip fit $toml -o models/$name.onnx --preset $PRESET --relief"
-neumip fit "$toml" -o "models/$name.onnx" --preset "$PRESET" --relief 2>&1 | tr '\r' '\n' | grep -v "^\s*$" | grep -v "^$name \[" | tail -12
-step "neumip render scenes/demo.xml -o out/demo-$name.png -D cube=$name"
-neumip render scenes/demo.xml -o "out/demo-$name.png" -D cube="$name" 2>&1 | tail -2
-step "neumip report --materials $toml --models models -o out/report-$name --quick"
-neumip report --materials "$toml" --models models -o "out/report-$name" --quick 2>&1 | tail -2
+step "neumip fit $toml -o mine/$name.onnx --preset $PRESET"
+neumip fit "$toml" -o "mine/$name.onnx" --preset "$PRESET" 2>&1 | tr '\r' '\n' | grep -v "^\s*$" | grep -v "^$name \[" | tail -12
+step "neumip render scenes/demo.xml -o out/demo-$name.png --models mine:models -D cube=$name"
+neumip render scenes/demo.xml -o "out/demo-$name.png" --models mine:models -D cube="$name" 2>&1 | tail -2
+step "neumip report --materials $toml --models mine -o out/report-$name --quick"
+neumip report --materials "$toml" --models mine -o "out/report-$name" --quick 2>&1 | tail -2
 step "done: $WALK"

@@ -27,7 +27,8 @@ def register(sub: argparse._SubParsersAction) -> None:
                    help="with --server: msgpack /v1, or the Open Inference Protocol's binary tensors (v2: "
                    "neumip serve, Triton, KServe)")
     p.add_argument("--models", type=Path, default=Path(DEFAULT_MODELS),
-                   help="folder of .onnx materials (in-process)")
+                   help="folder of .onnx materials (in-process); several as DIR1:DIR2, the first holding a "
+                        "name serves it (e.g. mine:models: your materials beside the shipped ones)")
     p.add_argument(
         "--fallback", action="store_true",
         help="with --server: if the server becomes unreachable, continue in-process from --models",

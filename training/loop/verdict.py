@@ -20,7 +20,7 @@ import numpy as np
 
 log = logging.getLogger(__name__)
 
-NOISE_QUERIES = 4096
+NOISE_QUERIES = 1 << 16
 """Fresh queries the noise check traces (each with twice the data's path samples)."""
 NOISE_SEED = 7919
 """Seeds the noise check's queries and paths (another stream than the data's chunks)."""
