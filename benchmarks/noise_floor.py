@@ -34,7 +34,8 @@ def main() -> int:
         meta = record.get("data_meta") or {}
         if not (record_path.with_suffix(".onnx").is_file() and "generator" in meta and meta.get("material")):
             continue
-        description = MaterialDescription.from_dict({k: v for k, v in meta["material"].items() if k != "map_sha256"})
+        description = MaterialDescription.from_dict({k: v for k, v in meta["material"].items() if k != "map_sha256"},
+                                                    base_dir=meta.get("description_dir"))
         name = record_path.stem
         noise = noise_check(lambda q: materials.evaluate(name, np.ascontiguousarray(q, np.float32)), description,
                             meta["generator"])
