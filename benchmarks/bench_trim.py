@@ -2,11 +2,13 @@
 
 For the demo scene at each ``--sizes`` resolution: `neumip budget` (4 spp traced, footprints of a
 render at ``--spp``) finds each material's
-finest level that matters, the shipped models are trimmed to it (`neumip trim`) into a temporary
+finest level that matters, the shipped models are trimmed to it (`neumip trim`: every pyramid, the base
+maps' and the relief's at the same footprint) into a temporary
 folder, and the scene is rendered at ``--spp`` through the untrimmed and the trimmed models with one
 seed, and through the untrimmed models with a second seed. Printed: bytes before and after per
-material, and the mean and largest pixel difference trimmed vs untrimmed (same seed) beside the
-same figures for the two seeds (the Monte-Carlo noise of the render).
+material (the budget's estimate beside, and the neural offset's bytes, which trimming keeps whole), and the
+mean and largest pixel difference trimmed vs untrimmed (same seed) beside the same figures for the two
+seeds (the Monte-Carlo noise of the render).
 
     .venv/bin/python benchmarks/bench_trim.py --sizes 32,16 --spp 4   # far and few samples: levels 1, 2
     .venv/bin/python benchmarks/bench_trim.py                         # 96^2 and 64^2, 64 spp: level 0
@@ -48,8 +50,9 @@ def main() -> None:
                 src, dst = args.models / f"{m.material}.onnx", Path(tmp) / f"{m.material}.onnx"
                 trim_file(src, dst, m.finest_level)
                 before, after = before + src.stat().st_size, after + dst.stat().st_size
-                print(f"  {m.material}: finest level {m.finest_level}, {src.stat().st_size:,} -> "
-                      f"{dst.stat().st_size:,} bytes")
+                levels = ", ".join(f"{name} {level}" for name, level in (m.pyramid_levels or {}).items())
+                print(f"  {m.material}: finest levels {levels}: {src.stat().st_size:,} -> {dst.stat().st_size:,} "
+                      f"bytes (budget: {m.trimmed_bytes:,}; the neural offset keeps {m.offset_bytes:,})")
             print(f"  all: {before:,} -> {after:,} bytes ({100 * (1 - after / before):.1f} % saved)")
             full = render(args.scene, params, args.models, args.spp, 0)
             trimmed = render(args.scene, params, Path(tmp), args.spp, 0)

@@ -222,6 +222,13 @@ class MaterialConfig:
         return MaterialConfig(resolution=self.relief, channels=1, offset=False,
                               lod_bias=self.lod_bias) if self.relief else None
 
+    def pyramid_finest_level(self, pyramid: "MaterialConfig", finest_level: int) -> int:
+        """The finest level of `pyramid` (`base_pyramid`, `relief_pyramid`, or this config's own) read by a query
+        whose latent level is at least K = ``finest_level`` (what a model trimmed to K keeps of it): every
+        pyramid's level of detail is log2(sigma R) + lod_bias at its own resolution R, so the same footprint is
+        log2(R_pyramid / R) levels further down it (coarser maps: up), clamped at 0; K = 0 is every query: 0."""
+        return max(0, finest_level + pyramid.levels - self.levels) if finest_level else 0
+
     def to_json(self) -> str:
         """The fields as JSON; each decoder input's switch, `base`, the relief's, `lod_bias` and `ceiling` only when
         on, and `terminator` only when not "all", so that models made before each existed read as they did."""

@@ -98,16 +98,14 @@ def textures(config: MaterialConfig) -> list[str]:
             + ([RELIEF] if config.relief else []))
 
 
-def _base_shape(config: MaterialConfig) -> tuple[int, int]:
-    base = config.base_pyramid()
-    return (base.atlas_rows(), base.channels)
-
-
-def _maps_shapes(config: MaterialConfig) -> dict[str, tuple[int, int]]:
-    """The textures made from the material's maps (kept whole by `neumip trim`): the base's, the relief's."""
-    shapes = {BASE: _base_shape(config)} if config.base else {}
-    if config.relief:
-        shapes[RELIEF] = (config.relief_pyramid().atlas_rows(), 1)
+def _maps_shapes(config: MaterialConfig, finest_level: int = 0) -> dict[str, tuple[int, int]]:
+    """The textures made from the material's maps: the base's, the relief's; those of a model trimmed to latent
+    level K = ``finest_level`` hold their levels of the same footprint on (`MaterialConfig.pyramid_finest_level`)."""
+    shapes = {}
+    for name, pyramid in ((BASE, config.base_pyramid()), (RELIEF, config.relief_pyramid())):
+        if pyramid is not None:
+            level = config.pyramid_finest_level(pyramid, finest_level)
+            shapes[name] = (pyramid.atlas_rows() - pyramid.level_starts()[level], pyramid.channels)
     return shapes
 
 
@@ -140,7 +138,7 @@ def initializer_shapes(config: MaterialConfig, finest_level: int = 0) -> dict[st
     shapes: dict[str, tuple[int, ...]] = {PYRAMID: (rows, config.channels)}
     if config.offset:
         shapes[OFFSET_TEXTURE] = (config.resolution**2, config.offset_channels)
-    shapes.update(_maps_shapes(config))
+    shapes.update(_maps_shapes(config, finest_level))
     for mlp, (inputs, answers) in mlps(config).items():
         widths = _widths(config, inputs, DEPTH_COPIES if mlp == OFFSET_MLP else answers)
         first = {"texture": texture_inputs(mlp, config), "query": C.QUERY_DIM, "light": 2,

@@ -11,9 +11,10 @@ def register(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser(
         "trim",
         help="drop a model's pyramid levels finer than a scene needs (answers above the cut unchanged)",
-        description="Write MODEL without its pyramid levels finer than --finest-level (or the level "
-        "`neumip budget --json` found for it). Queries whose level is at or above the cut get "
-        "bit-identical answers; finer queries read the finest level kept.",
+        description="Write MODEL without its latent pyramid levels finer than --finest-level (or the level "
+        "`neumip budget --json` found for it), and without the levels of its base maps' and relief's pyramids "
+        "finer than the same footprint. Queries whose level is at or above the cut get bit-identical answers; "
+        "finer queries read the finest level kept. The neural offset texture is kept whole.",
     )
     p.add_argument("model", type=Path, help="exported .onnx material")
     p.add_argument("-o", "--output", type=Path, required=True, help="trimmed .onnx to write")
@@ -44,6 +45,22 @@ def _trim(args: argparse.Namespace) -> int:
     except (OSError, ValueError) as exc:  # TrimError, broken JSON, unreadable model
         raise CommandError(f"cannot trim {args.model}: {exc}") from exc
     before, after = args.model.stat().st_size, args.output.stat().st_size
-    print(f"wrote {args.output} (finest level {record.finest_level}, {record.finest_resolution}^2): "
+    print(f"wrote {args.output} (finest level {record.finest_level}, {record.finest_resolution}^2"
+          f"{_maps_kept(args.output, record.finest_level)}): "
           f"{before:,} -> {after:,} bytes ({100 * (1 - after / before):.1f} % smaller)")
     return 0
+
+
+def _maps_kept(path: Path, finest_level: int) -> str:
+    """"; base_maps from level 4 (16^2), ..." for the model's other pyramids ("" for none)."""
+    from neumip.core import weights as W
+    from neumip.core.modelfile import read_model_file
+    from neumip.training.export.lod import pyramid_finest_level, pyramids
+
+    config = read_model_file(path).config
+    kept = []
+    for p in pyramids(config):
+        if p.texture != W.PYRAMID:
+            level = pyramid_finest_level(config, p.config, finest_level)
+            kept.append(f"{p.texture} from level {level} ({p.config.level_sizes()[level]}^2)")
+    return "; " + ", ".join(kept) if kept else ""

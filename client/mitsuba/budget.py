@@ -30,6 +30,8 @@ from pathlib import Path
 import numpy as np
 
 from neumip.core import contract as C
+from neumip.core import weights as W
+from neumip.core.config import BASE_CHANNELS
 from neumip.core.contract import sample_footprint
 from neumip.core.modelfile import read_model_file
 
@@ -91,6 +93,22 @@ class ModelFacts:
     pyramid, `MaterialConfig.base` / `relief`), 0: none."""
     lod_bias: int = 0
     """Levels the model raises every footprint's level of detail by (`MaterialConfig.lod_bias`)."""
+    base_resolution: int = 0
+    """Texels per side of the finest level of its base maps' pyramid (`MaterialConfig.base`), 0: none."""
+    relief_resolution: int = 0
+    """Texels per side of the finest level of its relief's height pyramid (`MaterialConfig.relief`), 0: none."""
+    offset_channels: int = 0
+    """Channels of its neural offset texture (one level at `resolution`), 0: no offset."""
+
+    def pyramids(self) -> dict[str, tuple[int, int]]:
+        """Each pyramid the model reads, by its initializer's name -> (resolution, channels): the latents, the base
+        maps', the relief's heights. `neumip trim` cuts them all."""
+        out = {W.PYRAMID: (self.resolution, self.channels)}
+        if self.base_resolution:
+            out[W.BASE] = (self.base_resolution, BASE_CHANNELS)
+        if self.relief_resolution:
+            out[W.RELIEF] = (self.relief_resolution, 1)
+        return out
 
 
 @dataclass
@@ -125,7 +143,14 @@ class MaterialBudget:
     """Whether the model file is a graph without neumip metadata (made by another tool): it has no
     pyramid to budget, so the levels refer to a `DEFAULT_RESOLUTION` one, as for no model file."""
     trimmed_bytes: int | None = None
-    """Its size after trimming to ``finest_level`` (`neumip trim`)."""
+    """About its size after trimming every pyramid to ``finest_level``'s footprint (`neumip trim`)."""
+    pyramid_levels: dict[str, int] | None = None
+    """Each pyramid's finest level a trim to ``finest_level`` keeps, by its initializer's name: the latents'
+    (``pyramid``: ``finest_level``), the base maps' (``base_maps``) and the relief's (``relief_heights``) at their
+    own resolutions (the same footprint)."""
+    offset_bytes: int | None = None
+    """Bytes a trim keeps whole for the neural offset (its texture and quad index table: every query reads it at
+    the finest resolution), 0 without one."""
 
     def to_dict(self) -> dict:
         return asdict(self)
@@ -184,15 +209,44 @@ def model_facts(path: Path) -> ModelFacts | None:
     if config is None:
         return None
     return ModelFacts(config.resolution, config.channels, file.size, file.finest_level,
-                      max(config.base, config.relief), config.lod_bias)
+                      max(config.base, config.relief), config.lod_bias, config.base, config.relief,
+                      config.offset_channels if config.offset else 0)
+
+
+def _level_sizes(resolution: int) -> list[int]:
+    return [resolution >> level for level in range(int(math.log2(resolution)) + 1)]
+
+
+def pyramid_levels(facts: ModelFacts, finest_level: int) -> dict[str, int]:
+    """Each pyramid's finest level that `neumip trim` keeps for latent level K = ``finest_level``
+    (`export_lod.pyramid_finest_level`): the level of the same footprint at the pyramid's own resolution, clamped
+    at 0; at K = 0 (every query, the finest too) all of it."""
+    shift = int(math.log2(facts.resolution))
+    return {name: max(0, finest_level + int(math.log2(res)) - shift) if finest_level else 0
+            for name, (res, _) in facts.pyramids().items()}
+
+
+def _quad_table_bytes(facts: ModelFacts, levels: dict[str, int]) -> int:
+    """The int32 quad index tables of the pyramids kept from `levels` on: (S + 1)^2 rows of 4 taps per level,
+    one table per distinct set of levels kept (pyramids of one resolution share it)."""
+    kept = {tuple(_level_sizes(res)[levels[name]:]) for name, (res, _) in facts.pyramids().items()}
+    return sum(16 * (s + 1) ** 2 for sizes in kept for s in sizes)
 
 
 def trimmed_size(facts: ModelFacts, finest_level: int) -> int:
-    """About the bytes of the model trimmed to ``finest_level`` (`neumip trim`): each level cut takes
-    its float32 texels and the (S + 1)^2 int32 rows of 4 taps of its quad index table with it."""
-    sizes = [facts.resolution >> level for level in range(int(math.log2(facts.resolution)) + 1)]
-    cut = sizes[facts.finest_level:max(finest_level, facts.finest_level)]
-    return facts.bytes - sum(4 * facts.channels * s * s + 16 * (s + 1) ** 2 for s in cut)
+    """About the bytes of the model trimmed to ``finest_level`` (`neumip trim`): every pyramid loses the float32
+    texels of its levels finer than the same footprint (`pyramid_levels`), and the quad index tables shrink to
+    the levels kept."""
+    before, after = pyramid_levels(facts, facts.finest_level), pyramid_levels(facts, max(finest_level, facts.finest_level))
+    texels = sum(4 * channels * s * s for name, (res, channels) in facts.pyramids().items()
+                 for s in _level_sizes(res)[before[name]:after[name]])
+    return facts.bytes - texels - _quad_table_bytes(facts, before) + _quad_table_bytes(facts, after)
+
+
+def offset_size(facts: ModelFacts) -> int:
+    """Bytes of the neural offset texture and its quad index table, which `neumip trim` keeps whole."""
+    r = facts.resolution
+    return 4 * facts.offset_channels * r * r + 16 * (r + 1) ** 2 if facts.offset_channels else 0
 
 
 @dataclass
@@ -230,6 +284,8 @@ def scene_budget(scene: mi.Scene, models: Path | None, spp: int = 4, coverage: f
         if facts is not None:
             budget.model_bytes = facts.bytes
             budget.trimmed_bytes = trimmed_size(facts, budget.finest_level)
+            budget.pyramid_levels = pyramid_levels(facts, budget.finest_level)
+            budget.offset_bytes = offset_size(facts)
         elif present:
             budget.model_bytes, budget.foreign_graph = path.stat().st_size, True
         out.materials.append(budget)
@@ -252,7 +308,13 @@ def format_budget(budget: SceneBudget, width: int = 40) -> str:
             lines.append(f"  level {level:2d} ({m.resolution >> level:4d}^2) {100 * share:6.2f} % {bar}")
         lines.append(f"  finest level that matters ({100 * m.coverage:g} % of queries): {m.finest_level}")
         if m.trimmed_bytes is not None:
-            lines.append(f"  bytes: {m.model_bytes:,} now, {m.trimmed_bytes:,} trimmed to level {m.finest_level}")
+            maps = ", ".join(f"{name} from level {level}" for name, level in (m.pyramid_levels or {}).items()
+                             if name != W.PYRAMID)
+            lines.append(f"  bytes: {m.model_bytes:,} now, {m.trimmed_bytes:,} trimmed to level {m.finest_level}"
+                         + (f" ({maps})" if maps else ""))
+            if m.offset_bytes:
+                lines.append(f"  of which the neural offset texture and its table, kept whole (every query reads "
+                             f"them): {m.offset_bytes:,}")
         verdict = (f"the model ({m.resolution}^2) is too coarse for the closest views: "
                    f"{100 * m.magnified:.2f} % of queries come from pixels finer than level 0"
                    if m.too_coarse else "the model suffices" + (

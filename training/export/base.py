@@ -18,6 +18,7 @@ from neumip.core import weights as W
 from neumip.core.config import (BASE_ALPHA2_FLOOR, BASE_AZIMUTH_FLOOR, BASE_AZIMUTH_KERNEL, BASE_CHANNELS,
                                 BASE_COS_FLOOR, BASE_HORIZONS, BASE_LOG_CEILING, BASE_OUTPUTS, BASE_SHADOW_SOFTNESS,
                                 BASE_WI_FLOOR, HALF_FLOOR, MaterialConfig)
+from neumip.training.export.lod import BASE_PREFIX
 from neumip.training.export.lookup import expand_table, footprint_read, footprint_rows, pyramid_footprint
 from neumip.training.export.onnx_graph import GraphWriter
 
@@ -58,19 +59,21 @@ class BaseRead:
     """(R BASE_HORIZONS, 4) horizon table: row r BASE_HORIZONS + j holds azimuth j's sine at quad row r's 4 taps."""
 
 
-def read_base(g: GraphWriter, config: MaterialConfig, weights: dict, uv: str, sigma: str) -> BaseRead:
+def read_base(g: GraphWriter, config: MaterialConfig, weights: dict, uv: str, sigma: str,
+              finest_level: int = 0) -> BaseRead:
     """The base pyramid's trilinear footprint at uv (N, 2) in [0, 1), sigma (N, 1): the maps, and where the
-    horizons are read per light.
+    horizons are read per light. ``finest_level``: the finest level ``weights["base_maps"]`` holds (a
+    trimmed model, `lod.pyramid_finest_level`).
 
     A map channel that is the same in every texel (F0 of a material without metal, the colour of a plain
-    one) is a constant of the graph, not read: the lookup of a constant answers it. The stored atlas is
-    the whole one (`export_read` reads it back)."""
+    one) is a constant of the graph, not read: the lookup of a constant answers it. The stored atlas has
+    every channel (`export_read` reads it back)."""
     base = config.base_pyramid()
     atlas = weights[W.BASE]
     stored = g.const(atlas, name=W.BASE)
     varying = [c for c in range(MAP_CHANNELS) if not np.all(atlas[:, c] == atlas[0, c])]
     atlas_read = g.op("Gather", stored, g.const(varying, np.int64), axis=1) if varying else stored  # (T, V)
-    fp = pyramid_footprint(g, base, atlas_read, len(varying), sigma, prefix="base.")
+    fp = pyramid_footprint(g, base, atlas_read, len(varying), sigma, finest_level, BASE_PREFIX)
     rows, taps = footprint_rows(g, fp, uv)  # (N, 2), (N, 8)
     index = g.const(fp.rows, np.int32)  # (R, 4) the quad table's texels, shared by both tables
     constants = np.where(np.isin(np.arange(MAP_CHANNELS), varying), 0.0, atlas[0, :MAP_CHANNELS])[None]

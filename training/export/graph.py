@@ -43,6 +43,7 @@ from neumip.core import weights as W
 from neumip.core.config import RELIEF_DIVISION_FLOOR, RELIEF_MIN_COS, MaterialConfig
 from neumip.training.export import base as B
 from neumip.training.export.lookup import footprint_texels, pyramid_footprint, pyramid_texels, texture_texels
+from neumip.training.export.lod import RELIEF_PREFIX, pyramid_finest_level, pyramids
 from neumip.training.export.onnx_graph import GraphWriter
 
 log = logging.getLogger(__name__)
@@ -202,13 +203,29 @@ DECODER_INPUTS = {
 tensor. The torch model's twin is `training.model.material.DECODER_INPUTS`."""
 
 
-def _relief(g: GraphWriter, config: MaterialConfig, weights: dict, uv: str, sigma: str, wo: str) -> str:
+RELIEF_DEPTH = "relief.depth"
+"""The initializer (1, 1) holding the relief's depth, -min of its heights (0 at least): by name, as the heights of
+a model trimmed (`neumip trim`) may no longer hold their minimum. A weights dict may give it (read back from such
+a model); otherwise it comes from ``weights["relief_heights"]``."""
+
+
+def relief_depth(weights: dict) -> np.float32:
+    """The relief's depth: ``weights[RELIEF_DEPTH]`` where given, else -min(heights), 0 at least."""
+    if RELIEF_DEPTH in weights:
+        return np.float32(np.asarray(weights[RELIEF_DEPTH], np.float32).reshape(()))
+    return np.float32(max(-float(weights[W.RELIEF].min()), 0.0))
+
+
+def _relief(g: GraphWriter, config: MaterialConfig, weights: dict, uv: str, sigma: str, wo: str,
+            finest_level: int = 0) -> str:
     """uv (N, 2), sigma (N, 1), wo (N, 2) -> (N, 2) the relief's shift of the lookups, as `relief.relief_shift`
-    computes it: one footprint of the height pyramid, read at each step's position."""
+    computes it: one footprint of the height pyramid, read at each step's position. ``finest_level``: the
+    finest level ``weights["relief_heights"]`` holds (a trimmed model, `lod.pyramid_finest_level`)."""
     heights = weights[W.RELIEF]
-    depth = np.float32(max(-float(heights.min()), 0.0))
+    depth = relief_depth(weights)
     steps = config.relief_steps
-    fp = pyramid_footprint(g, config.relief_pyramid(), g.const(heights, name=W.RELIEF), 1, sigma, prefix="relief.")
+    fp = pyramid_footprint(g, config.relief_pyramid(), g.const(heights, name=W.RELIEF), 1, sigma, finest_level,
+                           RELIEF_PREFIX)
     d = g.op("Div", wo, _clamped_wo_z(g, wo, RELIEF_MIN_COS))
     ones = g.const(np.ones((8, 1), np.float32))
     found = missed = s_prev = t_prev = None
@@ -226,7 +243,8 @@ def _relief(g: GraphWriter, config: MaterialConfig, weights: dict, uv: str, sigm
             found = g.op("Add", found, g.op("Mul", g.op("Mul", missed, below), here))
             missed = g.op("Mul", missed, g.op("Sub", g.scalar(1.0), below))
         s_prev, t_prev = s, t
-    found = g.op("Add", found, g.op("Mul", missed, g.scalar(depth)))
+    deepest = g.const(np.full((1, 1), depth, np.float32), name=RELIEF_DEPTH)
+    found = g.op("Add", found, g.op("Mul", missed, deepest))
     return g.op("Mul", d, g.op("Neg", found))
 
 
@@ -244,15 +262,17 @@ def material_graph(g: GraphWriter, config: MaterialConfig, weights: dict,
     The offset and the lookups run once per group (on its first query's u, v, sigma, wo); the decoder's
     first layer adds each light's wi part to the group's texture-and-wo part, and the rest of the
     decoder runs once per light. ``weights["pyramid"]`` holds levels ``finest_level``..L (all of them
-    unless trimmed).
+    unless trimmed), the base maps' and the relief's pyramids the levels of the same footprint on
+    (`lod.pyramid_finest_level`).
     """
     q = g.op("Slice", C.ONNX_INPUT, g.const([0], np.int64), g.const([C.QUERY_DIM], np.int64),
              g.const([1], np.int64))  # (N, 7): each group's first query
     uv, sigma, wo = _query_columns(g, q)
 
     # --- relief: uv moves to where the view ray first meets the height field --------------------
+    finest = {p.texture: pyramid_finest_level(config, p.config, finest_level) for p in pyramids(config)}
     if config.relief:
-        uv = g.op("Add", uv, _relief(g, config, weights, uv, sigma, wo))
+        uv = g.op("Add", uv, _relief(g, config, weights, uv, sigma, wo, finest[W.RELIEF]))
 
     # --- neural offset: uv += r * wo_xy / max(wo_z, min_cos) -----------------------------------
     if config.offset:
@@ -272,7 +292,8 @@ def material_graph(g: GraphWriter, config: MaterialConfig, weights: dict,
     shared = _first_layer(g, q, texels, tap_w, 8, [C.WO_X, C.WO_Y], weights, W.DECODER,
                           4 + W.decoder_extra_inputs(config))  # (hidden, N)
     inputs = config.decoder_inputs()
-    read = B.read_base(g, config, weights, uvw, sigma) if any(row.reads_base for row in inputs) else None
+    read = (B.read_base(g, config, weights, uvw, sigma, finest[W.BASE]) if any(row.reads_base for row in inputs)
+            else None)
     wi, n, k, kn = _lights(g, q)  # (K N, 2)
     per_light: list[str] = []  # Tile repeats of a group's row, light-major (made when a stage needs it)
 
@@ -298,7 +319,7 @@ def material_graph(g: GraphWriter, config: MaterialConfig, weights: dict,
     out = g.op("Transpose", g.mlp(hidden, weights, W.DECODER, config.layers, first=1), perm=[1, 0])  # (K N, O)
     size = head.outputs(config.head)
     if config.base:  # per light: the base's answer from the group's maps, corrected by the decoder
-        read = read or B.read_base(g, config, weights, uvw, sigma)
+        read = read or B.read_base(g, config, weights, uvw, sigma, finest[W.BASE])
         horizon = None if lit else B.horizon_sine(g, read, each_light(read.rows), each_light(read.taps), wi)  # (K N, 1)
         out = B.corrected(g, B.base_answer(g, each_light(read.maps), horizon, wi, each_light(wo), normal,
                                                 terminator=config.terminator, lit=lit), out)
@@ -328,8 +349,9 @@ def build_onnx(
     """The material's inference graph: (N, 7) float32 queries -> (N, 3) float32 RGB, and query groups
     (N, 5 + 2 K) -> (N, 3 K) (`contract.group_width`).
 
-    With ``finest_level`` K > 0 the pyramid holds levels K..L only (`trim.trim_model` makes such a
-    model from an exported one) and finer queries read level K.
+    With ``finest_level`` K > 0 the pyramid holds levels K..L only, and the base maps' and the relief's
+    pyramids the levels of the same footprint on (`trim.trimmed_weights`; `trim.trim_model` makes such a
+    model from an exported one): finer queries read level K.
     """
     g = GraphWriter()
     rgb, shape = material_graph(g, config, weights, finest_level)

@@ -23,7 +23,10 @@ in L1):
 
 from __future__ import annotations
 
+from dataclasses import dataclass
+
 import numpy as np
+from neumip.core import weights as W
 from neumip.core.config import MaterialConfig
 from neumip.training.export.onnx_graph import GraphWriter
 
@@ -38,14 +41,51 @@ def clip_min(finest_level: int) -> float:
     return 2.0**finest_level
 
 
-def clip_node(graph, config: MaterialConfig) -> "onnx.NodeProto":
-    """The pyramid's level-of-detail Clip of an exported graph of `config` (`level_of_detail`). The relief's
-    height pyramid (`MaterialConfig.relief`) is read before it, the base maps' (`MaterialConfig.base`) after:
-    each has a Clip of its own."""
+RELIEF_PREFIX = "relief."
+"""Prefix of the relief's height pyramid's level-of-detail constants (``relief.lod.*``)."""
+BASE_PREFIX = "base."
+"""Prefix of the base maps' pyramid's level-of-detail constants (``base.lod.*``)."""
+
+
+@dataclass(frozen=True)
+class Pyramid:
+    """One pyramid the graph reads with a level of detail of its own (`level_of_detail`)."""
+
+    texture: str
+    """Its initializer: the atlas, levels flat, finest first (`weights.PYRAMID`, `BASE`, `RELIEF`)."""
+    config: MaterialConfig
+    """Its levels, as a config (`MaterialConfig.base_pyramid`, `relief_pyramid`; the model's own for the latents)."""
+    prefix: str
+    """Prefix of its ``lod.*`` constants."""
+
+
+def pyramids(config: MaterialConfig) -> list[Pyramid]:
+    """Every pyramid a graph of `config` reads, in the order of their level-of-detail Clips: the relief's heights
+    (read before the latents), the latents, the base maps (read after)."""
+    out = [Pyramid(W.RELIEF, config.relief_pyramid(), RELIEF_PREFIX)] if config.relief else []
+    out.append(Pyramid(W.PYRAMID, config, ""))
+    return out + ([Pyramid(W.BASE, config.base_pyramid(), BASE_PREFIX)] if config.base else [])
+
+
+def pyramid_finest_level(config: MaterialConfig, pyramid: MaterialConfig, finest_level: int) -> int:
+    """The finest level of `pyramid` (one of `pyramids`) that a query reads whose latent level is at least K =
+    ``finest_level``: each pyramid's level of detail is log2(sigma R) + lod_bias at its own resolution R, so the
+    same footprint is log2(R_pyramid / R_latents) levels further down it (coarser maps: up), clamped at 0. K = 0
+    is every query (the finest footprints included): 0."""
+    return max(0, finest_level + pyramid.levels - config.levels) if finest_level else 0
+
+
+def clip_nodes(graph, config: MaterialConfig) -> list:
+    """The level-of-detail Clip of each of `pyramids(config)` in an exported graph of `config`, in that order."""
     clips = [node for node in graph.node if node.op_type == "Clip"]
-    if len(clips) != 1 + bool(config.base) + bool(config.relief):
-        raise ValueError(f"expected the level-of-detail Clip, found {len(clips)} Clip nodes")
-    return clips[1 if config.relief else 0]
+    if len(clips) != len(pyramids(config)):
+        raise ValueError(f"expected {len(pyramids(config))} level-of-detail Clips, found {len(clips)} Clip nodes")
+    return clips
+
+
+def clip_node(graph, config: MaterialConfig) -> "onnx.NodeProto":
+    """The latent pyramid's level-of-detail Clip of an exported graph of `config` (`clip_nodes`)."""
+    return clip_nodes(graph, config)[1 if config.relief else 0]
 
 
 def log2_mantissa(g: GraphWriter, m: str) -> str:

@@ -217,17 +217,3 @@ def texture_texels(g: GraphWriter, texture: str, size: int, width: int, uvw: str
     table = expand_table(g, texture, tables.rows, width)
     texels = _gather(g, table, g.op("Add", line, g.const([base])), 1, width)
     return texels, tap_weights(g, g.op("Sub", x, x0), 1, None)
-
-
-# --- the inverse: where an exported graph keeps the constants above (`neumip trim`) ---------------
-
-
-def texture_constants(graph, texture: str) -> dict[str, str]:
-    """Initializer names of what the graph built for texture initializer ``texture`` ("pyramid" or
-    "offset_texture"): its quad index table (`expand_table`), found by the graph's structure; the
-    caller checks the values against what the writer would write. (The pyramid's per-level tables
-    are initializers named ``lod.*``, `export_lod.stage_constants`.)"""
-    expand = [n for n in graph.node if n.op_type == "Gather" and n.input[0] == texture]
-    if len(expand) != 1:
-        raise ValueError(f"expected one table expansion of {texture!r}, found {len(expand)}")
-    return {"quads": expand[0].input[1]}

@@ -1,9 +1,18 @@
 """A small writer of ONNX graphs: names nodes and constants while the export builds a graph.
 
 Only numpy and onnx; the material's stages (`export_lookup.py`, `export.py`) are written with it.
+
+A constant is stored once: an unnamed constant of more than one element that holds the same values as
+an earlier one (dtype, shape, bytes) is that one's initializer (`shared_key`), e.g. the quad index table
+of the latent, base-map and relief pyramids of one resolution. Named constants (weights, ``lod.*``) and
+single numbers (a level-of-detail Clip's bounds, which `neumip trim` swaps per pyramid; the (1, 1)
+scalars) keep one initializer per use.
 """
 
 from __future__ import annotations
+
+import hashlib
+import re
 
 import numpy as np
 import onnx
@@ -15,6 +24,38 @@ from neumip.core import weights as W
 COLUMN_ALPHA = 2.0
 """The Gemm alpha of `GraphWriter.product` (its matrices are stored halved)."""
 
+UNNAMED = re.compile(r"c_[0-9]+")
+"""The names `GraphWriter.const` gives constants it is not given a name for."""
+
+
+def shared_key(value: np.ndarray) -> tuple | None:
+    """What makes two unnamed constants one initializer: (dtype, shape, digest of the bytes), None for a single
+    number (kept per use: `neumip trim` swaps one pyramid's Clip bound, whatever the others hold)."""
+    if value.size <= 1:
+        return None
+    return value.dtype.str, value.shape, hashlib.sha256(np.ascontiguousarray(value).tobytes()).digest()
+
+
+def share_constants(graph) -> None:
+    """Store the graph's unnamed constants as `GraphWriter.const` would (`shared_key`): every initializer that
+    holds the same values as an earlier unnamed one is dropped and its uses read the earlier one. For
+    `neumip trim`, whose swapped tables can come to hold what another pyramid's table holds."""
+    first: dict[tuple, str] = {}
+    renamed: dict[str, str] = {}
+    for init in graph.initializer:
+        key = shared_key(numpy_helper.to_array(init)) if UNNAMED.fullmatch(init.name) else None
+        if key is not None:
+            renamed[init.name] = first.setdefault(key, init.name)
+    renamed = {old: new for old, new in renamed.items() if old != new}
+    if not renamed:
+        return
+    for node in graph.node:
+        for i, name in enumerate(node.input):
+            node.input[i] = renamed.get(name, name)
+    kept = [init for init in graph.initializer if init.name not in renamed]
+    del graph.initializer[:]
+    graph.initializer.extend(kept)
+
 
 class GraphWriter:
     """Collects nodes and initializers; every op returns the name of its (first) output."""
@@ -23,14 +64,24 @@ class GraphWriter:
         self.nodes: list[onnx.NodeProto] = []
         self.inits: list[onnx.TensorProto] = []
         self._n = 0
+        self._shared: dict[tuple, str] = {}  # `shared_key` -> the initializer holding it
 
     def _name(self, hint: str) -> str:
         self._n += 1
         return f"{hint}_{self._n}"
 
     def const(self, value, dtype=np.float32, name: str | None = None) -> str:
-        name = name or self._name("c")
-        self.inits.append(numpy_helper.from_array(np.asarray(value, dtype=dtype), name))
+        """An initializer holding `value` as `dtype`, named `name` or c_N; an unnamed one holding what an
+        earlier one holds is that one (`shared_key`). Every unnamed constant advances the count N, stored or
+        shared, so the other names do not depend on the values (a trimmed model's graph and an export at
+        its level name their constants alike)."""
+        value = np.asarray(value, dtype=dtype)
+        if name is None:
+            name = self._name("c")
+            key = shared_key(value)
+            if key is not None and self._shared.setdefault(key, name) != name:
+                return self._shared[key]
+        self.inits.append(numpy_helper.from_array(value, name))
         return name
 
     def scalar(self, value: float) -> str:

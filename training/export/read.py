@@ -25,7 +25,7 @@ from neumip.core import weights as W
 from neumip.core.config import DECODER_INPUTS, MaterialConfig
 from neumip.core.modelfile import ModelError, ModelFile, read_model_file
 
-from neumip.training.export.graph import _depth_weights
+from neumip.training.export.graph import RELIEF_DEPTH, _depth_weights
 from neumip.training.export.onnx_graph import COLUMN_ALPHA
 
 
@@ -108,6 +108,8 @@ def read_weights(inits: dict[str, np.ndarray], config: MaterialConfig, finest: i
     `export.weights_from_state` gives them."""
     check_shapes(inits, W.initializer_shapes(config, finest))
     weights = {name: inits[name] for name in W.textures(config)}
+    if RELIEF_DEPTH in inits:  # the depth of all the heights, which a trimmed model's kept levels may not reach
+        weights[RELIEF_DEPTH] = inits[RELIEF_DEPTH]
     for mlp in W.mlps(config):
         for i in range(config.layers):
             weights[W.weight(mlp, i)], weights[W.bias(mlp, i)] = _layer(inits, mlp, i)

@@ -1,24 +1,33 @@
 """`neumip trim`: an exported model without its pyramid levels finer than K.
 
 Shipped models are ONNX files only, so trimming edits the exported graph in place rather than
-re-exporting: it swaps constants and changes nothing else (no node, no other weight):
+re-exporting: it swaps constants and changes no op. Every pyramid the model reads is cut at the level of
+the same footprint (`export_lod.pyramids`: the latents, the base maps' ``base_maps``, the relief's
+``relief_heights``; each one's level of detail is relative to its own resolution, so a pyramid finer than
+the latents keeps log2 of the ratio levels more of its own, `export_lod.pyramid_finest_level`):
 
-- the ``pyramid`` atlas keeps the texels of levels K..L (`config.level_starts()[K]` on);
-- its quad index table and the per-level tables the level of detail reads (initializers ``lod.*``,
-  `export_lod.stage_constants`) become those of the shorter atlas (`export_lookup.trimmed_atlas`:
-  only the table rows move, each level's size and row width stay; levels finer than K repeat K's);
-- the level-of-detail Clip's lower bound becomes 2^K (`export_lod.clip_min`).
+- each atlas keeps the texels of its levels K_p..L_p;
+- its quad index table and the per-level tables its level of detail reads (initializers ``lod.*``,
+  ``base.lod.*``, ``relief.lod.*``, `export_lod.stage_constants`) become those of the shorter atlas
+  (`export_lookup.trimmed_atlas`: only the table rows move, each level's size and row width stay; levels
+  finer than K_p repeat K_p's);
+- its level-of-detail Clip's lower bound becomes 2^K_p (`export_lod.clip_min`).
 
-So every query whose level ``clamp(log2(sigma R), 0, L)`` is >= K gathers the same texels with the
-same weights through the same ops: its answer is bit-identical to the untrimmed model's. A finer query
-reads level K alone (as a query finer than level 0 reads level 0 in an untrimmed model). The neural
-offset texture is kept whole: it is read bilinearly at the finest resolution by every query,
-whatever its footprint, so any reduction of it changes every answer of an offset model.
+So every query whose level ``clamp(log2(sigma R) + lod_bias, 0, L)`` is >= K gathers the same texels with
+the same weights through the same ops in every pyramid: its answer is bit-identical to the untrimmed
+model's. A finer query reads level K_p alone (as a query finer than level 0 reads level 0 in an untrimmed
+model). The neural offset texture is kept whole: it is read bilinearly at the finest resolution by every
+query, whatever its footprint, so any reduction of it changes every answer of an offset model.
+
+Pyramids of one resolution share one quad table (`onnx_graph.shared_key`); after the swap, tables that
+came to hold the same rows (a 64^2 latent pyramid and 256^2 maps, both cut to 16^2) are stored once
+again (`onnx_graph.share_constants`): the only node edit, a table's reader repointed to its twin.
 
 Each constant found is first checked against what the writer (`export_lookup`, `export_lod`) writes
 for the model's config and current trim, so a graph of another layout is refused, never mis-edited.
 The trimmed model's metadata keeps the config (levels are still numbered from the full resolution)
-and adds ``neumip.trim``: the finest level kept, the levels and bytes cut.
+and adds ``neumip.trim``: the finest latent level kept (the maps' follow from it), the latent levels
+and bytes cut.
 """
 
 from __future__ import annotations
@@ -31,17 +40,18 @@ import onnx
 from onnx import numpy_helper
 
 from neumip.core import contract as C
-from neumip.core import weights as W
 from neumip.core.config import MaterialConfig
 from neumip.core.errors import NeumipError
 from neumip.core.modelfile import TrimRecord, read_model_file
 
-from neumip.training.export.graph import save_onnx
-from neumip.training.export.lod import clip_min, clip_node, stage_constants
-from neumip.training.export.lookup import level_tables, texture_constants, trimmed_atlas
+from neumip.training.export.graph import RELIEF_DEPTH, relief_depth, save_onnx
+from neumip.training.export.lod import Pyramid, clip_min, clip_nodes, pyramid_finest_level, pyramids, stage_constants
+from neumip.training.export.lookup import level_tables, trimmed_atlas
+from neumip.training.export.onnx_graph import share_constants
 from neumip.training.export.read import model_file
 
-__all__ = ["TrimError", "TrimRecord", "current_trim", "finest_level_from_budget", "trim_file", "trim_model"]
+__all__ = ["TrimError", "TrimRecord", "current_trim", "finest_level_from_budget", "trim_file", "trim_model",
+           "trimmed_weights"]
 
 log = logging.getLogger(__name__)
 
@@ -76,9 +86,39 @@ def _replace(graph, name: str, expected: np.ndarray, value: np.ndarray) -> None:
     init.CopyFrom(numpy_helper.from_array(value.astype(current.dtype), name))
 
 
+def _swap_tables(graph, swaps: list[tuple[Pyramid, np.ndarray, np.ndarray]]) -> None:
+    """Every int32 initializer holding a pyramid's quad index table as the writer wrote it (old rows) takes the
+    pyramid's new rows. Pyramids whose tables were the same rows (one initializer, or copies in a file written
+    before constants were shared) have the same new rows too: their finest levels kept are the same size."""
+    found = set()
+    for init in graph.initializer:
+        if init.data_type != onnx.TensorProto.INT32:
+            continue
+        current = numpy_helper.to_array(init)
+        new = [(p, rows) for p, old, rows in swaps if old.shape == current.shape and np.array_equal(old, current)]
+        if new:
+            found.update(p.texture for p, _ in new)
+            init.CopyFrom(numpy_helper.from_array(new[0][1].astype(np.int32), init.name))
+    for p, _, _ in swaps:
+        if p.texture not in found:
+            raise TrimError(f"no quad index table of {p.texture!r} as this export writes it; cannot trim this graph")
+
+
+def _cut_atlas(graph, pyramid: Pyramid, old: int, new: int) -> None:
+    """Initializer `pyramid.texture`, holding levels `old`..L of it, keeps levels `new`..L."""
+    starts = pyramid.config.level_starts() + [pyramid.config.atlas_rows()]
+    expected = (starts[-1] - starts[old], pyramid.config.channels)
+    init = next((i for i in graph.initializer if i.name == pyramid.texture), None)
+    atlas = numpy_helper.to_array(init) if init is not None else None
+    if atlas is None or atlas.shape != expected:
+        raise TrimError(f"{pyramid.texture} atlas of shape {None if atlas is None else atlas.shape}, expected {expected}")
+    init.CopyFrom(numpy_helper.from_array(np.ascontiguousarray(atlas[starts[new] - starts[old]:]), pyramid.texture))
+
+
 def trim_model(model: onnx.ModelProto, finest_level: int, source: str = "model.onnx") -> onnx.ModelProto:
-    """A copy of exported `model` holding pyramid levels ``finest_level``..L only (see the module);
-    `source`: its file's path, as errors name it."""
+    """A copy of exported `model` holding latent pyramid levels ``finest_level``..L only, and every other
+    pyramid from the level of the same footprint on (see the module); `source`: its file's path, as errors
+    name it."""
     file = model_file(model, source)
     config, before = file.require_config(NEEDS_CONFIG), file.trim
     old = before.finest_level if before else 0
@@ -89,23 +129,25 @@ def trim_model(model: onnx.ModelProto, finest_level: int, source: str = "model.o
     if finest_level == old:  # nothing to cut: the same model, bit for bit
         return out
     g = out.graph
-    found = texture_constants(g, W.PYRAMID)
-    _replace(g, found["quads"], trimmed_atlas(config, old)[0].rows, trimmed_atlas(config, finest_level)[0].rows)
-    old_lod, new_lod = (stage_constants(config, k, level_tables(config, k)) for k in (old, finest_level))
-    for name, value in new_lod.items():
-        _replace(g, name, old_lod[name], value)
-    _replace(g, clip_node(g, config).input[1], np.asarray(clip_min(old), np.float32),
-             np.asarray(clip_min(finest_level), np.float32))
-    starts = config.level_starts() + [config.atlas_rows()]
-    expected = (starts[-1] - starts[old], config.channels)
-    pyramid = next(i for i in g.initializer if i.name == W.PYRAMID)
-    atlas = numpy_helper.to_array(pyramid)
-    if atlas.shape != expected:
-        raise TrimError(f"pyramid atlas of shape {atlas.shape}, expected {expected}")
-    kept = np.ascontiguousarray(atlas[starts[finest_level] - starts[old]:])
-    pyramid.CopyFrom(numpy_helper.from_array(kept, W.PYRAMID))
+    try:
+        clips = clip_nodes(g, config)
+    except ValueError as exc:
+        raise TrimError(f"{exc}; cannot trim this graph") from exc
+    swaps = []
+    for pyramid, clip in zip(pyramids(config), clips):
+        k_old, k_new = (pyramid_finest_level(config, pyramid.config, k) for k in (old, finest_level))
+        if k_old == k_new:  # maps coarser than level K's footprint: none of their levels is finer
+            continue
+        swaps.append((pyramid, trimmed_atlas(pyramid.config, k_old)[0].rows, trimmed_atlas(pyramid.config, k_new)[0].rows))
+        old_lod, new_lod = (stage_constants(pyramid.config, k, level_tables(pyramid.config, k)) for k in (k_old, k_new))
+        for name, value in new_lod.items():
+            _replace(g, pyramid.prefix + name, old_lod[name], value)
+        _replace(g, clip.input[1], np.asarray(clip_min(k_old), np.float32), np.asarray(clip_min(k_new), np.float32))
+        _cut_atlas(g, pyramid, k_old, k_new)
+    _swap_tables(g, swaps)
+    share_constants(g)
 
-    sizes = config.level_sizes()
+    sizes, starts = config.level_sizes(), config.level_starts()
     record = TrimRecord(
         finest_level=finest_level,
         finest_resolution=sizes[finest_level],
@@ -116,6 +158,18 @@ def trim_model(model: onnx.ModelProto, finest_level: int, source: str = "model.o
     props = {**file.metadata, C.META_TRIM: record.to_json()}
     onnx.helper.set_model_props(out, props)
     onnx.checker.check_model(out, full_check=True)
+    return out
+
+
+def trimmed_weights(config: MaterialConfig, weights: dict[str, np.ndarray], finest_level: int) -> dict[str, np.ndarray]:
+    """Untrimmed `weights` (`export.weights_from_state`) -> those `export.build_onnx` takes with ``finest_level``:
+    every pyramid's atlas from its level of the same footprint on (`export_lod.pyramid_finest_level`)."""
+    out = dict(weights)
+    if config.relief:  # the depth of all the heights, which the kept levels may not reach
+        out[RELIEF_DEPTH] = np.full((1, 1), relief_depth(weights), np.float32)
+    for pyramid in pyramids(config):
+        level = pyramid_finest_level(config, pyramid.config, finest_level)
+        out[pyramid.texture] = weights[pyramid.texture][pyramid.config.level_starts()[level]:]
     return out
 
 

@@ -93,8 +93,31 @@ def test_cli_closeup_is_too_coarse_and_far_view_trims(tmp_path, capsys):
     for name, m in far.items():
         assert m["finest_level"] >= 1 and not m["too_coarse"]
         assert m["trimmed_bytes"] < m["model_bytes"]
+        assert m["pyramid_levels"]["pyramid"] == m["finest_level"] and m["offset_bytes"] > 0
+        assert m["pyramid_levels"]["base_maps"] == m["finest_level"]  # the shipped maps: 256^2, as the latents
         assert math.isclose(sum(m["histogram"]), 1.0, rel_tol=1e-9)
         assert levels["64"][name]["finest_level"] == max(0, m["finest_level"] - 3)
+
+
+@pytest.mark.parametrize("maps", [(0, 0), (32, 32), (16, 16), (8, 0)], ids=["latents", "finer", "as-fine", "coarser"])
+def test_trimmed_bytes_count_every_pyramid(tmp_path, maps):
+    """The budget's estimate of a trimmed model (every pyramid cut at the same footprint, the tables shared by
+    pyramids of one resolution) is the size `neumip trim` writes, to a few hundred bytes of protobuf framing."""
+    from neumip.client.mitsuba.budget import model_facts, offset_size, pyramid_levels, trimmed_size
+    from neumip.training.export.lod import pyramid_finest_level, pyramids
+    from neumip.training.export.trim import trim_model
+
+    config = MaterialConfig(resolution=16, base=maps[0], relief=maps[1], relief_steps=2)
+    model = build_onnx(config, random_weights(config))
+    facts = model_facts(save_onnx(model, tmp_path / "m.onnx"))
+    offset = next(i for i in model.graph.initializer if i.name == "offset_texture")
+    assert 0 < offset.ByteSize() < offset_size(facts) < 2 * offset.ByteSize()  # the texture and its table
+    for k in (1, 2, 4):
+        trimmed = trim_model(model, k)
+        assert abs(trimmed_size(facts, k) - trimmed.ByteSize()) < 400
+        assert pyramid_levels(facts, k) == {p.texture: pyramid_finest_level(config, p.config, k) for p in pyramids(config)}
+        again = model_facts(save_onnx(trimmed, tmp_path / f"t{k}.onnx"))
+        assert abs(trimmed_size(again, 4) - trim_model(model, 4).ByteSize()) < 400  # from a trimmed model on
 
 
 def test_cli_refuses_bad_input(capsys):

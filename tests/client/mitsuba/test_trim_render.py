@@ -1,6 +1,6 @@
-"""A render through models trimmed to the level `neumip budget` found safe differs from the untrimmed
-render by far less than Monte-Carlo noise (the demo scene seen small, shipped models, the budget taken
-for the render's spp)."""
+"""A render through models trimmed to the level `neumip budget` found safe (every pyramid: the latents, the base
+maps, the relief's heights) differs from the untrimmed render by far less than Monte-Carlo noise (the demo scene
+seen small, shipped models, the budget taken for the render's spp)."""
 
 from __future__ import annotations
 
@@ -20,6 +20,9 @@ def test_trimmed_render_is_within_noise(tmp_path):
     assert all(m.finest_level >= 1 for m in budget.materials)  # the cut is safe at 99.9 %
     for m in budget.materials:
         trim_file(f"models/{m.material}.onnx", tmp_path / f"{m.material}.onnx", m.finest_level)
+        # every pyramid cut (the maps' too): no larger than the budget said, and under half the model
+        assert (tmp_path / f"{m.material}.onnx").stat().st_size <= m.trimmed_bytes + 1000
+        assert m.trimmed_bytes < 0.5 * m.model_bytes
 
     def render(folder, seed):
         scene = load_scene("scenes/demo.xml", **PARAMS)

@@ -1,5 +1,7 @@
-"""`neumip trim`: answers above the cut are bit-identical (level boundaries and the offset included),
-finer queries read the finest level kept, and what was cut travels in the metadata."""
+"""`neumip trim`: answers above the cut are bit-identical (level boundaries and the offset included) in every
+pyramid (the latents, the base maps, the relief's heights, at resolutions finer, equal or coarser than the
+latents'), finer queries read the finest level kept, what was cut travels in the metadata, and pyramids of one
+resolution keep one quad table."""
 
 from __future__ import annotations
 
@@ -8,6 +10,7 @@ import json
 import numpy as np
 import onnx
 import pytest
+from onnx import numpy_helper
 
 from neumip.core import contract as C
 from neumip.client.cli import main
@@ -15,27 +18,29 @@ from neumip.engines.local import load_material, run_chunked
 from neumip.core.config import MaterialConfig
 from neumip.core.modelfile import ModelError
 from neumip.training.export.graph import build_onnx, random_weights, save_onnx
-from neumip.training.export.lod import clip_node
-from neumip.training.export.trim import TrimError, current_trim, trim_model
+from neumip.training.export.lod import clip_node, pyramid_finest_level, pyramids
+from neumip.training.export.lookup import trimmed_atlas
+from neumip.training.export.onnx_graph import shared_key
+from neumip.training.export.trim import TrimError, current_trim, trim_model, trimmed_weights
 
 RES = 16
 
 
-def queries(n: int, seed: int, levels: np.ndarray) -> np.ndarray:
-    """(n, 7) queries at continuous `levels` (of a RES^2 model), spread positions and directions."""
+def queries(n: int, seed: int, levels: np.ndarray, lod_bias: int = 0) -> np.ndarray:
+    """(n, 7) queries at continuous `levels` (of a RES^2 model of `lod_bias`), spread positions and directions."""
     rng = np.random.default_rng(seed)
     q = np.zeros((n, C.QUERY_DIM), np.float32)
     q[:, [C.U, C.V]] = rng.uniform(-3, 4, (n, 2))
-    q[:, C.SIGMA] = (2.0 ** levels / RES).astype(np.float32)
+    q[:, C.SIGMA] = (2.0 ** (levels - lod_bias) / RES).astype(np.float32)
     for cols in ([C.WI_X, C.WI_Y], [C.WO_X, C.WO_Y]):
         angle, radius = rng.uniform(0, 2 * np.pi, n), np.sqrt(rng.uniform(0, 0.98, n))
         q[:, cols] = np.stack([radius * np.cos(angle), radius * np.sin(angle)], 1)
     return q
 
 
-def boundary_sigmas(k: int) -> np.ndarray:
+def boundary_sigmas(k: int, lod_bias: int = 0) -> np.ndarray:
     """Footprints on and one float32 either side of every level boundary from k to log2(RES)."""
-    exact = np.asarray([2.0**j / RES for j in range(k, int(np.log2(RES)) + 1)], np.float32)
+    exact = np.asarray([2.0 ** (j - lod_bias) / RES for j in range(k, int(np.log2(RES)) + 1)], np.float32)
     return np.concatenate([exact, np.nextafter(exact, np.float32(np.inf)), np.nextafter(exact, np.float32(0))])
 
 
@@ -44,32 +49,67 @@ def session(model: onnx.ModelProto, path):
     return load_material(path).run
 
 
-@pytest.fixture(scope="module", params=[(True, 0, 0), (False, 0, 0), (True, 2 * RES, 0), (True, 2 * RES, 2 * RES)],
-                ids=["offset", "no-offset", "base", "relief-base"])
+CONFIGS = {  # (offset, base, relief, lod_bias): maps finer than, as fine as and coarser than the latents
+    "offset": (True, 0, 0, 0),
+    "no-offset": (False, 0, 0, 0),
+    "base": (True, 2 * RES, 0, 0),
+    "relief-base": (True, 2 * RES, 2 * RES, 0),
+    "maps-as-fine-biased": (True, RES, RES, 1),
+    "maps-coarser": (False, RES // 2, RES // 4, 0),
+}
+
+
+def make_config(offset: bool, base: int, relief: int, lod_bias: int) -> MaterialConfig:
+    return MaterialConfig(resolution=RES, offset=offset, base=base, relief=relief, relief_steps=4, lod_bias=lod_bias,
+                          local_frame=bool(base), visibility_input=bool(base))
+
+
+@pytest.fixture(scope="module", params=list(CONFIGS.values()), ids=list(CONFIGS))
 def untrimmed(request, tmp_path_factory):
-    config = MaterialConfig(resolution=RES, offset=request.param[0], base=request.param[1], relief=request.param[2])
+    config = make_config(*request.param)
     return build_onnx(config, random_weights(config, seed=4), "trim test"), config
 
 
 @pytest.mark.parametrize("k", [1, 2, 4])
 def test_bit_identical_above_the_cut_and_clamped_below(untrimmed, tmp_path, k):
     model, config = untrimmed
+    b_ = config.lod_bias
     full, trimmed = session(model, tmp_path / "full.onnx"), session(trim_model(model, k), tmp_path / "trim.onnx")
-    q = queries(6000, k, np.random.default_rng(k).uniform(-2, config.levels + 1, 6000))
+    q = queries(6000, k, np.random.default_rng(k).uniform(-2, config.levels + 1, 6000), b_)
     edges = queries(3 * (config.levels - k + 1), 9, np.zeros(3 * (config.levels - k + 1)))
-    edges[:, C.SIGMA] = boundary_sigmas(k)
+    edges[:, C.SIGMA] = boundary_sigmas(k, b_)
     q = np.concatenate([q, edges])
-    level = C.level_of_detail(q[:, C.SIGMA].astype(np.float64), RES)
-    above = (q[:, C.SIGMA].astype(np.float64) * RES >= 2.0**k)  # the graph's own test, in float
+    level = C.level_of_detail(q[:, C.SIGMA].astype(np.float64), RES, b_)
+    above = (q[:, C.SIGMA].astype(np.float64) * RES * 2.0**b_ >= 2.0**k)  # the graph's own test, in float
     assert above.sum() > 500 and (~above).sum() > 500
     a, b = run_chunked(full, q), run_chunked(trimmed, q)
     np.testing.assert_array_equal(b[above], a[above])
     assert not np.array_equal(b[~above & (level < k - 0.5)], a[~above & (level < k - 0.5)])  # finer levels gone
-    if config.base or config.relief:
-        return  # the base maps' and the relief's lookups read the query's own footprint, not level k's
+    if any(k + p.config.levels - config.levels < 0 for p in pyramids(config)):
+        return  # maps coarser than level k's footprint keep their finest levels: they read the query's own
     clamped = q[~above].copy()
-    clamped[:, C.SIGMA] = np.float32(2.0**k / RES)  # what they read instead: level k
+    clamped[:, C.SIGMA] = np.float32(2.0 ** (k - b_) / RES)  # what they read instead: level k (the maps': its footprint)
     np.testing.assert_array_equal(b[~above], run_chunked(full, clamped))
+
+
+def test_every_pyramid_is_cut_and_one_table_serves_pyramids_of_one_resolution(untrimmed):
+    model, config = untrimmed
+    trimmed = trim_model(model, 2)
+    for m, k in ((model, 0), (trimmed, 2)):
+        inits = {i.name: i for i in m.graph.initializer}
+        for p in pyramids(config):
+            level = pyramid_finest_level(config, p.config, k)
+            assert inits[p.texture].dims[0] == p.config.atlas_rows() - p.config.level_starts()[level], p.texture
+        tables = [shared_key(numpy_helper.to_array(i)) for i in m.graph.initializer
+                  if i.data_type == onnx.TensorProto.INT32]
+        assert len({t for t in tables if t}) == len([t for t in tables if t])  # no quad table stored twice
+    if config.base == config.relief == RES:  # all three pyramids read one table, the offset texture its own
+        assert sum(i.data_type == onnx.TensorProto.INT32 for i in model.graph.initializer) == 2
+    if config.base or config.relief:
+        maps = {p.texture for p in pyramids(config)} - {"pyramid"}
+        sizes = {i.name: i.ByteSize() for i in model.graph.initializer}
+        assert trimmed.ByteSize() < model.ByteSize() - 0.5 * sum(sizes[t] for t in maps) * (
+            1 - 4.0 ** -min(pyramid_finest_level(config, p.config, 2) for p in pyramids(config) if p.texture in maps))
 
 
 def test_trim_equals_an_export_at_that_level_and_trims_again(untrimmed, tmp_path):
@@ -77,11 +117,12 @@ def test_trim_equals_an_export_at_that_level_and_trims_again(untrimmed, tmp_path
     model further is the same as trimming once, and the record keeps the original size."""
     model, config = untrimmed
     weights = random_weights(config, seed=4)
-    weights["pyramid"] = weights["pyramid"][config.level_starts()[2]:]
-    built = session(build_onnx(config, weights, "trim test", finest_level=2), tmp_path / "built.onnx")
+    built = build_onnx(config, trimmed_weights(config, weights, 2), "trim test", finest_level=2)
     twice = trim_model(trim_model(model, 1), 2)
+    assert twice.graph.SerializeToString() == built.graph.SerializeToString()
     q = queries(4000, 7, np.random.default_rng(7).uniform(-1, 5, 4000))
-    np.testing.assert_array_equal(run_chunked(session(twice, tmp_path / "t.onnx"), q), run_chunked(built, q))
+    np.testing.assert_array_equal(run_chunked(session(twice, tmp_path / "t.onnx"), q),
+                                  run_chunked(session(built, tmp_path / "built.onnx"), q))
     record = current_trim(twice)
     assert (record.finest_level, record.finest_resolution, record.levels_cut) == (2, 4, [16, 8])
     assert record.texels_cut == 16 * 16 + 8 * 8 and record.bytes_before == model.ByteSize()
@@ -104,6 +145,18 @@ def test_refuses_a_graph_of_another_layout(untrimmed):
     init.CopyFrom(onnx.numpy_helper.from_array(np.asarray(0.5, np.float32), init.name))
     with pytest.raises(TrimError, match="not what this export writes"):
         trim_model(tampered, 1)
+    for p in pyramids(config):  # each pyramid's quad table: a wrong row, or none
+        if pyramid_finest_level(config, p.config, 2) == 0:
+            continue  # maps coarser than level 2's footprint: nothing of them is cut, nothing checked
+        for edit in ("row", "none"):
+            tampered.CopyFrom(model)
+            table = next(i for i in tampered.graph.initializer if i.data_type == onnx.TensorProto.INT32
+                         and i.dims[0] == len(trimmed_atlas(p.config)[0].rows))
+            rows = numpy_helper.to_array(table).copy()
+            rows[-1] = rows[0] if edit == "row" else rows[-1]
+            table.CopyFrom(numpy_helper.from_array(rows if edit == "row" else rows[1:], table.name))
+            with pytest.raises(TrimError, match="no quad index table of"):
+                trim_model(tampered, 2)
     no_meta = onnx.ModelProto()
     no_meta.CopyFrom(model)
     del no_meta.metadata_props[:]

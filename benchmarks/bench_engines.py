@@ -1,0 +1,328 @@
+"""Every engine on the shipped models, beside the decoder MLP alone: file size, load time, queries/s.
+
+    .venv/bin/python benchmarks/bench_engines.py                          # yarn_maps, rock_maps, rock (~1 min)
+    .venv/bin/python benchmarks/bench_engines.py --models yarn_maps --rounds 7 --batch 17
+    .venv/bin/python benchmarks/bench_engines.py --ort level=basic,spin=1,intra=2+workers=1 --profile
+
+Per model (``--folder``/NAME.onnx): the file's size; seconds to load it in ONNX Runtime (`load_material`:
+read, check, open a session) and in the kernel engine (`KernelMaterial`: read, check, a trial trace), and
+the kernel's first call (compiling, or drjit's disk cache); then queries/s of 2^batch random single
+queries per call, in interleaved rounds (every model and engine once a round; medians of the rounds):
+
+- onnxruntime: `LocalMaterials.evaluate` as shipped (`--threads` chunk workers, one-thread sessions);
+- kernel: `KernelMaterials.evaluate` (drjit LLVM, one call over every core);
+- mlp-only: an ONNX graph of the model's decoder MLP alone (its widths, random weights: speed does not
+  depend on them), Gemm per layer on an (N, in) input, run as `LocalMaterials` runs a model;
+- each ``--ort SPEC``: ONNX Runtime with other options, run like `LocalMaterials` (`run_chunked`). SPEC
+  is tokens joined by ``+``, each changing the shipped options (``shipped``: none): ``level=disabled|basic|extended|all``,
+  ``saved`` (the optimised graph saved by `optimized_model_filepath`, loaded without optimising again),
+  ``spin=0|1``, ``intra=N`` (intra-op threads a session), ``workers=N`` (chunk threads; 1: one call a
+  batch), ``chunk=N`` (answers a call), ``parallel`` (ORT_PARALLEL, 2 inter-op threads),
+  ``arena=0``, ``mempattern=0``, ``cfg:KEY=VALUE`` (a session config entry).
+
+``--server``: also each engine behind a real `neumip serve` (`NEUMIP_ENGINE=onnxruntime` and ``kernel``, both
+running, default settings, serving these models), sent the same batches as msgpack by one `MaterialClient`;
+and, in process and through each server, the renderer's query groups of two lights (2^batch groups: twice
+the answers). Its ``CPU M/s`` counts the server's CPU time too.
+
+Ratios are per round, then the median: ``/mlp`` to the mlp-only graph, ``/kernel`` to the kernel engine
+(the same kind: in process or served, single queries or groups). Groups count answers (2 a group).
+``bits``: ``same`` where the answers equal the shipped onnxruntime's bit for bit, else the largest
+difference. ``--profile``: ONNX Runtime's per-node profile of each model (1 thread, calls of
+`DEFAULT_CHUNK`), by op: its share of the kernel time (nodes a call).
+The machine is shared: read the load averages printed at the start and end.
+"""
+
+from __future__ import annotations
+
+import argparse
+import collections
+import json
+import os
+import statistics
+import tempfile
+import time
+from concurrent.futures import ThreadPoolExecutor
+from pathlib import Path
+
+import numpy as np
+import onnxruntime as ort
+from onnx import TensorProto, helper, numpy_helper
+
+from neumip.core import contract as C
+from neumip.core import weights as W
+from neumip.core.modelfile import read_model_file
+from neumip.engines.kernel import KernelMaterial, KernelMaterials
+from neumip.engines.local import (DEFAULT_CHUNK, SESSION_CONFIG, LocalMaterials, load_material, run_call,
+                                  run_chunked, split_chunk)
+
+SETTLE_S = 0.1
+"""Pause before each measurement: drjit's workers (and ONNX Runtime's spinning ones) spin for tens of
+milliseconds after a call, taking CPU from the measurement after them."""
+
+LEVELS = {"disabled": ort.GraphOptimizationLevel.ORT_DISABLE_ALL, "basic": ort.GraphOptimizationLevel.ORT_ENABLE_BASIC,
+          "extended": ort.GraphOptimizationLevel.ORT_ENABLE_EXTENDED, "all": ort.GraphOptimizationLevel.ORT_ENABLE_ALL}
+
+
+def load_text() -> str:
+    one, five, _ = os.getloadavg()
+    return f"load average {one:.2f} (1 min), {five:.2f} (5 min) on {os.cpu_count()} cores"
+
+
+def parse_spec(spec: str, threads: int) -> dict:
+    """An ``--ort`` SPEC -> its settings (the shipped ones where it says nothing)."""
+    s = {"level": "all", "saved": False, "spin": "0", "intra": 1, "workers": threads, "chunk": DEFAULT_CHUNK,
+         "parallel": False, "arena": True, "mempattern": True, "config": {}}
+    for token in filter(None, spec.split("+")):
+        key, _, value = token.partition("=")
+        if key.startswith("cfg:"):
+            s["config"][key[4:]] = value
+        elif key == "shipped":
+            pass
+        elif key in ("saved", "parallel"):
+            s[key] = True
+        elif key in ("arena", "mempattern"):
+            s[key] = value != "0"
+        elif key in ("intra", "workers", "chunk"):
+            s[key] = int(value)
+        elif key in ("level", "spin"):
+            s[key] = value
+        else:
+            raise SystemExit(f"unknown --ort token {token!r}")
+    return s
+
+
+def options(s: dict, level: str | None = None) -> ort.SessionOptions:
+    """Session options of settings `s` (`load_material`'s, changed where `s` says)."""
+    opts = ort.SessionOptions()
+    opts.intra_op_num_threads = s["intra"]
+    opts.inter_op_num_threads = 2 if s["parallel"] else 1
+    opts.log_severity_level = 3
+    opts.graph_optimization_level = LEVELS[level or s["level"]]
+    opts.enable_cpu_mem_arena = s["arena"]
+    opts.enable_mem_pattern = s["mempattern"]
+    if s["parallel"]:
+        opts.execution_mode = ort.ExecutionMode.ORT_PARALLEL
+    for key, value in {**SESSION_CONFIG, "session.intra_op.allow_spinning": s["spin"], **s["config"]}.items():
+        opts.add_session_config_entry(key, value)
+    return opts
+
+
+def open_variant(data: bytes, s: dict, folder: str) -> tuple[ort.InferenceSession, float]:
+    """A session of settings `s` on the model `data`, and the seconds it took to open (``saved``: to
+    open the saved optimised graph, written first into `folder`)."""
+    source, opts = data, options(s)
+    if s["saved"]:
+        source = Path(folder) / f"saved{len(os.listdir(folder))}.onnx"
+        opts.optimized_model_filepath = str(source)
+        ort.InferenceSession(data, opts, providers=["CPUExecutionProvider"])
+        source, opts = str(source), options(s, "disabled")
+    start = time.perf_counter()
+    return ort.InferenceSession(source, opts, providers=["CPUExecutionProvider"]), time.perf_counter() - start
+
+
+def mlp_only(config) -> tuple[bytes, int]:
+    """The decoder MLP alone, widths as the model's: (N, in) -> (N, out) float32, Gemm + Relu; and `in`."""
+    inputs, answers = W.mlps(config)[W.DECODER]
+    widths = [inputs] + [config.hidden] * (config.layers - 1) + [answers]
+    rng, nodes, inits, x = np.random.default_rng(0), [], [], "x"
+    for i in range(config.layers):
+        w = rng.normal(scale=widths[i] ** -0.5, size=(widths[i + 1], widths[i])).astype(np.float32)
+        inits += [numpy_helper.from_array(w, f"w{i}"), numpy_helper.from_array(np.zeros(widths[i + 1], np.float32), f"b{i}")]
+        nodes.append(helper.make_node("Gemm", [x, f"w{i}", f"b{i}"], [f"g{i}"], transB=1))
+        x = f"g{i}"
+        if i < config.layers - 1:
+            nodes.append(helper.make_node("Relu", [x], [f"r{i}"]))
+            x = f"r{i}"
+    graph = helper.make_graph(nodes, "mlp", [helper.make_tensor_value_info("x", TensorProto.FLOAT, ["N", inputs])],
+                              [helper.make_tensor_value_info(x, TensorProto.FLOAT, ["N", answers])], initializer=inits)
+    model = helper.make_model(graph, opset_imports=[helper.make_opsetid("", 18)])
+    model.ir_version = 9
+    return model.SerializeToString(), inputs
+
+
+def chunked(session, x: np.ndarray, chunk: int, workers: int, executor) -> np.ndarray:
+    """`x` through `session` in calls as `LocalMaterials.evaluate` cuts a batch (any widths in and out)."""
+    rows = split_chunk(len(x), workers, chunk)
+    parts = list(range(0, len(x), rows))
+    call = lambda lo: session.run(None, {session.get_inputs()[0].name: x[lo:lo + rows]})[0]  # noqa: E731
+    return np.concatenate(list(executor.map(call, parts)) if executor and len(parts) > 1 else [call(lo) for lo in parts])
+
+
+def process_cpu_s(pid: int | None = None) -> float:
+    """CPU seconds (user + system) of process `pid` (None: this one)."""
+    if pid is None:
+        return time.process_time()
+    fields = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
+    return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
+
+
+def throughput(fn, rows: int, seconds: float, server: int | None = None) -> tuple[float, float]:
+    """(answers per wall-clock second, per CPU second of this process and the `server` process, if
+    any) of `fn()`, which gives `rows` answers, repeated for at least `seconds`."""
+    cpu_s = lambda: process_cpu_s() + (process_cpu_s(server) if server else 0.0)  # noqa: E731
+    calls, start, cpu = 0, time.perf_counter(), cpu_s()
+    while True:
+        fn()
+        calls += 1
+        elapsed = time.perf_counter() - start
+        if elapsed >= seconds:
+            return calls * rows / elapsed, calls * rows / max(cpu_s() - cpu, 1e-9)
+
+
+def pairs(queries: np.ndarray) -> np.ndarray:
+    """(N, 9) query groups of two lights: each query and the wi of another one (`bench_server.pairs`)."""
+    other = np.roll(queries, len(queries) // 2, axis=0)[:, C.WI_X:C.WI_Y + 1]
+    return np.ascontiguousarray(np.hstack([queries, other]))
+
+
+def start_servers(folder: Path, names: list[str], scratch: Path) -> dict:
+    """A `neumip serve` of each engine on a folder of the models `names`: {engine: (server, client)}."""
+    from neumip.client.http import ClientConfig, MaterialClient
+    from neumip.server.process import ServerProcess
+
+    served = scratch / "served"
+    served.mkdir()
+    for name in names:
+        (served / f"{name}.onnx").symlink_to((folder / f"{name}.onnx").resolve())
+    servers = {}
+    for engine in ("onnxruntime", "kernel"):
+        server = ServerProcess.start(served, scratch / f"{engine}.log", engine=engine)
+        servers[engine] = (server, MaterialClient(server.url, ClientConfig(timeout_s=120)))
+        print(f"# server {engine} ready in {server.ready_s:.1f} s")
+    return servers
+
+
+def timed(fn) -> float:
+    start = time.perf_counter()
+    fn()
+    return time.perf_counter() - start
+
+
+def profile(path: Path) -> None:
+    """ONNX Runtime's per-node kernel time of the model, summed by op type."""
+    with tempfile.TemporaryDirectory() as folder:
+        opts = options(parse_spec("", 1))
+        opts.enable_profiling = True
+        opts.profile_file_prefix = str(Path(folder) / "profile")
+        sess = ort.InferenceSession(str(path), opts, providers=["CPUExecutionProvider"])
+        q = C.random_queries(1 << 17, seed=20)
+        for lo in range(0, len(q), DEFAULT_CHUNK):
+            run_call(sess, q[lo:lo + DEFAULT_CHUNK])
+        events = json.loads(Path(sess.end_profiling()).read_text())
+    per_op, count, per_node = collections.Counter(), collections.Counter(), collections.Counter()
+    for e in events:
+        if e.get("cat") == "Node" and e["name"].endswith("_kernel_time"):
+            op = e["args"].get("op_name", "?")
+            per_op[op] += e["dur"]
+            count[op] += 1
+            shapes = " x ".join(str(next(iter(t.values()))) for t in e["args"].get("input_type_shape", []))
+            per_node[f"{e['name'][:-12]} {shapes}"] += e["dur"]
+    total, calls = sum(per_op.values()), len(q) // DEFAULT_CHUNK
+    print(f"\n## {path.stem}: ONNX Runtime profile, {total / len(q) * 1e3:.0f} ns of kernel time a query "
+          f"(1 thread, calls of {DEFAULT_CHUNK})   [{load_text()}]")
+    print("  " + ", ".join(f"{op} {100 * us / total:.1f} % ({count[op] // calls})" for op, us in per_op.most_common(12)))
+    print("  heaviest nodes: " + ", ".join(f"{n} {100 * us / total:.1f} %" for n, us in per_node.most_common(6)))
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("--folder", type=Path, default=Path("models"))
+    parser.add_argument("--models", default="yarn_maps,rock_maps,rock", help="comma-separated model names")
+    parser.add_argument("--rounds", type=int, default=5)
+    parser.add_argument("--batch", type=int, default=17, help="log2 of the queries per call")
+    parser.add_argument("--threads", type=int, default=os.cpu_count() or 1, help="LocalMaterials' chunk workers")
+    parser.add_argument("--seconds", type=float, default=0.25, help="least time of one measurement")
+    parser.add_argument("--ort", type=lambda t: t.split(","), default=[], help="ONNX Runtime variants (SPEC,...)")
+    parser.add_argument("--profile", action="store_true", help="ONNX Runtime's per-op profile of each model")
+    parser.add_argument("--server", action="store_true", help="also through a server of each engine, and groups of two")
+    args = parser.parse_args()
+    names, rows = args.models.split(","), 1 << args.batch
+    print(f"# {rows} random single queries a call, {args.rounds} rounds; onnxruntime {ort.__version__}, "
+          f"{args.threads} threads; {load_text()}")
+    local = LocalMaterials(args.folder, threads=args.threads, lazy=True)
+    kernel = KernelMaterials(args.folder)
+    executor = ThreadPoolExecutor(args.threads) if args.threads > 1 else None
+    pool = C.random_queries(4 * rows, seed=1)
+    batches = [pool[i * rows:(i + 1) * rows] for i in range(4)]
+    turn = collections.Counter()
+
+    def next_batch(key, source: list[np.ndarray] = batches) -> np.ndarray:
+        turn[key] += 1
+        return source[turn[key] % 4]
+
+    fns, loads, info, servers = {}, {}, {}, {}
+    saved_dir = tempfile.TemporaryDirectory()
+    if args.server:
+        servers = start_servers(args.folder, names, Path(saved_dir.name))
+    answers = {}  # rows of answers of each measurement
+    for name in names:
+        path = args.folder / f"{name}.onnx"
+        data = path.read_bytes()
+        config = read_model_file(path, data).config
+        loads[name] = {"onnxruntime": statistics.median(timed(lambda: load_material(path, 1)) for _ in range(3)),
+                       "kernel": statistics.median(timed(lambda: KernelMaterial(path)) for _ in range(3))}
+        loads[name]["kernel first call"] = timed(lambda: kernel.evaluate(name, batches[0]))
+        mlp, width = mlp_only(config)
+        mlp_session = ort.InferenceSession(mlp, options(parse_spec("", args.threads)), providers=["CPUExecutionProvider"])
+        x = np.random.default_rng(2).normal(size=(rows, width)).astype(np.float32)
+        engines = {"onnxruntime": lambda n=name: local.evaluate(n, next_batch((n, "ort"))),
+                   "kernel": lambda n=name: kernel.evaluate(n, next_batch((n, "kernel"))),
+                   "mlp-only": lambda s=mlp_session, x=x: chunked(s, x, DEFAULT_CHUNK, args.threads, executor)}
+        checks = {"onnxruntime": local.evaluate(name, batches[0]), "kernel": kernel.evaluate(name, batches[0])}
+        for spec in args.ort:
+            s = parse_spec(spec, args.threads)
+            session, loads[name][f"ort {spec}"] = open_variant(data, s, saved_dir.name)
+            ex = ThreadPoolExecutor(s["workers"]) if s["workers"] > 1 else None
+            per_call = s["chunk"]
+
+            def run(q, session=session, ex=ex, per_call=per_call, workers=s["workers"]):
+                return run_chunked(lambda c: run_call(session, c), q, split_chunk(len(q), workers, per_call), ex)
+            engines[f"ort {spec}"] = lambda n=name, run=run, spec=spec: run(next_batch((n, spec)))
+            checks[f"ort {spec}"] = run(batches[0])
+        want = checks["onnxruntime"]
+        if args.server:
+            groups = [pairs(b) for b in batches]
+            engines["onnxruntime, groups of 2"] = lambda n=name, g=groups: local.evaluate(n, next_batch((n, "og"), g))
+            engines["kernel, groups of 2"] = lambda n=name, g=groups: kernel.evaluate(n, next_batch((n, "kg"), g))
+            for engine, (_, client) in servers.items():
+                engines[f"server {engine}"] = lambda n=name, c=client: c.evaluate(n, next_batch((n, c)))
+                engines[f"server {engine}, groups of 2"] = (
+                    lambda n=name, c=client, g=groups: c.evaluate(n, next_batch((n, c, 2), g)))
+        for engine, fn in engines.items():
+            fn()  # warm-up
+            fns[name, engine] = fn
+            answers[name, engine] = 2 * rows if engine.endswith("groups of 2") else rows
+        info[name] = {"MB": len(data) / 1e6, "bits": {e: ("same" if np.array_equal(a, want) else
+                                                          f"{np.abs(a - want).max():.1e}") for e, a in checks.items()}}
+    print(f"# loaded   [{load_text()}]")
+    results = collections.defaultdict(list)
+    for _ in range(args.rounds):
+        for key, fn in fns.items():
+            time.sleep(SETTLE_S)
+            server = next((s.process.pid for e, (s, _) in servers.items() if key[1].startswith(f"server {e}")), None)
+            results[key].append(throughput(fn, answers[key], args.seconds, server))
+    print(f"# measured [{load_text()}]")
+    for name in names:
+        print(f"\n## {name}: {info[name]['MB']:.1f} MB; load s: " +
+              ", ".join(f"{e} {s:.3f}" for e, s in loads[name].items()))
+        print(f"  {'engine':34s} {'M q/s':>7s} {'CPU M/s':>8s} {'/mlp':>6s} {'/kernel':>8s}  bits")
+        for engine in [e for (n, e) in fns if n == name]:
+            wall = [w for w, _ in results[name, engine]]
+            ratio = lambda other: statistics.median(a / b[0] for a, b in zip(wall, results[name, other]))  # noqa: E731
+            like = ("server " if engine.startswith("server") else "") + "kernel" + (
+                ", groups of 2" if engine.endswith("groups of 2") else "")
+            print(f"  {engine:34s} {statistics.median(wall) / 1e6:7.2f} "
+                  f"{statistics.median(c for _, c in results[name, engine]) / 1e6:8.2f} {ratio('mlp-only'):6.2f} "
+                  f"{ratio(like):8.2f}  {info[name]['bits'].get(engine, '')}")
+    if args.profile:
+        for name in names:
+            profile(args.folder / f"{name}.onnx")
+    for server, client in servers.values():
+        client.close()
+        server.stop()
+    saved_dir.cleanup()
+
+
+if __name__ == "__main__":
+    main()
