@@ -53,6 +53,14 @@ BASE_LOG_CEILING = 8.0
 RELIEF_MIN_COS = 0.25
 """The relief stage marches along wo_xy / max(wo_z, this): a grazing view's ray is followed at most ~3.9x
 its depth sideways (`MaterialConfig.relief`)."""
+def same_footprint_level(levels: int, pyramid_levels: int, finest_level: int) -> int:
+    """The level of a pyramid of ``pyramid_levels`` + 1 levels that holds the footprint of level K = ``finest_level``
+    of the latents' ``levels`` + 1: every pyramid's level of detail is log2(sigma R) + lod_bias at its own
+    resolution R, so the same footprint is log2(R_pyramid / R_latents) levels further down it (coarser maps: up),
+    clamped at 0. K = 0 is every query, the finest footprints too: 0."""
+    return max(0, finest_level + pyramid_levels - levels) if finest_level else 0
+
+
 @dataclass(frozen=True)
 class DecoderInput:
     """One of the decoder's optional inputs: a row of `DECODER_INPUTS`."""
@@ -224,10 +232,9 @@ class MaterialConfig:
 
     def pyramid_finest_level(self, pyramid: "MaterialConfig", finest_level: int) -> int:
         """The finest level of `pyramid` (`base_pyramid`, `relief_pyramid`, or this config's own) read by a query
-        whose latent level is at least K = ``finest_level`` (what a model trimmed to K keeps of it): every
-        pyramid's level of detail is log2(sigma R) + lod_bias at its own resolution R, so the same footprint is
-        log2(R_pyramid / R) levels further down it (coarser maps: up), clamped at 0; K = 0 is every query: 0."""
-        return max(0, finest_level + pyramid.levels - self.levels) if finest_level else 0
+        whose latent level is at least K = ``finest_level`` (what a model trimmed to K keeps of it):
+        `same_footprint_level`."""
+        return same_footprint_level(self.levels, pyramid.levels, finest_level)
 
     def to_json(self) -> str:
         """The fields as JSON; each decoder input's switch, `base`, the relief's, `lod_bias` and `ceiling` only when

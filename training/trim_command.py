@@ -29,7 +29,7 @@ def register(sub: argparse._SubParsersAction) -> None:
 def _trim(args: argparse.Namespace) -> int:
     from neumip.core.errors import CommandError
 
-    from neumip.training.export.trim import TrimError, finest_level_from_budget, trim_file
+    from neumip.training.export.trim import finest_level_from_budget, trim_file
 
     if not args.model.is_file():
         raise CommandError(f"model {args.model} does not exist")
@@ -55,12 +55,12 @@ def _maps_kept(path: Path, finest_level: int) -> str:
     """"; base_maps from level 4 (16^2), ..." for the model's other pyramids ("" for none)."""
     from neumip.core import weights as W
     from neumip.core.modelfile import read_model_file
-    from neumip.training.export.lod import pyramid_finest_level, pyramids
+    from neumip.training.export.lod import pyramids
 
     config = read_model_file(path).config
     kept = []
     for p in pyramids(config):
         if p.texture != W.PYRAMID:
-            level = pyramid_finest_level(config, p.config, finest_level)
+            level = config.pyramid_finest_level(p.config, finest_level)
             kept.append(f"{p.texture} from level {level} ({p.config.level_sizes()[level]}^2)")
     return "; " + ", ".join(kept) if kept else ""

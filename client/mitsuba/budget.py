@@ -31,7 +31,7 @@ import numpy as np
 
 from neumip.core import contract as C
 from neumip.core import weights as W
-from neumip.core.config import BASE_CHANNELS
+from neumip.core.config import BASE_CHANNELS, same_footprint_level
 from neumip.core.contract import sample_footprint
 from neumip.core.modelfile import read_model_file
 
@@ -219,10 +219,10 @@ def _level_sizes(resolution: int) -> list[int]:
 
 def pyramid_levels(facts: ModelFacts, finest_level: int) -> dict[str, int]:
     """Each pyramid's finest level that `neumip trim` keeps for latent level K = ``finest_level``
-    (`export_lod.pyramid_finest_level`): the level of the same footprint at the pyramid's own resolution, clamped
+    (`core.config.same_footprint_level`): the level of the same footprint at the pyramid's own resolution, clamped
     at 0; at K = 0 (every query, the finest too) all of it."""
-    shift = int(math.log2(facts.resolution))
-    return {name: max(0, finest_level + int(math.log2(res)) - shift) if finest_level else 0
+    levels = int(math.log2(facts.resolution))
+    return {name: same_footprint_level(levels, int(math.log2(res)), finest_level)
             for name, (res, _) in facts.pyramids().items()}
 
 

@@ -43,7 +43,7 @@ from neumip.core import weights as W
 from neumip.core.config import RELIEF_DIVISION_FLOOR, RELIEF_MIN_COS, MaterialConfig
 from neumip.training.export import base as B
 from neumip.training.export.lookup import footprint_texels, pyramid_footprint, pyramid_texels, texture_texels
-from neumip.training.export.lod import RELIEF_PREFIX, pyramid_finest_level, pyramids
+from neumip.training.export.lod import RELIEF_PREFIX, pyramids
 from neumip.training.export.onnx_graph import GraphWriter
 
 log = logging.getLogger(__name__)
@@ -220,7 +220,7 @@ def _relief(g: GraphWriter, config: MaterialConfig, weights: dict, uv: str, sigm
             finest_level: int = 0) -> str:
     """uv (N, 2), sigma (N, 1), wo (N, 2) -> (N, 2) the relief's shift of the lookups, as `relief.relief_shift`
     computes it: one footprint of the height pyramid, read at each step's position. ``finest_level``: the
-    finest level ``weights["relief_heights"]`` holds (a trimmed model, `lod.pyramid_finest_level`)."""
+    finest level ``weights["relief_heights"]`` holds (a trimmed model, `MaterialConfig.pyramid_finest_level`)."""
     heights = weights[W.RELIEF]
     depth = relief_depth(weights)
     steps = config.relief_steps
@@ -263,14 +263,14 @@ def material_graph(g: GraphWriter, config: MaterialConfig, weights: dict,
     first layer adds each light's wi part to the group's texture-and-wo part, and the rest of the
     decoder runs once per light. ``weights["pyramid"]`` holds levels ``finest_level``..L (all of them
     unless trimmed), the base maps' and the relief's pyramids the levels of the same footprint on
-    (`lod.pyramid_finest_level`).
+    (`MaterialConfig.pyramid_finest_level`).
     """
     q = g.op("Slice", C.ONNX_INPUT, g.const([0], np.int64), g.const([C.QUERY_DIM], np.int64),
              g.const([1], np.int64))  # (N, 7): each group's first query
     uv, sigma, wo = _query_columns(g, q)
 
     # --- relief: uv moves to where the view ray first meets the height field --------------------
-    finest = {p.texture: pyramid_finest_level(config, p.config, finest_level) for p in pyramids(config)}
+    finest = {p.texture: config.pyramid_finest_level(p.config, finest_level) for p in pyramids(config)}
     if config.relief:
         uv = g.op("Add", uv, _relief(g, config, weights, uv, sigma, wo, finest[W.RELIEF]))
 

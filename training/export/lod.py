@@ -26,6 +26,8 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
+import onnx
+
 from neumip.core import weights as W
 from neumip.core.config import MaterialConfig
 from neumip.training.export.onnx_graph import GraphWriter
@@ -65,14 +67,6 @@ def pyramids(config: MaterialConfig) -> list[Pyramid]:
     out = [Pyramid(W.RELIEF, config.relief_pyramid(), RELIEF_PREFIX)] if config.relief else []
     out.append(Pyramid(W.PYRAMID, config, ""))
     return out + ([Pyramid(W.BASE, config.base_pyramid(), BASE_PREFIX)] if config.base else [])
-
-
-def pyramid_finest_level(config: MaterialConfig, pyramid: MaterialConfig, finest_level: int) -> int:
-    """The finest level of `pyramid` (one of `pyramids`) that a query reads whose latent level is at least K =
-    ``finest_level``: each pyramid's level of detail is log2(sigma R) + lod_bias at its own resolution R, so the
-    same footprint is log2(R_pyramid / R_latents) levels further down it (coarser maps: up), clamped at 0. K = 0
-    is every query (the finest footprints included): 0."""
-    return max(0, finest_level + pyramid.levels - config.levels) if finest_level else 0
 
 
 def clip_nodes(graph, config: MaterialConfig) -> list:

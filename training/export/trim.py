@@ -4,7 +4,7 @@ Shipped models are ONNX files only, so trimming edits the exported graph in plac
 re-exporting: it swaps constants and changes no op. Every pyramid the model reads is cut at the level of
 the same footprint (`export_lod.pyramids`: the latents, the base maps' ``base_maps``, the relief's
 ``relief_heights``; each one's level of detail is relative to its own resolution, so a pyramid finer than
-the latents keeps log2 of the ratio levels more of its own, `export_lod.pyramid_finest_level`):
+the latents keeps log2 of the ratio levels more of its own, `MaterialConfig.pyramid_finest_level`):
 
 - each atlas keeps the texels of its levels K_p..L_p;
 - its quad index table and the per-level tables its level of detail reads (initializers ``lod.*``,
@@ -45,7 +45,7 @@ from neumip.core.errors import NeumipError
 from neumip.core.modelfile import TrimRecord, read_model_file
 
 from neumip.training.export.graph import RELIEF_DEPTH, relief_depth, save_onnx
-from neumip.training.export.lod import Pyramid, clip_min, clip_nodes, pyramid_finest_level, pyramids, stage_constants
+from neumip.training.export.lod import Pyramid, clip_min, clip_nodes, pyramids, stage_constants
 from neumip.training.export.lookup import level_tables, trimmed_atlas
 from neumip.training.export.onnx_graph import share_constants
 from neumip.training.export.read import model_file
@@ -135,7 +135,7 @@ def trim_model(model: onnx.ModelProto, finest_level: int, source: str = "model.o
         raise TrimError(f"{exc}; cannot trim this graph") from exc
     swaps = []
     for pyramid, clip in zip(pyramids(config), clips):
-        k_old, k_new = (pyramid_finest_level(config, pyramid.config, k) for k in (old, finest_level))
+        k_old, k_new = (config.pyramid_finest_level(pyramid.config, k) for k in (old, finest_level))
         if k_old == k_new:  # maps coarser than level K's footprint: none of their levels is finer
             continue
         swaps.append((pyramid, trimmed_atlas(pyramid.config, k_old)[0].rows, trimmed_atlas(pyramid.config, k_new)[0].rows))
@@ -163,12 +163,12 @@ def trim_model(model: onnx.ModelProto, finest_level: int, source: str = "model.o
 
 def trimmed_weights(config: MaterialConfig, weights: dict[str, np.ndarray], finest_level: int) -> dict[str, np.ndarray]:
     """Untrimmed `weights` (`export.weights_from_state`) -> those `export.build_onnx` takes with ``finest_level``:
-    every pyramid's atlas from its level of the same footprint on (`export_lod.pyramid_finest_level`)."""
+    every pyramid's atlas from its level of the same footprint on (`MaterialConfig.pyramid_finest_level`)."""
     out = dict(weights)
     if config.relief:  # the depth of all the heights, which the kept levels may not reach
         out[RELIEF_DEPTH] = np.full((1, 1), relief_depth(weights), np.float32)
     for pyramid in pyramids(config):
-        level = pyramid_finest_level(config, pyramid.config, finest_level)
+        level = config.pyramid_finest_level(pyramid.config, finest_level)
         out[pyramid.texture] = weights[pyramid.texture][pyramid.config.level_starts()[level]:]
     return out
 

@@ -104,7 +104,7 @@ def test_trimmed_bytes_count_every_pyramid(tmp_path, maps):
     """The budget's estimate of a trimmed model (every pyramid cut at the same footprint, the tables shared by
     pyramids of one resolution) is the size `neumip trim` writes, to a few hundred bytes of protobuf framing."""
     from neumip.client.mitsuba.budget import model_facts, offset_size, pyramid_levels, trimmed_size
-    from neumip.training.export.lod import pyramid_finest_level, pyramids
+    from neumip.training.export.lod import pyramids
     from neumip.training.export.trim import trim_model
 
     config = MaterialConfig(resolution=16, base=maps[0], relief=maps[1], relief_steps=2)
@@ -115,7 +115,7 @@ def test_trimmed_bytes_count_every_pyramid(tmp_path, maps):
     for k in (1, 2, 4):
         trimmed = trim_model(model, k)
         assert abs(trimmed_size(facts, k) - trimmed.ByteSize()) < 400
-        assert pyramid_levels(facts, k) == {p.texture: pyramid_finest_level(config, p.config, k) for p in pyramids(config)}
+        assert pyramid_levels(facts, k) == {p.texture: config.pyramid_finest_level(p.config, k) for p in pyramids(config)}
         again = model_facts(save_onnx(trimmed, tmp_path / f"t{k}.onnx"))
         assert abs(trimmed_size(again, 4) - trim_model(model, 4).ByteSize()) < 400  # from a trimmed model on
 

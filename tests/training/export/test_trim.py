@@ -18,7 +18,7 @@ from neumip.engines.local import load_material, run_chunked
 from neumip.core.config import MaterialConfig
 from neumip.core.modelfile import ModelError
 from neumip.training.export.graph import build_onnx, random_weights, save_onnx
-from neumip.training.export.lod import clip_node, pyramid_finest_level, pyramids
+from neumip.training.export.lod import clip_node, pyramids
 from neumip.training.export.lookup import trimmed_atlas
 from neumip.training.export.onnx_graph import shared_key
 from neumip.training.export.trim import TrimError, current_trim, trim_model, trimmed_weights
@@ -98,7 +98,7 @@ def test_every_pyramid_is_cut_and_one_table_serves_pyramids_of_one_resolution(un
     for m, k in ((model, 0), (trimmed, 2)):
         inits = {i.name: i for i in m.graph.initializer}
         for p in pyramids(config):
-            level = pyramid_finest_level(config, p.config, k)
+            level = config.pyramid_finest_level(p.config, k)
             assert inits[p.texture].dims[0] == p.config.atlas_rows() - p.config.level_starts()[level], p.texture
         tables = [shared_key(numpy_helper.to_array(i)) for i in m.graph.initializer
                   if i.data_type == onnx.TensorProto.INT32]
@@ -109,7 +109,7 @@ def test_every_pyramid_is_cut_and_one_table_serves_pyramids_of_one_resolution(un
         maps = {p.texture for p in pyramids(config)} - {"pyramid"}
         sizes = {i.name: i.ByteSize() for i in model.graph.initializer}
         assert trimmed.ByteSize() < model.ByteSize() - 0.5 * sum(sizes[t] for t in maps) * (
-            1 - 4.0 ** -min(pyramid_finest_level(config, p.config, 2) for p in pyramids(config) if p.texture in maps))
+            1 - 4.0 ** -min(config.pyramid_finest_level(p.config, 2) for p in pyramids(config) if p.texture in maps))
 
 
 def test_trim_equals_an_export_at_that_level_and_trims_again(untrimmed, tmp_path):
@@ -146,7 +146,7 @@ def test_refuses_a_graph_of_another_layout(untrimmed):
     with pytest.raises(TrimError, match="not what this export writes"):
         trim_model(tampered, 1)
     for p in pyramids(config):  # each pyramid's quad table: a wrong row, or none
-        if pyramid_finest_level(config, p.config, 2) == 0:
+        if config.pyramid_finest_level(p.config, 2) == 0:
             continue  # maps coarser than level 2's footprint: nothing of them is cut, nothing checked
         for edit in ("row", "none"):
             tampered.CopyFrom(model)
