@@ -107,7 +107,7 @@ def time_table(results: dict) -> list[str]:
 
 
 def view_table(name: str, mat: dict, spp: int) -> list[str]:
-    lines = [f"| view | film | method | image MSE x1e-3 | FLIP | SSIM | mean / R | p99 / R | bias x1e-3 | noise x1e-3 |",
+    lines = ["| view | film | method | image MSE x1e-3 | FLIP | SSIM | mean / R | p99 / R | bias x1e-3 | noise x1e-3 |",
              "|---|---|---|---|---|---|---|---|---|---|"]
     for view in VIEWS:
         res = mat.get(view.name)
