@@ -28,6 +28,7 @@ and `decode_infer_response` are the client's half; the server reads every form t
 from __future__ import annotations
 
 import json
+from dataclasses import dataclass
 
 import numpy as np
 
@@ -268,3 +269,143 @@ def decode_infer_response(body, header_length: str | None) -> np.ndarray:
                          f"{shape[0] * shape[1] * DTYPE.itemsize}")
     return np.frombuffer(body, dtype=DTYPE, offset=length).reshape(shape)
 
+# --- the Open Inference Protocol's infer request and response, server side ---------------------
+
+@dataclass
+class InferRequest:
+    """A decoded v2 infer request: its id, its queries and how the output goes back."""
+
+    id: str | None
+    queries: np.ndarray  # (N, 5 + 2 K) float32, validated; K = 1: (N, 7)
+    binary_output: bool
+
+
+def _parse_json(raw: bytes | memoryview, what: str = "body") -> object:
+    """JSON text -> Python value; QueryError saying where the JSON is broken (or that it nests too deep)."""
+    try:
+        return json.loads(bytes(raw))
+    except (UnicodeDecodeError, ValueError) as exc:
+        raise QueryError(f"{what} is not valid JSON: {exc}") from None
+    except RecursionError:
+        raise QueryError(f"{what} nests too deep to be a query request") from None
+
+
+def _split_body(body: bytes, length: int | None) -> tuple[object, memoryview]:
+    """Body -> (JSON header, binary tail), the header `length` bytes long (None: all of the body)."""
+    if length is None:
+        return _parse_json(body), memoryview(b"")
+    if length == 0 or length > len(body):
+        raise QueryError(f"{INFER_HEADER_LENGTH} is {length} but the body holds {len(body)} bytes")
+    view = memoryview(body)
+    return _parse_json(view[:length], f"JSON header (first {INFER_HEADER_LENGTH} bytes)"), view[length:]
+
+
+def _parameters(obj: dict, where: str) -> dict:
+    params = obj.get("parameters", {})
+    if not isinstance(params, dict):
+        raise QueryError(f"{where}'parameters' must be an object")
+    return params
+
+
+def _input_tensor(inputs: object, binary: memoryview) -> np.ndarray:
+    """The one input tensor -> (N, 5 + 2 K) float32 (unvalidated values). Raises QueryError."""
+    if not isinstance(inputs, list) or len(inputs) != 1 or not isinstance(inputs[0], dict):
+        raise QueryError(f"'inputs' must be a list holding exactly one tensor, '{ONNX_INPUT}'")
+    tensor = inputs[0]
+    if tensor.get("name") != ONNX_INPUT:
+        raise QueryError(f"unknown input {str(tensor.get('name'))[:40]!r}: the model's input is '{ONNX_INPUT}'")
+    if tensor.get("datatype") != INFER_DATATYPE:
+        raise QueryError(f"input '{ONNX_INPUT}' must have datatype {INFER_DATATYPE}, got {str(tensor.get('datatype'))[:20]!r}")
+    shape = tensor.get("shape")
+    if (
+        not isinstance(shape, list)
+        or len(shape) != 2
+        or not all(isinstance(d, int) and not isinstance(d, bool) and d >= 0 for d in shape)
+    ):
+        raise QueryError(f"input '{ONNX_INPUT}' must have shape [N, {QUERY_DIM}] or [N, 5 + 2 K] "
+                       f"for query groups, got {str(shape)[:60]}")
+    n, width = shape
+    try:
+        group_lights(width)
+    except QueryError as exc:
+        raise QueryError(f"input '{ONNX_INPUT}' has shape {shape}: {exc}") from None
+    size = _parameters(tensor, "input ").get("binary_data_size")
+    if size is not None:
+        expected = n * width * DTYPE.itemsize
+        if not isinstance(size, int) or size != expected:
+            raise QueryError(f"binary_data_size is {size!r} but shape {shape} of FP32 needs {expected} bytes")
+        if len(binary) != size:
+            raise QueryError(f"binary part holds {len(binary)} bytes, binary_data_size says {size}")
+        return np.frombuffer(binary, dtype=DTYPE).reshape(n, width)
+    if len(binary):
+        raise QueryError(f"{len(binary)} bytes follow the JSON header but no input has binary_data_size")
+    return _json_data(tensor.get("data"), n, width)
+
+
+def _json_data(data: object, n: int, width: int) -> np.ndarray:
+    if not isinstance(data, list):
+        raise QueryError(f"input '{ONNX_INPUT}' needs 'data' (a list of numbers) or binary_data_size")
+    try:
+        arr = np.asarray(data)
+    except (TypeError, ValueError):  # ragged nesting
+        raise QueryError(f"input '{ONNX_INPUT}' data must be a flat or evenly nested list of numbers") from None
+    if arr.size and arr.dtype.kind not in "fiu":
+        kind = {"U": "strings", "b": "booleans", "O": "other values"}.get(arr.dtype.kind, f"{arr.dtype} values")
+        raise QueryError(f"input '{ONNX_INPUT}' data must hold only numbers (FP32), got {kind}")
+    if arr.size != n * width:
+        raise QueryError(f"input '{ONNX_INPUT}' data holds {arr.size} values, shape [{n}, {width}] "
+                       f"needs {n * width}")
+    with np.errstate(over="ignore"):  # out-of-range values become Inf and are rejected as such
+        return arr.astype(DTYPE).reshape(n, width)
+
+
+def _binary_output(msg: dict) -> bool:
+    """Whether 'rgb' goes back as binary; 400 for unknown requested outputs."""
+    binary = _flag(_parameters(msg, ""), "binary_data_output", False)
+    outputs = msg.get("outputs")
+    if outputs is None:
+        return binary
+    if not isinstance(outputs, list) or not all(isinstance(o, dict) for o in outputs):
+        raise QueryError("'outputs' must be a list of objects")
+    for out in outputs:
+        if out.get("name") != ONNX_OUTPUT:
+            raise QueryError(f"unknown output {str(out.get('name'))[:40]!r}: the model's output is '{ONNX_OUTPUT}'")
+        binary = _flag(_parameters(out, "output "), "binary_data", binary)
+    return binary
+
+
+def _flag(params: dict, key: str, default: bool) -> bool:
+    """A boolean parameter; 400 for anything but true/false (a string "false" must not mean true)."""
+    value = params.get(key, default)
+    if not isinstance(value, bool):
+        raise QueryError(f"parameter '{key}' must be true or false, got {str(value)[:40]!r}")
+    return value
+
+
+def decode_infer_request(body: bytes, header_length: int | None) -> InferRequest:
+    """A v2 infer request's body (and its Inference-Header-Content-Length, None: all JSON) -> InferRequest with
+    validated queries (a view of `body` where binary). Raises QueryError. The inverse of `encode_infer_request`."""
+    msg, binary = _split_body(body, header_length)
+    if not isinstance(msg, dict):
+        raise QueryError("infer request must be a JSON object with 'inputs'")
+    request_id = msg.get("id")
+    if request_id is not None and not isinstance(request_id, str):
+        raise QueryError("'id' must be a string")
+    raw = _input_tensor(msg.get("inputs"), binary)
+    return InferRequest(request_id, as_queries(raw, groups=True), _binary_output(msg))
+
+
+def infer_response_head(model: str, version: str, request: InferRequest, rgb: np.ndarray) -> dict:
+    """The JSON head of the v2 answer to `request`: (N, 3 K) `rgb` as binary data (``binary_data_size``, the
+    bytes following the head) or, for a JSON answer, ``"data": "@"`` where the caller cuts in the numbers.
+    The inverse of `decode_infer_response`."""
+    head = {"model_name": model, "model_version": version}
+    if request.id is not None:
+        head["id"] = request.id  # before the outputs: a JSON answer's data is cut in after the last "@"
+    output = {"name": ONNX_OUTPUT, "datatype": INFER_DATATYPE, "shape": list(rgb.shape)}
+    head["outputs"] = [output]
+    if request.binary_output:
+        output["parameters"] = {"binary_data_size": rgb.nbytes}
+    else:
+        output["data"] = "@"
+    return head

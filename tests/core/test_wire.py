@@ -143,3 +143,23 @@ def test_a_body_that_states_its_lights_must_hold_exactly_n_rows_of_them():
         with pytest.raises(C.QueryError, match="'lights' must be an integer from 1 to 64"):
             wire.decode_request(body)
 
+
+
+def test_the_v2_infer_halves_are_inverse_pairs():
+    """The client's request decodes on the server side to the same queries, and the server's answer head with
+    the binary RGB decodes on the client side to the same answers."""
+    import json
+
+    from neumip.core.contract import random_queries
+
+    queries = random_queries(64, seed=2)
+    headers, parts = wire.encode_infer_request(queries)
+    body = b"".join(bytes(p) for p in parts)
+    request = wire.decode_infer_request(body, int(headers[wire.INFER_HEADER_LENGTH]))
+    assert request.binary_output and request.id is None
+    np.testing.assert_array_equal(request.queries, queries)
+    rgb = np.abs(queries[:, :3]).astype(np.float32)
+    header = json.dumps(wire.infer_response_head("m", "1", request, rgb)).encode()
+    np.testing.assert_array_equal(wire.decode_infer_response(header + rgb.tobytes(), str(len(header))), rgb)
+    with pytest.raises(C.QueryError, match="not valid JSON"):
+        wire.decode_infer_request(b"{" + body, int(headers[wire.INFER_HEADER_LENGTH]) + 1)
