@@ -14,11 +14,11 @@ queries per call, in interleaved rounds (every model and engine once a round; me
 - mlp-only: an ONNX graph of the model's decoder MLP alone (its widths, random weights: speed does not
   depend on them), Gemm per layer on an (N, in) input, run as `LocalMaterials` runs a model;
 - each ``--ort SPEC``: ONNX Runtime with other options, run like `LocalMaterials` (`run_chunked`). SPEC
-  is tokens joined by ``+``, each changing the shipped options (``shipped``: none): ``level=disabled|basic|extended|all``,
-  ``saved`` (the optimised graph saved by `optimized_model_filepath`, loaded without optimising again),
-  ``spin=0|1``, ``intra=N`` (intra-op threads a session), ``workers=N`` (chunk threads; 1: one call a
-  batch), ``chunk=N`` (answers a call), ``parallel`` (ORT_PARALLEL, 2 inter-op threads),
-  ``arena=0``, ``mempattern=0``, ``cfg:KEY=VALUE`` (a session config entry).
+  is tokens joined by ``+``, each changing the shipped options (``shipped``: none):
+  ``level=disabled|basic|extended|all``, ``saved`` (the optimised graph saved by `optimized_model_filepath`,
+  loaded without optimising again), ``spin=0|1``, ``intra=N`` (intra-op threads a session), ``workers=N``
+  (chunk threads; 1: the chunks one after another), ``chunk=N`` (answers a call), ``parallel``
+  (ORT_PARALLEL, 2 inter-op threads), ``arena=0``, ``mempattern=0``, ``cfg:KEY=VALUE`` (a session config entry).
 
 ``--server``: also each engine behind a real `neumip serve` (`NEUMIP_ENGINE=onnxruntime` and ``kernel``, both
 running, default settings, serving these models), sent the same batches as msgpack by one `MaterialClient`;
@@ -53,8 +53,15 @@ from neumip.core import contract as C
 from neumip.core import weights as W
 from neumip.core.modelfile import read_model_file
 from neumip.engines.kernel import KernelMaterial, KernelMaterials
-from neumip.engines.local import (DEFAULT_CHUNK, SESSION_CONFIG, LocalMaterials, load_material, run_call,
-                                  run_chunked, split_chunk)
+from neumip.engines.local import (
+    DEFAULT_CHUNK,
+    SESSION_CONFIG,
+    LocalMaterials,
+    load_material,
+    run_call,
+    run_chunked,
+    split_chunk,
+)
 
 SETTLE_S = 0.1
 """Pause before each measurement: drjit's workers (and ONNX Runtime's spinning ones) spin for tens of
@@ -145,7 +152,10 @@ def chunked(session, x: np.ndarray, chunk: int, workers: int, executor) -> np.nd
     """`x` through `session` in calls as `LocalMaterials.evaluate` cuts a batch (any widths in and out)."""
     rows = split_chunk(len(x), workers, chunk)
     parts = list(range(0, len(x), rows))
-    call = lambda lo: session.run(None, {session.get_inputs()[0].name: x[lo:lo + rows]})[0]  # noqa: E731
+    name = session.get_inputs()[0].name
+
+    def call(lo: int) -> np.ndarray:
+        return session.run(None, {name: x[lo:lo + rows]})[0]
     return np.concatenate(list(executor.map(call, parts)) if executor and len(parts) > 1 else [call(lo) for lo in parts])
 
 
@@ -160,7 +170,8 @@ def process_cpu_s(pid: int | None = None) -> float:
 def throughput(fn, rows: int, seconds: float, server: int | None = None) -> tuple[float, float]:
     """(answers per wall-clock second, per CPU second of this process and the `server` process, if
     any) of `fn()`, which gives `rows` answers, repeated for at least `seconds`."""
-    cpu_s = lambda: process_cpu_s() + (process_cpu_s(server) if server else 0.0)  # noqa: E731
+    def cpu_s() -> float:
+        return process_cpu_s() + (process_cpu_s(server) if server else 0.0)
     calls, start, cpu = 0, time.perf_counter(), cpu_s()
     while True:
         fn()
@@ -225,10 +236,118 @@ def profile(path: Path) -> None:
     print("  heaviest nodes: " + ", ".join(f"{n} {100 * us / total:.1f} %" for n, us in per_node.most_common(6)))
 
 
+class Batches:
+    """Four batches of 2^batch random queries (and as groups of two lights), handed out in turn per caller,
+    so that consecutive calls of one engine do not re-read what the previous call left in cache."""
+
+    def __init__(self, rows: int) -> None:
+        pool = C.random_queries(4 * rows, seed=1)
+        self.single = [pool[i * rows:(i + 1) * rows] for i in range(4)]
+        self.groups = [pairs(b) for b in self.single]
+        self.turn = collections.Counter()
+
+    def next(self, key, groups: bool = False) -> np.ndarray:
+        self.turn[key] += 1
+        return (self.groups if groups else self.single)[self.turn[key] % 4]
+
+
+class Bench:
+    """The engines of every model, measured in interleaved rounds."""
+
+    def __init__(self, args, scratch: Path) -> None:
+        self.args, self.scratch, self.rows = args, scratch, 1 << args.batch
+        self.local = LocalMaterials(args.folder, threads=args.threads, lazy=True)
+        self.kernel = KernelMaterials(args.folder)
+        self.executor = ThreadPoolExecutor(args.threads) if args.threads > 1 else None
+        self.batches = Batches(self.rows)
+        self.servers = start_servers(args.folder, args.models, scratch) if args.server else {}
+        self.fns, self.answers, self.loads, self.info = {}, {}, {}, {}
+        self.results = collections.defaultdict(list)
+
+    def add_model(self, name: str) -> None:
+        """Load model `name` in every engine (timed), check the answers, warm each engine up."""
+        path = self.args.folder / f"{name}.onnx"
+        data = path.read_bytes()
+        self.loads[name] = {"onnxruntime": statistics.median(timed(lambda: load_material(path, 1)) for _ in range(3)),
+                            "kernel": statistics.median(timed(lambda: KernelMaterial(path)) for _ in range(3)),
+                            "kernel first call": timed(lambda: self.kernel.evaluate(name, self.batches.single[0]))}
+        engines = self.engines(name, read_model_file(path, data).config)
+        checks = {"onnxruntime": self.local.evaluate(name, self.batches.single[0]),
+                  "kernel": self.kernel.evaluate(name, self.batches.single[0])}
+        for spec in self.args.ort:
+            run, self.loads[name][f"ort {spec}"] = self.variant(data, spec)
+            engines[f"ort {spec}"] = lambda run=run, key=(name, spec): run(self.batches.next(key))
+            checks[f"ort {spec}"] = run(self.batches.single[0])
+        for engine, fn in engines.items():
+            fn()  # warm-up
+            self.fns[name, engine] = fn
+            self.answers[name, engine] = 2 * self.rows if engine.endswith("groups of 2") else self.rows
+        want = checks["onnxruntime"]
+        bits = {e: "same" if np.array_equal(a, want) else f"{np.abs(a - want).max():.1e}" for e, a in checks.items()}
+        self.info[name] = {"MB": len(data) / 1e6, "bits": bits}
+
+    def engines(self, name: str, config) -> dict:
+        """{engine: fn()} of model `name`: the shipped engines, the mlp-only graph, with --server the servers."""
+        mlp, width = mlp_only(config)
+        session = ort.InferenceSession(mlp, options(parse_spec("", 1)), providers=["CPUExecutionProvider"])
+        x = np.random.default_rng(2).normal(size=(self.rows, width)).astype(np.float32)
+        b = self.batches
+        engines = {"onnxruntime": lambda: self.local.evaluate(name, b.next((name, "ort"))),
+                   "kernel": lambda: self.kernel.evaluate(name, b.next((name, "kernel"))),
+                   "mlp-only": lambda: chunked(session, x, DEFAULT_CHUNK, self.args.threads, self.executor)}
+        if self.servers:
+            engines["onnxruntime, groups of 2"] = lambda: self.local.evaluate(name, b.next((name, "ort2"), True))
+            engines["kernel, groups of 2"] = lambda: self.kernel.evaluate(name, b.next((name, "kernel2"), True))
+        for engine, (_, client) in self.servers.items():
+            engines[f"server {engine}"] = lambda c=client: c.evaluate(name, b.next((name, c)))
+            engines[f"server {engine}, groups of 2"] = lambda c=client: c.evaluate(name, b.next((name, c, 2), True))
+        return engines
+
+    def variant(self, data: bytes, spec: str):
+        """(run(queries), seconds to open) of the ONNX Runtime variant `spec`."""
+        s = parse_spec(spec, self.args.threads)
+        session, seconds = open_variant(data, s, str(self.scratch))
+        workers, chunk = s["workers"], s["chunk"]
+        executor = ThreadPoolExecutor(workers) if workers > 1 else None
+
+        def run(q: np.ndarray) -> np.ndarray:
+            return run_chunked(lambda c: run_call(session, c), q, split_chunk(len(q), workers, chunk), executor)
+        return run, seconds
+
+    def measure(self) -> None:
+        for _ in range(self.args.rounds):
+            for key, fn in self.fns.items():
+                time.sleep(SETTLE_S)
+                server = next((s.process.pid for e, (s, _) in self.servers.items()
+                               if key[1].startswith(f"server {e}")), None)
+                self.results[key].append(throughput(fn, self.answers[key], self.args.seconds, server))
+
+    def ratio(self, name: str, engine: str, other: str) -> float:
+        """Median over the rounds of `engine`'s speed / `other`'s."""
+        return statistics.median(a[0] / b[0] for a, b in zip(self.results[name, engine], self.results[name, other]))
+
+    def print(self, name: str) -> None:
+        print(f"\n## {name}: {self.info[name]['MB']:.1f} MB; load s: " +
+              ", ".join(f"{e} {s:.3f}" for e, s in self.loads[name].items()))
+        print(f"  {'engine':34s} {'M q/s':>7s} {'CPU M/s':>8s} {'/mlp':>6s} {'/kernel':>8s}  bits")
+        for engine in [e for (n, e) in self.fns if n == name]:
+            like = ("server " if engine.startswith("server") else "") + "kernel" + (
+                ", groups of 2" if engine.endswith("groups of 2") else "")
+            wall, cpu = (statistics.median(r[i] for r in self.results[name, engine]) / 1e6 for i in (0, 1))
+            print(f"  {engine:34s} {wall:7.2f} {cpu:8.2f} {self.ratio(name, engine, 'mlp-only'):6.2f} "
+                  f"{self.ratio(name, engine, like):8.2f}  {self.info[name]['bits'].get(engine, '')}")
+
+    def close(self) -> None:
+        for server, client in self.servers.values():
+            client.close()
+            server.stop()
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--folder", type=Path, default=Path("models"))
-    parser.add_argument("--models", default="yarn_maps,rock_maps,rock", help="comma-separated model names")
+    parser.add_argument("--models", type=lambda t: t.split(","), default=["yarn_maps", "rock_maps", "rock"],
+                        help="comma-separated model names")
     parser.add_argument("--rounds", type=int, default=5)
     parser.add_argument("--batch", type=int, default=17, help="log2 of the queries per call")
     parser.add_argument("--threads", type=int, default=os.cpu_count() or 1, help="LocalMaterials' chunk workers")
@@ -237,91 +356,23 @@ def main() -> None:
     parser.add_argument("--profile", action="store_true", help="ONNX Runtime's per-op profile of each model")
     parser.add_argument("--server", action="store_true", help="also through a server of each engine, and groups of two")
     args = parser.parse_args()
-    names, rows = args.models.split(","), 1 << args.batch
-    print(f"# {rows} random single queries a call, {args.rounds} rounds; onnxruntime {ort.__version__}, "
+    print(f"# {1 << args.batch} random single queries a call, {args.rounds} rounds; onnxruntime {ort.__version__}, "
           f"{args.threads} threads; {load_text()}")
-    local = LocalMaterials(args.folder, threads=args.threads, lazy=True)
-    kernel = KernelMaterials(args.folder)
-    executor = ThreadPoolExecutor(args.threads) if args.threads > 1 else None
-    pool = C.random_queries(4 * rows, seed=1)
-    batches = [pool[i * rows:(i + 1) * rows] for i in range(4)]
-    turn = collections.Counter()
-
-    def next_batch(key, source: list[np.ndarray] = batches) -> np.ndarray:
-        turn[key] += 1
-        return source[turn[key] % 4]
-
-    fns, loads, info, servers = {}, {}, {}, {}
-    saved_dir = tempfile.TemporaryDirectory()
-    if args.server:
-        servers = start_servers(args.folder, names, Path(saved_dir.name))
-    answers = {}  # rows of answers of each measurement
-    for name in names:
-        path = args.folder / f"{name}.onnx"
-        data = path.read_bytes()
-        config = read_model_file(path, data).config
-        loads[name] = {"onnxruntime": statistics.median(timed(lambda: load_material(path, 1)) for _ in range(3)),
-                       "kernel": statistics.median(timed(lambda: KernelMaterial(path)) for _ in range(3))}
-        loads[name]["kernel first call"] = timed(lambda: kernel.evaluate(name, batches[0]))
-        mlp, width = mlp_only(config)
-        mlp_session = ort.InferenceSession(mlp, options(parse_spec("", args.threads)), providers=["CPUExecutionProvider"])
-        x = np.random.default_rng(2).normal(size=(rows, width)).astype(np.float32)
-        engines = {"onnxruntime": lambda n=name: local.evaluate(n, next_batch((n, "ort"))),
-                   "kernel": lambda n=name: kernel.evaluate(n, next_batch((n, "kernel"))),
-                   "mlp-only": lambda s=mlp_session, x=x: chunked(s, x, DEFAULT_CHUNK, args.threads, executor)}
-        checks = {"onnxruntime": local.evaluate(name, batches[0]), "kernel": kernel.evaluate(name, batches[0])}
-        for spec in args.ort:
-            s = parse_spec(spec, args.threads)
-            session, loads[name][f"ort {spec}"] = open_variant(data, s, saved_dir.name)
-            ex = ThreadPoolExecutor(s["workers"]) if s["workers"] > 1 else None
-            per_call = s["chunk"]
-
-            def run(q, session=session, ex=ex, per_call=per_call, workers=s["workers"]):
-                return run_chunked(lambda c: run_call(session, c), q, split_chunk(len(q), workers, per_call), ex)
-            engines[f"ort {spec}"] = lambda n=name, run=run, spec=spec: run(next_batch((n, spec)))
-            checks[f"ort {spec}"] = run(batches[0])
-        want = checks["onnxruntime"]
-        if args.server:
-            groups = [pairs(b) for b in batches]
-            engines["onnxruntime, groups of 2"] = lambda n=name, g=groups: local.evaluate(n, next_batch((n, "og"), g))
-            engines["kernel, groups of 2"] = lambda n=name, g=groups: kernel.evaluate(n, next_batch((n, "kg"), g))
-            for engine, (_, client) in servers.items():
-                engines[f"server {engine}"] = lambda n=name, c=client: c.evaluate(n, next_batch((n, c)))
-                engines[f"server {engine}, groups of 2"] = (
-                    lambda n=name, c=client, g=groups: c.evaluate(n, next_batch((n, c, 2), g)))
-        for engine, fn in engines.items():
-            fn()  # warm-up
-            fns[name, engine] = fn
-            answers[name, engine] = 2 * rows if engine.endswith("groups of 2") else rows
-        info[name] = {"MB": len(data) / 1e6, "bits": {e: ("same" if np.array_equal(a, want) else
-                                                          f"{np.abs(a - want).max():.1e}") for e, a in checks.items()}}
-    print(f"# loaded   [{load_text()}]")
-    results = collections.defaultdict(list)
-    for _ in range(args.rounds):
-        for key, fn in fns.items():
-            time.sleep(SETTLE_S)
-            server = next((s.process.pid for e, (s, _) in servers.items() if key[1].startswith(f"server {e}")), None)
-            results[key].append(throughput(fn, answers[key], args.seconds, server))
-    print(f"# measured [{load_text()}]")
-    for name in names:
-        print(f"\n## {name}: {info[name]['MB']:.1f} MB; load s: " +
-              ", ".join(f"{e} {s:.3f}" for e, s in loads[name].items()))
-        print(f"  {'engine':34s} {'M q/s':>7s} {'CPU M/s':>8s} {'/mlp':>6s} {'/kernel':>8s}  bits")
-        for engine in [e for (n, e) in fns if n == name]:
-            wall = [w for w, _ in results[name, engine]]
-            ratio = lambda other: statistics.median(a / b[0] for a, b in zip(wall, results[name, other]))  # noqa: E731
-            like = ("server " if engine.startswith("server") else "") + "kernel" + (
-                ", groups of 2" if engine.endswith("groups of 2") else "")
-            print(f"  {engine:34s} {statistics.median(wall) / 1e6:7.2f} "
-                  f"{statistics.median(c for _, c in results[name, engine]) / 1e6:8.2f} {ratio('mlp-only'):6.2f} "
-                  f"{ratio(like):8.2f}  {info[name]['bits'].get(engine, '')}")
+    with tempfile.TemporaryDirectory() as scratch:
+        bench = Bench(args, Path(scratch))
+        try:
+            for name in args.models:
+                bench.add_model(name)
+            print(f"# loaded   [{load_text()}]")
+            bench.measure()
+            print(f"# measured [{load_text()}]")
+            for name in args.models:
+                bench.print(name)
+        finally:
+            bench.close()
     if args.profile:
-        for name in names:
+        for name in args.models:
             profile(args.folder / f"{name}.onnx")
-    for server, client in servers.values():
-        client.close()
-        server.stop()
-    saved_dir.cleanup()
 
 
 if __name__ == "__main__":

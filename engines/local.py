@@ -28,11 +28,12 @@ __all__ = ["NAME_PATTERN", "LocalMaterials", "Material", "ModelError", "UnknownM
 
 log = logging.getLogger(__name__)
 
-DEFAULT_CHUNK = 4096
+DEFAULT_CHUNK = 16384
 """Answers per ONNX Runtime call of `LocalMaterials` (rows of single queries; a group of K lights
-counts K). With the default export graph, chunks of 2^11 to 2^12 rows ran about
-10 % more queries per CPU second than chunks of 2^14 to 2^16 (the intermediates stay in cache), and a
-single call on 2^20 rows was slowest (benchmarks/bench_inference.py, section chunk)."""
+counts K). On the shipped models' graph (about 730 nodes a call) chunks of 2^14 rows ran 10-16 % more
+queries per CPU second than 2^12 (per-node overhead paid less often; 2^15 and more were slower again),
+for about 70 MB of ONNX Runtime arena per material in use on two workers instead of 18
+(benchmarks/bench_engines.py)."""
 
 MIN_SPLIT = 2048
 """Batches below twice this many rows run as one call (splitting them costs more than it saves)."""

@@ -28,7 +28,7 @@ def test_run_chunked_with_executor_fills_every_row(model_dir):
 
 
 def test_split_chunk_shares_rows_between_workers():
-    assert split_chunk(100_000, 2) == 3847  # 26 calls <= DEFAULT_CHUNK: a multiple of the workers
+    assert split_chunk(100_000, 2, chunk=4096) == 3847  # 26 calls <= chunk: a multiple of the workers
     assert split_chunk(4 * DEFAULT_CHUNK, 2) == DEFAULT_CHUNK
     assert split_chunk(10_000, 2, chunk=8192) == 5000
     assert split_chunk(1000, 2, chunk=8192) == MIN_SPLIT  # too small to split
