@@ -15,10 +15,10 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--host", help="address to bind (NEUMIP_HOST, default 127.0.0.1)")
     p.add_argument("--port", type=int, help="TCP port (NEUMIP_PORT, default 8000)")
     p.add_argument("--model-dir", help="folder of .onnx materials (NEUMIP_MODEL_DIR, default models)")
-    p.add_argument("--engine", choices=("onnxruntime", "kernel"),
-                   help="what evaluates the materials (NEUMIP_ENGINE, default onnxruntime): the file's graph in "
-                   "ONNX Runtime, or interpreted as drjit LLVM kernels, the renderer's in-process engine "
-                   "(pip install 'neumip[kernel]')")
+    p.add_argument("--engine", choices=("auto", "onnxruntime", "kernel"),
+                   help="what evaluates the materials (NEUMIP_ENGINE, default auto: kernel where it can run, else "
+                   "onnxruntime): the file's graph interpreted as drjit LLVM kernels, the renderer's in-process "
+                   "engine (pip install 'neumip[kernel]'), or in ONNX Runtime")
     p.add_argument("--list-settings", action="store_true", help="print every NEUMIP_* setting and exit")
     p.set_defaults(func=serve)
     register_export_repository(sub)

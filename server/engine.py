@@ -1,6 +1,7 @@
 """The engine: what evaluates the server's materials (``NEUMIP_ENGINE``).
 
-- ``onnxruntime`` (default): each material is an ONNX Runtime session running the file's graph
+- ``auto`` (default): ``kernel`` where it can run (drjit and a libLLVM >= 16), else ``onnxruntime``;
+- ``onnxruntime``: each material is an ONNX Runtime session running the file's graph
   (`neumip.engines.local.load_material`); ``NEUMIP_ORT_WORKERS`` calls run at once (default one per
   core), each of at most ``NEUMIP_CHUNK_ROWS`` answers on ``NEUMIP_ORT_THREADS`` threads.
 - ``kernel``: each material's graph, the same file's, is interpreted as drjit LLVM kernels
@@ -148,6 +149,12 @@ class Engine:
 
     @classmethod
     def from_settings(cls, settings: Settings) -> "Engine":
-        if settings.engine == "kernel":
-            return cls.kernel(settings.kernel_chunk_rows)
+        """The engine `settings.engine` names; ``auto``: the kernel engine where it can run, else ONNX Runtime."""
+        if settings.engine in ("kernel", "auto"):
+            try:
+                return cls.kernel(settings.kernel_chunk_rows)
+            except EngineUnavailable as exc:
+                if settings.engine == "kernel":
+                    raise
+                log.info("NEUMIP_ENGINE=auto: ONNX Runtime (%s)", str(exc).split(": ", 1)[-1])
         return cls.onnxruntime(settings.ort_threads, settings.workers(), settings.chunk_rows)

@@ -4,6 +4,7 @@
 from __future__ import annotations
 
 import importlib.util
+import os
 import signal
 from pathlib import Path
 
@@ -14,6 +15,10 @@ from neumip.core import contract as C
 from neumip.core.contract import random_queries
 
 from tests.plane import plane_mbtf
+
+os.environ.setdefault("NEUMIP_ENGINE", "onnxruntime")
+"""The servers of the tests compare answers with ONNX Runtime's bit for bit; the default engine, auto, is
+tested on its own (tests/server/test_engine.py)."""
 
 
 @pytest.fixture(scope="session")

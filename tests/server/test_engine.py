@@ -235,3 +235,20 @@ def test_a_wide_group_does_not_stall_another_material(folder, tmp_path, kernel, 
     print(f"64-light request {wide_s * 1e3:.0f} ms; another material meanwhile: max {max(others) * 1e3:.0f} ms "
           f"over {len(others)} requests")
     assert wide_s < 2.0 and max(others) < 0.5  # goal ~0.1 s; a busy shared machine adds its own delays
+
+
+def test_auto_chooses_the_kernel_engine_where_it_runs_and_onnx_runtime_elsewhere(monkeypatch):
+    from neumip.server.engine import Engine, EngineUnavailable
+    from neumip.server.settings import Settings
+
+    monkeypatch.delenv("NEUMIP_ENGINE", raising=False)
+    assert Settings().engine == "auto"
+    assert Engine.from_settings(Settings(engine="auto")).name == "kernel"  # drjit and libLLVM are installed here
+
+    def unavailable(*args, **kwargs):
+        raise EngineUnavailable("NEUMIP_ENGINE=kernel cannot run: drjit is not installed")
+
+    monkeypatch.setattr(Engine, "kernel", classmethod(unavailable))
+    assert Engine.from_settings(Settings(engine="auto")).name == "onnxruntime"
+    with pytest.raises(EngineUnavailable):
+        Engine.from_settings(Settings(engine="kernel"))
