@@ -63,8 +63,15 @@ def noise_check(answers: Callable[[np.ndarray], np.ndarray], description, genera
     return {"queries": int(len(queries)), "spp": spp, "mse": mse, "noise_floor": floor, "ratio": ratio}
 
 
-def shipped_ratios(folder: Path | None) -> dict[str, float]:
-    """Name -> noise ratio of every model record (NAME.json) in `folder` that has one."""
+def ratio_at(noise: dict, spp: int) -> float:
+    """The noise ratio the model would read on data of `spp` samples a query: its own error is the same, the
+    floor scales as 1 / spp."""
+    floor = noise["noise_floor"] * noise["spp"] / spp
+    return (max(noise["mse"] - noise["noise_floor"], 0.0) + floor) / floor
+
+
+def shipped_ratios(folder: Path | None) -> dict[str, tuple[float, int]]:
+    """Name -> (noise ratio, its data's spp) of every model record (NAME.json) in `folder` that has one."""
     if folder is None or not folder.is_dir():
         return {}
     found = {}
@@ -74,12 +81,13 @@ def shipped_ratios(folder: Path | None) -> dict[str, float]:
         except (OSError, ValueError, KeyError, TypeError):
             continue
         if isinstance(noise, dict) and isinstance(noise.get("ratio"), (int, float)):
-            found[record.stem] = float(noise["ratio"])
+            found[record.stem] = (float(noise["ratio"]), int(noise.get("spp", 16)))
     return found
 
 
-def verdict_line(noise: dict, shipped: dict[str, float]) -> str:
-    """One line: the model's query error against the noise floor, and where that places it among `shipped`."""
+def verdict_line(noise: dict, shipped: dict[str, tuple[float, int]]) -> str:
+    """One line: the model's query error against the noise floor, and where that places it among `shipped`
+    (each compared at its own data's spp, `ratio_at`)."""
     if noise["ratio"] is None:
         return f"verdict: query MSE {noise['mse'] * 1e3:.3g}e-3 against noise-free ground truth"
     own = max(noise["mse"] - noise["noise_floor"], 0.0)
@@ -87,9 +95,11 @@ def verdict_line(noise: dict, shipped: dict[str, float]) -> str:
             f"at {noise['spp']} spp; 1x is all the data can show), the model's own error {own * 1e3:.3g}e-3")
     if not shipped:
         return line
-    ranked = sorted(shipped.items(), key=lambda item: item[1])
-    closer = sum(ratio < noise["ratio"] for _, ratio in ranked)
-    span = f"{ranked[0][0]} {ranked[0][1]:.2f}x to {ranked[-1][0]} {ranked[-1][1]:.2f}x"
+    ranked = sorted(shipped.items(), key=lambda item: item[1][0])
+    closer = sum(ratio < ratio_at(noise, spp) for _, (ratio, spp) in ranked)
+    span = f"{ranked[0][0]} {ranked[0][1][0]:.2f}x to {ranked[-1][0]} {ranked[-1][1][0]:.2f}x"
     place = ("closer to the noise than every one" if closer == 0 else "further from it than every one"
              if closer == len(ranked) else f"{closer} of {len(ranked)} closer")
-    return f"{line}; shipped models {span}: {place}"
+    spps = sorted({spp for _, spp in shipped.values()})
+    at = "" if spps == [noise["spp"]] else f" (at their data's {'/'.join(map(str, spps))} spp)"
+    return f"{line}; shipped models{at} {span}: {place}"

@@ -7,7 +7,7 @@ import json
 import numpy as np
 import pytest
 
-from neumip.training.loop.verdict import noise_floor, shipped_ratios, verdict_line
+from neumip.training.loop.verdict import noise_floor, ratio_at, shipped_ratios, verdict_line
 
 
 def test_the_noise_floor_is_the_variance_of_a_target_s_mean():
@@ -21,13 +21,16 @@ def test_the_noise_floor_is_the_variance_of_a_target_s_mean():
 
 def test_the_verdict_places_the_model_among_the_shipped_ones(tmp_path):
     for name, ratio in (("a", 1.5), ("b", 3.0)):
-        (tmp_path / f"{name}.json").write_text(json.dumps({"validation": {"noise": {"ratio": ratio}}}))
+        (tmp_path / f"{name}.json").write_text(json.dumps({"validation": {"noise": {"ratio": ratio, "spp": 16}}}))
     (tmp_path / "c.json").write_text(json.dumps({"validation": {}}))  # a record without the check
     (tmp_path / "d.json").write_text("not json")
     shipped = shipped_ratios(tmp_path)
-    assert shipped == {"a": 1.5, "b": 3.0}
+    assert shipped == {"a": (1.5, 16), "b": (3.0, 16)}
     noise = {"mse": 2e-3, "noise_floor": 1e-3, "ratio": 2.0, "spp": 16}
     line = verdict_line(noise, shipped)
     assert "2.00x the ground truth's own noise" in line and "1 of 2 closer" in line
-    assert "closer to the noise than every one" in verdict_line({**noise, "ratio": 1.1}, shipped)
+    assert "closer to the noise than every one" in verdict_line({**noise, "mse": 1.1e-3, "ratio": 1.1}, shipped)
     assert "shipped" not in verdict_line(noise, {}) and shipped_ratios(tmp_path / "none") == {}
+    # the same model error on 4-spp data: 4x the floor there, the same place among 16-spp models
+    low = {"mse": 1e-3 + 4e-3, "noise_floor": 4e-3, "ratio": 1.25, "spp": 4}
+    assert ratio_at(low, 16) == pytest.approx(2.0) and "1 of 2 closer" in verdict_line(low, shipped)
