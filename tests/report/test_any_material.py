@@ -123,7 +123,6 @@ def test_footprints_count_the_description_texels_whatever_the_model():
     footprint unit is the description's resolution, never the model's."""
     from neumip.engines.kernel import KernelMaterials
     from neumip.groundtruth.description import find_description, resolve
-    from neumip.report.cache import RenderCache
     from neumip.report.renderer import MaterialRenderer
 
     desc = find_description("rock")

@@ -14,7 +14,6 @@ import httpx
 import numpy as np
 import pytest
 
-from neumip.core import contract as C
 from neumip.core import wire
 from neumip.core.contract import random_queries
 

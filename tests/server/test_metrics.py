@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-from neumip.core import contract as C
 from neumip.core import wire
 from neumip.core.contract import random_queries
 

@@ -9,7 +9,6 @@ import socket
 import httpx
 import pytest
 
-from neumip.core import contract as C
 from neumip.core import wire
 
 PATH = wire.EVALUATE_PATH.format(name="rand16")

@@ -6,7 +6,6 @@ from __future__ import annotations
 import shutil
 from concurrent.futures import ThreadPoolExecutor
 
-import numpy as np
 import pytest
 
 from neumip.core.contract import random_queries
