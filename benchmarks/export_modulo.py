@@ -2,7 +2,7 @@
 
 It gathers 8 single texels per query from the flat atlas (+4 from the offset texture) and does the
 wrap-around index arithmetic in int64 with Mod, as `training/model/pyramid.py` writes it. Like the shipped
-graph it reads the level of detail from `export_lod.py` and sums taps with a 0/1 MatMul, so its
+graph it reads the level of detail from `lod.py` and sums taps with a 0/1 MatMul, so its
 answers do not depend on the batch. The shipped graph (`neumip.training.export.graph`) reads wrap-padded
 quad tables instead: one Gather row per level footprint, no Mod, and runs its MLPs column-major.
 """

@@ -7,7 +7,7 @@ Two heads (`MaterialConfig.head`):
   space suits high-dynamic-range values (a glint 100x brighter than its surround is a difference of
   ~5 in the output, not of 100), and the mask lets occlusion darken without moving the colour.
 
-Training (`material.py`) and the ONNX export (`export.py`) both compute these formulas; the matrix
+Training (`material.py`) and the ONNX export (`graph.py`) both compute these formulas; the matrix
 and the bias that makes a head answer a given colour live here once.
 """
 

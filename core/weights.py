@@ -3,7 +3,7 @@
 Two views of the same numbers, both from a `MaterialConfig`:
 
 - `weight_shapes`: the weights as the model holds them, and as `training.export.build_onnx` takes
-  them and `training.export_read.read_model` gives them back: the textures (``pyramid``, the flat
+  them and `training.export.read.read_model` gives them back: the textures (``pyramid``, the flat
   atlas of every level, finest first; ``offset_texture``, one level; with `MaterialConfig.base`,
   ``base_maps``, the base maps' atlas, finest first; with `MaterialConfig.relief`, ``relief_heights``) and each MLP's layers
   (``{mlp}.{i}.weight`` (out, in), ``{mlp}.{i}.bias`` (out,)). An MLP's first layer reads the

@@ -67,7 +67,7 @@ def read_base(g: GraphWriter, config: MaterialConfig, weights: dict, uv: str, si
 
     A map channel that is the same in every texel (F0 of a material without metal, the colour of a plain
     one) is a constant of the graph, not read: the lookup of a constant answers it. The stored atlas has
-    every channel (`export_read` reads it back)."""
+    every channel (`read` reads it back)."""
     base = config.base_pyramid()
     atlas = weights[W.BASE]
     stored = g.const(atlas, name=W.BASE)

@@ -4,20 +4,20 @@ The graph takes ``queries`` (N, 7) float32 and returns ``rgb`` (N, 3) float32, o
 + 2 K) -> (N, 3 K) (`contract`: the offset and the lookups run once per group, the decoder once per
 light), both dimensions dynamic, and computes what `material.NeuMIPMaterial.forward` computes, in
 three stages read top to bottom in `material_graph` (after the relief's march with `MaterialConfig.relief`,
-and with the classical base's BSDF per light after the decoder with `MaterialConfig.base`, `export_base.py`): the neural offset (a bilinear lookup of the
+and with the classical base's BSDF per light after the decoder with `MaterialConfig.base`, `export/base.py`): the neural offset (a bilinear lookup of the
 offset texture, the offset MLP, the parallax shift), a trilinear lookup of the two nearest pyramid
 levels, then the decoder MLP. The lookups work on one query per row; the MLPs on one query per
 column (`GraphWriter.product`: the first layers read the weighted texels and the queries transposed,
 one Transpose after each MLP). The file stores the textures once, in the layout `weights_from_state`
 gives (flat atlas "pyramid" (T, C), "offset_texture" (R * R, C)); a constant subgraph that ONNX
-Runtime folds at session load expands them into wrap-padded quad tables (`export_lookup.py`), so
+Runtime folds at session load expands them into wrap-padded quad tables (`lookup.py`), so
 each query reads one table row per level footprint with float row arithmetic and no modulo. The
 model config, contract version and a description travel in the ONNX metadata.
 
 The graph answers a query with the same bits whatever the batch it sits in (its position, the call's
 row count, the thread count): it uses only ops that round per element - Mul, Add, Sub, Div, Sqrt,
 Floor, Max, Min, Clip, Neg, GreaterOrEqual, Cast, Gather, and Gemm/MatMul, whose sums run in one order per row - and no Log (whose
-vectorised tail rounds otherwise; the level of detail is `export_lod.py`) and no ReduceSum (which sums
+vectorised tail rounds otherwise; the level of detail is `lod.py`) and no ReduceSum (which sums
 a 1-row call in another order: taps are summed by a 0/1 MatMul instead).
 tests/training/export/test_determinism.py checks it. benchmarks/bench_inference.py measures it
 against the first export's graph (benchmarks/export_modulo.py).

@@ -168,7 +168,7 @@ def pyramid_footprint(g: GraphWriter, config: MaterialConfig, atlas: str, width:
     """sigma (N, 1) -> the `Footprint` of a trilinear lookup of the pyramid `atlas` (T, width), levels flat,
     finest first, from level ``finest_level`` on (a trimmed model: only the table rows move, so a query of
     level >= K reads the same texels with the same weights). `prefix` names a second pyramid's level-of-detail
-    constants (`export_lod.level_rows`)."""
+    constants (`lod.level_rows`)."""
     tables, _ = trimmed_atlas(config, finest_level)
     rows, t = level_of_detail(g, sigma, config, finest_level, level_tables(config, finest_level), prefix)
     return Footprint(rows["size"], rows["coef"], rows["base"], t, atlas, tables.rows)

@@ -1,6 +1,6 @@
 """A small writer of ONNX graphs: names nodes and constants while the export builds a graph.
 
-Only numpy and onnx; the material's stages (`export_lookup.py`, `export.py`) are written with it.
+Only numpy and onnx; the material's stages (`lookup.py`, `graph.py`) are written with it.
 
 A constant is stored once: an unnamed constant of more than one element that holds the same values as
 an earlier one (dtype, shape, bytes) is that one's initializer (`shared_key`), e.g. the quad index table

@@ -2,16 +2,16 @@
 
 Shipped models are ONNX files only, so trimming edits the exported graph in place rather than
 re-exporting: it swaps constants and changes no op. Every pyramid the model reads is cut at the level of
-the same footprint (`export_lod.pyramids`: the latents, the base maps' ``base_maps``, the relief's
+the same footprint (`lod.pyramids`: the latents, the base maps' ``base_maps``, the relief's
 ``relief_heights``; each one's level of detail is relative to its own resolution, so a pyramid finer than
 the latents keeps log2 of the ratio levels more of its own, `MaterialConfig.pyramid_finest_level`):
 
 - each atlas keeps the texels of its levels K_p..L_p;
 - its quad index table and the per-level tables its level of detail reads (initializers ``lod.*``,
-  ``base.lod.*``, ``relief.lod.*``, `export_lod.stage_constants`) become those of the shorter atlas
-  (`export_lookup.trimmed_atlas`: only the table rows move, each level's size and row width stay; levels
+  ``base.lod.*``, ``relief.lod.*``, `lod.stage_constants`) become those of the shorter atlas
+  (`lookup.trimmed_atlas`: only the table rows move, each level's size and row width stay; levels
   finer than K_p repeat K_p's);
-- its level-of-detail Clip's lower bound becomes 2^K_p (`export_lod.clip_min`).
+- its level-of-detail Clip's lower bound becomes 2^K_p (`lod.clip_min`).
 
 So every query whose level ``clamp(log2(sigma R) + lod_bias, 0, L)`` is >= K gathers the same texels with
 the same weights through the same ops in every pyramid: its answer is bit-identical to the untrimmed
@@ -23,7 +23,7 @@ Pyramids of one resolution share one quad table (`onnx_graph.shared_key`); after
 came to hold the same rows (a 64^2 latent pyramid and 256^2 maps, both cut to 16^2) are stored once
 again (`onnx_graph.share_constants`): the only node edit, a table's reader repointed to its twin.
 
-Each constant found is first checked against what the writer (`export_lookup`, `export_lod`) writes
+Each constant found is first checked against what the writer (`lookup`, `lod`) writes
 for the model's config and current trim, so a graph of another layout is refused, never mis-edited.
 The trimmed model's metadata keeps the config (levels are still numbered from the full resolution)
 and adds ``neumip.trim``: the finest latent level kept (the maps' follow from it), the latent levels

@@ -1,5 +1,5 @@
 """Reading model files of query contract version 1, so that `neumip export OLD.onnx -o NEW.onnx`
-rewrites them in this version (`export_read.reexport`). Nothing else reads them: every engine refuses
+rewrites them in this version (`upgrade.reexport`). Nothing else reads them: every engine refuses
 them with `neumip.core.contract.version_problem`, which names that command.
 
 Version 1 files come in three layouts, told apart by their initializers' names:
@@ -11,7 +11,7 @@ Version 1 files come in three layouts, told apart by their initializers' names:
   (out,), the first layer split over a query Gemm and a texture Gemm.
 
 Their answers and the upgraded file's are the same up to rounding (query groups changed the order of
-the decoder's first sum); `export_read.reexport_file` reports the largest difference.
+the decoder's first sum); `upgrade.reexport_file` reports the largest difference.
 """
 
 from __future__ import annotations
@@ -32,7 +32,7 @@ from neumip.training.export.read import (NEEDS_CONFIG, ModelLayoutError, metadat
 
 
 def read_v1(model: onnx.ModelProto) -> tuple[MaterialConfig, dict[str, np.ndarray], dict[str, str], int]:
-    """A version-1 `model` -> what `export_read.read_model` gives for this version's files."""
+    """A version-1 `model` -> what `read.read_model` gives for this version's files."""
     file = model_file(model, any_version=True)
     meta, finest = file.metadata, file.finest_level
     if meta.get(C.META_CONTRACT) not in C.UPGRADABLE_VERSIONS:

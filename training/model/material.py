@@ -166,7 +166,7 @@ class MapMaterial(NeuMIPMaterial):
 
     The decoder, the offset MLP and the lookups are the paper model's, so its export is the paper's
     graph with these textures baked in: `state_dict()` holds the textures the material answers with
-    under the paper model's names (``pyramid.{i}``, ``offset_texture``: what `export.py` reads) and
+    under the paper model's names (``pyramid.{i}``, ``offset_texture``: what `graph.py` reads) and
     the free parts under ``free.``; `load_state_dict` reads the free parts back.
     """
 

@@ -2,7 +2,7 @@
 
 Pure torch. Levels are stored stacked in one flat atlas of shape (texels, channels), finest level
 first, so one lookup is a single gather of 8 rows per query (4 bilinear taps on each of the two
-nearest levels). The ONNX export (`export.py`) builds the same arithmetic op for op.
+nearest levels). The ONNX export (`graph.py`) builds the same arithmetic op for op.
 """
 
 from __future__ import annotations

@@ -1,4 +1,4 @@
-"""Reading an exported model's weights back (`export_read`): re-exporting a model this version wrote
+"""Reading an exported model's weights back (`training.export.read`): re-exporting a model this version wrote
 gives the same bytes, the shipped models are in this version's layout, `neumip export MODEL.onnx`
 rewrites a model file and refuses what it cannot read, and upgrades files of contract version 1
 (`upgrade`) that every engine refuses."""
