@@ -14,11 +14,49 @@ import pytest
 from neumip.core import contract as C
 from neumip.core.contract import random_queries
 
-from tests.plane import plane_mbtf
+from .ray_workers import killing_the_first_busy_worker as _kill_first_busy_worker
 
 os.environ.setdefault("NEUMIP_ENGINE", "onnxruntime")
 """The servers of the tests compare answers with ONNX Runtime's bit for bit; the default engine, auto, is
 tested on its own (tests/server/test_engine.py)."""
+
+PLANE_COLOR = np.array([0.9, 0.6, 0.3])
+"""Base albedo of the analytic plane."""
+
+
+
+def plane_mbtf(queries: np.ndarray) -> np.ndarray:
+    """(N, 7) queries -> (N, 3) MBTF of a flat plane with a periodic albedo and a glossy lobe.
+
+    albedo(u, v) = 0.6 + 0.3 sin(2 pi u) cos(2 pi v); a Gaussian footprint of std sigma scales the
+    pattern by exp(-4 pi^2 sigma^2) (exact filtering). The glossy term peaks at wi = -wo (mirror).
+    """
+    u, v, sigma = (queries[:, i].astype(np.float64) for i in (C.U, C.V, C.SIGMA))
+    damp = np.exp(-4 * np.pi**2 * np.maximum(sigma, 0) ** 2)
+    albedo = 0.6 + 0.3 * damp * np.sin(2 * np.pi * u) * np.cos(2 * np.pi * v)
+    hx = queries[:, C.WI_X] + queries[:, C.WO_X]
+    hy = queries[:, C.WI_Y] + queries[:, C.WO_Y]
+    gloss = 0.5 * np.exp(-(hx**2 + hy**2) / 0.08)
+    rgb = albedo[:, None] * PLANE_COLOR[None, :] / np.pi + gloss[:, None]
+    return rgb.astype(np.float32)
+
+
+@pytest.fixture(scope="session")
+def plane_color() -> np.ndarray:
+    """The analytic plane's base colour (`PLANE_COLOR`)."""
+    return PLANE_COLOR
+
+
+@pytest.fixture(name="plane_mbtf", scope="session")
+def plane_mbtf_fixture():
+    """plane_mbtf(queries) -> the analytic plane's exact answers (`plane_mbtf`)."""
+    return plane_mbtf
+
+
+@pytest.fixture(scope="session")
+def killing_the_first_busy_worker():
+    """The context manager that kills the first Ray worker busy with a function (`tests/ray_workers.py`)."""
+    return _kill_first_busy_worker
 
 
 @pytest.fixture(scope="session")

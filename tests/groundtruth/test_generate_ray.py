@@ -14,7 +14,6 @@ from neumip.client.cli import main
 from neumip.groundtruth.dataset import DatasetError, open_dataset
 from neumip.groundtruth.description import find_description
 from neumip.groundtruth.generate import GenerateSettings, generate
-from tests.ray_workers import killing_the_first_busy_worker
 
 from neumip.core.cluster import RayConfig
 
@@ -84,7 +83,7 @@ def _stop_at(done: int, limit: int) -> None:
 
 
 @pytest.mark.skipif(not Path("/proc/self/cmdline").exists(), reason="finds Ray's worker processes in /proc")
-def test_a_worker_killed_mid_chunk_is_retried_with_identical_data(local_ray, tmp_path):
+def test_a_worker_killed_mid_chunk_is_retried_with_identical_data(local_ray, tmp_path, killing_the_first_busy_worker):
     settings = GenerateSettings(**{**SETTINGS, "seed": 12})  # a new scene key: workers build their tracer
     with killing_the_first_busy_worker(local_ray, "_chunk_task") as killed:
         data = generate(turtle(), tmp_path / "ray", settings, ray=RayConfig())

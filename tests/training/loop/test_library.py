@@ -17,7 +17,6 @@ from neumip.core.cluster import ClusterError, RayConfig
 from neumip.core.config import MaterialConfig
 from neumip.training.loop.library import LibrarySettings, MaterialJob, finished, train_library, train_material
 from neumip.training.loop.config import TEST
-from tests.ray_workers import killing_the_first_busy_worker
 
 CONFIG = replace(TEST, steps=40, batch=512, checkpoint_every=20)
 
@@ -104,7 +103,7 @@ def test_cli_with_ray(local_ray, data, tmp_path, capsys):
 
 @pytest.mark.slow  # ~20 s: the retried task starts a fresh worker, which imports torch again
 @pytest.mark.skipif(not Path("/proc/self/cmdline").exists(), reason="finds Ray's worker processes in /proc")
-def test_a_training_task_killed_after_a_checkpoint_resumes_to_the_same_model(local_ray, data, tmp_path):
+def test_a_training_task_killed_after_a_checkpoint_resumes_to_the_same_model(local_ray, data, tmp_path, killing_the_first_busy_worker):
     lib = settings(tmp_path)
     checkpoint = lib.runs / "a" / "checkpoint.pt"  # written at step 20 of 40
     with killing_the_first_busy_worker(local_ray, "_material_task", when=checkpoint.exists) as killed:

@@ -350,14 +350,12 @@ def test_offset_freeze_off_keeps_training_the_offset_texture(data, tmp_path):
     assert not free.state.offset_frozen and free.material.offset_texture.requires_grad
 
 
-def test_progress_validations_are_recorded_and_drawn(data, tmp_path):
+def test_progress_validations_are_recorded_and_drawn(data, tmp_path, plane_mbtf):
     """Every validate_every steps the held-out MSE per level is recorded (kept across resume) and
     the progress PNG shows ground truth beside the model for the view grid."""
     from neumip.groundtruth.dataset import write_dataset
     from neumip.training.loop.outputs import write_progress
     from neumip.training.loop.views import ViewGrid, view_queries
-
-    from tests.plane import plane_mbtf
 
     cfg = replace(FAST, steps=30, validate_every=10, checkpoint_every=10)
     drawn = []

@@ -22,7 +22,6 @@ from neumip.groundtruth.description import Microgeometry
 from neumip.training.loop.train import Trainer, TrainingError
 from neumip.training.loop.config import TEST
 
-from tests.plane import PLANE_COLOR
 
 
 def geometry(height: np.ndarray, albedo=None, roughness=None) -> Microgeometry:
@@ -176,10 +175,11 @@ def test_features_must_match_the_pyramid():
         MapConfig(neighbourhood=5)
 
 
-def plane_geometry(res: int = 16) -> Microgeometry:
-    """The analytic plane of conftest.plane_mbtf as maps: its albedo pattern times PLANE_COLOR."""
-    x, y = grid(res)
-    albedo = (0.6 + 0.3 * np.sin(2 * np.pi * x) * np.cos(2 * np.pi * y))[..., None] * PLANE_COLOR
+@pytest.fixture(scope="module")
+def plane_geometry(plane_color) -> Microgeometry:
+    """The analytic plane of conftest.plane_mbtf as maps (16^2): its albedo pattern times its colour."""
+    x, y = grid(16)
+    albedo = (0.6 + 0.3 * np.sin(2 * np.pi * x) * np.cos(2 * np.pi * y))[..., None] * plane_color
     return geometry(np.zeros((1, 1)), albedo=albedo)
 
 
@@ -188,11 +188,11 @@ def plane(tmp_path_factory, plane_data):
     return plane_data(tmp_path_factory.mktemp("plane") / "data", 20_000, seed=4)
 
 
-def test_a_map_informed_material_learns_the_plane_and_its_checkpoint_exports(plane, tmp_path, assert_parity):
+def test_a_map_informed_material_learns_the_plane_and_its_checkpoint_exports(plane, tmp_path, assert_parity, plane_geometry):
     torch.set_num_threads(1)
     config = replace(TEST, steps=150, batch=1024, checkpoint_every=100, validate_every=0)
     trainer = Trainer(plane.path, tmp_path / "c.pt", MaterialConfig(resolution=16), config,
-                      maps=(MapConfig(), plane_geometry()))
+                      maps=(MapConfig(), plane_geometry))
     before = trainer.validate()["overall"]["rel_l1"]
     table = trainer.run()
     assert isinstance(trainer.material, MapMaterial)
@@ -202,7 +202,7 @@ def test_a_map_informed_material_learns_the_plane_and_its_checkpoint_exports(pla
     session = ort.InferenceSession(str(out), providers=["CPUExecutionProvider"])
     assert_parity(session.run(None, {C.ONNX_INPUT: q})[0], answers(trainer.material.eval(), q))
     # the maps' sampling lobe (roughness 0.4: alpha 0.16) travels from the run to the file
-    assert trainer.sampling == sampling_lobe(plane_geometry()) == C.SamplingLobe(pytest.approx(0.16), 0.5)
+    assert trainer.sampling == sampling_lobe(plane_geometry) == C.SamplingLobe(pytest.approx(0.16), 0.5)
     assert C.sampling_lobe(dict(session.get_modelmeta().custom_metadata_map)) == trainer.sampling
     # the checkpoint is a map-informed run: resuming it as the paper's model is refused
     with pytest.raises(TrainingError, match="map encoder"):
@@ -228,17 +228,17 @@ def test_cli_trains_a_map_informed_model_from_a_description(plane, tmp_path, cap
     assert "does not describe its material" in capsys.readouterr().err
 
 
-def test_a_map_informed_run_resumes_as_one(plane, tmp_path):
+def test_a_map_informed_run_resumes_as_one(plane, tmp_path, plane_geometry):
     torch.set_num_threads(1)
     config = replace(TEST, steps=10, batch=256, validate_every=0)
-    maps = (MapConfig(neighbourhood=1), plane_geometry())
+    maps = (MapConfig(neighbourhood=1), plane_geometry)
     Trainer(plane.path, tmp_path / "c.pt", MaterialConfig(resolution=8), config, maps=maps).run()
     again = Trainer(plane.path, tmp_path / "c.pt", MaterialConfig(resolution=8), replace(config, steps=20), maps=maps)
     assert isinstance(again.material, MapMaterial) and again.state.step == 10
     again.run()
     assert again.state.step == 20
     with pytest.raises(TrainingError, match="map encoder"):  # another encoder is another run
-        Trainer(plane.path, tmp_path / "c.pt", MaterialConfig(resolution=8), config, maps=(MapConfig(), plane_geometry()))
+        Trainer(plane.path, tmp_path / "c.pt", MaterialConfig(resolution=8), config, maps=(MapConfig(), plane_geometry))
 
 
 def test_horizons_see_a_wall_towards_it_only():
