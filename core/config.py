@@ -147,6 +147,11 @@ class MaterialConfig:
     learned offset (if any) corrects from there."""
     relief_steps: int = 8
     """Linear-search steps of the relief stage (each one height lookup), refined by one secant step."""
+    half_textures: bool = False
+    """Store the latent pyramid, the offset texture and the base's maps in float16 (half a map-informed file; the
+    relief's heights stay float32: a height moves where the view ray lands). The model reads its textures rounded
+    to float16 in training too (the rounding's gradient passes straight through), so the file, torch and every
+    engine answer one model. False: float32, as files before it."""
     lod_bias: int = 0
     """Levels by which a footprint's level of detail is raised: level = clamp(log2(sigma R) + lod_bias, 0, log2 R),
     for every pyramid of the model (the latents', the base maps', the relief's heights). 0 is the paper's

@@ -107,6 +107,9 @@ def register(sub: argparse._SubParsersAction) -> None:
                    help="declare the sampling lobe of this material's maps (library name or .toml; a renderer "
                         "samples the model's directions from it: client/mitsuba/bsdf.py), in place of the "
                         "file's or checkpoint's own")
+    p.add_argument("--half-textures", action="store_true",
+                   help="store the textures in float16 (MaterialConfig.half_textures: about half a map-informed "
+                        "file); a float32 model's answers move by the rounding (the largest difference is printed)")
     p.set_defaults(func=_export)
     _register_train_many(sub)
 
@@ -322,13 +325,14 @@ def _export(args: argparse.Namespace) -> int:
         from neumip.training.export.upgrade import CHECK_QUERIES, reexport_file
 
         try:
-            path, difference = reexport_file(args.checkpoint, args.output, args.description, sampling)
+            path, difference = reexport_file(args.checkpoint, args.output, args.description, sampling,
+                                             args.half_textures)
         except (OSError, ValueError, DecodeError) as exc:  # ModelLayoutError, unreadable or corrupt file
             raise CommandError(f"{args.checkpoint}: cannot re-export: {exc}") from exc
         print(f"wrote {path} ({path.stat().st_size / 1e6:.2f} MB); largest answer difference from "
               f"{args.checkpoint} on {CHECK_QUERIES:,} random queries: {difference:.3g}")
         return 0
-    path = export_checkpoint(args.checkpoint, args.output, args.description, sampling)
+    path = export_checkpoint(args.checkpoint, args.output, args.description, sampling, args.half_textures)
     print(f"wrote {path} ({path.stat().st_size / 1e6:.2f} MB)")
     return 0
 

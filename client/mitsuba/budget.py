@@ -99,15 +99,22 @@ class ModelFacts:
     """Texels per side of the finest level of its relief's height pyramid (`MaterialConfig.relief`), 0: none."""
     offset_channels: int = 0
     """Channels of its neural offset texture (one level at `resolution`), 0: no offset."""
+    half_textures: bool = False
+    """Its latents, offset texture and base maps are stored in float16 (`MaterialConfig.half_textures`)."""
+
+    @property
+    def value_bytes(self) -> int:
+        """Bytes of one stored value of the latents, the offset texture and the base maps."""
+        return 2 if self.half_textures else 4
 
     def pyramids(self) -> dict[str, tuple[int, int]]:
-        """Each pyramid the model reads, by its initializer's name -> (resolution, channels): the latents, the base
-        maps', the relief's heights. `neumip trim` cuts them all."""
-        out = {W.PYRAMID: (self.resolution, self.channels)}
+        """Each pyramid the model reads, by its initializer's name -> (resolution, bytes a texel): the latents, the
+        base maps', the relief's heights (float32). `neumip trim` cuts them all."""
+        out = {W.PYRAMID: (self.resolution, self.value_bytes * self.channels)}
         if self.base_resolution:
-            out[W.BASE] = (self.base_resolution, BASE_CHANNELS)
+            out[W.BASE] = (self.base_resolution, self.value_bytes * BASE_CHANNELS)
         if self.relief_resolution:
-            out[W.RELIEF] = (self.relief_resolution, 1)
+            out[W.RELIEF] = (self.relief_resolution, 4)
         return out
 
 
@@ -210,7 +217,7 @@ def model_facts(path: Path) -> ModelFacts | None:
         return None
     return ModelFacts(config.resolution, config.channels, file.size, file.finest_level,
                       max(config.base, config.relief), config.lod_bias, config.base, config.relief,
-                      config.offset_channels if config.offset else 0)
+                      config.offset_channels if config.offset else 0, config.half_textures)
 
 
 def _level_sizes(resolution: int) -> list[int]:
@@ -226,27 +233,26 @@ def pyramid_levels(facts: ModelFacts, finest_level: int) -> dict[str, int]:
             for name, (res, _) in facts.pyramids().items()}
 
 
-def _quad_table_bytes(facts: ModelFacts, levels: dict[str, int]) -> int:
-    """The int32 quad index tables of the pyramids kept from `levels` on: (S + 1)^2 rows of 4 taps per level,
-    one table per distinct set of levels kept (pyramids of one resolution share it)."""
-    kept = {tuple(_level_sizes(res)[levels[name]:]) for name, (res, _) in facts.pyramids().items()}
-    return sum(16 * (s + 1) ** 2 for sizes in kept for s in sizes)
+def _quad_vector_bytes(facts: ModelFacts, levels: dict[str, int]) -> int:
+    """The int32 vectors the graph computes each pyramid's quad index table from, kept from `levels` on: two of
+    S + 2 entries per level (`training/export/lookup.quad_vectors`)."""
+    return sum(8 * (s + 2) for name, (res, _) in facts.pyramids().items() for s in _level_sizes(res)[levels[name]:])
 
 
 def trimmed_size(facts: ModelFacts, finest_level: int) -> int:
     """About the bytes of the model trimmed to ``finest_level`` (`neumip trim`): every pyramid loses the float32
-    texels of its levels finer than the same footprint (`pyramid_levels`), and the quad index tables shrink to
-    the levels kept."""
+    texels of its levels finer than the same footprint (`pyramid_levels`), and the vectors of its quad index
+    table shrink to the levels kept."""
     before, after = pyramid_levels(facts, facts.finest_level), pyramid_levels(facts, max(finest_level, facts.finest_level))
-    texels = sum(4 * channels * s * s for name, (res, channels) in facts.pyramids().items()
+    texels = sum(texel_bytes * s * s for name, (res, texel_bytes) in facts.pyramids().items()
                  for s in _level_sizes(res)[before[name]:after[name]])
-    return facts.bytes - texels - _quad_table_bytes(facts, before) + _quad_table_bytes(facts, after)
+    return facts.bytes - texels - _quad_vector_bytes(facts, before) + _quad_vector_bytes(facts, after)
 
 
 def offset_size(facts: ModelFacts) -> int:
-    """Bytes of the neural offset texture and its quad index table, which `neumip trim` keeps whole."""
+    """Bytes of the neural offset texture (and its quad table's vectors), which `neumip trim` keeps whole."""
     r = facts.resolution
-    return 4 * facts.offset_channels * r * r + 16 * (r + 1) ** 2 if facts.offset_channels else 0
+    return facts.value_bytes * facts.offset_channels * r * r + 8 * (r + 2) if facts.offset_channels else 0
 
 
 @dataclass

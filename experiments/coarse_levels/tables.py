@@ -2,11 +2,13 @@
 map-informed file, the lever's runs, the paper's model from the committed report, C and Cmip.
 
     python experiments/coarse_levels/tables.py MATERIAL REPORT_S0 [REPORT_S1]   # run.sh's report folders
+    LABEL=lf0.6 python experiments/coarse_levels/tables.py ...                  # another lever's (level_share)
 """
 
 from __future__ import annotations
 
 import json
+import os
 import sys
 
 
@@ -20,8 +22,8 @@ def main() -> int:
     material, runs = sys.argv[1], sys.argv[2:]
     lever = [views(f"{r}/results.json", material) for r in runs]
     paper = views("docs/report/results.json", material)
-    heads = ["paper N", "shipped"] + [f"res16 s{k}" for k in range(len(lever))] + ["C", "Cmip"]
-    print(f"{material}: image MSE x1e-3 (FLIP) at 64 spp; 'shipped' and 'res16' from the same report run")
+    heads = ["paper N", "shipped"] + [f"{os.environ.get('LABEL', 'res16')} s{k}" for k in range(len(lever))] + ["C", "Cmip"]
+    print(f"{material}: image MSE x1e-3 (FLIP) at 64 spp; 'shipped' and the lever's from the same report run")
     print(f"{'view':14s} " + " ".join(f"{h:>15s}" for h in heads))
     for v in lever[0]:
         cells = [paper[v]["N"], lever[0][v]["N"]] + [run[v]["Nmaps"] for run in lever] + [lever[0][v]["C"], lever[0][v]["Cmip"]]

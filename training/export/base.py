@@ -19,7 +19,8 @@ from neumip.core.config import (BASE_ALPHA2_FLOOR, BASE_AZIMUTH_FLOOR, BASE_AZIM
                                 BASE_COS_FLOOR, BASE_HORIZONS, BASE_LOG_CEILING, BASE_OUTPUTS, BASE_SHADOW_SOFTNESS,
                                 BASE_WI_FLOOR, HALF_FLOOR, MaterialConfig)
 from neumip.training.export.lod import BASE_PREFIX
-from neumip.training.export.lookup import expand_table, footprint_read, footprint_rows, pyramid_footprint
+from neumip.training.export.lookup import (expand_table, footprint_read, footprint_rows, pyramid_footprint, stored_texture,
+                                          texture_const)
 from neumip.training.export.onnx_graph import GraphWriter
 
 
@@ -69,16 +70,15 @@ def read_base(g: GraphWriter, config: MaterialConfig, weights: dict, uv: str, si
     one) is a constant of the graph, not read: the lookup of a constant answers it. The stored atlas has
     every channel (`read` reads it back)."""
     base = config.base_pyramid()
-    atlas = weights[W.BASE]
-    stored = g.const(atlas, name=W.BASE)
+    atlas = stored_texture(weights[W.BASE], config)
+    stored = texture_const(g, atlas, W.BASE, config)
     varying = [c for c in range(MAP_CHANNELS) if not np.all(atlas[:, c] == atlas[0, c])]
     atlas_read = g.op("Gather", stored, g.const(varying, np.int64), axis=1) if varying else stored  # (T, V)
     fp = pyramid_footprint(g, base, atlas_read, len(varying), sigma, finest_level, BASE_PREFIX)
     rows, taps = footprint_rows(g, fp, uv)  # (N, 2), (N, 8)
-    index = g.const(fp.rows, np.int32)  # (R, 4) the quad table's texels, shared by both tables
     constants = np.where(np.isin(np.arange(MAP_CHANNELS), varying), 0.0, atlas[0, :MAP_CHANNELS])[None]
     if varying:
-        fp.table = expand_table(g, fp.atlas, index, len(varying))
+        fp.table = expand_table(g, fp.atlas, fp.index, len(varying))
         texels = footprint_read(g, fp, len(varying), rows)  # (N, 8 V)
         spread = np.kron(np.eye(8, dtype=np.float32), np.ones((1, len(varying)), np.float32))  # (8, 8 V)
         weighted = g.op("Mul", texels, g.op("MatMul", taps, g.const(spread)))
@@ -88,7 +88,7 @@ def read_base(g: GraphWriter, config: MaterialConfig, weights: dict, uv: str, si
         maps = g.op("Add", g.op("MatMul", summed, g.const(place)), g.const(constants))
     else:
         maps = g.op("Add", g.op("MatMul", taps, g.const(np.zeros((8, MAP_CHANNELS), np.float32))), g.const(constants))
-    return BaseRead(maps, rows, taps, _horizon_table(g, stored, index, len(fp.rows)))
+    return BaseRead(maps, rows, taps, _horizon_table(g, stored, fp.index, fp.index_rows))
 
 
 def _horizon_table(g: GraphWriter, atlas: str, index: str, rows: int) -> str:

@@ -42,7 +42,8 @@ from neumip.core import head
 from neumip.core import weights as W
 from neumip.core.config import RELIEF_DIVISION_FLOOR, RELIEF_MIN_COS, MaterialConfig
 from neumip.training.export import base as B
-from neumip.training.export.lookup import footprint_texels, pyramid_footprint, pyramid_texels, texture_texels
+from neumip.training.export.lookup import (footprint_texels, pyramid_footprint, pyramid_texels, stored_texture,
+                                          texture_const, texture_texels)
 from neumip.training.export.lod import RELIEF_PREFIX, pyramids
 from neumip.training.export.onnx_graph import GraphWriter
 
@@ -276,7 +277,7 @@ def material_graph(g: GraphWriter, config: MaterialConfig, weights: dict,
 
     # --- neural offset: uv += r * wo_xy / max(wo_z, min_cos) -----------------------------------
     if config.offset:
-        texture = g.const(weights[W.OFFSET_TEXTURE], name=W.OFFSET_TEXTURE)
+        texture = texture_const(g, stored_texture(weights[W.OFFSET_TEXTURE], config), W.OFFSET_TEXTURE, config)
         texels, tap_w = texture_texels(g, texture, config.resolution, config.offset_channels, g.wrap(uv))
         mlp = _depth_weights(weights, config)
         hidden = _first_layer(g, q, texels, tap_w, 4, [C.WO_X, C.WO_Y], mlp, W.OFFSET_MLP, 2)
@@ -286,7 +287,7 @@ def material_graph(g: GraphWriter, config: MaterialConfig, weights: dict,
         uv = g.op("Add", uv, _parallax(g, depth, wo, config.offset_min_cos))
 
     # --- trilinear pyramid lookup, then the decoder once per light -------------------------------
-    atlas = g.const(weights[W.PYRAMID], name=W.PYRAMID)
+    atlas = texture_const(g, stored_texture(weights[W.PYRAMID], config), W.PYRAMID, config)
     uvw = g.wrap(uv)
     texels, tap_w = pyramid_texels(g, config, atlas, config.channels, uvw, sigma, finest_level)
     shared = _first_layer(g, q, texels, tap_w, 8, [C.WO_X, C.WO_Y], weights, W.DECODER,

@@ -5,9 +5,10 @@ level by one texel on every side with the opposite edge (`wrap_pad`) turns both 
 x0 + 1 and x0 + 2 of the padded level, so the graph needs no modulo, and grouping the 2 x 2 taps of
 each footprint into one row (`quad_table`) lets a query read a level's footprint with one Gather row.
 
-The model file stores the textures once; the tables are built from texel *indices* into the flat
-atlas, and the graph's constant subgraph Gather(atlas, index table) (`expand_table`), which ONNX
-Runtime folds when the session loads, expands them.
+The model file stores the textures once and no table: a constant subgraph computes each pyramid's quad
+index table (texel *indices* into the flat atlas) from two short vectors per level (`quad_vectors`,
+`quad_rows`), and Gather(atlas, index table) (`expand_table`) expands it into the quad table. ONNX Runtime
+folds both when the session loads, and so does the kernel engine (`engines/onnx_kernel.py`).
 
 Shapes: N queries, L levels read per query (1 for the offset texture, 2 for the pyramid). The stages
 keep every tensor flat, (N, k) with the same k on both sides of each elementwise op: ONNX Runtime's
@@ -70,6 +71,39 @@ def quad_atlas(sizes: list[int]) -> QuadAtlas:
     return QuadAtlas(np.concatenate(tables), np.asarray(params, np.float32))
 
 
+def quad_vectors(sizes: list[int], finest_level: int = 0, prefix: str = "") -> dict[str, np.ndarray]:
+    """The initializers from which the graph computes the quad index table of a pyramid of `sizes` texels per
+    side (all its levels, finest first), held from level `finest_level` on (`quad_rows`). Per level l:
+    ``{prefix}quad.l.rows`` (S + 2, 1) int32, the atlas row of each wrap-padded row's first texel, and
+    ``{prefix}quad.l.cols`` (1, S + 2), each wrap-padded column's texel within its row, so that padded texel
+    (i, j) is atlas row rows[i] + cols[j] (`wrap_pad`); levels finer than `finest_level` hold none (0 x 1,
+    1 x 0). A few kilobytes where the table is (rows, 4) int32: 1.4 MB for 256^2. What `neumip trim` swaps."""
+    out, start = {}, 0
+    for level, size in enumerate(sizes):
+        wrapped = np.arange(-1, size + 1) % size if level >= finest_level else np.zeros(0, np.int64)
+        out[f"{prefix}quad.{level}.rows"] = (start + size * wrapped).astype(np.int32).reshape(-1, 1)
+        out[f"{prefix}quad.{level}.cols"] = wrapped.astype(np.int32).reshape(1, -1)
+        start += size * size if level >= finest_level else 0
+    return out
+
+
+def quad_rows(g: GraphWriter, sizes: list[int], finest_level: int = 0, prefix: str = "") -> str:
+    """Constant subgraph: the (R, 4) int32 quad index table of levels `finest_level`.. of a pyramid of `sizes`
+    (`quad_atlas`'s rows, computed from `quad_vectors`): per level the padded grid rows + cols, its 2 x 2 taps
+    as four shifted slices, levels stacked."""
+    vectors = quad_vectors(sizes, finest_level, prefix)
+    big = np.iinfo(np.int64).max
+    levels = []
+    for level in range(len(sizes)):
+        padded = g.op("Add", *(g.const(vectors[f"{prefix}quad.{level}.{part}"], np.int32,
+                                       name=f"{prefix}quad.{level}.{part}") for part in ("rows", "cols")))
+        taps = [g.shape(g.op("Slice", padded, g.const([dy, dx], np.int64),
+                             g.const([-1 if dy == 0 else big, -1 if dx == 0 else big], np.int64)), [-1, 1])
+                for dy, dx in ((0, 0), (0, 1), (1, 0), (1, 1))]  # (x, y), (x + 1, y), (x, y + 1), (x + 1, y + 1)
+        levels.append(g.op("Concat", *taps, axis=1))
+    return levels[0] if len(levels) == 1 else g.op("Concat", *levels, axis=0)
+
+
 def trimmed_atlas(config: MaterialConfig, finest_level: int = 0) -> tuple[QuadAtlas, np.ndarray]:
     """Quad atlas of levels K..L (K = ``finest_level``) and its per-level parameters indexed by the
     full level number 0..L (levels finer than K repeat level K's row; the graph never reads them)."""
@@ -94,13 +128,34 @@ def level_tables(config: MaterialConfig, finest_level: int = 0) -> dict[str, np.
 # --- graph stages ----------------------------------------------------------------------------------
 
 
-def expand_table(g: GraphWriter, texels: str, index_rows: np.ndarray | str, width: int) -> str:
-    """Constant subgraph: (T, width) texels and (R, 4) index table (or the name of its initializer) ->
-    (R, 4 width) quad table.
+def stored_texture(value: np.ndarray, config: MaterialConfig) -> np.ndarray:
+    """A texture's float32 values as the file stores them (`MaterialConfig.half_textures`: rounded to float16, as
+    `training.model.pyramid.as_stored` rounds them in torch); ValueError where float16 cannot hold one."""
+    value = np.asarray(value, np.float32)
+    if not config.half_textures:
+        return value
+    half = value.astype(np.float16)
+    if not np.isfinite(half).all():
+        raise ValueError(f"a texture value beyond float16's range ({np.abs(value).max():.4g}): export with "
+                         f"half_textures off")
+    return half.astype(np.float32)
+
+
+def texture_const(g: GraphWriter, value: np.ndarray, name: str, config: MaterialConfig) -> str:
+    """Texture initializer `name`, float32, or float16 read through a Cast (folded at load by every engine) with
+    `MaterialConfig.half_textures`; `value` as `stored_texture` gives it."""
+    if not config.half_textures:
+        return g.const(value, name=name)
+    return g.op("Cast", g.const(value, np.float16, name=name), to=TensorProto.FLOAT)
+
+
+
+def expand_table(g: GraphWriter, texels: str, index: str, width: int) -> str:
+    """Constant subgraph: (T, width) texels and the (R, 4) index table `index` (`quad_rows`) -> (R, 4 width)
+    quad table.
 
     Only initializers feed it, so ONNX Runtime computes it once when the session loads.
     """
-    index = index_rows if isinstance(index_rows, str) else g.const(index_rows, np.int32)
     table = g.op("Gather", texels, index, axis=0)
     return g.shape(table, [-1, 4 * width])
 
@@ -157,8 +212,10 @@ class Footprint:
     """(N, 1) fraction towards level hi."""
     atlas: str
     """The pyramid (T, width), levels flat, finest first."""
-    rows: np.ndarray
-    """Its quad index table (`QuadAtlas.rows`)."""
+    index: str
+    """Its quad index table (`quad_rows`), (R, 4) int32."""
+    index_rows: int
+    """R, the index table's rows."""
     table: str | None = None
     """The pyramid's quad table (`expand_table`), written by the first `footprint_texels`."""
 
@@ -171,7 +228,8 @@ def pyramid_footprint(g: GraphWriter, config: MaterialConfig, atlas: str, width:
     constants (`lod.level_rows`)."""
     tables, _ = trimmed_atlas(config, finest_level)
     rows, t = level_of_detail(g, sigma, config, finest_level, level_tables(config, finest_level), prefix)
-    return Footprint(rows["size"], rows["coef"], rows["base"], t, atlas, tables.rows)
+    index = quad_rows(g, config.level_sizes(), finest_level, prefix)
+    return Footprint(rows["size"], rows["coef"], rows["base"], t, atlas, index, len(tables.rows))
 
 
 def footprint_rows(g: GraphWriter, fp: Footprint, uvw: str) -> tuple[str, str]:
@@ -188,7 +246,7 @@ def footprint_rows(g: GraphWriter, fp: Footprint, uvw: str) -> tuple[str, str]:
 def footprint_read(g: GraphWriter, fp: Footprint, width: int, rows: str) -> str:
     """Quad table rows (N, 2) of `fp`'s levels lo, hi (`footprint_rows`) -> texels (N, 8 width)."""
     if fp.table is None:
-        fp.table = expand_table(g, fp.atlas, fp.rows, width)
+        fp.table = expand_table(g, fp.atlas, fp.index, width)
     return _gather(g, fp.table, rows, 2, width)
 
 
@@ -206,14 +264,15 @@ def pyramid_texels(g: GraphWriter, config: MaterialConfig, atlas: str, width: in
     return footprint_texels(g, fp, width, uvw)
 
 
-def texture_texels(g: GraphWriter, texture: str, size: int, width: int, uvw: str) -> tuple[str, str]:
+def texture_texels(g: GraphWriter, texture: str, size: int, width: int, uvw: str,
+                   prefix: str = "offset.") -> tuple[str, str]:
     """Bilinear footprint of one texture, (S * S, width) flat: uvw (N, 2) in [0, 1] -> texels
-    (N, 4 width), weights (N, 4)."""
+    (N, 4 width), weights (N, 4); its index table's vectors are named ``{prefix}quad.*`` (`quad_vectors`)."""
     tables = quad_atlas([size])
     _, _, w, base = tables.level_params[0]
     x = g.op("Sub", g.op("Mul", uvw, g.scalar(size)), g.scalar(0.5))  # (N, 2)
     x0 = g.op("Floor", x)
     line = g.op("MatMul", x0, g.const(np.asarray([[1.0], [w]])))  # (N, 1): x0 + W y0
-    table = expand_table(g, texture, tables.rows, width)
+    table = expand_table(g, texture, quad_rows(g, [size], 0, prefix), width)
     texels = _gather(g, table, g.op("Add", line, g.const([base])), 1, width)
     return texels, tap_weights(g, g.op("Sub", x, x0), 1, None)

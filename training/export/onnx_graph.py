@@ -3,8 +3,8 @@
 Only numpy and onnx; the material's stages (`lookup.py`, `graph.py`) are written with it.
 
 A constant is stored once: an unnamed constant of more than one element that holds the same values as
-an earlier one (dtype, shape, bytes) is that one's initializer (`shared_key`), e.g. the quad index table
-of the latent, base-map and relief pyramids of one resolution. Named constants (weights, ``lod.*``) and
+an earlier one (dtype, shape, bytes) is that one's initializer (`shared_key`), e.g. the 0/1 matrices of
+the lookups of pyramids of one width. Named constants (weights, ``lod.*``, ``quad.*``) and
 single numbers (a level-of-detail Clip's bounds, which `neumip trim` swaps per pyramid; the (1, 1)
 scalars) keep one initializer per use.
 """
@@ -12,7 +12,6 @@ scalars) keep one initializer per use.
 from __future__ import annotations
 
 import hashlib
-import re
 
 import numpy as np
 import onnx
@@ -24,37 +23,12 @@ from neumip.core import weights as W
 COLUMN_ALPHA = 2.0
 """The Gemm alpha of `GraphWriter.product` (its matrices are stored halved)."""
 
-UNNAMED = re.compile(r"c_[0-9]+")
-"""The names `GraphWriter.const` gives constants it is not given a name for."""
-
-
 def shared_key(value: np.ndarray) -> tuple | None:
     """What makes two unnamed constants one initializer: (dtype, shape, digest of the bytes), None for a single
     number (kept per use: `neumip trim` swaps one pyramid's Clip bound, whatever the others hold)."""
     if value.size <= 1:
         return None
     return value.dtype.str, value.shape, hashlib.sha256(np.ascontiguousarray(value).tobytes()).digest()
-
-
-def share_constants(graph) -> None:
-    """Store the graph's unnamed constants as `GraphWriter.const` would (`shared_key`): every initializer that
-    holds the same values as an earlier unnamed one is dropped and its uses read the earlier one. For
-    `neumip trim`, whose swapped tables can come to hold what another pyramid's table holds."""
-    first: dict[tuple, str] = {}
-    renamed: dict[str, str] = {}
-    for init in graph.initializer:
-        key = shared_key(numpy_helper.to_array(init)) if UNNAMED.fullmatch(init.name) else None
-        if key is not None:
-            renamed[init.name] = first.setdefault(key, init.name)
-    renamed = {old: new for old, new in renamed.items() if old != new}
-    if not renamed:
-        return
-    for node in graph.node:
-        for i, name in enumerate(node.input):
-            node.input[i] = renamed.get(name, name)
-    kept = [init for init in graph.initializer if init.name not in renamed]
-    del graph.initializer[:]
-    graph.initializer.extend(kept)
 
 
 class GraphWriter:

@@ -107,7 +107,7 @@ def read_weights(inits: dict[str, np.ndarray], config: MaterialConfig, finest: i
     """A graph's initializers, checked against `weights.initializer_shapes` -> the weights as
     `export.weights_from_state` gives them."""
     check_shapes(inits, W.initializer_shapes(config, finest))
-    weights = {name: inits[name] for name in W.textures(config)}
+    weights = {name: inits[name].astype(np.float32) for name in W.textures(config)}  # float16 with half_textures
     if RELIEF_DEPTH in inits:  # the depth of all the heights, which a trimmed model's kept levels may not reach
         weights[RELIEF_DEPTH] = inits[RELIEF_DEPTH]
     for mlp in W.mlps(config):

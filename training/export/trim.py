@@ -7,10 +7,11 @@ the same footprint (`lod.pyramids`: the latents, the base maps' ``base_maps``, t
 the latents keeps log2 of the ratio levels more of its own, `MaterialConfig.pyramid_finest_level`):
 
 - each atlas keeps the texels of its levels K_p..L_p;
-- its quad index table and the per-level tables its level of detail reads (initializers ``lod.*``,
-  ``base.lod.*``, ``relief.lod.*``, `lod.stage_constants`) become those of the shorter atlas
-  (`lookup.trimmed_atlas`: only the table rows move, each level's size and row width stay; levels
-  finer than K_p repeat K_p's);
+- the vectors its quad index table is computed from (``quad.*``, ``base.quad.*``, ``relief.quad.*``,
+  `lookup.quad_vectors`) and the per-level tables its level of detail reads (``lod.*``, ``base.lod.*``,
+  ``relief.lod.*``, `lod.stage_constants`) become those of the shorter atlas (`lookup.trimmed_atlas`: only
+  the table rows move, each level's size and row width stay; levels finer than K_p have no quad rows, and
+  their level-of-detail rows repeat K_p's);
 - its level-of-detail Clip's lower bound becomes 2^K_p (`lod.clip_min`).
 
 So every query whose level ``clamp(log2(sigma R) + lod_bias, 0, L)`` is >= K gathers the same texels with
@@ -18,10 +19,6 @@ the same weights through the same ops in every pyramid: its answer is bit-identi
 model's. A finer query reads level K_p alone (as a query finer than level 0 reads level 0 in an untrimmed
 model). The neural offset texture is kept whole: it is read bilinearly at the finest resolution by every
 query, whatever its footprint, so any reduction of it changes every answer of an offset model.
-
-Pyramids of one resolution share one quad table (`onnx_graph.shared_key`); after the swap, tables that
-came to hold the same rows (a 64^2 latent pyramid and 256^2 maps, both cut to 16^2) are stored once
-again (`onnx_graph.share_constants`): the only node edit, a table's reader repointed to its twin.
 
 Each constant found is first checked against what the writer (`lookup`, `lod`) writes
 for the model's config and current trim, so a graph of another layout is refused, never mis-edited.
@@ -46,8 +43,7 @@ from neumip.core.modelfile import TrimRecord, read_model_file
 
 from neumip.training.export.graph import RELIEF_DEPTH, relief_depth, save_onnx
 from neumip.training.export.lod import Pyramid, clip_min, clip_nodes, pyramids, stage_constants
-from neumip.training.export.lookup import level_tables, trimmed_atlas
-from neumip.training.export.onnx_graph import share_constants
+from neumip.training.export.lookup import level_tables, quad_vectors
 from neumip.training.export.read import model_file
 
 __all__ = ["TrimError", "TrimRecord", "current_trim", "finest_level_from_budget", "trim_file", "trim_model",
@@ -79,29 +75,12 @@ def _replace(graph, name: str, expected: np.ndarray, value: np.ndarray) -> None:
     """Swap initializer `name` for `value`, after checking it holds `expected` (the writer's layout)."""
     init = next((i for i in graph.initializer if i.name == name), None)
     if init is None:
-        raise TrimError(f"no initializer {name!r}: not a graph of this export; cannot trim this graph")
+        raise TrimError(f"no initializer {name!r}: not a graph of this export (an older export's file: `neumip "
+                        f"export OLD.onnx -o NEW.onnx` rewrites it with this version's graph); cannot trim this graph")
     current = numpy_helper.to_array(init)
     if current.shape != expected.shape or not np.array_equal(current, expected.astype(current.dtype)):
         raise TrimError(f"initializer {name!r} is not what this export writes; cannot trim this graph")
     init.CopyFrom(numpy_helper.from_array(value.astype(current.dtype), name))
-
-
-def _swap_tables(graph, swaps: list[tuple[Pyramid, np.ndarray, np.ndarray]]) -> None:
-    """Every int32 initializer holding a pyramid's quad index table as the writer wrote it (old rows) takes the
-    pyramid's new rows. Pyramids whose tables were the same rows (one initializer, or copies in a file written
-    before constants were shared) have the same new rows too: their finest levels kept are the same size."""
-    found = set()
-    for init in graph.initializer:
-        if init.data_type != onnx.TensorProto.INT32:
-            continue
-        current = numpy_helper.to_array(init)
-        new = [(p, rows) for p, old, rows in swaps if old.shape == current.shape and np.array_equal(old, current)]
-        if new:
-            found.update(p.texture for p, _ in new)
-            init.CopyFrom(numpy_helper.from_array(new[0][1].astype(np.int32), init.name))
-    for p, _, _ in swaps:
-        if p.texture not in found:
-            raise TrimError(f"no quad index table of {p.texture!r} as this export writes it; cannot trim this graph")
 
 
 def _cut_atlas(graph, pyramid: Pyramid, old: int, new: int) -> None:
@@ -133,19 +112,18 @@ def trim_model(model: onnx.ModelProto, finest_level: int, source: str = "model.o
         clips = clip_nodes(g, config)
     except ValueError as exc:
         raise TrimError(f"{exc}; cannot trim this graph") from exc
-    swaps = []
     for pyramid, clip in zip(pyramids(config), clips):
         k_old, k_new = (config.pyramid_finest_level(pyramid.config, k) for k in (old, finest_level))
         if k_old == k_new:  # maps coarser than level K's footprint: none of their levels is finer
             continue
-        swaps.append((pyramid, trimmed_atlas(pyramid.config, k_old)[0].rows, trimmed_atlas(pyramid.config, k_new)[0].rows))
         old_lod, new_lod = (stage_constants(pyramid.config, k, level_tables(pyramid.config, k)) for k in (k_old, k_new))
         for name, value in new_lod.items():
             _replace(g, pyramid.prefix + name, old_lod[name], value)
+        old_quad, new_quad = (quad_vectors(pyramid.config.level_sizes(), k, pyramid.prefix) for k in (k_old, k_new))
+        for name, value in new_quad.items():
+            _replace(g, name, old_quad[name], value)
         _replace(g, clip.input[1], np.asarray(clip_min(k_old), np.float32), np.asarray(clip_min(k_new), np.float32))
         _cut_atlas(g, pyramid, k_old, k_new)
-    _swap_tables(g, swaps)
-    share_constants(g)
 
     sizes, starts = config.level_sizes(), config.level_starts()
     record = TrimRecord(

@@ -16,6 +16,7 @@ the decoder's first sum); `upgrade.reexport_file` reports the largest difference
 
 from __future__ import annotations
 
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -79,11 +80,14 @@ def _first_gemms(model: onnx.ModelProto, inits: dict, mlp: str) -> tuple[np.ndar
     return np.concatenate([w_tex.T, rows[columns].T], axis=1), inits[W.bias(mlp, 0)]
 
 
-def reexport(model: onnx.ModelProto) -> onnx.ModelProto:
+def reexport(model: onnx.ModelProto, half_textures: bool = False) -> onnx.ModelProto:
     """`model` rewritten with this version's graph: its weights, config, finest level and metadata.
-    A file of an older contract version (`contract.UPGRADABLE_VERSIONS`) comes out in this one."""
+    A file of an older contract version (`contract.UPGRADABLE_VERSIONS`) comes out in this one. `half_textures`:
+    its textures stored in float16 (`MaterialConfig.half_textures`), rounded where they were float32."""
     version = metadata(model).get(C.META_CONTRACT)
     config, weights, meta, finest = read_v1(model) if version in C.UPGRADABLE_VERSIONS else read_model(model)
+    if half_textures:
+        config = replace(config, half_textures=True)
     owned = {C.META_CONTRACT, C.META_CONFIG, C.META_DESCRIPTION}
     extra = {key: value for key, value in meta.items() if key not in owned}
     return build_onnx(config, weights, meta.get(C.META_DESCRIPTION, ""), extra, finest)
@@ -108,14 +112,14 @@ def answer_difference(old: onnx.ModelProto, new: onnx.ModelProto, n: int = CHECK
 
 
 def reexport_file(source: str | Path, out: str | Path, description: str = "",
-                  sampling: C.SamplingLobe | None | str = "keep") -> tuple[Path, float]:
+                  sampling: C.SamplingLobe | None | str = "keep", half_textures: bool = False) -> tuple[Path, float]:
     """`neumip export MODEL.onnx`: rewrite the model at `source` with this version's graph to `out`
     (atomically); returns the path and the largest answer difference on random queries. `sampling`:
-    the sampling lobe to declare (None: none), or ``"keep"`` the file's own."""
+    the sampling lobe to declare (None: none), or ``"keep"`` the file's own; `half_textures`: see `reexport`."""
     data = Path(source).read_bytes()
     read_model_file(source, data, any_version=True)  # ModelError for a corrupt file, bad metadata, NaN weights
     old = onnx.load_model_from_string(data)
-    new = reexport(old)
+    new = reexport(old, half_textures)
     meta = metadata(new)
     if description:
         meta[C.META_DESCRIPTION] = description

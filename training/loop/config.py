@@ -170,11 +170,12 @@ class Recipe:
 
 
 RECIPES = {
-    "paper": Recipe(),
-    "maps": Recipe(material={"lod_bias": 1, "local_frame": True, "terminator": "none"}, maps={"horizons": 8},
-                   base=True, relief=8),
+    "paper": Recipe(material={"half_textures": True}),
+    "maps": Recipe(material={"lod_bias": 1, "local_frame": True, "terminator": "none", "half_textures": True},
+                   maps={"horizons": 8}, base=True, relief=8),
 }
-"""`paper`: the paper's model (free latents, neural offset); `maps`: the shipped map-informed model (latents encoded
+"""Both store their textures in float16 (`MaterialConfig.half_textures`). `paper`: the paper's model (free latents,
+neural offset); `maps`: the shipped map-informed model (latents encoded
 from the prefiltered maps with horizons towards 8 azimuths, on the classical base, read in its normal's frame, the
 relief marched in 8 steps, the finest level answering footprints of half a texel). `neumip fit` makes `maps` for a
 material with principled maps and `paper` for one without (a homogeneous [bsdf])."""

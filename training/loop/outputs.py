@@ -13,6 +13,7 @@ import json
 import logging
 import os
 import shutil
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -168,17 +169,20 @@ def install_outputs(trainer: Trainer, table: dict, output: str | Path, views=Non
 
 
 def export_checkpoint(checkpoint: str | Path, out: str | Path, description: str = "",
-                      sampling: C.SamplingLobe | None | str = "keep") -> Path:
+                      sampling: C.SamplingLobe | None | str = "keep", half_textures: bool = False) -> Path:
     """`neumip export`: read a training checkpoint, write the ONNX model.
 
     A checkpoint written mid-run holds raw textures while training evaluated blurred copies: the
     blur of its step is baked in first, so the model computes what training computed. `sampling`: the
-    sampling lobe to declare (None: none), or ``"keep"`` the checkpoint's.
+    sampling lobe to declare (None: none), or ``"keep"`` the checkpoint's. `half_textures`: store its textures in
+    float16 (`MaterialConfig.half_textures`), rounded where the run kept them float32.
     """
     from neumip.training.loop.blur import bake_checkpoint_textures
     from neumip.training.loop.checkpoint import load
 
     material, extra = load(checkpoint)
+    if half_textures:
+        material.config = replace(material.config, half_textures=True)
     if bake_checkpoint_textures(material, extra):
         log.warning(
             "%s was written mid-run (step %d): exporting with that step's blurred textures",

@@ -14,7 +14,7 @@ from neumip.core.config import MaterialConfig
 from neumip.training.model.base import base_answer, corrected, frame_inputs, half_direction, lift, light_visibility
 from neumip.training.model.maps import MapConfig, level_feature
 from neumip.training.model.offset import parallax_shift
-from neumip.training.model.pyramid import pyramid_lookup, texture_lookup
+from neumip.training.model.pyramid import as_stored, pyramid_lookup, texture_lookup
 from neumip.training.model.relief import relief_shift
 
 
@@ -116,15 +116,16 @@ class NeuMIPMaterial(nn.Module):
             du, dv = relief_shift(self.relief_heights, self.config, u, v, sigma, wo)
             u, v = u + du, v + dv
         if self.config.offset:
-            feat = texture_lookup(otex, u, v)
+            feat = texture_lookup(as_stored(otex, self.config), u, v)
             depth = self.config.offset_scale * self.offset_mlp(torch.cat([feat, wo], dim=1))[:, 0]
             du, dv = parallax_shift(depth, wo[:, 0], wo[:, 1], self.config.offset_min_cos)
             u, v = u + du, v + dv
         atlas = torch.cat([lvl.reshape(-1, self.config.channels) for lvl in levels], dim=0)
-        features = pyramid_lookup(atlas, self.config, u, v, sigma)
+        features = pyramid_lookup(as_stored(atlas, self.config), self.config, u, v, sigma)
         directions = queries[:, C.WI_X : C.WO_Y + 1]
         wi, wo = directions[:, :2], directions[:, 2:]
-        maps = pyramid_lookup(self.base_maps, self.config.base_pyramid(), u, v, sigma) if self.config.base else None
+        maps = (pyramid_lookup(as_stored(self.base_maps, self.config), self.config.base_pyramid(), u, v, sigma)
+                if self.config.base else None)
         inputs = {row.name: DECODER_INPUTS[row.name](maps, wi, wo) for row in self.config.decoder_inputs()}
         if inputs:
             features = torch.cat([features, *inputs.values()], dim=1)

@@ -93,6 +93,14 @@ def gather_blend(atlas: torch.Tensor, rows: torch.Tensor, weights: torch.Tensor)
     return _GatherBlend.apply(atlas, rows, weights)
 
 
+def as_stored(texture: torch.Tensor, config: MaterialConfig) -> torch.Tensor:
+    """A texture as the model file stores it: rounded to float16 with `MaterialConfig.half_textures` (the
+    gradient passes the rounding unchanged), else as it is."""
+    if not config.half_textures:
+        return texture
+    return texture + (texture.half().float() - texture).detach()
+
+
 def pyramid_lookup(
     atlas: torch.Tensor, config: MaterialConfig, u: torch.Tensor, v: torch.Tensor, sigma: torch.Tensor
 ) -> torch.Tensor:

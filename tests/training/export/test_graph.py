@@ -36,6 +36,7 @@ PARITY_CASES = {
     "visibility-input": dict(base=64, relief=64, local_frame=True, terminator="none", visibility_input=True),
     "visibility-input-alone": dict(base=64, visibility_input=True),
     "lod-bias": dict(base=64, relief=64, local_frame=True, terminator="none", lod_bias=2),
+    "half-textures": dict(base=64, relief=64, local_frame=True, terminator="none", lod_bias=1, half_textures=True),
 }
 """Models whose torch and ONNX answers must agree: `MaterialConfig` fields over a 32^2 material with an offset."""
 
@@ -243,3 +244,27 @@ def test_every_decoder_input_is_computed_in_torch_and_in_the_graph():
     names = [row.name for row in DECODER_INPUTS]
     assert len(set(names)) == len(names)
     assert set(material.DECODER_INPUTS) == set(graph.DECODER_INPUTS) == set(names)
+
+
+def test_half_textures_are_stored_in_float16_and_read_back_as_the_model_reads_them(tmp_path):
+    """`MaterialConfig.half_textures`: the latents, the offset texture and the base's maps are float16 initializers
+    (the relief's heights float32); the file is smaller; reading it back gives the rounded weights, and a re-export
+    writes the same file."""
+    from neumip.training.export.read import read_model
+    from neumip.training.export.upgrade import reexport
+
+    cfg = MaterialConfig(resolution=32, base=64, relief=64, half_textures=True)
+    weights = random_weights(cfg, seed=8)
+    half = build_onnx(cfg, weights, "half")
+    full = build_onnx(replace(cfg, half_textures=False), weights, "full")
+    types = {i.name: i.data_type for i in half.graph.initializer}
+    for name in (W.PYRAMID, W.OFFSET_TEXTURE, W.BASE):
+        assert types[name] == onnx.TensorProto.FLOAT16, name
+    assert types[W.RELIEF] == onnx.TensorProto.FLOAT
+    assert half.ByteSize() < 0.6 * full.ByteSize()
+    read = read_model(half)[1]
+    for name in (W.PYRAMID, W.OFFSET_TEXTURE, W.BASE):
+        np.testing.assert_array_equal(read[name], weights[name].astype(np.float16).astype(np.float32))
+    assert reexport(half).SerializeToString() == half.SerializeToString()
+    with pytest.raises(ValueError, match="beyond float16's range"):
+        build_onnx(cfg, {**weights, W.PYRAMID: weights[W.PYRAMID] * 1e6}, "overflow")

@@ -1,7 +1,7 @@
 """`neumip trim`: answers above the cut are bit-identical (level boundaries and the offset included) in every
 pyramid (the latents, the base maps, the relief's heights, at resolutions finer, equal or coarser than the
-latents'), finer queries read the finest level kept, what was cut travels in the metadata, and pyramids of one
-resolution keep one quad table."""
+latents'), finer queries read the finest level kept, what was cut travels in the metadata, and no quad table is
+stored (the graph computes each from a few kilobytes)."""
 
 from __future__ import annotations
 
@@ -19,8 +19,7 @@ from neumip.core.config import MaterialConfig
 from neumip.core.modelfile import ModelError
 from neumip.training.export.graph import build_onnx, random_weights, save_onnx
 from neumip.training.export.lod import clip_node, pyramids
-from neumip.training.export.lookup import trimmed_atlas
-from neumip.training.export.onnx_graph import shared_key
+from neumip.training.export.lookup import quad_vectors
 from neumip.training.export.trim import TrimError, current_trim, trim_model, trimmed_weights
 
 RES = 16
@@ -92,7 +91,7 @@ def test_bit_identical_above_the_cut_and_clamped_below(untrimmed, tmp_path, k):
     np.testing.assert_array_equal(b[~above], run_chunked(full, clamped))
 
 
-def test_every_pyramid_is_cut_and_one_table_serves_pyramids_of_one_resolution(untrimmed):
+def test_every_pyramid_is_cut_and_no_quad_table_is_stored(untrimmed):
     model, config = untrimmed
     trimmed = trim_model(model, 2)
     for m, k in ((model, 0), (trimmed, 2)):
@@ -100,11 +99,11 @@ def test_every_pyramid_is_cut_and_one_table_serves_pyramids_of_one_resolution(un
         for p in pyramids(config):
             level = config.pyramid_finest_level(p.config, k)
             assert inits[p.texture].dims[0] == p.config.atlas_rows() - p.config.level_starts()[level], p.texture
-        tables = [shared_key(numpy_helper.to_array(i)) for i in m.graph.initializer
-                  if i.data_type == onnx.TensorProto.INT32]
-        assert len({t for t in tables if t}) == len([t for t in tables if t])  # no quad table stored twice
-    if config.base == config.relief == RES:  # all three pyramids read one table, the offset texture its own
-        assert sum(i.data_type == onnx.TensorProto.INT32 for i in model.graph.initializer) == 2
+            for name, value in quad_vectors(p.config.level_sizes(), level, p.prefix).items():
+                np.testing.assert_array_equal(numpy_helper.to_array(inits[name]), value)
+        ints = [i for i in m.graph.initializer if i.data_type == onnx.TensorProto.INT32]
+        assert all(i.name.split("quad.")[0] in ("", "base.", "relief.", "offset.") for i in ints)
+        assert sum(numpy_helper.to_array(i).size for i in ints) < 8 * sum(p.config.resolution for p in pyramids(config)) + 4 * RES
     if config.base or config.relief:
         maps = {p.texture for p in pyramids(config)} - {"pyramid"}
         sizes = {i.name: i.ByteSize() for i in model.graph.initializer}
@@ -145,17 +144,23 @@ def test_refuses_a_graph_of_another_layout(untrimmed):
     init.CopyFrom(onnx.numpy_helper.from_array(np.asarray(0.5, np.float32), init.name))
     with pytest.raises(TrimError, match="not what this export writes"):
         trim_model(tampered, 1)
-    for p in pyramids(config):  # each pyramid's quad table: a wrong row, or none
-        if config.pyramid_finest_level(p.config, 2) == 0:
+    for p in pyramids(config):  # the vectors of each pyramid's quad table: a wrong entry, or none
+        level = config.pyramid_finest_level(p.config, 2)
+        if level == 0:
             continue  # maps coarser than level 2's footprint: nothing of them is cut, nothing checked
-        for edit in ("row", "none"):
+        name = f"{p.prefix}quad.{level}.rows"
+        for edit in ("entry", "none"):
             tampered.CopyFrom(model)
-            table = next(i for i in tampered.graph.initializer if i.data_type == onnx.TensorProto.INT32
-                         and i.dims[0] == len(trimmed_atlas(p.config)[0].rows))
-            rows = numpy_helper.to_array(table).copy()
-            rows[-1] = rows[0] if edit == "row" else rows[-1]
-            table.CopyFrom(numpy_helper.from_array(rows if edit == "row" else rows[1:], table.name))
-            with pytest.raises(TrimError, match="no quad index table of"):
+            if edit == "entry":
+                vector = next(i for i in tampered.graph.initializer if i.name == name)
+                rows = numpy_helper.to_array(vector).copy()
+                rows[-1] += 1
+                vector.CopyFrom(numpy_helper.from_array(rows, name))
+            else:
+                kept = [i for i in tampered.graph.initializer if i.name != name]
+                del tampered.graph.initializer[:]
+                tampered.graph.initializer.extend(kept)
+            with pytest.raises(TrimError, match="not what this export writes|no initializer"):
                 trim_model(tampered, 2)
     no_meta = onnx.ModelProto()
     no_meta.CopyFrom(model)
