@@ -220,6 +220,12 @@ def assert_parity():
     return _assert_parity
 
 
+@pytest.fixture(scope="session")
+def parity_tolerances():
+    """(atol, rtol) of the export's parity contract."""
+    return PARITY_ATOL, PARITY_RTOL
+
+
 def _write_plane_data(path, n: int, seed: int = 0):
     from neumip.groundtruth.dataset import write_dataset
 

@@ -84,16 +84,32 @@ def test_parity_edge_queries(pair, edge_queries, assert_parity):
 CUDA = pytest.mark.skipif(not torch.cuda.is_available(), reason="no CUDA device")
 
 
+CUDA_STRAYS = 1e-4
+"""Share of answers a GPU may give outside the parity contract, each still within `CUDA_STRAY_RTOL`. The relief
+march is discontinuous in its inputs (the first of its steps below the height field), and the GPU's kernels round
+differently (fused multiply-adds): where a ray grazes a crossing, one last bit can move the landing point. An H200
+gave 1 such answer in 60 000 (4.6e-5, relative 1.5e-4) with a lod bias of 2."""
+CUDA_STRAY_RTOL = 1e-3
+
+
 @CUDA
-def test_cuda_answers_as_the_graph(pair, edge_queries, assert_parity):
-    """The material on a GPU (how `neumip train --device cuda` trains) answers what the exported graph answers."""
+def test_cuda_answers_as_the_graph(pair, edge_queries, assert_parity, parity_tolerances):
+    """The material on a GPU (how `neumip train --device cuda` trains) answers what the exported graph answers: all
+    within the parity contract without a relief; with one, all but a `CUDA_STRAYS` share (`CUDA_STRAY_RTOL`)."""
     material, _, session = pair
     on_gpu = NeuMIPMaterial(material.config).to("cuda")
     on_gpu.load_state_dict(material.state_dict())
     for q in (random_queries(20000, seed=12), edge_queries(material.config.resolution)):
         with torch.no_grad():
             got = on_gpu(torch.from_numpy(q).to("cuda")).cpu().numpy()
-        assert_parity(got, session.run(None, {C.ONNX_INPUT: q})[0])
+        want = session.run(None, {C.ONNX_INPUT: q})[0]
+        if not material.config.relief:
+            assert_parity(got, want)
+            continue
+        atol, rtol = parity_tolerances
+        stray = ~np.isclose(got, want, atol=atol, rtol=rtol).all(axis=1)
+        assert stray.mean() <= CUDA_STRAYS, f"{stray.sum()} of {len(q)} answers outside parity"
+        np.testing.assert_allclose(got, want, atol=atol, rtol=CUDA_STRAY_RTOL)
 
 
 def test_the_ceiling_clamps_answers_in_torch_and_in_the_graph_alike(assert_parity):
