@@ -147,6 +147,12 @@ class MaterialConfig:
     learned offset (if any) corrects from there."""
     relief_steps: int = 8
     """Linear-search steps of the relief stage (each one height lookup), refined by one secant step."""
+    base_energy: bool = False
+    """The base's coarse levels keep their finest texels' energy: each coarse texel's colours and F0 are scaled so
+    that its answer, summed over fixed random direction pairs, is the mean of the finest texels' it covers
+    (`training.model.base.keep_energy`; a prefiltered glossy lobe - mean slopes, LEAN widening, mean horizons -
+    loses up to a third of it on turtle). Only how the base maps are computed: the graph is the same. The estimate
+    uses `ENERGY_PAIRS` pairs per finest texel: too few for a near-mirror lobe (roughness 0.15). Needs a base."""
     half_textures: bool = False
     """Store the latent pyramid, the offset texture and the base's maps in float16 (half a map-informed file; the
     relief's heights stay float32: a height moves where the view ray lands). The model reads its textures rounded
@@ -180,6 +186,8 @@ class MaterialConfig:
             raise ValueError(f"head must be one of {HEADS}, got {self.head!r}")
         if self.base < 0 or self.base & (self.base - 1):
             raise ValueError(f"base must be 0 or a power of two, got {self.base}")
+        if self.base_energy and not self.base:
+            raise ValueError("base_energy needs a base (MaterialConfig.base)")
         if self.base and self.head != "relu":
             raise ValueError(f"a base works with the relu head only, got head {self.head!r}")
         if self.terminator not in TERMINATORS:

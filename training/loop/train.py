@@ -274,7 +274,7 @@ class Trainer:
         else:
             material = MapMaterial(material_config, self.map_config, features)
         if material_config.base:  # the answer starts as the base's (the decoder's last layer is zero)
-            material.set_maps(W.BASE, base_maps(self._geometry, material_config.base))
+            material.set_maps(W.BASE, base_maps(self._geometry, material_config.base, material_config.base_energy))
         else:
             init_output(material, self.data.rgb[self.train_idx[:: max(1, len(self.train_idx) // 4096)]])
         if material_config.relief:

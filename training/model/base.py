@@ -61,9 +61,10 @@ def base_resolution(geo: Microgeometry) -> int:
     return 1 << max(0, math.ceil(math.log2(side)))
 
 
-def base_maps(geo: Microgeometry, resolution: int) -> list[np.ndarray]:
+def base_maps(geo: Microgeometry, resolution: int, energy: bool = False) -> list[np.ndarray]:
     """The base's pyramid for `geo` with a finest level of `resolution` texels per side: one
-    (S, S, BASE_CHANNELS) float32 array per level, finest first (the table in the module docstring)."""
+    (S, S, BASE_CHANNELS) float32 array per level, finest first (the table in the module docstring); `energy`:
+    its coarse levels rescaled by `keep_energy` (`MaterialConfig.base_energy`)."""
     if geo.bsdf is not None:
         raise ValueError("a base needs the principled maps; this material has a homogeneous [bsdf]")
     colour = resize(np.broadcast_to(geo.base_color, geo.base_color.shape[:2] + (3,)), resolution).astype(np.float64)
@@ -83,6 +84,51 @@ def base_maps(geo: Microgeometry, resolution: int) -> list[np.ndarray]:
                                 resize(horizons, size)], axis=2)
         out.append(level.astype(np.float32))
     assert out[0].shape[2] == BASE_CHANNELS
+    return keep_energy(out) if energy else out
+
+
+ENERGY_PAIRS = 8
+"""Direction pairs per finest texel on which `keep_energy` compares a coarse texel with its finest texels."""
+ENERGY_MAX_ZENITH_DEG = 85.0
+"""Their largest zenith angle (uniform in solid angle up to it: the report's views and lights lie within)."""
+
+
+def energy_pairs(n: int, seed: int = 0) -> tuple[torch.Tensor, torch.Tensor]:
+    """`n` direction pairs (wi, wo), each (n, 2) float64, independent and uniform in solid angle up to
+    `ENERGY_MAX_ZENITH_DEG`."""
+    rng = np.random.default_rng(seed)
+    cos = 1.0 - (1.0 - math.cos(math.radians(ENERGY_MAX_ZENITH_DEG))) * rng.random((2, n))
+    phi = 2 * math.pi * rng.random((2, n))
+    r = np.sqrt(1.0 - cos * cos)
+    return tuple(torch.from_numpy(np.stack([r[k] * np.cos(phi[k]), r[k] * np.sin(phi[k])], 1)) for k in (0, 1))
+
+
+def keep_energy(levels: list[np.ndarray], pairs: int = ENERGY_PAIRS, seed: int = 0) -> list[np.ndarray]:
+    """The base pyramid `levels` (finest first) with each coarser texel's colour and F0 channels scaled by s =
+    sum of its finest texels' answers / sum of its own answers (luminance, the same `pairs` random direction pairs
+    per finest texel, uniform in solid angle up to `ENERGY_MAX_ZENITH_DEG`, no terminator softening), so that its
+    answer keeps their mean energy. Scaling F0 scales the specular term but for Schlick's grazing part."""
+    res = levels[0].shape[0]
+    wi, wo = energy_pairs(res * res * pairs, seed)
+    luminance = torch.tensor([0.2126, 0.7152, 0.0722], dtype=torch.float64)
+
+    def answers(level: np.ndarray) -> torch.Tensor:
+        """(res, res) sums of each finest texel's pairs, answered by `level`'s texel that covers it."""
+        f = res // level.shape[0]
+        cover = np.repeat(np.repeat(level.astype(np.float64), f, 0), f, 1).reshape(res * res, -1)
+        rows = torch.from_numpy(cover).repeat_interleave(pairs, 0)
+        return (base_answer(rows, wi, wo, "none") @ luminance).reshape(res, res, pairs).sum(2)
+
+    fine = answers(levels[0]).numpy()
+    out = [levels[0]]
+    for level in levels[1:]:
+        size, f = level.shape[0], res // level.shape[0]
+        want = fine.reshape(size, f, size, f).sum((1, 3))
+        have = answers(level).numpy().reshape(size, f, size, f).sum((1, 3))
+        scale = np.where(have > 0, want / np.maximum(have, 1e-30), 1.0)
+        scaled = level.astype(np.float64)
+        scaled[..., :6] *= scale[..., None]
+        out.append(scaled.astype(np.float32))
     return out
 
 

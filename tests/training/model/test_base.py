@@ -13,7 +13,8 @@ import torch
 from neumip.core import contract as C
 from neumip.core import weights as W
 from neumip.core.config import BASE_CHANNELS, BASE_HORIZONS, MaterialConfig
-from neumip.training.model.base import base_answer, base_maps, base_resolution, frame_inputs, light_visibility, visibility
+from neumip.training.model.base import (base_answer, base_maps, base_resolution, energy_pairs, frame_inputs,
+                                        keep_energy, light_visibility, visibility)
 from neumip.training.model.material import NeuMIPMaterial
 from .geometry import geometry
 
@@ -39,6 +40,39 @@ def test_bumps_widen_the_coarse_lobe_and_cast_horizons():
     levels = base_maps(geometry(height), 16)
     assert levels[-1][0, 0, 8] > levels[0][..., 8].max() + 0.1  # the 1 x 1 level: a wider lobe
     assert levels[0][..., 9:].max() > 0.3 and base_resolution(geometry(height)) == 16
+
+
+def _energy(levels: list[np.ndarray], level: int, pairs: int = 64) -> np.ndarray:
+    """Per texel of `level`: its summed answer, over the sum of its finest texels' (the same random pairs)."""
+    res, size = levels[0].shape[0], levels[level].shape[0]
+    wi, wo = energy_pairs(res * res * pairs, seed=1)  # other pairs than keep_energy's, drawn alike
+    def sums(lv):
+        f = res // lv.shape[0]
+        rows = np.repeat(np.repeat(lv.astype(np.float64), f, 0), f, 1).reshape(res * res, -1)
+        out = base_answer(torch.from_numpy(rows).repeat_interleave(pairs, 0), wi, wo, "none").sum(1)
+        return out.reshape(size, res // size, size, res // size, pairs).sum((1, 3, 4)).numpy()
+    return sums(levels[level]) / sums(levels[0])
+
+
+def test_keeping_energy_brings_a_glossy_bumpy_coarse_level_to_its_texels_mean_and_leaves_a_flat_one():
+    """`MaterialConfig.base_energy`: glossy bumps change energy when prefiltered (mean slopes, LEAN widening); the
+    rescaled coarse levels answer about as their finest texels do on average; level 0 and a flat material stay."""
+    x = np.arange(32) / 32
+    bumps = 0.03 * np.sin(2 * np.pi * 4 * x)[None, :] * np.cos(2 * np.pi * 4 * x)[:, None]
+    geo = geometry(bumps, roughness=0.3)  # at 0.15 (alpha^2 5e-4) 8 pairs a texel are too few to tell
+    plain, kept = base_maps(geo, 32), base_maps(geo, 32, energy=True)
+    np.testing.assert_array_equal(kept[0], plain[0])
+    for level in (3, 4, 5):  # 512 to 8192 of its pairs a texel
+        np.testing.assert_array_equal(kept[level][..., 6:], plain[level][..., 6:])  # slopes, lobe, horizons stay
+        before, after = _energy(plain, level), _energy(kept, level)
+        assert abs(before.mean() - 1) > 0.03, before.mean()  # prefiltering moved its energy
+        assert abs(after.mean() - 1) < 0.5 * abs(before.mean() - 1), (before.mean(), after.mean())
+    flat = geometry(np.zeros((8, 8)))
+    for a, b in zip(base_maps(flat, 8), base_maps(flat, 8, energy=True)):
+        np.testing.assert_allclose(b, a, rtol=1e-6)
+    assert len(keep_energy(plain[:1])) == 1
+    with pytest.raises(ValueError, match="base_energy needs a base"):
+        MaterialConfig(resolution=16, base_energy=True)
 
 
 def test_a_homogeneous_bsdf_material_has_no_base():
