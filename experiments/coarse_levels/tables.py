@@ -3,6 +3,7 @@ map-informed file, the lever's runs, the paper's model from the committed report
 
     python experiments/coarse_levels/tables.py MATERIAL REPORT_S0 [REPORT_S1]   # run.sh's report folders
     LABEL=lf0.6 python experiments/coarse_levels/tables.py ...                  # another lever's (level_share)
+    LABEL=control,energy python experiments/coarse_levels/tables.py MATERIAL REPORT_A REPORT_B   # a name each
 """
 
 from __future__ import annotations
@@ -18,11 +19,17 @@ def views(path: str, material: str) -> dict:
             for v in d if v.startswith("level")}
 
 
+def _labels(n: int) -> list[str]:
+    """The lever runs' column heads: LABEL (default res16) with the run's number, or LABEL's comma-separated names."""
+    names = os.environ.get("LABEL", "res16").split(",")
+    return names if len(names) == n else [f"{names[0]} s{k}" for k in range(n)]
+
+
 def main() -> int:
     material, runs = sys.argv[1], sys.argv[2:]
     lever = [views(f"{r}/results.json", material) for r in runs]
     paper = views("docs/report/results.json", material)
-    heads = ["paper N", "shipped"] + [f"{os.environ.get('LABEL', 'res16')} s{k}" for k in range(len(lever))] + ["C", "Cmip"]
+    heads = ["paper N", "shipped"] + _labels(len(lever)) + ["C", "Cmip"]
     print(f"{material}: image MSE x1e-3 (FLIP) at 64 spp; 'shipped' and the lever's from the same report run")
     print(f"{'view':14s} " + " ".join(f"{h:>15s}" for h in heads))
     for v in lever[0]:
