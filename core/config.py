@@ -113,6 +113,12 @@ class MaterialConfig:
     """Use the neural offset module (learned parallax)."""
     offset_channels: int = 7
     """Channels of the neural offset texture (single level at the finest resolution)."""
+    offset_mip: bool = False
+    """Read the neural offset texture at the query's footprint, as the latents are read: trilinear on its mip pyramid
+    (each coarser level the mean of the 2 x 2 texels under it, derived from the learned finest level, not learned
+    itself). A coarse footprint then reads a prefiltered offset (an average shift, not one texel's), and a model
+    trimmed for far footprints keeps only the offset's coarse levels. False: the paper's single level, read
+    bilinearly at the finest resolution by every query. Needs the offset."""
     offset_scale: float = 0.1
     """Ray depth r = offset_scale * MLP output (author code: 0.1)."""
     offset_min_cos: float = 0.6
@@ -186,6 +192,8 @@ class MaterialConfig:
             raise ValueError(f"head must be one of {HEADS}, got {self.head!r}")
         if self.base < 0 or self.base & (self.base - 1):
             raise ValueError(f"base must be 0 or a power of two, got {self.base}")
+        if self.offset_mip and not self.offset:
+            raise ValueError("offset_mip reads the neural offset's pyramid: it needs the offset (MaterialConfig.offset)")
         if self.base_energy and not self.base:
             raise ValueError("base_energy needs a base (MaterialConfig.base)")
         if self.base and self.head != "relu":
@@ -243,15 +251,20 @@ class MaterialConfig:
         return MaterialConfig(resolution=self.relief, channels=1, offset=False,
                               lod_bias=self.lod_bias) if self.relief else None
 
+    def offset_pyramid(self) -> "MaterialConfig | None":
+        """The neural offset texture's mip pyramid as a config of its own (`offset_mip`), or None without it."""
+        return MaterialConfig(resolution=self.resolution, channels=self.offset_channels, offset=False,
+                              lod_bias=self.lod_bias) if self.offset and self.offset_mip else None
+
     def pyramid_finest_level(self, pyramid: "MaterialConfig", finest_level: int) -> int:
-        """The finest level of `pyramid` (`base_pyramid`, `relief_pyramid`, or this config's own) read by a query
+        """The finest level of `pyramid` (`base_pyramid`, `relief_pyramid`, `offset_pyramid`, or this config's own) read by a query
         whose latent level is at least K = ``finest_level`` (what a model trimmed to K keeps of it):
         `same_footprint_level`."""
         return same_footprint_level(self.levels, pyramid.levels, finest_level)
 
     def to_json(self) -> str:
-        """The fields as JSON; each decoder input's switch, `base`, the relief's, `lod_bias` and `ceiling` only when
-        on, and `terminator` only when not "all", so that models made before each existed read as they did."""
+        """The fields as JSON; each decoder input's switch, `base`, the relief's, `lod_bias`, `offset_mip` and `ceiling`
+        only when on, and `terminator` only when not "all", so that models made before each existed read as they did."""
         fields_ = asdict(self)
         for row in DECODER_INPUTS:
             if not getattr(self, row.switch):
@@ -266,6 +279,8 @@ class MaterialConfig:
             del fields_["ceiling"]
         if not self.lod_bias:
             del fields_["lod_bias"]
+        if not self.offset_mip:
+            del fields_["offset_mip"]
         return json.dumps(fields_, sort_keys=True)
 
     @classmethod

@@ -4,7 +4,7 @@ Two views of the same numbers, both from a `MaterialConfig`:
 
 - `weight_shapes`: the weights as the model holds them, and as `training.export.build_onnx` takes
   them and `training.export.read.read_model` gives them back: the textures (``pyramid``, the flat
-  atlas of every level, finest first; ``offset_texture``, one level; with `MaterialConfig.base`,
+  atlas of every level, finest first; ``offset_texture``, one level, or with `MaterialConfig.offset_mip` its mip pyramid's atlas; with `MaterialConfig.base`,
   ``base_maps``, the base maps' atlas, finest first; with `MaterialConfig.relief`, ``relief_heights``) and each MLP's layers
   (``{mlp}.{i}.weight`` (out, in), ``{mlp}.{i}.bias`` (out,)). An MLP's first layer reads the
   texture features, then the query columns `MLP_QUERY_COLUMNS` names, in that order.
@@ -33,7 +33,8 @@ RELIEF = "relief_heights"
 """The relief's height pyramid (`MaterialConfig.relief`): rows of every level, finest first, one channel
 (height in tile units, the top 0)."""
 OFFSET_TEXTURE = "offset_texture"
-"""The neural offset texture: one level at the finest resolution."""
+"""The neural offset texture: one level at the finest resolution, or with `MaterialConfig.offset_mip` the rows of
+every level of its mip pyramid, finest first (the coarser levels derived from the finest, `pyramid.mip_levels`)."""
 DECODER = "decoder"
 """The MLP that turns texture features and directions into the answer."""
 OFFSET_MLP = "offset_mlp"
@@ -99,10 +100,14 @@ def textures(config: MaterialConfig) -> list[str]:
 
 
 def _maps_shapes(config: MaterialConfig, finest_level: int = 0) -> dict[str, tuple[int, int]]:
-    """The textures made from the material's maps: the base's, the relief's; those of a model trimmed to latent
-    level K = ``finest_level`` hold their levels of the same footprint on (`MaterialConfig.pyramid_finest_level`)."""
+    """The textures other than the latents: the offset texture, the base's maps, the relief's heights; a pyramid's
+    (the offset's with `MaterialConfig.offset_mip`) of a model trimmed to latent level K = ``finest_level`` holds
+    its levels of the same footprint on (`MaterialConfig.pyramid_finest_level`)."""
     shapes = {}
-    for name, pyramid in ((BASE, config.base_pyramid()), (RELIEF, config.relief_pyramid())):
+    if config.offset and not config.offset_mip:
+        shapes[OFFSET_TEXTURE] = (config.resolution**2, config.offset_channels)
+    for name, pyramid in ((OFFSET_TEXTURE, config.offset_pyramid()), (BASE, config.base_pyramid()),
+                          (RELIEF, config.relief_pyramid())):
         if pyramid is not None:
             level = config.pyramid_finest_level(pyramid, finest_level)
             shapes[name] = (pyramid.atlas_rows() - pyramid.level_starts()[level], pyramid.channels)
@@ -118,8 +123,6 @@ def weight_shapes(config: MaterialConfig) -> dict[str, tuple[int, ...]]:
     """Every weight of the material -> its shape, as the model holds it (textures first, then each
     MLP's layers in order)."""
     shapes: dict[str, tuple[int, ...]] = {PYRAMID: (config.atlas_rows(), config.channels)}
-    if config.offset:
-        shapes[OFFSET_TEXTURE] = (config.resolution**2, config.offset_channels)
     shapes.update(_maps_shapes(config))
     for mlp, (inputs, answers) in mlps(config).items():
         widths = _widths(config, inputs, answers)
@@ -136,8 +139,6 @@ def initializer_shapes(config: MaterialConfig, finest_level: int = 0) -> dict[st
     starts = config.level_starts()
     rows = config.atlas_rows() - starts[finest_level]
     shapes: dict[str, tuple[int, ...]] = {PYRAMID: (rows, config.channels)}
-    if config.offset:
-        shapes[OFFSET_TEXTURE] = (config.resolution**2, config.offset_channels)
     shapes.update(_maps_shapes(config, finest_level))
     for mlp, (inputs, answers) in mlps(config).items():
         widths = _widths(config, inputs, DEPTH_COPIES if mlp == OFFSET_MLP else answers)

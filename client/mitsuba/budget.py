@@ -101,6 +101,8 @@ class ModelFacts:
     """Channels of its neural offset texture (one level at `resolution`), 0: no offset."""
     half_textures: bool = False
     """Its latents, offset texture and base maps are stored in float16 (`MaterialConfig.half_textures`)."""
+    offset_mip: bool = False
+    """Its offset is read as a mip pyramid at the footprint (`MaterialConfig.offset_mip`), so a trim cuts it too."""
 
     @property
     def value_bytes(self) -> int:
@@ -109,8 +111,11 @@ class ModelFacts:
 
     def pyramids(self) -> dict[str, tuple[int, int]]:
         """Each pyramid the model reads, by its initializer's name -> (resolution, bytes a texel): the latents, the
-        base maps', the relief's heights (float32). `neumip trim` cuts them all."""
+        offset's mip pyramid (`offset_mip`), the base maps', the relief's heights (float32). `neumip trim` cuts them
+        all."""
         out = {W.PYRAMID: (self.resolution, self.value_bytes * self.channels)}
+        if self.offset_channels and self.offset_mip:
+            out[W.OFFSET_TEXTURE] = (self.resolution, self.value_bytes * self.offset_channels)
         if self.base_resolution:
             out[W.BASE] = (self.base_resolution, self.value_bytes * BASE_CHANNELS)
         if self.relief_resolution:
@@ -157,7 +162,7 @@ class MaterialBudget:
     own resolutions (the same footprint)."""
     offset_bytes: int | None = None
     """Bytes a trim keeps whole for the neural offset (its texture and quad index table: every query reads it at
-    the finest resolution), 0 without one."""
+    the finest resolution), 0 without one or with its mip pyramid (`MaterialConfig.offset_mip`)."""
 
     def to_dict(self) -> dict:
         return asdict(self)
@@ -217,7 +222,7 @@ def model_facts(path: Path) -> ModelFacts | None:
         return None
     return ModelFacts(config.resolution, config.channels, file.size, file.finest_level,
                       max(config.base, config.relief), config.lod_bias, config.base, config.relief,
-                      config.offset_channels if config.offset else 0, config.half_textures)
+                      config.offset_channels if config.offset else 0, config.half_textures, config.offset_mip)
 
 
 def _level_sizes(resolution: int) -> list[int]:
@@ -250,9 +255,12 @@ def trimmed_size(facts: ModelFacts, finest_level: int) -> int:
 
 
 def offset_size(facts: ModelFacts) -> int:
-    """Bytes of the neural offset texture (and its quad table's vectors), which `neumip trim` keeps whole."""
+    """Bytes of the paper's single-level neural offset texture (and its quad table's vectors), which `neumip trim`
+    keeps whole; 0 without one, or with its mip pyramid (`ModelFacts.offset_mip`: trimmed as the others)."""
+    if not facts.offset_channels or facts.offset_mip:
+        return 0
     r = facts.resolution
-    return facts.value_bytes * facts.offset_channels * r * r + 8 * (r + 2) if facts.offset_channels else 0
+    return facts.value_bytes * facts.offset_channels * r * r + 8 * (r + 2)
 
 
 @dataclass

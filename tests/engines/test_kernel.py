@@ -89,6 +89,8 @@ def layouts(tmp_path_factory):
         "visibility-input": MaterialConfig(resolution=16, base=32, relief=32, terminator="none", local_frame=True,
                                            visibility_input=True),
         "half-textures": MaterialConfig(resolution=16, base=32, relief=32, lod_bias=1, half_textures=True),
+        "offset-mip": MaterialConfig(resolution=16, base=32, relief=32, lod_bias=1, half_textures=True,
+                                     offset_mip=True),
     }
     for seed, (name, cfg) in enumerate(configs.items()):
         save_onnx(build_onnx(cfg, random_weights(cfg, seed=seed)), folder / f"{name}.onnx")

@@ -5,11 +5,11 @@ The graph takes ``queries`` (N, 7) float32 and returns ``rgb`` (N, 3) float32, o
 light), both dimensions dynamic, and computes what `material.NeuMIPMaterial.forward` computes, in
 three stages read top to bottom in `material_graph` (after the relief's march with `MaterialConfig.relief`,
 and with the classical base's BSDF per light after the decoder with `MaterialConfig.base`, `export/base.py`): the neural offset (a bilinear lookup of the
-offset texture, the offset MLP, the parallax shift), a trilinear lookup of the two nearest pyramid
+offset texture, or a trilinear one of its mip pyramid with `MaterialConfig.offset_mip`, the offset MLP, the parallax shift), a trilinear lookup of the two nearest pyramid
 levels, then the decoder MLP. The lookups work on one query per row; the MLPs on one query per
 column (`GraphWriter.product`: the first layers read the weighted texels and the queries transposed,
 one Transpose after each MLP). The file stores the textures once, in the layout `weights_from_state`
-gives (flat atlas "pyramid" (T, C), "offset_texture" (R * R, C)); a constant subgraph that ONNX
+gives (flat atlas "pyramid" (T, C), "offset_texture" (R * R, C), or its mip atlas); a constant subgraph that ONNX
 Runtime folds at session load expands them into wrap-padded quad tables (`lookup.py`), so
 each query reads one table row per level footprint with float row arithmetic and no modulo. The
 model config, contract version and a description travel in the ONNX metadata.
@@ -44,7 +44,7 @@ from neumip.core.config import RELIEF_DIVISION_FLOOR, RELIEF_MIN_COS, MaterialCo
 from neumip.training.export import base as B
 from neumip.training.export.lookup import (footprint_texels, pyramid_footprint, pyramid_texels, stored_texture,
                                           texture_const, texture_texels)
-from neumip.training.export.lod import RELIEF_PREFIX, pyramids
+from neumip.training.export.lod import OFFSET_PREFIX, RELIEF_PREFIX, pyramids
 from neumip.training.export.onnx_graph import GraphWriter
 
 log = logging.getLogger(__name__)
@@ -65,7 +65,12 @@ def weights_from_state(state: dict, config: MaterialConfig) -> dict[str, np.ndar
         for i in range(config.layers):
             weights[W.weight(prefix, i)] = arr[f"{prefix}.{2 * i}.weight"]
             weights[W.bias(prefix, i)] = arr[f"{prefix}.{2 * i}.bias"]
-    if config.offset:
+    if config.offset_mip:  # its pyramid, derived from the finest level as the model reads it
+        from neumip.training.model.pyramid import as_stored, mip_atlas  # torch: only this function reads a torch state
+
+        texture = as_stored(state["offset_texture"].detach().cpu().float(), config)
+        weights[W.OFFSET_TEXTURE] = mip_atlas(texture).numpy()
+    elif config.offset:
         weights[W.OFFSET_TEXTURE] = arr["offset_texture"].reshape(-1, config.offset_channels)
     for name in (W.BASE, W.RELIEF):
         if name in arr:
@@ -278,9 +283,15 @@ def material_graph(g: GraphWriter, config: MaterialConfig, weights: dict,
     # --- neural offset: uv += r * wo_xy / max(wo_z, min_cos) -----------------------------------
     if config.offset:
         texture = texture_const(g, stored_texture(weights[W.OFFSET_TEXTURE], config), W.OFFSET_TEXTURE, config)
-        texels, tap_w = texture_texels(g, texture, config.resolution, config.offset_channels, g.wrap(uv))
+        if config.offset_mip:  # trilinear on its pyramid, at the query's footprint
+            texels, tap_w = pyramid_texels(g, config.offset_pyramid(), texture, config.offset_channels, g.wrap(uv),
+                                           sigma, finest[W.OFFSET_TEXTURE], OFFSET_PREFIX)
+        else:  # bilinear at the finest resolution
+            texels, tap_w = texture_texels(g, texture, config.resolution, config.offset_channels, g.wrap(uv),
+                                           OFFSET_PREFIX)
         mlp = _depth_weights(weights, config)
-        hidden = _first_layer(g, q, texels, tap_w, 4, [C.WO_X, C.WO_Y], mlp, W.OFFSET_MLP, 2)
+        hidden = _first_layer(g, q, texels, tap_w, 8 if config.offset_mip else 4, [C.WO_X, C.WO_Y], mlp,
+                              W.OFFSET_MLP, 2)
         if config.layers > 1:
             hidden = g.op("Relu", hidden)
         depth = g.op("Transpose", g.mlp(hidden, mlp, W.OFFSET_MLP, config.layers, first=1), perm=[1, 0])  # (N, 2)

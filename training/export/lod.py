@@ -47,6 +47,9 @@ RELIEF_PREFIX = "relief."
 """Prefix of the relief's height pyramid's level-of-detail constants (``relief.lod.*``)."""
 BASE_PREFIX = "base."
 """Prefix of the base maps' pyramid's level-of-detail constants (``base.lod.*``)."""
+OFFSET_PREFIX = "offset."
+"""Prefix of the neural offset texture's constants (its quad vectors ``offset.quad.*``; with
+`MaterialConfig.offset_mip` its pyramid's ``offset.lod.*``)."""
 
 
 @dataclass(frozen=True)
@@ -54,7 +57,7 @@ class Pyramid:
     """One pyramid the graph reads with a level of detail of its own (`level_of_detail`)."""
 
     texture: str
-    """Its initializer: the atlas, levels flat, finest first (`weights.PYRAMID`, `BASE`, `RELIEF`)."""
+    """Its initializer: the atlas, levels flat, finest first (`weights.PYRAMID`, `OFFSET_TEXTURE`, `BASE`, `RELIEF`)."""
     config: MaterialConfig
     """Its levels, as a config (`MaterialConfig.base_pyramid`, `relief_pyramid`; the model's own for the latents)."""
     prefix: str
@@ -63,8 +66,11 @@ class Pyramid:
 
 def pyramids(config: MaterialConfig) -> list[Pyramid]:
     """Every pyramid a graph of `config` reads, in the order of their level-of-detail Clips: the relief's heights
-    (read before the latents), the latents, the base maps (read after)."""
+    and the offset's mip pyramid (`MaterialConfig.offset_mip`; read before the latents), the latents, the base
+    maps (read after)."""
     out = [Pyramid(W.RELIEF, config.relief_pyramid(), RELIEF_PREFIX)] if config.relief else []
+    if config.offset_pyramid() is not None:
+        out.append(Pyramid(W.OFFSET_TEXTURE, config.offset_pyramid(), OFFSET_PREFIX))
     out.append(Pyramid(W.PYRAMID, config, ""))
     return out + ([Pyramid(W.BASE, config.base_pyramid(), BASE_PREFIX)] if config.base else [])
 

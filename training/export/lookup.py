@@ -265,7 +265,7 @@ def pyramid_texels(g: GraphWriter, config: MaterialConfig, atlas: str, width: in
 
 
 def texture_texels(g: GraphWriter, texture: str, size: int, width: int, uvw: str,
-                   prefix: str = "offset.") -> tuple[str, str]:
+                   prefix: str) -> tuple[str, str]:
     """Bilinear footprint of one texture, (S * S, width) flat: uvw (N, 2) in [0, 1] -> texels
     (N, 4 width), weights (N, 4); its index table's vectors are named ``{prefix}quad.*`` (`quad_vectors`)."""
     tables = quad_atlas([size])

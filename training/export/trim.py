@@ -3,7 +3,7 @@
 Shipped models are ONNX files only, so trimming edits the exported graph in place rather than
 re-exporting: it swaps constants and changes no op. Every pyramid the model reads is cut at the level of
 the same footprint (`lod.pyramids`: the latents, the base maps' ``base_maps``, the relief's
-``relief_heights``; each one's level of detail is relative to its own resolution, so a pyramid finer than
+``relief_heights``, the offset's mip pyramid; each one's level of detail is relative to its own resolution, so a pyramid finer than
 the latents keeps log2 of the ratio levels more of its own, `MaterialConfig.pyramid_finest_level`):
 
 - each atlas keeps the texels of its levels K_p..L_p;
@@ -17,8 +17,10 @@ the latents keeps log2 of the ratio levels more of its own, `MaterialConfig.pyra
 So every query whose level ``clamp(log2(sigma R) + lod_bias, 0, L)`` is >= K gathers the same texels with
 the same weights through the same ops in every pyramid: its answer is bit-identical to the untrimmed
 model's. A finer query reads level K_p alone (as a query finer than level 0 reads level 0 in an untrimmed
-model). The neural offset texture is kept whole: it is read bilinearly at the finest resolution by every
-query, whatever its footprint, so any reduction of it changes every answer of an offset model.
+model). The neural offset is cut as a pyramid where the model reads its mip pyramid (`MaterialConfig.offset_mip`,
+``offset_texture``, ``offset.lod.*``, ``offset.quad.*``); the paper's single-level offset texture is kept whole:
+every query reads it bilinearly at the finest resolution, whatever its footprint, so any reduction of it changes
+every answer of such a model.
 
 Each constant found is first checked against what the writer (`lookup`, `lod`) writes
 for the model's config and current trim, so a graph of another layout is refused, never mis-edited.

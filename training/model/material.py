@@ -14,7 +14,7 @@ from neumip.core.config import MaterialConfig
 from neumip.training.model.base import base_answer, corrected, frame_inputs, half_direction, lift, light_visibility
 from neumip.training.model.maps import MapConfig, level_feature
 from neumip.training.model.offset import parallax_shift
-from neumip.training.model.pyramid import as_stored, pyramid_lookup, texture_lookup
+from neumip.training.model.pyramid import as_stored, mip_atlas, pyramid_lookup, texture_lookup
 from neumip.training.model.relief import relief_shift
 
 
@@ -116,7 +116,9 @@ class NeuMIPMaterial(nn.Module):
             du, dv = relief_shift(self.relief_heights, self.config, u, v, sigma, wo)
             u, v = u + du, v + dv
         if self.config.offset:
-            feat = texture_lookup(as_stored(otex, self.config), u, v)
+            feat = (pyramid_lookup(as_stored(mip_atlas(as_stored(otex, self.config)), self.config),
+                                   self.config.offset_pyramid(), u, v, sigma)
+                    if self.config.offset_mip else texture_lookup(as_stored(otex, self.config), u, v))
             depth = self.config.offset_scale * self.offset_mlp(torch.cat([feat, wo], dim=1))[:, 0]
             du, dv = parallax_shift(depth, wo[:, 0], wo[:, 1], self.config.offset_min_cos)
             u, v = u + du, v + dv

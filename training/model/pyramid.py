@@ -101,6 +101,22 @@ def as_stored(texture: torch.Tensor, config: MaterialConfig) -> torch.Tensor:
     return texture + (texture.half().float() - texture).detach()
 
 
+def mip_levels(texture: torch.Tensor) -> list[torch.Tensor]:
+    """(S, S, C) texture -> its mip pyramid, finest (the texture itself) first down to 1 x 1: each coarser texel is
+    ((a + b) + (c + d)) / 4 of the 2 x 2 under it (rows y, y + 1: a, b; c, d). That order is part of the model: the
+    export derives the same levels in float32 from the same order, so every engine reads the same bits."""
+    levels = [texture]
+    while levels[-1].shape[0] > 1:
+        t = levels[-1]
+        levels.append(((t[0::2, 0::2] + t[0::2, 1::2]) + (t[1::2, 0::2] + t[1::2, 1::2])) * 0.25)
+    return levels
+
+
+def mip_atlas(texture: torch.Tensor) -> torch.Tensor:
+    """(S, S, C) texture -> (T, C) its `mip_levels` flat, finest first (a pyramid atlas)."""
+    return torch.cat([level.reshape(-1, texture.shape[-1]) for level in mip_levels(texture)])
+
+
 def pyramid_lookup(
     atlas: torch.Tensor, config: MaterialConfig, u: torch.Tensor, v: torch.Tensor, sigma: torch.Tensor
 ) -> torch.Tensor:

@@ -99,7 +99,8 @@ def test_cli_closeup_is_too_coarse_and_far_view_trims(tmp_path, capsys):
         assert levels["64"][name]["finest_level"] == max(0, m["finest_level"] - 3)
 
 
-@pytest.mark.parametrize("maps", [(0, 0), (32, 32), (16, 16), (8, 0)], ids=["latents", "finer", "as-fine", "coarser"])
+@pytest.mark.parametrize("maps", [(0, 0, False), (32, 32, False), (16, 16, False), (8, 0, False), (16, 16, True)],
+                         ids=["latents", "finer", "as-fine", "coarser", "offset-mip"])
 def test_trimmed_bytes_count_every_pyramid(tmp_path, maps):
     """The budget's estimate of a trimmed model (every pyramid cut at the same footprint, the tables shared by
     pyramids of one resolution) is the size `neumip trim` writes, to a few hundred bytes of protobuf framing."""
@@ -107,11 +108,14 @@ def test_trimmed_bytes_count_every_pyramid(tmp_path, maps):
     from neumip.training.export.lod import pyramids
     from neumip.training.export.trim import trim_model
 
-    config = MaterialConfig(resolution=16, base=maps[0], relief=maps[1], relief_steps=2)
+    config = MaterialConfig(resolution=16, base=maps[0], relief=maps[1], relief_steps=2, offset_mip=maps[2])
     model = build_onnx(config, random_weights(config))
     facts = model_facts(save_onnx(model, tmp_path / "m.onnx"))
     offset = next(i for i in model.graph.initializer if i.name == "offset_texture")
-    assert 0 < offset.ByteSize() < offset_size(facts) < 2 * offset.ByteSize()  # the texture and its table
+    if config.offset_mip:  # a pyramid: trimmed as the others, nothing kept whole
+        assert offset_size(facts) == 0
+    else:
+        assert 0 < offset.ByteSize() < offset_size(facts) < 2 * offset.ByteSize()  # the texture and its table
     for k in (1, 2, 4):
         trimmed = trim_model(model, k)
         assert abs(trimmed_size(facts, k) - trimmed.ByteSize()) < 400

@@ -37,6 +37,9 @@ PARITY_CASES = {
     "visibility-input-alone": dict(base=64, visibility_input=True),
     "lod-bias": dict(base=64, relief=64, local_frame=True, terminator="none", lod_bias=2),
     "half-textures": dict(base=64, relief=64, local_frame=True, terminator="none", lod_bias=1, half_textures=True),
+    "offset-mip": dict(offset_mip=True),
+    "offset-mip-maps": dict(base=64, relief=64, local_frame=True, terminator="none", lod_bias=1, half_textures=True,
+                            offset_mip=True),
 }
 """Models whose torch and ONNX answers must agree: `MaterialConfig` fields over a 32^2 material with an offset."""
 

@@ -1,5 +1,5 @@
 """`neumip trim`: answers above the cut are bit-identical (level boundaries and the offset included) in every
-pyramid (the latents, the base maps, the relief's heights, at resolutions finer, equal or coarser than the
+pyramid (the latents, the base maps, the relief's heights, the offset's with `offset_mip`, at resolutions finer, equal or coarser than the
 latents'), finer queries read the finest level kept, what was cut travels in the metadata, and no quad table is
 stored (the graph computes each from a few kilobytes)."""
 
@@ -48,8 +48,10 @@ def session(model: onnx.ModelProto, path):
     return load_material(path).run
 
 
-CONFIGS = {  # (offset, base, relief, lod_bias): maps finer than, as fine as and coarser than the latents
+CONFIGS = {  # (offset, base, relief, lod_bias[, offset_mip]): maps finer than, as fine as and coarser than the latents
     "offset": (True, 0, 0, 0),
+    "offset-mip": (True, 0, 0, 0, True),
+    "offset-mip-maps": (True, RES, RES, 1, True),
     "no-offset": (False, 0, 0, 0),
     "base": (True, 2 * RES, 0, 0),
     "relief-base": (True, 2 * RES, 2 * RES, 0),
@@ -58,9 +60,9 @@ CONFIGS = {  # (offset, base, relief, lod_bias): maps finer than, as fine as and
 }
 
 
-def make_config(offset: bool, base: int, relief: int, lod_bias: int) -> MaterialConfig:
+def make_config(offset: bool, base: int, relief: int, lod_bias: int, offset_mip: bool = False) -> MaterialConfig:
     return MaterialConfig(resolution=RES, offset=offset, base=base, relief=relief, relief_steps=4, lod_bias=lod_bias,
-                          local_frame=bool(base), visibility_input=bool(base))
+                          local_frame=bool(base), visibility_input=bool(base), offset_mip=offset_mip)
 
 
 @pytest.fixture(scope="module", params=list(CONFIGS.values()), ids=list(CONFIGS))

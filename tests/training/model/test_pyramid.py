@@ -9,7 +9,8 @@ import torch
 from neumip.core import contract as C
 from neumip.core.config import MaterialConfig
 from neumip.training.model.offset import parallax_shift
-from neumip.training.model.pyramid import level_of_detail, pyramid_lookup, texture_lookup
+from neumip.training.model.material import NeuMIPMaterial
+from neumip.training.model.pyramid import level_of_detail, mip_atlas, mip_levels, pyramid_lookup, texture_lookup
 
 
 def test_level_of_detail_matches_contract():
@@ -84,3 +85,43 @@ def test_lod_bias_raises_every_footprints_level():
     for bad in (-1, 9, 1.5):
         with pytest.raises(ValueError, match="lod_bias"):
             MaterialConfig(lod_bias=bad)
+
+
+def test_mip_levels_are_the_means_of_their_two_by_two_in_a_fixed_order():
+    """Each coarser level of `mip_levels` is ((a + b) + (c + d)) / 4 of the texels under it: the mean, in the one
+    float32 order the export derives too; `mip_atlas` stacks them finest first as a pyramid's atlas."""
+    texture = torch.randn(8, 8, 3) * 10
+    levels = mip_levels(texture)
+    assert [lvl.shape[0] for lvl in levels] == [8, 4, 2, 1] and levels[0] is texture
+    t = texture.numpy()
+    want = ((t[0::2, 0::2] + t[0::2, 1::2]) + (t[1::2, 0::2] + t[1::2, 1::2])) * np.float32(0.25)
+    np.testing.assert_array_equal(levels[1].numpy(), want)
+    torch.testing.assert_close(levels[-1][0, 0], texture.mean((0, 1)), rtol=1e-5, atol=1e-5)
+    atlas = mip_atlas(texture)
+    cfg = MaterialConfig(resolution=8, channels=3)
+    assert atlas.shape == (cfg.atlas_rows(), 3)
+    np.testing.assert_array_equal(atlas[cfg.level_starts()[2]:cfg.level_starts()[3]].numpy(), levels[2].reshape(-1, 3).numpy())
+
+
+def test_offset_mip_reads_the_offset_at_the_footprint():
+    """With `MaterialConfig.offset_mip` a footprint of level 1 reads the offset texture's 2 x 2 means: a pattern of
+    zero mean in every 2 x 2 added to the texture leaves its answers as they were. The paper's offset reads the
+    finest level at every footprint, so the same pattern moves them."""
+    checker = torch.tensor([[1.0, -1.0], [-1.0, 1.0]]).repeat(4, 4)[:, :, None] * 8.0  # (8, 8, 1)
+    q = torch.zeros(256, 7)
+    q[:, C.U], q[:, C.V] = torch.rand(256), torch.rand(256)
+    q[:, C.SIGMA] = 2.0 / 8  # level 1 of an 8^2 pyramid
+    q[:, C.WO_X] = 0.5
+    moved = {}
+    for mip in (False, True):
+        torch.manual_seed(0)
+        material = NeuMIPMaterial(MaterialConfig(resolution=8, channels=2, offset_mip=mip), init_std=1.0)
+        with torch.no_grad():
+            material.offset_mlp[-1].bias.fill_(0.5)
+            before = material(q)
+            material.offset_texture.add_(checker)
+            moved[mip] = (material(q) - before).abs().max().item()
+    assert moved[True] < 1e-6 < 1e-3 < moved[False]
+    assert MaterialConfig(offset_mip=True).offset_pyramid().channels == MaterialConfig().offset_channels
+    with pytest.raises(ValueError, match="offset_mip .* needs the offset"):
+        MaterialConfig(offset=False, offset_mip=True)
