@@ -171,11 +171,14 @@ class Recipe:
 
 RECIPES = {
     "paper": Recipe(material={"half_textures": True}),
-    "maps": Recipe(material={"lod_bias": 1, "local_frame": True, "terminator": "none", "half_textures": True},
+    "maps": Recipe(material={"lod_bias": 1, "local_frame": True, "terminator": "none", "half_textures": True,
+                             "offset_mip": True},
                    maps={"horizons": 8}, base=True, relief=8),
 }
 """Both store their textures in float16 (`MaterialConfig.half_textures`). `paper`: the paper's model (free latents,
 neural offset); `maps`: the shipped map-informed model (latents encoded
 from the prefiltered maps with horizons towards 8 azimuths, on the classical base, read in its normal's frame, the
-relief marched in 8 steps, the finest level answering footprints of half a texel). `neumip fit` makes `maps` for a
+relief marched in 8 steps, the finest level answering footprints of half a texel), its neural offset read at the
+footprint on its mip pyramid (`MaterialConfig.offset_mip`: a far object's trimmed model sheds the offset's fine
+levels too). `neumip fit` makes `maps` for a
 material with principled maps and `paper` for one without (a homogeneous [bsdf])."""

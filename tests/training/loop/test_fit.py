@@ -72,6 +72,8 @@ def test_fit_from_another_folder(material, tmp_path, monkeypatch, capsys):
         assert (out.parent / name).is_file(), name
     record = json.loads(out.with_suffix(".json").read_text())
     assert record["validation"]["steps"] == 10 and record["material_config"]["resolution"] == 8
+    config = record["material_config"]  # the maps recipe: lean textures, the offset read at the footprint
+    assert config["base"] == 8 and config["half_textures"] and config["offset_mip"] and config["lod_bias"] == 1
     noise = record["validation"]["noise"]
     assert noise["noise_floor"] > 0 and noise["ratio"] == pytest.approx(noise["mse"] / noise["noise_floor"])
     assert (out.parent / "my.run" / "views" / "meta.json").is_file()  # the grid had its ground truth
