@@ -99,7 +99,7 @@ def textures(config: MaterialConfig) -> list[str]:
             + ([RELIEF] if config.relief else []))
 
 
-def _maps_shapes(config: MaterialConfig, finest_level: int = 0) -> dict[str, tuple[int, int]]:
+def _other_texture_shapes(config: MaterialConfig, finest_level: int = 0) -> dict[str, tuple[int, int]]:
     """The textures other than the latents: the offset texture, the base's maps, the relief's heights; a pyramid's
     (the offset's with `MaterialConfig.offset_mip`) of a model trimmed to latent level K = ``finest_level`` holds
     its levels of the same footprint on (`MaterialConfig.pyramid_finest_level`)."""
@@ -123,7 +123,7 @@ def weight_shapes(config: MaterialConfig) -> dict[str, tuple[int, ...]]:
     """Every weight of the material -> its shape, as the model holds it (textures first, then each
     MLP's layers in order)."""
     shapes: dict[str, tuple[int, ...]] = {PYRAMID: (config.atlas_rows(), config.channels)}
-    shapes.update(_maps_shapes(config))
+    shapes.update(_other_texture_shapes(config))
     for mlp, (inputs, answers) in mlps(config).items():
         widths = _widths(config, inputs, answers)
         for i in range(config.layers):
@@ -139,7 +139,7 @@ def initializer_shapes(config: MaterialConfig, finest_level: int = 0) -> dict[st
     starts = config.level_starts()
     rows = config.atlas_rows() - starts[finest_level]
     shapes: dict[str, tuple[int, ...]] = {PYRAMID: (rows, config.channels)}
-    shapes.update(_maps_shapes(config, finest_level))
+    shapes.update(_other_texture_shapes(config, finest_level))
     for mlp, (inputs, answers) in mlps(config).items():
         widths = _widths(config, inputs, DEPTH_COPIES if mlp == OFFSET_MLP else answers)
         first = {"texture": texture_inputs(mlp, config), "query": C.QUERY_DIM, "light": 2,
