@@ -6,8 +6,9 @@ maps), so this is the small part of that idea they need:
 
 - `field_docs(cls)`: each field's docstring (the string literal under it), read from the class's source;
 - `add_flags(parser, cls, ...)`: ``--name`` for each field (underscores as dashes) - a bool that is False by
-  default is a switch, one that is True by default is ``--no-name``; a number or string takes a value, with
-  ``choices`` where given - its help the docstring's first sentence;
+  default is a switch, one that is True by default is ``--no-name``, and where the flags override a recipe both
+  ``--name`` and ``--no-name``; a number or string takes a value, with ``choices`` where given - its help the
+  docstring's first sentence;
 - `values(args, cls)`: the fields a command line set, to pass to `dataclasses.replace` or the constructor.
 
 A field added to the dataclass with a docstring is a flag of every command that adds the class's flags.
@@ -61,9 +62,9 @@ def add_flags(parser: argparse.ArgumentParser | argparse._ArgumentGroup, cls: ty
 
     `rename`: field -> the name its flag and its value in the parsed arguments take instead (where two
     configs of one command have a field of the same name).
-    `overrides`: the flags override a preset or a recipe, so each defaults to None (not given); `show_default` then
-    says the field's own default in the help. Otherwise each defaults to the field's default. A bool is a switch
-    either way.
+    `overrides`: the flags override a preset or a recipe, so each defaults to None (not given), and a bool has both
+    ``--name`` and ``--no-name`` (a recipe may turn on what is off by default); `show_default` then says the field's
+    own default in the help. Otherwise each defaults to the field's default, and a bool is one switch away from it.
     """
     docs, added = field_docs(cls), []
     for field in dataclasses.fields(cls):
@@ -73,7 +74,11 @@ def add_flags(parser: argparse.ArgumentParser | argparse._ArgumentGroup, cls: ty
         help_text = first_sentence(docs.get(field.name, "")) + f" ({cls.__name__}.{field.name})"
         options = (choices or {}).get(field.name)
         metavar = (metavars or {}).get(field.name)
-        if isinstance(default, bool):  # a switch; None when not given, so the config's default holds
+        if isinstance(default, bool) and overrides:  # --name / --no-name: either may override a recipe's value
+            shown = f" (default: {'on' if default else 'off'})" if show_default else ""
+            parser.add_argument(f"--{name.replace('_', '-')}", dest=name, action=argparse.BooleanOptionalAction,
+                                default=None, help=help_text + shown)
+        elif isinstance(default, bool):  # a switch; None when not given, so the config's default holds
             action = "store_false" if default else "store_true"
             parser.add_argument(flag(name, default), dest=name, action=action, default=None,
                                 help=("turns off what is on by default: " if default else "") + help_text)

@@ -51,6 +51,13 @@ def test_flags_not_given_leave_the_defaults():
     assert flags.values(parse([], overrides=True), Toy) == {}  # overrides: nothing given, nothing set
 
 
+def test_an_override_turns_a_bool_either_way():
+    """Over a recipe, a bool may be set either way: a recipe may have turned on what is off by default."""
+    args = parse(["--no-fancy", "--plain"], overrides=True)
+    assert flags.values(args, Toy) == {"fancy": False, "plain": True}
+    assert flags.values(parse(["--fancy", "--no-plain"], overrides=True), Toy) == {"fancy": True, "plain": False}
+
+
 def test_choices_skip_and_rename():
     with pytest.raises(SystemExit):
         parse(["--mode", "c"])
