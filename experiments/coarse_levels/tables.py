@@ -28,7 +28,8 @@ def _labels(n: int) -> list[str]:
 def main() -> int:
     material, runs = sys.argv[1], sys.argv[2:]
     lever = [views(f"{r}/results.json", material) for r in runs]
-    paper = views("docs/report/results.json", material)
+    committed = f"docs/report/{material}/results.json"  # a companion report's (planks), else the main one's
+    paper = views(committed if os.path.isfile(committed) else "docs/report/results.json", material)
     heads = ["paper N", "shipped"] + _labels(len(lever)) + ["C", "Cmip"]
     print(f"{material}: image MSE x1e-3 (FLIP) at 64 spp; 'shipped' and the lever's from the same report run")
     print(f"{'view':14s} " + " ".join(f"{h:>15s}" for h in heads))
