@@ -118,7 +118,8 @@ class MaterialConfig:
     (each coarser level the mean of the 2 x 2 texels under it, derived from the learned finest level, not learned
     itself). A coarse footprint then reads a prefiltered offset (an average shift, not one texel's), and a model
     trimmed for far footprints keeps only the offset's coarse levels. False: the paper's single level, read
-    bilinearly at the finest resolution by every query. Needs the offset."""
+    bilinearly at the finest resolution by every query. Without the offset it has nothing to read (a recipe's value
+    stays off there: `offset_pyramid` is None, and the config's JSON omits it)."""
     offset_scale: float = 0.1
     """Ray depth r = offset_scale * MLP output (author code: 0.1)."""
     offset_min_cos: float = 0.6
@@ -192,8 +193,6 @@ class MaterialConfig:
             raise ValueError(f"head must be one of {HEADS}, got {self.head!r}")
         if self.base < 0 or self.base & (self.base - 1):
             raise ValueError(f"base must be 0 or a power of two, got {self.base}")
-        if self.offset_mip and not self.offset:
-            raise ValueError("offset_mip reads the neural offset's pyramid: it needs the offset (MaterialConfig.offset)")
         if self.base_energy and not self.base:
             raise ValueError("base_energy needs a base (MaterialConfig.base)")
         if self.base and self.head != "relu":
@@ -257,8 +256,8 @@ class MaterialConfig:
                               lod_bias=self.lod_bias) if self.offset and self.offset_mip else None
 
     def pyramid_finest_level(self, pyramid: "MaterialConfig", finest_level: int) -> int:
-        """The finest level of `pyramid` (`base_pyramid`, `relief_pyramid`, `offset_pyramid`, or this config's own) read by a query
-        whose latent level is at least K = ``finest_level`` (what a model trimmed to K keeps of it):
+        """The finest level of `pyramid` (`base_pyramid`, `relief_pyramid`, `offset_pyramid`, or this config's own) read
+        by a query whose latent level is at least K = ``finest_level`` (what a model trimmed to K keeps of it):
         `same_footprint_level`."""
         return same_footprint_level(self.levels, pyramid.levels, finest_level)
 
@@ -279,7 +278,7 @@ class MaterialConfig:
             del fields_["ceiling"]
         if not self.lod_bias:
             del fields_["lod_bias"]
-        if not self.offset_mip:
+        if not (self.offset and self.offset_mip):
             del fields_["offset_mip"]
         return json.dumps(fields_, sort_keys=True)
 

@@ -65,7 +65,7 @@ def weights_from_state(state: dict, config: MaterialConfig) -> dict[str, np.ndar
         for i in range(config.layers):
             weights[W.weight(prefix, i)] = arr[f"{prefix}.{2 * i}.weight"]
             weights[W.bias(prefix, i)] = arr[f"{prefix}.{2 * i}.bias"]
-    if config.offset_mip:  # its pyramid, derived from the finest level as the model reads it
+    if config.offset_pyramid() is not None:  # its pyramid, derived from the finest level as the model reads it
         from neumip.training.model.pyramid import as_stored, mip_atlas  # torch: only this function reads a torch state
 
         texture = as_stored(state["offset_texture"].detach().cpu().float(), config)
@@ -283,14 +283,14 @@ def material_graph(g: GraphWriter, config: MaterialConfig, weights: dict,
     # --- neural offset: uv += r * wo_xy / max(wo_z, min_cos) -----------------------------------
     if config.offset:
         texture = texture_const(g, stored_texture(weights[W.OFFSET_TEXTURE], config), W.OFFSET_TEXTURE, config)
-        if config.offset_mip:  # trilinear on its pyramid, at the query's footprint
+        if config.offset_pyramid() is not None:  # trilinear on its pyramid, at the query's footprint
             texels, tap_w = pyramid_texels(g, config.offset_pyramid(), texture, config.offset_channels, g.wrap(uv),
                                            sigma, finest[W.OFFSET_TEXTURE], OFFSET_PREFIX)
         else:  # bilinear at the finest resolution
             texels, tap_w = texture_texels(g, texture, config.resolution, config.offset_channels, g.wrap(uv),
                                            OFFSET_PREFIX)
         mlp = _depth_weights(weights, config)
-        hidden = _first_layer(g, q, texels, tap_w, 8 if config.offset_mip else 4, [C.WO_X, C.WO_Y], mlp,
+        hidden = _first_layer(g, q, texels, tap_w, 4 if config.offset_pyramid() is None else 8, [C.WO_X, C.WO_Y], mlp,
                               W.OFFSET_MLP, 2)
         if config.layers > 1:
             hidden = g.op("Relu", hidden)
