@@ -84,6 +84,17 @@ def test_fit_from_another_folder(material, tmp_path, monkeypatch, capsys):
     assert "does not exist" in capsys.readouterr().err
 
 
+def test_fit_the_ablation_without_offset_and_relief(material, tmp_path, capsys):
+    """The README's parallax ablation: `fit --no-offset --relief 0` over the maps recipe (whose offset_mip then has
+    nothing to read)."""
+    out = tmp_path / "my_nooffset.onnx"
+    argv = ["fit", str(material), "-o", str(out), "--preset", "test", "--steps", "3", "--spp", "2",
+            "--queries-per-texel", "32", "--threads", "1", "--no-offset", "--relief", "0"]
+    assert main(argv) == 0, capsys.readouterr().err
+    config = json.loads(out.with_suffix(".json").read_text())["material_config"]
+    assert not config["offset"] and "offset_mip" not in config and "relief" not in config and config["base"] == 8
+
+
 def test_interrupted_fit_resumes_to_the_same_model(material, tmp_path):
     """Interrupted in the ground truth and again in training, a fit leaves no model under its name,
     and the same call then finishes the model an uninterrupted fit makes."""
