@@ -4,8 +4,8 @@ Two views of the same numbers, both from a `MaterialConfig`:
 
 - `weight_shapes`: the weights as the model holds them, and as `training.export.build_onnx` takes
   them and `training.export.read.read_model` gives them back: the textures (``pyramid``, the flat
-  atlas of every level, finest first; ``offset_texture``, one level, or with `MaterialConfig.offset_mip` its mip pyramid's atlas; with `MaterialConfig.base`,
-  ``base_maps``, the base maps' atlas, finest first; with `MaterialConfig.relief`, ``relief_heights``) and each MLP's layers
+  atlas of every level, finest first; ``offset_texture``, one level, or with `MaterialConfig.offset_mip` its mip
+  pyramid's atlas; with `MaterialConfig.base`, ``base_maps``, the base maps' atlas, finest first; with `MaterialConfig.relief`, ``relief_heights``) and each MLP's layers
   (``{mlp}.{i}.weight`` (out, in), ``{mlp}.{i}.bias`` (out,)). An MLP's first layer reads the
   texture features, then the query columns `MLP_QUERY_COLUMNS` names, in that order.
 - `initializer_shapes`: the initializers the exported graph stores them in. Matrices are stored halved
@@ -104,7 +104,7 @@ def _other_texture_shapes(config: MaterialConfig, finest_level: int = 0) -> dict
     (the offset's with `MaterialConfig.offset_mip`) of a model trimmed to latent level K = ``finest_level`` holds
     its levels of the same footprint on (`MaterialConfig.pyramid_finest_level`)."""
     shapes = {}
-    if config.offset and not config.offset_mip:
+    if config.offset and config.offset_pyramid() is None:
         shapes[OFFSET_TEXTURE] = (config.resolution**2, config.offset_channels)
     for name, pyramid in ((OFFSET_TEXTURE, config.offset_pyramid()), (BASE, config.base_pyramid()),
                           (RELIEF, config.relief_pyramid())):

@@ -283,15 +283,15 @@ def material_graph(g: GraphWriter, config: MaterialConfig, weights: dict,
     # --- neural offset: uv += r * wo_xy / max(wo_z, min_cos) -----------------------------------
     if config.offset:
         texture = texture_const(g, stored_texture(weights[W.OFFSET_TEXTURE], config), W.OFFSET_TEXTURE, config)
-        if config.offset_pyramid() is not None:  # trilinear on its pyramid, at the query's footprint
-            texels, tap_w = pyramid_texels(g, config.offset_pyramid(), texture, config.offset_channels, g.wrap(uv),
-                                           sigma, finest[W.OFFSET_TEXTURE], OFFSET_PREFIX)
-        else:  # bilinear at the finest resolution
+        mips = config.offset_pyramid()
+        if mips is not None:  # trilinear on its mip pyramid, at the query's footprint: 8 taps
+            texels, tap_w = pyramid_texels(g, mips, texture, config.offset_channels, g.wrap(uv), sigma,
+                                           finest[W.OFFSET_TEXTURE], OFFSET_PREFIX)
+        else:  # bilinear at the finest resolution: 4 taps
             texels, tap_w = texture_texels(g, texture, config.resolution, config.offset_channels, g.wrap(uv),
                                            OFFSET_PREFIX)
         mlp = _depth_weights(weights, config)
-        hidden = _first_layer(g, q, texels, tap_w, 4 if config.offset_pyramid() is None else 8, [C.WO_X, C.WO_Y], mlp,
-                              W.OFFSET_MLP, 2)
+        hidden = _first_layer(g, q, texels, tap_w, 4 if mips is None else 8, [C.WO_X, C.WO_Y], mlp, W.OFFSET_MLP, 2)
         if config.layers > 1:
             hidden = g.op("Relu", hidden)
         depth = g.op("Transpose", g.mlp(hidden, mlp, W.OFFSET_MLP, config.layers, first=1), perm=[1, 0])  # (N, 2)

@@ -116,9 +116,12 @@ class NeuMIPMaterial(nn.Module):
             du, dv = relief_shift(self.relief_heights, self.config, u, v, sigma, wo)
             u, v = u + du, v + dv
         if self.config.offset:
-            feat = (pyramid_lookup(as_stored(mip_atlas(as_stored(otex, self.config)), self.config),
-                                   self.config.offset_pyramid(), u, v, sigma)
-                    if self.config.offset_mip else texture_lookup(as_stored(otex, self.config), u, v))
+            otex = as_stored(otex, self.config)
+            if self.config.offset_mip:  # its mip pyramid at the footprint, the coarser levels stored rounded too
+                mips = as_stored(mip_atlas(otex), self.config)
+                feat = pyramid_lookup(mips, self.config.offset_pyramid(), u, v, sigma)
+            else:
+                feat = texture_lookup(otex, u, v)
             depth = self.config.offset_scale * self.offset_mlp(torch.cat([feat, wo], dim=1))[:, 0]
             du, dv = parallax_shift(depth, wo[:, 0], wo[:, 1], self.config.offset_min_cos)
             u, v = u + du, v + dv

@@ -103,8 +103,8 @@ def as_stored(texture: torch.Tensor, config: MaterialConfig) -> torch.Tensor:
 
 def mip_levels(texture: torch.Tensor) -> list[torch.Tensor]:
     """(S, S, C) texture -> its mip pyramid, finest (the texture itself) first down to 1 x 1: each coarser texel is
-    ((a + b) + (c + d)) / 4 of the 2 x 2 under it (rows y, y + 1: a, b; c, d). That order is part of the model: the
-    export derives the same levels in float32 from the same order, so every engine reads the same bits."""
+    ((a + b) + (c + d)) / 4 of the 2 x 2 under it (rows y, y + 1: a, b; c, d), in that order on every device, so the
+    levels training reads are the bits the export stores (it calls this function too)."""
     levels = [texture]
     while levels[-1].shape[0] > 1:
         t = levels[-1]
