@@ -1,7 +1,7 @@
 """Every engine on the shipped models, beside the decoder MLP alone: file size, load time, queries/s.
 
-    .venv/bin/python benchmarks/bench_engines.py                          # yarn_maps, rock_maps, rock (~1 min)
-    .venv/bin/python benchmarks/bench_engines.py --models yarn_maps --rounds 7 --batch 17
+    .venv/bin/python benchmarks/bench_engines.py                          # yarn, rock, flat (~1 min)
+    .venv/bin/python benchmarks/bench_engines.py --models yarn --rounds 7 --batch 17
     .venv/bin/python benchmarks/bench_engines.py --ort level=basic,spin=1,intra=2+workers=1 --profile
 
 Per model (``--folder``/NAME.onnx): the file's size; seconds to load it in ONNX Runtime (`load_material`:
@@ -346,7 +346,7 @@ class Bench:
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--folder", type=Path, default=Path("models"))
-    parser.add_argument("--models", type=lambda t: t.split(","), default=["yarn_maps", "rock_maps", "rock"],
+    parser.add_argument("--models", type=lambda t: t.split(","), default=["yarn", "rock", "flat"],
                         help="comma-separated model names")
     parser.add_argument("--rounds", type=int, default=5)
     parser.add_argument("--batch", type=int, default=17, help="log2 of the queries per call")

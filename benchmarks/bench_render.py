@@ -58,8 +58,8 @@ from neumip.core import contract as C
 
 ROOT = Path(__file__).resolve().parents[1]
 SCENE = ROOT / "scenes" / "demo.xml"
-DEMO_MATERIALS = {"yarn_maps": (0.55, 0.2, 0.12), "rock_maps": (0.4, 0.37, 0.33), "turtle_maps": (0.2, 0.45, 0.2),
-                  "foam_maps": (0.8, 0.8, 0.72)}
+DEMO_MATERIALS = {"yarn": (0.55, 0.2, 0.12), "rock": (0.4, 0.37, 0.33), "turtle": (0.2, 0.45, 0.2),
+                  "foam": (0.8, 0.8, 0.72)}
 """Stand-ins under the names of the demo scene's defaults (the map-informed models)."""
 ZENITH_DEG = 55.0
 """Angle between the plane's normal and the view direction of the ratios section."""

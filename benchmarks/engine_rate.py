@@ -1,7 +1,7 @@
 """Queries a second of each in-process engine on a few models: the figure to compare across a change of the
 engines' code (run it at both commits, alternately, on one machine: `answer_digest.py` checks the bits).
 
-    python benchmarks/engine_rate.py models --names yarn_maps,rock --queries 131072 --rounds 3
+    python benchmarks/engine_rate.py models --names yarn,flat --queries 131072 --rounds 3
 
 Each line: model, engine, the best of `--rounds` timed calls (after one untimed), queries/s, and the 1-minute
 load average. Works with the layout before the engines moved to `neumip.engines` too (`answer_digest.engines`).
@@ -23,7 +23,7 @@ from answer_digest import engines  # noqa: E402
 def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("models", type=Path)
-    parser.add_argument("--names", default="yarn_maps,rock")
+    parser.add_argument("--names", default="yarn,flat")
     parser.add_argument("--queries", type=int, default=1 << 17)
     parser.add_argument("--rounds", type=int, default=3)
     args = parser.parse_args()

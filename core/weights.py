@@ -135,11 +135,16 @@ def weight_shapes(config: MaterialConfig) -> dict[str, tuple[int, ...]]:
 def initializer_shapes(config: MaterialConfig, finest_level: int = 0) -> dict[str, tuple[int, ...]]:
     """Every initializer of the exported graph that holds a weight -> its shape (the graph's other
     initializers are constants of its arithmetic). ``finest_level`` K > 0: a trimmed model, whose
-    pyramid holds levels K..L only."""
+    pyramid holds levels K..L only. The file stores nothing it can derive: an untrimmed offset mip pyramid is its
+    finest level, and the base's maps (`BASE`) hold only the map channels that vary between texels before the
+    horizons, so their width is at most the one given here (`training/export/base.read_base`)."""
     starts = config.level_starts()
     rows = config.atlas_rows() - starts[finest_level]
     shapes: dict[str, tuple[int, ...]] = {PYRAMID: (rows, config.channels)}
     shapes.update(_other_texture_shapes(config, finest_level))
+    mips = config.offset_pyramid()
+    if mips is not None and config.pyramid_finest_level(mips, finest_level) == 0:  # its finest level: the graph derives the rest
+        shapes[OFFSET_TEXTURE] = (mips.resolution**2, mips.channels)
     for mlp, (inputs, answers) in mlps(config).items():
         widths = _widths(config, inputs, DEPTH_COPIES if mlp == OFFSET_MLP else answers)
         first = {"texture": texture_inputs(mlp, config), "query": C.QUERY_DIM, "light": 2,

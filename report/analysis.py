@@ -3,7 +3,7 @@
 A verdict ("N beats C from 4 texels", "the offset gains 2x") is drawn per light, and the headline
 verdict is the one that holds under every light: the largest footprint of the per-light ones, the
 smallest gain; the lights under which a stronger claim fails are named beside it. Every judged neural
-method (:data:`.methods.JUDGED`: the paper's model N, the map-informed Nmaps) is judged by the same
+method (:data:`.methods.JUDGED`: N, and a second model Nmaps where its file exists) is judged by the same
 functions, each where its model was rendered.
 """
 

@@ -1,10 +1,11 @@
 """The methods the report compares, each as a Mitsuba scene of the same view.
 
 - ``R``: the real displaced microgeometry (instances of one tile block), stock ``path``.
-- ``N``: the neural material with its neural offset (``<name>.onnx``), ``neumip_path``.
-- ``N0``: the neural material trained without the offset (``<name>_nooffset.onnx``), ``neumip_path``.
-- ``Nmaps``: a neural material informed by the material's maps (``<name>_maps.onnx``), ``neumip_path``.
-- ``Nmaps0``: the same trained without the offset (``<name>_maps_nooffset.onnx``), ``neumip_path``.
+- ``N``: the neural material (``<name>.onnx``: the shipped ones are what ``neumip fit`` makes), ``neumip_path``.
+- ``N0``: the same trained without the parallax stages (``<name>_nooffset.onnx``), ``neumip_path``.
+- ``Nmaps``: a second model judged beside N (``<name>_maps.onnx``, e.g. a map-informed model beside a paper's
+  model of the same data), ``neumip_path``.
+- ``Nmaps0``: the same trained without the parallax stages (``<name>_maps_nooffset.onnx``), ``neumip_path``.
   A neural method is compared wherever its model file is in the models folder; another is one more
   entry of :data:`NEURAL_MODELS` (and, when it is judged like N, of :data:`NO_OFFSET`).
 - ``C``: the classical material: the generator's principled BSDF with full-resolution albedo,

@@ -169,11 +169,12 @@ def write_markdown(out: Path, results: dict, config: ReportConfig) -> Path:
          f"(up to 4 surface interactions, as the ground-truth tracer); a material without a heightfield is the plane "
          f"itself. Reference = mean of two seeds at {cfg.reference_spp} spp each; its noise (MSE of the mean, from "
          "the two seeds) is listed per view.",
-         "- **N** / **N0**: the paper's neural material `MODELS/NAME.onnx` (with the relief stage where the material "
-         "has a height map, `neumip fit --relief`) and the same trained without the parallax stages (neither the relief nor "
-         "the neural offset) `NAME_nooffset.onnx`; **Nmaps** / **Nmaps0**: the map-informed material (`neumip train --maps`: its "
-         "latent textures encoded from the material's prefiltered maps, baked at export into the paper's graph) "
-         "`NAME_maps.onnx` and its ablation `NAME_maps_nooffset.onnx`; each where its file exists, `neumip_path`. "
+         "- **N** / **N0**: the neural material `MODELS/NAME.onnx` (the shipped ones are what `neumip fit` makes: for a "
+         "material defined by maps the `maps` recipe, latent textures encoded from its prefiltered maps on the classical "
+         "base, with the relief stage; the paper's model for one without) and the same trained without the parallax stages "
+         "(neither the relief nor the neural offset, `neumip fit --no-offset --relief 0`) `NAME_nooffset.onnx`; "
+         "**Nmaps** / **Nmaps0**: a second model judged beside N, `NAME_maps.onnx`, and its ablation "
+         "`NAME_maps_nooffset.onnx`; each where its file exists, `neumip_path`. "
          "N and Nmaps are judged alike (verdicts, time to error, close-ups); N0 and Nmaps0 give the parallax stages' gain (the offset gain). "
          "Each of n samples per pixel queries max(1/8, 1/sqrt(n)) of the pixel footprint (pbrt-v4's rule): at "
          f"{cfg.spp} spp, {math.log2(1 / sample_footprint(cfg.spp)):g} levels finer than the footprint.",

@@ -60,6 +60,44 @@ class BaseRead:
     """(R BASE_HORIZONS, 4) horizon table: row r BASE_HORIZONS + j holds azimuth j's sine at quad row r's 4 taps."""
 
 
+BASE_VARYING = "base_maps.varying"
+"""Weights-dict key (V,) int64 of the map channels (of `MAP_CHANNELS`) that vary between the base atlas' texels; the
+file stores those and the horizons only (`read_base`). A weights dict may give it (read back from a model, or kept
+by `neumip trim`, whose coarse levels alone may make more channels look constant); otherwise it comes from the atlas."""
+BASE_PLACE = "base_maps.place"
+"""The initializer (V, MAP_CHANNELS) 0/1: stored column i is map channel j (absent where no channel varies)."""
+BASE_CONSTANT = "base_maps.constant"
+"""The initializer (1, MAP_CHANNELS): each constant map channel's value (0 at the varying ones)."""
+
+
+def base_layout(weights: dict, config: MaterialConfig) -> tuple[list[int], np.ndarray]:
+    """The base atlas' varying map channels (``weights[BASE_VARYING]`` where given, else those not the same in every
+    texel of the atlas as stored) and the (1, MAP_CHANNELS) row of the constant ones' values (0 at the varying)."""
+    atlas = stored_texture(weights[W.BASE], config)
+    if BASE_VARYING in weights:
+        varying = [int(c) for c in np.asarray(weights[BASE_VARYING]).ravel()]
+    else:
+        varying = [c for c in range(MAP_CHANNELS) if not np.all(atlas[:, c] == atlas[0, c])]
+    constants = np.where(np.isin(np.arange(MAP_CHANNELS), varying), 0.0, atlas[0, :MAP_CHANNELS])[None]
+    return varying, constants.astype(np.float32)
+
+
+def base_from_stored(stored: np.ndarray, place: np.ndarray | None, constants: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The base atlas as the file stores it (T, V + BASE_HORIZONS), its `BASE_PLACE` (None: V = 0) and
+    `BASE_CONSTANT` -> the whole atlas (T, BASE_CHANNELS) and its varying channels (V,) (`read_base`'s inverse)."""
+    varying = np.zeros(0, np.int64) if place is None else np.argmax(place, axis=1).astype(np.int64)
+    if place is not None and not np.array_equal(place, np.eye(MAP_CHANNELS, dtype=place.dtype)[varying]):
+        raise ValueError(f"{BASE_PLACE} is not a placement of map channels")
+    if stored.shape[1] != len(varying) + BASE_HORIZONS or constants.shape != (1, MAP_CHANNELS):
+        raise ValueError(f"base atlas of {stored.shape[1]} columns for {len(varying)} varying channels, constants of "
+                         f"shape {constants.shape}")
+    atlas = np.empty((stored.shape[0], BASE_CHANNELS), np.float32)
+    atlas[:, :MAP_CHANNELS] = constants
+    atlas[:, varying] = stored[:, :len(varying)]
+    atlas[:, MAP_CHANNELS:] = stored[:, len(varying):]
+    return atlas, varying
+
+
 def read_base(g: GraphWriter, config: MaterialConfig, weights: dict, uv: str, sigma: str,
               finest_level: int = 0) -> BaseRead:
     """The base pyramid's trilinear footprint at uv (N, 2) in [0, 1), sigma (N, 1): the maps, and where the
@@ -67,37 +105,39 @@ def read_base(g: GraphWriter, config: MaterialConfig, weights: dict, uv: str, si
     trimmed model, `lod.pyramid_finest_level`).
 
     A map channel that is the same in every texel (F0 of a material without metal, the colour of a plain
-    one) is a constant of the graph, not read: the lookup of a constant answers it. The stored atlas has
-    every channel (`read` reads it back)."""
+    one) is a constant of the graph (`BASE_CONSTANT`), neither stored per texel nor read: the file's atlas holds
+    the varying channels and the horizons (`base_layout`; `base_from_stored` puts the whole atlas back together)."""
     base = config.base_pyramid()
-    atlas = stored_texture(weights[W.BASE], config)
-    stored = texture_const(g, atlas, W.BASE, config)
-    varying = [c for c in range(MAP_CHANNELS) if not np.all(atlas[:, c] == atlas[0, c])]
-    atlas_read = g.op("Gather", stored, g.const(varying, np.int64), axis=1) if varying else stored  # (T, V)
-    fp = pyramid_footprint(g, base, atlas_read, len(varying), sigma, finest_level, BASE_PREFIX)
+    varying, constants = base_layout(weights, config)
+    width = len(varying)
+    atlas = stored_texture(weights[W.BASE], config)[:, varying + list(range(MAP_CHANNELS, BASE_CHANNELS))]
+    stored = texture_const(g, np.ascontiguousarray(atlas), W.BASE, config)  # (T, V + H)
+    atlas_read = g.op("Slice", stored, g.const([0], np.int64), g.const([width], np.int64), g.const([1], np.int64)) \
+        if width else stored  # (T, V)
+    fp = pyramid_footprint(g, base, atlas_read, width, sigma, finest_level, BASE_PREFIX)
     rows, taps = footprint_rows(g, fp, uv)  # (N, 2), (N, 8)
-    constants = np.where(np.isin(np.arange(MAP_CHANNELS), varying), 0.0, atlas[0, :MAP_CHANNELS])[None]
     if varying:
-        fp.table = expand_table(g, fp.atlas, fp.index, len(varying))
-        texels = footprint_read(g, fp, len(varying), rows)  # (N, 8 V)
-        spread = np.kron(np.eye(8, dtype=np.float32), np.ones((1, len(varying)), np.float32))  # (8, 8 V)
+        fp.table = expand_table(g, fp.atlas, fp.index, width)
+        texels = footprint_read(g, fp, width, rows)  # (N, 8 V)
+        spread = np.kron(np.eye(8, dtype=np.float32), np.ones((1, width), np.float32))  # (8, 8 V)
         weighted = g.op("Mul", texels, g.op("MatMul", taps, g.const(spread)))
-        summed = g.op("MatMul", weighted, g.const(np.tile(np.eye(len(varying), dtype=np.float32), (8, 1))))
-        place = np.zeros((len(varying), MAP_CHANNELS), np.float32)
-        place[np.arange(len(varying)), varying] = 1.0
-        maps = g.op("Add", g.op("MatMul", summed, g.const(place)), g.const(constants))
+        summed = g.op("MatMul", weighted, g.const(np.tile(np.eye(width, dtype=np.float32), (8, 1))))
+        place = np.eye(MAP_CHANNELS, dtype=np.float32)[varying]  # (V, MAP_CHANNELS)
+        maps = g.op("Add", g.op("MatMul", summed, g.const(place, name=BASE_PLACE)), g.const(constants, name=BASE_CONSTANT))
     else:
-        maps = g.op("Add", g.op("MatMul", taps, g.const(np.zeros((8, MAP_CHANNELS), np.float32))), g.const(constants))
-    return BaseRead(maps, rows, taps, _horizon_table(g, stored, fp.index, fp.index_rows))
+        maps = g.op("Add", g.op("MatMul", taps, g.const(np.zeros((8, MAP_CHANNELS), np.float32))),
+                    g.const(constants, name=BASE_CONSTANT))
+    return BaseRead(maps, rows, taps, _horizon_table(g, stored, width, fp.index, fp.index_rows))
 
 
-def _horizon_table(g: GraphWriter, atlas: str, index: str, rows: int) -> str:
-    """Constant subgraph: the base atlas (T, BASE_CHANNELS) and its quad index table (R, 4) -> (R BASE_HORIZONS,
-    4) the horizons' quad table, one row per quad row and azimuth (`BaseRead.horizons`)."""
+def _horizon_table(g: GraphWriter, atlas: str, first: int, index: str, rows: int) -> str:
+    """Constant subgraph: the base atlas as stored (T, V + BASE_HORIZONS, the horizons from column `first` on) and its
+    quad index table (R, 4) -> (R BASE_HORIZONS, 4) the horizons' quad table, one row per quad row and azimuth
+    (`BaseRead.horizons`)."""
     if rows * BASE_HORIZONS >= 2**24:
         raise ValueError(f"{rows} base table rows: the horizons' float32 row arithmetic is exact only below "
                          f"2^24 / {BASE_HORIZONS}")
-    columns = g.const(np.arange(MAP_CHANNELS, BASE_CHANNELS), np.int64)
+    columns = g.const(np.arange(first, first + BASE_HORIZONS), np.int64)
     flat = g.shape(g.op("Gather", atlas, columns, axis=1), [-1])  # (T BASE_HORIZONS,): texel t, azimuth j at t H + j
     texel = g.op("Cast", g.shape(index, [-1, 1, 4]), to=TensorProto.INT64)  # (R, 1, 4)
     azimuths = g.const(np.arange(BASE_HORIZONS).reshape(1, -1, 1), np.int64)  # (1, H, 1)

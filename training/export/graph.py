@@ -9,7 +9,9 @@ offset texture, or a trilinear one of its mip pyramid with `MaterialConfig.offse
 levels, then the decoder MLP. The lookups work on one query per row; the MLPs on one query per
 column (`GraphWriter.product`: the first layers read the weighted texels and the queries transposed,
 one Transpose after each MLP). The file stores the textures once, in the layout `weights_from_state`
-gives (flat atlas "pyramid" (T, C), "offset_texture" (R * R, C), or its mip atlas); a constant subgraph that ONNX
+gives (flat atlas "pyramid" (T, C), "offset_texture" (R * R, C)), and nothing it can derive: the offset's mip
+pyramid (`MaterialConfig.offset_mip`) as its finest level (`lookup.mip_const` computes the others), the base's
+maps without their channels that are the same in every texel (`base.read_base`); a constant subgraph that ONNX
 Runtime folds at session load expands them into wrap-padded quad tables (`lookup.py`), so
 each query reads one table row per level footprint with float row arithmetic and no modulo. The
 model config, contract version and a description travel in the ONNX metadata.
@@ -42,8 +44,8 @@ from neumip.core import head
 from neumip.core import weights as W
 from neumip.core.config import RELIEF_DIVISION_FLOOR, RELIEF_MIN_COS, MaterialConfig
 from neumip.training.export import base as B
-from neumip.training.export.lookup import (footprint_texels, pyramid_footprint, pyramid_texels, stored_texture,
-                                          texture_const, texture_texels)
+from neumip.training.export.lookup import (footprint_texels, mip_atlas, mip_const, pyramid_footprint, pyramid_texels,
+                                          stored_texture, texture_const, texture_texels)
 from neumip.training.export.lod import OFFSET_PREFIX, RELIEF_PREFIX, pyramids
 from neumip.training.export.onnx_graph import GraphWriter
 
@@ -215,11 +217,11 @@ a model trimmed (`neumip trim`) may no longer hold their minimum. A weights dict
 a model); otherwise it comes from ``weights["relief_heights"]``."""
 
 
-def relief_depth(weights: dict) -> np.float32:
-    """The relief's depth: ``weights[RELIEF_DEPTH]`` where given, else -min(heights), 0 at least."""
+def relief_depth(weights: dict, config: MaterialConfig) -> np.float32:
+    """The relief's depth: ``weights[RELIEF_DEPTH]`` where given, else -min(heights as stored), 0 at least."""
     if RELIEF_DEPTH in weights:
         return np.float32(np.asarray(weights[RELIEF_DEPTH], np.float32).reshape(()))
-    return np.float32(max(-float(weights[W.RELIEF].min()), 0.0))
+    return np.float32(max(-float(stored_texture(weights[W.RELIEF], config).min()), 0.0))
 
 
 def _relief(g: GraphWriter, config: MaterialConfig, weights: dict, uv: str, sigma: str, wo: str,
@@ -227,11 +229,10 @@ def _relief(g: GraphWriter, config: MaterialConfig, weights: dict, uv: str, sigm
     """uv (N, 2), sigma (N, 1), wo (N, 2) -> (N, 2) the relief's shift of the lookups, as `relief.relief_shift`
     computes it: one footprint of the height pyramid, read at each step's position. ``finest_level``: the
     finest level ``weights["relief_heights"]`` holds (a trimmed model, `MaterialConfig.pyramid_finest_level`)."""
-    heights = weights[W.RELIEF]
-    depth = relief_depth(weights)
+    depth = relief_depth(weights, config)
     steps = config.relief_steps
-    fp = pyramid_footprint(g, config.relief_pyramid(), g.const(heights, name=W.RELIEF), 1, sigma, finest_level,
-                           RELIEF_PREFIX)
+    heights = texture_const(g, stored_texture(weights[W.RELIEF], config), W.RELIEF, config)
+    fp = pyramid_footprint(g, config.relief_pyramid(), heights, 1, sigma, finest_level, RELIEF_PREFIX)
     d = g.op("Div", wo, _clamped_wo_z(g, wo, RELIEF_MIN_COS))
     ones = g.const(np.ones((8, 1), np.float32))
     found = missed = s_prev = t_prev = None
@@ -282,8 +283,11 @@ def material_graph(g: GraphWriter, config: MaterialConfig, weights: dict,
 
     # --- neural offset: uv += r * wo_xy / max(wo_z, min_cos) -----------------------------------
     if config.offset:
-        texture = texture_const(g, stored_texture(weights[W.OFFSET_TEXTURE], config), W.OFFSET_TEXTURE, config)
         mips = config.offset_pyramid()
+        if mips is not None and finest[W.OFFSET_TEXTURE] == 0:  # the file stores its finest level, the graph the rest
+            texture = mip_const(g, weights[W.OFFSET_TEXTURE], mips, W.OFFSET_TEXTURE, config)
+        else:  # a trimmed mip pyramid's levels (a finest level alone would not give them the same bits), or one level
+            texture = texture_const(g, stored_texture(weights[W.OFFSET_TEXTURE], config), W.OFFSET_TEXTURE, config)
         if mips is not None:  # trilinear on its mip pyramid, at the query's footprint: 8 taps
             texels, tap_w = pyramid_texels(g, mips, texture, config.offset_channels, g.wrap(uv), sigma,
                                            finest[W.OFFSET_TEXTURE], OFFSET_PREFIX)
@@ -433,6 +437,10 @@ def random_weights(config: MaterialConfig, seed: int = 0, scale: float = 0.5) ->
                                        axis=1)
         elif name == W.RELIEF:  # a smooth periodic relief `scale` / 4 tile deep, the same at every level
             out[name] = _random_relief(config.relief_pyramid().level_sizes(), rng, scale / 4)
+        elif name == W.OFFSET_TEXTURE and config.offset_pyramid() is not None:  # the mip pyramid of a random texture
+            size = config.offset_pyramid().resolution  # as stored, as `weights_from_state` derives it
+            finest = stored_texture((rng.normal(size=(size * size, shape[1])) * scale).astype(np.float32), config)
+            out[name] = mip_atlas(finest.reshape(size, size, shape[1]))
         else:  # a texture
             out[name] = rng.normal(size=shape) * scale
     return {name: value.astype(np.float32) for name, value in out.items()}

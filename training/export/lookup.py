@@ -150,6 +150,41 @@ def texture_const(g: GraphWriter, value: np.ndarray, name: str, config: Material
 
 
 
+def mip_atlas(texture: np.ndarray) -> np.ndarray:
+    """(S, S, C) float32 texture -> (T, C) its mip pyramid's atlas, finest first: each coarser texel is
+    ((a + b) + (c + d)) * 0.25 of the 2 x 2 under it in float32, in the order of `training.model.pyramid.mip_levels`
+    (the same bits; `mip_const` computes it in the graph)."""
+    levels = [np.asarray(texture, np.float32)]
+    while levels[-1].shape[0] > 1:
+        t = levels[-1]
+        levels.append(((t[0::2, 0::2] + t[0::2, 1::2]) + (t[1::2, 0::2] + t[1::2, 1::2])) * np.float32(0.25))
+    return np.concatenate([level.reshape(-1, texture.shape[-1]) for level in levels])
+
+
+def mip_const(g: GraphWriter, atlas: np.ndarray, pyramid: MaterialConfig, name: str, config: MaterialConfig) -> str:
+    """Constant subgraph: a mip pyramid's atlas (T, C) float32 as the model reads it, from its finest level alone, which
+    the file stores (`texture_const`, named `name`): every coarser level is `mip_atlas`'s average in float32 from the
+    level above, then rounded as the file would store it (`stored_texture`; the next level averages the unrounded one,
+    as the model does). ValueError where `atlas` (float32, every level), as stored, is not that pyramid of its finest
+    level as stored."""
+    size, width = pyramid.resolution, pyramid.channels
+    finest = np.asarray(atlas[:size * size], np.float32)
+    derived = mip_atlas(stored_texture(finest, config).reshape(size, size, width))
+    if not np.array_equal(stored_texture(derived, config), stored_texture(atlas, config)):
+        raise ValueError(f"{name}: its coarser levels are not the mip pyramid of its finest level")
+    level = g.shape(texture_const(g, stored_texture(finest, config), name, config), [size, size, width])
+    big = np.iinfo(np.int64).max
+    levels = [g.shape(level, [-1, width])]
+    for _ in pyramid.level_sizes()[1:]:
+        taps = [g.op("Slice", level, g.const([dy, dx], np.int64), g.const([big, big], np.int64),
+                     g.const([0, 1], np.int64), g.const([2, 2], np.int64)) for dy, dx in ((0, 0), (0, 1), (1, 0), (1, 1))]
+        level = g.op("Mul", g.op("Add", g.op("Add", taps[0], taps[1]), g.op("Add", taps[2], taps[3])), g.scalar(0.25))
+        rounded = g.op("Cast", g.op("Cast", level, to=TensorProto.FLOAT16), to=TensorProto.FLOAT) \
+            if config.half_textures else level
+        levels.append(g.shape(rounded, [-1, width]))
+    return g.op("Concat", *levels, axis=0)
+
+
 def expand_table(g: GraphWriter, texels: str, index: str, width: int) -> str:
     """Constant subgraph: (T, width) texels and the (R, 4) index table `index` (`quad_rows`) -> (R, 4 width)
     quad table.

@@ -22,10 +22,12 @@ import onnx
 
 from neumip.core import contract as C
 from neumip.core import weights as W
-from neumip.core.config import DECODER_INPUTS, MaterialConfig
+from neumip.core.config import BASE_HORIZONS, DECODER_INPUTS, MaterialConfig
 from neumip.core.modelfile import ModelError, ModelFile, read_model_file
 
+from neumip.training.export.base import BASE_CONSTANT, BASE_PLACE, BASE_VARYING, base_from_stored
 from neumip.training.export.graph import RELIEF_DEPTH, _depth_weights
+from neumip.training.export.lookup import mip_atlas
 from neumip.training.export.onnx_graph import COLUMN_ALPHA
 
 
@@ -106,8 +108,24 @@ def read_model(model: onnx.ModelProto, source: str = "OLD.onnx",
 def read_weights(inits: dict[str, np.ndarray], config: MaterialConfig, finest: int) -> dict[str, np.ndarray]:
     """A graph's initializers, checked against `weights.initializer_shapes` -> the weights as
     `export.weights_from_state` gives them."""
-    check_shapes(inits, W.initializer_shapes(config, finest))
+    want = W.initializer_shapes(config, finest)
+    place = inits.get(BASE_PLACE)
+    base_whole = config.base and BASE_CONSTANT not in inits  # the layout before 2026-11-28: every channel stored
+    if config.base and not base_whole:  # its varying map channels and the horizons (`base.read_base`)
+        want[W.BASE] = (want[W.BASE][0], (0 if place is None else place.shape[0]) + BASE_HORIZONS)
+    mips = config.offset_pyramid()
+    mips_derived = mips is not None and config.pyramid_finest_level(mips, finest) == 0
+    if mips_derived and inits.get(W.OFFSET_TEXTURE, np.zeros((0, 0))).shape == (mips.atlas_rows(), mips.channels):
+        want[W.OFFSET_TEXTURE], mips_derived = (mips.atlas_rows(), mips.channels), False  # that layout's: every level
+    check_shapes(inits, want)
     weights = {name: inits[name].astype(np.float32) for name in W.textures(config)}  # float16 with half_textures
+    if mips_derived:  # the levels the graph derives
+        weights[W.OFFSET_TEXTURE] = mip_atlas(weights[W.OFFSET_TEXTURE].reshape(mips.resolution, mips.resolution, -1))
+    if config.base and not base_whole:
+        try:
+            weights[W.BASE], weights[BASE_VARYING] = base_from_stored(weights[W.BASE], place, inits[BASE_CONSTANT])
+        except ValueError as exc:
+            raise ModelLayoutError(str(exc)) from exc
     if RELIEF_DEPTH in inits:  # the depth of all the heights, which a trimmed model's kept levels may not reach
         weights[RELIEF_DEPTH] = inits[RELIEF_DEPTH]
     for mlp in W.mlps(config):

@@ -113,7 +113,7 @@ class NeuMIPMaterial(nn.Module):
         u, v, sigma = queries[:, C.U], queries[:, C.V], queries[:, C.SIGMA]
         wo = queries[:, C.WO_X : C.WO_Y + 1]
         if self.config.relief and not landed:
-            du, dv = relief_shift(self.relief_heights, self.config, u, v, sigma, wo)
+            du, dv = relief_shift(as_stored(self.relief_heights, self.config), self.config, u, v, sigma, wo)
             u, v = u + du, v + dv
         if self.config.offset:
             otex = as_stored(otex, self.config)

@@ -32,7 +32,7 @@ from neumip.core.config import RELIEF_DIVISION_FLOOR, RELIEF_MIN_COS, MaterialCo
 
 from neumip.training.model.maps import resize
 from neumip.groundtruth.description import Microgeometry
-from neumip.training.model.pyramid import pyramid_lookup
+from neumip.training.model.pyramid import as_stored, pyramid_lookup
 
 
 def relief_resolution(geo: Microgeometry) -> int:
@@ -104,7 +104,7 @@ def landed_positions(levels: list[np.ndarray], config: MaterialConfig, queries: 
                      chunk: int = 1 << 16) -> np.ndarray:
     """The relief stage of `config` for (N, 7) `queries` (`relief_heights` `levels`) -> (N, 2) float32 u, v where
     each lands, in chunks; what `NeuMIPMaterial.forward` computes first, answer for answer."""
-    heights = torch.cat([torch.as_tensor(lvl, dtype=torch.float32).reshape(-1, 1) for lvl in levels])
+    heights = as_stored(torch.cat([torch.as_tensor(lvl, dtype=torch.float32).reshape(-1, 1) for lvl in levels]), config)
     out = np.empty((len(queries), 2), np.float32)
     for start in range(0, len(queries), chunk):
         q = torch.from_numpy(np.array(queries[start:start + chunk], dtype=np.float32))

@@ -89,7 +89,7 @@ def test_cli_closeup_is_too_coarse_and_far_view_trims(tmp_path, capsys):
                      "-D", "resy=64", "--render-spp", render_spp, "--json"]) == 0
         levels[render_spp] = {m["material"]: m for m in json.loads(capsys.readouterr().out)["materials"]}
     far = levels["1"]
-    assert sorted(far) == ["foam_maps", "rock_maps", "turtle_maps", "yarn_maps"]
+    assert sorted(far) == ["foam", "rock", "turtle", "yarn"]
     for name, m in far.items():
         assert m["finest_level"] >= 1 and not m["too_coarse"]
         assert m["trimmed_bytes"] < m["model_bytes"]

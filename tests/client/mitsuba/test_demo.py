@@ -15,7 +15,7 @@ from neumip.client.mitsuba.render import RenderConfig, load_scene, render_scene
 from neumip.client.mitsuba.shading import scene_materials
 
 DEMO = Path(__file__).resolve().parents[3] / "scenes" / "demo.xml"
-NAMES = ["foam_maps", "rock_maps", "turtle_maps", "yarn_maps"]
+NAMES = ["foam", "rock", "turtle", "yarn"]
 
 
 def stand_ins(model_dir, folder: Path) -> Path:
@@ -34,8 +34,8 @@ def test_demo_uses_the_shipped_material_names():
 
 
 @pytest.mark.parametrize("scene, param, replaced", [
-    (DEMO, "cube", "rock_maps"), (DEMO, "cylinder", "foam_maps"), (DEMO, "left_sphere", "yarn_maps"),
-    (DEMO, "right_sphere", "turtle_maps"), (DEMO.with_name("closeup.xml"), "material", "yarn"),
+    (DEMO, "cube", "rock"), (DEMO, "cylinder", "foam"), (DEMO, "left_sphere", "yarn"),
+    (DEMO, "right_sphere", "turtle"), (DEMO.with_name("closeup.xml"), "material", "yarn"),
 ])
 def test_scene_parameters_name_the_neural_materials(scene, param, replaced):
     """`-D cube=bricks` puts one's own material in the demo without editing XML; the others stay."""

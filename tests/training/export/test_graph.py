@@ -13,6 +13,7 @@ from neumip.core import contract as C
 from neumip.core import weights as W
 from neumip.training.loop import checkpoint
 from neumip.core.config import MaterialConfig
+from neumip.training.export.base import BASE_CONSTANT, BASE_PLACE
 from neumip.training.export.graph import build_onnx, constant_weights, random_weights, weights_from_state
 from neumip.training.loop.outputs import export_checkpoint
 from neumip.training.model.material import NeuMIPMaterial
@@ -210,12 +211,13 @@ def _base_pair(atlas_edit) -> tuple[NeuMIPMaterial, ort.InferenceSession, onnx.M
 
 
 def _base_channels_read(model: onnx.ModelProto) -> list[int]:
-    """The map channels the graph's per-group table takes from the stored base atlas (the constant Gather on axis 1
-    whose indices start at channel 0)."""
+    """The map channels the file stores per texel and the graph reads: the base atlas holds them, then the horizons
+    (`export.base.BASE_PLACE` places each stored column; the others are one constant row)."""
     inits = {i.name: onnx.numpy_helper.to_array(i) for i in model.graph.initializer}
-    reads = [inits[n.input[1]].tolist() for n in model.graph.node
-             if n.op_type == "Gather" and n.input[0] == W.BASE and n.input[1] in inits]
-    return [r for r in reads if r and r[0] < 9 and r[-1] < 9] or [[]]
+    place = inits.get(BASE_PLACE)
+    channels = [] if place is None else np.argmax(place, axis=1).tolist()
+    assert inits[W.BASE].shape[1] == len(channels) + 8 and inits[BASE_CONSTANT].shape == (1, 9)
+    return channels
 
 
 @pytest.mark.parametrize("edit, channels", [
@@ -227,7 +229,7 @@ def test_a_base_reads_only_its_varying_map_channels_and_answers_as_torch(edit, c
     """A map channel that is the same in every texel is a constant of the graph (not read), and the answers are
     the torch material's, which reads every channel."""
     material, session, model = _base_pair(edit)
-    assert _base_channels_read(model)[0] == channels
+    assert _base_channels_read(model) == channels
     for q in (random_queries(20000, seed=14), edge_queries(material.config.resolution)):
         assert_parity(session.run(None, {C.ONNX_INPUT: q})[0], torch_eval(material, q))
 
@@ -266,9 +268,9 @@ def test_every_decoder_input_is_computed_in_torch_and_in_the_graph():
 
 
 def test_half_textures_are_stored_in_float16_and_read_back_as_the_model_reads_them(tmp_path):
-    """`MaterialConfig.half_textures`: the latents, the offset texture and the base's maps are float16 initializers
-    (the relief's heights float32); the file is smaller; reading it back gives the rounded weights, and a re-export
-    writes the same file."""
+    """`MaterialConfig.half_textures`: the latents, the offset texture, the base's maps and the relief's heights are
+    float16 initializers; the file is smaller; reading it back gives the rounded weights (the base's every channel:
+    random maps vary in all), and a re-export writes the same file."""
     from neumip.training.export.read import read_model
     from neumip.training.export.upgrade import reexport
 
@@ -277,12 +279,12 @@ def test_half_textures_are_stored_in_float16_and_read_back_as_the_model_reads_th
     half = build_onnx(cfg, weights, "half")
     full = build_onnx(replace(cfg, half_textures=False), weights, "full")
     types = {i.name: i.data_type for i in half.graph.initializer}
-    for name in (W.PYRAMID, W.OFFSET_TEXTURE, W.BASE):
+    textures = (W.PYRAMID, W.OFFSET_TEXTURE, W.BASE, W.RELIEF)
+    for name in textures:
         assert types[name] == onnx.TensorProto.FLOAT16, name
-    assert types[W.RELIEF] == onnx.TensorProto.FLOAT
     assert half.ByteSize() < 0.6 * full.ByteSize()
     read = read_model(half)[1]
-    for name in (W.PYRAMID, W.OFFSET_TEXTURE, W.BASE):
+    for name in textures:
         np.testing.assert_array_equal(read[name], weights[name].astype(np.float16).astype(np.float32))
     assert reexport(half).SerializeToString() == half.SerializeToString()
     with pytest.raises(ValueError, match="beyond float16's range"):
