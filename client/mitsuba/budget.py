@@ -103,24 +103,31 @@ class ModelFacts:
     """Its latents, offset texture and base maps are stored in float16 (`MaterialConfig.half_textures`)."""
     offset_mip: bool = False
     """Its offset is read as a mip pyramid at the footprint (`MaterialConfig.offset_mip`), so a trim cuts it too."""
+    base_channels: int = BASE_CHANNELS
+    """Channels its base atlas stores a texel (those that vary between texels, and the horizons)."""
 
     @property
     def value_bytes(self) -> int:
-        """Bytes of one stored value of the latents, the offset texture and the base maps."""
+        """Bytes of one stored value of the latents, the offset texture, the base maps and the relief's heights."""
         return 2 if self.half_textures else 4
 
     def pyramids(self) -> dict[str, tuple[int, int]]:
         """Each pyramid the model reads, by its initializer's name -> (resolution, bytes a texel): the latents, the
-        offset's mip pyramid (`offset_mip`), the base maps', the relief's heights (float32). `neumip trim` cuts them
-        all."""
+        offset's mip pyramid (`offset_mip`), the base maps', the relief's heights. `neumip trim` cuts them all."""
         out = {W.PYRAMID: (self.resolution, self.value_bytes * self.channels)}
         if self.offset_channels and self.offset_mip:
             out[W.OFFSET_TEXTURE] = (self.resolution, self.value_bytes * self.offset_channels)
         if self.base_resolution:
-            out[W.BASE] = (self.base_resolution, self.value_bytes * BASE_CHANNELS)
+            out[W.BASE] = (self.base_resolution, self.value_bytes * self.base_channels)
         if self.relief_resolution:
-            out[W.RELIEF] = (self.relief_resolution, 4)
+            out[W.RELIEF] = (self.relief_resolution, self.value_bytes)
         return out
+
+    def stored_texels(self, name: str, level: int) -> int:
+        """Texels the file stores of pyramid `name` when it holds its levels `level`..: all of them, but the offset's
+        mip pyramid whole (`level` 0) is its finest level alone (the graph derives the others)."""
+        sizes = _level_sizes(self.pyramids()[name][0])
+        return sizes[0] ** 2 if name == W.OFFSET_TEXTURE and level == 0 else sum(s * s for s in sizes[level:])
 
 
 @dataclass
@@ -216,13 +223,15 @@ def model_facts(path: Path) -> ModelFacts | None:
     """Resolution, channels, bytes and trim of the model at ``path`` (its ONNX metadata, read by
     `core.modelfile.read_model_file`: ModelError for a file it refuses); None for a graph without
     neumip metadata (made by another tool: no pyramid)."""
-    file = read_model_file(path)
+    file = read_model_file(path, initializers=True)
     config = file.config
     if config is None:
         return None
+    base = file.initializers.get(W.BASE)
     return ModelFacts(config.resolution, config.channels, file.size, file.finest_level,
                       max(config.base, config.relief), config.lod_bias, config.base, config.relief,
-                      config.offset_channels if config.offset else 0, config.half_textures, config.offset_mip)
+                      config.offset_channels if config.offset else 0, config.half_textures, config.offset_mip,
+                      BASE_CHANNELS if base is None else base.shape[1])
 
 
 def _level_sizes(resolution: int) -> list[int]:
@@ -244,13 +253,20 @@ def _quad_vector_bytes(facts: ModelFacts, levels: dict[str, int]) -> int:
     return sum(8 * (s + 2) for name, (res, _) in facts.pyramids().items() for s in _level_sizes(res)[levels[name]:])
 
 
+MIP_LEVEL_GRAPH_BYTES = {False: 455, True: 505}
+"""About the bytes of graph that derive one level of a whole offset mip pyramid at load (`training/export/lookup.mip_const`:
+9 nodes, 11 with the float16 rounding; measured on 16^2 to 256^2 pyramids), which a trimmed model stores as texels."""
+
+
 def trimmed_size(facts: ModelFacts, finest_level: int) -> int:
-    """About the bytes of the model trimmed to ``finest_level`` (`neumip trim`): every pyramid loses the float32
-    texels of its levels finer than the same footprint (`pyramid_levels`), and the vectors of its quad index
+    """About the bytes of the model trimmed to ``finest_level`` (`neumip trim`): every pyramid loses the stored
+    texels of its levels finer than the same footprint (`pyramid_levels`, `ModelFacts.stored_texels`), and the vectors of its quad index
     table shrink to the levels kept."""
     before, after = pyramid_levels(facts, facts.finest_level), pyramid_levels(facts, max(finest_level, facts.finest_level))
-    texels = sum(texel_bytes * s * s for name, (res, texel_bytes) in facts.pyramids().items()
-                 for s in _level_sizes(res)[before[name]:after[name]])
+    texels = sum(texel_bytes * (facts.stored_texels(name, before[name]) - facts.stored_texels(name, after[name]))
+                 for name, (_, texel_bytes) in facts.pyramids().items())
+    if before.get(W.OFFSET_TEXTURE) == 0 < after.get(W.OFFSET_TEXTURE, 0):  # its levels stored, no longer derived
+        texels += MIP_LEVEL_GRAPH_BYTES[facts.half_textures] * int(math.log2(facts.resolution))
     return facts.bytes - texels - _quad_vector_bytes(facts, before) + _quad_vector_bytes(facts, after)
 
 

@@ -10,6 +10,7 @@ import numpy as np
 import pytest
 
 from neumip.core import contract as C
+from neumip.core import weights as W
 from neumip.client.cli import main
 from neumip.client.mitsuba.budget import material_budget, trace_footprints
 from neumip.core.config import MaterialConfig
@@ -99,8 +100,9 @@ def test_cli_closeup_is_too_coarse_and_far_view_trims(tmp_path, capsys):
         assert levels["64"][name]["finest_level"] == max(0, m["finest_level"] - 3)
 
 
-@pytest.mark.parametrize("maps", [(0, 0, False), (32, 32, False), (16, 16, False), (8, 0, False), (16, 16, True)],
-                         ids=["latents", "finer", "as-fine", "coarser", "offset-mip"])
+@pytest.mark.parametrize("maps", [(0, 0, False), (32, 32, False), (16, 16, False), (8, 0, False), (16, 16, True),
+                                  (32, 32, True, True)],
+                         ids=["latents", "finer", "as-fine", "coarser", "offset-mip", "lean"])
 def test_trimmed_bytes_count_every_pyramid(tmp_path, maps):
     """The budget's estimate of a trimmed model (every pyramid cut at the same footprint, the tables shared by
     pyramids of one resolution) is the size `neumip trim` writes, to a few hundred bytes of protobuf framing."""
@@ -108,8 +110,13 @@ def test_trimmed_bytes_count_every_pyramid(tmp_path, maps):
     from neumip.training.export.lod import pyramids
     from neumip.training.export.trim import trim_model
 
-    config = MaterialConfig(resolution=16, base=maps[0], relief=maps[1], relief_steps=2, offset_mip=maps[2])
-    model = build_onnx(config, random_weights(config))
+    lean = len(maps) > 3  # float16 textures, a base whose F0 is the same in every texel (stored once)
+    config = MaterialConfig(resolution=16, base=maps[0], relief=maps[1], relief_steps=2, offset_mip=maps[2],
+                            half_textures=lean)
+    weights = random_weights(config)
+    if lean:
+        weights[W.BASE][:, 3:6] = 0.04
+    model = build_onnx(config, weights)
     facts = model_facts(save_onnx(model, tmp_path / "m.onnx"))
     offset = next(i for i in model.graph.initializer if i.name == "offset_texture")
     if config.offset_mip:  # a pyramid: trimmed as the others, nothing kept whole
