@@ -1,6 +1,6 @@
 """The `--quick` report pipeline on real renders: flat (the known answer), rock, and a user's material
-given as a description file (planks, from texture maps, with its own models and two map-informed
-ones trained here), in one ladder view.
+given as a description file (planks, from texture maps, with its own models and a second model judged
+beside them), in one ladder view.
 
 Checks real numbers: on `flat` the neural image equals the real geometry within the reference's
 noise; on rock the reference's own noise is far below the differences the report draws conclusions
@@ -31,11 +31,14 @@ VIEW = LADDER_VIEW.name
 
 @pytest.fixture(scope="module")
 def models(tmp_path_factory, one_torch_thread):
-    """One models folder with shipped models and the user's material's, the map-informed ones
-    (planks_maps, planks_maps_nooffset) among them (links: the report reads one folder)."""
+    """One models folder with shipped models and the user's material's, and a second model of it to judge beside N
+    (planks_maps, planks_maps_nooffset: stand-ins, the planks ablation and the shipped rock's; links: the report reads
+    one folder)."""
     folder = tmp_path_factory.mktemp("models")
     for f in [*MODELS.glob("flat.onnx"), *MODELS.glob("rock*.onnx"), *USER_MODELS.glob("planks*.onnx")]:
         (folder / f.name).symlink_to(f)
+    (folder / "planks_maps.onnx").symlink_to(USER_MODELS / "planks_nooffset.onnx")
+    (folder / "planks_maps_nooffset.onnx").symlink_to(MODELS / "rock_nooffset.onnx")
     return folder
 
 
@@ -99,8 +102,8 @@ def test_user_material_from_a_description_file(report):
     assert methods["N"][str(QUICK.spp)]["mean_ratio"] == pytest.approx(1.0, abs=0.5)  # a plausible image of it
 
 
-def test_the_map_informed_model_is_judged_as_n(report):
-    """planks_maps.onnx and planks_maps_nooffset.onnx are rendered as Nmaps and Nmaps0 and judged like N:
+def test_a_second_model_is_judged_as_n(report):
+    """A second model, planks_maps.onnx with planks_maps_nooffset.onnx, is rendered as Nmaps and Nmaps0 and judged like N:
     a verdict, close-up checks with the offset's gain Nmaps0 / Nmaps, rows beside N's in the tables."""
     root, results = report
     mat = results["materials"]["planks"]
