@@ -7,10 +7,13 @@ Section ``startup``: a folder of ``--count`` copies of one model (default the sh
 requests to three materials; a lazy server over one model gives the process's own start-up. Section ``lru``: a lazy server with a budget of ``--budget-models``
 models serves ``--clients`` threads that each send ``--requests`` requests of 4096 queries to a
 random one of ``--materials`` materials; printed: throughput, latency percentiles, loads, unloads,
-the largest resident model bytes seen on /metrics (sampled every 20 ms) against the budget, errors.
+the largest resident model bytes seen on /metrics (sampled every 20 ms) against the budget, errors. Section
+``folders``: `neumip serve` over each of ``--folders`` as it is, with its default settings, in ``--rounds``
+interleaved rounds: the folder's bytes, ready seconds and resident memory (median and range of the rounds).
 
-    .venv/bin/python benchmarks/bench_loading.py                   # both sections
+    .venv/bin/python benchmarks/bench_loading.py                   # startup and lru
     .venv/bin/python benchmarks/bench_loading.py --sections lru --clients 8
+    .venv/bin/python benchmarks/bench_loading.py --sections folders --folders OLD_MODELS,models --rounds 3
 """
 
 from __future__ import annotations
@@ -36,7 +39,7 @@ class Server:
         self.process = ServerProcess.start(folder, **env)
         self.url, self.proc, self.ready_s = self.process.url, self.process.process, self.process.ready_s
 
-    def rss_mb(self) -> float:
+    def rss_mb(self) -> float:  # MiB
         return self.process.rss_bytes() / 2**20
 
     def metric(self, name: str, **labels) -> float:
@@ -79,6 +82,23 @@ def startup(args, tmp: Path) -> None:
     server = Server(one, load="lazy", poll_s=0)
     print(f"  lazy with 1 model (the process's own start-up): ready in {server.ready_s:.2f} s, RSS {server.rss_mb():.0f} MB")
     server.stop()
+
+
+def folders(args, tmp: Path) -> None:
+    paths = [Path(f) for f in args.folders.split(",")]
+    ready, rss = {p: [] for p in paths}, {p: [] for p in paths}
+    for _ in range(args.rounds):
+        for path in paths:
+            server = Server(path)
+            ready[path].append(server.ready_s)
+            rss[path].append(server.rss_mb())
+            server.stop()
+    for path in paths:
+        models = sorted(path.glob("*.onnx"))
+        size = sum(m.stat().st_size for m in models)
+        print(f"{path}: {len(models)} models, {size / 1e6:.2f} MB; ready in {np.median(ready[path]):.2f} s "
+              f"({min(ready[path]):.2f}-{max(ready[path]):.2f}), RSS {np.median(rss[path]):.0f} MiB "
+              f"({min(rss[path]):.0f}-{max(rss[path]):.0f}); {args.rounds} rounds")
 
 
 def lru(args, tmp: Path) -> None:
@@ -129,6 +149,8 @@ def lru(args, tmp: Path) -> None:
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--sections", default="startup,lru")
+    parser.add_argument("--folders", default="models", help="section folders: comma-separated model folders")
+    parser.add_argument("--rounds", type=int, default=3)
     parser.add_argument("--model", type=Path, default=Path("models/rock.onnx"))
     parser.add_argument("--count", type=int, default=200)
     parser.add_argument("--materials", type=int, default=20)
@@ -138,7 +160,7 @@ def main() -> None:
     args = parser.parse_args()
     with tempfile.TemporaryDirectory() as tmp:
         for section in args.sections.split(","):
-            {"startup": startup, "lru": lru}[section](args, Path(tmp))
+            {"startup": startup, "lru": lru, "folders": folders}[section](args, Path(tmp))
 
 
 if __name__ == "__main__":

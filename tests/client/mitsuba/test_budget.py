@@ -94,8 +94,9 @@ def test_cli_closeup_is_too_coarse_and_far_view_trims(tmp_path, capsys):
     for name, m in far.items():
         assert m["finest_level"] >= 1 and not m["too_coarse"]
         assert m["trimmed_bytes"] < m["model_bytes"]
-        assert m["pyramid_levels"]["pyramid"] == m["finest_level"] and m["offset_bytes"] > 0
-        assert m["pyramid_levels"]["base_maps"] == m["finest_level"]  # the shipped maps: 256^2, as the latents
+        assert m["pyramid_levels"]["pyramid"] == m["finest_level"] and m["offset_bytes"] == 0  # nothing kept whole
+        for pyramid in ("base_maps", "relief_heights", "offset_texture"):  # the shipped maps: 256^2, as the latents
+            assert m["pyramid_levels"][pyramid] == m["finest_level"], pyramid
         assert math.isclose(sum(m["histogram"]), 1.0, rel_tol=1e-9)
         assert levels["64"][name]["finest_level"] == max(0, m["finest_level"] - 3)
 
