@@ -71,7 +71,7 @@ def add_flags(parser: argparse.ArgumentParser | argparse._ArgumentGroup, cls: ty
         if field.name in skip:
             continue
         default, name = field.default, (rename or {}).get(field.name, field.name)
-        help_text = first_sentence(docs.get(field.name, "")) + f" ({cls.__name__}.{field.name})"
+        help_text = first_sentence(docs.get(field.name, "")).replace("%", "%%") + f" ({cls.__name__}.{field.name})"  # argparse formats help with %
         options = (choices or {}).get(field.name)
         metavar = (metavars or {}).get(field.name)
         if isinstance(default, bool) and overrides:  # --name / --no-name: either may override a recipe's value

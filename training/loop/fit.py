@@ -42,8 +42,8 @@ REFERENCE_SPP = 256
 """Path samples per reference query (16x the training data's: its noise adds 1/16 of theirs to an MSE)."""
 
 MIN_QUERIES = 1 << 20
-"""The fewest queries `fit` traces by default: a material without maps (a homogeneous [bsdf]) gets a 1 x 1 model,
-whose answer still varies with the footprint and both directions (the 2^20 of a 64^2 model at 256 a texel)."""
+"""The queries `fit` traces by default for a 1 x 1 model (a material without maps, a homogeneous [bsdf]), whose answer
+still varies with the footprint and both directions: the 2^20 of a 64^2 model at 256 a texel, not 256."""
 
 STAGES = ("ground truth", "progress views", "training", "noise check", "export")
 """The stages of a fit, in order, as `Report` names them."""
@@ -133,7 +133,8 @@ def fit(description, output: str | Path, settings: FitSettings, report: Report |
     resolution = settings.material.resolution
     gen = settings.generate or GenerateSettings()
     gen = replace(gen, resolution=gen.resolution or max(resolution, description.resolution),
-                  queries=gen.queries or max(MIN_QUERIES, round(gen.sampling.queries_per_texel * resolution**2)))
+                  queries=gen.queries or max(MIN_QUERIES if resolution == 1 else 1,
+                                             round(gen.sampling.queries_per_texel * resolution**2)))
     log.info("fitting %s into %s (work folder %s)", description.name, output, work)
     data = generate(description, settings.data or work / "data", gen,
                     lambda done, total: report(STAGES[0], done, total))  # (N, 7) queries, (N, 3) RGB
