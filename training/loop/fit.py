@@ -89,6 +89,12 @@ class FitSettings:
     and keep the one with the lowest error on the reference set (`reference_error`)."""
 
 
+def data_queries(queries_per_texel: float, resolution: int) -> int:
+    """The queries `fit` traces for a model of `resolution`^2 texels at its finest level, unless told: that many per
+    texel, and `MIN_QUERIES` for a 1 x 1 model."""
+    return max(MIN_QUERIES if resolution == 1 else 1, round(queries_per_texel * resolution**2))
+
+
 def reference_error(material, data) -> float:
     """Error of a trained material's answers to a data set's queries: the MSE of log1p values (`validation.errors`'
     log_mse; what the comb2 loss trains). Linear MSE is no judge here: a glossy material's glints make it
@@ -133,8 +139,7 @@ def fit(description, output: str | Path, settings: FitSettings, report: Report |
     resolution = settings.material.resolution
     gen = settings.generate or GenerateSettings()
     gen = replace(gen, resolution=gen.resolution or max(resolution, description.resolution),
-                  queries=gen.queries or max(MIN_QUERIES if resolution == 1 else 1,
-                                             round(gen.sampling.queries_per_texel * resolution**2)))
+                  queries=gen.queries or data_queries(gen.sampling.queries_per_texel, resolution))
     log.info("fitting %s into %s (work folder %s)", description.name, output, work)
     data = generate(description, settings.data or work / "data", gen,
                     lambda done, total: report(STAGES[0], done, total))  # (N, 7) queries, (N, 3) RGB

@@ -89,7 +89,7 @@ def verdict_line(noise: dict, shipped: dict[str, tuple[float, int]]) -> str:
     """One line: the model's query error against the noise floor, and where that places it among `shipped`
     (each compared at its own data's spp, `ratio_at`)."""
     if noise["ratio"] is None:
-        return f"verdict: query MSE {noise['mse'] * 1e3:.3g}e-3 against noise-free ground truth"
+        return f"verdict: query MSE {noise['mse']:.3g} against noise-free ground truth"
     own = max(noise["mse"] - noise["noise_floor"], 0.0)
     line = (f"verdict: query MSE {noise['ratio']:.2f}x the ground truth's own noise ({noise['noise_floor'] * 1e3:.3g}e-3 "
             f"at {noise['spp']} spp; 1x is all the data can show), the model's own error {own * 1e3:.3g}e-3")

@@ -249,3 +249,12 @@ def test_fit_refuses_fewer_than_one_seed_before_tracing_anything(material, tmp_p
     assert main(["fit", str(material), "-o", str(out), "--preset", "test", "--seeds", "0", "--threads", "1"]) == 2
     assert "seeds must be >= 1" in capsys.readouterr().err
     assert not (tmp_path / "none.run" / "data").exists() and not out.exists()
+
+
+def test_a_1x1_model_gets_data_for_its_directions():
+    """A material without maps gets a 1 x 1 model; its answer still varies with the footprint and both directions,
+    so `fit` traces `MIN_QUERIES` for it, not 256 (the per-texel count everywhere else)."""
+    from neumip.training.loop.fit import MIN_QUERIES, data_queries
+
+    assert data_queries(256, 1) == MIN_QUERIES == 1 << 20
+    assert data_queries(32, 4) == 512 and data_queries(256, 256) == 1 << 24
