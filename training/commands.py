@@ -18,7 +18,7 @@ BASE_HELP = ("the classical material as the base: the answer is the principled B
 RELIEF_HELP = ("parallax and occlusion from the material's height map: every lookup reads where the view ray "
                "first meets the height field, marched in STEPS steps on a height pyramid at the map's resolution, "
                "before the neural offset (MaterialConfig.relief, training/TRAINING.md)")
-TRAIN_CHOICES = {"loss": LOSSES, "finish_loss": LOSSES + ("",), "device": ("auto", "cpu", "cuda"),
+TRAIN_CHOICES = {"loss": LOSSES, "finish_loss": LOSSES + ("",), "coarse_loss": LOSSES + ("",), "device": ("auto", "cpu", "cuda"),
                  "lr_schedule": ("constant", "cosine")}
 """The values a string field of `TrainConfig` takes."""
 MAP_FLAGS = {"hidden": "map_hidden", "layers": "map_layers"}

@@ -42,6 +42,11 @@ class TrainConfig:
     unbiased one after `comb2`, whose log settles darker than the noisy targets' mean."""
     finish_fraction: float = 0.0
     """Fraction of `steps`, at the run's end, trained with `finish_loss` (rounded to whole steps)."""
+    coarse_loss: str = ""
+    """A loss for the queries whose level of detail is `coarse_level` or coarser ('' none; a name from `LOSSES`):
+    e.g. an unbiased one where a glossy material's glints leave the coarse footprints' 16-spp targets noisy."""
+    coarse_level: float = 3.0
+    """The level of detail (log2(sigma R) + lod_bias, of the model's pyramid) from which `coarse_loss` applies."""
     finish_lr_scale: float = 1.0
     """The learning rate of those steps, as a fraction of the schedule's."""
     average_fraction: float = 0.0
@@ -94,8 +99,9 @@ class TrainConfig:
         if self.lr_schedule not in ("constant", "cosine") or not 0 <= self.lr_final <= 1:
             raise ValueError(f"lr_schedule must be 'constant' or 'cosine' and lr_final in [0, 1], "
                              f"got {self.lr_schedule!r}, {self.lr_final}")
-        if self.loss not in LOSSES or self.finish_loss not in LOSSES + ("",):
-            raise ValueError(f"loss and finish_loss must be one of {LOSSES}, got {self.loss!r}, {self.finish_loss!r}")
+        if self.loss not in LOSSES or self.finish_loss not in LOSSES + ("",) or self.coarse_loss not in LOSSES + ("",):
+            raise ValueError(f"loss, finish_loss and coarse_loss must be one of {LOSSES}, got {self.loss!r}, "
+                             f"{self.finish_loss!r}, {self.coarse_loss!r}")
         if not 0 <= self.average_fraction <= 1:
             raise ValueError(f"average_fraction must be in [0, 1], got {self.average_fraction}")
         if not 0 <= self.finish_fraction <= 1 or (self.finish_fraction > 0) != bool(self.finish_loss):

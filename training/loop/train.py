@@ -33,6 +33,7 @@ from neumip.training.model.base import base_maps
 from neumip.training.model.maps import MapConfig, prefilter
 from neumip.training.model.material import MapMaterial, NeuMIPMaterial
 from neumip.training.model.relief import landed_positions, relief_heights
+from neumip.training.model.pyramid import level_of_detail
 from neumip.groundtruth.description import Microgeometry
 from neumip.groundtruth.lobe import sampling_lobe
 from neumip.training.loop.config import TrainConfig
@@ -292,7 +293,11 @@ class Trainer:
     ) -> torch.Tensor:
         """(B, 7) queries, (B, 3) target, effective textures, the loss's name -> scalar training loss."""
         answers = self.material(queries, levels, otex, landed=self.sampler.landed is not None, ceiling=False)
-        return training_loss(answers, target, self.config, loss)
+        if not self.config.coarse_loss:
+            return training_loss(answers, target, self.config, loss)
+        cfg = self.material.config  # the queries whose footprint reads level coarse_level or coarser:
+        coarse = level_of_detail(queries[:, C.SIGMA], cfg.resolution, cfg.lod_bias) >= self.config.coarse_level
+        return training_loss(answers, target, self.config, loss, coarse=coarse)
 
     # --- checkpoints -----------------------------------------------------------------------------
 

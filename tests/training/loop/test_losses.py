@@ -92,3 +92,20 @@ def test_the_finish_loss_trains_the_last_steps():
                 {"finish_loss": "mse", "finish_fraction": 1.5}):
         with pytest.raises(ValueError, match="finish"):
             TrainConfig(steps=100, **bad)
+
+
+def test_a_coarse_loss_applies_to_the_coarse_queries_only():
+    """`TrainConfig.coarse_loss`: each query's term is its own loss's, the coarse ones (`coarse`) under the coarse
+    loss; the mean of the mixed terms is the two losses' means weighted by their queries."""
+    from neumip.training.loop.config import TrainConfig
+    from neumip.training.loop.losses import comb2, log_weighted_mse, training_loss
+
+    torch.manual_seed(3)
+    pred, target = torch.rand(64, 3) * 2, torch.rand(64, 3) * 2
+    coarse = torch.arange(64) >= 40
+    config = TrainConfig(coarse_loss="log_weighted")
+    want = (comb2(pred[~coarse], target[~coarse]) * 40 + log_weighted_mse(pred[coarse], target[coarse]) * 24) / 64
+    torch.testing.assert_close(training_loss(pred, target, config, coarse=coarse), want)
+    torch.testing.assert_close(training_loss(pred, target, TrainConfig(), coarse=coarse), comb2(pred, target))
+    with pytest.raises(ValueError, match="coarse_loss"):
+        TrainConfig(coarse_loss="huber")

@@ -237,6 +237,32 @@ def test_the_last_steps_train_with_the_finish_loss(data, tmp_path, monkeypatch):
     assert names == ["comb2"] * 45 + ["log_weighted"] * 15
 
 
+def test_the_coarse_queries_train_with_the_coarse_loss(data, tmp_path, monkeypatch):
+    """`coarse_loss`: each batch's queries whose level of detail is `coarse_level` or coarser are marked for it."""
+    from neumip.core import contract as C
+
+    real_loss, seen = train_mod.training_loss, []
+
+    def recording(pred, target, config, name=None, coarse=None):
+        seen.append((coarse, C.level_of_detail(recording.sigma, TINY.resolution, TINY.lod_bias)))
+        return real_loss(pred, target, config, name, coarse)
+
+    real_draw = train_mod.BatchSampler.draw
+
+    def draw(self, device):
+        queries, target = real_draw(self, device)
+        recording.sigma = queries[:, C.SIGMA].numpy().astype(np.float64)
+        return queries, target
+
+    monkeypatch.setattr(train_mod, "training_loss", recording)
+    monkeypatch.setattr(train_mod.BatchSampler, "draw", draw)
+    Trainer(data.path, tmp_path / "c.pt", TINY, replace(FAST, coarse_loss="log_weighted", coarse_level=2.0)).run()
+    assert len(seen) == FAST.steps
+    for coarse, level in seen:
+        np.testing.assert_array_equal(coarse.numpy(), level >= 2.0)
+    assert any(c.any() for c, _ in seen) and any((~c).any() for c, _ in seen)
+
+
 def test_cli_train_writes_model_table_and_curve(data, tmp_path, capsys):
     from neumip.client.cli import main
 
