@@ -26,7 +26,6 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
-import onnx
 
 from neumip.core import weights as W
 from neumip.core.config import MaterialConfig
@@ -75,19 +74,6 @@ def pyramids(config: MaterialConfig) -> list[Pyramid]:
     return out + ([Pyramid(W.BASE, config.base_pyramid(), BASE_PREFIX)] if config.base else [])
 
 
-def clip_nodes(graph, config: MaterialConfig) -> list:
-    """The level-of-detail Clip of each of `pyramids(config)` in an exported graph of `config`, in that order."""
-    clips = [node for node in graph.node if node.op_type == "Clip"]
-    if len(clips) != len(pyramids(config)):
-        raise ValueError(f"expected {len(pyramids(config))} level-of-detail Clips, found {len(clips)} Clip nodes")
-    return clips
-
-
-def clip_node(graph, config: MaterialConfig) -> "onnx.NodeProto":
-    """The latent pyramid's level-of-detail Clip of an exported graph of `config` (`clip_nodes`)."""
-    return clip_nodes(graph, config)[1 if config.relief else 0]
-
-
 def log2_mantissa(g: GraphWriter, m: str) -> str:
     """m (N, 1) in [1, 2) -> log2(m) (N, 1) in [0, 1), 0 exactly at m = 1 (Horner in s^2)."""
     one = g.scalar(1.0)
@@ -116,13 +102,6 @@ def level_constants(tables: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
         out[f"lod.{name}.first"] = table[0]
         out[f"lod.{name}.steps"] = np.diff(table, axis=0)
     return out
-
-
-def stage_constants(config: MaterialConfig, finest_level: int = 0,
-                    tables: dict[str, np.ndarray] | None = None) -> dict[str, np.ndarray]:
-    """The ``lod.*`` initializers `level_of_detail` writes for per-level `tables` (its own 2^-lo
-    table, "scale", included): what `neumip trim` checks and swaps."""
-    return level_constants(_with_scale(config, finest_level, tables))
 
 
 def _with_scale(config: MaterialConfig, finest_level: int, tables: dict | None) -> dict[str, np.ndarray]:

@@ -10,7 +10,7 @@ levels more of its own, `MaterialConfig.pyramid_finest_level`):
   graph derives the coarser ones when it loads, as it does untrimmed);
 - the vectors its quad index table is computed from (``quad.*``, ``base.quad.*``, ``relief.quad.*``,
   `lookup.quad_vectors`) and the per-level tables its level of detail reads (``lod.*``, ``base.lod.*``,
-  ``relief.lod.*``, `lod.stage_constants`) become those of the shorter atlas (`lookup.trimmed_atlas`: only
+  ``relief.lod.*``, `lod.level_of_detail`) become those of the shorter atlas (`lookup.trimmed_atlas`: only
   the table rows move, each level's size and row width stay; levels finer than K_p have no quad rows, and
   their level-of-detail rows repeat K_p's);
 - its level-of-detail Clip's lower bound becomes 2^K_p (`lod.clip_min`).

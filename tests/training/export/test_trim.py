@@ -19,7 +19,7 @@ from neumip.engines.local import load_material, run_chunked
 from neumip.core.config import MaterialConfig
 from neumip.core.modelfile import ModelError
 from neumip.training.export.graph import build_onnx, random_weights, save_onnx
-from neumip.training.export.lod import clip_node, pyramids
+from neumip.training.export.lod import pyramids
 from neumip.training.export.lookup import quad_vectors
 from neumip.training.export.trim import TrimError, current_trim, trim_model, trimmed_weights
 
@@ -145,7 +145,8 @@ def test_refuses_a_graph_of_another_layout(untrimmed):
     model, config = untrimmed
     tampered = onnx.ModelProto()
     tampered.CopyFrom(model)
-    clip = clip_node(tampered.graph, config)
+    clips = [n for n in tampered.graph.node if n.op_type == "Clip"]  # one level-of-detail Clip per pyramid, in order
+    clip = clips[[p.texture for p in pyramids(config)].index("pyramid")]  # the latents'
     init = next(i for i in tampered.graph.initializer if i.name == clip.input[1])
     init.CopyFrom(onnx.numpy_helper.from_array(np.asarray(0.5, np.float32), init.name))
     with pytest.raises(TrimError, match="not what this export writes"):
