@@ -168,11 +168,11 @@ def mip_const(g: GraphWriter, atlas: np.ndarray, pyramid: MaterialConfig, name: 
     as the model does). ValueError where `atlas` (float32, every level), as stored, is not that pyramid of its finest
     level as stored."""
     size, width = pyramid.resolution, pyramid.channels
-    finest = np.asarray(atlas[:size * size], np.float32)
-    derived = mip_atlas(stored_texture(finest, config).reshape(size, size, width))
-    if not np.array_equal(stored_texture(derived, config), stored_texture(atlas, config)):
+    finest = stored_texture(atlas[:size * size], config)
+    if not np.array_equal(stored_texture(mip_atlas(finest.reshape(size, size, width)), config),
+                          stored_texture(atlas, config)):
         raise ValueError(f"{name}: its coarser levels are not the mip pyramid of its finest level")
-    level = g.shape(texture_const(g, stored_texture(finest, config), name, config), [size, size, width])
+    level = g.shape(texture_const(g, finest, name, config), [size, size, width])
     big = np.iinfo(np.int64).max
     levels = [g.shape(level, [-1, width])]
     for _ in pyramid.level_sizes()[1:]:

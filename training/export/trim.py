@@ -63,10 +63,6 @@ NEEDS_CONFIG = "neumip trim needs the model's config (its pyramid's levels)"
 """What `ModelFile.require_config` says needs it here."""
 
 
-def model_config(model: onnx.ModelProto) -> MaterialConfig:
-    return model_file(model).require_config(NEEDS_CONFIG)
-
-
 def current_trim(model: onnx.ModelProto) -> TrimRecord | None:
     """The model's ``neumip.trim`` record (None: never trimmed)."""
     return model_file(model).trim

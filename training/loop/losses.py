@@ -28,7 +28,7 @@ def log_space(x: torch.Tensor) -> torch.Tensor:
 
 def comb2(pred: torch.Tensor, target: torch.Tensor, l1_weight: float = 0.1) -> torch.Tensor:
     """(N, 3), (N, 3) -> scalar: MSE + l1_weight * L1, both of the log-space difference."""
-    return _terms("comb2", pred, target, TrainConfig(l1_weight=l1_weight)).mean()
+    return _terms("comb2", pred, target, l1_weight).mean()
 
 
 RELATIVE_FLOOR = 0.01
@@ -37,7 +37,7 @@ RELATIVE_FLOOR = 0.01
 
 def relative_mse(pred: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
     """(N, 3), (N, 3) -> scalar mean of (pred - target)^2 / (pred^2 + RELATIVE_FLOOR), the denominator detached."""
-    return _terms("relative", pred, target, TrainConfig()).mean()
+    return _terms("relative", pred, target).mean()
 
 
 def log_weighted_mse(pred: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
@@ -46,12 +46,12 @@ def log_weighted_mse(pred: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
     The log loss's weights without its bias: near the answer, (log1p(p) - log1p(t))^2 is
     ((p - t) / (1 + p))^2, so a highlight weighs as it does under `comb2`, but with the denominator
     detached each term's minimiser is the target's mean."""
-    return _terms("log_weighted", pred, target, TrainConfig()).mean()
+    return _terms("log_weighted", pred, target).mean()
 
 
 def mse(pred: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
     """(N, 3), (N, 3) -> scalar mean squared error in linear RGB."""
-    return _terms("mse", pred, target, TrainConfig()).mean()
+    return _terms("mse", pred, target).mean()
 
 
 def training_loss(pred: torch.Tensor, target: torch.Tensor, config: TrainConfig, name: str | None = None,
@@ -61,16 +61,18 @@ def training_loss(pred: torch.Tensor, target: torch.Tensor, config: TrainConfig,
     each query's term under its own loss."""
     name = config.loss if name is None else name
     if coarse is None or not config.coarse_loss:
-        return _terms(name, pred, target, config).mean()
-    fine, rough = _terms(name, pred, target, config), _terms(config.coarse_loss, pred, target, config)
+        return _terms(name, pred, target, config.l1_weight).mean()
+    fine = _terms(name, pred, target, config.l1_weight)
+    rough = _terms(config.coarse_loss, pred, target, config.l1_weight)
     return torch.where(coarse[:, None], rough, fine).mean()
 
 
-def _terms(name: str, pred: torch.Tensor, target: torch.Tensor, config: TrainConfig) -> torch.Tensor:
-    """(N, 3) each value's term of loss `name`, whose mean is the loss (`comb2`, `relative_mse`, ...)."""
+def _terms(name: str, pred: torch.Tensor, target: torch.Tensor, l1_weight: float = 0.1) -> torch.Tensor:
+    """(N, 3) each value's term of loss `name` (comb2's L1 weighed by `l1_weight`), whose mean is the loss (`comb2`,
+    `relative_mse`, ...)."""
     if name == "comb2":
         diff = log_space(pred) - log_space(target)
-        return diff * diff + config.l1_weight * diff.abs()
+        return diff * diff + l1_weight * diff.abs()
     if name == "relative":
         diff = pred - target
         return diff * diff / (pred.detach() ** 2 + RELATIVE_FLOOR)
