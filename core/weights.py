@@ -132,6 +132,13 @@ def weight_shapes(config: MaterialConfig) -> dict[str, tuple[int, ...]]:
     return shapes
 
 
+def offset_levels_derived(config: MaterialConfig, finest_level: int = 0) -> bool:
+    """Whether the file stores the offset's mip pyramid (`MaterialConfig.offset_mip`) as its finest level alone, the
+    graph deriving the others when it loads: where the model holds it whole (a trim stores the levels it keeps)."""
+    mips = config.offset_pyramid()
+    return mips is not None and config.pyramid_finest_level(mips, finest_level) == 0
+
+
 def initializer_shapes(config: MaterialConfig, finest_level: int = 0) -> dict[str, tuple[int, ...]]:
     """Every initializer of the exported graph that holds a weight -> its shape (the graph's other
     initializers are constants of its arithmetic). ``finest_level`` K > 0: a trimmed model, whose
@@ -142,9 +149,8 @@ def initializer_shapes(config: MaterialConfig, finest_level: int = 0) -> dict[st
     rows = config.atlas_rows() - starts[finest_level]
     shapes: dict[str, tuple[int, ...]] = {PYRAMID: (rows, config.channels)}
     shapes.update(_other_texture_shapes(config, finest_level))
-    mips = config.offset_pyramid()
-    if mips is not None and config.pyramid_finest_level(mips, finest_level) == 0:  # its finest level: the graph derives the rest
-        shapes[OFFSET_TEXTURE] = (mips.resolution**2, mips.channels)
+    if offset_levels_derived(config, finest_level):  # its finest level: the graph derives the rest
+        shapes[OFFSET_TEXTURE] = (config.offset_pyramid().resolution**2, config.offset_channels)
     for mlp, (inputs, answers) in mlps(config).items():
         widths = _widths(config, inputs, DEPTH_COPIES if mlp == OFFSET_MLP else answers)
         first = {"texture": texture_inputs(mlp, config), "query": C.QUERY_DIM, "light": 2,

@@ -125,7 +125,7 @@ class ModelFacts:
 
     def stored_texels(self, name: str, level: int) -> int:
         """Texels the file stores of pyramid `name` when it holds its levels `level`..: all of them, but the offset's
-        mip pyramid whole (`level` 0) is its finest level alone (the graph derives the others)."""
+        mip pyramid whole (`level` 0) is its finest level alone (`core.weights.offset_levels_derived`)."""
         sizes = _level_sizes(self.pyramids()[name][0])
         return sizes[0] ** 2 if name == W.OFFSET_TEXTURE and level == 0 else sum(s * s for s in sizes[level:])
 

@@ -284,7 +284,7 @@ def material_graph(g: GraphWriter, config: MaterialConfig, weights: dict,
     # --- neural offset: uv += r * wo_xy / max(wo_z, min_cos) -----------------------------------
     if config.offset:
         mips = config.offset_pyramid()
-        if mips is not None and finest[W.OFFSET_TEXTURE] == 0:  # the file stores its finest level, the graph the rest
+        if W.offset_levels_derived(config, finest_level):  # the file stores its finest level, the graph the rest
             texture = mip_const(g, weights[W.OFFSET_TEXTURE], mips, W.OFFSET_TEXTURE, config)
         else:  # a trimmed mip pyramid's levels (a finest level alone would not give them the same bits), or one level
             texture = texture_const(g, stored_texture(weights[W.OFFSET_TEXTURE], config), W.OFFSET_TEXTURE, config)

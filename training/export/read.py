@@ -113,8 +113,7 @@ def read_weights(inits: dict[str, np.ndarray], config: MaterialConfig, finest: i
     base_whole = config.base and BASE_CONSTANT not in inits  # the layout before 2026-11-28: every channel stored
     if config.base and not base_whole:  # its varying map channels and the horizons (`base.read_base`)
         want[W.BASE] = (want[W.BASE][0], (0 if place is None else place.shape[0]) + BASE_HORIZONS)
-    mips = config.offset_pyramid()
-    mips_derived = mips is not None and config.pyramid_finest_level(mips, finest) == 0
+    mips, mips_derived = config.offset_pyramid(), W.offset_levels_derived(config, finest)
     if mips_derived and inits.get(W.OFFSET_TEXTURE, np.zeros((0, 0))).shape == (mips.atlas_rows(), mips.channels):
         want[W.OFFSET_TEXTURE], mips_derived = (mips.atlas_rows(), mips.channels), False  # that layout's: every level
     check_shapes(inits, want)
