@@ -1,22 +1,23 @@
 #!/usr/bin/env bash
-# The checks that need an NVIDIA GPU, in one short run (experiments/gpu/gpu.txt has the last one's figures):
+# The checks that need an NVIDIA GPU, in one short run (experiments/gpu/gpu.txt has the figures of each run):
 #   1. CUDA parity: the in-kernel engine on drjit's CUDA backend against ONNX Runtime
 #      (tests/engines/test_kernel.py), the material on the GPU against its graph (tests/training/export/test_graph.py)
 #      and a run trained on the GPU that resumes on the CPU and exports what it computed (tests/training/loop/test_train.py);
-#   2. training on the GPU: experiments/maps/maps.py's relief + base recipe at 64^2 (the shipped one), at the maps'
-#      256^2, and both with the `quality` schedule (4.2x the steps), each judged on a low-noise reference set;
-#   3. the kernel's throughput on the GPU beside the CPU's (benchmarks/bench_models.py).
+#   2. the in-kernel engine on the GPU against its bounds and an MLP-only torch graph (benchmarks/bench_cuda.py);
+#   3. `neumip train` of the shipped `maps` recipe with `--device auto` (the GPU there), each PRESET in turn, timed.
 #
-#   bash experiments/gpu/gpu_check.sh DATA MATERIAL REFERENCE OUT [SECONDS]
+#   bash experiments/gpu/gpu_check.sh DATA OUT [SECONDS] [PRESET...]
 #
-# DATA: a `neumip generate` data set of MATERIAL; REFERENCE: its low-noise reference set (make_models.sh's
-# runs/NAME/reference); OUT: where the logs and each run's record go (the models stay in /tmp);
-# SECONDS (default 420): the wall-clock budget, so
-# that the last steps are cut rather than the whole run. It runs where the repository is not installed:
-# with the python that has torch (and numpy, onnx, onnxruntime, msgpack, pytest), the repository's areas
-# linked into a `neumip` namespace under /tmp/neumip_site, and drjit from wheels in .whl/ if there are any.
+# DATA: a `neumip generate` data set (made on a machine with Mitsuba) whose work folder for the model
+# OUT/train/NAME.onnx holds the progress views already (DATA/views: a short `neumip train DATA -o x.onnx` there traces
+# them into x.run/views); OUT: where the logs go; SECONDS (default 420): the wall-clock budget, so that a step that
+# would outrun it is cut. PRESETs (default ship). It runs where the repository is not installed: with the python that
+# has torch (and numpy, onnx, onnxruntime, msgpack, pytest), the repository's areas linked into a `neumip` namespace
+# (gpu_site.sh), and drjit from wheels in .whl/.
 set -u
-data=$1 material=$2 reference=$3 out=$4 budget=${5:-420}
+data=$1 out=$2 budget=${3:-420}
+shift $(($# < 3 ? $# : 3))
+presets=${*:-ship}
 start=$SECONDS
 source experiments/gpu/gpu_site.sh
 mkdir -p "$out"
@@ -26,26 +27,21 @@ left() { echo $((budget - (SECONDS - start))); }
 '| drjit', dr.__version__, 'CUDA backend', dr.has_backend(dr.JitBackend.CUDA))"; } 2>&1 | tee "$out/device.txt"
 
 echo "== 1. CUDA parity"
-timeout $(( $(left) / 3 )) python3 -m pytest -q -rs -p no:cacheprovider tests/engines/test_kernel.py \
+timeout $(( $(left) / 4 )) python3 -m pytest -q -rs -p no:cacheprovider tests/engines/test_kernel.py \
     tests/training/export/test_graph.py tests/training/loop/test_train.py -k "cuda or gpu" 2>&1 | tee "$out/parity.txt"
 
-train() {  # experiments/maps/maps.py train VARIANT on the GPU, cut 45 s before the budget ends
-    [ "$(left)" -gt 60 ] || { echo "$1: skipped, $(left) s left"; return; }
-    timeout $(( $(left) - 45 )) python3 experiments/maps/maps.py train "$1" --data "$data" --material "$material" \
-        --runs "$runs" --device cuda --reference "$reference" 2>&1 | grep -v "^\s*$" | tail -3
-}
+echo "== 2. the kernel on the GPU"
+timeout $(( $(left) / 3 )) python3 benchmarks/bench_cuda.py models/rock.onnx 2>&1 | tee "$out/kernel.txt"
 
-echo "== 2. training on the GPU: the shipped recipe"
-train Nbr 2>&1 | tee "$out/train.txt"
-
-echo "== 3. the kernel on the GPU and on the CPU (where drjit finds libLLVM)"
-mkdir -p "$runs/models"
-cp "$runs"/Nbr/*.onnx "$runs/models/"
-backends=$(python3 -c "import drjit as dr; print('llvm,cuda' if dr.has_backend(dr.JitBackend.LLVM) else 'cuda')")
-timeout 90 python3 benchmarks/bench_models.py "$runs/models" --queries 20 --rounds 3 --backends "$backends" 2>&1 \
-    | tee "$out/kernel.txt"
-
-echo "== 4. training on the GPU: 256^2 and the longer schedule"
-for variant in Nbr256 Nbr_quality Nbr256_quality; do train $variant; done 2>&1 | tee -a "$out/train.txt"
-for record in "$runs"/*/*.json; do cp "$record" "$out/$(basename "$(dirname "$record")").json"; done
+echo "== 3. training on the GPU"
+for preset in $presets; do
+    [ "$(left)" -gt 60 ] || { echo "$preset: not started, $(left) s left"; continue; }
+    work="$runs/$preset"
+    mkdir -p "$work/rock.run" && cp -r "$data/views" "$work/rock.run/views"
+    began=$SECONDS
+    timeout $(( $(left) - 20 )) python3 -c "import sys; from neumip.client.cli import main; sys.exit(main())" \
+        train "$data" --recipe maps --preset "$preset" --device auto -o "$work/rock.onnx" 2>&1 \
+        | tr '\r' '\n' | grep -v "^\s*$" | grep -v "step/s\]$" | tail -12
+    echo "$preset: $((SECONDS - began)) s on the GPU"
+done 2>&1 | tee "$out/train.txt"
 echo "done in $((SECONDS - start)) s"

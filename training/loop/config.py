@@ -151,7 +151,8 @@ QUICK = replace(SHIP, steps=1200, blur_half_life=133.0, checkpoint_every=200, va
 QUALITY = replace(SHIP, steps=10_000, blur_half_life=1111.0, checkpoint_every=1000, validate_every=1000)
 """The paper's schedule scaled by 1/3 in steps (10 000 steps; blur reaches 1 texel at step ~3 330, ends
 at ~5 900, then the offset freezes) at ship's batch of 16 384: 4.2x ship's queries
-(`PRESET=quality bash models/make_models.sh`; why: training/TRAINING.md)."""
+(`neumip fit NAME --preset quality`, `FLAGS="--preset quality" bash models/make_models.sh`: for a GPU;
+training/TRAINING.md)."""
 
 TEST = replace(SHIP, steps=300, batch=4096, blur_start=2.0, blur_half_life=50.0, checkpoint_every=100, log_every=10,
                validate_every=100)
