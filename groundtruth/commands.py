@@ -29,6 +29,10 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--queries-per-texel", type=float, default=QuerySampling.queries_per_texel,
                    help="queries per finest texel (the paper used 200-400)")
     p.add_argument("--spp", type=int, default=GenerateSettings.spp, help="path samples per query")
+    p.add_argument("--coarse-spp", type=int, default=GenerateSettings.coarse_spp,
+                   help="path samples per query of footprints from --coarse-texels finest texels (0: --spp)")
+    p.add_argument("--coarse-texels", type=float, default=GenerateSettings.coarse_texels,
+                   help="footprint (finest texels) from which --coarse-spp applies")
     p.add_argument("--seed", type=int, default=GenerateSettings.seed,
                    help="data set seed (same seed, same data)")
     p.add_argument("--max-depth", type=int, default=TracerConfig.max_depth,
@@ -108,7 +112,8 @@ def _settings(args: argparse.Namespace):
         **({} if args.max_zenith is None else {"max_zenith_deg": args.max_zenith}),
     )
     return GenerateSettings(
-        queries=args.queries, spp=args.spp, seed=args.seed, chunk=args.chunk, resolution=args.resolution,
+        queries=args.queries, spp=args.spp, coarse_spp=args.coarse_spp, coarse_texels=args.coarse_texels,
+        seed=args.seed, chunk=args.chunk, resolution=args.resolution,
         sampling=sampling, tracer=TracerConfig(max_depth=args.max_depth, lanes=args.lanes, variant=args.variant),
     )
 

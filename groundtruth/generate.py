@@ -24,6 +24,7 @@ import numpy as np
 
 from neumip.client.mitsuba.runtime import import_mitsuba
 from neumip.core import cluster
+from neumip.core import contract as C
 from neumip.core.cluster import RayConfig
 from neumip.groundtruth.dataset import Dataset, DatasetWriter
 
@@ -46,6 +47,13 @@ class GenerateSettings:
     """Number of queries; None: ``sampling.queries_per_texel`` per finest texel."""
     spp: int = 16
     """Path samples per query."""
+    coarse_spp: int = 0
+    """Path samples per query of the queries whose footprint is `coarse_texels` finest texels or wider (0: `spp`;
+    else more than `spp`: their `spp` samples, then more).
+    A glossy material's rare glints make a coarse footprint's 16-sample estimate noisy, and training's log loss
+    settles below a noisy target's mean (experiments/level_share)."""
+    coarse_texels: float = 8.0
+    """Where `coarse_spp` starts: sigma * resolution >= this (8: level of detail 3)."""
     seed: int = 0
     """Seed of the whole data set (same seed, same data)."""
     chunk: int = 1 << 16
@@ -65,8 +73,9 @@ class GenerateSettings:
             self.tiling = replace(self.tiling, max_zenith_deg=self.sampling.max_zenith_deg)
         if self.queries is not None and self.queries < 1:
             raise ValueError(f"queries must be >= 1, got {self.queries}")
-        if self.spp < 1 or self.chunk < 1:
-            raise ValueError("spp and chunk must be >= 1")
+        if self.spp < 1 or self.chunk < 1 or (self.coarse_spp and self.coarse_spp <= self.spp) or self.coarse_texels <= 0:
+            raise ValueError(f"spp and chunk must be >= 1, coarse_spp 0 or more than spp ({self.spp}) and "
+                             f"coarse_texels > 0, got {self.coarse_spp} and {self.coarse_texels}")
         if not 0 <= self.seed < 2**63:
             raise ValueError(f"seed must be in [0, 2^63), got {self.seed}")
 
@@ -88,10 +97,12 @@ class GenerateSettings:
             del sampling["levels_resolution"]
         if not sampling["sub_texel_levels"]:  # likewise
             del sampling["sub_texel_levels"]
+        coarse = {"coarse_spp": self.coarse_spp, "coarse_texels": self.coarse_texels} if self.coarse_spp else {}
         return {
             "name": GENERATOR,
             "queries": self.query_count(desc),
             "spp": self.spp,
+            **coarse,  # only where set: older data sets stay valid
             "seed": self.seed,
             "resolution": self.sampling_resolution(desc),
             "sampling": sampling,
@@ -109,10 +120,18 @@ def chunk_seeds(seed: int, index: int) -> tuple[np.random.Generator, int]:
 def trace_chunk(
     tracer: QueryTracer, settings: GenerateSettings, resolution: int, index: int, size: int
 ) -> tuple[np.ndarray, np.ndarray]:
-    """Chunk `index` of `size` queries: its (size, 7) queries and their (size, 3) estimates."""
+    """Chunk `index` of `size` queries: its (size, 7) queries and their (size, 3) estimates. With `coarse_spp`, those
+    of footprints from `coarse_texels` texels get `coarse_spp - spp` more samples, traced as a pass of their own, and
+    the rest keep the bits they have without it."""
     rng, path_seed = chunk_seeds(settings.seed, index)
     queries = sample_queries(size, rng, resolution, settings.sampling)  # (size, 7)
-    return queries, tracer.estimate(queries, settings.spp, path_seed)
+    rgb = tracer.estimate(queries, settings.spp, path_seed)
+    coarse = queries[:, C.SIGMA] * resolution >= settings.coarse_texels
+    if settings.coarse_spp and coarse.any():
+        more = settings.coarse_spp - settings.spp
+        extra = tracer.estimate(queries[coarse], more, path_seed ^ 1)
+        rgb[coarse] = ((settings.spp * rgb[coarse].astype(np.float64) + more * extra) / settings.coarse_spp)
+    return queries, rgb
 
 
 Chunks = Iterator[tuple[int, np.ndarray, np.ndarray]]

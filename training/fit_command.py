@@ -44,6 +44,8 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--queries", type=int, help="ground-truth queries (default: --queries-per-texel per texel of "
                    "the finest level); models of other resolutions can so share one data set")
     p.add_argument("--spp", type=int, default=GenerateSettings.spp, help="path samples per ground-truth query")
+    p.add_argument("--coarse-spp", type=int, default=GenerateSettings.coarse_spp,
+                   help="path samples per ground-truth query of the footprints where --coarse-loss applies (0: --spp)")
     p.add_argument("--recipe", choices=("auto",) + tuple(RECIPES), default="auto",
                    help="what the model is made of where no flag says otherwise (training/loop/config.py RECIPES): auto "
                         "makes the shipped map-informed model (maps) of a material with principled maps, the paper's "
@@ -139,7 +141,8 @@ def _fit(args: argparse.Namespace) -> int:
         material = commands.material_config(args, resolution, resolve(desc) if args.base or args.relief else None)
         generate = GenerateSettings(spp=args.spp, sampling=QuerySampling(queries_per_texel=args.queries_per_texel,
                                                                          sub_texel_levels=material.lod_bias),
-                                    queries=args.queries)
+                                    queries=args.queries, coarse_spp=args.coarse_spp,
+                                    coarse_texels=2.0 ** (config.coarse_level - material.lod_bias))
         maps = commands.map_config(args, args.maps)
     except (DescriptionError, ValueError) as exc:
         raise CommandError(str(exc)) from exc

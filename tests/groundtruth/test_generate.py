@@ -116,3 +116,20 @@ def test_tiled_margin_follows_the_sampled_directions():
     assert grazing.tiling.max_zenith_deg == 88.0
     assert margin_tiles(0.12, 256, grazing.tiling) == pytest.approx(0.12 * math.tan(math.radians(88.0)))
     assert margin_tiles(0.12, 256, grazing.tiling) > 2.5 * margin_tiles(0.12, 256, TilingConfig())
+
+
+def test_coarse_footprints_get_their_own_samples(tmp_path, reference):
+    """`coarse_spp`: the same queries; those of footprints from `coarse_texels` texels get more samples, the rest keep
+    the bits they have without it; the metadata says so, and a data set without it stays valid."""
+    settings = GenerateSettings(**{**SETTINGS, "coarse_spp": 8, "coarse_texels": 2.0})
+    data = generate(small("turtle"), tmp_path / "d", settings)
+    coarse = reference.queries[:, 2] * 16 >= 2.0
+    assert 0.1 < coarse.mean() < 0.9
+    np.testing.assert_array_equal(data.queries, reference.queries)
+    np.testing.assert_array_equal(data.rgb[~coarse], reference.rgb[~coarse])
+    assert not np.array_equal(data.rgb[coarse], reference.rgb[coarse]) and np.isfinite(data.rgb).all()
+    gen = data.meta["generator"]
+    assert (gen["spp"], gen["coarse_spp"], gen["coarse_texels"]) == (2, 8, 2.0)
+    assert "coarse_spp" not in reference.meta["generator"]
+    with pytest.raises(ValueError, match="coarse_spp"):
+        GenerateSettings(spp=16, coarse_spp=16)
