@@ -14,7 +14,7 @@ Per call size (2^k single queries), medians of interleaved rounds, in M queries/
 - ``mlp fp32`` / ``mlp bf16``: the decoder MLP alone (`weights.mlps`: its widths, `hidden`, `layers`) as a torch
   ``Sequential`` of Linear + ReLU, its input resident, ``torch.cuda.synchronize`` after each call.
 
-The bounds come from the graph (`graph_cost`): the bytes its texture ``Gather`` nodes read a query (float32
+The bounds come from the graph (`graph_cost.py`): the bytes its texture ``Gather`` nodes read a query (float32
 tables, as the kernel holds them) over the card's memory bandwidth, and the FLOPs of its ``MatMul``/``Gemm``
 nodes plus the other nodes' elements (each as an FMA's 2 FLOPs) over its float32 peak (``--bandwidth``, ``--flops``: the H200's 4.3 TB/s measured copy and 67 TFLOP/s
 float32 without tensor cores).
@@ -28,46 +28,11 @@ import time
 
 import numpy as np
 import onnx
-from onnx import shape_inference
 
+from graph_cost import graph_cost
 from neumip.core import contract as C
 from neumip.core import weights as W
 from neumip.engines.kernel import KernelMaterial
-
-
-def _dims(graph, name: str, inits: dict) -> list | None:
-    """The shape of tensor `name`: ints, or a str where a dimension is symbolic (the batch)."""
-    if name in inits:
-        return list(inits[name].dims)
-    for v in list(graph.value_info) + list(graph.input) + list(graph.output):
-        if v.name == name:
-            return [d.dim_value if d.HasField("dim_value") else (d.dim_param or "?") for d in v.type.tensor_type.shape.dim]
-    return None
-
-
-def graph_cost(model: onnx.ModelProto) -> dict:
-    """Per single query, from the graph's shapes: bytes its texture gathers read (rows of float32 tables read
-    with per-query indices), FLOPs of its matrix products with a per-query operand, and elements the other nodes
-    write (one operation each, at least); and the node count."""
-    graph = shape_inference.infer_shapes(model).graph
-    inits = {i.name: i for i in graph.initializer}
-    read = flops = elements = 0
-    for node in graph.node:
-        shapes = [_dims(graph, name, inits) for name in node.input[:2]]
-        out = _dims(graph, node.output[0], inits)
-        if node.op_type not in ("MatMul", "Gemm") and out and isinstance(out[0], str):
-            elements += int(np.prod([d for d in out[1:] if isinstance(d, int)], dtype=np.int64))
-        if None in shapes:
-            continue
-        if node.op_type == "Gather":
-            data, indices = shapes
-            if indices and isinstance(indices[0], str) and all(isinstance(d, int) for d in data):
-                read += int(np.prod(indices[1:], dtype=np.int64)) * int(np.prod(data[1:], dtype=np.int64)) * 4
-        elif node.op_type in ("MatMul", "Gemm"):
-            fixed = [s for s in shapes if all(isinstance(d, int) for d in s)]
-            if len(fixed) == 1 and len(fixed[0]) == 2:
-                flops += 2 * fixed[0][0] * fixed[0][1]
-    return {"bytes": read, "flops": flops, "elements": elements, "nodes": len(graph.node)}
 
 
 def decoder_mlp(config, torch, device: str, dtype):

@@ -30,6 +30,8 @@ Ratios are per round, then the median: ``/mlp`` to the mlp-only graph, ``/kernel
 ``bits``: ``same`` where the answers equal the shipped onnxruntime's bit for bit, else the largest
 difference. ``--profile``: ONNX Runtime's per-node profile of each model (1 thread, calls of
 `DEFAULT_CHUNK`), by op: its share of the kernel time (nodes a call).
+``bound``: the rate the model's arithmetic allows at the MLP-only graph's rate of arithmetic (`graph_cost.py`: the
+operations a query of each graph, from their shapes, a floor), and each engine's share of it.
 The machine is shared: read the load averages printed at the start and end.
 """
 
@@ -46,9 +48,11 @@ from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
 import numpy as np
+import onnx
 import onnxruntime as ort
 from onnx import TensorProto, helper, numpy_helper
 
+from graph_cost import graph_cost, operations  # this folder is on sys.path when run as a script
 from neumip.core import contract as C
 from neumip.core import weights as W
 from neumip.core.modelfile import read_model_file
@@ -284,7 +288,9 @@ class Bench:
             self.answers[name, engine] = 2 * self.rows if engine.endswith("groups of 2") else self.rows
         want = checks["onnxruntime"]
         bits = {e: "same" if np.array_equal(a, want) else f"{np.abs(a - want).max():.1e}" for e, a in checks.items()}
-        self.info[name] = {"MB": len(data) / 1e6, "bits": bits}
+        ops = (operations(graph_cost(onnx.load_model_from_string(data))),
+               operations(graph_cost(onnx.load_model_from_string(mlp_only(read_model_file(path, data).config)[0]))))
+        self.info[name] = {"MB": len(data) / 1e6, "bits": bits, "ops": ops}
 
     def engines(self, name: str, config) -> dict:
         """{engine: fn()} of model `name`: the shipped engines, the mlp-only graph, with --server the servers."""
@@ -336,6 +342,12 @@ class Bench:
             wall, cpu = (statistics.median(r[i] for r in self.results[name, engine]) / 1e6 for i in (0, 1))
             print(f"  {engine:34s} {wall:7.2f} {cpu:8.2f} {self.ratio(name, engine, 'mlp-only'):6.2f} "
                   f"{self.ratio(name, engine, like):8.2f}  {self.info[name]['bits'].get(engine, '')}")
+        model_ops, mlp_ops = self.info[name]["ops"]
+        share = mlp_ops / model_ops
+        print(f"  bound: the model's graph is >= {model_ops} operations a query, the MLP-only graph's {mlp_ops}: at the "
+              f"MLP-only graph's rate of arithmetic the model answers <= {share:.2f}x its queries/s; the kernel engine "
+              f"reaches {self.ratio(name, 'kernel', 'mlp-only') / share:.2f}x of that, ONNX Runtime "
+              f"{self.ratio(name, 'onnxruntime', 'mlp-only') / share:.2f}x")
 
     def close(self) -> None:
         for server, client in self.servers.values():
