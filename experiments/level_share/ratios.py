@@ -5,7 +5,8 @@ each report renders as "Nmaps" (run.sh: the lever's file).
     python experiments/level_share/ratios.py MATERIAL CONTROL_REPORT LEVER_REPORT
     python experiments/level_share/ratios.py MATERIAL REPORT      # one report: its "Nmaps" against its "N"
 
-With `--views`, each view's MSE, FLIP and 99th-percentile luminance ratio to R, beside C's and Cmip's.
+With `--views`, each view's MSE, FLIP and 99th-percentile luminance ratio to R, beside C's and Cmip's. With
+`--method N`, two reports' "N" are compared instead of their "Nmaps".
 """
 
 from __future__ import annotations
@@ -27,10 +28,11 @@ def geomean(values: list[float]) -> float:
 
 
 def main() -> None:
-    args = [a for a in sys.argv[1:] if a != "--views"]
+    method = sys.argv[sys.argv.index("--method") + 1] if "--method" in sys.argv else "Nmaps"
+    args = [a for i, a in enumerate(sys.argv[1:], 1) if a not in ("--views", "--method") and sys.argv[i - 1] != "--method"]
     material, control, lever = (args + [None])[:3]
-    a, b = (views(control, material), views(lever, material)) if lever else (views(control, material, "N"),
-                                                                           views(control, material))
+    a, b = (views(control, material, method), views(lever, material, method)) if lever else (
+        views(control, material, "N"), views(control, material))
     if "--views" in sys.argv:
         c, cmip = views(lever or control, material, "C"), views(lever or control, material, "Cmip")
         print(f"{'view':14s} {'control':>9s} {'lever':>9s} {'ratio':>6s} {'C':>9s} {'Cmip':>9s}   FLIP: control lever C Cmip"
