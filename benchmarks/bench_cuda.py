@@ -11,6 +11,7 @@ Per call size (2^k single queries), medians of interleaved rounds, in M queries/
 - ``kernel resident``: the query columns already on the card, the answers evaluated there (`KernelMaterial.answers`
   then ``dr.eval``): how the renderer's cuda variants run it, inside their own kernels;
 - ``kernel GPU time``: the resident call's kernels alone, by drjit's kernel history (no launch or Python cost);
+- ``check``: `contract.as_queries` alone, the host's check of a numpy call's queries (part of ``kernel numpy``'s time);
 - ``mlp fp32`` / ``mlp bf16``: the decoder MLP alone (`weights.mlps`: its widths, `hidden`, `layers`) as a torch
   ``Sequential`` of Linear + ReLU, its input resident, ``torch.cuda.synchronize`` after each call.
 
@@ -80,7 +81,7 @@ def main() -> None:
             torch.cuda.synchronize()
 
     print(f"{'queries':>9s} {'kernel numpy':>13s} {'kernel resident':>16s} {'kernel GPU time':>16s} "
-          f"{'mlp fp32':>9s} {'mlp bf16':>9s}   (M q/s, median of {args.rounds})")
+          f"{'mlp fp32':>9s} {'mlp bf16':>9s} {'check':>9s}   (M q/s, median of {args.rounds})")
     for k in (int(s) for s in args.sizes.split(",")):
         n = 1 << k
         q = C.random_queries(n, seed=k)
@@ -111,7 +112,8 @@ def main() -> None:
             return call
 
         calls = {"numpy": lambda: (material.evaluate(q), sync()), "resident": resident,
-                 "mlp32": torch_call(mlp32, x32), "mlp16": torch_call(mlp16, x16)}
+                 "mlp32": torch_call(mlp32, x32), "mlp16": torch_call(mlp16, x16),
+                 "check": lambda: C.as_queries(q, groups=True)}
         for call in calls.values():  # warm up: kernels traced, compiled, cached
             call()
             call()
@@ -125,7 +127,7 @@ def main() -> None:
         rate = {name: n / np.median(s) / 1e6 for name, s in seconds.items()}
         gpu = n / np.median(gpu_seconds) / 1e6 if gpu_seconds and np.median(gpu_seconds) > 0 else float("nan")
         print(f"{'2^' + str(k):>9s} {rate['numpy']:13.1f} {rate['resident']:16.1f} {gpu:16.1f} "
-              f"{rate['mlp32']:9.1f} {rate['mlp16']:9.1f}", flush=True)
+              f"{rate['mlp32']:9.1f} {rate['mlp16']:9.1f} {rate['check']:9.1f}", flush=True)
 
 
 if __name__ == "__main__":
