@@ -17,8 +17,8 @@ Per call size (2^k single queries), medians of interleaved rounds, in M queries/
 
 The bounds come from the graph (`graph_cost.py`): the bytes its texture ``Gather`` nodes read a query (float32
 tables, as the kernel holds them) over the card's memory bandwidth, and the FLOPs of its ``MatMul``/``Gemm``
-nodes plus the other nodes' elements (each as an FMA's 2 FLOPs) over its float32 peak (``--bandwidth``, ``--flops``: the H200's 4.3 TB/s measured copy and 67 TFLOP/s
-float32 without tensor cores).
+nodes plus the other nodes' elements (each as an FMA's 2 FLOPs) over its float32 peak (``--bandwidth``,
+``--flops``: the H200's 4.3 TB/s measured copy and 67 TFLOP/s float32 without tensor cores).
 """
 
 from __future__ import annotations
@@ -66,11 +66,13 @@ def main() -> None:
     cost = graph_cost(onnx.load(args.model))
     mlp32, width = decoder_mlp(material.config, torch, args.device, torch.float32)
     mlp16, _ = decoder_mlp(material.config, torch, args.device, torch.bfloat16)
+    config = material.config
     print(f"# {args.model}: {cost['nodes']} nodes; a query reads {cost['bytes']} B of float32 tables and does "
-          f"{cost['flops']} FLOPs of matrix products and {cost['elements']} other operations; decoder {width} -> {material.config.hidden} x "
-          f"{material.config.layers - 1} -> {W.mlps(material.config)[W.DECODER][1]}")
+          f"{cost['flops']} FLOPs of matrix products and {cost['elements']} other operations; decoder {width} -> "
+          f"{config.hidden} x {config.layers - 1} -> {W.mlps(config)[W.DECODER][1]}")
     print(f"# bounds: memory {args.bandwidth / cost['bytes'] / 1e6:.0f} M q/s at {args.bandwidth / 1e12:.1f} TB/s; "
-          f"arithmetic {args.flops / (cost['flops'] + 2 * cost['elements']) / 1e6:.0f} M q/s at {args.flops / 1e12:.0f} "
+          f"arithmetic {args.flops / (cost['flops'] + 2 * cost['elements']) / 1e6:.0f} M q/s at "
+          f"{args.flops / 1e12:.0f} "
           "TFLOP/s (an operation that is no FMA counted as 2 FLOPs)")
     if args.device == "cuda":
         print(f"# {torch.cuda.get_device_name()}; torch {torch.__version__}; drjit {dr.__version__}")

@@ -16,7 +16,8 @@ def _dims(graph, name: str, inits: dict) -> list | None:
         return list(inits[name].dims)
     for v in list(graph.value_info) + list(graph.input) + list(graph.output):
         if v.name == name:
-            return [d.dim_value if d.HasField("dim_value") else (d.dim_param or "?") for d in v.type.tensor_type.shape.dim]
+            dims = v.type.tensor_type.shape.dim
+            return [d.dim_value if d.HasField("dim_value") else (d.dim_param or "?") for d in dims]
     return None
 
 

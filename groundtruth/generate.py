@@ -73,7 +73,8 @@ class GenerateSettings:
             self.tiling = replace(self.tiling, max_zenith_deg=self.sampling.max_zenith_deg)
         if self.queries is not None and self.queries < 1:
             raise ValueError(f"queries must be >= 1, got {self.queries}")
-        if self.spp < 1 or self.chunk < 1 or (self.coarse_spp and self.coarse_spp <= self.spp) or self.coarse_texels <= 0:
+        coarse_ok = (not self.coarse_spp or self.coarse_spp > self.spp) and self.coarse_texels > 0
+        if self.spp < 1 or self.chunk < 1 or not coarse_ok:
             raise ValueError(f"spp and chunk must be >= 1, coarse_spp 0 or more than spp ({self.spp}) and "
                              f"coarse_texels > 0, got {self.coarse_spp} and {self.coarse_texels}")
         if not 0 <= self.seed < 2**63:

@@ -11,9 +11,9 @@ With `--views`, each view's MSE, FLIP and 99th-percentile luminance ratio to R, 
 
 from __future__ import annotations
 
+import argparse
 import json
 import math
-import sys
 
 GROUPS = {"close": ("level0", "level2"), "far": ("level4", "level6", "level8")}
 
@@ -28,25 +28,34 @@ def geomean(values: list[float]) -> float:
 
 
 def main() -> None:
-    method = sys.argv[sys.argv.index("--method") + 1] if "--method" in sys.argv else "Nmaps"
-    args = [a for i, a in enumerate(sys.argv[1:], 1) if a not in ("--views", "--method") and sys.argv[i - 1] != "--method"]
-    material, control, lever = (args + [None])[:3]
-    a, b = (views(control, material, method), views(lever, material, method)) if lever else (
-        views(control, material, "N"), views(control, material))
-    if "--views" in sys.argv:
-        c, cmip = views(lever or control, material, "C"), views(lever or control, material, "Cmip")
-        print(f"{'view':14s} {'control':>9s} {'lever':>9s} {'ratio':>6s} {'C':>9s} {'Cmip':>9s}   FLIP: control lever C Cmip"
-              "   p99: control lever C")
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("material")
+    parser.add_argument("control", help="the control's report folder (alone: its N against its Nmaps)")
+    parser.add_argument("lever", nargs="?", help="the lever's report folder")
+    parser.add_argument("--method", default="Nmaps", help="the method compared between two reports")
+    parser.add_argument("--views", action="store_true", help="each view's figures too")
+    args = parser.parse_args()
+    material = args.material
+    if args.lever:
+        a, b = views(args.control, material, args.method), views(args.lever, material, args.method)
+    else:
+        a, b = views(args.control, material, "N"), views(args.control, material)
+    if args.views:
+        report = args.lever or args.control
+        c, cmip = views(report, material, "C"), views(report, material, "Cmip")
+        print(f"{'view':14s} {'control':>9s} {'lever':>9s} {'ratio':>6s} {'C':>9s} {'Cmip':>9s}   "
+              "FLIP: control lever C Cmip   p99: control lever C")
         for v in a:
-            print(f"{v:14s} {a[v]['mse']:9.2e} {b[v]['mse']:9.2e} {b[v]['mse'] / a[v]['mse']:6.2f} {c[v]['mse']:9.2e} "
-                  f"{cmip[v]['mse']:9.2e}   {a[v]['flip']:.3f} {b[v]['flip']:.3f} {c[v]['flip']:.3f} {cmip[v]['flip']:.3f}"
-                  f"   {a[v]['p99_ratio']:.2f} {b[v]['p99_ratio']:.2f} {c[v]['p99_ratio']:.2f}")
+            print(f"{v:14s} {a[v]['mse']:9.2e} {b[v]['mse']:9.2e} {b[v]['mse'] / a[v]['mse']:6.2f} "
+                  f"{c[v]['mse']:9.2e} {cmip[v]['mse']:9.2e}   {a[v]['flip']:.3f} {b[v]['flip']:.3f} "
+                  f"{c[v]['flip']:.3f} {cmip[v]['flip']:.3f}   {a[v]['p99_ratio']:.2f} {b[v]['p99_ratio']:.2f} "
+                  f"{c[v]['p99_ratio']:.2f}")
     for name, levels in GROUPS.items():
         keys = [v for v in a if v.split("_")[0] in levels]
         mse = [b[v]["mse"] / a[v]["mse"] for v in keys]
         flip = [b[v]["flip"] / a[v]["flip"] for v in keys]
-        print(f"{material} {name}: MSE {geomean(mse):.2f} (views {min(mse):.2f}-{max(mse):.2f}), FLIP {geomean(flip):.2f}")
-
+        print(f"{material} {name}: MSE {geomean(mse):.2f} (views {min(mse):.2f}-{max(mse):.2f}), "
+              f"FLIP {geomean(flip):.2f}")
 
 if __name__ == "__main__":
     main()
