@@ -31,7 +31,7 @@ Ratios are per round, then the median: ``/mlp`` to the mlp-only graph, ``/kernel
 difference. ``--profile``: ONNX Runtime's per-node profile of each model (1 thread, calls of
 `DEFAULT_CHUNK`), by op: its share of the kernel time (nodes a call).
 ``bound``: the rate the model's arithmetic allows at the MLP-only graph's rate of arithmetic (`graph_cost.py`: the
-operations a query of each graph, from their shapes, a floor), and each engine's share of it.
+operations a query of each graph, from their shapes: an estimate), and each engine's share of it.
 The machine is shared: read the load averages printed at the start and end.
 """
 
@@ -344,7 +344,7 @@ class Bench:
                   f"{self.ratio(name, engine, like):8.2f}  {self.info[name]['bits'].get(engine, '')}")
         model_ops, mlp_ops = self.info[name]["ops"]
         share = mlp_ops / model_ops
-        print(f"  bound: the model's graph is >= {model_ops} operations a query, the MLP-only graph's {mlp_ops}: at the "
+        print(f"  bound: the model's graph is ~{model_ops} operations a query, the MLP-only graph's {mlp_ops}: at the "
               f"MLP-only graph's rate of arithmetic the model answers <= {share:.2f}x its queries/s; the kernel engine "
               f"reaches {self.ratio(name, 'kernel', 'mlp-only') / share:.2f}x of that, ONNX Runtime "
               f"{self.ratio(name, 'onnxruntime', 'mlp-only') / share:.2f}x")

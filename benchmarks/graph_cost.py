@@ -24,7 +24,8 @@ def _dims(graph, name: str, inits: dict) -> list | None:
 def graph_cost(model: onnx.ModelProto) -> dict:
     """Per single query, from the graph's shapes: bytes its texture gathers read (rows of float32 tables read
     with per-query indices), FLOPs of its matrix products with a per-query operand, and elements the other nodes
-    write (one operation each, at least); and the node count."""
+    write (one operation each; layout nodes - Reshape, Gather, Concat - count too, tap products over folded rows do
+    not: an estimate, not a floor); and the node count. A symbolic first dimension is taken as the batch."""
     graph = shape_inference.infer_shapes(model).graph
     inits = {i.name: i for i in graph.initializer}
     read = flops = elements = 0
@@ -47,5 +48,5 @@ def graph_cost(model: onnx.ModelProto) -> dict:
 
 
 def operations(cost: dict) -> int:
-    """A query's operations: its products' FLOPs plus the other nodes' elements (at least one operation each)."""
+    """A query's operations: its products' FLOPs plus the other nodes' elements (one operation each)."""
     return cost["flops"] + cost["elements"]

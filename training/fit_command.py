@@ -141,8 +141,7 @@ def _fit(args: argparse.Namespace) -> int:
         material = commands.material_config(args, resolution, resolve(desc) if args.base or args.relief else None)
         generate = GenerateSettings(spp=args.spp, sampling=QuerySampling(queries_per_texel=args.queries_per_texel,
                                                                          sub_texel_levels=material.lod_bias),
-                                    queries=args.queries, coarse_spp=args.coarse_spp,
-                                    coarse_texels=2.0 ** (config.coarse_level - material.lod_bias))
+                                    queries=args.queries, coarse_spp=args.coarse_spp)
         maps = commands.map_config(args, args.maps)
     except (DescriptionError, ValueError) as exc:
         raise CommandError(str(exc)) from exc

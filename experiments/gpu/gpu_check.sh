@@ -8,9 +8,9 @@
 #
 #   bash experiments/gpu/gpu_check.sh DATA OUT [SECONDS] [PRESET...]
 #
-# DATA: a `neumip generate` data set (made on a machine with Mitsuba) whose work folder for the model
-# OUT/train/NAME.onnx holds the progress views already (DATA/views: a short `neumip train DATA -o x.onnx` there traces
-# them into x.run/views); OUT: where the logs go; SECONDS (default 420): the wall-clock budget, so that a step that
+# DATA: a `neumip generate` data set of rock (made on a machine with Mitsuba) with its progress views in DATA/views
+# (a short `neumip train DATA -o x.onnx` there traces them into x.run/views; each run here starts from a copy);
+# OUT: where the logs go; SECONDS (default 420): the wall-clock budget, so that a step that
 # would outrun it is cut. PRESETs (default ship). It runs where the repository is not installed: with the python that
 # has torch (and numpy, onnx, onnxruntime, msgpack, pytest), the repository's areas linked into a `neumip` namespace
 # (gpu_site.sh), and drjit from wheels in .whl/.

@@ -5,8 +5,9 @@ each report renders as "Nmaps" (run.sh: the lever's file).
     python experiments/level_share/ratios.py MATERIAL CONTROL_REPORT LEVER_REPORT
     python experiments/level_share/ratios.py MATERIAL REPORT      # one report: its "Nmaps" against its "N"
 
-With `--views`, each view's MSE, FLIP and 99th-percentile luminance ratio to R, beside C's and Cmip's. With
-`--method N`, two reports' "N" are compared instead of their "Nmaps".
+With `--views`, each view's MSE, FLIP, and 99th-percentile and mean luminance ratios to R, beside C's and Cmip's.
+With `--method N`, two reports' "N" are compared instead of their "Nmaps" (one report: always its Nmaps against
+its N).
 """
 
 from __future__ import annotations
@@ -44,12 +45,13 @@ def main() -> None:
         report = args.lever or args.control
         c, cmip = views(report, material, "C"), views(report, material, "Cmip")
         print(f"{'view':14s} {'control':>9s} {'lever':>9s} {'ratio':>6s} {'C':>9s} {'Cmip':>9s}   "
-              "FLIP: control lever C Cmip   p99: control lever C")
+              "FLIP: control lever C Cmip   p99: control lever C   mean: control lever C")
         for v in a:
             print(f"{v:14s} {a[v]['mse']:9.2e} {b[v]['mse']:9.2e} {b[v]['mse'] / a[v]['mse']:6.2f} "
                   f"{c[v]['mse']:9.2e} {cmip[v]['mse']:9.2e}   {a[v]['flip']:.3f} {b[v]['flip']:.3f} "
                   f"{c[v]['flip']:.3f} {cmip[v]['flip']:.3f}   {a[v]['p99_ratio']:.2f} {b[v]['p99_ratio']:.2f} "
-                  f"{c[v]['p99_ratio']:.2f}")
+                  f"{c[v]['p99_ratio']:.2f}   {a[v]['mean_ratio']:.2f} {b[v]['mean_ratio']:.2f} "
+                  f"{c[v]['mean_ratio']:.2f}")
     for name, levels in GROUPS.items():
         keys = [v for v in a if v.split("_")[0] in levels]
         mse = [b[v]["mse"] / a[v]["mse"] for v in keys]

@@ -133,3 +133,20 @@ def test_coarse_footprints_get_their_own_samples(tmp_path, reference):
     assert "coarse_spp" not in reference.meta["generator"]
     with pytest.raises(ValueError, match="coarse_spp"):
         GenerateSettings(spp=16, coarse_spp=16)
+
+
+def test_coarse_samples_are_averaged_with_the_first_ones():
+    """A coarse query's estimate is the mean of all its `coarse_spp` samples: its `spp` first ones (the bits it has
+    without the option) and the `coarse_spp - spp` of a pass of their own."""
+    from neumip.groundtruth.generate import trace_chunk
+
+    class Tracer:  # each pass answers its sample count, so the mean says how the passes were weighed
+        def estimate(self, queries, spp, seed):
+            return np.full((len(queries), 3), float(spp), np.float32)
+
+    settings = GenerateSettings(queries=4096, spp=2, coarse_spp=8, coarse_texels=2.0, chunk=4096)
+    queries, rgb = trace_chunk(Tracer(), settings, 16, 0, 4096)
+    coarse = queries[:, 2] * 16 >= 2.0
+    assert 0 < coarse.sum() < len(coarse)
+    np.testing.assert_array_equal(rgb[~coarse], 2.0)
+    np.testing.assert_allclose(rgb[coarse], (2 * 2 + 6 * 6) / 8)

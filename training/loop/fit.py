@@ -18,6 +18,7 @@ whose ``NAME.json`` exists is whole (`fitted`).
 from __future__ import annotations
 
 import logging
+import math
 from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import TYPE_CHECKING, Callable
@@ -95,6 +96,15 @@ def data_queries(queries_per_texel: float, resolution: int) -> int:
     return max(MIN_QUERIES if resolution == 1 else 1, round(queries_per_texel * resolution**2))
 
 
+def coarse_texels(train: TrainConfig, material: MaterialConfig, data_resolution: int) -> float:
+    """The footprint, in texels of a data set sampled at `data_resolution`, from which `train.coarse_level` applies to a
+    model of `material` (`contract.level_of_detail(sigma, material.resolution, lod_bias) >= coarse_level`):
+    where `fit --coarse-spp` traces more samples; 0 where the model has no such level (no query is coarse)."""
+    if train.coarse_level > math.log2(material.resolution):
+        return 0.0
+    return 2.0 ** (train.coarse_level - material.lod_bias) * data_resolution / material.resolution
+
+
 def reference_error(material, data) -> float:
     """Error of a trained material's answers to a data set's queries: the MSE of log1p values (`validation.errors`'
     log_mse; what the comb2 loss trains). Linear MSE is no judge here: a glossy material's glints make it
@@ -140,12 +150,15 @@ def fit(description, output: str | Path, settings: FitSettings, report: Report |
     gen = settings.generate or GenerateSettings()
     gen = replace(gen, resolution=gen.resolution or max(resolution, description.resolution),
                   queries=gen.queries or data_queries(gen.sampling.queries_per_texel, resolution))
+    if gen.coarse_spp:  # more samples where the coarse loss applies: its level, in texels of the data's resolution
+        texels = coarse_texels(settings.train, settings.material, gen.resolution)
+        gen = replace(gen, coarse_spp=gen.coarse_spp if texels else 0, coarse_texels=texels or gen.coarse_texels)
     log.info("fitting %s into %s (work folder %s)", description.name, output, work)
     data = generate(description, settings.data or work / "data", gen,
                     lambda done, total: report(STAGES[0], done, total))  # (N, 7) queries, (N, 3) RGB
     if settings.choose_base or settings.seeds > 1:  # the same footprints and directions, another seed, 16x the samples
         reference = generate(description, work / "reference",
-                             replace(gen, queries=REFERENCE_QUERIES, spp=REFERENCE_SPP, seed=gen.seed + 1,
+                             replace(gen, queries=REFERENCE_QUERIES, spp=REFERENCE_SPP, coarse_spp=0, seed=gen.seed + 1,
                                      chunk=min(gen.chunk, 1 << 12)),
                              lambda done, total: report(STAGES[0], len(data) + done, len(data) + total))
     report(STAGES[1], 0, None)

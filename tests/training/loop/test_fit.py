@@ -197,7 +197,8 @@ def test_fit_base_auto_keeps_the_base_only_where_it_lowers_the_reference_error(m
     out = tmp_path / "auto.onnx"
     argv = ["fit", str(material), "-o", str(out), "--preset", "test", "--steps", "10", "--spp", "2",
             "--queries-per-texel", "32", "--resolution", "4", "--base", "auto", "--local-frame", "--terminator", "none",
-            "--visibility-input", "--threads", "1"]
+            "--visibility-input", "--threads", "1", "--coarse-spp", "4", "--coarse-loss", "log_weighted",
+            "--coarse-level", "1"]
     assert main(argv) == 0
     record = json.loads(out.with_suffix(".json").read_text())
     choice = record["validation"]["base_choice"]
@@ -211,6 +212,10 @@ def test_fit_base_auto_keeps_the_base_only_where_it_lowers_the_reference_error(m
     assert (run / "checkpoint.pt").exists() and (run / "base" / "checkpoint.pt").exists()
     reference = json.loads((run / "reference" / "meta.json").read_text())
     assert reference["complete"] and reference["generator"]["spp"] == 256 and reference["n"] == 1 << 14
+    assert "coarse_spp" not in reference["generator"]  # 256 samples everywhere already
+    data = json.loads((run / "data" / "meta.json").read_text())["generator"]  # --coarse-spp: from level 1 of the 4^2
+    bias = record["material_config"].get("lod_bias", 0)  # model, in texels of the 8^2 maps
+    assert (data["coarse_spp"], data["coarse_texels"]) == (4, 2.0 ** (1 - bias) * 8 / 4)
     assert "classical base: reference log MSE" in capsys.readouterr().out
     assert (load_material(out).config.get("base", 0) == 8) == with_base  # the file is the kept model
 
@@ -258,3 +263,15 @@ def test_a_1x1_model_gets_data_for_its_directions():
 
     assert data_queries(256, 1) == MIN_QUERIES == 1 << 20
     assert data_queries(32, 4) == 512 and data_queries(256, 256) == 1 << 24
+
+
+def test_coarse_spp_starts_where_the_coarse_loss_applies():
+    """`fit --coarse-spp`'s footprint threshold is `TrainConfig.coarse_level` of the model's pyramid, in texels of the
+    data's resolution; a model without that level gets none."""
+    from neumip.training.loop.fit import coarse_texels
+
+    train = replace(TEST, coarse_loss="log_weighted", coarse_level=3)
+    assert coarse_texels(train, MaterialConfig(resolution=256, lod_bias=1), 256) == 4.0
+    assert coarse_texels(train, MaterialConfig(resolution=64, lod_bias=1), 256) == 16.0
+    assert coarse_texels(train, MaterialConfig(resolution=64), 64) == 8.0
+    assert coarse_texels(train, MaterialConfig(resolution=4), 256) == 0.0
