@@ -10,15 +10,13 @@ import onnx
 from onnx import shape_inference
 
 
-def _dims(graph, name: str, inits: dict) -> list | None:
-    """The shape of tensor `name`: ints, or a str where a dimension is symbolic (the batch)."""
-    if name in inits:
-        return list(inits[name].dims)
+def _shapes(graph) -> dict[str, list]:
+    """Every tensor's shape: ints, or a str where a dimension is symbolic (the batch)."""
+    shapes = {i.name: list(i.dims) for i in graph.initializer}
     for v in list(graph.value_info) + list(graph.input) + list(graph.output):
-        if v.name == name:
-            dims = v.type.tensor_type.shape.dim
-            return [d.dim_value if d.HasField("dim_value") else (d.dim_param or "?") for d in dims]
-    return None
+        dims = v.type.tensor_type.shape.dim
+        shapes.setdefault(v.name, [d.dim_value if d.HasField("dim_value") else (d.dim_param or "?") for d in dims])
+    return shapes
 
 
 def graph_cost(model: onnx.ModelProto) -> dict:
@@ -27,11 +25,11 @@ def graph_cost(model: onnx.ModelProto) -> dict:
     write (one operation each; layout nodes - Reshape, Gather, Concat - count too, tap products over folded rows do
     not: an estimate, not a floor); and the node count. A symbolic first dimension is taken as the batch."""
     graph = shape_inference.infer_shapes(model).graph
-    inits = {i.name: i for i in graph.initializer}
+    known = _shapes(graph)
     read = flops = elements = 0
     for node in graph.node:
-        shapes = [_dims(graph, name, inits) for name in node.input[:2]]
-        out = _dims(graph, node.output[0], inits)
+        shapes = [known.get(name) for name in node.input[:2]]
+        out = known.get(node.output[0])
         if node.op_type not in ("MatMul", "Gemm") and out and isinstance(out[0], str):
             elements += int(np.prod([d for d in out[1:] if isinstance(d, int)], dtype=np.int64))
         if None in shapes:

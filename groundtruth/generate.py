@@ -127,8 +127,10 @@ def trace_chunk(
     rng, path_seed = chunk_seeds(settings.seed, index)
     queries = sample_queries(size, rng, resolution, settings.sampling)  # (size, 7)
     rgb = tracer.estimate(queries, settings.spp, path_seed)
+    if not settings.coarse_spp:
+        return queries, rgb
     coarse = queries[:, C.SIGMA] * resolution >= settings.coarse_texels
-    if settings.coarse_spp and coarse.any():
+    if coarse.any():
         more = settings.coarse_spp - settings.spp
         extra = tracer.estimate(queries[coarse], more, path_seed ^ 1)
         rgb[coarse] = ((settings.spp * rgb[coarse].astype(np.float64) + more * extra) / settings.coarse_spp)

@@ -152,7 +152,7 @@ def fit(description, output: str | Path, settings: FitSettings, report: Report |
                   queries=gen.queries or data_queries(gen.sampling.queries_per_texel, resolution))
     if gen.coarse_spp:  # more samples where the coarse loss applies: its level, in texels of the data's resolution
         texels = coarse_texels(settings.train, settings.material, gen.resolution)
-        gen = replace(gen, coarse_spp=gen.coarse_spp if texels else 0, coarse_texels=texels or gen.coarse_texels)
+        gen = replace(gen, coarse_texels=texels) if texels else replace(gen, coarse_spp=0)
     log.info("fitting %s into %s (work folder %s)", description.name, output, work)
     data = generate(description, settings.data or work / "data", gen,
                     lambda done, total: report(STAGES[0], done, total))  # (N, 7) queries, (N, 3) RGB
