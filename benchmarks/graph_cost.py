@@ -7,25 +7,30 @@ from __future__ import annotations
 
 import numpy as np
 import onnx
-from onnx import shape_inference
+from onnx import helper, shape_inference
 
 
-def _shapes(graph) -> dict[str, list]:
-    """Every tensor's shape: ints, or a str where a dimension is symbolic (the batch)."""
+def _shapes(graph) -> tuple[dict[str, list], dict[str, int]]:
+    """Every tensor's shape (ints, or a str where a dimension is symbolic: the batch) and its element's bytes."""
     shapes = {i.name: list(i.dims) for i in graph.initializer}
+    types = {i.name: i.data_type for i in graph.initializer}
     for v in list(graph.value_info) + list(graph.input) + list(graph.output):
         dims = v.type.tensor_type.shape.dim
         shapes.setdefault(v.name, [d.dim_value if d.HasField("dim_value") else (d.dim_param or "?") for d in dims])
-    return shapes
+        types.setdefault(v.name, v.type.tensor_type.elem_type)
+    sizes = {name: helper.tensor_dtype_to_np_dtype(t).itemsize for name, t in types.items() if t}
+    return shapes, sizes
 
 
-def graph_cost(model: onnx.ModelProto) -> dict:
-    """Per single query, from the graph's shapes: bytes its texture gathers read (rows of float32 tables read
-    with per-query indices), FLOPs of its matrix products with a per-query operand, and elements the other nodes
-    write (one operation each; layout nodes - Reshape, Gather, Concat - count too, tap products over folded rows do
-    not: an estimate, not a floor); and the node count. A symbolic first dimension is taken as the batch."""
+def graph_cost(model: onnx.ModelProto, table_item: int | None = None) -> dict:
+    """Per single query, from the graph's shapes: bytes its texture gathers read (rows of tables read with per-query
+    indices, in the tables' type), FLOPs of its matrix products with a per-query operand, and elements the other
+    nodes write (one operation each; layout nodes - Reshape, Gather, Concat, Cast - count too, tap products over
+    folded rows do not: an estimate, not a floor); and the node count. `table_item`: the bytes of a table's element
+    where an engine holds the tables in another type than the graph's (the kernel engine: float32, 4). A symbolic
+    first dimension is taken as the batch."""
     graph = shape_inference.infer_shapes(model).graph
-    known = _shapes(graph)
+    known, item = _shapes(graph)
     read = flops = elements = 0
     for node in graph.node:
         shapes = [known.get(name) for name in node.input[:2]]
@@ -37,7 +42,8 @@ def graph_cost(model: onnx.ModelProto) -> dict:
         if node.op_type == "Gather":
             data, indices = shapes
             if indices and isinstance(indices[0], str) and all(isinstance(d, int) for d in data):
-                read += int(np.prod(indices[1:], dtype=np.int64)) * int(np.prod(data[1:], dtype=np.int64)) * 4
+                read += (int(np.prod(indices[1:], dtype=np.int64)) * int(np.prod(data[1:], dtype=np.int64))
+                         * (table_item or item.get(node.input[0], 4)))
         elif node.op_type in ("MatMul", "Gemm"):
             fixed = [s for s in shapes if all(isinstance(d, int) for d in s)]
             if len(fixed) == 1 and len(fixed[0]) == 2:

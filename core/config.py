@@ -241,19 +241,20 @@ class MaterialConfig:
         return sum(s * s for s in self.level_sizes())
 
     def base_pyramid(self) -> "MaterialConfig | None":
-        """The base maps' pyramid as a config of its own (its resolution and channels), or None without a base."""
+        """The base maps' pyramid as a config of its own (its resolution and channels; the material's level-of-detail bias
+        and storage type, as the next two), or None without a base."""
         return MaterialConfig(resolution=self.base, channels=BASE_CHANNELS, offset=False,
-                              lod_bias=self.lod_bias) if self.base else None
+                              lod_bias=self.lod_bias, half_textures=self.half_textures) if self.base else None
 
     def relief_pyramid(self) -> "MaterialConfig | None":
         """The relief's height pyramid as a config of its own (one channel), or None without a relief."""
         return MaterialConfig(resolution=self.relief, channels=1, offset=False,
-                              lod_bias=self.lod_bias) if self.relief else None
+                              lod_bias=self.lod_bias, half_textures=self.half_textures) if self.relief else None
 
     def offset_pyramid(self) -> "MaterialConfig | None":
         """The neural offset texture's mip pyramid as a config of its own (`offset_mip`), or None without it."""
         return MaterialConfig(resolution=self.resolution, channels=self.offset_channels, offset=False,
-                              lod_bias=self.lod_bias) if self.offset and self.offset_mip else None
+                              lod_bias=self.lod_bias, half_textures=self.half_textures) if self.offset and self.offset_mip else None
 
     def pyramid_finest_level(self, pyramid: "MaterialConfig", finest_level: int) -> int:
         """The finest level of `pyramid` (`base_pyramid`, `relief_pyramid`, `offset_pyramid`, or this config's own) read

@@ -60,10 +60,12 @@ class LaneGraph:
         self.table_names = sorted({n.input[0] for n in self.nodes
                                    if n.op_type == "Gather" and n.input[0] in constants})
         for name in self.table_names:
-            if constants[name].dtype != np.float32:
+            if constants[name].dtype not in (np.float32, np.float16):
                 raise GraphError(f"computed indices read the table {name!r} of {constants[name].dtype} "
-                                 "(only float32 tables)")
-        self.tables = [backend.Float(np.ascontiguousarray(constants[name]).ravel())
+                                 "(only float32 and float16 tables)")
+        # float16 tables (the export's with `half_textures`, whose reads are cast to float32) are held in float32:
+        # every float16 value is exact there, so the read and its cast give the same bits
+        self.tables = [backend.Float(np.ascontiguousarray(constants[name], np.float32).ravel())
                        for name in self.table_names]
         """The constants that computed indices read (textures), flat: the frozen function's inputs."""
         self.table_shapes = [constants[name].shape for name in self.table_names]

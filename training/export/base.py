@@ -19,8 +19,8 @@ from neumip.core.config import (BASE_ALPHA2_FLOOR, BASE_AZIMUTH_FLOOR, BASE_AZIM
                                 BASE_COS_FLOOR, BASE_HORIZONS, BASE_LOG_CEILING, BASE_OUTPUTS, BASE_SHADOW_SOFTNESS,
                                 BASE_WI_FLOOR, HALF_FLOOR, MaterialConfig)
 from neumip.training.export.lod import BASE_PREFIX
-from neumip.training.export.lookup import (expand_table, footprint_read, footprint_rows, pyramid_footprint, stored_texture,
-                                          texture_const)
+from neumip.training.export.lookup import (expand_table, footprint_read, footprint_rows, pyramid_footprint, read_rows,
+                                          stored_texture, texture_const)
 from neumip.training.export.onnx_graph import GraphWriter
 
 
@@ -57,7 +57,10 @@ class BaseRead:
     taps: str
     """(N, 8) the footprint's tap weights."""
     horizons: str
-    """(R BASE_HORIZONS, 4) horizon table: row r BASE_HORIZONS + j holds azimuth j's sine at quad row r's 4 taps."""
+    """(R BASE_HORIZONS, 4) horizon table: row r BASE_HORIZONS + j holds azimuth j's sine at quad row r's 4 taps, in the
+    textures' type (`lookup.texture_const`)."""
+    config: MaterialConfig
+    """The base pyramid's config (`MaterialConfig.base_pyramid`)."""
 
 
 BASE_VARYING = "base_maps.varying"
@@ -127,7 +130,7 @@ def read_base(g: GraphWriter, config: MaterialConfig, weights: dict, uv: str, si
     else:
         maps = g.op("Add", g.op("MatMul", taps, g.const(np.zeros((8, MAP_CHANNELS), np.float32))),
                     g.const(constants, name=BASE_CONSTANT))
-    return BaseRead(maps, rows, taps, _horizon_table(g, stored, width, fp.index, fp.index_rows))
+    return BaseRead(maps, rows, taps, _horizon_table(g, stored, width, fp.index, fp.index_rows), base)
 
 
 def _horizon_table(g: GraphWriter, atlas: str, first: int, index: str, rows: int) -> str:
@@ -179,7 +182,7 @@ def horizon_sine(g: GraphWriter, read: BaseRead, rows: str, taps: str, wi: str) 
     at = np.array([[8.0, 8.0, 0.0, 0.0], [0.0, 0.0, 8.0, 8.0]], np.float32)
     of = np.array([[1.0, 0.0, 1.0, 0.0], [0.0, 1.0, 0.0, 1.0]], np.float32)
     line = g.op("Add", g.op("MatMul", rows, g.const(at)), g.op("MatMul", pair, g.const(of)))
-    texels = g.shape(g.op("Gather", read.horizons, g.op("Cast", line, to=TensorProto.INT64), axis=0), [-1, 16])
+    texels = g.shape(read_rows(g, read.horizons, line, read.config), [-1, 16])
     spread = np.zeros((8, 16), np.float32)  # tap weight (level l, tap t) -> columns (l, a, t) for a = j0, j1
     pick = np.zeros((16, 2), np.float32)  # columns (l, a, t) -> azimuth a
     for level in range(2):

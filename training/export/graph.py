@@ -292,7 +292,7 @@ def material_graph(g: GraphWriter, config: MaterialConfig, weights: dict,
             texels, tap_w = pyramid_texels(g, mips, texture, config.offset_channels, g.wrap(uv), sigma,
                                            finest[W.OFFSET_TEXTURE], OFFSET_PREFIX)
         else:  # bilinear at the finest resolution: 4 taps
-            texels, tap_w = texture_texels(g, texture, config.resolution, config.offset_channels, g.wrap(uv),
+            texels, tap_w = texture_texels(g, config, texture, config.resolution, config.offset_channels, g.wrap(uv),
                                            OFFSET_PREFIX)
         mlp = _depth_weights(weights, config)
         hidden = _first_layer(g, q, texels, tap_w, 4 if mips is None else 8, [C.WO_X, C.WO_Y], mlp, W.OFFSET_MLP, 2)

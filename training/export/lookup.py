@@ -142,12 +142,16 @@ def stored_texture(value: np.ndarray, config: MaterialConfig) -> np.ndarray:
 
 
 def texture_const(g: GraphWriter, value: np.ndarray, name: str, config: MaterialConfig) -> str:
-    """Texture initializer `name`, float32, or float16 read through a Cast (folded at load by every engine) with
-    `MaterialConfig.half_textures`; `value` as `stored_texture` gives it."""
-    if not config.half_textures:
-        return g.const(value, name=name)
-    return g.op("Cast", g.const(value, np.float16, name=name), to=TensorProto.FLOAT)
+    """Texture initializer `name` in the type the file stores it: float32, or float16 with
+    `MaterialConfig.half_textures`; `value` as `stored_texture` gives it. The quad tables built from it at load keep
+    that type, and a query's read turns its rows to float32 (`read_rows`): float16 values are exact in float32, so
+    the answers are the same bits as from a float32 table, at half the table's memory."""
+    return g.const(value, np.float16 if config.half_textures else np.float32, name=name)
 
+
+def as_float(g: GraphWriter, x: str, config: MaterialConfig) -> str:
+    """A tensor of a texture's type (`texture_const`) as float32, for arithmetic."""
+    return g.op("Cast", x, to=TensorProto.FLOAT) if config.half_textures else x
 
 
 def mip_atlas(texture: np.ndarray) -> np.ndarray:
@@ -162,7 +166,7 @@ def mip_atlas(texture: np.ndarray) -> np.ndarray:
 
 
 def mip_const(g: GraphWriter, atlas: np.ndarray, pyramid: MaterialConfig, name: str, config: MaterialConfig) -> str:
-    """Constant subgraph: a mip pyramid's atlas (T, C) float32 as the model reads it, from its finest level alone, which
+    """Constant subgraph: a mip pyramid's atlas (T, C) in the texture's type (`texture_const`), from its finest level alone, which
     the file stores (`texture_const`, named `name`): every coarser level is `mip_atlas`'s average in float32 from the
     level above, then rounded as the file would store it (`stored_texture`; the next level averages the unrounded one,
     as the model does). ValueError where `atlas` (float32, every level), as stored, is not that pyramid of its finest
@@ -172,16 +176,16 @@ def mip_const(g: GraphWriter, atlas: np.ndarray, pyramid: MaterialConfig, name: 
     if not np.array_equal(stored_texture(mip_atlas(finest.reshape(size, size, width)), config),
                           stored_texture(atlas, config)):
         raise ValueError(f"{name}: its coarser levels are not the mip pyramid of its finest level")
-    level = g.shape(texture_const(g, finest, name, config), [size, size, width])
+    stored = texture_const(g, finest, name, config)
+    level = g.shape(as_float(g, stored, config), [size, size, width])
     big = np.iinfo(np.int64).max
-    levels = [g.shape(level, [-1, width])]
+    levels = [g.shape(stored, [-1, width])]
     for _ in pyramid.level_sizes()[1:]:
         taps = [g.op("Slice", level, g.const([dy, dx], np.int64), g.const([big, big], np.int64),
                      g.const([0, 1], np.int64), g.const([2, 2], np.int64)) for dy, dx in ((0, 0), (0, 1), (1, 0), (1, 1))]
         level = g.op("Mul", g.op("Add", g.op("Add", taps[0], taps[1]), g.op("Add", taps[2], taps[3])), g.scalar(0.25))
-        rounded = g.op("Cast", g.op("Cast", level, to=TensorProto.FLOAT16), to=TensorProto.FLOAT) \
-            if config.half_textures else level
-        levels.append(g.shape(rounded, [-1, width]))
+        stored = g.op("Cast", level, to=TensorProto.FLOAT16) if config.half_textures else level
+        levels.append(g.shape(stored, [-1, width]))
     return g.op("Concat", *levels, axis=0)
 
 
@@ -226,10 +230,14 @@ def tap_weights(g: GraphWriter, frac: str, levels: int, t: str | None) -> str:
     return weights if t is None else g.op("Mul", weights, level_weights(g, t, 4))
 
 
-def _gather(g: GraphWriter, table: str, rows: str, levels: int, width: int) -> str:
-    """Table rows (N, L) float -> (N, 4 L width) texels in tap order, level by level."""
-    rows = g.op("Cast", rows, to=TensorProto.INT64)
-    return g.shape(g.op("Gather", table, rows, axis=0), [-1, 4 * levels * width])
+def read_rows(g: GraphWriter, table: str, rows: str, config: MaterialConfig) -> str:
+    """A query's read of a quad table in a texture's type (`texture_const`): Gather(table, rows) as float32."""
+    return as_float(g, g.op("Gather", table, g.op("Cast", rows, to=TensorProto.INT64), axis=0), config)
+
+
+def _gather(g: GraphWriter, table: str, rows: str, levels: int, width: int, config: MaterialConfig) -> str:
+    """Table rows (N, L) float -> (N, 4 L width) float32 texels in tap order, level by level."""
+    return g.shape(read_rows(g, table, rows, config), [-1, 4 * levels * width])
 
 
 @dataclass
@@ -251,6 +259,8 @@ class Footprint:
     """Its quad index table (`quad_rows`), (R, 4) int32."""
     index_rows: int
     """R, the index table's rows."""
+    config: MaterialConfig
+    """The pyramid's config: the type its tables are stored in (`texture_const`)."""
     table: str | None = None
     """The pyramid's quad table (`expand_table`), written by the first `footprint_texels`."""
 
@@ -264,7 +274,7 @@ def pyramid_footprint(g: GraphWriter, config: MaterialConfig, atlas: str, width:
     tables, _ = trimmed_atlas(config, finest_level)
     rows, t = level_of_detail(g, sigma, config, finest_level, level_tables(config, finest_level), prefix)
     index = quad_rows(g, config.level_sizes(), finest_level, prefix)
-    return Footprint(rows["size"], rows["coef"], rows["base"], t, atlas, index, len(tables.rows))
+    return Footprint(rows["size"], rows["coef"], rows["base"], t, atlas, index, len(tables.rows), config)
 
 
 def footprint_rows(g: GraphWriter, fp: Footprint, uvw: str) -> tuple[str, str]:
@@ -282,7 +292,7 @@ def footprint_read(g: GraphWriter, fp: Footprint, width: int, rows: str) -> str:
     """Quad table rows (N, 2) of `fp`'s levels lo, hi (`footprint_rows`) -> texels (N, 8 width)."""
     if fp.table is None:
         fp.table = expand_table(g, fp.atlas, fp.index, width)
-    return _gather(g, fp.table, rows, 2, width)
+    return _gather(g, fp.table, rows, 2, width, fp.config)
 
 
 def footprint_texels(g: GraphWriter, fp: Footprint, width: int, uvw: str) -> tuple[str, str]:
@@ -299,7 +309,7 @@ def pyramid_texels(g: GraphWriter, config: MaterialConfig, atlas: str, width: in
     return footprint_texels(g, fp, width, uvw)
 
 
-def texture_texels(g: GraphWriter, texture: str, size: int, width: int, uvw: str,
+def texture_texels(g: GraphWriter, config: MaterialConfig, texture: str, size: int, width: int, uvw: str,
                    prefix: str) -> tuple[str, str]:
     """Bilinear footprint of one texture, (S * S, width) flat: uvw (N, 2) in [0, 1] -> texels
     (N, 4 width), weights (N, 4); its index table's vectors are named ``{prefix}quad.*`` (`quad_vectors`)."""
@@ -309,5 +319,5 @@ def texture_texels(g: GraphWriter, texture: str, size: int, width: int, uvw: str
     x0 = g.op("Floor", x)
     line = g.op("MatMul", x0, g.const(np.asarray([[1.0], [w]])))  # (N, 1): x0 + W y0
     table = expand_table(g, texture, quad_rows(g, [size], 0, prefix), width)
-    texels = _gather(g, table, g.op("Add", line, g.const([base])), 1, width)
+    texels = _gather(g, table, g.op("Add", line, g.const([base])), 1, width, config)
     return texels, tap_weights(g, g.op("Sub", x, x0), 1, None)

@@ -289,3 +289,27 @@ def test_half_textures_are_stored_in_float16_and_read_back_as_the_model_reads_th
     assert reexport(half).SerializeToString() == half.SerializeToString()
     with pytest.raises(ValueError, match="beyond float16's range"):
         build_onnx(cfg, {**weights, W.PYRAMID: weights[W.PYRAMID] * 1e6}, "overflow")
+
+
+@pytest.mark.parametrize("half", [True, False], ids=["half", "float32"])
+@pytest.mark.parametrize("offset_mip", [False, True], ids=["offset", "offset-mip"])
+def test_the_tables_folded_at_load_keep_the_textures_type(half, offset_mip):
+    """What an engine computes at load from float16 textures - the quad tables of the latents, the offset texture,
+    the base's maps, its horizons and the relief's heights - stays float16 (half the memory), and each query's read is
+    cast to float32 after its Gather; float32 textures give float32 tables."""
+    from onnx import numpy_helper
+
+    from neumip.engines.onnx_kernel import fold_constants
+
+    cfg = MaterialConfig(resolution=32, base=64, relief=64, half_textures=half, offset_mip=offset_mip)
+    model = build_onnx(cfg, random_weights(cfg, seed=8), "tables")
+    constants, nodes = fold_constants(model.graph.node, {i.name: numpy_helper.to_array(i) for i in model.graph.initializer})
+    tables = [n for n in nodes if n.op_type == "Gather" and n.input[0] in constants]
+    assert len({n.input[0] for n in tables}) == 5
+    assert {constants[n.input[0]].dtype for n in tables} == {np.dtype(np.float16 if half else np.float32)}
+    readers = {i: n for n in nodes for i in n.input}
+    cast = [readers.get(n.output[0]) for n in tables]
+    if half:
+        assert all(c.op_type == "Cast" and c.attribute[0].i == onnx.TensorProto.FLOAT for c in cast)
+    else:
+        assert not any(c.op_type == "Cast" for c in cast)
