@@ -9,11 +9,14 @@ models serves ``--clients`` threads that each send ``--requests`` requests of 40
 random one of ``--materials`` materials; printed: throughput, latency percentiles, loads, unloads,
 the largest resident model bytes seen on /metrics (sampled every 20 ms) against the budget, errors. Section
 ``folders``: `neumip serve` over each of ``--folders`` as it is, with its default settings, in ``--rounds``
-interleaved rounds: the folder's bytes, ready seconds and resident memory (median and range of the rounds).
+interleaved rounds: the folder's bytes, ready seconds and resident memory when ready and after a request to each
+material (median and range of the rounds). Section ``arena``: ONNX Runtime's sessions over the first of
+``--folders`` with an arena each, one shared arena, or none (`arena_worker`): resident memory and speed.
 
     .venv/bin/python benchmarks/bench_loading.py                   # startup and lru
     .venv/bin/python benchmarks/bench_loading.py --sections lru --clients 8
     .venv/bin/python benchmarks/bench_loading.py --sections folders --folders OLD_MODELS,models --rounds 3
+    .venv/bin/python benchmarks/bench_loading.py --sections arena --folders models --rounds 3
 """
 
 from __future__ import annotations
@@ -86,19 +89,103 @@ def startup(args, tmp: Path) -> None:
 
 def folders(args, tmp: Path) -> None:
     paths = [Path(f) for f in args.folders.split(",")]
-    ready, rss = {p: [] for p in paths}, {p: [] for p in paths}
+    ready, rss, warm = ({p: [] for p in paths} for _ in range(3))
+    q = random_queries(65536, seed=1)
     for _ in range(args.rounds):
         for path in paths:
             server = Server(path)
             ready[path].append(server.ready_s)
             rss[path].append(server.rss_mb())
+            for model in sorted(path.glob("*.onnx")):
+                server.evaluate(model.stem, q).raise_for_status()
+            warm[path].append(server.rss_mb())
             server.stop()
+
+    def spread(values: list) -> str:
+        return f"{np.median(values):.0f} MiB ({min(values):.0f}-{max(values):.0f})"
+
     for path in paths:
         models = sorted(path.glob("*.onnx"))
         size = sum(m.stat().st_size for m in models)
         print(f"{path}: {len(models)} models, {size / 1e6:.2f} MB; ready in {np.median(ready[path]):.2f} s "
-              f"({min(ready[path]):.2f}-{max(ready[path]):.2f}), RSS {np.median(rss[path]):.0f} MiB "
-              f"({min(rss[path]):.0f}-{max(rss[path]):.0f}); {args.rounds} rounds")
+              f"({min(ready[path]):.2f}-{max(ready[path]):.2f}), RSS {spread(rss[path])}, after a 65,536-query "
+              f"request to each {spread(warm[path])}; {args.rounds} rounds")
+
+
+ARENAS = ("own", "shared", "none")
+"""ONNX Runtime's CPU memory in section ``arena``: an arena per session (ONNX Runtime's default), one arena of the
+process that every session shares (`engines.local.SESSION_CONFIG`, what `LocalMaterials` uses), no arena."""
+
+
+def arena_worker(mode: str, folder: Path, rounds: int) -> None:
+    """One process: sessions over every model of `folder` made as `mode` says (`ARENAS`), as `engines.local` makes
+    them otherwise; two threads run a 2^15-query call of each in chunks of 2^14; prints one JSON line: resident MiB
+    loaded, after a call each, after `rounds` more, and queries per CPU second of those rounds."""
+    import json
+    import os
+    from concurrent.futures import ThreadPoolExecutor
+
+    os.environ.setdefault("ORT_DISABLE_TELEMETRY", "1")
+    import onnxruntime as ort
+
+    def rss() -> float:  # MiB
+        with open("/proc/self/status") as status:
+            return int(next(line for line in status if line.startswith("VmRSS")).split()[1]) / 1024
+
+    if mode == "shared":
+        memory = ort.OrtMemoryInfo("Cpu", ort.OrtAllocatorType.ORT_ARENA_ALLOCATOR, 0, ort.OrtMemType.DEFAULT)
+        ort.create_and_register_allocator(memory, ort.OrtArenaCfg(0, -1, -1, -1))
+    sessions = []
+    for path in sorted(folder.glob("*.onnx")):
+        opts = ort.SessionOptions()
+        opts.intra_op_num_threads, opts.inter_op_num_threads, opts.log_severity_level = 1, 1, 3
+        opts.add_session_config_entry("session.intra_op.allow_spinning", "0")
+        if mode == "shared":
+            opts.add_session_config_entry("session.use_env_allocators", "1")
+        opts.enable_cpu_mem_arena = mode != "none"
+        sessions.append(ort.InferenceSession(str(path), opts, providers=["CPUExecutionProvider"]))
+    loaded = rss()
+    q = random_queries(2 * 16384, seed=1)
+    pool = ThreadPoolExecutor(2)
+
+    def each() -> None:
+        for session in sessions:
+            list(pool.map(lambda part: session.run(["rgb"], {"queries": part}), (q[:16384], q[16384:])))
+
+    each()
+    warm = rss()
+    cpu = time.process_time()
+    for _ in range(rounds):
+        each()
+    rate = rounds * len(sessions) * len(q) / (time.process_time() - cpu)
+    print(json.dumps({"loaded": loaded, "warm": warm, "after": rss(), "rate": rate}))
+
+
+def arena(args, tmp: Path) -> None:
+    """Section ``arena``: `arena_worker` of each mode in a fresh process, modes interleaved over ``--rounds``, with
+    the Docker image's ``MALLOC_MMAP_THRESHOLD_=131072``."""
+    import json
+    import os
+    import subprocess
+    import sys
+
+    folder = Path(args.folders.split(",")[0])
+    env = {**os.environ, "MALLOC_MMAP_THRESHOLD_": "131072"}
+    got = {mode: [] for mode in ARENAS}
+    for _ in range(args.rounds):
+        for mode in ARENAS:
+            out = subprocess.run([sys.executable, __file__, "--arena-worker", mode, "--folders", str(folder)],
+                                 env=env, capture_output=True, text=True, check=True).stdout
+            got[mode].append(json.loads(out.splitlines()[-1]))
+    print(f"arena: {folder}, {len(list(folder.glob('*.onnx')))} models, 2 threads, calls of 2^14, 3 rounds after the "
+          f"first call; MALLOC_MMAP_THRESHOLD_=131072; median (range) of {args.rounds} processes each")
+    for mode in ARENAS:
+        cols = {key: [r[key] for r in got[mode]] for key in ("loaded", "warm", "after", "rate")}
+        mib = ", ".join(f"{key} {np.median(v):.0f} MiB ({min(v):.0f}-{max(v):.0f})"
+                        for key, v in cols.items() if key != "rate")
+        rate = cols["rate"]
+        print(f"  {mode:6s}: {mib}; {np.median(rate) / 1e6:.3f} M q per CPU s ({min(rate) / 1e6:.3f}-"
+              f"{max(rate) / 1e6:.3f})")
 
 
 def lru(args, tmp: Path) -> None:
@@ -157,10 +244,13 @@ def main() -> None:
     parser.add_argument("--budget-models", type=int, default=4)
     parser.add_argument("--clients", type=int, default=8)
     parser.add_argument("--requests", type=int, default=25)
+    parser.add_argument("--arena-worker", choices=ARENAS, help=argparse.SUPPRESS)
     args = parser.parse_args()
+    if args.arena_worker:
+        return arena_worker(args.arena_worker, Path(args.folders.split(",")[0]), 3)
     with tempfile.TemporaryDirectory() as tmp:
         for section in args.sections.split(","):
-            {"startup": startup, "lru": lru, "folders": folders}[section](args, Path(tmp))
+            {"startup": startup, "lru": lru, "folders": folders, "arena": arena}[section](args, Path(tmp))
 
 
 if __name__ == "__main__":
