@@ -149,3 +149,77 @@ def _non_reading_clients(command: list[str], name: str, tmp_path: Path, clients:
         restarts = subprocess.run(["docker", "inspect", "-f", "{{.RestartCount}} {{.State.OOMKilled}}", name],
                                   capture_output=True, text=True).stdout.split()
     return took, before, during, after, restarts
+
+
+@pytest.mark.slow
+@pytest.mark.docker
+def test_compose_memory_limit_holds_at_full_load(tmp_path):
+    """compose.yaml's limit (2 GiB) against what the server's budgets admit: 16 clients send the largest requests
+    allowed (NEUMIP_MAX_ROWS queries; every fourth a v2 infer asking for a JSON answer) and send again as soon as
+    each is answered, so the body, queue and answer budgets stay spent. Every request is answered 200 or refused
+    503 at once, at least one is answered, and the cgroup never reaches its limit: no OOM kill, no restart, no
+    failed charge."""
+    import threading
+    import time
+
+    import httpx
+
+    from neumip.core import wire
+    from neumip.core.contract import random_queries
+    from neumip.server.process import ServerProcess
+    from neumip.server.settings import Settings
+
+    reason = docker_engine("docker")
+    if reason is None and subprocess.run(["docker", "image", "inspect", IMAGE], capture_output=True).returncode:
+        reason = f"no image {IMAGE}: build it with docker/smoke.sh or docker compose build"
+    if reason:
+        pytest.skip(f"Docker test skipped: {reason}")
+    q = random_queries(Settings().max_rows, seed=2)
+    msgpack = wire.encode_request(q)
+    head = ('{"inputs":[{"name":"queries","datatype":"FP32","shape":[%d,7],"parameters":{"binary_data_size":%d}}]}'
+            % (len(q), q.nbytes)).encode()
+    v2 = head + q.tobytes()
+    name = f"neumip-fullload-{os.getpid()}"
+    subprocess.run(["docker", "network", "create", name], check=True, capture_output=True)
+    command = ["docker", "run", "--rm", "--name", name, "--network", name, "--memory", "2g", "--memory-swap", "2g",
+               "-p", "127.0.0.1:{port}:8000", IMAGE]
+    statuses, lock = [], threading.Lock()
+    try:
+        with ServerProcess.start(ROOT / "models", tmp_path / "docker.log", command=command, timeout_s=180) as server:
+            stop = time.monotonic() + 30
+
+            def client(k: int) -> None:
+                with httpx.Client(timeout=600) as http:
+                    n = 0
+                    while time.monotonic() < stop:
+                        if (k + n) % 4 == 3:
+                            r = http.post(server.url + wire.INFER_PATH.format(name="rock"), content=v2,
+                                          headers={wire.INFER_HEADER_LENGTH: str(len(head))})
+                        else:
+                            r = http.post(server.url + wire.EVALUATE_PATH.format(name="rock"), content=msgpack,
+                                          headers={"content-type": wire.MSGPACK_MEDIA_TYPE})
+                        with lock:
+                            statuses.append(r.status_code)
+                        if r.status_code == 503:
+                            time.sleep(0.2)
+                        n += 1
+
+            threads = [threading.Thread(target=client, args=(k,)) for k in range(16)]
+            for t in threads:
+                t.start()
+            for t in threads:
+                t.join()
+            full = subprocess.run(["docker", "inspect", "-f", "{{.Id}}", name], capture_output=True, text=True).stdout.strip()
+            failcnt = Path(f"/sys/fs/cgroup/memory/docker/{full}/memory.failcnt")
+            peak = Path(f"/sys/fs/cgroup/memory/docker/{full}/memory.max_usage_in_bytes")
+            state = subprocess.run(["docker", "inspect", "-f", "{{.State.OOMKilled}} {{.RestartCount}}", name],
+                                   capture_output=True, text=True).stdout.split()
+            print(f"full load: {len(statuses)} answers ({statuses.count(200)} x 200), cgroup peak "
+                  f"{int(peak.read_text()) / 2**20 if peak.exists() else float('nan'):.0f} MiB of 2048")
+    finally:
+        subprocess.run(["docker", "rm", "-f", name], capture_output=True)
+        subprocess.run(["docker", "network", "rm", name], capture_output=True)
+    assert set(statuses) <= {200, 503} and 200 in statuses
+    assert state == ["false", "0"]
+    if failcnt.exists():  # cgroup v1: charges that hit the limit
+        assert int(failcnt.read_text()) == 0
