@@ -39,6 +39,7 @@ from neumip.server.settings import Settings
 
 ROOT = Path(__file__).resolve().parents[1]
 IMAGE = "neumip-server:local"
+"""The image compose builds; ``--image`` names another (one built from an older commit, say)."""
 
 
 def docker(*args: str, check: bool = True, **kw) -> str:
@@ -70,12 +71,12 @@ class Container:
     """``docker run`` of the image on a network of its own (an engine run with --bridge=none has no default),
     published on loopback, ready when /v2/health/ready answers."""
 
-    def __init__(self, tag: str, limit: str, env: dict[str, str] | None = None) -> None:
+    def __init__(self, image: str, tag: str, limit: str, env: dict[str, str] | None = None) -> None:
         self.name = f"neumip-bench-{tag}-{os.getpid()}"
         docker("network", "create", self.name)
         envs = [part for k, v in (env or {}).items() for part in ("-e", f"{k}={v}")]
         command = ["docker", "run", "--rm", "--name", self.name, "--network", self.name, "--memory", limit,
-                   "--memory-swap", limit, *envs, "-p", "127.0.0.1:{port}:8000", IMAGE]
+                   "--memory-swap", limit, *envs, "-p", "127.0.0.1:{port}:8000", image]
         start = time.perf_counter()
         self.server = ServerProcess.start(ROOT / "models", None, command=command, timeout_s=180)
         self.ready_s = time.perf_counter() - start
@@ -101,16 +102,16 @@ def image(args) -> None:
                          text=True, env={**os.environ, "DOCKER_BUILDKIT": "0"})
     sent = re.search(r"Sending build context to Docker daemon\s+([\d.]+\s*[kMG]?B)", out.stdout + out.stderr)
     wheels = sum(p.stat().st_size for p in (ROOT / "docker" / "wheels").glob("*.whl"))
-    size = int(docker("image", "inspect", "-f", "{{.Size}}", IMAGE))
+    size = int(docker("image", "inspect", "-f", "{{.Size}}", args.image))
     print(f"image: build context {sent.group(1) if sent else '?'} (the classic builder's count; "
-          f"{wheels / 1e6:.1f} MB of it docker/wheels/); {IMAGE} {size / 1e6:.0f} MB")
+          f"{wheels / 1e6:.1f} MB of it docker/wheels/); {args.image} {size / 1e6:.0f} MB")
 
 
 def start(args) -> None:
     q = random_queries(65536, seed=1)
     ready, idle, warm = [], [], []
     for i in range(args.rounds):
-        box = Container(f"start{i}", args.limit)
+        box = Container(args.image, f"start{i}", args.limit)
         try:
             ready.append(box.ready_s)
             time.sleep(3)
@@ -124,7 +125,7 @@ def start(args) -> None:
     def spread(v: list, unit: str, f: str) -> str:
         return f"{np.median(v):{f}} {unit} ({min(v):{f}}-{max(v):{f}})"
 
-    print(f"start: {args.rounds} containers; ready after `docker run` {spread(ready, 's', '.2f')}; memory idle "
+    print(f"start: {args.image}, {args.rounds} containers; ready after `docker run` {spread(ready, 's', '.2f')}; memory idle "
           f"{spread(idle, 'MiB', '.0f')}, after a 65,536-query request to each material {spread(warm, 'MiB', '.0f')}")
 
 
@@ -137,7 +138,7 @@ def load(args) -> None:
                                    "parameters": {"binary_data_size": q.nbytes}}]}).encode()  # no output: JSON
     v2_body, v2_headers = head + q.tobytes(), {wire.INFER_HEADER_LENGTH: str(len(head)),
                                                "content-type": "application/octet-stream"}
-    box = Container("load", args.limit)
+    box = Container(args.image, "load", args.limit)
     statuses, errors = Counter(), Counter()
     stop = time.monotonic() + args.seconds
     materials = box.materials()
@@ -189,6 +190,7 @@ def main() -> None:
                         help="the container's memory limit (compose.yaml's default)")
     parser.add_argument("--clients", type=int, default=16)
     parser.add_argument("--seconds", type=float, default=45.0)
+    parser.add_argument("--image", default=IMAGE)
     args = parser.parse_args()
     for section in args.sections.split(","):
         {"image": image, "start": start, "load": load}[section](args)

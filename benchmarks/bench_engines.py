@@ -132,6 +132,18 @@ def open_variant(data: bytes, s: dict, folder: str) -> tuple[ort.InferenceSessio
     return ort.InferenceSession(source, opts, providers=["CPUExecutionProvider"]), time.perf_counter() - start
 
 
+def folded_mib(data: bytes, scratch: Path) -> float:
+    """MiB of constants an ONNX Runtime session of the model holds once it has folded the graph at load (its
+    optimised graph's initializers: the quad tables among them)."""
+    opts = ort.SessionOptions()
+    opts.log_severity_level = 3
+    opts.optimized_model_filepath = str(scratch / "folded.onnx")
+    ort.InferenceSession(data, opts, providers=["CPUExecutionProvider"])
+    inits = onnx.load(opts.optimized_model_filepath).graph.initializer
+    return sum(int(np.prod(i.dims, dtype=np.int64)) * onnx.helper.tensor_dtype_to_np_dtype(i.data_type).itemsize
+               for i in inits) / 2**20
+
+
 def mlp_only(config) -> tuple[bytes, int]:
     """The decoder MLP alone, widths as the model's: (N, in) -> (N, out) float32, Gemm + Relu; and `in`."""
     inputs, answers = W.mlps(config)[W.DECODER]
@@ -291,7 +303,7 @@ class Bench:
         bits = {e: "same" if np.array_equal(a, want) else f"{np.abs(a - want).max():.1e}" for e, a in checks.items()}
         ops = (operations(graph_cost(onnx.load_model_from_string(data))),
                operations(graph_cost(onnx.load_model_from_string(mlp_only(config)[0]))))
-        self.info[name] = {"MB": len(data) / 1e6, "bits": bits, "ops": ops}
+        self.info[name] = {"MB": len(data) / 1e6, "bits": bits, "ops": ops, "folded": folded_mib(data, self.scratch)}
 
     def engines(self, name: str, config) -> dict:
         """{engine: fn()} of model `name`: the shipped engines, the mlp-only graph, with --server the servers."""
@@ -334,7 +346,8 @@ class Bench:
         return statistics.median(a[0] / b[0] for a, b in zip(self.results[name, engine], self.results[name, other]))
 
     def print(self, name: str) -> None:
-        print(f"\n## {name}: {self.info[name]['MB']:.1f} MB; load s: " +
+        print(f"\n## {name}: {self.info[name]['MB']:.1f} MB (ONNX Runtime's constants after folding: "
+              f"{self.info[name]['folded']:.1f} MiB); load s: " +
               ", ".join(f"{e} {s:.3f}" for e, s in self.loads[name].items()))
         print(f"  {'engine':34s} {'M q/s':>7s} {'CPU M/s':>8s} {'/mlp':>6s} {'/kernel':>8s}  bits")
         for engine in [e for (n, e) in self.fns if n == name]:
