@@ -63,7 +63,7 @@ def main() -> None:
 
     jit = importlib.import_module(f"drjit.{args.backend}.ad")
     material = KernelMaterial(args.model, jit)
-    cost = graph_cost(onnx.load(args.model), table_item=4)  # the kernel engine holds its tables in float32
+    cost = graph_cost(onnx.load(args.model))
     mlp32, width = decoder_mlp(material.config, torch, args.device, torch.float32)
     mlp16, _ = decoder_mlp(material.config, torch, args.device, torch.bfloat16)
     config = material.config

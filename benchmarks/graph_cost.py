@@ -22,13 +22,12 @@ def _shapes(graph) -> tuple[dict[str, list], dict[str, int]]:
     return shapes, sizes
 
 
-def graph_cost(model: onnx.ModelProto, table_item: int | None = None) -> dict:
+def graph_cost(model: onnx.ModelProto) -> dict:
     """Per single query, from the graph's shapes: bytes its texture gathers read (rows of tables read with per-query
     indices, in the tables' type), FLOPs of its matrix products with a per-query operand, and elements the other
     nodes write (one operation each; layout nodes - Reshape, Gather, Concat, Cast - count too, tap products over
-    folded rows do not: an estimate, not a floor); and the node count. `table_item`: the bytes of a table's element
-    where an engine holds the tables in another type than the graph's (the kernel engine: float32, 4). A symbolic
-    first dimension is taken as the batch."""
+    folded rows do not: an estimate, not a floor); and the node count. A symbolic first dimension is taken as the
+    batch."""
     graph = shape_inference.infer_shapes(model).graph
     known, item = _shapes(graph)
     read = flops = elements = 0
@@ -43,7 +42,7 @@ def graph_cost(model: onnx.ModelProto, table_item: int | None = None) -> dict:
             data, indices = shapes
             if indices and isinstance(indices[0], str) and all(isinstance(d, int) for d in data):
                 read += (int(np.prod(indices[1:], dtype=np.int64)) * int(np.prod(data[1:], dtype=np.int64))
-                         * (table_item or item.get(node.input[0], 4)))
+                         * item.get(node.input[0], 4))
         elif node.op_type in ("MatMul", "Gemm"):
             fixed = [s for s in shapes if all(isinstance(d, int) for d in s)]
             if len(fixed) == 1 and len(fixed[0]) == 2:

@@ -63,10 +63,10 @@ class LaneGraph:
             if constants[name].dtype not in (np.float32, np.float16):
                 raise GraphError(f"computed indices read the table {name!r} of {constants[name].dtype} "
                                  "(only float32 and float16 tables)")
-        # float16 tables (the export's with `half_textures`, whose reads are cast to float32) are held in float32:
-        # every float16 value is exact there, so the read and its cast give the same bits
-        self.tables = [backend.Float(np.ascontiguousarray(constants[name], np.float32).ravel())
-                       for name in self.table_names]
+        # float16 tables (the export's with `half_textures`, whose reads are cast to float32) stay float16: a read
+        # converts its values to float32, exactly, so the answers are those of float32 tables, at half the memory
+        self.tables = [(backend.Float16 if constants[name].dtype == np.float16 else backend.Float)(
+                       np.ascontiguousarray(constants[name]).ravel()) for name in self.table_names]
         """The constants that computed indices read (textures), flat: the frozen function's inputs."""
         self.table_shapes = [constants[name].shape for name in self.table_names]
         other = {name for n in self.nodes for i, name in enumerate(n.input) if i or n.op_type != "Gather"}

@@ -286,7 +286,7 @@ class Ops:
             index = jit.Int32(index)
             index = dr.select(index < 0, index + rows, index)  # -1: the last row
             start = jit.UInt32(dr.clip(index, 0, rows - 1)) * width  # out of range: ONNX Runtime refuses
-            return [dr.gather(jit.Float, table, start + i) for i in range(width)]
+            return [jit.Float(dr.gather(type(table), table, start + i)) for i in range(width)]  # float16: exact
 
         values = [value for index in indices.cells.ravel() for value in read(index)]
         return Lanes(objects(indices.cells.shape + tuple(shape[1:]), values), indices.axis)

@@ -121,6 +121,17 @@ def test_answers_match_onnx_runtime_for_every_layout(layouts, backend):
             assert parity(got, want) <= 1.0, name
 
 
+def test_float16_textures_stay_float16_tables_in_the_kernel(layouts):
+    """A model whose textures are float16 (`half_textures`) keeps its five quad tables as drjit Float16 arrays - half
+    the memory - and one of float32 textures keeps Float ones; the answers match ONNX Runtime's above either way."""
+    from drjit.llvm.ad import Float16
+
+    half = KernelMaterial(layouts / "half-textures.onnx").graph.tables
+    full = KernelMaterial(layouts / "relief.onnx").graph.tables
+    assert len(half) == 5 and all(isinstance(t, Float16) for t in half)
+    assert full and all(isinstance(t, Float) for t in full)
+
+
 def test_a_group_answers_each_light_as_its_single_query(layouts):
     kernel = KernelMaterials(layouts)
     q = random_queries(1000, seed=5, lights=3)
