@@ -125,7 +125,8 @@ def start(args) -> None:
     def spread(v: list, unit: str, f: str) -> str:
         return f"{np.median(v):{f}} {unit} ({min(v):{f}}-{max(v):{f}})"
 
-    print(f"start: {args.image}, {args.rounds} containers; ready after `docker run` {spread(ready, 's', '.2f')}; memory idle "
+    print(f"start: {args.image}, {args.rounds} containers; ready after `docker run` {spread(ready, 's', '.2f')}; "
+          f"memory idle "
           f"{spread(idle, 'MiB', '.0f')}, after a 65,536-query request to each material {spread(warm, 'MiB', '.0f')}")
 
 

@@ -241,8 +241,8 @@ class MaterialConfig:
         return sum(s * s for s in self.level_sizes())
 
     def base_pyramid(self) -> "MaterialConfig | None":
-        """The base maps' pyramid as a config of its own (its resolution and channels; the material's level-of-detail bias
-        and storage type, as the next two), or None without a base."""
+        """The base maps' pyramid as a config of its own: its resolution and channels, the material's `lod_bias` and
+        `half_textures` (as the next two); None without a base."""
         return MaterialConfig(resolution=self.base, channels=BASE_CHANNELS, offset=False,
                               lod_bias=self.lod_bias, half_textures=self.half_textures) if self.base else None
 
@@ -253,8 +253,10 @@ class MaterialConfig:
 
     def offset_pyramid(self) -> "MaterialConfig | None":
         """The neural offset texture's mip pyramid as a config of its own (`offset_mip`), or None without it."""
+        if not (self.offset and self.offset_mip):
+            return None
         return MaterialConfig(resolution=self.resolution, channels=self.offset_channels, offset=False,
-                              lod_bias=self.lod_bias, half_textures=self.half_textures) if self.offset and self.offset_mip else None
+                              lod_bias=self.lod_bias, half_textures=self.half_textures)
 
     def pyramid_finest_level(self, pyramid: "MaterialConfig", finest_level: int) -> int:
         """The finest level of `pyramid` (`base_pyramid`, `relief_pyramid`, `offset_pyramid`, or this config's own) read

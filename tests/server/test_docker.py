@@ -209,7 +209,8 @@ def test_compose_memory_limit_holds_at_full_load(tmp_path):
                 t.start()
             for t in threads:
                 t.join()
-            full = subprocess.run(["docker", "inspect", "-f", "{{.Id}}", name], capture_output=True, text=True).stdout.strip()
+            full = subprocess.run(["docker", "inspect", "-f", "{{.Id}}", name], capture_output=True,
+                                  text=True).stdout.strip()
             failcnt = Path(f"/sys/fs/cgroup/memory/docker/{full}/memory.failcnt")
             peak = Path(f"/sys/fs/cgroup/memory/docker/{full}/memory.max_usage_in_bytes")
             state = subprocess.run(["docker", "inspect", "-f", "{{.State.OOMKilled}} {{.RestartCount}}", name],

@@ -166,11 +166,11 @@ def mip_atlas(texture: np.ndarray) -> np.ndarray:
 
 
 def mip_const(g: GraphWriter, atlas: np.ndarray, pyramid: MaterialConfig, name: str, config: MaterialConfig) -> str:
-    """Constant subgraph: a mip pyramid's atlas (T, C) in the texture's type (`texture_const`), from its finest level alone, which
-    the file stores (`texture_const`, named `name`): every coarser level is `mip_atlas`'s average in float32 from the
-    level above, then rounded as the file would store it (`stored_texture`; the next level averages the unrounded one,
-    as the model does). ValueError where `atlas` (float32, every level), as stored, is not that pyramid of its finest
-    level as stored."""
+    """Constant subgraph: a mip pyramid's atlas (T, C) in the texture's type (`texture_const`), from its finest level
+    alone, which the file stores (`texture_const`, named `name`): every coarser level is `mip_atlas`'s average in
+    float32 from the level above, then rounded as the file would store it (`stored_texture`; the next level averages
+    the unrounded one, as the model does). ValueError where `atlas` (float32, every level), as stored, is not that
+    pyramid of its finest level as stored."""
     size, width = pyramid.resolution, pyramid.channels
     finest = stored_texture(atlas[:size * size], config)
     if not np.array_equal(stored_texture(mip_atlas(finest.reshape(size, size, width)), config),

@@ -303,7 +303,8 @@ def test_the_tables_folded_at_load_keep_the_textures_type(half, offset_mip):
 
     cfg = MaterialConfig(resolution=32, base=64, relief=64, half_textures=half, offset_mip=offset_mip)
     model = build_onnx(cfg, random_weights(cfg, seed=8), "tables")
-    constants, nodes = fold_constants(model.graph.node, {i.name: numpy_helper.to_array(i) for i in model.graph.initializer})
+    inits = {i.name: numpy_helper.to_array(i) for i in model.graph.initializer}
+    constants, nodes = fold_constants(model.graph.node, inits)
     tables = [n for n in nodes if n.op_type == "Gather" and n.input[0] in constants]
     assert len({n.input[0] for n in tables}) == 5
     assert {constants[n.input[0]].dtype for n in tables} == {np.dtype(np.float16 if half else np.float32)}
