@@ -33,8 +33,8 @@ DEFAULT_CHUNK = 16384
 """Answers per ONNX Runtime call of `LocalMaterials` (rows of single queries; a group of K lights
 counts K). On the shipped models' graph (about 730 nodes a call) chunks of 2^14 rows ran 10-16 % more
 queries per CPU second than 2^12 (per-node overhead paid less often; 2^15 and more were slower again),
-for about 70 MB of ONNX Runtime arena per material in use on two workers instead of 18
-(benchmarks/bench_engines.py)."""
+for about 70 MB of ONNX Runtime arena on two workers instead of 18 (benchmarks/bench_engines.py; measured with an
+arena per material, before every session shared one: `SESSION_CONFIG`)."""
 
 MIN_SPLIT = 2048
 """Batches below twice this many rows run as one call (splitting them costs more than it saves)."""
