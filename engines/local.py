@@ -68,8 +68,10 @@ def _onnxruntime():
         if not _arena_registered:
             memory = onnxruntime.OrtMemoryInfo("Cpu", onnxruntime.OrtAllocatorType.ORT_ARENA_ALLOCATOR, 0,
                                                onnxruntime.OrtMemType.DEFAULT)
-            # no limit, default growth, chunk sizes (-1: ONNX Runtime's defaults)
-            onnxruntime.create_and_register_allocator(memory, onnxruntime.OrtArenaCfg(0, -1, -1, -1))
+            try:  # no limit, default growth, chunk sizes (-1: ONNX Runtime's defaults)
+                onnxruntime.create_and_register_allocator(memory, onnxruntime.OrtArenaCfg(0, -1, -1, -1))
+            except Exception as exc:  # one is registered already (another library in the process): sessions share it
+                log.debug("ONNX Runtime's shared CPU arena not registered: %s", exc)
             _arena_registered = True
     return onnxruntime
 

@@ -140,3 +140,27 @@ def test_a_non_finite_weight_is_refused_as_the_server_refuses_it(model_dir, tmp_
     assert ModelError is ReaderError
     with pytest.raises(ReaderError, match="nan.onnx: non-finite"):
         LocalMaterials(tmp_path, lazy=True).get("nan")
+
+
+def test_sessions_share_one_arena_and_load_beside_another_registered_one(tmp_path):
+    """Every session allocates from the process's one CPU arena (`SESSION_CONFIG`); where another library registered
+    ONNX Runtime's shared arena first, materials still load and answer as in a process of their own."""
+    from neumip.engines.local import SESSION_CONFIG
+    from neumip.training.export.graph import build_onnx, random_weights, save_onnx
+    from neumip.core.config import MaterialConfig
+
+    assert SESSION_CONFIG["session.use_env_allocators"] == "1"
+    cfg = MaterialConfig(resolution=16, half_textures=True)
+    save_onnx(build_onnx(cfg, random_weights(cfg, seed=1)), tmp_path / "m.onnx")
+    script = (
+        "import sys, numpy as np, onnxruntime as ort\n"
+        "if sys.argv[2] == 'first':\n"
+        "    m = ort.OrtMemoryInfo('Cpu', ort.OrtAllocatorType.ORT_ARENA_ALLOCATOR, 0, ort.OrtMemType.DEFAULT)\n"
+        "    ort.create_and_register_allocator(m, ort.OrtArenaCfg(0, -1, -1, -1))\n"
+        "from neumip.engines.local import LocalMaterials\n"
+        "from neumip.core.contract import random_queries\n"
+        "sys.stdout.write(LocalMaterials(sys.argv[1]).evaluate('m', random_queries(1000, seed=2)).tobytes().hex())\n"
+    )
+    answers = [subprocess.run([sys.executable, "-c", script, str(tmp_path), who], capture_output=True, text=True,
+                              check=True).stdout for who in ("first", "alone")]
+    assert answers[0] and answers[0] == answers[1]
