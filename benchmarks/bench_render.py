@@ -35,6 +35,7 @@ whole in-process render: a smaller one left kernels to compile inside the timed 
     .venv/bin/python benchmarks/bench_render.py --sections ratios,demo  # and the demo in-process vs HTTP
     .venv/bin/python benchmarks/bench_render.py --sections demo --stand-in   # untrained stand-ins
     .venv/bin/python benchmarks/bench_render.py --sections stages --compare /tmp/before   # stage costs
+    .venv/bin/python benchmarks/bench_render.py --sections kernels   # the overhead renders' kernels
     .venv/bin/python benchmarks/bench_render.py --kernel-before /tmp/kernel_before.py  # and another checkout's kernel
 
 ``--stand-in`` builds constant-colour materials of the default architecture (256^2 pyramid,
@@ -430,9 +431,38 @@ def set_variant(variant: str | None) -> None:
         print(f"# Mitsuba variant {variant}")
 
 
+def kernels(args) -> None:
+    """Section ``kernels``: where the overhead renders spend their time, from drjit's kernel history - the constant
+    material in `neumip_path` with one emitter chosen, and stock `path` with `diffuse` - one render each after a
+    warm-up: the kernels' count, lanes and execution time, the heaviest five with their operation counts."""
+    import drjit as dr
+
+    from neumip.client.mitsuba.render import mi
+
+    material = material_name(args)
+    scenes = ratio_scenes(mi, args)
+    picked = {"constant, one emitter": ConstantKernel(material), "diffuse (path)": None}
+    print(f"## kernels: {args.material}, {args.size}^2 px, {args.spp} spp, max_depth {args.max_depth}; drjit's kernel "
+          f"history of one render   [{load_avg()}]", flush=True)
+    for name, evaluator in picked.items():
+        scene = mi.load_dict(scenes[name][0])
+        time_render(mi, scene, evaluator, args.spp, 0, args.max_lanes)  # compile (or load cached) kernels
+        dr.set_flag(dr.JitFlag.KernelHistory, True)
+        dr.kernel_history()  # cleared
+        wall = time_render(mi, scene, evaluator, args.spp, 1, args.max_lanes)[0]
+        history = [h for h in dr.kernel_history() if h.get("type") == dr.KernelType.JIT]
+        dr.set_flag(dr.JitFlag.KernelHistory, False)
+        total = sum(h["execution_time"] for h in history) / 1e3
+        print(f"  {name}: {wall:.3f} s wall, {len(history)} kernels running {total:.3f} s, "
+              f"{sum(h['size'] for h in history) / 1e6:.1f} M lanes in all")
+        for h in sorted(history, key=lambda h: -h["execution_time"])[:5]:
+            print(f"    {h['execution_time'] / 1e3:7.3f} s  {h['size']:>9,} lanes  {h['operation_count']:>6,} ops  "
+                  f"{h['input_count']:>3} in / {h['output_count']:>3} out")
+
+
 def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--sections", default="ratios", help="comma-separated: ratios, stages, demo")
+    parser.add_argument("--sections", default="ratios", help="comma-separated: ratios, stages, demo, kernels")
     parser.add_argument("--models", type=Path, default=ROOT / "models", help="model folder")
     parser.add_argument("--material", default="rock",
                         help="ratios: a shipped material, or a description file NAME.toml with NAME.onnx in --models")
@@ -468,6 +498,8 @@ def main() -> int:
         stages(args)
     if "demo" in sections:
         demo(args)
+    if "kernels" in sections:
+        kernels(args)
     return 0
 
 
