@@ -23,7 +23,9 @@ queries per call, in interleaved rounds (every model and engine once a round; me
 ``--server``: also each engine behind a real `neumip serve` (`NEUMIP_ENGINE=onnxruntime` and ``kernel``, both
 running, default settings, serving these models), sent the same batches as msgpack by one `MaterialClient`;
 and, in process and through each server, the renderer's query groups of two lights (2^batch groups: twice
-the answers). Its ``CPU M/s`` counts the server's CPU time too.
+the answers). Its ``CPU M/s`` counts the server's CPU time too. ``--server-env KEY=VALUE ...`` starts a second
+server of each engine with those environment variables, measured in the same interleaved rounds (an A/B of a
+setting, e.g. glibc's ``MALLOC_MMAP_THRESHOLD_``).
 
 Ratios are per round, then the median: ``/mlp`` to the mlp-only graph, ``/kernel`` to the kernel engine
 (the same kind: in process or served, single queries or groups). Groups count answers (2 a group).
@@ -203,8 +205,9 @@ def pairs(queries: np.ndarray) -> np.ndarray:
     return np.ascontiguousarray(np.hstack([queries, other]))
 
 
-def start_servers(folder: Path, names: list[str], scratch: Path) -> dict:
-    """A `neumip serve` of each engine on a folder of the models `names`: {engine: (server, client)}."""
+def start_servers(folder: Path, names: list[str], scratch: Path, env: dict[str, str] | None = None) -> dict:
+    """A `neumip serve` of each engine on a folder of the models `names`: {engine: (server, client)}; with `env`, a
+    second one of each engine with those environment variables, named "ENGINE KEY=VALUE"."""
     from neumip.client.http import ClientConfig, MaterialClient
     from neumip.server.process import ServerProcess
 
@@ -213,10 +216,14 @@ def start_servers(folder: Path, names: list[str], scratch: Path) -> dict:
     for name in names:
         (served / f"{name}.onnx").symlink_to((folder / f"{name}.onnx").resolve())
     servers = {}
-    for engine in ("onnxruntime", "kernel"):
-        server = ServerProcess.start(served, scratch / f"{engine}.log", engine=engine)
-        servers[engine] = (server, MaterialClient(server.url, ClientConfig(timeout_s=120)))
-        print(f"# server {engine} ready in {server.ready_s:.1f} s")
+    variants = [(engine, {}) for engine in ("onnxruntime", "kernel")]
+    if env:
+        variants += [(engine, env) for engine in ("onnxruntime", "kernel")]
+    for engine, extra in variants:
+        name = " ".join([engine, *(f"{k}={v}" for k, v in extra.items())])
+        server = ServerProcess.start(served, scratch / f"{name.replace(' ', '_')}.log", env=extra, engine=engine)
+        servers[name] = (server, MaterialClient(server.url, ClientConfig(timeout_s=120)))
+        print(f"# server {name} ready in {server.ready_s:.1f} s")
     return servers
 
 
@@ -276,7 +283,8 @@ class Bench:
         self.kernel = KernelMaterials(args.folder)
         self.executor = ThreadPoolExecutor(args.threads) if args.threads > 1 else None
         self.batches = Batches(self.rows)
-        self.servers = start_servers(args.folder, args.models, scratch) if args.server else {}
+        env = dict(kv.split("=", 1) for kv in args.server_env)
+        self.servers = start_servers(args.folder, args.models, scratch, env) if args.server else {}
         self.fns, self.answers, self.loads, self.info = {}, {}, {}, {}
         self.results = collections.defaultdict(list)
 
@@ -338,7 +346,7 @@ class Bench:
             for key, fn in self.fns.items():
                 time.sleep(SETTLE_S)
                 server = next((s.process.pid for e, (s, _) in self.servers.items()
-                               if key[1].startswith(f"server {e}")), None)
+                               if key[1].removesuffix(", groups of 2") == f"server {e}"), None)
                 self.results[key].append(throughput(fn, self.answers[key], self.args.seconds, server))
 
     def ratio(self, name: str, engine: str, other: str) -> float:
@@ -381,6 +389,8 @@ def main() -> None:
     parser.add_argument("--ort", type=lambda t: t.split(","), default=[], help="ONNX Runtime variants (SPEC,...)")
     parser.add_argument("--profile", action="store_true", help="ONNX Runtime's per-op profile of each model")
     parser.add_argument("--server", action="store_true", help="also through a server of each engine, and groups of two")
+    parser.add_argument("--server-env", nargs="*", default=[], metavar="KEY=VALUE",
+                        help="with --server, a second server of each engine with these environment variables")
     args = parser.parse_args()
     print(f"# {1 << args.batch} random single queries a call, {args.rounds} rounds; onnxruntime {ort.__version__}, "
           f"{args.threads} threads; {load_text()}")
