@@ -20,7 +20,6 @@ Needs a Docker engine and the image (`docker/smoke.sh` builds it as ``neumip-ser
 from __future__ import annotations
 
 import argparse
-import json
 import os
 import re
 import subprocess
@@ -135,10 +134,8 @@ def load(args) -> None:
     rows = settings.max_rows
     q = random_queries(rows, seed=2)
     binary = wire.encode_request(q)
-    head = json.dumps({"inputs": [{"name": "queries", "datatype": wire.INFER_DATATYPE, "shape": list(q.shape),
-                                   "parameters": {"binary_data_size": q.nbytes}}]}).encode()  # no output: JSON
-    v2_body, v2_headers = head + q.tobytes(), {wire.INFER_HEADER_LENGTH: str(len(head)),
-                                               "content-type": "application/octet-stream"}
+    v2_headers, parts = wire.encode_infer_request(q, binary_output=False)
+    v2_body = b"".join(parts)
     box = Container(args.image, "load", args.limit)
     statuses, errors = Counter(), Counter()
     stop = time.monotonic() + args.seconds

@@ -128,20 +128,21 @@ def arena_worker(mode: str, folder: Path, rounds: int) -> None:
     os.environ.setdefault("ORT_DISABLE_TELEMETRY", "1")
     import onnxruntime as ort
 
+    from neumip.engines.local import SESSION_CONFIG, share_arena
+
     def rss() -> float:  # MiB
         with open("/proc/self/status") as status:
             return int(next(line for line in status if line.startswith("VmRSS")).split()[1]) / 1024
 
     if mode == "shared":
-        memory = ort.OrtMemoryInfo("Cpu", ort.OrtAllocatorType.ORT_ARENA_ALLOCATOR, 0, ort.OrtMemType.DEFAULT)
-        ort.create_and_register_allocator(memory, ort.OrtArenaCfg(0, -1, -1, -1))
+        share_arena(ort)
     sessions = []
     for path in sorted(folder.glob("*.onnx")):
         opts = ort.SessionOptions()
         opts.intra_op_num_threads, opts.inter_op_num_threads, opts.log_severity_level = 1, 1, 3
-        opts.add_session_config_entry("session.intra_op.allow_spinning", "0")
-        if mode == "shared":
-            opts.add_session_config_entry("session.use_env_allocators", "1")
+        for key, value in SESSION_CONFIG.items():
+            if key != "session.use_env_allocators" or mode == "shared":
+                opts.add_session_config_entry(key, value)
         opts.enable_cpu_mem_arena = mode != "none"
         sessions.append(ort.InferenceSession(str(path), opts, providers=["CPUExecutionProvider"]))
     loaded = rss()

@@ -231,13 +231,14 @@ def decode_response(body) -> np.ndarray:
     return np.frombuffer(raw, dtype=DTYPE).reshape(n, _width("rgb", n, len(raw), RGB_DIM, RGB_DIM))
 
 
-def encode_infer_request(queries: np.ndarray) -> tuple[dict[str, str], list]:
+def encode_infer_request(queries: np.ndarray, binary_output: bool = True) -> tuple[dict[str, str], list]:
     """(N, 7) queries or (N, 5 + 2 K) groups -> (headers, body parts) of a v2 infer request with a
-    binary input and output: the JSON header, then the rows without a copy."""
+    binary input and a binary output (`binary_output` False: the answer in JSON): the JSON header, then the rows
+    without a copy."""
     q = np.ascontiguousarray(queries, dtype=DTYPE)
     tensor = {"name": ONNX_INPUT, "datatype": INFER_DATATYPE, "shape": list(q.shape),
               "parameters": {"binary_data_size": q.nbytes}}
-    head = {"inputs": [tensor], "outputs": [{"name": ONNX_OUTPUT, "parameters": {"binary_data": True}}]}
+    head = {"inputs": [tensor], "outputs": [{"name": ONNX_OUTPUT, "parameters": {"binary_data": binary_output}}]}
     header = json.dumps(head, separators=(",", ":")).encode()
     headers = {
         "Content-Type": "application/octet-stream",

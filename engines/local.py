@@ -55,8 +55,7 @@ _arena_registered = False
 
 
 def _onnxruntime():
-    """onnxruntime, imported once with the process's shared CPU arena registered (`SESSION_CONFIG`)."""
-    global _arena_registered
+    """onnxruntime, imported with the process's shared CPU arena registered (`SESSION_CONFIG`)."""
     # ONNX Runtime >= 1.29 sends usage telemetry, and where it cannot write its cache (a container
     # user without a home) warns at start-up in raw ANSI colours; ORT_DISABLE_TELEMETRY=0 turns it back on
     os.environ.setdefault("ORT_DISABLE_TELEMETRY", "1")
@@ -64,6 +63,13 @@ def _onnxruntime():
         import onnxruntime
     except ImportError as exc:  # pragma: no cover - base dependency
         raise ImportError("onnxruntime is missing: pip install neumip") from exc
+    share_arena(onnxruntime)
+    return onnxruntime
+
+
+def share_arena(onnxruntime) -> None:
+    """Register the process's one CPU arena, which sessions with `SESSION_CONFIG` allocate from (once a process)."""
+    global _arena_registered
     with _ARENA:
         if not _arena_registered:
             memory = onnxruntime.OrtMemoryInfo("Cpu", onnxruntime.OrtAllocatorType.ORT_ARENA_ALLOCATOR, 0,
@@ -73,7 +79,6 @@ def _onnxruntime():
             except Exception as exc:  # one is registered already (another library in the process): sessions share it
                 log.debug("ONNX Runtime's shared CPU arena not registered: %s", exc)
             _arena_registered = True
-    return onnxruntime
 
 
 @dataclass

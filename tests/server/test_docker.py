@@ -176,9 +176,8 @@ def test_compose_memory_limit_holds_at_full_load(tmp_path):
         pytest.skip(f"Docker test skipped: {reason}")
     q = random_queries(Settings().max_rows, seed=2)
     msgpack = wire.encode_request(q)
-    head = ('{"inputs":[{"name":"queries","datatype":"FP32","shape":[%d,7],"parameters":{"binary_data_size":%d}}]}'
-            % (len(q), q.nbytes)).encode()
-    v2 = head + q.tobytes()
+    v2_headers, parts = wire.encode_infer_request(q, binary_output=False)  # the answer in JSON
+    v2 = b"".join(parts)
     name = f"neumip-fullload-{os.getpid()}"
     subprocess.run(["docker", "network", "create", name], check=True, capture_output=True)
     command = ["docker", "run", "--rm", "--name", name, "--network", name, "--memory", "2g", "--memory-swap", "2g",
@@ -194,7 +193,7 @@ def test_compose_memory_limit_holds_at_full_load(tmp_path):
                     while time.monotonic() < stop:
                         if (k + n) % 4 == 3:
                             r = http.post(server.url + wire.INFER_PATH.format(name="rock"), content=v2,
-                                          headers={wire.INFER_HEADER_LENGTH: str(len(head))})
+                                          headers=v2_headers)
                         else:
                             r = http.post(server.url + wire.EVALUATE_PATH.format(name="rock"), content=msgpack,
                                           headers={"content-type": wire.MSGPACK_MEDIA_TYPE})

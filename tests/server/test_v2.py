@@ -80,6 +80,19 @@ def test_query_groups_answer_like_their_single_queries(client, reference, binary
     np.testing.assert_array_equal(rgb.reshape(-1, 3), reference.evaluate("rand16", C.ungroup(groups)))
 
 
+@pytest.mark.parametrize("binary_out", [False, True])
+def test_the_wire_modules_infer_request_gets_its_answer_in_the_format_it_asks(client, reference, binary_out):
+    """`wire.encode_infer_request(..., binary_output=False)` asks for the answer in JSON (what the Docker load test
+    and `bench_docker.py` send); the default asks for binary."""
+    from neumip.core import wire
+
+    headers, parts = wire.encode_infer_request(Q, binary_output=binary_out)
+    resp = client.post("/v2/models/rand16/infer", content=b"".join(bytes(p) for p in parts), headers=headers)
+    assert resp.status_code == 200, resp.text
+    assert (HEADER in resp.headers) == binary_out
+    np.testing.assert_array_equal(read_output(resp), reference.evaluate("rand16", Q))
+
+
 @pytest.mark.parametrize("binary", [False, True])
 def test_zero_rows_answer_zero_rows(client, binary):
     body, headers = infer_body(np.zeros((0, 7), np.float32), binary, binary)
