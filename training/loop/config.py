@@ -47,6 +47,16 @@ class TrainConfig:
     e.g. an unbiased one where a glossy material's glints leave the coarse footprints' 16-spp targets noisy."""
     coarse_level: float = 3.0
     """The level of detail (log2(sigma R) + lod_bias, of the model's pyramid) from which `coarse_loss` applies."""
+    distil: int = 0
+    """Targets of the queries at `distil_level` or coarser distilled from the model's own answers at footprints two
+    levels finer: the mean of this many (even; 0: off, the data's targets) at aim points spread over the rest of
+    the footprint, redrawn every step (`distil.distilled_targets`), from `distil_start` of the run on."""
+    distil_level: float = 3.0
+    """The level of detail (as `coarse_level`) from which `distil` applies."""
+    distil_start: float = 0.5
+    """The fraction of `steps` after which `distil` applies (the finer levels must be fitted first)."""
+    distil_weight: float = 1.0
+    """The distilled answers' weight in those targets; the data's target has the rest."""
     finish_lr_scale: float = 1.0
     """The learning rate of those steps, as a fraction of the schedule's."""
     average_fraction: float = 0.0
@@ -107,6 +117,9 @@ class TrainConfig:
         if not 0 <= self.finish_fraction <= 1 or (self.finish_fraction > 0) != bool(self.finish_loss):
             raise ValueError(f"finish_fraction must be in [0, 1], and > 0 exactly when finish_loss is set, got "
                              f"{self.finish_fraction} with {self.finish_loss!r}")
+        if self.distil < 0 or self.distil % 2 or not 0 <= self.distil_start < 1 or not 0 < self.distil_weight <= 1:
+            raise ValueError(f"distil must be 0 or an even number of samples, distil_start in [0, 1) and "
+                             f"distil_weight in (0, 1], got {self.distil}, {self.distil_start}, {self.distil_weight}")
         if not 0 < self.holdout < 1:
             raise ValueError(f"holdout must be in (0, 1), got {self.holdout}")
         if self.blur_half_life <= 0 or self.blur_start < 0 or self.blur_min <= 0:
@@ -120,6 +133,10 @@ class TrainConfig:
     def finishing(self, step: int) -> bool:
         """Whether step `step` (counted from 0) is one of the finish's (`finish_loss`)."""
         return bool(self.finish_loss) and step >= self.steps - round(self.steps * self.finish_fraction)
+
+    def distilling(self, step: int) -> bool:
+        """Whether step `step` (counted from 0) trains its coarse queries on distilled targets (`distil`)."""
+        return self.distil > 0 and step >= round(self.steps * self.distil_start)
 
     def loss_at(self, step: int) -> str:
         """The loss that trains step `step` (counted from 0)."""

@@ -33,7 +33,7 @@ from neumip.training.model.base import base_maps
 from neumip.training.model.maps import MapConfig, prefilter
 from neumip.training.model.material import MapMaterial, NeuMIPMaterial
 from neumip.training.model.relief import landed_positions, relief_heights
-from neumip.training.model.pyramid import level_of_detail
+from neumip.training.loop.distil import coarse_mask, distilled_targets, mix_targets
 from neumip.groundtruth.description import Microgeometry
 from neumip.groundtruth.lobe import sampling_lobe
 from neumip.training.loop.config import TrainConfig
@@ -164,15 +164,19 @@ class BatchSampler:
         self.train_idx = torch.from_numpy(train_idx)
         self.generator = torch.Generator().manual_seed(seed)
 
-    def draw(self, device: torch.device) -> tuple[torch.Tensor, torch.Tensor]:
-        """-> queries (B, 7), rgb (B, 3) float32 on `device`; rows read in file order (page locality)."""
+    def draw(self, device: torch.device, aims: bool = False) -> tuple[torch.Tensor, ...]:
+        """-> queries (B, 7), rgb (B, 3) float32 on `device`; rows read in file order (page locality). With
+        `aims`, also the rows as the data holds them (B, 7): their u, v where the relief has not moved them."""
         pick = torch.randint(len(self.train_idx), (self.batch,), generator=self.generator)
         rows = np.sort(self.train_idx[pick].numpy())
-        q = torch.from_numpy(self.queries[rows])
+        own = torch.from_numpy(self.queries[rows])
+        q = own
         if self.landed is not None:
+            q = own.clone()
             q[:, C.U:C.V + 1] = torch.from_numpy(self.landed[rows])
         rgb = torch.from_numpy(self.rgb[rows])
-        return q.to(device, non_blocking=True), rgb.to(device, non_blocking=True)
+        out = (q.to(device, non_blocking=True), rgb.to(device, non_blocking=True))
+        return out + (own.to(device, non_blocking=True),) if aims else out
 
 
 @torch.no_grad()
@@ -295,8 +299,8 @@ class Trainer:
         answers = self.material(queries, levels, otex, landed=self.sampler.landed is not None, ceiling=False)
         if not self.config.coarse_loss:
             return training_loss(answers, target, self.config, loss)
-        cfg = self.material.config  # the queries whose footprint reads level coarse_level or coarser:
-        coarse = level_of_detail(queries[:, C.SIGMA], cfg.resolution, cfg.lod_bias) >= self.config.coarse_level
+        cfg = self.material.config
+        coarse = coarse_mask(queries, cfg.resolution, cfg.lod_bias, self.config.coarse_level)
         return training_loss(answers, target, self.config, loss, coarse=coarse)
 
     # --- checkpoints -----------------------------------------------------------------------------
@@ -386,7 +390,11 @@ class Trainer:
         if cfg.offset_freeze and self.material.config.offset and not state.offset_frozen and state.step >= self._end:
             self._freeze_offset()
         levels, otex = effective_textures(self.material, blur_sigma(state.step, cfg), cfg, state.offset_frozen)
-        queries, target = self.sampler.draw(self.device)
+        if cfg.distilling(state.step):
+            queries, target, aims = self.sampler.draw(self.device, aims=True)
+            target = self._distilled(queries, target, aims, levels, otex)
+        else:
+            queries, target = self.sampler.draw(self.device)
         name = cfg.loss_at(state.step)
         try:
             loss = self._loss(queries, target, levels, otex, name)
@@ -412,6 +420,21 @@ class Trainer:
             state.history.append([state.step, float(np.mean(self._window))])
             self._window = []
         return value
+
+    def _distilled(self, queries: torch.Tensor, target: torch.Tensor, aims: torch.Tensor, levels: list[torch.Tensor],
+                   otex: torch.Tensor | None) -> torch.Tensor:
+        """The batch's targets with its coarse queries' distilled from the model's finer answers (`distil`);
+        `aims`: the batch's rows as the data holds them (the relief marches the distilled answers' own)."""
+        cfg = self.material.config
+        coarse = coarse_mask(queries, cfg.resolution, cfg.lod_bias, self.config.distil_level)
+        if not bool(coarse.any()):
+            return target
+
+        def answer(q: torch.Tensor) -> torch.Tensor:
+            return self.material(q, levels, otex, ceiling=False)
+
+        distilled = distilled_targets(answer, aims[coarse], self.config.distil, self.sampler.generator)
+        return mix_targets(target, distilled, coarse, self.config.distil_weight)
 
     def _accumulate_average(self) -> None:
         """Add the weights after this step to the running mean of the trained parameters (`average_fraction`)."""

@@ -41,6 +41,7 @@ def errors(pred: np.ndarray, target: np.ndarray) -> dict[str, float]:
         "rel_l1": float(np.abs(diff).sum() / max(np.abs(target).sum(), 1e-30)),
         "log_mse": float(np.mean(log_diff.astype(np.float64) ** 2)),
         "target_mean": float(np.mean(target)),
+        "answer_mean": float(np.mean(pred)),
     }
 
 
@@ -51,7 +52,8 @@ def validation_table(
 
     A query counts towards the level nearest its continuous level of detail
     (`contract.level_of_detail`). mse is in linear RGB (the paper's measure), rel_l1 is
-    sum|pred - target| / sum|target|, log_mse is the MSE of log1p values (what comb2 optimises).
+    sum|pred - target| / sum|target|, log_mse is the MSE of log1p values (what comb2 optimises);
+    target_mean / answer_mean is how much darker than its data a level answers on the whole.
     """
     level = np.rint(C.level_of_detail(np.asarray(sigma, np.float64), resolution)).astype(int)
     rows = []
@@ -64,12 +66,19 @@ def validation_table(
 
 def format_table(table: dict) -> str:
     """The validation table as aligned text lines (for logs, the CLI and the README)."""
-    lines = [f"{'level':>5} {'texels':>7} {'n':>8} {'query MSE x1e-3':>16} {'rel L1':>8} {'log MSE':>9}"]
+    lines = [f"{'level':>5} {'texels':>7} {'n':>8} {'query MSE x1e-3':>16} {'rel L1':>8} {'log MSE':>9} "
+             f"{'data / answer':>13}"]
     res = table["resolution"]
     for row in table["levels"] + [{"level": "all", **table["overall"]}]:
         texels = f"{res >> row['level']}^2" if isinstance(row["level"], int) else ""
         lines.append(
             f"{row['level']:>5} {texels:>7} {row['n']:>8} {row['mse'] * 1e3:>16.4f} "
-            f"{row['rel_l1']:>8.4f} {row['log_mse']:>9.5f}"
+            f"{row['rel_l1']:>8.4f} {row['log_mse']:>9.5f} {_ratio(row):>13}"
         )
     return "\n".join(lines)
+
+
+def _ratio(row: dict) -> str:
+    """A row's mean target over its mean answer ('' for a table written before answers' means were kept)."""
+    answer = row.get("answer_mean")
+    return "" if answer is None else f"{row['target_mean'] / answer:.3f}" if answer > 0 else "inf"

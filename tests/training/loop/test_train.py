@@ -263,6 +263,37 @@ def test_the_coarse_queries_train_with_the_coarse_loss(data, tmp_path, monkeypat
     assert any(c.any() for c, _ in seen) and any((~c).any() for c, _ in seen)
 
 
+def test_the_coarse_queries_train_on_distilled_targets_from_distil_start(data, tmp_path, monkeypatch):
+    """`distil`: from `distil_start` of the run, the coarse queries' targets are the model's own finer answers'
+    mean; the other queries keep the data's."""
+    real_loss, seen = train_mod.training_loss, []
+
+    def recording(pred, target, config, name=None, coarse=None):
+        seen.append(target.clone())
+        return real_loss(pred, target, config, name, coarse)
+
+    real_draw = train_mod.BatchSampler.draw
+
+    def draw(self, device, aims=False):
+        out = real_draw(self, device, aims)
+        draw.drawn.append(out)
+        return out
+
+    draw.drawn = []
+    monkeypatch.setattr(train_mod, "training_loss", recording)
+    monkeypatch.setattr(train_mod.BatchSampler, "draw", draw)
+    config = replace(FAST, distil=4, distil_level=2.0, distil_start=0.5)
+    Trainer(data.path, tmp_path / "d.pt", TINY, config).run()
+    assert len(seen) == len(draw.drawn) == FAST.steps
+    for step, (target, drawn) in enumerate(zip(seen, draw.drawn)):
+        queries, data_target = drawn[0], drawn[1]
+        coarse = C.level_of_detail(queries[:, C.SIGMA].numpy(), TINY.resolution, TINY.lod_bias) >= 2.0
+        assert (len(drawn) == 3) == (step >= FAST.steps // 2)
+        np.testing.assert_array_equal(target[~coarse].numpy(), data_target[~coarse].numpy())
+        changed = (target[coarse] != data_target[coarse]).any(dim=1).numpy()
+        assert changed.all() if step >= FAST.steps // 2 else not changed.any()
+
+
 def test_cli_train_writes_model_table_and_curve(data, tmp_path, capsys):
     from neumip.client.cli import main
 
