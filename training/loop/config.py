@@ -48,9 +48,11 @@ class TrainConfig:
     coarse_level: float = 3.0
     """The level of detail (log2(sigma R) + lod_bias, of the model's pyramid) from which `coarse_loss` applies."""
     distil: int = 0
-    """Targets of the queries at `distil_level` or coarser distilled from the model's own answers at footprints two
-    levels finer: the mean of this many (even; 0: off, the data's targets) at aim points spread over the rest of
-    the footprint, redrawn every step (`distil.distilled_targets`), from `distil_start` of the run on."""
+    """Targets of the queries at `distil_level` or coarser distilled from the model's own answers at the footprint
+    `distil_texels`: the mean of this many (even; 0: off, the data's targets) at aim points spread over the rest
+    of the query's footprint, redrawn every step (`distil.distilled_targets`), from `distil_start` of the run on."""
+    distil_texels: float = 1.0
+    """The footprint sigma, in the model's finest texels, that `distil`'s answers read."""
     distil_level: float = 3.0
     """The level of detail (as `coarse_level`) from which `distil` applies."""
     distil_start: float = 0.5
@@ -117,7 +119,8 @@ class TrainConfig:
         if not 0 <= self.finish_fraction <= 1 or (self.finish_fraction > 0) != bool(self.finish_loss):
             raise ValueError(f"finish_fraction must be in [0, 1], and > 0 exactly when finish_loss is set, got "
                              f"{self.finish_fraction} with {self.finish_loss!r}")
-        if self.distil < 0 or self.distil % 2 or not 0 <= self.distil_start < 1 or not 0 < self.distil_weight <= 1:
+        if (self.distil < 0 or self.distil % 2 or not 0 <= self.distil_start < 1 or not 0 < self.distil_weight <= 1
+                or self.distil_texels <= 0):
             raise ValueError(f"distil must be 0 or an even number of samples, distil_start in [0, 1) and "
                              f"distil_weight in (0, 1], got {self.distil}, {self.distil_start}, {self.distil_weight}")
         if not 0 < self.holdout < 1:

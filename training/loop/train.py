@@ -430,10 +430,11 @@ class Trainer:
         if not bool(coarse.any()):
             return target
 
-        def answer(q: torch.Tensor) -> torch.Tensor:
-            return self.material(q, levels, otex, ceiling=False)
+        def answer(q: torch.Tensor) -> torch.Tensor:  # (at most the data's largest target, as a target is)
+            return self.material(q, levels, otex)
 
-        distilled = distilled_targets(answer, aims[coarse], self.config.distil, self.sampler.generator)
+        distilled = distilled_targets(answer, aims[coarse], self.config.distil, self.sampler.generator,
+                                      self.config.distil_texels / cfg.resolution)
         return mix_targets(target, distilled, coarse, self.config.distil_weight)
 
     def _accumulate_average(self) -> None:

@@ -1,11 +1,11 @@
-"""Distilled coarse targets: Gaussians compose, the pairs are antithetic, the finer answers read sigma / 4."""
+"""Distilled coarse targets: Gaussians compose, the pairs are antithetic, the finer answers read the finer footprint."""
 
 import numpy as np
 import pytest
 import torch
 
 from neumip.core import contract as C
-from neumip.training.loop.distil import LEVELS_FINER, coarse_mask, distilled_targets, mix_targets
+from neumip.training.loop.distil import coarse_mask, distilled_targets, mix_targets
 
 
 def queries(n: int, sigma: float, seed: int = 0) -> torch.Tensor:
@@ -26,7 +26,7 @@ def test_the_mean_of_the_finer_filtered_answers_is_the_coarse_filtered_one():
     amplitude here, where the finer answers keep 0.95 and a jitter of the whole sigma would give 0.43."""
     q = queries(64, sigma=0.05)
     got = distilled_targets(lambda s: filtered_wave(s, k=4), q, samples=40_000,
-                            generator=torch.Generator().manual_seed(0))
+                            generator=torch.Generator().manual_seed(0), finer=0.05 / 4)
     np.testing.assert_allclose(got.numpy(), filtered_wave(q, k=4).numpy(), atol=0.008)
 
 
@@ -39,9 +39,9 @@ def test_pairs_are_antithetic_so_a_linear_answer_comes_back_exactly():
 
     q = queries(16, sigma=0.01)
     q[:, C.U:C.V + 1] = 0.5  # far from the tile's edge: no wrap
-    got = distilled_targets(linear, q, samples=4, generator=torch.Generator().manual_seed(1))
+    got = distilled_targets(linear, q, samples=4, generator=torch.Generator().manual_seed(1), finer=0.0025)
     np.testing.assert_allclose(got[:, :2].numpy(), 0.5, atol=1e-6)
-    np.testing.assert_allclose(got[:, 2].numpy(), 0.01 / 2**LEVELS_FINER, rtol=1e-6)
+    np.testing.assert_allclose(got[:, 2].numpy(), 0.0025, rtol=1e-6)
     sub = seen[0].reshape(16, 4, C.QUERY_DIM)
     np.testing.assert_array_equal(sub[:, :, C.WI_X:].numpy(), q[:, None, C.WI_X:].expand(-1, 4, -1).numpy())
     assert float(sub[:, :, C.U].std()) > 0.003  # spread over the footprint
@@ -50,7 +50,8 @@ def test_pairs_are_antithetic_so_a_linear_answer_comes_back_exactly():
 def test_jittered_aims_wrap_into_the_tile():
     q = queries(256, sigma=0.2)
     aims = []
-    distilled_targets(lambda s: aims.append(s) or s[:, :3], q, samples=8, generator=torch.Generator().manual_seed(2))
+    distilled_targets(lambda s: aims.append(s) or s[:, :3], q, samples=8, generator=torch.Generator().manual_seed(2),
+                      finer=0.01)
     uv = aims[0][:, C.U:C.V + 1]
     assert float(uv.min()) >= 0.0 and float(uv.max()) < 1.0
 
@@ -58,7 +59,7 @@ def test_jittered_aims_wrap_into_the_tile():
 @pytest.mark.parametrize("samples", [0, 3, -2])
 def test_an_odd_or_empty_sample_count_is_refused(samples):
     with pytest.raises(ValueError, match="even"):
-        distilled_targets(lambda s: s[:, :3], queries(4, 0.1), samples, torch.Generator())
+        distilled_targets(lambda s: s[:, :3], queries(4, 0.1), samples, torch.Generator(), finer=0.01)
 
 
 def test_only_the_coarse_rows_change_by_their_weight():
@@ -70,3 +71,11 @@ def test_only_the_coarse_rows_change_by_their_weight():
     out = mix_targets(target, torch.full((3, 3), 3.0), coarse, weight=0.75)
     np.testing.assert_array_equal(out[:, 0].numpy(), [1, 1, 1, 2.5, 2.5, 2.5])
     assert float(target.sum()) == 18  # the data's targets are left as they were
+
+
+def test_a_footprint_finer_than_the_teachers_is_answered_as_it_is():
+    """sigma below `finer`: the answers read sigma itself, at the query's own aim point (in the tile)."""
+    q = queries(8, sigma=0.001)
+    got = distilled_targets(lambda s: s[:, :3], q, samples=2, generator=torch.Generator(), finer=0.01)
+    np.testing.assert_allclose(got[:, :2].numpy(), np.mod(q[:, :2].numpy(), 1.0), atol=1e-6)
+    np.testing.assert_array_equal(got[:, 2].numpy(), q[:, C.SIGMA].numpy())
