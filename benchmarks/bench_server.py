@@ -445,8 +445,9 @@ def main() -> None:
             except SystemExit:
                 server.stop()
                 raise
-            swap = None
-            if server_cores:
+            if not server_cores:
+                swap = None
+            else:
                 import drjit as dr
 
                 pin(os.getpid(), halves[0])
