@@ -89,8 +89,11 @@ class Interrupt(Exception):
     """Stands in for a kill: raised from the step callback."""
 
 
-def test_interrupted_run_resumes_exactly(data, tmp_path):
-    """Kill a run at step 50 (checkpoint at 40); the resumed run replays steps 41.. exactly."""
+@pytest.mark.parametrize("config", [FAST, replace(FAST, distil=4, distil_level=2.0, distil_start=0.5)],
+                         ids=["plain", "distil"])
+def test_interrupted_run_resumes_exactly(data, tmp_path, config):
+    """Kill a run at step 50 (checkpoint at 40); the resumed run replays steps 41.. exactly (distilled targets
+    included: their aim points are drawn from the batches' generator, which the checkpoint keeps)."""
     seen = {}
 
     def spy_then_kill(step, loss):
@@ -100,10 +103,10 @@ def test_interrupted_run_resumes_exactly(data, tmp_path):
         if step == 50:
             raise Interrupt
 
-    part = Trainer(data.path, tmp_path / "part.pt", TINY, FAST)
+    part = Trainer(data.path, tmp_path / "part.pt", TINY, config)
     with pytest.raises(Interrupt):
         part.run(spy_then_kill)
-    resumed = Trainer(data.path, tmp_path / "part.pt", TINY, FAST)
+    resumed = Trainer(data.path, tmp_path / "part.pt", TINY, config)
     assert resumed.state.step == 40  # the last checkpoint before the interruption
     assert resumed.step() == pytest.approx(seen["loss"], rel=1e-6)
     got = resumed.material.state_dict()
