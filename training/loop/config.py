@@ -121,8 +121,9 @@ class TrainConfig:
                              f"{self.finish_fraction} with {self.finish_loss!r}")
         if (self.distil < 0 or self.distil % 2 or not 0 <= self.distil_start < 1 or not 0 < self.distil_weight <= 1
                 or self.distil_texels <= 0):
-            raise ValueError(f"distil must be 0 or an even number of samples, distil_start in [0, 1) and "
-                             f"distil_weight in (0, 1], got {self.distil}, {self.distil_start}, {self.distil_weight}")
+            raise ValueError(f"distil must be 0 or an even number of samples, distil_start in [0, 1), distil_weight "
+                             f"in (0, 1] and distil_texels > 0, got {self.distil}, {self.distil_start}, "
+                             f"{self.distil_weight}, {self.distil_texels}")
         if not 0 < self.holdout < 1:
             raise ValueError(f"holdout must be in (0, 1), got {self.holdout}")
         if self.blur_half_life <= 0 or self.blur_start < 0 or self.blur_min <= 0:

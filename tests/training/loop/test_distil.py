@@ -79,3 +79,15 @@ def test_a_footprint_finer_than_the_teachers_is_answered_as_it_is():
     got = distilled_targets(lambda s: s[:, :3], q, samples=2, generator=torch.Generator(), finer=0.01)
     np.testing.assert_allclose(got[:, :2].numpy(), np.mod(q[:, :2].numpy(), 1.0), atol=1e-6)
     np.testing.assert_array_equal(got[:, 2].numpy(), q[:, C.SIGMA].numpy())
+
+
+def test_the_config_names_the_steps_that_distil_and_refuses_bad_settings():
+    from neumip.training.loop.config import TrainConfig
+
+    config = TrainConfig(steps=100, distil=8, distil_start=0.25)
+    assert [config.distilling(s) for s in (0, 24, 25, 99)] == [False, False, True, True]
+    assert not TrainConfig(steps=100).distilling(99)
+    for bad in ({"distil": 3}, {"distil": -2}, {"distil": 8, "distil_start": 1.0}, {"distil": 8, "distil_weight": 0.0},
+                {"distil": 8, "distil_texels": 0.0}):
+        with pytest.raises(ValueError, match="distil"):
+            TrainConfig(steps=100, **bad)
