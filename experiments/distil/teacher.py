@@ -31,9 +31,13 @@ def main() -> None:
     p.add_argument("--samples", type=int, default=32, help="aim points a query (even: antithetic pairs)")
     p.add_argument("--texels", type=float, default=1.0, help="the finer footprint sigma, in finest texels")
     p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--min-cos-light", type=float, default=0.0,
+                   help="only the reference's queries whose light has wi_z at least this (0.2: above 11.5 degrees)")
     args = p.parse_args()
     data = open_dataset(args.reference)
     q, t = np.array(data.queries), np.asarray(data.rgb, np.float64) @ LUMINANCE
+    keep = np.sqrt(np.maximum(1.0 - (q[:, C.WI_X:C.WI_Y + 1].astype(np.float64) ** 2).sum(1), 0.0)) >= args.min_cos_light
+    q, t = q[keep], t[keep]
     material = load_material(args.model)
     config = material.config if isinstance(material.config, MaterialConfig) else MaterialConfig.from_dict(material.config)
     res = config.resolution
@@ -55,7 +59,7 @@ def main() -> None:
             total += material.run(sub.astype(np.float32)).astype(np.float64) @ LUMINANCE
     taught = total / (args.samples // 2 * 2)
     print(f"{args.reference} against {args.model}: the finer footprint {args.texels} texel(s), {args.samples} "
-          f"aim points; reference / answer, mean [p99]; MSE x1e-3")
+          f"aim points; {len(q)} queries with wi_z >= {args.min_cos_light}; reference / answer, mean [p99]; MSE x1e-3")
     print("level  queries     direct mean [p99]    taught mean [p99]   MSE direct  MSE taught")
     for lv in range(config.levels + 1):
         rows = level == lv
