@@ -1,6 +1,7 @@
 """How good a teacher a model's own fine footprints are for its coarse ones: on a reference data set (a `neumip
 generate` set traced with many samples), per level of detail, the model's direct answers and the mean of its
-answers at a finer footprint over K aim points jittered across the rest of the query's (Gaussians compose), each
+answers at a finer footprint over K aim points jittered across the rest of the query's (Gaussians compose: the
+targets `neumip fit --distil K` trains on, `training/loop/distil.py`), each
 against the reference: mean and 99th-percentile luminance ratio (reference / answer; > 1: darker) and MSE.
 
     neumip generate turtle -o runs/uref/turtle --queries 16384 --spp 256 --seed 1 --resolution 256 \\
@@ -15,6 +16,7 @@ from __future__ import annotations
 import argparse
 
 import numpy as np
+import torch
 
 LUMINANCE = np.array([0.2126, 0.7152, 0.0722])
 
@@ -24,6 +26,7 @@ def main() -> None:
     from neumip.core.config import MaterialConfig
     from neumip.engines.local import load_material
     from neumip.groundtruth.dataset import open_dataset
+    from neumip.training.loop.distil import distilled_targets
 
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("reference")
@@ -44,20 +47,13 @@ def main() -> None:
     level = np.clip(np.floor(np.log2(np.maximum(q[:, C.SIGMA], 1e-12) * res) + config.lod_bias), 0,
                     config.levels).astype(int)
     direct = material.run(q).astype(np.float64) @ LUMINANCE
-    sigma = q[:, C.SIGMA].astype(np.float64)
-    fine = np.minimum(sigma, args.texels / res)
-    spread = np.sqrt(sigma**2 - fine**2)
-    rng = np.random.default_rng(args.seed)
-    total = np.zeros(len(q))
-    for _ in range(args.samples // 2):
-        z = rng.standard_normal((len(q), 2))
-        for sign in (1, -1):
-            sub = q.copy()
-            sub[:, C.U] = np.mod(q[:, C.U] + sign * spread * z[:, 0], 1)
-            sub[:, C.V] = np.mod(q[:, C.V] + sign * spread * z[:, 1], 1)
-            sub[:, C.SIGMA] = fine
-            total += material.run(sub.astype(np.float32)).astype(np.float64) @ LUMINANCE
-    taught = total / (args.samples // 2 * 2)
+
+    def answer(sub: torch.Tensor) -> torch.Tensor:
+        return torch.from_numpy(material.run(sub.numpy()))
+
+    # the training's own distilled targets (`--distil`), at every level
+    taught = distilled_targets(answer, torch.from_numpy(q), args.samples, torch.Generator().manual_seed(args.seed),
+                               args.texels / res).numpy().astype(np.float64) @ LUMINANCE
     print(f"{args.reference} against {args.model}: the finer footprint {args.texels} texel(s), {args.samples} "
           f"aim points; {len(q)} queries with wi_z >= {args.min_cos_light}; reference / answer, mean [p99]; MSE x1e-3")
     print("level  queries     direct mean [p99]    taught mean [p99]   MSE direct  MSE taught")

@@ -9,7 +9,7 @@ log loss settles below such a noisy target's mean, and an unbiased loss chases i
 Gaussians compose: filtering by sigma is filtering by a finer sigma', then by sqrt(sigma^2 - sigma'^2). So a
 coarse query's target can also be the mean of the model's own answers at the finer footprint sigma' (the
 trainer's: about a finest texel), at K aim points jittered by the rest. The finest levels are fitted to most of
-the data and their targets are quiet; averaged over the footprint they answer turtle's coarse queries 6-13x
+the data and their targets are quiet; averaged over the footprint they answer turtle's coarse queries 8-32x
 closer (in MSE) to a 256-sample reference than its coarse levels do. The K points come in antithetic pairs
 (z, -z), redrawn every step, so over the run the target's noise averages out instead of being fitted.
 
