@@ -16,6 +16,7 @@ AREAS = (
     "neumip.training.commands",
     "neumip.training.fit_command",
     "neumip.training.trim_command",
+    "neumip.training.calibrate_command",
     "neumip.groundtruth.commands",
     "neumip.report.commands",
     "neumip.server.commands",

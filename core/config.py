@@ -177,6 +177,14 @@ class MaterialConfig:
     (`train.data_ceiling`): each target is an unbiased estimate of an answer, so an answer above all of them is
     the model's extrapolation, not the material's, and renders as fireflies. Training's loss reads the answers
     unclamped, so that a query above the ceiling still learns."""
+    energy_bins: int = 0
+    """Bins of each direction axis of the answers' energy table, 0: none. The answer is multiplied by a gain
+    interpolated (linearly) from a table over the levels of detail, `energy_bins` bins of the half vector's angle from
+    the normal and `energy_bins` bins of the light's elevation: the mean of the data's targets over the mean of the
+    model's answers in each cell, fitted after training (`training.model.energy`). A log loss (comb2) settles below a
+    noisy target's mean, most where the coarse footprints' glints and grazing lights make the targets noisiest; the
+    table gives back that energy from thousands of queries per cell, where a per-query unbiased loss chases each
+    target's noise. Needs the relu head."""
     head: str = "relu"
     """Decoder output head (core/head.py): "relu" (paper: RGB = max(out, 0)) or "yuv" (authors'
     code: exp(YUV) - 1 times a shadow mask 0.1 + sigmoid, 6 outputs)."""
@@ -212,6 +220,9 @@ class MaterialConfig:
             raise ValueError(f"ceiling must be 0 (none) or a finite positive answer, got {self.ceiling}")
         if not (isinstance(self.lod_bias, int) and 0 <= self.lod_bias <= 8):
             raise ValueError(f"lod_bias must be a whole number of levels in [0, 8], got {self.lod_bias!r}")
+        if self.energy_bins < 0 or self.energy_bins == 1 or (self.energy_bins and self.head != "relu"):
+            raise ValueError(f"energy_bins must be 0 (none) or at least 2, with the relu head, got {self.energy_bins} "
+                             f"with head {self.head!r}")
         if not 0 < self.offset_min_cos <= 1:
             raise ValueError(f"offset_min_cos must be in (0, 1], got {self.offset_min_cos}")
 
@@ -265,8 +276,8 @@ class MaterialConfig:
         return same_footprint_level(self.levels, pyramid.levels, finest_level)
 
     def to_json(self) -> str:
-        """The fields as JSON; each decoder input's switch, `base`, the relief's, `lod_bias`, `offset_mip` and `ceiling`
-        only when on, and `terminator` only when not "all", so that models made before each existed read as they did."""
+        """The fields as JSON; each decoder input's switch, `base`, the relief's, `lod_bias`, `offset_mip`, `energy_bins` and
+        `ceiling` only when on, and `terminator` only when not "all", so that models made before each existed read as they did."""
         fields_ = asdict(self)
         for row in DECODER_INPUTS:
             if not getattr(self, row.switch):
@@ -283,6 +294,8 @@ class MaterialConfig:
             del fields_["lod_bias"]
         if not (self.offset and self.offset_mip):
             del fields_["offset_mip"]
+        if not self.energy_bins:
+            del fields_["energy_bins"]
         return json.dumps(fields_, sort_keys=True)
 
     @classmethod

@@ -35,6 +35,10 @@ RELIEF = "relief_heights"
 OFFSET_TEXTURE = "offset_texture"
 """The neural offset texture: one level at the finest resolution, or with `MaterialConfig.offset_mip` the rows of
 every level of its mip pyramid, finest first (the coarser levels derived from the finest, `pyramid.mip_levels`)."""
+ENERGY = "energy"
+"""The answers' energy table (`MaterialConfig.energy_bins` B): a gain per level of detail (rows, finest first), bin of
+the half vector's angle b, bin of the light's elevation e and colour channel c (column ``3 (B b + e) + c``), 1 where
+the model needs none."""
 DECODER = "decoder"
 """The MLP that turns texture features and directions into the answer."""
 OFFSET_MLP = "offset_mlp"
@@ -119,11 +123,18 @@ def _widths(config: MaterialConfig, inputs: int, answers: int) -> list[int]:
     return [inputs] + [config.hidden] * (config.layers - 1) + [answers]
 
 
+def energy_shape(config: MaterialConfig) -> dict[str, tuple[int, int]]:
+    """The energy table's shape by name (`ENERGY`: (L + 1, 3 energy_bins^2), every level's row, a trimmed model's
+    too), or nothing without one."""
+    return {ENERGY: (config.levels + 1, C.RGB_DIM * config.energy_bins**2)} if config.energy_bins else {}
+
+
 def weight_shapes(config: MaterialConfig) -> dict[str, tuple[int, ...]]:
-    """Every weight of the material -> its shape, as the model holds it (textures first, then each
-    MLP's layers in order)."""
+    """Every weight of the material -> its shape, as the model holds it (textures first, then the energy table,
+    then each MLP's layers in order)."""
     shapes: dict[str, tuple[int, ...]] = {PYRAMID: (config.atlas_rows(), config.channels)}
     shapes.update(_other_texture_shapes(config))
+    shapes.update(energy_shape(config))
     for mlp, (inputs, answers) in mlps(config).items():
         widths = _widths(config, inputs, answers)
         for i in range(config.layers):
@@ -151,6 +162,7 @@ def initializer_shapes(config: MaterialConfig, finest_level: int = 0) -> dict[st
     shapes.update(_other_texture_shapes(config, finest_level))
     if offset_levels_derived(config, finest_level):  # its finest level: the graph derives the rest
         shapes[OFFSET_TEXTURE] = (config.offset_pyramid().resolution**2, config.offset_channels)
+    shapes.update(energy_shape(config))
     for mlp, (inputs, answers) in mlps(config).items():
         widths = _widths(config, inputs, DEPTH_COPIES if mlp == OFFSET_MLP else answers)
         first = {"texture": texture_inputs(mlp, config), "query": C.QUERY_DIM, "light": 2,

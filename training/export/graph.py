@@ -44,6 +44,7 @@ from neumip.core import head
 from neumip.core import weights as W
 from neumip.core.config import RELIEF_DIVISION_FLOOR, RELIEF_MIN_COS, MaterialConfig
 from neumip.training.export import base as B
+from neumip.training.export.energy import energy_gain
 from neumip.training.export.lookup import (footprint_texels, mip_atlas, mip_const, pyramid_footprint, pyramid_texels,
                                           stored_texture, texture_const, texture_texels)
 from neumip.training.export.lod import OFFSET_PREFIX, RELIEF_PREFIX, pyramids
@@ -74,7 +75,7 @@ def weights_from_state(state: dict, config: MaterialConfig) -> dict[str, np.ndar
         weights[W.OFFSET_TEXTURE] = mip_atlas(texture).numpy()
     elif config.offset:
         weights[W.OFFSET_TEXTURE] = arr["offset_texture"].reshape(-1, config.offset_channels)
-    for name in (W.BASE, W.RELIEF):
+    for name in (W.BASE, W.RELIEF, W.ENERGY):
         if name in arr:
             weights[name] = arr[name]
     return weights
@@ -339,6 +340,9 @@ def material_graph(g: GraphWriter, config: MaterialConfig, weights: dict,
         horizon = None if lit else B.horizon_sine(g, read, each_light(read.rows), each_light(read.taps), wi)  # (K N, 1)
         out = B.corrected(g, B.base_answer(g, each_light(read.maps), horizon, wi, each_light(wo), normal,
                                                 terminator=config.terminator, lit=lit), out)
+    if config.energy_bins:  # per light: the gain of the group's level of detail and the light's half vector
+        out = g.op("Mul", out, energy_gain(g, config, weights[W.ENERGY], sigma, wi, stage.wo, each_light,
+                                           finest_level))
     rows = _reshape(g, out, k, n, size)  # (K, N, O)
     rows = _reshape(g, g.op("Transpose", rows, perm=[1, 0, 2]), kn, size)  # (N K, O)
     return rows, [n, g.op("Mul", k, g.const([C.RGB_DIM], np.int64))]
@@ -416,7 +420,8 @@ def random_weights(config: MaterialConfig, seed: int = 0, scale: float = 0.5) ->
     """Random weights of the right shapes: a material whose answers are positive and vary with
     position, footprint and directions in every channel, whatever the seed.
 
-    Textures are N(0, scale^2) (a base's maps: colours, slopes and alpha^2 in their ranges); every layer's weights N(0, 2 / fan_in) (He: the signal keeps its size
+    Textures are N(0, scale^2) (a base's maps: colours, slopes and alpha^2 in their ranges; the energy table's gains
+    in [0.5, 2]); every layer's weights N(0, 2 / fan_in) (He: the signal keeps its size
     through the ReLUs), hidden biases small and positive (units stay alive). The decoder's last layer
     has positive weights on ReLU outputs (>= 0) and a positive bias, so each channel answers its bias
     plus a query-dependent non-negative sum (with one layer only the bias is positive).
@@ -435,6 +440,8 @@ def random_weights(config: MaterialConfig, seed: int = 0, scale: float = 0.5) ->
             out[name] = np.concatenate([rng.uniform(0, 1, (shape[0], 6)), rng.normal(size=(shape[0], 2)) * 0.5,
                                         rng.uniform(0.01, 1, (shape[0], 1)), rng.uniform(0, 0.6, (shape[0], shape[1] - 9))],
                                        axis=1)
+        elif name == W.ENERGY:  # gains that move the answers both ways
+            out[name] = rng.uniform(0.5, 2.0, shape)
         elif name == W.RELIEF:  # a smooth periodic relief `scale` / 4 tile deep, the same at every level
             out[name] = _random_relief(config.relief_pyramid().level_sizes(), rng, scale / 4)
         elif name == W.OFFSET_TEXTURE and config.offset_pyramid() is not None:  # the mip pyramid of a random texture
@@ -461,5 +468,7 @@ def _random_relief(sizes: list[int], rng: np.random.Generator, depth: float) -> 
 def constant_weights(config: MaterialConfig, rgb) -> dict[str, np.ndarray]:
     """Weights of a material that answers `rgb` for every query (e.g. albedo / pi: a Lambertian)."""
     out = {name: np.zeros(shape, np.float32) for name, shape in W.weight_shapes(config).items()}
+    if config.energy_bins:
+        out[W.ENERGY] = np.ones(W.weight_shapes(config)[W.ENERGY], np.float32)
     out[W.bias(W.DECODER, config.layers - 1)] = head.answer_bias(config.head, rgb)
     return out

@@ -125,6 +125,8 @@ def read_weights(inits: dict[str, np.ndarray], config: MaterialConfig, finest: i
             weights[W.BASE], weights[BASE_VARYING] = base_from_stored(weights[W.BASE], place, inits[BASE_CONSTANT])
         except ValueError as exc:
             raise ModelLayoutError(str(exc)) from exc
+    if config.energy_bins:
+        weights[W.ENERGY] = inits[W.ENERGY].astype(np.float32)
     if RELIEF_DEPTH in inits:  # the depth of all the heights, which a trimmed model's kept levels may not reach
         weights[RELIEF_DEPTH] = inits[RELIEF_DEPTH]
     for mlp in W.mlps(config):

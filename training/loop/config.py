@@ -200,7 +200,7 @@ class Recipe:
 RECIPES = {
     "paper": Recipe(material={"half_textures": True}),
     "maps": Recipe(material={"lod_bias": 1, "local_frame": True, "terminator": "none", "half_textures": True,
-                             "offset_mip": True},
+                             "offset_mip": True, "energy_bins": 6},
                    maps={"horizons": 8}, base=True, relief=8),
 }
 """Both store their textures in float16 (`MaterialConfig.half_textures`). `paper`: the paper's model (free latents,
@@ -208,5 +208,6 @@ neural offset); `maps`: the shipped map-informed model (latents encoded
 from the prefiltered maps with horizons towards 8 azimuths, on the classical base, read in its normal's frame, the
 relief marched in 8 steps, the finest level answering footprints of half a texel), its neural offset read at the
 footprint on its mip pyramid (`MaterialConfig.offset_mip`: a far object's trimmed model sheds the offset's fine
-levels too). `neumip fit` makes `maps` for a
+levels too), its answers' energy table fitted at the end (`MaterialConfig.energy_bins` 6: the coarse levels' energy
+that the log loss loses under noisy targets, `training/model/energy.py`). `neumip fit` makes `maps` for a
 material with principled maps and `paper` for one without (a homogeneous [bsdf])."""

@@ -34,6 +34,7 @@ from neumip.training.model.maps import MapConfig, prefilter
 from neumip.training.model.material import MapMaterial, NeuMIPMaterial
 from neumip.training.model.relief import landed_positions, relief_heights
 from neumip.training.loop.distil import coarse_mask, distilled_targets, mix_targets
+from neumip.training.loop.energy import fit_material
 from neumip.groundtruth.description import Microgeometry
 from neumip.groundtruth.lobe import sampling_lobe
 from neumip.training.loop.config import TrainConfig
@@ -83,6 +84,8 @@ class TrainState:
     """Steps whose weights are in the running mean (`TrainConfig.average_fraction`)."""
     average_applied: bool = False
     """The run ended and its weights were replaced by their running mean."""
+    energy_fitted: bool = False
+    """The run ended and its energy table was fitted (`MaterialConfig.energy_bins`, `loop.energy`)."""
 
 
 def differences(saved: dict, now: dict, ignore=()) -> list[str]:
@@ -547,6 +550,10 @@ class Trainer:
         if state.average_applied and state.step < cfg.steps:
             log.warning("continuing a run from its averaged weights: the average starts again")
             state.average_applied, state.averaged, self._average = False, 0, {}
+        if state.energy_fitted and state.step < cfg.steps:  # the table is fitted to the final weights' answers
+            with torch.no_grad():
+                getattr(self.material, W.ENERGY).fill_(1.0)
+            state.energy_fitted = False
         try:
             while state.step < cfg.steps:
                 loss = self.step()
@@ -571,6 +578,9 @@ class Trainer:
             log.warning("run ended inside the blur schedule (sigma %.3g): baking the blurred textures", sigma)
             bake(self.material, *effective_textures(self.material, sigma, cfg, state.offset_frozen))
             state.baked = True
+        if self.material.config.energy_bins and not state.energy_fitted:
+            fit_material(self.material, self.data, self.train_idx, cfg.seed)
+            state.energy_fitted = True
         table = self.validate()
         if not state.progress or state.progress[-1][0] != state.step:
             state.progress.append([state.step, [[r["level"], r["mse"]] for r in table["levels"]],

@@ -12,6 +12,7 @@ from neumip.core import head
 from neumip.core import weights as W
 from neumip.core.config import MaterialConfig
 from neumip.training.model.base import base_answer, corrected, frame_inputs, half_direction, lift, light_visibility
+from neumip.training.model.energy import energy_gain
 from neumip.training.model.maps import MapConfig, level_feature
 from neumip.training.model.offset import parallax_shift
 from neumip.training.model.pyramid import as_stored, mip_atlas, pyramid_lookup, texture_lookup
@@ -54,6 +55,8 @@ class NeuMIPMaterial(nn.Module):
             self.register_buffer(W.BASE, torch.zeros(W.weight_shapes(config)[W.BASE]))
         if config.relief:
             self.register_buffer(W.RELIEF, torch.zeros(W.weight_shapes(config)[W.RELIEF]))
+        if config.energy_bins:  # every gain 1 until a fit after training (`energy.fit_energy`)
+            self.register_buffer(W.ENERGY, torch.ones(W.weight_shapes(config)[W.ENERGY]))
         if config.head == "yuv":
             self.register_buffer("yuv_to_rgb", torch.tensor(head.YUV_TO_RGB.T, dtype=torch.float32), persistent=False)
         if config.offset:
@@ -138,6 +141,8 @@ class NeuMIPMaterial(nn.Module):
         out = self.decoder(torch.cat([features, directions], dim=1))
         if self.config.base:
             out = corrected(base_answer(maps, wi, wo, self.config.terminator, lit), out)
+        if self.config.energy_bins:
+            out = out * energy_gain(getattr(self, W.ENERGY), self.config, sigma, wi, wo)
         if self.config.head == "yuv":  # exp(YUV) - 1 times the shadow mask (core/head.py)
             shadow = head.SHADOW_FLOOR + torch.sigmoid(out[:, 3:])
             out = torch.expm1(out[:, :3] @ self.yuv_to_rgb) * shadow

@@ -41,6 +41,9 @@ PARITY_CASES = {
     "offset-mip": dict(offset_mip=True),
     "offset-mip-maps": dict(base=64, relief=64, local_frame=True, terminator="none", lod_bias=1, half_textures=True,
                             offset_mip=True),
+    "energy": dict(base=64, relief=64, local_frame=True, terminator="none", lod_bias=1, half_textures=True,
+                   offset_mip=True, energy_bins=6),
+    "energy-alone": dict(energy_bins=2),
 }
 """Models whose torch and ONNX answers must agree: `MaterialConfig` fields over a 32^2 material with an offset."""
 
@@ -57,6 +60,9 @@ def pair(request):
         with torch.no_grad():
             material.base_maps.copy_(torch.from_numpy(weights["base_maps"]))
             material.decoder[-1].weight.normal_(0.0, 0.2)
+    if cfg.energy_bins:  # gains that differ by level, angle and channel
+        with torch.no_grad():
+            material.energy.uniform_(0.5, 2.0)
     # make the offset large enough to matter (random init gives tiny depths)
     if cfg.offset:
         with torch.no_grad():

@@ -1,0 +1,76 @@
+"""The energy table: its cells' weights, its gains by level and half vector, and its fit."""
+
+import math
+
+import numpy as np
+import pytest
+import torch
+
+from neumip.core import contract as C
+from neumip.core.config import MaterialConfig
+from neumip.core.contract import random_queries
+from neumip.training.model.energy import ENERGY_RANGE, cell_weights, energy_gain, fit_energy
+
+CFG = MaterialConfig(resolution=16, lod_bias=1, energy_bins=5)
+
+
+def columns(q: np.ndarray):
+    t = torch.from_numpy(q)
+    return t[:, C.SIGMA], t[:, C.WI_X:C.WI_Y + 1], t[:, C.WO_X:C.WO_Y + 1]
+
+
+def test_a_querys_weights_over_the_levels_and_the_direction_cells_each_sum_to_one():
+    levels, bins = cell_weights(CFG, *columns(random_queries(5000, seed=1)))
+    assert levels.shape == (5000, CFG.levels + 1) and bins.shape == (5000, 25)
+    assert torch.allclose(levels.sum(1), torch.ones(5000)) and torch.allclose(bins.sum(1), torch.ones(5000))
+    assert (levels >= 0).all() and (bins >= 0).all()
+
+
+def test_the_gain_is_the_cell_of_the_querys_level_half_vector_and_light_elevation():
+    """A query at level l exactly reads row l; wi = wo = the normal (h_z = 1, the light overhead) reads the cell of
+    the first half-vector bin and the last elevation bin; grazing wi and wo side by side (h 90 degrees from the
+    normal, the light at the horizon) the last half-vector bin and the first elevation bin; in between the gains
+    interpolate."""
+    bins = CFG.energy_bins
+    table = torch.arange(CFG.levels + 1, dtype=torch.float32)[:, None] * 100 + torch.arange(3 * bins**2,
+                                                                                           dtype=torch.float32)
+    overhead, grazing = 3 * (bins - 1), 3 * bins * (bins - 1)  # columns of cells (0, B - 1) and (B - 1, 0)
+    for level in range(CFG.levels + 1):
+        sigma = torch.tensor([2.0 ** (level - CFG.lod_bias) / CFG.resolution] * 2)
+        w = torch.tensor([[0.0, 0.0], [1.0, 0.0]])
+        got = energy_gain(table, CFG, sigma, w, w)
+        assert torch.allclose(got[0], table[level, overhead:overhead + 3]), (level, got)
+        assert torch.allclose(got[1], table[level, grazing:grazing + 3], atol=1e-3), (level, got)
+    half = torch.tensor([2.0 ** (1.5 - CFG.lod_bias) / CFG.resolution])  # between levels 1 and 2: their mean
+    got = energy_gain(table, CFG, half, torch.zeros(1, 2), torch.zeros(1, 2))
+    assert torch.allclose(got[0], (table[1, overhead:overhead + 3] + table[2, overhead:overhead + 3]) / 2, atol=1e-4)
+
+
+def test_a_fit_gives_back_a_gain_that_is_the_same_everywhere_and_one_where_no_query_reaches():
+    q = random_queries(20000, seed=2)
+    q[:, C.SIGMA] = 2.0 ** (2 - CFG.lod_bias) / CFG.resolution  # every query at level 2
+    answers = torch.rand(20000, 3, dtype=torch.float64) + 0.1
+    gain = torch.tensor([1.3, 0.8, 1.1], dtype=torch.float64)
+    table = fit_energy(CFG, torch.from_numpy(q), answers, answers * gain, prior=0.0)
+    reached = fit_energy(CFG, torch.from_numpy(q), answers, torch.ones_like(answers), prior=0.0)[2].view(25, 3) != 1
+    got = table[2].view(25, 3)[reached[:, 0]]  # the cells the queries reach
+    assert len(got) >= 10 and torch.allclose(got, gain.float().expand(len(got), 3), atol=1e-5)
+    assert torch.isnan(table).sum() == 0 and torch.all(table[[0, 4]] == 1.0)  # levels none reach: 1
+    prior = fit_energy(CFG, torch.from_numpy(q), answers, answers * gain)  # the prior pulls towards 1
+    assert torch.all(((prior[2] - 1) * (table[2] - 1) >= 0)) and torch.all((prior[2] - 1).abs() <= (table[2] - 1).abs())
+
+
+def test_a_fit_is_bounded_and_leaves_out_non_finite_rows():
+    q = torch.from_numpy(random_queries(4000, seed=3))
+    answers = torch.full((4000, 3), 0.01, dtype=torch.float64)
+    targets = torch.full((4000, 3), 100.0, dtype=torch.float64)
+    targets[::7] = math.nan
+    table = fit_energy(CFG, q, answers, targets, prior=0.0)
+    assert torch.isfinite(table).all() and float(table.max()) == pytest.approx(ENERGY_RANGE[1])
+
+
+def test_energy_bins_needs_two_bins_and_the_relu_head():
+    for bad in (dict(energy_bins=1), dict(energy_bins=-2), dict(energy_bins=4, head="yuv")):
+        with pytest.raises(ValueError, match="energy_bins"):
+            MaterialConfig(**bad)
+    assert "energy_bins" not in MaterialConfig().to_json() and '"energy_bins": 4' in MaterialConfig(energy_bins=4).to_json()

@@ -1,0 +1,61 @@
+"""`neumip calibrate`: a model file's energy table (`MaterialConfig.energy_bins`) fitted on the training split of the
+data it was trained on (split as `neumip train` split it), and its validation table recomputed on the held-out
+split; no retraining. The fit itself is `loop/energy.py`'s, the one a training run ends with."""
+
+from __future__ import annotations
+
+import json
+import tempfile
+from dataclasses import replace
+from pathlib import Path
+
+import numpy as np
+import onnx
+
+from neumip.core import contract as C
+from neumip.core import weights as W
+from neumip.engines.local import load_material
+from neumip.groundtruth.dataset import open_dataset
+from neumip.training.export.graph import build_onnx, save_onnx
+from neumip.training.export.read import read_model
+from neumip.training.loop.config import RECIPES, TrainConfig
+from neumip.training.loop.energy import fit_rows, fit_table
+from neumip.training.loop.train import split_indices
+from neumip.training.loop.validation import validation_table
+from neumip.training.model.energy import ones_table
+
+ENERGY_BINS = RECIPES["maps"].material["energy_bins"]
+"""The table's bins for a model without one (the `maps` recipe's)."""
+
+
+def calibrate_file(model_path: str | Path, data_path: str | Path, out: str | Path, bins: int | None = None,
+                   seed: int = 0) -> dict:
+    """Write the model at `model_path` with its energy table fitted on the training split of the data set at
+    `data_path` (`train.split_indices` with training seed `seed`, as `neumip train` split it) and its validation
+    table recomputed on the held-out split. `bins`: the table's bins (default: the model's own, else `ENERGY_BINS`).
+    Returns the new validation table. ValueError for a trimmed model (its fine levels are gone) or one whose
+    config cannot take a table."""
+    config, weights, meta, finest = read_model(onnx.load(str(model_path)), str(model_path))
+    if finest:
+        raise ValueError(f"{model_path} is trimmed (finest level {finest}): calibrate the whole model, then trim it")
+    config = replace(config, energy_bins=bins or config.energy_bins or ENERGY_BINS)
+    data = open_dataset(data_path)
+    train_idx, held_idx = split_indices(len(data), TrainConfig(seed=seed))
+    rows = fit_rows(train_idx, seed)
+    owned = {C.META_CONTRACT, C.META_CONFIG, C.META_DESCRIPTION}
+    rest = {k: v for k, v in meta.items() if k not in owned}
+    description = meta.get(C.META_DESCRIPTION, "")
+
+    def answers(table: np.ndarray, queries: np.ndarray) -> np.ndarray:
+        with tempfile.TemporaryDirectory() as folder:
+            path = save_onnx(build_onnx(config, {**weights, W.ENERGY: table}, description, rest), Path(folder) / "m.onnx")
+            return load_material(path).run(np.asarray(queries, np.float32))
+
+    queries = np.asarray(data.queries[rows])
+    table = fit_table(config, queries, answers(ones_table(config), queries), np.asarray(data.rgb[rows]))
+    held = np.asarray(data.queries[held_idx])
+    validation = validation_table(answers(table, held), np.asarray(data.rgb[held_idx]), held[:, C.SIGMA],
+                                  config.resolution)
+    rest[C.META_VALIDATION] = json.dumps(validation)
+    save_onnx(build_onnx(config, {**weights, W.ENERGY: table}, description, rest), out)
+    return validation
