@@ -37,7 +37,7 @@ OFFSET_TEXTURE = "offset_texture"
 every level of its mip pyramid, finest first (the coarser levels derived from the finest, `pyramid.mip_levels`)."""
 ENERGY = "energy"
 """The answers' energy table (`MaterialConfig.energy_bins` B): a gain per level of detail (rows, finest first), bin of
-the half vector's angle b, bin of the light's elevation e and colour channel c (column ``3 (B b + e) + c``), 1 where
+the half vector's angle b, bin of the light's elevation e and colour channel c (column ``B^2 c + B b + e``), 1 where
 the model needs none."""
 DECODER = "decoder"
 """The MLP that turns texture features and directions into the answer."""

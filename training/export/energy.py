@@ -1,6 +1,7 @@
 """ONNX stage of the answers' energy table (`MaterialConfig.energy_bins`), as `training.model.energy.energy_gain`
-computes it: hat weights over the levels of detail times the table, then hat weights over the direction cells (the
-half vector's angle times the light's elevation), each sum a MatMul (one order per row). The table is the
+computes it: hat weights over the levels of detail times the table (once per group), then per light and channel the
+hat weights over the direction cells (the half vector's angle times the light's elevation), each sum a MatMul (one
+order per row). The table is the
 initializer ``energy`` (L + 1, 3 B^2), every level's
 row (a trimmed model keeps them all: the level of detail is clamped at its finest level, so the rows below it weigh
 exactly 0 and the answers above the cut keep their bits)."""
@@ -44,6 +45,11 @@ def energy_gain(g: GraphWriter, config: MaterialConfig, table: np.ndarray, sigma
     ones = np.ones((1, bins), np.float32)
     directions = g.op("Mul", g.op("MatMul", _hats(g, x, bins), g.const(np.kron(np.eye(bins, dtype=np.float32), ones))),
                       g.op("MatMul", _hats(g, y, bins), g.const(np.tile(np.eye(bins, dtype=np.float32), (1, bins)))))
-    spread = np.kron(np.eye(bins * bins, dtype=np.float32), np.ones((1, 3), np.float32))  # (B^2, 3 B^2)
-    weighted = g.op("Mul", each_light(cells), g.op("MatMul", directions, g.const(spread)))  # (K N, 3 B^2)
-    return g.op("MatMul", weighted, g.const(np.tile(np.eye(3, dtype=np.float32), (bins * bins, 1))))  # (K N, 3)
+    cells_n = bins * bins
+    total = g.const(np.ones((cells_n, 1), np.float32))
+    gains = []  # per channel: its B^2 cells (a Slice of the group's row), weighted by the light's and summed
+    for c in range(3):
+        part = g.op("Slice", cells, g.const([c * cells_n], np.int64), g.const([(c + 1) * cells_n], np.int64),
+                    g.const([1], np.int64))  # (N, B^2)
+        gains.append(g.op("MatMul", g.op("Mul", each_light(part), directions), total))  # (K N, 1)
+    return g.op("Concat", *gains, axis=1)  # (K N, 3)

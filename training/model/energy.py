@@ -15,8 +15,8 @@ sqrt 2 with s = 2 sin(theta_h / 2) = sqrt(2 - 2 h_z) in [0, sqrt 2], and the lig
 (B - 1) (finer towards the horizon). A query's gain is trilinear in (level of detail, x, y): linear "hat" weights
 over the levels times hat weights over each direction axis, so a query's weights sum to 1. `fit_energy` takes the
 same weights for the ratio of sums, with a prior of `ENERGY_PRIOR` queries answering exactly right in every cell (a
-cell few queries reach keeps a gain near 1). The table's row is a level, its column ``3 (B b + e) + c`` (half-vector
-bin b, elevation bin e, channel c). The graph writer's twin is `training.export.energy`.
+cell few queries reach keeps a gain near 1). The table's row is a level, its column ``B^2 c + B b + e`` (channel c,
+half-vector bin b, elevation bin e). The graph writer's twin is `training.export.energy`.
 """
 
 from __future__ import annotations
@@ -67,8 +67,8 @@ def energy_gain(table: torch.Tensor, config: MaterialConfig, sigma: torch.Tensor
                 wo: torch.Tensor) -> torch.Tensor:
     """The table (L + 1, 3 B^2) at the queries (sigma (N,), wi, wo (N, 2)) -> (N, 3) gains."""
     levels, directions = cell_weights(config, sigma, wi, wo)
-    rows = (levels @ table).view(len(levels), -1, 3)  # (N, B^2, 3): the query's level, every direction cell
-    return (directions[:, :, None] * rows).sum(1)
+    rows = (levels @ table).view(len(levels), 3, -1)  # (N, 3, B^2): the query's level, every direction cell
+    return (directions[:, None, :] * rows).sum(2)
 
 
 @torch.no_grad()
@@ -89,9 +89,9 @@ def fit_energy(config: MaterialConfig, queries: torch.Tensor, answers: torch.Ten
         q = queries[lo : lo + chunk]
         levels, bins = cell_weights(config, q[:, C.SIGMA], q[:, C.WI_X : C.WI_Y + 1], q[:, C.WO_X : C.WO_Y + 1])
         for total, values in zip(sums, (targets[lo : lo + chunk], answers[lo : lo + chunk])):
-            total += levels.double().T @ (bins.double()[:, :, None] * values[:, None, :]).reshape(len(q), -1)
+            total += levels.double().T @ (values[:, :, None] * bins.double()[:, None, :]).reshape(len(q), -1)
     mean = answers.mean(0) if len(answers) else torch.ones(3, dtype=torch.float64)
-    prior_mass = prior * mean.repeat(cells)  # (3 B^2,): column 3 d + c
+    prior_mass = prior * mean.repeat_interleave(cells)  # (3 B^2,): column B^2 c + d
     table = (sums[0] + prior_mass) / (sums[1] + prior_mass)
     return torch.nan_to_num(table, nan=1.0).clamp(*ENERGY_RANGE).float()
 
