@@ -36,9 +36,9 @@ OFFSET_TEXTURE = "offset_texture"
 """The neural offset texture: one level at the finest resolution, or with `MaterialConfig.offset_mip` the rows of
 every level of its mip pyramid, finest first (the coarser levels derived from the finest, `pyramid.mip_levels`)."""
 ENERGY = "energy"
-"""The answers' energy table (`MaterialConfig.energy_bins` B): a gain per level of detail (rows, finest first), bin of
-the half vector's angle b, bin of the light's elevation e and colour channel c (column ``B^2 c + B b + e``), 1 where
-the model needs none."""
+"""The answers' energy table (`MaterialConfig.energy_bins` B): a 3-D texture of RGB gains, row ``(B l + b) B + e`` for
+level of detail l, bin b of the half vector's angle and bin e of the light's elevation; 1 where the model needs
+none."""
 DECODER = "decoder"
 """The MLP that turns texture features and directions into the answer."""
 OFFSET_MLP = "offset_mlp"
@@ -124,9 +124,9 @@ def _widths(config: MaterialConfig, inputs: int, answers: int) -> list[int]:
 
 
 def energy_shape(config: MaterialConfig) -> dict[str, tuple[int, int]]:
-    """The energy table's shape by name (`ENERGY`: (L + 1, 3 energy_bins^2), every level's row, a trimmed model's
+    """The energy table's shape by name (`ENERGY`: ((L + 1) energy_bins^2, 3), every level's cells, a trimmed model's
     too), or nothing without one."""
-    return {ENERGY: (config.levels + 1, C.RGB_DIM * config.energy_bins**2)} if config.energy_bins else {}
+    return {ENERGY: ((config.levels + 1) * config.energy_bins**2, C.RGB_DIM)} if config.energy_bins else {}
 
 
 def weight_shapes(config: MaterialConfig) -> dict[str, tuple[int, ...]]:

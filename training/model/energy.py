@@ -15,8 +15,9 @@ sqrt 2 with s = 2 sin(theta_h / 2) = sqrt(2 - 2 h_z) in [0, sqrt 2], and the lig
 (B - 1) (finer towards the horizon). A query's gain is trilinear in (level of detail, x, y): linear "hat" weights
 over the levels times hat weights over each direction axis, so a query's weights sum to 1. `fit_energy` takes the
 same weights for the ratio of sums, with a prior of `ENERGY_PRIOR` queries answering exactly right in every cell (a
-cell few queries reach keeps a gain near 1). The table's row is a level, its column ``B^2 c + B b + e`` (channel c,
-half-vector bin b, elevation bin e). The graph writer's twin is `training.export.energy`.
+cell few queries reach keeps a gain near 1). The table is a 3-D texture of RGB cells: its row ``(B l + b) B + e`` is
+level l, half-vector bin b, elevation bin e, so a query reads 8 rows (the graph Gathers them as it reads a
+texture's taps). The graph writer's twin is `training.export.energy`.
 """
 
 from __future__ import annotations
@@ -52,50 +53,46 @@ def direction_coordinates(wi: torch.Tensor, wo: torch.Tensor, bins: int) -> tupl
     return x, torch.clamp(torch.sqrt(wi3[:, 2]) * (bins - 1), 0.0, bins - 1.0)
 
 
-def cell_weights(config: MaterialConfig, sigma: torch.Tensor, wi: torch.Tensor, wo: torch.Tensor,
-                 ) -> tuple[torch.Tensor, torch.Tensor]:
-    """Queries' sigma (N,), wi, wo (N, 2) -> their weights over the levels (N, L + 1) and over the direction cells
-    (N, B^2), column B b + e."""
+def cell_weights(config: MaterialConfig, sigma: torch.Tensor, wi: torch.Tensor, wo: torch.Tensor) -> torch.Tensor:
+    """Queries' sigma (N,), wi, wo (N, 2) -> their weights over the table's cells (N, (L + 1) B^2), column
+    (B l + b) B + e: the outer product of the hat weights over the levels, the half-vector bins and the elevation
+    bins (8 of them non-zero)."""
     bins = config.energy_bins
     lod = level_of_detail(sigma, config.resolution, config.lod_bias)
     x, y = direction_coordinates(wi, wo, bins)
-    directions = (hats(x, bins)[:, :, None] * hats(y, bins)[:, None, :]).reshape(len(x), bins * bins)
-    return hats(lod, config.levels + 1), directions
+    cells = hats(lod, config.levels + 1)[:, :, None, None] * hats(x, bins)[:, None, :, None] * hats(y, bins)[:, None, None, :]
+    return cells.reshape(len(x), -1)
 
 
 def energy_gain(table: torch.Tensor, config: MaterialConfig, sigma: torch.Tensor, wi: torch.Tensor,
                 wo: torch.Tensor) -> torch.Tensor:
-    """The table (L + 1, 3 B^2) at the queries (sigma (N,), wi, wo (N, 2)) -> (N, 3) gains."""
-    levels, directions = cell_weights(config, sigma, wi, wo)
-    rows = (levels @ table).view(len(levels), 3, -1)  # (N, 3, B^2): the query's level, every direction cell
-    return (directions[:, None, :] * rows).sum(2)
+    """The table ((L + 1) B^2, 3) at the queries (sigma (N,), wi, wo (N, 2)) -> (N, 3) gains."""
+    return cell_weights(config, sigma, wi, wo) @ table
 
 
 @torch.no_grad()
 def fit_energy(config: MaterialConfig, queries: torch.Tensor, answers: torch.Tensor, targets: torch.Tensor,
-               prior: float = ENERGY_PRIOR, chunk: int = 1 << 18) -> torch.Tensor:
+               prior: float = ENERGY_PRIOR, chunk: int = 1 << 16) -> torch.Tensor:
     """(N, 7) single queries, the model's answers without a table (N, 3) and the data's targets (N, 3) -> the table
-    (L + 1, 3 B^2) whose cell (l, d) holds, per channel, (sum w t + prior m) / (sum w a + prior m): w a query's weight
-    in the cell, m the answers' mean (float64 sums, `chunk` queries at a time). Rows with a non-finite value are
-    left out."""
+    ((L + 1) B^2, 3) whose cell holds, per channel, (sum w t + prior m) / (sum w a + prior m): w a query's weight in
+    the cell, m the answers' mean (float64 sums, `chunk` queries at a time). Rows with a non-finite value are left
+    out."""
     from neumip.core import contract as C
 
     keep = torch.isfinite(targets).all(1) & torch.isfinite(answers).all(1)
     queries, answers, targets = queries[keep], answers[keep].double(), targets[keep].double()
-    cells = config.energy_bins**2
-    shape = (config.levels + 1, 3 * cells)
+    shape = ((config.levels + 1) * config.energy_bins**2, 3)
     sums = [torch.zeros(shape, dtype=torch.float64), torch.zeros(shape, dtype=torch.float64)]
     for lo in range(0, len(queries), chunk):
         q = queries[lo : lo + chunk]
-        levels, bins = cell_weights(config, q[:, C.SIGMA], q[:, C.WI_X : C.WI_Y + 1], q[:, C.WO_X : C.WO_Y + 1])
-        for total, values in zip(sums, (targets[lo : lo + chunk], answers[lo : lo + chunk])):
-            total += levels.double().T @ (values[:, :, None] * bins.double()[:, None, :]).reshape(len(q), -1)
+        cells = cell_weights(config, q[:, C.SIGMA], q[:, C.WI_X : C.WI_Y + 1], q[:, C.WO_X : C.WO_Y + 1]).double()
+        sums[0] += cells.T @ targets[lo : lo + chunk]
+        sums[1] += cells.T @ answers[lo : lo + chunk]
     mean = answers.mean(0) if len(answers) else torch.ones(3, dtype=torch.float64)
-    prior_mass = prior * mean.repeat_interleave(cells)  # (3 B^2,): column B^2 c + d
-    table = (sums[0] + prior_mass) / (sums[1] + prior_mass)
+    table = (sums[0] + prior * mean) / (sums[1] + prior * mean)
     return torch.nan_to_num(table, nan=1.0).clamp(*ENERGY_RANGE).float()
 
 
 def ones_table(config: MaterialConfig) -> np.ndarray:
-    """The table of a model that needs no gain (L + 1, 3 B^2): every gain 1."""
-    return np.ones((config.levels + 1, 3 * config.energy_bins**2), np.float32)
+    """The table of a model that needs no gain ((L + 1) B^2, 3): every gain 1."""
+    return np.ones(((config.levels + 1) * config.energy_bins**2, 3), np.float32)
