@@ -24,6 +24,8 @@ from neumip.training.loop.train import split_indices
 from neumip.training.loop.validation import validation_table
 from neumip.training.model.energy import ones_table
 
+RUN_FIELDS = ("train_seconds", "steps", "dropped_steps", "batch")
+"""The fields of a validation table that describe the training run (`Trainer.run`), which a calibration keeps."""
 ENERGY_BINS = RECIPES["maps"].material["energy_bins"]
 """The table's bins for a model without one (the `maps` recipe's)."""
 
@@ -56,6 +58,8 @@ def calibrate_file(model_path: str | Path, data_path: str | Path, out: str | Pat
     held = np.asarray(data.queries[held_idx])
     validation = validation_table(answers(table, held), np.asarray(data.rgb[held_idx]), held[:, C.SIGMA],
                                   config.resolution)
+    before = json.loads(meta.get(C.META_VALIDATION) or "{}")
+    validation.update({k: before[k] for k in RUN_FIELDS if k in before})  # the run that trained the weights
     rest[C.META_VALIDATION] = json.dumps(validation)
     save_onnx(build_onnx(config, {**weights, W.ENERGY: table}, description, rest), out)
     return validation

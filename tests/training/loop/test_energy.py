@@ -73,8 +73,9 @@ def test_calibrating_a_file_fits_its_table_on_the_training_split_and_validates_i
     meta = {p.key: p.value for p in model.metadata_props}
     assert json.loads(meta[C.META_CONFIG])["energy_bins"] == 3
     assert json.loads(meta[C.META_VALIDATION]) == validation
-    assert validation["overall"]["n"] == len(split_indices(len(data), TEST)[1])
     before = json.loads({p.key: p.value for p in onnx.load(plain_model).metadata_props}[C.META_VALIDATION])
+    assert validation["steps"] == before["steps"] == FAST.steps and validation["batch"] == before["batch"]
+    assert validation["overall"]["n"] == len(split_indices(len(data), TEST)[1])
     assert abs(darkness(validation) - 1) < 0.5 * abs(darkness(before) - 1), (validation["overall"], before["overall"])
     assert validation["overall"]["mse"] < before["overall"]["mse"]
     table = next(onnx.numpy_helper.to_array(t) for t in model.graph.initializer if t.name == W.ENERGY)
