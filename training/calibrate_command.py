@@ -10,8 +10,8 @@ def register(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser(
         "calibrate",
         help="fit a model's energy table on its data (the coarse levels' lost energy back, no retraining)",
-        description="Write MODEL with its energy table (`MaterialConfig.energy_bins`: a gain per level of detail and "
-        "half-vector angle, the data's mean over the answers' mean in each cell) fitted on the training split of "
+        description="Write MODEL with its energy table (`MaterialConfig.energy_bins`: a gain per level of detail, "
+        "half-vector angle and light elevation, the data's mean over the answers' mean in each cell) fitted on the training split of "
         "DATA, the data set it was trained on (split by --seed, as `neumip train` splits it), and its validation "
         "table recomputed on the held-out split. A model trained with --energy-bins has its table fitted already; "
         "this is for a model made without one, or refitting on more data.",
@@ -19,7 +19,8 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("model", type=Path, help="exported .onnx material (not trimmed: trim after calibrating)")
     p.add_argument("--data", type=Path, required=True, help="the data set it was trained on (neumip generate)")
     p.add_argument("-o", "--output", type=Path, required=True, help=".onnx to write (may be MODEL with --force)")
-    p.add_argument("--bins", type=int, help="bins of the half vector's angle (default: the model's, else 6)")
+    p.add_argument("--bins", type=int, help="bins of each direction axis, the half vector's angle and the "
+                   "light's elevation (default: the model's, else 6)")
     p.add_argument("--seed", type=int, default=0, help="the training seed whose split the model was trained on")
     p.add_argument("--force", action="store_true", help="replace the output if it exists")
     p.set_defaults(func=_calibrate)

@@ -340,7 +340,7 @@ def material_graph(g: GraphWriter, config: MaterialConfig, weights: dict,
         horizon = None if lit else B.horizon_sine(g, read, each_light(read.rows), each_light(read.taps), wi)  # (K N, 1)
         out = B.corrected(g, B.base_answer(g, each_light(read.maps), horizon, wi, each_light(wo), normal,
                                                 terminator=config.terminator, lit=lit), out)
-    if config.energy_bins:  # per light: the gain of the group's level of detail and the light's half vector
+    if config.energy_bins:  # per light: the gain of the group's level of detail, the half vector and the light's elevation
         out = g.op("Mul", out, energy_gain(g, config, weights[W.ENERGY], sigma, wi, stage.wo, each_light,
                                            finest_level))
     rows = _reshape(g, out, k, n, size)  # (K, N, O)

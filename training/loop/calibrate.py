@@ -5,7 +5,6 @@ split; no retraining. The fit itself is `loop/energy.py`'s, the one a training r
 from __future__ import annotations
 
 import json
-import tempfile
 from dataclasses import replace
 from pathlib import Path
 
@@ -48,18 +47,21 @@ def calibrate_file(model_path: str | Path, data_path: str | Path, out: str | Pat
     rest = {k: v for k, v in meta.items() if k not in owned}
     description = meta.get(C.META_DESCRIPTION, "")
 
-    def answers(table: np.ndarray, queries: np.ndarray) -> np.ndarray:
-        with tempfile.TemporaryDirectory() as folder:
-            path = save_onnx(build_onnx(config, {**weights, W.ENERGY: table}, description, rest), Path(folder) / "m.onnx")
-            return load_material(path).run(np.asarray(queries, np.float32))
+    def model(table: np.ndarray) -> onnx.ModelProto:
+        return build_onnx(config, {**weights, W.ENERGY: table}, description, rest)
+
+    def answers(graph: onnx.ModelProto, queries: np.ndarray) -> np.ndarray:  # in memory, no file
+        return load_material(model_path, data=graph.SerializeToString()).run(np.asarray(queries, np.float32))
 
     queries = np.asarray(data.queries[rows])
-    table = fit_table(config, queries, answers(ones_table(config), queries), np.asarray(data.rgb[rows]))
+    table = fit_table(config, queries, answers(model(ones_table(config)), queries), np.asarray(data.rgb[rows]))
     held = np.asarray(data.queries[held_idx])
-    validation = validation_table(answers(table, held), np.asarray(data.rgb[held_idx]), held[:, C.SIGMA],
+    calibrated = model(table)
+    validation = validation_table(answers(calibrated, held), np.asarray(data.rgb[held_idx]), held[:, C.SIGMA],
                                   config.resolution)
     before = json.loads(meta.get(C.META_VALIDATION) or "{}")
     validation.update({k: before[k] for k in RUN_FIELDS if k in before})  # the run that trained the weights
-    rest[C.META_VALIDATION] = json.dumps(validation)
-    save_onnx(build_onnx(config, {**weights, W.ENERGY: table}, description, rest), out)
+    props = {p.key: p.value for p in calibrated.metadata_props}
+    onnx.helper.set_model_props(calibrated, {**props, C.META_VALIDATION: json.dumps(validation)})
+    save_onnx(calibrated, out)
     return validation

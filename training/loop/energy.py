@@ -30,12 +30,10 @@ def fit_rows(train_idx: np.ndarray, seed: int, count: int = ENERGY_QUERIES) -> n
 
 
 def fit_table(config, queries: np.ndarray, answers: np.ndarray, targets: np.ndarray) -> np.ndarray:
-    """numpy in and out of `model.energy.fit_energy`: the table (L + 1, 3 B), and a log line of its range."""
+    """numpy in and out of `model.energy.fit_energy`: the table ((L + 1) B^2, 3), and a log line of its range."""
     table = fit_energy(config, torch.from_numpy(np.asarray(queries, np.float32)), torch.from_numpy(answers),
                        torch.from_numpy(np.asarray(targets, np.float32))).numpy()
-    log.info("energy table fitted on %d queries: gains %.3f-%.3f (levels %d-%d: %.3f-%.3f)", len(queries),
-             table.min(), table.max(), config.levels // 2, config.levels, table[config.levels // 2:].min(),
-             table[config.levels // 2:].max())
+    log.info("energy table fitted on %d queries: gains %.3f-%.3f", len(queries), table.min(), table.max())
     return table
 
 

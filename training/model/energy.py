@@ -4,20 +4,19 @@ light elevation, fitted after training. Pure torch.
 A log loss (comb2) settles at a noisy target's geometric mean, below its mean. The coarse footprints of a glossy
 material are where the targets are noisiest (a footprint of many texels holds a few glints that 16 samples hit or
 miss), so its coarse levels answer darker than the data, most near the mirror direction and under grazing lights:
-turtle's levels 3-7 answer 1.10-1.18x too dark where the half vector is 32-45 degrees from the normal, 1.2-1.5x
-within 8 degrees of it, and under lights below 17 degrees 1.1-1.4x darker than under higher ones at the same half
-vector. An unbiased loss per query removes that bias but lets each coarse texel chase its own targets' noise. The
-table instead takes the ratio of the data's mean to the answers' mean over every query of a cell (thousands of
-queries each), so the energy comes back without the noise.
+turtle's levels 3-7 answered 1.10-1.18x too dark where the half vector is 32-46 degrees from the normal, 1.21-1.50x
+within 8 degrees of it and 1.26-1.67x under lights below 11.5 degrees (`experiments/energy`). An unbiased loss per
+query removes that bias but lets each coarse texel chase its own targets' noise. The table instead takes the ratio
+of the data's mean to the answers' mean over every query of a cell (thousands of queries each), so the energy comes
+back without the noise.
 
 A cell is a level and a pair of direction bins, B = `energy_bins` each: the half vector's angle, x = s (B - 1) /
 sqrt 2 with s = 2 sin(theta_h / 2) = sqrt(2 - 2 h_z) in [0, sqrt 2], and the light's elevation, y = sqrt(wi_z)
-(B - 1) (finer towards the horizon). A query's gain is trilinear in (level of detail, x, y): linear "hat" weights
-over the levels times hat weights over each direction axis, so a query's weights sum to 1. `fit_energy` takes the
-same weights for the ratio of sums, with a prior of `ENERGY_PRIOR` queries answering exactly right in every cell (a
-cell few queries reach keeps a gain near 1). The table is a 3-D texture of RGB cells: its row ``(B l + b) B + e`` is
-level l, half-vector bin b, elevation bin e, so a query reads 8 rows (the graph Gathers them as it reads a
-texture's taps). The graph writer's twin is `training.export.energy`.
+(B - 1) (finer towards the horizon). A query's gain is trilinear in (level of detail, x, y): its 8 corner cells
+(`corners`), whose weights sum to 1. `fit_energy` takes the same weights for the ratio of sums, with a prior of
+`ENERGY_PRIOR` queries answering exactly right in every cell (a cell few queries reach keeps a gain near 1). The
+table is a 3-D texture of RGB cells: its row ``(B l + b) B + e`` is level l, half-vector bin b, elevation bin e (the
+graph Gathers a query's 8 rows as it reads a texture's taps). The graph writer's twin is `training.export.energy`.
 """
 
 from __future__ import annotations
@@ -37,10 +36,11 @@ ENERGY_RANGE = (0.25, 4.0)
 """The gains a fit may give (a cell the data barely reach cannot swing an answer further)."""
 
 
-def hats(x: torch.Tensor, count: int) -> torch.Tensor:
-    """(N,) coordinates in [0, count - 1] -> (N, count) linear interpolation weights max(0, 1 - |x - j|)."""
-    nodes = torch.arange(count, dtype=x.dtype, device=x.device)
-    return torch.clamp(1.0 - torch.abs(x[:, None] - nodes[None, :]), min=0.0)
+def _pair(x: torch.Tensor, top: int) -> tuple[torch.Tensor, torch.Tensor]:
+    """(N,) coordinates in [0, top] -> their lower and upper nodes (N, 2) (both at most `top`) and weights (N, 2)."""
+    low = torch.floor(x)
+    frac = x - low
+    return torch.stack([low, torch.clamp(low + 1, max=top)], 1).long(), torch.stack([1 - frac, frac], 1)
 
 
 def direction_coordinates(wi: torch.Tensor, wo: torch.Tensor, bins: int) -> tuple[torch.Tensor, torch.Tensor]:
@@ -53,43 +53,46 @@ def direction_coordinates(wi: torch.Tensor, wo: torch.Tensor, bins: int) -> tupl
     return x, torch.clamp(torch.sqrt(wi3[:, 2]) * (bins - 1), 0.0, bins - 1.0)
 
 
-def cell_weights(config: MaterialConfig, sigma: torch.Tensor, wi: torch.Tensor, wo: torch.Tensor) -> torch.Tensor:
-    """Queries' sigma (N,), wi, wo (N, 2) -> their weights over the table's cells (N, (L + 1) B^2), column
-    (B l + b) B + e: the outer product of the hat weights over the levels, the half-vector bins and the elevation
-    bins (8 of them non-zero)."""
+def corners(config: MaterialConfig, sigma: torch.Tensor, wi: torch.Tensor, wo: torch.Tensor,
+            ) -> tuple[torch.Tensor, torch.Tensor]:
+    """Queries' sigma (N,), wi, wo (N, 2) -> the table rows (N, 8) of their 8 corner cells, row (B l + b) B + e, and
+    their trilinear weights (N, 8), which sum to 1 (corners in the order of `training.export.energy.CORNERS`)."""
     bins = config.energy_bins
-    lod = level_of_detail(sigma, config.resolution, config.lod_bias)
     x, y = direction_coordinates(wi, wo, bins)
-    cells = hats(lod, config.levels + 1)[:, :, None, None] * hats(x, bins)[:, None, :, None] * hats(y, bins)[:, None, None, :]
-    return cells.reshape(len(x), -1)
+    (l, wl), (b, wb), (e, we) = (_pair(level_of_detail(sigma, config.resolution, config.lod_bias), config.levels),
+                                 _pair(x, bins - 1), _pair(y, bins - 1))
+    index = ((l[:, :, None, None] * bins + b[:, None, :, None]) * bins + e[:, None, None, :]).reshape(len(x), 8)
+    weight = (wl[:, :, None, None] * wb[:, None, :, None] * we[:, None, None, :]).reshape(len(x), 8)
+    return index, weight
 
 
 def energy_gain(table: torch.Tensor, config: MaterialConfig, sigma: torch.Tensor, wi: torch.Tensor,
                 wo: torch.Tensor) -> torch.Tensor:
     """The table ((L + 1) B^2, 3) at the queries (sigma (N,), wi, wo (N, 2)) -> (N, 3) gains."""
-    return cell_weights(config, sigma, wi, wo) @ table
+    index, weight = corners(config, sigma, wi, wo)
+    return (table[index] * weight[:, :, None]).sum(1)
 
 
 @torch.no_grad()
 def fit_energy(config: MaterialConfig, queries: torch.Tensor, answers: torch.Tensor, targets: torch.Tensor,
-               prior: float = ENERGY_PRIOR, chunk: int = 1 << 16) -> torch.Tensor:
+               prior: float = ENERGY_PRIOR) -> torch.Tensor:
     """(N, 7) single queries, the model's answers without a table (N, 3) and the data's targets (N, 3) -> the table
     ((L + 1) B^2, 3) whose cell holds, per channel, (sum w t + prior m) / (sum w a + prior m): w a query's weight in
-    the cell, m the answers' mean (float64 sums, `chunk` queries at a time). Rows with a non-finite value are left
-    out."""
+    the cell (`corners`), m the answers' mean (float64 sums). Rows with a non-finite value are left out."""
     from neumip.core import contract as C
 
     keep = torch.isfinite(targets).all(1) & torch.isfinite(answers).all(1)
     queries, answers, targets = queries[keep], answers[keep].double(), targets[keep].double()
-    shape = ((config.levels + 1) * config.energy_bins**2, 3)
-    sums = [torch.zeros(shape, dtype=torch.float64), torch.zeros(shape, dtype=torch.float64)]
-    for lo in range(0, len(queries), chunk):
-        q = queries[lo : lo + chunk]
-        cells = cell_weights(config, q[:, C.SIGMA], q[:, C.WI_X : C.WI_Y + 1], q[:, C.WO_X : C.WO_Y + 1]).double()
-        sums[0] += cells.T @ targets[lo : lo + chunk]
-        sums[1] += cells.T @ answers[lo : lo + chunk]
+    index, weight = corners(config, queries[:, C.SIGMA], queries[:, C.WI_X : C.WI_Y + 1],
+                            queries[:, C.WO_X : C.WO_Y + 1])
+    rows = (config.levels + 1) * config.energy_bins**2
+
+    def cell_sums(values: torch.Tensor) -> torch.Tensor:  # (N, 3) -> (rows, 3): each cell's weighted sum
+        spread = (weight.double()[:, :, None] * values[:, None, :]).reshape(-1, 3)
+        return torch.zeros(rows, 3, dtype=torch.float64).index_add_(0, index.reshape(-1), spread)
+
     mean = answers.mean(0) if len(answers) else torch.ones(3, dtype=torch.float64)
-    table = (sums[0] + prior * mean) / (sums[1] + prior * mean)
+    table = (cell_sums(targets) + prior * mean) / (cell_sums(answers) + prior * mean)
     return torch.nan_to_num(table, nan=1.0).clamp(*ENERGY_RANGE).float()
 
 

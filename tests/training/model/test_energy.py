@@ -9,7 +9,7 @@ import torch
 from neumip.core import contract as C
 from neumip.core.config import MaterialConfig
 from neumip.core.contract import random_queries
-from neumip.training.model.energy import ENERGY_RANGE, cell_weights, energy_gain, fit_energy
+from neumip.training.model.energy import ENERGY_RANGE, corners, energy_gain, fit_energy
 
 CFG = MaterialConfig(resolution=16, lod_bias=1, energy_bins=5)
 
@@ -20,9 +20,10 @@ def columns(q: np.ndarray):
 
 
 def test_a_querys_weights_over_the_cells_sum_to_one_and_at_most_eight_are_not_zero():
-    cells = cell_weights(CFG, *columns(random_queries(5000, seed=1)))
-    assert cells.shape == (5000, (CFG.levels + 1) * 25)
-    assert torch.allclose(cells.sum(1), torch.ones(5000)) and (cells >= 0).all() and ((cells > 0).sum(1) <= 8).all()
+    index, weight = corners(CFG, *columns(random_queries(5000, seed=1)))
+    assert index.shape == weight.shape == (5000, 8)
+    assert index.min() >= 0 and index.max() < (CFG.levels + 1) * 25
+    assert torch.allclose(weight.sum(1), torch.ones(5000)) and (weight >= 0).all()
 
 
 def test_the_gain_is_the_cell_of_the_querys_level_half_vector_and_light_elevation():
