@@ -20,6 +20,11 @@ render's own kernels, `KernelMaterials`, the default; and its ONNX graph in ONNX
   <= 1.5. Also with one emitter chosen: the stock `path`'s one shadow ray per shading point, so the ratio is the
   integrator's own cost without the shadow ray per emitter that `all_emitters` adds.
 
+``--server`` adds the neural plane rendered through a real `neumip serve` process on loopback (msgpack, the
+integrator's buffered path, as a renderer talking to the service does) of the server's default engine (``auto``:
+the kernel engine where it runs) or the one named, and its ratio to the geometry; its CPU seconds count the server
+process's too.
+
 Both integrators run at the same spp, ``max_depth`` and ``rr_depth``. Section ``stages`` renders the same
 neural plane with the model as is and without each of its stages (the relief, half its steps, the neural
 offset, the local frame, the classical base: the same weights, the graph of the config without the stage), and with the same
@@ -33,6 +38,7 @@ whole in-process render: a smaller one left kernels to compile inside the timed 
 
     .venv/bin/python benchmarks/bench_render.py                         # ratios, rock from models/
     .venv/bin/python benchmarks/bench_render.py --sections ratios,demo  # and the demo in-process vs HTTP
+    .venv/bin/python benchmarks/bench_render.py --server                # and through a server's default engine
     .venv/bin/python benchmarks/bench_render.py --sections demo --stand-in   # untrained stand-ins
     .venv/bin/python benchmarks/bench_render.py --sections stages --compare /tmp/before   # stage costs
     .venv/bin/python benchmarks/bench_render.py --sections kernels   # the overhead renders' kernels
@@ -168,12 +174,14 @@ def ratio_scenes(mi, args) -> dict:
     one_emitter = view(mi, plane(neural_bsdf), {"type": "neumip_path", "all_emitters": False, **depth}, args.size,
                        args.spp)
     before = {"neural, kernel before": (neural, "kernel before")} if args.kernel_before else {}
+    served = {"neural, server": (neural, "server")} if args.server else {}
     return {
         "reference (path)": (view(mi, reference, {"type": "path", **depth}, args.size, args.spp), None),
         "neural (neumip_path)": (neural, "kernel"),
         "neural, one emitter": (one_emitter, "kernel"),
         **before,
         "neural, ONNX Runtime": (neural, "local"),
+        **served,
         "constant (neumip_path)": (neural, "constant kernel"),
         "constant, one emitter": (one_emitter, "constant kernel"),
         "constant, buffered": (neural, "constant"),
@@ -182,20 +190,41 @@ def ratio_scenes(mi, args) -> dict:
     }
 
 
-def time_render(mi, scene, evaluator, spp: int, seed: int, max_lanes: int) -> tuple[float, float, float]:
-    """(wall seconds, CPU seconds of this process, seconds inside neural evaluation) of one render."""
+def time_render(mi, scene, evaluator, spp: int, seed: int, max_lanes: int,
+                server_pid: int | None = None) -> tuple[float, float, float]:
+    """(wall seconds, CPU seconds of this process (and of the server process ``server_pid``), seconds inside
+    neural evaluation) of one render."""
     from neumip.client.mitsuba.render import RenderConfig, render_scene
 
-    start, cpu = time.perf_counter(), time.process_time()
+    def cpu_now() -> float:
+        return time.process_time() + (process_cpu_seconds(server_pid) if server_pid else 0.0)
+
+    start, cpu = time.perf_counter(), cpu_now()
     if evaluator is None:
         np.array(mi.render(scene, spp=spp, seed=seed))
         inside = 0.0
     else:
         inside = render_scene(scene, evaluator, RenderConfig(spp=spp, seed=seed, max_lanes=max_lanes)).stats.seconds
-    return time.perf_counter() - start, time.process_time() - cpu, inside
+    return time.perf_counter() - start, cpu_now() - cpu, inside
 
 
 def ratios(args) -> None:
+    if not args.server:
+        return ratios_with(args, None)
+    from neumip.client.http import MaterialClient
+    from bench_server import Server  # this folder is on sys.path when run as a script
+
+    with tempfile.TemporaryDirectory() as tmp:
+        server = Server(Path(args.models), Path(tmp) / "server.log", engine=args.server)
+        try:
+            with MaterialClient(server.url, protocol="msgpack") as client:
+                ratios_with(args, (client, server.process.pid))
+        finally:
+            server.stop()
+
+
+def ratios_with(args, served: tuple | None) -> None:
+    """The ratios section; ``served``: (a client of a `neumip serve` process, its pid), rendered through too."""
     from neumip.engines.local import LocalMaterials
     from neumip.engines.kernel import KernelMaterials, namespace_of
     from neumip.client.mitsuba.render import mi
@@ -204,6 +233,9 @@ def ratios(args) -> None:
     material = material_name(args)
     evaluators = {"kernel": KernelMaterials(args.models, namespace_of(mi.Float)), "local": local, "constant": ConstantEvaluator(material),
                   "constant kernel": ConstantKernel(material), None: None}
+    server_pid = None
+    if served is not None:
+        evaluators["server"], server_pid = served
     if args.kernel_before:  # another checkout's in-kernel engine, for before/after runs
         from kernel_before import Before  # this folder is on sys.path when run as a script
 
@@ -214,13 +246,15 @@ def ratios(args) -> None:
           f"{args.size}^2 px, {args.spp} spp, max_depth {args.max_depth}, rr_depth {args.rr_depth}, "
           f"geometry {geometry_resolution(args)}^2 per tile, model {local.get(material).config['resolution']}^2; "
           f"median of {args.rounds} interleaved rounds   [{load_avg()}]", flush=True)
-    for scene, evaluator in scenes.values():  # warm-up: compile (or load cached) kernels
-        time_render(mi, scene, evaluator, args.spp, 0, args.max_lanes)
+    pids = {name: server_pid if ev is not None and ev is evaluators.get("server") else None
+            for name, (_, ev) in scenes.items()}
+    for name, (scene, evaluator) in scenes.items():  # warm-up: compile (or load cached) kernels
+        time_render(mi, scene, evaluator, args.spp, 0, args.max_lanes, pids[name])
     times = {name: [] for name in scenes}  # (wall, CPU) per round
-    evaluation = {key: [] for key in ("kernel", "local", "kernel before") if key in evaluators}
+    evaluation = {key: [] for key in ("kernel", "local", "kernel before", "server") if key in evaluators}
     for r in range(args.rounds):
         for name, (scene, evaluator) in scenes.items():
-            wall, cpu, inside = time_render(mi, scene, evaluator, args.spp, r + 1, args.max_lanes)
+            wall, cpu, inside = time_render(mi, scene, evaluator, args.spp, r + 1, args.max_lanes, pids[name])
             times[name].append((wall, cpu))
             for key, values in evaluation.items():
                 if evaluator is evaluators[key]:
@@ -231,6 +265,8 @@ def ratios(args) -> None:
         print(f"  {name:<24} {wall[name]:7.3f} s wall   {cpu[name]:7.3f} CPU s")
     print("  (neural evaluation inside the neural renders, wall: "
           + ", ".join(f"{key} {statistics.median(values):.3f} s" for key, values in evaluation.items()) + ")")
+    served_rows = [(f"through a server (NEUMIP_ENGINE={args.server}, msgpack): neural / reference", "neural, server",
+                    "reference (path)", 1.0)] if served is not None else []
     before = [("kernel before: neural / reference", "neural, kernel before", "reference (path)", 1.0),
               ("in-kernel after / before", "neural (neumip_path)", "neural, kernel before", 1.05)] if args.kernel_before else []
     for label, a, b, target in (("neural / reference", "neural (neumip_path)", "reference (path)", 1.0),
@@ -240,7 +276,8 @@ def ratios(args) -> None:
                                 ("one emitter chosen: overhead / diffuse", "constant, one emitter", "diffuse (path)",
                                  1.5),
                                 ("ONNX Runtime: neural / reference", "neural, ONNX Runtime", "reference (path)", 1.0),
-                                ("ONNX Runtime: overhead / diffuse", "constant, buffered", "diffuse (path)", 1.5)):
+                                ("ONNX Runtime: overhead / diffuse", "constant, buffered", "diffuse (path)", 1.5),
+                                *served_rows):
         print(f"{label}: {wall[a] / wall[b]:.2f}x wall, {cpu[a] / cpu[b]:.2f}x CPU (target <= {target})")
     print(f"[{load_avg()}]", flush=True)
 
@@ -486,6 +523,10 @@ def main() -> int:
                         "engines/kernel.py (git show 906263c:engines/kernel.py > FILE), interleaved")
     parser.add_argument("--compare", type=Path, nargs="*", default=[], metavar="DIR",
                         help="stages: also render the material's file in these folders (another export of it)")
+    parser.add_argument("--server", nargs="?", const="auto", metavar="ENGINE",
+                        help="ratios: also render through a real `neumip serve` of this engine (default: auto, the "
+                        "server's default: the kernel engine where it runs), msgpack on loopback; CPU seconds count "
+                        "the server process too")
     parser.add_argument("--variant", help="Mitsuba variant of every render (default: the renderer's, llvm_ad_rgb; "
                         "cuda_ad_rgb on an NVIDIA GPU)")
     args = parser.parse_args()
