@@ -246,8 +246,7 @@ def ratios_with(args, served: tuple | None) -> None:
           f"{args.size}^2 px, {args.spp} spp, max_depth {args.max_depth}, rr_depth {args.rr_depth}, "
           f"geometry {geometry_resolution(args)}^2 per tile, model {local.get(material).config['resolution']}^2; "
           f"median of {args.rounds} interleaved rounds   [{load_avg()}]", flush=True)
-    pids = {name: server_pid if ev is not None and ev is evaluators.get("server") else None
-            for name, (_, ev) in scenes.items()}
+    pids = {name: server_pid if name == "neural, server" else None for name in scenes}  # whose CPU counts too
     for name, (scene, evaluator) in scenes.items():  # warm-up: compile (or load cached) kernels
         time_render(mi, scene, evaluator, args.spp, 0, args.max_lanes, pids[name])
     times = {name: [] for name in scenes}  # (wall, CPU) per round
