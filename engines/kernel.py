@@ -166,6 +166,8 @@ class KernelMaterial:
         jit = self.backend
         if not len(queries):
             return np.zeros((0, C.RGB_DIM * C.group_lights(queries.shape[1])), C.DTYPE)
+        if len(queries) == 1:  # drjit holds a one-lane array as a literal: the frozen trace would record (and
+            return self.run(np.repeat(queries, 2, axis=0))[:1]  # compile) again; the row is computed alone
         with DRJIT_LOCK:
             # one upload, then the columns gathered in drjit memory (columns made from numpy arrays
             # each made the frozen trace record again, call after call)

@@ -15,9 +15,11 @@
 The kernel engine traces (compiles) its arithmetic once per number of lights in a group, seconds for
 wide groups (0.6 s for 3 lights, 13 s for 64, every material again), holding the process-wide drjit
 lock that every other material's calls need. So it only ever runs the widths the registry's warm-up
-traced, `WARM_LIGHTS`: a wider group is split into groups of two lights (and one single query for an
-odd count), evaluated in one call, and put back together - free, since a group answers with the
-bits of its single queries.
+traced, `WARM_LIGHTS` (1-3 lights): a wider group is split into groups of three lights (and one group of
+the rest), evaluated in one call each, and put back together. The bits are those of the group's single
+queries either way; the cost is not: each group computes its position's lookups once, so three lights
+evaluated as a pair and a single query cost 1.6x one group of three (rock, `benchmarks/bench_engines.py`
+``--lights``).
 
 Both engines read a file through the one model-file reader (`neumip.core.modelfile`), so both refuse
 a file with a non-finite weight (NaN or Inf in any float initializer) when it loads, naming the
@@ -59,10 +61,11 @@ class EngineUnavailable(NeumipError, ImportError):
     """The engine asked for cannot run here (a missing extra or library); the message says how to fix it."""
 
 
-WARM_LIGHTS = (1, 2)
+WARM_LIGHTS = (1, 2, 3)
 """Lights of the query groups the kernel engine evaluates as they are: the widths the registry warms up
-(`Registry`'s warm-up runs single queries and groups of two), so the engine compiles nothing once a
-material is loaded."""
+(`Registry`'s warm-up runs single queries and groups of two and three: a renderer's next-event estimation
+towards one or two emitters, plus its BSDF sample), so the engine compiles nothing once a material is
+loaded. A wider group runs as groups of the widest (`in_groups`)."""
 
 
 @dataclass
@@ -70,26 +73,34 @@ class KernelModel(Material):
     """A material of the ``kernel`` engine: ``session`` is its `neumip.engines.kernel.KernelMaterial`."""
 
     def run(self, queries: np.ndarray) -> np.ndarray:
-        """One call: validated (n, 5 + 2 K) float32 queries -> (n, 3 K) float32 RGB; groups of more than
-        two lights as groups of two (`in_pairs`)."""
+        """One call: validated (n, 5 + 2 K) float32 queries -> (n, 3 K) float32 RGB; groups of more lights
+        than `WARM_LIGHTS` holds as groups of its widest (`in_groups`)."""
         if C.group_lights(queries.shape[1]) in WARM_LIGHTS:
             return self.session.run(queries)
-        return in_pairs(self.session.run, queries)
+        return in_groups(self.session.run, queries, max(WARM_LIGHTS))
 
 
-def in_pairs(run: Callable[[np.ndarray], np.ndarray], queries: np.ndarray) -> np.ndarray:
-    """Query groups of K > 2 lights (n, 5 + 2 K) -> (n, 3 K) RGB, evaluated by `run` as groups of two
-    lights, (n K // 2, 9) -> (n K // 2, 6), and, for an odd K, the last light's single queries."""
+def in_groups(run: Callable[[np.ndarray], np.ndarray], queries: np.ndarray, width: int) -> np.ndarray:
+    """Query groups of K > `width` lights (n, 5 + 2 K) -> (n, 3 K) RGB, evaluated by `run` as groups of
+    `width` lights, (n (K // width), 5 + 2 width), and the last K % width lights of each group as one group
+    (or single queries) of their own: each call computes a group's position once, so fewer, wider groups
+    cost less. Every light answers with the bits of its single query (`contract.ungroup`)."""
     n, lights = queries.shape[0], C.group_lights(queries.shape[1])
-    singles = C.ungroup(queries).reshape(n, lights, C.QUERY_DIM)  # (n, K, 7): light j of group i
-    even = lights - lights % 2
-    pairs = np.empty((n, even // 2, C.group_width(2)), C.DTYPE)  # lights 2 m and 2 m + 1 of each group
-    pairs[:, :, :C.QUERY_DIM] = singles[:, 0:even:2]
-    pairs[:, :, C.QUERY_DIM:] = singles[:, 1:even:2, C.WI_X:C.WI_Y + 1]
+    wi = np.empty((n, lights, 2), C.DTYPE)  # every light's wi, in order
+    wi[:, 0] = queries[:, C.WI_X:C.WI_Y + 1]
+    wi[:, 1:] = queries[:, C.QUERY_DIM:].reshape(n, lights - 1, 2)
     rgb = np.empty((n, lights, C.RGB_DIM), C.DTYPE)
-    rgb[:, :even] = run(pairs.reshape(-1, pairs.shape[2])).reshape(n, even, C.RGB_DIM)
-    if lights % 2:
-        rgb[:, -1] = run(np.ascontiguousarray(singles[:, -1]))
+    whole = lights // width
+    for first, count, parts in ((0, width, whole), (whole * width, lights % width, 1)):
+        if not count or not parts:
+            continue
+        part = wi[:, first:first + count * parts].reshape(n, parts, count, 2)
+        groups = np.empty((n, parts, C.group_width(count)), C.DTYPE)
+        groups[:, :, :C.WI_X] = queries[:, None, :C.WI_X]
+        groups[:, :, C.WI_X:C.WI_Y + 1] = part[:, :, 0]
+        groups[:, :, C.WO_X:C.QUERY_DIM] = queries[:, None, C.WO_X:C.QUERY_DIM]
+        groups[:, :, C.QUERY_DIM:] = part[:, :, 1:].reshape(n, parts, 2 * (count - 1))
+        rgb[:, first:first + count * parts] = run(groups.reshape(n * parts, -1)).reshape(n, count * parts, C.RGB_DIM)
     return rgb.reshape(n, lights * C.RGB_DIM)
 
 

@@ -103,7 +103,7 @@ class RegistryConfig:
     engine: Engine = field(default_factory=Engine.onnxruntime)
     """What loads and evaluates the materials."""
     warmup_rows: int = 1024
-    """Rows each material evaluates when it loads, before it serves (single queries, then groups of two)."""
+    """Rows each material evaluates when it loads, before it serves (single queries, then groups of two and three)."""
     lazy: bool = False
     """Load a material on its first request instead of at start-up."""
     memory_budget_bytes: int = 0

@@ -100,7 +100,7 @@ class Settings(BaseSettings):
     """Seconds between listings of the model folder (new, changed, deleted files); 0: only on request."""
     warmup_rows: int = Field(1024, ge=0)
     """Rows each material evaluates at start-up, before the server reports ready: as single queries and as
-    query groups of two lights, the shapes a renderer sends (the kernel engine compiles each once)."""
+    query groups of two and three lights, the shapes a renderer sends (the kernel engine compiles each once)."""
     model_control: Literal["none", "explicit"] = "none"
     """none: ``POST /v2/repository/models/{name}/load`` and ``/unload`` answer 403; explicit: they load and
     unload models (Triton's ``--model-control-mode``)."""

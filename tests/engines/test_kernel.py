@@ -288,10 +288,12 @@ def test_the_arithmetic_is_traced_once_per_number_of_lights(model_dir):
     """Later calls of other sizes replay the frozen trace (tracing a material costs milliseconds,
     and a render makes a call per material and bounce)."""
     kernel = KernelMaterials(model_dir)
-    for n in (500, 1500, 40, 3000):
+    for n in (500, 1500, 40, 1, 3000):  # one row too (drjit holds one lane as a literal: recorded again once)
         kernel.evaluate("rand16", random_queries(n, seed=n))
         kernel.evaluate("rand16", random_queries(n, seed=n, lights=2))
     assert kernel.kernel("rand16").traces == 2
+    one = random_queries(1, seed=7, lights=2)
+    np.testing.assert_array_equal(kernel.evaluate("rand16", one), kernel.evaluate("rand16", np.repeat(one, 3, 0))[:1])
 
 
 def test_concurrent_calls_answer_as_one_thread_does(model_dir):

@@ -25,7 +25,7 @@ from neumip.engines.local import LocalMaterials
 pytest.importorskip("neumip.engines.kernel")  # drjit, after the libLLVM check
 
 from neumip.engines.kernel import KernelMaterials  # noqa: E402
-from neumip.server.engine import Engine, EngineUnavailable  # noqa: E402
+from neumip.server.engine import Engine, EngineUnavailable, in_groups  # noqa: E402
 from neumip.server.registry import Registry  # noqa: E402
 
 MATERIALS = ("rand16", "flat16", "lambert")
@@ -169,19 +169,37 @@ def test_the_memory_budget_unloads_the_least_recently_used(folder, tmp_path):
 
 
 def test_loading_warms_up_the_shapes_a_renderer_sends_and_nothing_else_compiles(folder, kernel, groups_of):
-    """A material is traced (and compiled) for single queries and groups of two lights when it loads,
-    so a renderer's first requests do not pay for it. Wider groups (issue 27, F4: each new width
+    """A material is traced (and compiled) for single queries and groups of two and three lights when it
+    loads, so a renderer's first requests do not pay for it. Wider groups (issue 27, F4: each new width
     compiled for seconds, up to 13 s for 64 lights, under the lock every material needs) run as groups
-    of two and single queries: no new trace, and the bits of the groups' single queries."""
+    of three and one group of the rest: no new trace, and the bits of the groups' single queries."""
     registry = Registry.load(folder, Engine.kernel(), warmup_rows=16)
     material = registry.materials["rand16"].session
-    assert material.traces == 2
-    for lights in (1, 2, 3, 8, 33, C.MAX_LIGHTS):
+    assert material.traces == 3
+    for lights in (1, 2, 3, 4, 5, 8, 33, C.MAX_LIGHTS):
         queries = groups_of(50, lights, seed=lights)
         rgb = registry.materials["rand16"].run(queries)
         assert rgb.shape == (50, 3 * lights)
         np.testing.assert_array_equal(rgb.reshape(-1, 3), kernel.evaluate("rand16", C.ungroup(queries)))
-    assert material.traces == 2
+    assert material.traces == 3
+
+
+def test_wide_groups_run_as_groups_of_the_widest_traced_width(groups_of):
+    """`in_groups` cuts K lights into groups of `width` and one group of the rest (one call each), each light
+    answered as its single query: a stand-in engine answers each light from its own single query."""
+
+    def answer(groups: np.ndarray) -> np.ndarray:
+        q = C.ungroup(groups)
+        return np.stack([q[:, 0] + 2 * q[:, 3] - q[:, 5], q[:, 1] * q[:, 4], q[:, 2] + q[:, 6]], 1).reshape(len(groups), -1)
+
+    for width in (1, 2, 3):
+        for lights in (1, 2, 3, 4, 5, 7, 9):
+            calls = []
+            queries = groups_of(20, lights, seed=lights)
+            rgb = in_groups(lambda g: calls.append((len(g), C.group_lights(g.shape[1]))) or answer(g), queries, width)
+            np.testing.assert_array_equal(rgb, answer(queries))
+            whole, rest = divmod(lights, width)
+            assert calls == [(20 * whole, width)] * bool(whole) + [(20, rest)] * bool(rest)
 
 
 def test_the_kernel_engine_sizes_drjits_pool_only_when_it_starts(monkeypatch):
