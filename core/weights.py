@@ -41,26 +41,32 @@ level of detail l, bin b of the half vector's angle and bin e of the light's ele
 none."""
 DECODER = "decoder"
 """The MLP that turns texture features and directions into the answer."""
+COARSE_DECODER = "coarse_decoder"
+"""With `MaterialConfig.coarse_decoder`: the decoder of the coarse levels, of the decoder's shape and inputs."""
+DECODERS = (DECODER, COARSE_DECODER)
+"""The MLPs that read the texture features, the optional inputs and the directions."""
 OFFSET_MLP = "offset_mlp"
 """The MLP that turns offset-texture features and wo into a ray depth."""
 
-MLP_QUERY_COLUMNS = {DECODER: (C.WI_X, C.WI_Y, C.WO_X, C.WO_Y), OFFSET_MLP: (C.WO_X, C.WO_Y)}
+MLP_QUERY_COLUMNS = {DECODER: (C.WI_X, C.WI_Y, C.WO_X, C.WO_Y), COARSE_DECODER: (C.WI_X, C.WI_Y, C.WO_X, C.WO_Y),
+                     OFFSET_MLP: (C.WO_X, C.WO_Y)}
 """The query columns each MLP's first layer reads after its texture's features."""
 
-FIRST_LAYER_PARTS = {DECODER: ("texture", "query", "light"), OFFSET_MLP: ("texture", "query")}
-"""What each MLP's stored first layer is split into (`half_weight`); the decoder's also has a part per optional
+FIRST_LAYER_PARTS = {DECODER: ("texture", "query", "light"), COARSE_DECODER: ("texture", "query", "light"),
+                     OFFSET_MLP: ("texture", "query")}
+"""What each MLP's stored first layer is split into (`half_weight`); a decoder's also has a part per optional
 input it reads (`MaterialConfig.decoder_inputs`), after these."""
 
 
 def first_layer_parts(mlp: str, config: MaterialConfig) -> tuple[str, ...]:
     """The parts the stored first layer of `mlp` is split into."""
-    extra = tuple(row.name for row in config.decoder_inputs()) if mlp == DECODER else ()
+    extra = tuple(row.name for row in config.decoder_inputs()) if mlp in DECODERS else ()
     return FIRST_LAYER_PARTS[mlp] + extra
 
 
 def texture_inputs(mlp: str, config: MaterialConfig) -> int:
     """Inputs of `mlp`'s first layer that read its texture's features."""
-    return config.channels if mlp == DECODER else config.offset_channels
+    return config.channels if mlp in DECODERS else config.offset_channels
 
 DEPTH_COPIES = 2
 """Rows of the offset MLP's stored last layer: its one output, once beside each of wo_x, wo_y."""
@@ -92,6 +98,8 @@ def mlps(config: MaterialConfig) -> dict[str, tuple[int, int]]:
     extra = decoder_extra_inputs(config)
     answers = BASE_OUTPUTS if config.base else outputs(config.head)
     found = {DECODER: (config.channels + extra + len(MLP_QUERY_COLUMNS[DECODER]), answers)}
+    if config.coarse_decoder:
+        found[COARSE_DECODER] = found[DECODER]
     if config.offset:
         found[OFFSET_MLP] = (config.offset_channels + len(MLP_QUERY_COLUMNS[OFFSET_MLP]), 1)
     return found

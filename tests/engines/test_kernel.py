@@ -93,6 +93,8 @@ def layouts(tmp_path_factory):
                                      offset_mip=True),
         "energy": MaterialConfig(resolution=16, base=32, relief=32, lod_bias=1, half_textures=True, offset_mip=True,
                                  energy_bins=6),
+        "coarse-decoder": MaterialConfig(resolution=16, base=32, relief=32, lod_bias=1, half_textures=True,
+                                         offset_mip=True, energy_bins=6, coarse_decoder=2),
     }
     for seed, (name, cfg) in enumerate(configs.items()):
         save_onnx(build_onnx(cfg, random_weights(cfg, seed=seed)), folder / f"{name}.onnx")
@@ -103,6 +105,7 @@ def layouts(tmp_path_factory):
               folder / "ceiling.onnx")
     save_onnx(trim_model(onnx.load(folder / "offset64.onnx"), 2), folder / "trimmed.onnx")
     save_onnx(trim_model(onnx.load(folder / "energy.onnx"), 2), folder / "energy-trimmed.onnx")
+    save_onnx(trim_model(onnx.load(folder / "coarse-decoder.onnx"), 3), folder / "coarse-decoder-trimmed.onnx")
     # base maps with channels the same in every texel, which the graph holds as constants: F0 (a dielectric), all
     for name, first, last in (("dielectric", 3, 6), ("plain", 0, 9)):
         weights = random_weights(relief, seed=len(configs))

@@ -47,7 +47,7 @@ from neumip.training.export import base as B
 from neumip.training.export.energy import energy_gain
 from neumip.training.export.lookup import (footprint_texels, mip_atlas, mip_const, pyramid_footprint, pyramid_texels,
                                           stored_texture, texture_const, texture_texels)
-from neumip.training.export.lod import OFFSET_PREFIX, RELIEF_PREFIX, pyramids
+from neumip.training.export.lod import OFFSET_PREFIX, RELIEF_PREFIX, level_of_detail, pyramids
 from neumip.training.export.onnx_graph import GraphWriter
 
 log = logging.getLogger(__name__)
@@ -212,6 +212,10 @@ DECODER_INPUTS = {
 tensor. The torch model's twin is `training.model.material.DECODER_INPUTS`."""
 
 
+COARSE_PREFIX = "coarse_decoder."
+"""Names of the constants of the coarse decoder's blend (its level of detail's tables)."""
+
+
 RELIEF_DEPTH = "relief.depth"
 """The initializer (1, 1) holding the relief's depth, -min of its heights (0 at least): by name, as the heights of
 a model trimmed (`neumip trim`) may no longer hold their minimum. A weights dict may give it (read back from such
@@ -320,20 +324,37 @@ def material_graph(g: GraphWriter, config: MaterialConfig, weights: dict,
             per_light.append(g.op("Concat", k, g.const([1], np.int64), axis=0))
         return g.op("Tile", x, per_light[0])
 
-    w = weights[W.weight(W.DECODER, 0)]
-    light = g.product(w[:, -4:-2], wi, rows=True, name=W.half_weight(W.DECODER, 0, "light"))  # (hidden, K N)
-    hidden = g.op("Add", g.op("Tile", shared, g.op("Concat", g.const([1], np.int64), k, axis=0)), light)
     stage = LightStage(g, read, wi, wo, each_light)
-    first = config.channels
-    for row in inputs:  # per light, each optional input's columns of the first layer
-        value = DECODER_INPUTS[row.name](stage)  # (K N, width)
-        hidden = g.op("Add", hidden, g.product(w[:, first : first + row.width], value, rows=True,
-                                               name=W.half_weight(W.DECODER, 0, row.name)))  # (hidden, K N)
-        first += row.width
+    values: list[str] = []  # each optional input per light (K N, width), computed by the first decoder that reads it
+
+    def decoder(mlp: str, shared: str) -> str:
+        """The decoder `mlp`'s output (K N, O) from its first layer's group part `shared` (hidden, N): its light part
+        and optional inputs' parts per light, then the rest of it."""
+        w = weights[W.weight(mlp, 0)]
+        light = g.product(w[:, -4:-2], wi, rows=True, name=W.half_weight(mlp, 0, "light"))  # (hidden, K N)
+        hidden = g.op("Add", g.op("Tile", shared, g.op("Concat", g.const([1], np.int64), k, axis=0)), light)
+        first = config.channels
+        for i, row in enumerate(inputs):  # per light, each optional input's columns of the first layer
+            if i == len(values):
+                values.append(DECODER_INPUTS[row.name](stage))
+            hidden = g.op("Add", hidden, g.product(w[:, first : first + row.width], values[i], rows=True,
+                                                   name=W.half_weight(mlp, 0, row.name)))  # (hidden, K N)
+            first += row.width
+        if config.layers > 1:
+            hidden = g.op("Relu", hidden)
+        return g.op("Transpose", g.mlp(hidden, weights, mlp, config.layers, first=1), perm=[1, 0])  # (K N, O)
+
+    out = decoder(W.DECODER, shared)
     normal, lit = stage.normal, stage.lit
-    if config.layers > 1:
-        hidden = g.op("Relu", hidden)
-    out = g.op("Transpose", g.mlp(hidden, weights, W.DECODER, config.layers, first=1), perm=[1, 0])  # (K N, O)
+    if config.coarse_decoder:  # blended into the coarse levels' by w = clamp(lod - K, 0, 1), per light
+        coarse = decoder(W.COARSE_DECODER, _first_layer(g, q, texels, tap_w, 8, [C.WO_X, C.WO_Y], weights,
+                                                        W.COARSE_DECODER, 4 + W.decoder_extra_inputs(config)))
+        lod_rows, t = level_of_detail(g, sigma, config, finest_level, {"level": np.arange(config.levels + 1.0)[:, None]},
+                                      COARSE_PREFIX)
+        lod = g.op("Add", lod_rows["level"], t)  # (N, 1) in [finest_level, L]
+        blend = g.op("Min", g.op("Max", g.op("Sub", lod, g.scalar(float(config.coarse_decoder))), g.scalar(0.0)),
+                     g.scalar(1.0))  # (N, 1)
+        out = g.op("Add", out, g.op("Mul", each_light(blend), g.op("Sub", coarse, out)))
     size = head.outputs(config.head)
     if config.base:  # per light: the base's answer from the group's maps, corrected by the decoder
         read = read or B.read_base(g, config, weights, uvw, sigma, finest[W.BASE])
@@ -428,14 +449,14 @@ def random_weights(config: MaterialConfig, seed: int = 0, scale: float = 0.5) ->
     """
     rng = np.random.default_rng(seed)
     out = {}
-    last = W.weight(W.DECODER, config.layers - 1)
+    last = {W.weight(mlp, config.layers - 1) for mlp in W.DECODERS}
+    last_bias = {W.bias(mlp, config.layers - 1) for mlp in W.DECODERS}
     for name, shape in W.weight_shapes(config).items():
         if name.endswith("weight"):
             w = rng.normal(size=shape) * np.sqrt(2.0 / shape[1])
-            out[name] = np.abs(w) * (scale / shape[1]) ** 0.5 if name == last and config.layers > 1 else w
+            out[name] = np.abs(w) * (scale / shape[1]) ** 0.5 if name in last and config.layers > 1 else w
         elif name.endswith("bias"):
-            out[name] = (rng.uniform(0.1, 0.3, shape) if name == W.bias(W.DECODER, config.layers - 1)
-                         else rng.uniform(0.0, 0.1, shape))
+            out[name] = rng.uniform(0.1, 0.3, shape) if name in last_bias else rng.uniform(0.0, 0.1, shape)
         elif name == W.BASE:  # maps a base can hold: colours and F0 in [0, 1), slopes, alpha^2 in (0, 1), horizons
             out[name] = np.concatenate([rng.uniform(0, 1, (shape[0], 6)), rng.normal(size=(shape[0], 2)) * 0.5,
                                         rng.uniform(0.01, 1, (shape[0], 1)), rng.uniform(0, 0.6, (shape[0], shape[1] - 9))],

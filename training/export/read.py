@@ -66,7 +66,7 @@ def _layer(inits: dict, mlp: str, i: int) -> tuple[np.ndarray, np.ndarray]:
         weight = inits[W.half_weight(mlp, i)] * alpha
     else:
         query = inits[W.half_weight(mlp, 0, "query")] * alpha  # (hidden, 7): the columns it reads
-        if mlp == W.DECODER:
+        if mlp in W.DECODERS:
             query[:, [C.WI_X, C.WI_Y]] = inits[W.half_weight(mlp, 0, "light")] * alpha
         texture = [inits[W.half_weight(mlp, 0, "texture")] * alpha]
         for row in DECODER_INPUTS:  # the decoder's optional inputs, in their order

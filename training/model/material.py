@@ -15,7 +15,7 @@ from neumip.training.model.base import base_answer, corrected, frame_inputs, hal
 from neumip.training.model.energy import energy_gain
 from neumip.training.model.maps import MapConfig, level_feature
 from neumip.training.model.offset import parallax_shift
-from neumip.training.model.pyramid import as_stored, mip_atlas, pyramid_lookup, texture_lookup
+from neumip.training.model.pyramid import as_stored, level_of_detail, mip_atlas, pyramid_lookup, texture_lookup
 from neumip.training.model.relief import relief_shift
 
 
@@ -49,9 +49,12 @@ class NeuMIPMaterial(nn.Module):
             nn.Parameter(torch.randn(s, s, config.channels) * init_std) for s in config.level_sizes()
         )
         self.decoder = mlp(*W.mlps(config)[W.DECODER], config.layers, hidden=config.hidden)
+        if config.coarse_decoder:  # the coarse levels' (`MaterialConfig.coarse_decoder`)
+            self.coarse_decoder = mlp(*W.mlps(config)[W.COARSE_DECODER], config.layers, hidden=config.hidden)
         if config.base:  # the answer starts as the base's: zero correction, zero additive term
-            nn.init.zeros_(self.decoder[-1].weight)
-            nn.init.zeros_(self.decoder[-1].bias)
+            for decoder in self.decoders():
+                nn.init.zeros_(decoder[-1].weight)
+                nn.init.zeros_(decoder[-1].bias)
             self.register_buffer(W.BASE, torch.zeros(W.weight_shapes(config)[W.BASE]))
         if config.relief:
             self.register_buffer(W.RELIEF, torch.zeros(W.weight_shapes(config)[W.RELIEF]))
@@ -63,6 +66,20 @@ class NeuMIPMaterial(nn.Module):
             r = config.resolution
             self.offset_texture = nn.Parameter(torch.randn(r, r, config.offset_channels) * init_std)
             self.offset_mlp = mlp(*W.mlps(config)[W.OFFSET_MLP], config.layers, hidden=config.hidden)
+
+    def decoders(self) -> list[nn.Sequential]:
+        """The decoder, and the coarse levels' with `MaterialConfig.coarse_decoder`."""
+        return [self.decoder] + ([self.coarse_decoder] if self.config.coarse_decoder else [])
+
+    def decode(self, inputs: torch.Tensor, sigma: torch.Tensor) -> torch.Tensor:
+        """The decoder's output for its (N, inputs) inputs; with a coarse decoder, blended into that one's by
+        w = clamp(lod - K, 0, 1) at the queries' footprints sigma (N,)."""
+        out = self.decoder(inputs)
+        if not self.config.coarse_decoder:
+            return out
+        lod = level_of_detail(sigma, self.config.resolution, self.config.lod_bias)
+        w = torch.clamp(lod - self.config.coarse_decoder, 0.0, 1.0)[:, None]
+        return out + w * (self.coarse_decoder(inputs) - out)
 
     @torch.no_grad()
     def set_maps(self, name: str, levels: list) -> None:
@@ -138,7 +155,7 @@ class NeuMIPMaterial(nn.Module):
         if inputs:
             features = torch.cat([features, *inputs.values()], dim=1)
         lit = inputs.get("visibility")  # the base's visibility of the light: the base's answer reads it too
-        out = self.decoder(torch.cat([features, directions], dim=1))
+        out = self.decode(torch.cat([features, directions], dim=1), sigma)
         if self.config.base:
             out = corrected(base_answer(maps, wi, wo, self.config.terminator, lit), out)
         if self.config.energy_bins:

@@ -44,6 +44,9 @@ PARITY_CASES = {
     "energy": dict(base=64, relief=64, local_frame=True, terminator="none", lod_bias=1, half_textures=True,
                    offset_mip=True, energy_bins=6),
     "energy-alone": dict(energy_bins=2),
+    "coarse-decoder": dict(base=64, relief=64, local_frame=True, terminator="none", lod_bias=1, half_textures=True,
+                           offset_mip=True, energy_bins=6, coarse_decoder=2),
+    "coarse-decoder-alone": dict(coarse_decoder=3),
 }
 """Models whose torch and ONNX answers must agree: `MaterialConfig` fields over a 32^2 material with an offset."""
 
@@ -59,7 +62,8 @@ def pair(request):
         weights = random_weights(cfg, seed=4)
         with torch.no_grad():
             material.base_maps.copy_(torch.from_numpy(weights["base_maps"]))
-            material.decoder[-1].weight.normal_(0.0, 0.2)
+            for decoder in material.decoders():
+                decoder[-1].weight.normal_(0.0, 0.2)
     if cfg.energy_bins:  # gains that differ by level, angle and channel
         with torch.no_grad():
             material.energy.uniform_(0.5, 2.0)

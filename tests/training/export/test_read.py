@@ -34,6 +34,7 @@ CONFIGS = {
     "local-frame": replace(BASE, base=32, local_frame=True, half_vector=True),
     "no-terminator": replace(BASE, base=32, terminator="none"),
     "visibility-input": replace(BASE, base=32, local_frame=True, half_vector=True, visibility_input=True),
+    "coarse-decoder": replace(BASE, half_vector=True, coarse_decoder=2),
 }
 SHIPPED = sorted(Path("models").glob("*.onnx"))
 
@@ -47,10 +48,11 @@ def test_reexport_of_an_export_is_the_same_bytes(name):
         assert reexport(trimmed).SerializeToString() == trimmed.SerializeToString()
 
 
-def test_weights_read_back_are_the_weights_written():
-    """Every weight exactly, but the offset MLP's last layer: stored times offset_scale, it is read
-    back as weights that scale to the same float32 bits."""
-    config = CONFIGS["offset"]
+@pytest.mark.parametrize("name", ["offset", "coarse-decoder"])
+def test_weights_read_back_are_the_weights_written(name):
+    """Every weight exactly (both decoders' too), but the offset MLP's last layer: stored times offset_scale, it is
+    read back as weights that scale to the same float32 bits."""
+    config = CONFIGS[name]
     weights = random_weights(config, seed=5)
     got_config, got, meta, finest = read_model(build_onnx(config, weights, "w"))
     assert got_config == config and finest == 0 and meta["neumip.description"] == "w"

@@ -49,7 +49,7 @@ def session(model: onnx.ModelProto, path):
     return load_material(path).run
 
 
-CONFIGS = {  # (offset, base, relief, lod_bias[, offset_mip]): maps finer than, as fine as and coarser than the latents
+CONFIGS = {  # (offset, base, relief, lod_bias[, offset_mip[, coarse_decoder]]): maps finer than, as fine as and coarser than the latents
     "offset": (True, 0, 0, 0),
     "offset-mip": (True, 0, 0, 0, True),
     "offset-mip-maps": (True, RES, RES, 1, True),
@@ -58,12 +58,15 @@ CONFIGS = {  # (offset, base, relief, lod_bias[, offset_mip]): maps finer than, 
     "relief-base": (True, 2 * RES, 2 * RES, 0),
     "maps-as-fine-biased": (True, RES, RES, 1),
     "maps-coarser": (False, RES // 2, RES // 4, 0),
+    "coarse-decoder": (True, RES, RES, 1, True, 2),
 }
 
 
-def make_config(offset: bool, base: int, relief: int, lod_bias: int, offset_mip: bool = False) -> MaterialConfig:
+def make_config(offset: bool, base: int, relief: int, lod_bias: int, offset_mip: bool = False,
+                coarse_decoder: int = 0) -> MaterialConfig:
     return MaterialConfig(resolution=RES, offset=offset, base=base, relief=relief, relief_steps=4, lod_bias=lod_bias,
-                          local_frame=bool(base), visibility_input=bool(base), offset_mip=offset_mip)
+                          local_frame=bool(base), visibility_input=bool(base), offset_mip=offset_mip,
+                          coarse_decoder=coarse_decoder)
 
 
 @pytest.fixture(scope="module", params=list(CONFIGS.values()), ids=list(CONFIGS))

@@ -1,16 +1,20 @@
-"""The material's output heads: the YUV head's known answers, its gradient, and its ONNX export."""
+"""The material's output heads: the YUV head's known answers, its gradient, and its ONNX export; the coarse levels'
+decoder."""
 
 import math
+from dataclasses import replace
 
 import numpy as np
 import pytest
 import torch
 
+from neumip.core import contract as C
 from neumip.core.contract import random_queries
 from neumip.core import head
 from neumip.core.config import MaterialConfig
 from neumip.training.export.graph import build_onnx, constant_weights, weights_from_state
 from neumip.training.model.material import NeuMIPMaterial
+from neumip.training.model.pyramid import level_of_detail
 from neumip.training.loop.train import init_output
 
 FLAT = 0.5 / math.pi
@@ -96,3 +100,30 @@ def test_constant_weights_of_the_yuv_head_answer_the_colour():
 def test_unknown_head_is_refused():
     with pytest.raises(ValueError, match="head must be one of"):
         MaterialConfig(head="srgb")
+
+
+def test_the_coarse_decoder_answers_from_its_level_on_and_the_first_below():
+    """`MaterialConfig.coarse_decoder` K: level K and finer answer with the first decoder alone, K + 1 and coarser
+    with the second alone, and between them a blend; the second starts as the first does (zero last layer with a
+    base) and is its own weights."""
+    torch.manual_seed(0)
+    config = MaterialConfig(resolution=32, coarse_decoder=2)
+    two = NeuMIPMaterial(config, init_std=0.5)
+    first, second = NeuMIPMaterial(replace(config, coarse_decoder=0)), NeuMIPMaterial(replace(config, coarse_decoder=0))
+    state = {k: v for k, v in two.state_dict().items() if not k.startswith("coarse_decoder.")}
+    first.load_state_dict(state)
+    second.load_state_dict({**state, **{k.replace("coarse_decoder.", "decoder."): v
+                                        for k, v in two.state_dict().items() if k.startswith("coarse_decoder.")}})
+    q = torch.from_numpy(random_queries(3000, seed=2))
+    lod = level_of_detail(q[:, C.SIGMA], config.resolution)
+    with torch.no_grad():
+        answers = [m(q) for m in (two, first, second)]
+    fine, coarse, between = lod <= 2, lod >= 3, (lod > 2.2) & (lod < 2.8)
+    assert fine.sum() > 100 and coarse.sum() > 100 and between.sum() > 10
+    torch.testing.assert_close(answers[0][fine], answers[1][fine], rtol=0, atol=0)
+    torch.testing.assert_close(answers[0][coarse], answers[2][coarse])  # out + 1 (c - out): c up to rounding
+    assert not torch.allclose(answers[1][between], answers[2][between])  # two decoders, their own weights
+    with_base = NeuMIPMaterial(replace(config, base=32))
+    assert all(float(d[-1].weight.abs().sum()) == 0.0 for d in with_base.decoders()) and len(with_base.decoders()) == 2
+    with pytest.raises(ValueError, match="coarse_decoder"):
+        MaterialConfig(resolution=32, coarse_decoder=5)
