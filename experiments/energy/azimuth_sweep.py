@@ -6,12 +6,17 @@ model that blurs that anisotropy answers those views wrong while its data, poole
 right.
 
     .venv/bin/python experiments/energy/azimuth_sweep.py MATERIAL MODEL... [--level 6] [--light side]
+
+``--estimates PRINTOUT``: the estimator's means from an earlier run's printout of the same material, level, lights
+and step (the positions are the same: the random generator is replayed), instead of tracing them again.
 """
 
 from __future__ import annotations
 
 import argparse
 import math
+import re
+from pathlib import Path
 
 import numpy as np
 
@@ -26,7 +31,14 @@ def main() -> None:
     parser.add_argument("--level", type=int, default=6, help="footprint 2^LEVEL map texels")
     parser.add_argument("--lights", default="high,side,front")
     parser.add_argument("--step", type=float, default=7.5, help="degrees between rotations")
+    parser.add_argument("--estimates", type=Path, help="an earlier printout whose estimator means to reuse")
     args = parser.parse_args()
+    known = {}
+    if args.estimates:
+        for line in args.estimates.read_text().splitlines():
+            m = re.match(r"\s+(\w+)\s+phi\s+([\d.]+): estimator ([\d.]+)", line)
+            if m:
+                known[m.group(1), float(m.group(2))] = float(m.group(3))
 
     from neumip.core import contract as C
     from neumip.engines.local import load_material
@@ -36,7 +48,7 @@ def main() -> None:
 
     geo = resolve(find_description(args.material))
     settings = GenerateSettings()
-    tracer = QueryTracer(geo, settings.tracer, settings.tiling)
+    tracer = None if known else QueryTracer(geo, settings.tracer, settings.tiling)
     models = [load_material(m) for m in args.models]
     resolution = find_description(args.material).resolution
     lum = np.array([0.2126, 0.7152, 0.0722])
@@ -54,14 +66,18 @@ def main() -> None:
             q[:, C.U], q[:, C.V] = rng.random(20000), rng.random(20000)
             q[:, C.SIGMA] = 2.0**args.level / resolution
             q[:, C.WI_X:C.WI_Y + 1], q[:, C.WO_X:C.WO_Y + 1] = direction(zen, az), direction(55, 0)
-            truth = (tracer.estimate(q, 16, int(phi * 10)) @ lum).mean()
+            truth = known[light, float(phi)] if known else (tracer.estimate(q, 16, int(phi * 10)) @ lum).mean()
             ratios = [(m.run(q) @ lum).mean() / truth for m in models]
             for log, r in zip(logs, ratios):
-                log.append(abs(math.log(r)))
+                log.append(math.log(r))
             print(f"  {light:5s} phi {phi:5.1f}: estimator {truth:.4f}  " + "  ".join(f"{r:.3f}" for r in ratios),
                   flush=True)
+    lights = len(args.lights.split(","))
     for path, log in zip(args.models, logs):
-        print(f"  {path}: mean |log(answer / estimator)| {np.mean(log):.4f}, largest {np.max(log):.4f}")
+        per_light = np.array(log).reshape(lights, -1)  # each light's turns in a row
+        shape = np.abs(per_light - per_light.mean(1, keepdims=True)).mean()
+        print(f"  {path}: mean |log(answer / estimator)| {np.mean(np.abs(log)):.4f}, largest {np.max(np.abs(log)):.4f}; "
+              f"shape (each light's turns about their mean log) {shape:.4f}")
 
 
 if __name__ == "__main__":
