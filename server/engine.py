@@ -13,13 +13,12 @@
   export's parity tolerance, and each row is computed alone, so they do not depend on the batch.
 
 The kernel engine traces (compiles) its arithmetic once per number of lights in a group, seconds for
-wide groups (0.6 s for 3 lights, 13 s for 64, every material again), holding the process-wide drjit
+each width with an empty drjit cache (more for wider groups, every material again), holding the process-wide drjit
 lock that every other material's calls need. So it only ever runs the widths the registry's warm-up
 traced, `WARM_LIGHTS` (1-3 lights): a wider group is split into groups of three lights (and one group of
 the rest), evaluated in one call each, and put back together. The bits are those of the group's single
 queries either way; the cost is not: each group computes its position's lookups once, so three lights
-evaluated as a pair and a single query cost 1.6x one group of three (rock, `benchmarks/bench_engines.py`
-``--lights``).
+evaluated as a pair and a single query cost about 1.6x one group of three (server/README.md).
 
 Both engines read a file through the one model-file reader (`neumip.core.modelfile`), so both refuse
 a file with a non-finite weight (NaN or Inf in any float initializer) when it loads, naming the

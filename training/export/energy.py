@@ -32,14 +32,20 @@ def _pairs(g: GraphWriter, x: str, top: int) -> tuple[str, str]:
     return nodes, g.op("Concat", g.op("Sub", g.scalar(1.0), frac), frac, axis=1)
 
 
-def energy_gain(g: GraphWriter, config: MaterialConfig, table: np.ndarray, sigma: str, wi: str, wo: str,
-                each_light, finest_level: int = 0) -> str:
-    """The groups' sigma (N, 1), each light's wi and wo (K N, 2) -> the gains (K N, 3); `each_light` repeats a
-    group's rows per light (`graph.material_graph`)."""
-    bins, top = config.energy_bins, float(config.energy_bins - 1)
+def group_lod(g: GraphWriter, config: MaterialConfig, sigma: str, finest_level: int = 0,
+              prefix: str = ENERGY_PREFIX) -> str:
+    """The groups' sigma (N, 1) -> their latents' level of detail (N, 1) in [K, L], K = ``finest_level``."""
     rows, t = level_of_detail(g, sigma, config, finest_level, {"level": np.arange(config.levels + 1.0)[:, None]},
-                              ENERGY_PREFIX)
-    lod = each_light(g.op("Add", rows["level"], t))  # (K N, 1) in [K, L]
+                              prefix)
+    return g.op("Add", rows["level"], t)
+
+
+def energy_gain(g: GraphWriter, config: MaterialConfig, table: np.ndarray, sigma: str, wi: str, wo: str,
+                each_light, finest_level: int = 0, lod: str | None = None) -> str:
+    """The groups' sigma (N, 1), each light's wi and wo (K N, 2) -> the gains (K N, 3); `each_light` repeats a
+    group's rows per light (`graph.material_graph`); ``lod``: the groups' `group_lod`, where the graph has it."""
+    bins, top = config.energy_bins, float(config.energy_bins - 1)
+    lod = each_light(lod or group_lod(g, config, sigma, finest_level))  # (K N, 1) in [K, L]
     wi3 = B.lift(g, wi)
     h = B.half_direction(g, wi3, B.lift(g, wo))  # (K N, 3)
     s = g.op("Sqrt", g.op("Max", g.op("Sub", g.scalar(2.0), g.op("Mul", g.pick(h, 3, [2]), g.scalar(2.0))),

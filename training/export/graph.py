@@ -44,10 +44,10 @@ from neumip.core import head
 from neumip.core import weights as W
 from neumip.core.config import RELIEF_DIVISION_FLOOR, RELIEF_MIN_COS, MaterialConfig
 from neumip.training.export import base as B
-from neumip.training.export.energy import energy_gain
+from neumip.training.export.energy import energy_gain, group_lod
 from neumip.training.export.lookup import (footprint_texels, mip_atlas, mip_const, pyramid_footprint, pyramid_texels,
                                           stored_texture, texture_const, texture_texels)
-from neumip.training.export.lod import OFFSET_PREFIX, RELIEF_PREFIX, level_of_detail, pyramids
+from neumip.training.export.lod import OFFSET_PREFIX, RELIEF_PREFIX, pyramids
 from neumip.training.export.onnx_graph import GraphWriter
 
 log = logging.getLogger(__name__)
@@ -346,12 +346,11 @@ def material_graph(g: GraphWriter, config: MaterialConfig, weights: dict,
 
     out = decoder(W.DECODER, shared)
     normal, lit = stage.normal, stage.lit
+    lod = None  # the groups' level of detail, where the coarse decoder's blend computes it (the energy table reads it)
     if config.coarse_decoder:  # blended into the coarse levels' by w = clamp(lod - K, 0, 1), per light
         coarse = decoder(W.COARSE_DECODER, _first_layer(g, q, texels, tap_w, 8, [C.WO_X, C.WO_Y], weights,
                                                         W.COARSE_DECODER, 4 + W.decoder_extra_inputs(config)))
-        lod_rows, t = level_of_detail(g, sigma, config, finest_level, {"level": np.arange(config.levels + 1.0)[:, None]},
-                                      COARSE_PREFIX)
-        lod = g.op("Add", lod_rows["level"], t)  # (N, 1) in [finest_level, L]
+        lod = group_lod(g, config, sigma, finest_level, COARSE_PREFIX)  # (N, 1) in [finest_level, L]
         blend = g.op("Min", g.op("Max", g.op("Sub", lod, g.scalar(float(config.coarse_decoder))), g.scalar(0.0)),
                      g.scalar(1.0))  # (N, 1)
         out = g.op("Add", out, g.op("Mul", each_light(blend), g.op("Sub", coarse, out)))
@@ -363,7 +362,7 @@ def material_graph(g: GraphWriter, config: MaterialConfig, weights: dict,
                                                 terminator=config.terminator, lit=lit), out)
     if config.energy_bins:  # per light: the gain of the group's level of detail, the half vector and the light's elevation
         out = g.op("Mul", out, energy_gain(g, config, weights[W.ENERGY], sigma, wi, stage.wo, each_light,
-                                           finest_level))
+                                           finest_level, lod))
     rows = _reshape(g, out, k, n, size)  # (K, N, O)
     rows = _reshape(g, g.op("Transpose", rows, perm=[1, 0, 2]), kn, size)  # (N K, O)
     return rows, [n, g.op("Mul", k, g.const([C.RGB_DIM], np.int64))]
