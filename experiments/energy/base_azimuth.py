@@ -26,14 +26,12 @@ from __future__ import annotations
 
 import argparse
 import math
-import re
 from pathlib import Path
 
 import numpy as np
 import torch
 
-LIGHTS = {"high": (20, 45), "side": (60, 90), "front": (50, 135)}
-"""As `azimuth_sweep.LIGHTS`: zenith and azimuth from the direction towards the camera, degrees."""
+from azimuth_sweep import LIGHTS, read_estimates  # this folder's
 LUMINANCE = torch.tensor([0.2126, 0.7152, 0.0722], dtype=torch.float64)
 
 
@@ -71,16 +69,6 @@ def aniso_answer(features: torch.Tensor, cov: torch.Tensor, rough4: torch.Tensor
     return (diffuse + specular) * visibility(features[:, 9:], wi, wi_z) / torch.clamp(wi_z, min=1e-3)
 
 
-def sweep_estimates(path: Path) -> dict[tuple[str, float], tuple[float, float]]:
-    """`azimuth_sweep.py`'s printout -> {(light, phi): (estimator, first model's ratio)}."""
-    out = {}
-    for line in path.read_text().splitlines():
-        m = re.match(r"\s+(\w+)\s+phi\s+([\d.]+): estimator ([\d.]+)\s+([\d.]+)", line)
-        if m:
-            out[m.group(1), float(m.group(2))] = float(m.group(3)), float(m.group(4))
-    return out
-
-
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("material")
@@ -111,7 +99,7 @@ def main() -> None:
     print(f"{args.material}: base {res}^2, level {args.level} ({size}^2 texels); the slopes' covariance's eigenvalues "
           f"there: median {np.median(eigen[:, 0]):.4f} and {np.median(eigen[:, 1]):.4f}, roughness^4 median "
           f"{np.median(rough4):.4f}")
-    truth = sweep_estimates(args.sweep) if args.sweep else {}
+    truth = read_estimates(args.sweep) if args.sweep else {}
     columns = ["estimator", "model"] * bool(truth) + ["fine", "iso", "aniso", "fine_unlit", "iso_vis", "iso_vis_mask"]
     from neumip.training.model.base import lift, visibility
 

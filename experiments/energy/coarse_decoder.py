@@ -25,15 +25,14 @@ from __future__ import annotations
 
 import argparse
 import copy
-import math
-import re
 import time
 from pathlib import Path
 
 import numpy as np
 import torch
 
-LIGHTS = {"high": (20, 45), "side": (60, 90), "front": (50, 135)}
+from azimuth_sweep import LIGHTS, configurations, read_estimates, shape_score  # this folder's
+
 LUMINANCE = np.array([0.2126, 0.7152, 0.0722])
 
 
@@ -52,34 +51,11 @@ class Blend(torch.nn.Module):
         return out + self.weight * (self.second(x) - out)
 
 
-def sweep_configurations(path: Path) -> list[tuple[str, float, float]]:
-    """An `azimuth_sweep.py` printout -> [(light, phi, estimator)] in its order."""
-    rows = []
-    for line in path.read_text().splitlines():
-        m = re.match(r"\s+(\w+)\s+phi\s+([\d.]+): estimator ([\d.]+)", line)
-        if m:
-            rows.append((m.group(1), float(m.group(2)), float(m.group(3))))
-    return rows
-
-
-def sweep(answer, rows, level: int, resolution: int) -> list[float]:
-    """Each configuration's answers' mean over the estimator's, at the sweep's own positions."""
-    from neumip.core import contract as C
-
-    rng = np.random.default_rng(0)
-    ratios = []
-    for light, phi, truth in rows:
-        zen, az = LIGHTS[light]
-
-        def direction(zenith, azimuth):
-            z, a = math.radians(zenith), math.radians(azimuth + phi)
-            return math.sin(z) * math.sin(a), -math.sin(z) * math.cos(a)
-        q = np.zeros((20000, 7), np.float32)
-        q[:, C.U], q[:, C.V] = rng.random(20000), rng.random(20000)
-        q[:, C.SIGMA] = 2.0**level / resolution
-        q[:, C.WI_X:C.WI_Y + 1], q[:, C.WO_X:C.WO_Y + 1] = direction(zen, az), direction(55, 0)
-        ratios.append(float((answer(q) @ LUMINANCE).mean()) / truth)
-    return ratios
+def sweep(answer, estimates: dict, level: int, resolution: int) -> list[float]:
+    """Each configuration's answers' mean over the estimator's (`azimuth_sweep.read_estimates`), at the sweep's own
+    positions."""
+    return [float((answer(q) @ LUMINANCE).mean()) / estimates[light, phi][0]
+            for light, phi, q in configurations(list(estimates), level, resolution)]
 
 
 def main() -> None:
@@ -99,7 +75,7 @@ def main() -> None:
     from neumip.training.loop.losses import comb2
     from neumip.training.model.pyramid import level_of_detail
 
-    rows = sweep_configurations(args.sweep)
+    estimates = read_estimates(args.sweep)
     queries = np.load(args.data / "queries.npy", mmap_mode="r")
     targets = np.load(args.data / "rgb.npy", mmap_mode="r")
 
@@ -127,7 +103,7 @@ def main() -> None:
     fine_x = torch.from_numpy(np.asarray(queries[fine_rows]))
     fine_y = np.asarray(targets[fine_rows], np.float64)
     results = {}
-    for arm in ["before"] + args.arms.split(","):
+    for arm in ["before"] + [a for a in args.arms.split(",") if a]:
         material, _ = load(args.checkpoint)
         material.eval()
         for p in material.parameters():
@@ -157,18 +133,18 @@ def main() -> None:
                 losses.append(loss.item())
                 steps += 1
         answer = answerer(material, blend)
-        ratios = sweep(answer, rows, args.level, resolution)
+        ratios = sweep(answer, estimates, args.level, resolution)
         fine_mse = float(((answer(fine_x.numpy()) - fine_y) ** 2).mean())
         logs = np.log(ratios)
         results[arm] = ratios
         per_light = logs.reshape(len(LIGHTS), -1)  # the sweep's order: light by light, its turns in a row
-        shape = np.abs(per_light - per_light.mean(1, keepdims=True)).mean()
+        shape = shape_score(logs, len(LIGHTS))
         tail = f"; {steps} steps, loss {np.mean(losses[:50]):.4f} -> {np.mean(losses[-50:]):.4f}" if steps else ""
         print(f"  {arm:7s} mean |log(answer / estimator)| {np.abs(logs).mean():.4f}, largest {np.abs(logs).max():.4f}; "
               f"shape (each light's turns about their mean log) {shape:.4f}; mean ratio by light "
               + " ".join(f"{x:.3f}" for x in np.exp(per_light.mean(1))) + f"; MSE on 100,000 finer training queries "
               f"{fine_mse * 1e3:.4f}e-3" + tail, flush=True)
-    for i, (light, phi, truth) in enumerate(rows):
+    for i, ((light, phi), (truth, _)) in enumerate(estimates.items()):
         print(f"  {light:5s} phi {phi:5.1f}: estimator {truth:.4f}  "
               + "  ".join(f"{arm} {r[i]:.3f}" for arm, r in results.items()))
 
