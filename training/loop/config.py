@@ -59,10 +59,6 @@ class TrainConfig:
     """The fraction of `steps` after which `distil` applies (the finer levels must be fitted first)."""
     distil_weight: float = 1.0
     """The distilled answers' weight in those targets; the data's target has the rest."""
-    coarse_decoder_start: float = 0.5
-    """With `MaterialConfig.coarse_decoder`: the fraction of `steps` for which the coarse levels' decoder is tied to
-    the decoder (one decoder, trained on every query). At that step it splits off as the decoder's copy, Adam state
-    included, and from then on learns the coarse levels alone. 0: its own from the start (initialised apart)."""
     finish_lr_scale: float = 1.0
     """The learning rate of those steps, as a fraction of the schedule's."""
     average_fraction: float = 0.0
@@ -118,8 +114,6 @@ class TrainConfig:
         if self.loss not in LOSSES or self.finish_loss not in LOSSES + ("",) or self.coarse_loss not in LOSSES + ("",):
             raise ValueError(f"loss, finish_loss and coarse_loss must be one of {LOSSES}, got {self.loss!r}, "
                              f"{self.finish_loss!r}, {self.coarse_loss!r}")
-        if not 0 <= self.coarse_decoder_start < 1:
-            raise ValueError(f"coarse_decoder_start must be in [0, 1), got {self.coarse_decoder_start}")
         if not 0 <= self.average_fraction <= 1:
             raise ValueError(f"average_fraction must be in [0, 1], got {self.average_fraction}")
         if not 0 <= self.finish_fraction <= 1 or (self.finish_fraction > 0) != bool(self.finish_loss):
@@ -143,10 +137,6 @@ class TrainConfig:
     def finishing(self, step: int) -> bool:
         """Whether step `step` (counted from 0) is one of the finish's (`finish_loss`)."""
         return bool(self.finish_loss) and step >= self.steps - round(self.steps * self.finish_fraction)
-
-    def coarse_tied(self, step: int) -> bool:
-        """Whether step `step` (counted from 0) trains the coarse levels' decoder as the decoder itself."""
-        return step < round(self.steps * self.coarse_decoder_start)
 
     def distilling(self, step: int) -> bool:
         """Whether step `step` (counted from 0) trains its coarse queries on distilled targets (`distil`)."""

@@ -387,41 +387,11 @@ class Trainer:
         self.state.offset_frozen = True
         log.info("step %d: blur schedule ended, offset texture frozen", self.state.step)
 
-    def _coarse_phase(self) -> str | None:
-        """"tied" while the coarse levels' decoder is the decoder (`TrainConfig.coarse_decoder_start`), "split" at
-        the step it splits off, None after (or without one)."""
-        if not self.material.config.coarse_decoder:
-            return None
-        if self.config.coarse_tied(self.state.step):
-            return "tied"
-        return "split" if self.state.step > 0 and self.config.coarse_tied(self.state.step - 1) else None
-
-    def _merge_coarse_gradients(self) -> None:
-        """Tied (`TrainConfig.coarse_decoder_start`): the coarse decoder holds the decoder's weights, so the loss's
-        gradient for the shared weights is the sum of both; the coarse decoder's own stays unset (no Adam step)."""
-        for mine, coarse in zip(self.material.decoder.parameters(), self.material.coarse_decoder.parameters()):
-            if coarse.grad is not None:
-                mine.grad = coarse.grad if mine.grad is None else mine.grad + coarse.grad
-            coarse.grad = None
-
-    def _split_coarse_decoder(self) -> None:
-        """The first untied step: the coarse decoder (the decoder's copy) takes the decoder's Adam moments too."""
-        state = self.optimizer.state
-        for mine, coarse in zip(self.material.decoder.parameters(), self.material.coarse_decoder.parameters()):
-            if mine in state:
-                state[coarse] = {k: v.clone() for k, v in state[mine].items()}
-        log.info("step %d: the coarse levels' decoder splits off the decoder", self.state.step)
-
     def step(self) -> float:
         """One optimiser step; returns its loss. Raises TrainingDiverged on a non-finite loss."""
         cfg, state = self.config, self.state
         if cfg.offset_freeze and self.material.config.offset and not state.offset_frozen and state.step >= self._end:
             self._freeze_offset()
-        phase = self._coarse_phase()
-        if phase:  # tied, or splitting off at this step: the coarse decoder starts as the decoder's copy
-            self.material.coarse_decoder.load_state_dict(self.material.decoder.state_dict())
-        if phase == "split":
-            self._split_coarse_decoder()
         levels, otex = effective_textures(self.material, blur_sigma(state.step, cfg), cfg, state.offset_frozen)
         if cfg.distilling(state.step):
             queries, target, aims = self.sampler.draw(self.device, aims=True)
@@ -442,8 +412,6 @@ class Trainer:
             raise TrainingDiverged(self._diverged_message("loss"))
         self.optimizer.zero_grad(set_to_none=True)
         loss.backward()
-        if phase == "tied":
-            self._merge_coarse_gradients()
         for group in self.optimizer.param_groups:
             group["lr"] = learning_rate(state.step, cfg)
         self.optimizer.step()

@@ -617,39 +617,3 @@ def test_a_lod_bias_the_data_were_not_drawn_for_is_named(tmp_path, plane_data, c
     assert not caplog.records
     Trainer(data.path, tmp_path / "b.pt", replace(TINY, lod_bias=2), FAST)
     assert "--sub-texel-levels 2" in caplog.text and "2^-1" in caplog.text
-
-
-def test_the_coarse_decoder_is_the_decoder_until_it_splits_off(data, tmp_path):
-    """`TrainConfig.coarse_decoder_start`: while tied, the coarse levels' decoder holds the decoder's weights and takes
-    no Adam step of its own; at the split it starts from them with the decoder's Adam moments, and then learns apart."""
-    config = replace(FAST, coarse_decoder_start=0.5)  # 60 steps: tied for 30
-    trainer = Trainer(data.path, tmp_path / "cd.pt", replace(TINY, coarse_decoder=1), config)
-    material = trainer.material
-    for _ in range(31):
-        before = {k: v.clone() for k, v in material.decoder.state_dict().items()}
-        trainer.step()
-        coarse = material.coarse_decoder.state_dict()
-        if trainer.state.step <= 30:  # it took the decoder's weights at the top of the step and kept them
-            assert all(torch.equal(coarse[k], w) for k, w in before.items())
-            assert not any(p in trainer.optimizer.state for p in material.coarse_decoder.parameters())
-    assert not all(torch.equal(coarse[k], w) for k, w in material.decoder.state_dict().items())
-    for mine, theirs in zip(material.decoder.parameters(), material.coarse_decoder.parameters()):
-        assert int(trainer.optimizer.state[theirs]["step"]) == int(trainer.optimizer.state[mine]["step"]) == 31
-
-
-def test_tied_decoders_train_on_the_gradient_of_one(data, tmp_path):
-    """The tied phase's summed gradient is the one decoder's gradient of the same loss: the model trains as the
-    model without a coarse decoder."""
-    tied = Trainer(data.path, tmp_path / "t.pt", replace(TINY, coarse_decoder=1), replace(FAST, coarse_decoder_start=0.5))
-    single = type(tied.material)(replace(TINY, coarse_decoder=0))
-    single.load_state_dict({k: v for k, v in tied.material.state_dict().items() if not k.startswith("coarse_decoder.")})
-    tied.material.coarse_decoder.load_state_dict(tied.material.decoder.state_dict())
-    q = torch.from_numpy(random_queries(4096, seed=3))
-    q[:, C.SIGMA] = torch.linspace(1e-3, 1.0, len(q))  # every level of detail, the coarse decoder's included
-    for m in (tied.material, single):
-        m.zero_grad()
-        m(q).square().sum().backward()
-    tied._merge_coarse_gradients()
-    for a, b in zip(tied.material.decoder.parameters(), single.decoder.parameters()):
-        torch.testing.assert_close(a.grad, b.grad, rtol=1e-5, atol=1e-6)
-    assert all(p.grad is None for p in tied.material.coarse_decoder.parameters())
