@@ -31,7 +31,8 @@ Ratios are per round, then the median: ``/mlp`` to the mlp-only graph, ``/kernel
 (the same kind: in process or served, single queries or groups). Groups count answers (2 a group).
 ``bits``: ``same`` where the answers equal the shipped onnxruntime's bit for bit, else the largest
 difference. ``--profile``: ONNX Runtime's per-node profile of each model (1 thread, calls of
-`DEFAULT_CHUNK`), by op: its share of the kernel time (nodes a call).
+`DEFAULT_CHUNK`), by op: its share of the kernel time (nodes a call); then its reads alone: each of its
+Gathers as a one-node graph on a table of the same shape, random rows, beside numpy's `take` of them (`gather_floor`).
 ``bound``: the rate the model's arithmetic allows at the MLP-only graph's rate of arithmetic (`graph_cost.py`: the
 operations a query of each graph, from their shapes: an estimate), and each engine's share of it.
 The machine is shared: read the load averages printed at the start and end.
@@ -234,16 +235,18 @@ def timed(fn) -> float:
 
 
 def profile(path: Path) -> None:
-    """ONNX Runtime's per-node kernel time of the model, summed by op type."""
+    """ONNX Runtime's per-node kernel time of the model, summed by op type; then its reads alone (`gather_floor`)."""
     with tempfile.TemporaryDirectory() as folder:
         opts = options(parse_spec("", 1))
         opts.enable_profiling = True
         opts.profile_file_prefix = str(Path(folder) / "profile")
+        opts.optimized_model_filepath = str(Path(folder) / "optimised.onnx")
         sess = ort.InferenceSession(str(path), opts, providers=["CPUExecutionProvider"])
         q = C.random_queries(1 << 17, seed=20)
         for lo in range(0, len(q), DEFAULT_CHUNK):
             run_call(sess, q[lo:lo + DEFAULT_CHUNK])
         events = json.loads(Path(sess.end_profiling()).read_text())
+        optimised = onnx.load(str(Path(folder) / "optimised.onnx"))
     per_op, count, per_node = collections.Counter(), collections.Counter(), collections.Counter()
     for e in events:
         if e.get("cat") == "Node" and e["name"].endswith("_kernel_time"):
@@ -257,6 +260,42 @@ def profile(path: Path) -> None:
           f"(1 thread, calls of {DEFAULT_CHUNK})   [{load_text()}]")
     print("  " + ", ".join(f"{op} {100 * us / total:.1f} % ({count[op] // calls})" for op, us in per_op.most_common(12)))
     print("  heaviest nodes: " + ", ".join(f"{n} {100 * us / total:.1f} %" for n, us in per_node.most_common(6)))
+    reads = gather_floor(optimised, per_node, DEFAULT_CHUNK)
+    ort_ns, numpy_ns = (sum(r[k] for r in reads) for k in ("ort", "numpy"))
+    print(f"  its reads alone (each Gather of a table as a one-node graph, random rows, best of 7): {ort_ns:.0f} ns "
+          f"a query in ONNX Runtime, {numpy_ns:.0f} with numpy's take, {sum(r['rows'] for r in reads)} rows: "
+          + ", ".join(f"{r['table']} x {r['rows']} {r['ort'] / r['rows']:.1f}/{r['numpy'] / r['rows']:.1f} ns a row"
+                      for r in reads))
+
+
+def gather_floor(model: onnx.ModelProto, per_node: collections.Counter, rows: int) -> list[dict]:
+    """What each `Gather` of the profile (`per_node`: "NAME [table] x [index]") costs alone: a one-node graph of a
+    table of its shape and type (an initializer of the optimised `model`, ONNX Runtime's folded quad tables among
+    them) read at random rows, as many a query as in the model, 1 thread, against numpy's `take` of the same rows
+    (ns a query)."""
+    tables = {tuple(i.dims): i for i in model.graph.initializer if len(i.dims) == 2}
+    rng, out = np.random.default_rng(0), []
+    for key in per_node:
+        if not key.startswith("Gather"):
+            continue
+        table_shape, index_shape = (tuple(int(v) for v in part.strip().strip("[]").split(","))
+                                    for part in key.split(" ", 1)[1].split(" x "))
+        if table_shape not in tables:
+            continue
+        table = numpy_helper.to_array(tables[table_shape])
+        index = rng.integers(0, len(table), (rows, max(1, int(np.prod(index_shape)) // rows)))
+        graph = helper.make_graph([helper.make_node("Gather", [tables[table_shape].name, "index"], ["rows"], axis=0)],
+                                  "read", [helper.make_tensor_value_info("index", TensorProto.INT64, None)],
+                                  [helper.make_tensor_value_info("rows", tables[table_shape].data_type, None)],
+                                  [tables[table_shape]])
+        alone = helper.make_model(graph, opset_imports=[helper.make_opsetid("", 18)], ir_version=9)
+        sess = ort.InferenceSession(alone.SerializeToString(), options(parse_spec("", 1)),
+                                    providers=["CPUExecutionProvider"])
+        best = {"ort": min(timed(lambda: sess.run(None, {"index": index})) for _ in range(7)),
+                "numpy": min(timed(lambda: np.take(table, index, axis=0)) for _ in range(7))}
+        out.append({"table": f"[{len(table)}, {table.shape[1]}] {table.dtype}", "rows": index.shape[1],
+                    **{k: v / rows * 1e9 for k, v in best.items()}})
+    return out
 
 
 class Batches:
