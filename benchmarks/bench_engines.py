@@ -254,7 +254,7 @@ def profile(path: Path) -> None:
             per_op[op] += e["dur"]
             count[op] += 1
             shapes = " x ".join(str(next(iter(t.values()))) for t in e["args"].get("input_type_shape", []))
-            per_node[f"{e['name'][:-12]} {shapes}"] += e["dur"]
+            per_node[f"{op} {e['name'][:-12]} {shapes}"] += e["dur"]
     total, calls = sum(per_op.values()), len(q) // DEFAULT_CHUNK
     print(f"\n## {path.stem}: ONNX Runtime profile, {total / len(q) * 1e3:.0f} ns of kernel time a query "
           f"(1 thread, calls of {DEFAULT_CHUNK})   [{load_text()}]")
@@ -269,17 +269,18 @@ def profile(path: Path) -> None:
 
 
 def gather_floor(model: onnx.ModelProto, per_node: collections.Counter, rows: int) -> list[dict]:
-    """What each `Gather` of the profile (`per_node`: "NAME [table] x [index]") costs alone: a one-node graph of a
-    table of its shape and type (an initializer of the optimised `model`, ONNX Runtime's folded quad tables among
-    them) read at random rows, as many a query as in the model, 1 thread, against numpy's `take` of the same rows
+    """What each `Gather` of the profile (`per_node`: "OP NAME [table] x [index]") costs alone: a one-node graph of a
+    table the optimised `model` Gathers from (an initializer, ONNX Runtime's folded quad tables among them) of its shape
+    and type, read at random rows, as many a query as in the model, 1 thread, against numpy's `take` of the same rows
     (ns a query)."""
-    tables = {tuple(i.dims): i for i in model.graph.initializer if len(i.dims) == 2}
+    read = {n.input[0] for n in model.graph.node if n.op_type == "Gather"}
+    tables = {tuple(i.dims): i for i in model.graph.initializer if i.name in read and len(i.dims) == 2}
     rng, out = np.random.default_rng(0), []
     for key in per_node:
-        if not key.startswith("Gather"):
+        if not key.startswith("Gather "):
             continue
-        table_shape, index_shape = (tuple(int(v) for v in part.strip().strip("[]").split(","))
-                                    for part in key.split(" ", 1)[1].split(" x "))
+        table_shape, index_shape = (tuple(int(v) for v in part.strip().strip("[]").split(",") if v.strip())
+                                    for part in key.split(" ", 2)[2].split(" x "))
         if table_shape not in tables:
             continue
         table = numpy_helper.to_array(tables[table_shape])
