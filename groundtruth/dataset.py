@@ -58,6 +58,25 @@ def _identity(meta: dict) -> dict:
     return json.loads(json.dumps({k: v for k, v in meta.items() if k != "complete" and k not in LOCATION_KEYS}))
 
 
+def _changed(saved: dict, asked: dict, prefix: str = "") -> list[str]:
+    """'key: X there, Y asked' for each setting (nested keys joined by dots) that differs between two identities."""
+    out = []
+    for key in sorted(saved.keys() | asked.keys()):
+        a, b = saved.get(key), asked.get(key)
+        if isinstance(a, dict) and isinstance(b, dict):
+            out += _changed(a, b, f"{prefix}{key}.")
+        elif a != b:
+            there, asked_ = (repr(d[key]) if key in d else "unset" for d in (saved, asked))
+            out.append(f"{prefix}{key}: {there} there, {asked_} asked")
+    return out
+
+
+def _other_settings(saved: dict, asked: dict) -> str:
+    """The settings in which a data set on disk differs from the one asked for, for an error message."""
+    changed = _changed(_identity(saved), _identity(asked))
+    return "; ".join(changed[:4]) + (f"; {len(changed) - 4} more" if len(changed) > 4 else "")
+
+
 def _write_json(path: Path, data: dict) -> None:
     write_text_atomic(path, json.dumps(data, indent=2, sort_keys=True))
 
@@ -118,8 +137,8 @@ class DatasetWriter:
         if self.complete:  # the same data set again: nothing to write; another one: refused
             if _identity(saved) != _identity(self.meta):
                 raise DatasetError(
-                    f"{self.path} already holds a complete data set made with other settings; "
-                    "remove it or write to another folder"
+                    f"{self.path} already holds a complete data set made with other settings "
+                    f"({_other_settings(saved, self.meta)}); remove it or write to another folder"
                 )
             if any(saved.get(k) != self.meta.get(k) for k in LOCATION_KEYS):  # its inputs moved
                 _write_json(meta_path, {**self.meta, "complete": True})
@@ -129,8 +148,8 @@ class DatasetWriter:
             state = json.loads(self._progress.read_text())
             if _identity(state["meta"]) != _identity(self.meta):
                 raise DatasetError(
-                    f"{self.path} holds a partial data set made with other settings; "
-                    "remove it or use the same settings to resume"
+                    f"{self.path} holds a partial data set made with other settings "
+                    f"({_other_settings(state['meta'], self.meta)}); remove it or use the same settings to resume"
                 )
             self.done = int(state["done"])
             mode = "r+"
