@@ -29,7 +29,7 @@ from typing import Any
 import numpy as np
 
 from neumip.core import contract as C
-from neumip.core.errors import NeumipError
+from neumip.core.errors import NeumipError, differences
 from neumip.core.files import write_text_atomic
 
 FORMAT = "neumip-mbtf-1"
@@ -58,22 +58,9 @@ def _identity(meta: dict) -> dict:
     return json.loads(json.dumps({k: v for k, v in meta.items() if k != "complete" and k not in LOCATION_KEYS}))
 
 
-def _changed(saved: dict, asked: dict, prefix: str = "") -> list[str]:
-    """'key: X there, Y asked' for each setting (nested keys joined by dots) that differs between two identities."""
-    out = []
-    for key in sorted(saved.keys() | asked.keys()):
-        a, b = saved.get(key), asked.get(key)
-        if isinstance(a, dict) and isinstance(b, dict):
-            out += _changed(a, b, f"{prefix}{key}.")
-        elif a != b:
-            there, asked_ = (repr(d[key]) if key in d else "unset" for d in (saved, asked))
-            out.append(f"{prefix}{key}: {there} there, {asked_} asked")
-    return out
-
-
 def _other_settings(saved: dict, asked: dict) -> str:
     """The settings in which a data set on disk differs from the one asked for, for an error message."""
-    changed = _changed(_identity(saved), _identity(asked))
+    changed = differences(_identity(saved), _identity(asked), ("there", "asked"))
     return "; ".join(changed[:4]) + (f"; {len(changed) - 4} more" if len(changed) > 4 else "")
 
 

@@ -54,7 +54,7 @@ def test_generate_on_a_complete_data_set_is_a_no_op_unless_the_settings_differ(t
     assert "10 queries of flat" in capsys.readouterr().out
     assert {p.name: p.stat().st_mtime_ns for p in (tmp_path / "d").iterdir()} == before
     assert main([*args, "--seed", "3"]) == 2
-    assert "complete data set made with other settings (generator.seed: 0 there, 3 asked)" in capsys.readouterr().err
+    assert "complete data set made with other settings (generator.seed: there 0, asked 3)" in capsys.readouterr().err
     assert open_dataset(tmp_path / "d").meta["generator"]["seed"] == 0
 
 

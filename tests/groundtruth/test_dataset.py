@@ -14,7 +14,7 @@ def test_interrupted_write_is_never_complete_and_resumes(tmp_path):
     del writer  # "interrupted"
     with pytest.raises(DatasetError, match="incomplete"):
         open_dataset(tmp_path / "d")
-    with pytest.raises(DatasetError, match=r"other settings \(seed: 1 there, 2 asked\)"):
+    with pytest.raises(DatasetError, match=r"other settings \(seed: there 1, asked 2\)"):
         DatasetWriter(tmp_path / "d", 10, 4, {"seed": 2})
     resumed = DatasetWriter(tmp_path / "d", 10, 4, {"seed": 1})
     assert resumed.done == 1

@@ -21,7 +21,7 @@ import torch
 
 from neumip.core import contract as C
 from neumip.core import weights as W
-from neumip.core.errors import NeumipError
+from neumip.core.errors import NeumipError, differences
 
 from neumip.training.loop import checkpoint
 from neumip.training.loop.blur import bake, blur_sigma, blur_texture, effective_textures, schedule_end
@@ -86,13 +86,6 @@ class TrainState:
     """The run ended and its weights were replaced by their running mean."""
     energy_fitted: bool = False
     """The run ended and its energy table was fitted (`MaterialConfig.energy_bins`, `loop.energy`)."""
-
-
-def differences(saved: dict, now: dict, ignore=()) -> list[str]:
-    """'name: checkpoint X, now Y' for every field of two settings dicts that differs."""
-    names = sorted((saved.keys() | now.keys()) - set(ignore))
-    return [f"{k}: checkpoint {saved.get(k)!r}, now {now.get(k)!r}" for k in names
-            if saved.get(k) != now.get(k)]
 
 
 def claim_checkpoint(path: Path):
@@ -323,7 +316,7 @@ class Trainer:
         mismatches = [
             ("material config", differences(asdict(material.config), asdict(material_config))),
             ("training settings", differences(saved_config, self.config.to_dict(),
-                                              MAY_CHANGE_ON_RESUME)),
+                                              ignore=MAY_CHANGE_ON_RESUME)),
             ("data", differences(extra.get("data", {}),  # (fields a checkpoint predates are not compared)
                                  {k: v for k, v in self._data_identity().items() if k in extra.get("data", {})})),
             ("map encoder", differences(_maps_dict(material), _maps_dict(self.map_config))),
