@@ -34,13 +34,15 @@ from neumip.engines.local import run_call
 SHUFFLES = ("MatMul", "Gemm", "Concat", "Slice", "Split", "Tile", "Transpose")
 
 
-def _session(model: onnx.ModelProto, folder: str | None = None, optimise: bool = True) -> ort.InferenceSession:
+def _session(model: onnx.ModelProto, folder: str, optimise: bool = True) -> ort.InferenceSession:
+    """A profiled one-thread session of `model` (its profile and, optimised, its graph as ``folder/optimised.onnx``)."""
     opts = ort.SessionOptions()
     opts.intra_op_num_threads, opts.log_severity_level = 1, 3
-    if not optimise:
+    opts.enable_profiling, opts.profile_file_prefix = True, f"{folder}/profile"
+    if optimise:
+        opts.optimized_model_filepath = f"{folder}/optimised.onnx"
+    else:
         opts.graph_optimization_level = ort.GraphOptimizationLevel.ORT_DISABLE_ALL
-    if folder:
-        opts.enable_profiling, opts.profile_file_prefix = True, f"{folder}/profile"
     return ort.InferenceSession(model.SerializeToString(), opts, providers=["CPUExecutionProvider"])
 
 
@@ -130,11 +132,7 @@ def model_time(path: Path, rows: int) -> tuple[dict[str, float], collections.Cou
     for i, node in enumerate(model.graph.node):
         node.name = f"node{i}"
     with tempfile.TemporaryDirectory() as folder:
-        opts = ort.SessionOptions()
-        opts.intra_op_num_threads, opts.log_severity_level = 1, 3
-        opts.optimized_model_filepath = f"{folder}/optimised.onnx"
-        opts.enable_profiling, opts.profile_file_prefix = True, f"{folder}/profile"
-        sess = ort.InferenceSession(model.SerializeToString(), opts, providers=["CPUExecutionProvider"])
+        sess = _session(model, folder)
         queries = C.random_queries(8 * rows, seed=20)
         for lo in range(0, len(queries), rows):
             run_call(sess, queries[lo:lo + rows])
