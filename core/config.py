@@ -185,6 +185,12 @@ class MaterialConfig:
     noisy target's mean, most where the coarse footprints' glints and grazing lights make the targets noisiest; the
     table gives back that energy from thousands of queries per cell, where a per-query unbiased loss chases each
     target's noise. Needs the relu head."""
+    energy_azimuths: int = 0
+    """Bins of the half vector's azimuth in the tile's frame as the energy table's fourth axis (periodic), 0: none.
+    A coarse texel of an anisotropic material (grooves, a tile's plates) answers darker along some azimuths and
+    brighter along others; the 3-axis table pools them, so its gain is right on average and wrong along the axis a
+    view happens to look (experiments/energy). The cells nearest the normal (the half vector's first angle bin) are
+    one gain for every azimuth, so the gain stays continuous where the azimuth is undefined. Needs `energy_bins`."""
     coarse_decoder: int = 0
     """The level of detail K from which a second decoder, of the same shape and inputs, answers; 0: one decoder for
     every level. The answer is the first decoder's output blended into the second's by w = clamp(lod - K, 0, 1) (lod
@@ -230,6 +236,9 @@ class MaterialConfig:
         if self.energy_bins < 0 or self.energy_bins == 1 or (self.energy_bins and self.head != "relu"):
             raise ValueError(f"energy_bins must be 0 (none) or at least 2, with the relu head, got {self.energy_bins} "
                              f"with head {self.head!r}")
+        if self.energy_azimuths < 0 or self.energy_azimuths == 1 or (self.energy_azimuths and not self.energy_bins):
+            raise ValueError(f"energy_azimuths must be 0 (none) or at least 2, with energy_bins, got "
+                             f"{self.energy_azimuths} with energy_bins {self.energy_bins}")
         if not (isinstance(self.coarse_decoder, int) and (self.coarse_decoder == 0 or 0 < self.coarse_decoder < self.levels)):
             raise ValueError(f"coarse_decoder must be 0 (one decoder) or a level of detail below the coarsest "
                              f"({self.levels}), got {self.coarse_decoder!r}")
@@ -287,7 +296,7 @@ class MaterialConfig:
 
     def to_json(self) -> str:
         """The fields as JSON; each decoder input's switch, `base`, the relief's, `lod_bias`, `offset_mip`, `energy_bins`,
-        `coarse_decoder` and `ceiling` only when on, and `terminator` only when not "all", so that models made before each existed read as they did."""
+        `energy_azimuths`, `coarse_decoder` and `ceiling` only when on, and `terminator` only when not "all", so that models made before each existed read as they did."""
         fields_ = asdict(self)
         for row in DECODER_INPUTS:
             if not getattr(self, row.switch):
@@ -306,6 +315,8 @@ class MaterialConfig:
             del fields_["offset_mip"]
         if not self.energy_bins:
             del fields_["energy_bins"]
+        if not self.energy_azimuths:
+            del fields_["energy_azimuths"]
         if not self.coarse_decoder:
             del fields_["coarse_decoder"]
         return json.dumps(fields_, sort_keys=True)

@@ -36,9 +36,9 @@ OFFSET_TEXTURE = "offset_texture"
 """The neural offset texture: one level at the finest resolution, or with `MaterialConfig.offset_mip` the rows of
 every level of its mip pyramid, finest first (the coarser levels derived from the finest, `pyramid.mip_levels`)."""
 ENERGY = "energy"
-"""The answers' energy table (`MaterialConfig.energy_bins` B): a 3-D texture of RGB gains, row ``(B l + b) B + e`` for
-level of detail l, bin b of the half vector's angle and bin e of the light's elevation; 1 where the model needs
-none."""
+"""The answers' energy table (`MaterialConfig.energy_bins` B, `energy_azimuths` A): a texture of RGB gains, row
+``((B l + b) B + e) A + a`` for level of detail l, bin b of the half vector's angle, bin e of the light's elevation and
+bin a of the half vector's azimuth (A = 1 and a = 0 without that axis); 1 where the model needs none."""
 DECODER = "decoder"
 """The MLP that turns texture features and directions into the answer."""
 COARSE_DECODER = "coarse_decoder"
@@ -131,10 +131,24 @@ def _widths(config: MaterialConfig, inputs: int, answers: int) -> list[int]:
     return [inputs] + [config.hidden] * (config.layers - 1) + [answers]
 
 
+def energy_rows(config: MaterialConfig) -> int:
+    """The energy table's rows, (L + 1) B^2 A (`ENERGY`; A = 1 without the azimuth axis), 0 without a table."""
+    return (config.levels + 1) * config.energy_bins**2 * max(config.energy_azimuths, 1) if config.energy_bins else 0
+
+
+def tie_normal_cells(table, config: MaterialConfig) -> None:
+    """Give the energy table's cells of the first half-vector bin (the normal, where the azimuth is undefined) their
+    mean over the azimuths, in place (a numpy array or a torch tensor of `energy_shape`); a fit ties them so
+    (`training.model.energy.fit_energy`), and a table made otherwise must be tied for the gain to be continuous."""
+    if config.energy_azimuths:
+        cells = table.reshape(config.levels + 1, config.energy_bins, config.energy_bins, config.energy_azimuths, -1)
+        cells[:, 0] = cells[:, 0].mean(2)[:, :, None]
+
+
 def energy_shape(config: MaterialConfig) -> dict[str, tuple[int, int]]:
-    """The energy table's shape by name (`ENERGY`: ((L + 1) energy_bins^2, 3), every level's cells, a trimmed model's
-    too), or nothing without one."""
-    return {ENERGY: ((config.levels + 1) * config.energy_bins**2, C.RGB_DIM)} if config.energy_bins else {}
+    """The energy table's shape by name (`ENERGY`: (`energy_rows`, 3), every level's cells, a trimmed model's too),
+    or nothing without one."""
+    return {ENERGY: (energy_rows(config), C.RGB_DIM)} if config.energy_bins else {}
 
 
 def weight_shapes(config: MaterialConfig) -> dict[str, tuple[int, ...]]:

@@ -95,6 +95,8 @@ def layouts(tmp_path_factory):
                                  energy_bins=6),
         "coarse-decoder": MaterialConfig(resolution=16, base=32, relief=32, lod_bias=1, half_textures=True,
                                          offset_mip=True, energy_bins=6, coarse_decoder=2),
+        "energy-azimuths": MaterialConfig(resolution=16, base=32, relief=32, lod_bias=1, half_textures=True,
+                                          offset_mip=True, energy_bins=6, energy_azimuths=8),
     }
     for seed, (name, cfg) in enumerate(configs.items()):
         save_onnx(build_onnx(cfg, random_weights(cfg, seed=seed)), folder / f"{name}.onnx")

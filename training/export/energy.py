@@ -1,9 +1,9 @@
 """ONNX stage of the answers' energy table (`MaterialConfig.energy_bins`), as `training.model.energy.energy_gain`
-computes it: the table is a 3-D texture of RGB gains (level of detail, half-vector angle, light elevation), read per
-light as a texture is, its 8 corner cells Gathered in one call and weighted trilinearly (the taps summed by a 0/1
-MatMul: one order per row). The table is the initializer ``energy`` ((L + 1) B^2, 3), every level's cells (a
-trimmed model keeps them all: its level of detail is clamped at its finest level, so the answers above the cut keep
-their bits)."""
+computes it: the table is a 3-D texture of RGB gains (level of detail, half-vector angle, light elevation; with
+`energy_azimuths` a 4-D one, the half vector's azimuth fourth), read per light as a texture is, its 8 (16) corner
+cells Gathered in one call and weighted multilinearly (the taps summed by a 0/1 MatMul: one order per row). The
+table is the initializer ``energy`` (`weights.energy_rows`, 3), every level's cells (a trimmed model keeps them all:
+its level of detail is clamped at its finest level, so the answers above the cut keep their bits)."""
 
 from __future__ import annotations
 
@@ -20,8 +20,10 @@ ENERGY_PREFIX = "energy."
 """Prefix of the energy stage's level-of-detail constants (``energy.lod.*``)."""
 
 
-CORNERS = [(a, b, c) for a in (0, 1) for b in (0, 1) for c in (0, 1)]
-"""The 8 corners of a trilinear read: (level, half-vector bin, elevation bin), each 0 (lower) or 1 (upper)."""
+def corner_list(axes: int) -> list[tuple[int, ...]]:
+    """The 2^axes corners of a multilinear read, each axis 0 (lower) or 1 (upper), the first axis slowest: (level,
+    half-vector bin, elevation bin[, azimuth bin]), as `training.model.energy.corners` orders them."""
+    return [tuple((k >> (axes - 1 - a)) & 1 for a in range(axes)) for k in range(2**axes)]
 
 
 def _pairs(g: GraphWriter, x: str, top: int) -> tuple[str, str]:
@@ -30,6 +32,26 @@ def _pairs(g: GraphWriter, x: str, top: int) -> tuple[str, str]:
     frac = g.op("Sub", x, low)
     nodes = g.op("Concat", low, g.op("Min", g.op("Add", low, g.scalar(1.0)), g.scalar(float(top))), axis=1)
     return nodes, g.op("Concat", g.op("Sub", g.scalar(1.0), frac), frac, axis=1)
+
+
+def _periodic_pairs(g: GraphWriter, a: str, period: int) -> tuple[str, str]:
+    """a (M, 1) in [0, period] -> its lower and upper nodes (M, 2) in [0, period) (the upper wraps to 0) and their
+    weights (M, 2)."""
+    low = g.op("Min", g.op("Floor", a), g.scalar(period - 1.0))
+    frac = g.op("Sub", a, low)
+    up = g.op("Add", low, g.scalar(1.0))
+    high = g.op("Where", g.op("GreaterOrEqual", up, g.scalar(float(period))), g.scalar(0.0), up)
+    return g.op("Concat", low, high, axis=1), g.op("Concat", g.op("Sub", g.scalar(1.0), frac), frac, axis=1)
+
+
+def _azimuth(g: GraphWriter, h: str, azimuths: int) -> str:
+    """The half vectors h (M, 3) -> their pseudo-angle azimuth (M, 1) in [0, azimuths], as
+    `training.model.energy.azimuth_coordinate`."""
+    x, y = g.pick(h, 3, [0]), g.pick(h, 3, [1])
+    ratio = g.op("Div", x, g.op("Max", g.op("Add", g.op("Abs", x), g.op("Abs", y)), g.scalar(1e-30)))
+    turn = g.op("Where", g.op("GreaterOrEqual", y, g.scalar(0.0)), g.op("Sub", g.scalar(1.0), ratio),
+                g.op("Add", g.scalar(3.0), ratio))
+    return g.op("Mul", turn, g.scalar(azimuths / 4.0))
 
 
 def group_lod(g: GraphWriter, config: MaterialConfig, sigma: str, finest_level: int = 0,
@@ -53,21 +75,27 @@ def energy_gain(g: GraphWriter, config: MaterialConfig, table: np.ndarray, sigma
     x = g.op("Min", g.op("Mul", s, g.scalar(top / np.sqrt(2.0))), g.scalar(top))  # (K N, 1) half-vector bin
     y = g.op("Min", g.op("Mul", g.op("Sqrt", g.pick(wi3, 3, [2])), g.scalar(top)), g.scalar(top))  # elevation bin
     axes = [_pairs(g, v, n) for v, n in ((lod, config.levels), (x, bins - 1), (y, bins - 1))]
-    # each corner's row (B l + b) B + e and weight w_l w_b w_e: sums and products over the axes' pairs, by MatMuls
-    strides = (bins * bins, bins, 1)
-    place = np.zeros((6, 8), np.float32)
-    pick = [np.zeros((2, 8), np.float32) for _ in range(3)]
-    for k, corner in enumerate(CORNERS):
+    sizes = [config.levels + 1, bins, bins]
+    if config.energy_azimuths:
+        axes.append(_periodic_pairs(g, _azimuth(g, h, config.energy_azimuths), config.energy_azimuths))
+        sizes.append(config.energy_azimuths)
+    strides = [int(np.prod(sizes[a + 1:])) for a in range(len(axes))]  # row ((B l + b) B + e) A + a
+    # each corner's row and weight (the product of its axes' weights): sums and products over the pairs, by MatMuls
+    corners = corner_list(len(axes))
+    place = np.zeros((2 * len(axes), len(corners)), np.float32)
+    pick = [np.zeros((2, len(corners)), np.float32) for _ in axes]
+    for k, corner in enumerate(corners):
         for a, side in enumerate(corner):
             place[2 * a + side, k] = strides[a]
             pick[a][side, k] = 1.0
-    nodes = g.op("Concat", *(n for n, _ in axes), axis=1)  # (K N, 6)
-    index = g.op("Cast", g.op("MatMul", nodes, g.const(place)), to=TensorProto.INT64)  # (K N, 8): exact integers
-    weight = g.op("Mul", g.op("Mul", g.op("MatMul", axes[0][1], g.const(pick[0])),
-                              g.op("MatMul", axes[1][1], g.const(pick[1]))),
-                  g.op("MatMul", axes[2][1], g.const(pick[2])))  # (K N, 8)
+    nodes = g.op("Concat", *(n for n, _ in axes), axis=1)  # (K N, 2 axes)
+    index = g.op("Cast", g.op("MatMul", nodes, g.const(place)), to=TensorProto.INT64)  # (K N, corners): exact
+    weight = g.op("MatMul", axes[0][1], g.const(pick[0]))
+    for (_, w), p in zip(axes[1:], pick[1:]):
+        weight = g.op("Mul", weight, g.op("MatMul", w, g.const(p)))  # (K N, corners)
+    n = len(corners)
     cells = g.shape(g.op("Gather", g.const(np.asarray(table, np.float32), name=W.ENERGY), index, axis=0),
-                    [0, 8 * 3])  # (K N, 24): corner-major, RGB
-    spread = np.kron(np.eye(8, dtype=np.float32), np.ones((1, 3), np.float32))  # (8, 24)
-    total = np.tile(np.eye(3, dtype=np.float32), (8, 1))  # (24, 3)
+                    [0, n * 3])  # (K N, 3 corners): corner-major, RGB
+    spread = np.kron(np.eye(n, dtype=np.float32), np.ones((1, 3), np.float32))  # (corners, 3 corners)
+    total = np.tile(np.eye(3, dtype=np.float32), (n, 1))  # (3 corners, 3)
     return g.op("MatMul", g.op("Mul", cells, g.op("MatMul", weight, g.const(spread))), g.const(total))  # (K N, 3)

@@ -460,8 +460,9 @@ def random_weights(config: MaterialConfig, seed: int = 0, scale: float = 0.5) ->
             out[name] = np.concatenate([rng.uniform(0, 1, (shape[0], 6)), rng.normal(size=(shape[0], 2)) * 0.5,
                                         rng.uniform(0.01, 1, (shape[0], 1)), rng.uniform(0, 0.6, (shape[0], shape[1] - 9))],
                                        axis=1)
-        elif name == W.ENERGY:  # gains that move the answers both ways
+        elif name == W.ENERGY:  # gains that move the answers both ways (tied at the normal, as a fit's)
             out[name] = rng.uniform(0.5, 2.0, shape)
+            W.tie_normal_cells(out[name], config)
         elif name == W.RELIEF:  # a smooth periodic relief `scale` / 4 tile deep, the same at every level
             out[name] = _random_relief(config.relief_pyramid().level_sizes(), rng, scale / 4)
         elif name == W.OFFSET_TEXTURE and config.offset_pyramid() is not None:  # the mip pyramid of a random texture

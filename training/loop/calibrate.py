@@ -30,16 +30,18 @@ ENERGY_BINS = RECIPES["maps"].material["energy_bins"]
 
 
 def calibrate_file(model_path: str | Path, data_path: str | Path, out: str | Path, bins: int | None = None,
-                   seed: int = 0) -> dict:
+                   seed: int = 0, azimuths: int | None = None) -> dict:
     """Write the model at `model_path` with its energy table fitted on the training split of the data set at
     `data_path` (`train.split_indices` with training seed `seed`, as `neumip train` split it) and its validation
-    table recomputed on the held-out split. `bins`: the table's bins (default: the model's own, else `ENERGY_BINS`).
-    Returns the new validation table. ValueError for a trimmed model (its fine levels are gone) or one whose
-    config cannot take a table."""
+    table recomputed on the held-out split. `bins`: the table's bins (default: the model's own, else `ENERGY_BINS`);
+    `azimuths`: its azimuth bins (`MaterialConfig.energy_azimuths`, 0: none; default: the model's own). Returns
+    the new validation table. ValueError for a trimmed model (its fine levels are gone) or one whose config cannot
+    take a table."""
     config, weights, meta, finest = read_model(onnx.load(str(model_path)), str(model_path))
     if finest:
         raise ValueError(f"{model_path} is trimmed (finest level {finest}): calibrate the whole model, then trim it")
-    config = replace(config, energy_bins=bins or config.energy_bins or ENERGY_BINS)
+    config = replace(config, energy_bins=bins or config.energy_bins or ENERGY_BINS,
+                     energy_azimuths=config.energy_azimuths if azimuths is None else azimuths)
     data = open_dataset(data_path)
     train_idx, held_idx = split_indices(len(data), TrainConfig(seed=seed))
     rows = fit_rows(train_idx, seed)

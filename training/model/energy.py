@@ -17,6 +17,12 @@ sqrt 2 with s = 2 sin(theta_h / 2) = sqrt(2 - 2 h_z) in [0, sqrt 2], and the lig
 `ENERGY_PRIOR` queries answering exactly right in every cell (a cell few queries reach keeps a gain near 1). The
 table is a 3-D texture of RGB cells: its row ``(B l + b) B + e`` is level l, half-vector bin b, elevation bin e (the
 graph Gathers a query's 8 rows as it reads a texture's taps). The graph writer's twin is `training.export.energy`.
+
+With `energy_azimuths` A the table has a fourth, periodic axis: the half vector's azimuth in the tile's frame, as a
+pseudo-angle that needs no trigonometry (`azimuth_coordinate`: piecewise linear in x / (|x| + |y|), 0 along +x, 1
+along +y, 2 along -x, 3 along -y), A bins over its period of 4. A query then reads 16 corner cells, row
+``((B l + b) B + e) A + a``, and the fit ties the cells of the first half-vector bin (the normal, where the azimuth is
+undefined) to one gain for every azimuth.
 """
 
 from __future__ import annotations
@@ -27,6 +33,7 @@ import numpy as np
 import torch
 
 from neumip.core.config import MaterialConfig
+from neumip.core.weights import energy_rows
 from neumip.training.model.base import half_direction, lift
 from neumip.training.model.pyramid import level_of_detail
 
@@ -53,22 +60,47 @@ def direction_coordinates(wi: torch.Tensor, wo: torch.Tensor, bins: int) -> tupl
     return x, torch.clamp(torch.sqrt(wi3[:, 2]) * (bins - 1), 0.0, bins - 1.0)
 
 
+def azimuth_coordinate(wi: torch.Tensor, wo: torch.Tensor, azimuths: int) -> torch.Tensor:
+    """(N, 2) wi, wo -> (N,) the half vector's azimuth as a pseudo-angle scaled to [0, azimuths]: with (x, y) the
+    half vector's tangent part and d = |x| + |y|, 1 - x / d where y >= 0, else 3 + x / d, times azimuths / 4."""
+    h = half_direction(lift(wi), lift(wo))
+    x, y = h[:, 0], h[:, 1]
+    ratio = x / torch.clamp(torch.abs(x) + torch.abs(y), min=1e-30)
+    return torch.where(y >= 0, 1.0 - ratio, 3.0 + ratio) * (azimuths / 4.0)
+
+
+def _periodic_pair(a: torch.Tensor, period: int) -> tuple[torch.Tensor, torch.Tensor]:
+    """(N,) coordinates in [0, period] -> their lower and upper nodes (N, 2) in [0, period) (the upper wraps to 0)
+    and weights (N, 2)."""
+    low = torch.clamp(torch.floor(a), max=period - 1.0)
+    frac = a - low
+    high = torch.where(low + 1 >= period, torch.zeros_like(low), low + 1)
+    return torch.stack([low, high], 1).long(), torch.stack([1 - frac, frac], 1)
+
+
 def corners(config: MaterialConfig, sigma: torch.Tensor, wi: torch.Tensor, wo: torch.Tensor,
             ) -> tuple[torch.Tensor, torch.Tensor]:
-    """Queries' sigma (N,), wi, wo (N, 2) -> the table rows (N, 8) of their 8 corner cells, row (B l + b) B + e, and
-    their trilinear weights (N, 8), which sum to 1 (corners in the order of `training.export.energy.CORNERS`)."""
+    """Queries' sigma (N,), wi, wo (N, 2) -> the table rows (N, K) of their K corner cells and their weights (N, K),
+    which sum to 1 (corners in the order of `training.export.energy.corner_list`): K = 8, rows (B l + b) B + e,
+    trilinear; with `energy_azimuths` A, K = 16, rows ((B l + b) B + e) A + a."""
     bins = config.energy_bins
     x, y = direction_coordinates(wi, wo, bins)
-    (l, wl), (b, wb), (e, we) = (_pair(level_of_detail(sigma, config.resolution, config.lod_bias), config.levels),
-                                 _pair(x, bins - 1), _pair(y, bins - 1))
-    index = ((l[:, :, None, None] * bins + b[:, None, :, None]) * bins + e[:, None, None, :]).reshape(len(x), 8)
-    weight = (wl[:, :, None, None] * wb[:, None, :, None] * we[:, None, None, :]).reshape(len(x), 8)
+    pairs = [_pair(level_of_detail(sigma, config.resolution, config.lod_bias), config.levels),
+             _pair(x, bins - 1), _pair(y, bins - 1)]
+    strides = [bins, bins]
+    if config.energy_azimuths:
+        pairs.append(_periodic_pair(azimuth_coordinate(wi, wo, config.energy_azimuths), config.energy_azimuths))
+        strides.append(config.energy_azimuths)
+    index, weight = pairs[0]
+    for (nodes, weights), stride in zip(pairs[1:], strides):  # corner-major: the first axis varies slowest
+        index = (index[:, :, None] * stride + nodes[:, None, :]).reshape(len(x), -1)
+        weight = (weight[:, :, None] * weights[:, None, :]).reshape(len(x), -1)
     return index, weight
 
 
 def energy_gain(table: torch.Tensor, config: MaterialConfig, sigma: torch.Tensor, wi: torch.Tensor,
                 wo: torch.Tensor) -> torch.Tensor:
-    """The table ((L + 1) B^2, 3) at the queries (sigma (N,), wi, wo (N, 2)) -> (N, 3) gains."""
+    """The table (`weights.energy_rows`, 3) at the queries (sigma (N,), wi, wo (N, 2)) -> (N, 3) gains."""
     index, weight = corners(config, sigma, wi, wo)
     return (table[index] * weight[:, :, None]).sum(1)
 
@@ -77,19 +109,24 @@ def energy_gain(table: torch.Tensor, config: MaterialConfig, sigma: torch.Tensor
 def fit_energy(config: MaterialConfig, queries: torch.Tensor, answers: torch.Tensor, targets: torch.Tensor,
                prior: float = ENERGY_PRIOR) -> torch.Tensor:
     """(N, 7) single queries, the model's answers without a table (N, 3) and the data's targets (N, 3) -> the table
-    ((L + 1) B^2, 3) whose cell holds, per channel, (sum w t + prior m) / (sum w a + prior m): w a query's weight in
-    the cell (`corners`), m the answers' mean (float64 sums). Rows with a non-finite value are left out."""
+    (`weights.energy_rows`, 3) whose cell holds, per channel, (sum w t + prior m) / (sum w a + prior m): w a query's
+    weight in the cell (`corners`), m the answers' mean (float64 sums); with the azimuth axis, the sums of the first
+    half-vector bin's cells are pooled over the azimuths. Rows with a non-finite value are left out."""
     from neumip.core import contract as C
 
     keep = torch.isfinite(targets).all(1) & torch.isfinite(answers).all(1)
     queries, answers, targets = queries[keep], answers[keep].double(), targets[keep].double()
     index, weight = corners(config, queries[:, C.SIGMA], queries[:, C.WI_X : C.WI_Y + 1],
                             queries[:, C.WO_X : C.WO_Y + 1])
-    rows = (config.levels + 1) * config.energy_bins**2
+    rows = energy_rows(config)
+    bins, azimuths = config.energy_bins, max(config.energy_azimuths, 1)
 
     def cell_sums(values: torch.Tensor) -> torch.Tensor:  # (N, 3) -> (rows, 3): each cell's weighted sum
         spread = (weight.double()[:, :, None] * values[:, None, :]).reshape(-1, 3)
-        return torch.zeros(rows, 3, dtype=torch.float64).index_add_(0, index.reshape(-1), spread)
+        sums = torch.zeros(rows, 3, dtype=torch.float64).index_add_(0, index.reshape(-1), spread)
+        cells = sums.reshape(config.levels + 1, bins, bins, azimuths, 3)  # a view: the pooling writes through
+        cells[:, 0] = cells[:, 0].sum(2, keepdim=True)  # the normal's bin: one sum for every azimuth
+        return sums
 
     mean = answers.mean(0) if len(answers) else torch.ones(3, dtype=torch.float64)
     table = (cell_sums(targets) + prior * mean) / (cell_sums(answers) + prior * mean)
@@ -97,5 +134,5 @@ def fit_energy(config: MaterialConfig, queries: torch.Tensor, answers: torch.Ten
 
 
 def ones_table(config: MaterialConfig) -> np.ndarray:
-    """The table of a model that needs no gain ((L + 1) B^2, 3): every gain 1."""
-    return np.ones(((config.levels + 1) * config.energy_bins**2, 3), np.float32)
+    """The table of a model that needs no gain (`weights.energy_rows`, 3): every gain 1."""
+    return np.ones((energy_rows(config), 3), np.float32)

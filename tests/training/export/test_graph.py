@@ -44,6 +44,9 @@ PARITY_CASES = {
     "energy": dict(base=64, relief=64, local_frame=True, terminator="none", lod_bias=1, half_textures=True,
                    offset_mip=True, energy_bins=6),
     "energy-alone": dict(energy_bins=2),
+    "energy-azimuths": dict(base=64, relief=64, local_frame=True, terminator="none", lod_bias=1, half_textures=True,
+                            offset_mip=True, energy_bins=6, energy_azimuths=8),
+    "energy-azimuths-alone": dict(energy_bins=2, energy_azimuths=3),
     "coarse-decoder": dict(base=64, relief=64, local_frame=True, terminator="none", lod_bias=1, half_textures=True,
                            offset_mip=True, energy_bins=6, coarse_decoder=2),
     "coarse-decoder-alone": dict(coarse_decoder=3),
@@ -64,9 +67,10 @@ def pair(request):
             material.base_maps.copy_(torch.from_numpy(weights["base_maps"]))
             for decoder in material.decoders():
                 decoder[-1].weight.normal_(0.0, 0.2)
-    if cfg.energy_bins:  # gains that differ by level, angle and channel
+    if cfg.energy_bins:  # gains that differ by level, angle, azimuth and channel
         with torch.no_grad():
             material.energy.uniform_(0.5, 2.0)
+            W.tie_normal_cells(material.energy, cfg)
     # make the offset large enough to matter (random init gives tiny depths)
     if cfg.offset:
         with torch.no_grad():

@@ -101,3 +101,22 @@ def test_a_trimmed_model_is_refused_and_the_command_says_why(data, plain_model, 
     assert "held-out MSE" in capsys.readouterr().out
     assert main(["calibrate", str(plain_model), "--data", str(data.path), "-o", str(tmp_path / "out.onnx")]) != 0
     assert "--force" in capsys.readouterr().err
+
+
+def test_calibrating_with_azimuths_adds_the_fourth_axis_and_the_files_answers_follow_it(data, plain_model, tmp_path):
+    from neumip.client.cli import main
+
+    out = tmp_path / "azimuths.onnx"
+    assert main(["calibrate", str(plain_model), "--data", str(data.path), "-o", str(out), "--bins", "3",
+                 "--azimuths", "4"]) == 0
+    model = onnx.load(out)
+    config = json.loads({p.key: p.value for p in model.metadata_props}[C.META_CONFIG])
+    assert config["energy_bins"] == 3 and config["energy_azimuths"] == 4
+    table = next(onnx.numpy_helper.to_array(t) for t in model.graph.initializer if t.name == W.ENERGY)
+    cells = table.reshape(5, 3, 3, 4, 3)  # levels 0-4 of a 16^2 material
+    assert np.array_equal(cells[:, 0], np.repeat(cells[:, 0, :, :1], 4, axis=2))  # one gain at the normal
+    assert not np.allclose(cells[:, 1:], cells[:, 1:, :, :1])  # elsewhere the gains change with the azimuth
+    plain = calibrate_file(out, data.path, tmp_path / "plain.onnx", azimuths=0)  # and back to three axes
+    table3 = next(onnx.numpy_helper.to_array(t) for t in onnx.load(tmp_path / "plain.onnx").graph.initializer
+                  if t.name == W.ENERGY)
+    assert table3.shape == (5 * 9, 3) and plain["overall"]["n"] == len(split_indices(len(data), TEST)[1])

@@ -9,7 +9,7 @@ import torch
 from neumip.core import contract as C
 from neumip.core.config import MaterialConfig
 from neumip.core.contract import random_queries
-from neumip.training.model.energy import ENERGY_RANGE, corners, energy_gain, fit_energy
+from neumip.training.model.energy import ENERGY_RANGE, azimuth_coordinate, corners, energy_gain, fit_energy
 
 CFG = MaterialConfig(resolution=16, lod_bias=1, energy_bins=5)
 
@@ -75,3 +75,56 @@ def test_energy_bins_needs_two_bins_and_the_relu_head():
         with pytest.raises(ValueError, match="energy_bins"):
             MaterialConfig(**bad)
     assert "energy_bins" not in MaterialConfig().to_json() and '"energy_bins": 4' in MaterialConfig(energy_bins=4).to_json()
+
+
+AZ = MaterialConfig(resolution=16, lod_bias=1, energy_bins=5, energy_azimuths=8)
+
+
+def test_with_azimuths_a_query_reads_sixteen_cells_whose_weights_sum_to_one():
+    index, weight = corners(AZ, *columns(random_queries(5000, seed=4)))
+    assert index.shape == weight.shape == (5000, 16)
+    assert index.min() >= 0 and index.max() < (AZ.levels + 1) * 25 * 8
+    assert torch.allclose(weight.sum(1), torch.ones(5000)) and (weight >= 0).all()
+
+
+def test_the_azimuth_turns_with_the_half_vector_and_wraps_without_a_jump():
+    """The pseudo-angle is 0, 1, 2, 3 (times A / 4) along +x, +y, -x, -y, grows with the angle, and the gain is
+    continuous across +x, where it wraps from A to 0."""
+    angles = torch.linspace(-math.pi + 1e-3, math.pi - 1e-3, 721)
+    wi = 0.6 * torch.stack([torch.cos(angles), torch.sin(angles)], 1)  # wi = wo: h along wi
+    a = azimuth_coordinate(wi, wi, 8)
+    quarter = {0.0: 0.0, math.pi / 2: 2.0, math.pi - 1e-3: 4.0, -math.pi / 2: 6.0}
+    for angle, want in quarter.items():
+        w = 0.6 * torch.tensor([[math.cos(angle), math.sin(angle)]])
+        assert float(azimuth_coordinate(w, w, 8)) == pytest.approx(want, abs=1e-2), angle
+    turned = torch.remainder(a - a[0], 8.0)  # from -pi on: increasing by the angle
+    assert torch.all(turned[1:] >= turned[:-1])
+    table = torch.rand((AZ.levels + 1) * 25 * 8, 3) + 0.5
+    sigma = torch.full((len(wi),), 2.0 ** (3 - AZ.lod_bias) / AZ.resolution)
+    gain = energy_gain(table, AZ, sigma, wi, wi)
+    assert (gain[1:] - gain[:-1]).abs().max() < 0.05  # 721 steps around the circle: no jump, +x included
+    assert gain.std(0).min() > 0.05  # and it does change with the azimuth
+
+
+def test_a_fit_gives_back_a_gain_that_changes_with_the_azimuth_and_one_gain_at_the_normal():
+    q = random_queries(200000, seed=5)
+    q[:, C.SIGMA] = 2.0 ** (3 - AZ.lod_bias) / AZ.resolution  # level 3
+    sig, wi, wo = columns(q)
+    h_y = (wi[:, 1] + wo[:, 1]).double()  # the half vector's y has the sign of wi_y + wo_y
+    answers = torch.rand(len(q), 3, dtype=torch.float64) + 0.1
+    gain = torch.where(h_y >= 0, 1.5, 0.7)[:, None]
+    table = fit_energy(AZ, torch.from_numpy(q), answers, answers * gain, prior=0.0).view(AZ.levels + 1, 5, 5, 8, 3)
+    # node 2 (+y) reads only queries with y >= 0 and node 6 (-y) only y < 0, in every half-vector bin but the first
+    assert torch.allclose(table[3, 1:, 1:, 2], torch.tensor(1.5), atol=1e-4)
+    assert torch.allclose(table[3, 1:, 1:, 6], torch.tensor(0.7), atol=1e-4)
+    normal = table[3, 0]  # the first half-vector bin: one gain for every azimuth, between the two
+    assert torch.equal(normal, normal[:, :1].expand_as(normal))
+    assert torch.all((normal[1:] > 0.7) & (normal[1:] < 1.5))
+
+
+def test_energy_azimuths_needs_a_table_and_two_bins():
+    for bad in (dict(energy_azimuths=4), dict(energy_bins=4, energy_azimuths=1), dict(energy_bins=4, energy_azimuths=-2)):
+        with pytest.raises(ValueError, match="energy_azimuths"):
+            MaterialConfig(**bad)
+    assert "energy_azimuths" not in MaterialConfig(energy_bins=4).to_json()
+    assert '"energy_azimuths": 8' in AZ.to_json()
