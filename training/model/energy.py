@@ -110,30 +110,27 @@ def fit_energy(config: MaterialConfig, queries: torch.Tensor, answers: torch.Ten
                prior: float = ENERGY_PRIOR) -> torch.Tensor:
     """(N, 7) single queries, the model's answers without a table (N, 3) and the data's targets (N, 3) -> the table
     (`weights.energy_rows`, 3) whose cell holds, per channel, (sum w t + prior m) / (sum w a + prior m): w a query's
-    weight in the cell (`corners`), m the answers' mean (float64 sums). With the azimuth axis, that is the gain of the
-    cell's azimuths pooled (the 3-axis table's, g3), and each azimuth's cell holds (sum w t + prior m g3) /
-    (sum w a + prior m): a cell few queries reach keeps the pooled gain, not 1; the first half-vector bin's cells
-    (the normal) hold g3 for every azimuth. Rows with a non-finite value are left out."""
+    weight in the cell (`corners`), m the answers' mean (float64 sums); with the azimuth axis, the sums of the first
+    half-vector bin's cells are pooled over the azimuths. Rows with a non-finite value are left out."""
     from neumip.core import contract as C
 
     keep = torch.isfinite(targets).all(1) & torch.isfinite(answers).all(1)
     queries, answers, targets = queries[keep], answers[keep].double(), targets[keep].double()
     index, weight = corners(config, queries[:, C.SIGMA], queries[:, C.WI_X : C.WI_Y + 1],
                             queries[:, C.WO_X : C.WO_Y + 1])
-    shape = (config.levels + 1, config.energy_bins, config.energy_bins, max(config.energy_azimuths, 1), 3)
+    rows = energy_rows(config)
+    bins, azimuths = config.energy_bins, max(config.energy_azimuths, 1)
 
-    def cell_sums(values: torch.Tensor) -> torch.Tensor:  # (N, 3) -> (L + 1, B, B, A, 3): each cell's weighted sum
+    def cell_sums(values: torch.Tensor) -> torch.Tensor:  # (N, 3) -> (rows, 3): each cell's weighted sum
         spread = (weight.double()[:, :, None] * values[:, None, :]).reshape(-1, 3)
-        return torch.zeros(energy_rows(config), 3, dtype=torch.float64).index_add_(0, index.reshape(-1),
-                                                                                   spread).view(shape)
+        sums = torch.zeros(rows, 3, dtype=torch.float64).index_add_(0, index.reshape(-1), spread)
+        cells = sums.reshape(config.levels + 1, bins, bins, azimuths, 3)  # a view: the pooling writes through
+        cells[:, 0] = cells[:, 0].sum(2, keepdim=True)  # the normal's bin: one sum for every azimuth
+        return sums
 
-    mean = prior * (answers.mean(0) if len(answers) else torch.ones(3, dtype=torch.float64))
-    data, model = cell_sums(targets), cell_sums(answers)
-    pooled = (data.sum(3, keepdim=True) + mean) / (model.sum(3, keepdim=True) + mean)  # (L + 1, B, B, 1, 3)
-    table = pooled.expand(shape).clone()
-    if config.energy_azimuths:  # each azimuth's cell, shrunk towards its pooled gain; the normal's stay pooled
-        table[:, 1:] = (data[:, 1:] + mean * pooled[:, 1:]) / (model[:, 1:] + mean)
-    return torch.nan_to_num(table.reshape(-1, 3), nan=1.0).clamp(*ENERGY_RANGE).float()
+    mean = answers.mean(0) if len(answers) else torch.ones(3, dtype=torch.float64)
+    table = (cell_sums(targets) + prior * mean) / (cell_sums(answers) + prior * mean)
+    return torch.nan_to_num(table, nan=1.0).clamp(*ENERGY_RANGE).float()
 
 
 def ones_table(config: MaterialConfig) -> np.ndarray:

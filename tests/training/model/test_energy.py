@@ -128,18 +128,3 @@ def test_energy_azimuths_needs_a_table_and_two_bins():
             MaterialConfig(**bad)
     assert "energy_azimuths" not in MaterialConfig(energy_bins=4).to_json()
     assert '"energy_azimuths": 8' in AZ.to_json()
-
-
-def test_an_azimuth_no_query_reaches_keeps_the_gain_of_its_cells_azimuths_pooled():
-    """Every half vector on the +y side: the -y azimuths' cells hold the 3-axis table's gain, not 1."""
-    from dataclasses import replace
-
-    q = random_queries(50000, seed=6)
-    q[:, C.SIGMA] = 2.0 ** (3 - AZ.lod_bias) / AZ.resolution
-    q[:, C.WI_Y], q[:, C.WO_Y] = np.abs(q[:, C.WI_Y]), np.abs(q[:, C.WO_Y])
-    answers = torch.rand(len(q), 3, dtype=torch.float64) + 0.1
-    four = fit_energy(AZ, torch.from_numpy(q), answers, answers * 1.5).view(AZ.levels + 1, 5, 5, 8, 3)
-    three = fit_energy(replace(AZ, energy_azimuths=0), torch.from_numpy(q), answers, answers * 1.5).view(
-        AZ.levels + 1, 5, 5, 3)
-    assert torch.allclose(four[3, :, :, 6], three[3], rtol=1e-6) and (three[3, 1:] > 1.2).any()
-    assert torch.allclose(four[3, 0], three[3, 0][:, None, :].expand(5, 8, 3))  # the normal's: the pooled gain
