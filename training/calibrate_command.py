@@ -22,7 +22,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--bins", type=int, help="bins of each direction axis, the half vector's angle and the "
                    "light's elevation (default: the model's, else 6)")
     p.add_argument("--azimuths", type=int, help="bins of the half vector's azimuth, the table's fourth axis "
-                   "(MaterialConfig.energy_azimuths; 0: none; default: the model's)")
+                   "(MaterialConfig.energy_azimuths; 0: none; default: the model's where it has a table, else 16)")
     p.add_argument("--seed", type=int, default=0, help="the training seed whose split the model was trained on")
     p.add_argument("--force", action="store_true", help="replace the output if it exists")
     p.set_defaults(func=_calibrate)

@@ -27,6 +27,8 @@ RUN_FIELDS = ("train_seconds", "steps", "dropped_steps", "batch")
 """The fields of a validation table that describe the training run (`Trainer.run`), which a calibration keeps."""
 ENERGY_BINS = RECIPES["maps"].material["energy_bins"]
 """The table's bins for a model without one (the `maps` recipe's)."""
+ENERGY_AZIMUTHS = RECIPES["maps"].material["energy_azimuths"]
+"""The table's azimuth bins for a model without one (the `maps` recipe's)."""
 
 
 def calibrate_file(model_path: str | Path, data_path: str | Path, out: str | Path, bins: int | None = None,
@@ -34,14 +36,16 @@ def calibrate_file(model_path: str | Path, data_path: str | Path, out: str | Pat
     """Write the model at `model_path` with its energy table fitted on the training split of the data set at
     `data_path` (`train.split_indices` with training seed `seed`, as `neumip train` split it) and its validation
     table recomputed on the held-out split. `bins`: the table's bins (default: the model's own, else `ENERGY_BINS`);
-    `azimuths`: its azimuth bins (`MaterialConfig.energy_azimuths`, 0: none; default: the model's own). Returns
+    `azimuths`: its azimuth bins (`MaterialConfig.energy_azimuths`, 0: none; default: the model's own where it has a
+    table, else `ENERGY_AZIMUTHS`). Returns
     the new validation table. ValueError for a trimmed model (its fine levels are gone) or one whose config cannot
     take a table."""
     config, weights, meta, finest = read_model(onnx.load(str(model_path)), str(model_path))
     if finest:
         raise ValueError(f"{model_path} is trimmed (finest level {finest}): calibrate the whole model, then trim it")
-    config = replace(config, energy_bins=bins or config.energy_bins or ENERGY_BINS,
-                     energy_azimuths=config.energy_azimuths if azimuths is None else azimuths)
+    if azimuths is None:
+        azimuths = config.energy_azimuths if config.energy_bins else ENERGY_AZIMUTHS
+    config = replace(config, energy_bins=bins or config.energy_bins or ENERGY_BINS, energy_azimuths=azimuths)
     data = open_dataset(data_path)
     train_idx, held_idx = split_indices(len(data), TrainConfig(seed=seed))
     rows = fit_rows(train_idx, seed)

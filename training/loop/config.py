@@ -200,7 +200,7 @@ class Recipe:
 RECIPES = {
     "paper": Recipe(material={"half_textures": True}),
     "maps": Recipe(material={"lod_bias": 1, "local_frame": True, "terminator": "none", "half_textures": True,
-                             "offset_mip": True, "energy_bins": 6},
+                             "offset_mip": True, "energy_bins": 6, "energy_azimuths": 16},
                    maps={"horizons": 8}, base=True, relief=8),
 }
 """Both store their textures in float16 (`MaterialConfig.half_textures`). `paper`: the paper's model (free latents,
@@ -209,5 +209,6 @@ from the prefiltered maps with horizons towards 8 azimuths, on the classical bas
 relief marched in 8 steps, the finest level answering footprints of half a texel), its neural offset read at the
 footprint on its mip pyramid (`MaterialConfig.offset_mip`: a far object's trimmed model sheds the offset's fine
 levels too), its answers' energy table fitted at the end (`MaterialConfig.energy_bins` 6: the coarse levels' energy
-that the log loss loses under noisy targets, `training/model/energy.py`). `neumip fit` makes `maps` for a
+that the log loss loses under noisy targets, `training/model/energy.py`; `energy_azimuths` 16: per azimuth of the
+half vector, which an anisotropic material's coarse texels need). `neumip fit` makes `maps` for a
 material with principled maps and `paper` for one without (a homogeneous [bsdf])."""

@@ -15,7 +15,7 @@ from neumip.core.config import MaterialConfig
 from neumip.engines.local import load_material
 from neumip.training.export.trim import trim_file
 from neumip.training.loop.config import TEST
-from neumip.training.loop.calibrate import calibrate_file
+from neumip.training.loop.calibrate import ENERGY_AZIMUTHS, calibrate_file
 from neumip.training.loop.outputs import export_checkpoint
 from neumip.training.loop.train import Trainer, split_indices
 
@@ -79,7 +79,7 @@ def test_calibrating_a_file_fits_its_table_on_the_training_split_and_validates_i
     assert abs(darkness(validation) - 1) < 0.5 * abs(darkness(before) - 1), (validation["overall"], before["overall"])
     assert validation["overall"]["mse"] < before["overall"]["mse"]
     table = next(onnx.numpy_helper.to_array(t) for t in model.graph.initializer if t.name == W.ENERGY)
-    assert table.shape == (5 * 9, 3) and not np.all(table == 1.0)
+    assert table.shape == (5 * 9 * ENERGY_AZIMUTHS, 3) and not np.all(table == 1.0)  # the recipe's azimuths
     again = tmp_path / "again.onnx"  # a model with a table refits from its answers without one: the same table
     calibrate_file(out, data.path, again)
     table2 = next(onnx.numpy_helper.to_array(t) for t in onnx.load(again).graph.initializer if t.name == W.ENERGY)
