@@ -15,8 +15,8 @@ Per call size (2^k single queries), medians of interleaved rounds, in M queries/
 - ``mlp fp32`` / ``mlp bf16``: the decoder MLP alone (`weights.mlps`: its widths, `hidden`, `layers`) as a torch
   ``Sequential`` of Linear + ReLU, its input resident, ``torch.cuda.synchronize`` after each call.
 
-The bounds come from the graph (`graph_cost.py`): the bytes its texture ``Gather`` nodes read a query (float32
-tables, as the kernel holds them) over the card's memory bandwidth, and the FLOPs of its ``MatMul``/``Gemm``
+The bounds come from the graph (`graph_cost.py`): the bytes its texture ``Gather`` nodes read a query (each
+table in its stored type: float16 where the model reads its textures rounded, float32 otherwise) over the card's memory bandwidth, and the FLOPs of its ``MatMul``/``Gemm``
 nodes plus the other nodes' elements (each as an FMA's 2 FLOPs) over its float32 peak (``--bandwidth``,
 ``--flops``: the H200's 4.3 TB/s measured copy and 67 TFLOP/s float32 without tensor cores).
 """
@@ -67,7 +67,7 @@ def main() -> None:
     mlp32, width = decoder_mlp(material.config, torch, args.device, torch.float32)
     mlp16, _ = decoder_mlp(material.config, torch, args.device, torch.bfloat16)
     config = material.config
-    print(f"# {args.model}: {cost['nodes']} nodes; a query reads {cost['bytes']} B of float32 tables and does "
+    print(f"# {args.model}: {cost['nodes']} nodes; a query reads {cost['bytes']} B of tables (each in its stored type) and does "
           f"{cost['flops']} FLOPs of matrix products and {cost['elements']} other operations; decoder {width} -> "
           f"{config.hidden} x {config.layers - 1} -> {W.mlps(config)[W.DECODER][1]}")
     print(f"# bounds: memory {args.bandwidth / cost['bytes'] / 1e6:.0f} M q/s at {args.bandwidth / 1e12:.1f} TB/s; "

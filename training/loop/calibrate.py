@@ -13,7 +13,7 @@ import onnx
 
 from neumip.core import contract as C
 from neumip.core import weights as W
-from neumip.engines.local import load_material
+from neumip.engines.local import load_material, run_chunked
 from neumip.groundtruth.dataset import open_dataset
 from neumip.training.export.graph import build_onnx, save_onnx
 from neumip.training.export.read import read_model
@@ -56,8 +56,9 @@ def calibrate_file(model_path: str | Path, data_path: str | Path, out: str | Pat
     def model(table: np.ndarray) -> onnx.ModelProto:
         return build_onnx(config, {**weights, W.ENERGY: table}, description, rest)
 
-    def answers(graph: onnx.ModelProto, queries: np.ndarray) -> np.ndarray:  # in memory, no file
-        return load_material(model_path, data=graph.SerializeToString()).run(np.asarray(queries, np.float32))
+    def answers(graph: onnx.ModelProto, queries: np.ndarray) -> np.ndarray:  # in memory, no file; in chunks (one
+        material = load_material(model_path, data=graph.SerializeToString())  # call of 4 M rows held 6 GB)
+        return run_chunked(material.run, np.asarray(queries, np.float32))
 
     queries = np.asarray(data.queries[rows])
     table = fit_table(config, queries, answers(model(ones_table(config)), queries), np.asarray(data.rgb[rows]))
