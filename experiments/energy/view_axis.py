@@ -25,11 +25,11 @@ import torch
 
 def corners4(config, bins: int, sigma, wi, wo):
     """The shipped corners (`energy.corners`) with a fourth axis, the view's elevation: (N, 16) rows, weights."""
-    from neumip.training.model.base import lift
+    from neumip.training.model.base import half_direction, lift
     from neumip.training.model.energy import _pair, direction_coordinates
     from neumip.training.model.pyramid import level_of_detail
 
-    x, y = direction_coordinates(wi, wo, bins)
+    x, y = direction_coordinates(half_direction(lift(wi), lift(wo)), lift(wi)[:, 2], bins)
     z = torch.clamp(torch.sqrt(lift(wo)[:, 2]) * (bins - 1), 0.0, bins - 1.0)
     (l, wl), (b, wb), (e, we), (v, wv) = (_pair(level_of_detail(sigma, config.resolution, config.lod_bias),
                                                 config.levels), _pair(x, bins - 1), _pair(y, bins - 1),

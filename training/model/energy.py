@@ -39,6 +39,8 @@ from neumip.training.model.pyramid import level_of_detail
 
 ENERGY_PRIOR = 256.0
 """Queries' worth of answers that are right (gain 1) added to every cell of the ratio (`fit_energy`)."""
+FIT_CHUNK = 1 << 17
+"""Queries a fit spreads over their cells at a time (`energy_sums`: up to 16 cells x 6 sums each, float64)."""
 ENERGY_RANGE = (0.25, 4.0)
 """The gains a fit may give (a cell the data barely reach cannot swing an answer further)."""
 
@@ -50,20 +52,17 @@ def _pair(x: torch.Tensor, top: int) -> tuple[torch.Tensor, torch.Tensor]:
     return torch.stack([low, torch.clamp(low + 1, max=top)], 1).long(), torch.stack([1 - frac, frac], 1)
 
 
-def direction_coordinates(wi: torch.Tensor, wo: torch.Tensor, bins: int) -> tuple[torch.Tensor, torch.Tensor]:
-    """(N, 2) wi, wo -> (N,) x = sqrt(2 - 2 h_z) (bins - 1) / sqrt 2 and (N,) y = sqrt(wi_z) (bins - 1), both in
-    [0, bins - 1]."""
-    wi3 = lift(wi)
-    h_z = half_direction(wi3, lift(wo))[:, 2]
-    s = torch.sqrt(torch.clamp(2.0 - 2.0 * h_z, min=0.0))
+def direction_coordinates(h: torch.Tensor, wi_z: torch.Tensor, bins: int) -> tuple[torch.Tensor, torch.Tensor]:
+    """(N, 3) half vectors h and (N,) the lights' wi_z -> (N,) x = sqrt(2 - 2 h_z) (bins - 1) / sqrt 2 and (N,)
+    y = sqrt(wi_z) (bins - 1), both in [0, bins - 1]."""
+    s = torch.sqrt(torch.clamp(2.0 - 2.0 * h[:, 2], min=0.0))
     x = torch.clamp(s * ((bins - 1) / math.sqrt(2.0)), 0.0, bins - 1.0)
-    return x, torch.clamp(torch.sqrt(wi3[:, 2]) * (bins - 1), 0.0, bins - 1.0)
+    return x, torch.clamp(torch.sqrt(wi_z) * (bins - 1), 0.0, bins - 1.0)
 
 
-def azimuth_coordinate(wi: torch.Tensor, wo: torch.Tensor, azimuths: int) -> torch.Tensor:
-    """(N, 2) wi, wo -> (N,) the half vector's azimuth as a pseudo-angle scaled to [0, azimuths]: with (x, y) the
-    half vector's tangent part and d = |x| + |y|, 1 - x / d where y >= 0, else 3 + x / d, times azimuths / 4."""
-    h = half_direction(lift(wi), lift(wo))
+def azimuth_coordinate(h: torch.Tensor, azimuths: int) -> torch.Tensor:
+    """(N, 3) half vectors -> (N,) their azimuth as a pseudo-angle scaled to [0, azimuths]: with (x, y) the half
+    vector's tangent part and d = |x| + |y|, 1 - x / d where y >= 0, else 3 + x / d, times azimuths / 4."""
     x, y = h[:, 0], h[:, 1]
     ratio = x / torch.clamp(torch.abs(x) + torch.abs(y), min=1e-30)
     return torch.where(y >= 0, 1.0 - ratio, 3.0 + ratio) * (azimuths / 4.0)
@@ -84,12 +83,14 @@ def corners(config: MaterialConfig, sigma: torch.Tensor, wi: torch.Tensor, wo: t
     which sum to 1 (corners in the order of `training.export.energy.corner_list`): K = 8, rows (B l + b) B + e,
     trilinear; with `energy_azimuths` A, K = 16, rows ((B l + b) B + e) A + a."""
     bins = config.energy_bins
-    x, y = direction_coordinates(wi, wo, bins)
+    wi3 = lift(wi)
+    h = half_direction(wi3, lift(wo))
+    x, y = direction_coordinates(h, wi3[:, 2], bins)
     pairs = [_pair(level_of_detail(sigma, config.resolution, config.lod_bias), config.levels),
              _pair(x, bins - 1), _pair(y, bins - 1)]
     strides = [bins, bins]
     if config.energy_azimuths:
-        pairs.append(_periodic_pair(azimuth_coordinate(wi, wo, config.energy_azimuths), config.energy_azimuths))
+        pairs.append(_periodic_pair(azimuth_coordinate(h, config.energy_azimuths), config.energy_azimuths))
         strides.append(config.energy_azimuths)
     index, weight = pairs[0]
     for (nodes, weights), stride in zip(pairs[1:], strides):  # corner-major: the first axis varies slowest
@@ -110,27 +111,32 @@ def fit_energy(config: MaterialConfig, queries: torch.Tensor, answers: torch.Ten
                prior: float = ENERGY_PRIOR) -> torch.Tensor:
     """(N, 7) single queries, the model's answers without a table (N, 3) and the data's targets (N, 3) -> the table
     (`weights.energy_rows`, 3) whose cell holds, per channel, (sum w t + prior m) / (sum w a + prior m): w a query's
-    weight in the cell (`corners`), m the answers' mean (float64 sums); with the azimuth axis, the sums of the first
-    half-vector bin's cells are pooled over the azimuths. Rows with a non-finite value are left out."""
-    from neumip.core import contract as C
-
+    weight in the cell (`corners`), m the answers' mean (float64 sums, `energy_sums`); with the azimuth axis, the
+    sums of the first half-vector bin's cells are pooled over the azimuths. Rows with a non-finite value are left
+    out."""
     keep = torch.isfinite(targets).all(1) & torch.isfinite(answers).all(1)
     queries, answers, targets = queries[keep], answers[keep].double(), targets[keep].double()
-    index, weight = corners(config, queries[:, C.SIGMA], queries[:, C.WI_X : C.WI_Y + 1],
-                            queries[:, C.WO_X : C.WO_Y + 1])
-    rows = energy_rows(config)
-    bins, azimuths = config.energy_bins, max(config.energy_azimuths, 1)
-
-    def cell_sums(values: torch.Tensor) -> torch.Tensor:  # (N, 3) -> (rows, 3): each cell's weighted sum
-        spread = (weight.double()[:, :, None] * values[:, None, :]).reshape(-1, 3)
-        sums = torch.zeros(rows, 3, dtype=torch.float64).index_add_(0, index.reshape(-1), spread)
-        cells = sums.reshape(config.levels + 1, bins, bins, azimuths, 3)  # a view: the pooling writes through
-        cells[:, 0] = cells[:, 0].sum(2, keepdim=True)  # the normal's bin: one sum for every azimuth
-        return sums
-
+    sums = energy_sums(config, queries, answers, targets)
+    sums[:, 0] = sums[:, 0].sum(2, keepdim=True)  # the normal's bin: one sum for every azimuth
     mean = answers.mean(0) if len(answers) else torch.ones(3, dtype=torch.float64)
-    table = (cell_sums(targets) + prior * mean) / (cell_sums(answers) + prior * mean)
-    return torch.nan_to_num(table, nan=1.0).clamp(*ENERGY_RANGE).float()
+    table = (sums[..., 0:3] + prior * mean) / (sums[..., 3:6] + prior * mean)
+    return torch.nan_to_num(table.reshape(-1, 3), nan=1.0).clamp(*ENERGY_RANGE).float()
+
+
+def energy_sums(config: MaterialConfig, queries: torch.Tensor, answers: torch.Tensor, targets: torch.Tensor,
+                ) -> torch.Tensor:
+    """Each cell's sums over the (N, 7) queries, float64 (L + 1, B, B, A, 6) (A = 1 without the azimuth axis): sum w t
+    and sum w a per channel, w a query's weight in the cell (`corners`). In chunks of `FIT_CHUNK` queries (a query
+    spreads over up to 16 cells)."""
+    from neumip.core import contract as C
+
+    sums = torch.zeros(energy_rows(config), 6, dtype=torch.float64)
+    for lo in range(0, len(queries), FIT_CHUNK):
+        part = queries[lo:lo + FIT_CHUNK]
+        index, weight = corners(config, part[:, C.SIGMA], part[:, C.WI_X : C.WI_Y + 1], part[:, C.WO_X : C.WO_Y + 1])
+        values = torch.cat([targets[lo:lo + FIT_CHUNK], answers[lo:lo + FIT_CHUNK]], 1).double()
+        sums.index_add_(0, index.reshape(-1), (weight.double()[:, :, None] * values[:, None, :]).reshape(-1, 6))
+    return sums.reshape(config.levels + 1, config.energy_bins, config.energy_bins, max(config.energy_azimuths, 1), 6)
 
 
 def ones_table(config: MaterialConfig) -> np.ndarray:

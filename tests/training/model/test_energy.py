@@ -9,6 +9,7 @@ import torch
 from neumip.core import contract as C
 from neumip.core.config import MaterialConfig
 from neumip.core.contract import random_queries
+from neumip.training.model.base import half_direction, lift
 from neumip.training.model.energy import ENERGY_RANGE, azimuth_coordinate, corners, energy_gain, fit_energy
 
 CFG = MaterialConfig(resolution=16, lod_bias=1, energy_bins=5)
@@ -92,11 +93,11 @@ def test_the_azimuth_turns_with_the_half_vector_and_wraps_without_a_jump():
     continuous across +x, where it wraps from A to 0."""
     angles = torch.linspace(-math.pi + 1e-3, math.pi - 1e-3, 721)
     wi = 0.6 * torch.stack([torch.cos(angles), torch.sin(angles)], 1)  # wi = wo: h along wi
-    a = azimuth_coordinate(wi, wi, 8)
+    a = azimuth_coordinate(half_direction(lift(wi), lift(wi)), 8)
     quarter = {0.0: 0.0, math.pi / 2: 2.0, math.pi - 1e-3: 4.0, -math.pi / 2: 6.0}
     for angle, want in quarter.items():
         w = 0.6 * torch.tensor([[math.cos(angle), math.sin(angle)]])
-        assert float(azimuth_coordinate(w, w, 8)) == pytest.approx(want, abs=1e-2), angle
+        assert float(azimuth_coordinate(half_direction(lift(w), lift(w)), 8)) == pytest.approx(want, abs=1e-2), angle
     turned = torch.remainder(a - a[0], 8.0)  # from -pi on: increasing by the angle
     assert torch.all(turned[1:] >= turned[:-1])
     table = torch.rand((AZ.levels + 1) * 25 * 8, 3) + 0.5
@@ -128,3 +129,14 @@ def test_energy_azimuths_needs_a_table_and_two_bins():
             MaterialConfig(**bad)
     assert "energy_azimuths" not in MaterialConfig(energy_bins=4).to_json()
     assert '"energy_azimuths": 8' in AZ.to_json()
+
+
+def test_a_fit_in_chunks_gives_the_table_of_one_pass(monkeypatch):
+    from neumip.training.model import energy
+
+    q = torch.from_numpy(random_queries(5000, seed=7))
+    answers = torch.rand(5000, 3, dtype=torch.float64) + 0.1
+    targets = answers * (torch.rand(5000, 3, dtype=torch.float64) + 0.5)
+    whole = fit_energy(AZ, q, answers, targets)
+    monkeypatch.setattr(energy, "FIT_CHUNK", 999)
+    assert torch.allclose(fit_energy(AZ, q, answers, targets), whole, rtol=1e-6)
