@@ -66,6 +66,10 @@ class RenderCache:
         self.seconds += cached.seconds
         return cached
 
+    def forget(self, params: dict) -> None:
+        """Remove a render from the cache (none there: nothing to do)."""
+        self.path(params).unlink(missing_ok=True)
+
     def put(self, params: dict, image: np.ndarray, seconds: float, load: float = float("nan")) -> None:
         path = self.path(params)
 

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import sys
 from pathlib import Path
 
@@ -26,6 +27,8 @@ def register(sub: argparse._SubParsersAction) -> None:
                    help="folder of the models: NAME.onnx per material, found by its description's name "
                    "(and NAME_nooffset.onnx, NAME_maps.onnx where present)")
     p.add_argument("--cache", type=Path, default=None, help="cache folder (default runs/report[-quick])")
+    p.add_argument("--retime", action="store_true",
+                   help="time every ladder view's rungs anew, whatever the cache holds (run it on a quiet machine)")
     p.add_argument("--skip", nargs="*", default=[], choices=("images", "stability", "tradeoff"), help="stages to leave out")
     p.set_defaults(func=_report)
 
@@ -48,6 +51,8 @@ def _report(args: argparse.Namespace) -> int:
             self.bar.update(1)
 
     config = QUICK if args.quick else FULL
+    if args.retime:
+        config = dataclasses.replace(config, retime=True)
     runs = Path("runs") / ("report-quick" if args.quick else "report")
     cache = args.cache or runs
     output = args.output or runs / "out"

@@ -28,6 +28,9 @@ class ReportConfig:
     beyond its last rung is extrapolated (it is unbiased: its error above R's noise falls as 1/spp)."""
     rounds: int = 3
     """Timed interleaved rounds of the ladder, after one untimed round (the fastest is reported)."""
+    retime: bool = False
+    """Render every ladder view's timed rungs anew, every method's, whatever the cache holds (`neumip report
+    --retime`): the timings of this run alone, say on a quiet machine; the scored images still come from the cache."""
     smoke: bool = False
     """A smoke run (tiny sizes): its timings mean nothing and the report draws no timing verdicts."""
     max_lanes: int = 1 << 20

@@ -66,9 +66,13 @@ def run_view(renderer: MaterialRenderer, view: View, tick: Callable[[], None] = 
     methods = scored_methods(renderer, view)
     if view.ladder:
         # Timings are compared as ratios, so they must come from one run: where any timed rung is not
-        # cached (a new model, say), every method's timed rungs are rendered anew beside it.
-        fresh = not all(renderer.cached(view, m, s, rnd) for m in methods for s in cfg.ladder
-                        for rnd in range(1, cfg.rounds + 1))
+        # cached (a new model, say), every method's timed rungs are rendered anew beside it. `retime` forgets
+        # them first, so that a run stopped half-way leaves them missing, not half of them from another run.
+        timed = [(m, s, rnd) for m in methods for s in cfg.ladder for rnd in range(1, cfg.rounds + 1)]
+        if cfg.retime:
+            for rung in timed:
+                renderer.forget(view, *rung)
+        fresh = not all(renderer.cached(view, *rung) for rung in timed)
         for rnd in range(cfg.rounds + 1):
             for method in methods:
                 if rnd > 0 and (fresh or not all(renderer.cached(view, method, s, rnd) for s in cfg.ladder)):

@@ -116,6 +116,9 @@ class MaterialRenderer:
     def cached(self, view: View, method: str, spp: int, seed: int) -> bool:
         return self.cache.path(self.key(view, method, spp, seed)).exists()
 
+    def forget(self, view: View, method: str, spp: int, seed: int) -> None:
+        self.cache.forget(self.key(view, method, spp, seed))
+
     def warm_up(self, view: View, method: str) -> None:
         """One untimed 1-spp render of a freshly built scene (not stored): its first launch pays
         allocations and kernel look-ups that a timed render should not count."""

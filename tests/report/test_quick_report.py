@@ -149,6 +149,23 @@ def test_a_new_model_re_times_every_method_beside_it(report, tmp_path):
             assert (new["seconds"], new["load"]) != (old["seconds"], old["load"])  # timed again, in this run
 
 
+def test_retime_times_every_rung_anew_and_keeps_the_images(report):
+    """`--retime`: the same files, every method's timed rungs rendered anew in this run (their images the same,
+    their timings this run's); the references and the scored renders come from the cache."""
+    import dataclasses
+
+    root, results = report
+    again = run_report(root / "out4", ["flat"], dataclasses.replace(QUICK, retime=True), MODELS, root / "cache",
+                       stages=("images",), views=(LADDER_VIEW,))
+    before, after = (r["materials"]["flat"][VIEW]["methods"] for r in (results, again))
+    for method in ("R", "N", "C"):
+        for spp in QUICK.ladder:
+            old, new = before[method][str(spp)], after[method][str(spp)]
+            assert new["mse"] == old["mse"]
+            assert (new["seconds"], new["load"]) != (old["seconds"], old["load"])
+    assert again["cached_renders_reused"] > 0  # the references
+
+
 @pytest.mark.slow
 def test_cli_quick_runs_every_stage(tmp_path):
     """`neumip report --quick` end to end (every view, stability, the trade-off's training): minutes."""
