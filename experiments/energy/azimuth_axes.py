@@ -6,7 +6,8 @@ azimuths. This experiment fits the table (the shipped rule, `fit_energy`'s ratio
 the half vector, the light or the view (the same pseudo-angle, `energy.azimuth_coordinate`), or none, on the model's
 training split (`neumip calibrate`'s rows) to its answers without a table, and scores each against the data's own
 estimator at the configurations of an `azimuth_sweep.py` printout (the estimator's means reused: the same positions),
-by the mean |log(answer / estimator)|.
+by the mean |log(answer / estimator)|; and the half vector's table with one gain a cell for the three channels
+(`half_lum`, the luminance's ratio: a third of the reads a light).
 
     .venv/bin/python experiments/energy/azimuth_axes.py MATERIAL DATA MODEL PRINTOUT [PRINTOUT...] [--seed S]
 
@@ -28,6 +29,7 @@ import torch
 sys.path.insert(0, str(Path(__file__).parent))
 
 AXES = ("none", "half", "light", "view")
+LUMINANCE = (0.2126, 0.7152, 0.0722)
 
 
 def corners_of(config, axis: str, sigma, wi, wo):
@@ -54,13 +56,17 @@ def corners_of(config, axis: str, sigma, wi, wo):
     return index, weight
 
 
-def fit(config, axis, queries, answers, targets, prior=256.0):
+def fit(config, axis, queries, answers, targets, prior=256.0, scalar=False):
     """The shipped rule's table with `axis`'s azimuth (the normal's bin not tied: a direction's azimuth is defined
-    there unless it is the half vector's)."""
+    there unless it is the half vector's); `scalar`: one gain a cell for the three channels, the ratio of the
+    luminances' sums (a third of the reads a light)."""
     from neumip.core import contract as C
     from neumip.training.model.energy import ENERGY_RANGE
 
     a, t = torch.as_tensor(answers, dtype=torch.float64), torch.as_tensor(targets, dtype=torch.float64)
+    if scalar:  # the luminance in every channel: the three gains come out equal
+        lum = torch.tensor(LUMINANCE, dtype=torch.float64)
+        a, t = (a @ lum)[:, None].expand(-1, 3), (t @ lum)[:, None].expand(-1, 3)
     rows = (config.levels + 1) * config.energy_bins**2 * (config.energy_azimuths if axis != "none" else 1)
     st, sa = torch.zeros(rows, 3, dtype=torch.float64), torch.zeros(rows, 3, dtype=torch.float64)
     for lo in range(0, len(queries), 1 << 17):
@@ -113,25 +119,27 @@ def main() -> None:
     t = np.asarray(data.rgb[rows], np.float32)
     qt = torch.from_numpy(q)
     tables = {axis: fit(config, axis, qt, a, t) for axis in AXES}
+    tables["half_lum"] = fit(config, "half", qt, a, t, scalar=True)
     print(f"{args.model} on {args.data}: {len(rows):,} fit queries; the answers' mean / the estimator's, "
-          f"tables {', '.join(AXES)}", flush=True)
+          f"tables {', '.join(tables)} (half_lum: the half vector's axis, one gain a cell from the luminance)", flush=True)
     lum = np.array([0.2126, 0.7152, 0.0722])
     resolution = find_description(args.material).resolution
     for printout in args.printouts:
         level = int(re.search(r"footprint 2\^(\d+)", printout.read_text().splitlines()[0]).group(1))
         known = {key: est for key, (est, _) in read_estimates(printout).items()}
-        logs = {axis: [] for axis in AXES}
+        logs = {axis: [] for axis in tables}
         for light, phi, qq in configurations(list(known), level, resolution):
             raw = torch.from_numpy(model.run(qq).astype(np.float64))
             qqt = torch.from_numpy(qq)
             ratios = {}
-            for axis in AXES:
+            for name in tables:
+                axis = name.removesuffix("_lum")
                 index, weight = corners_of(config, axis, qqt[:, C.SIGMA], qqt[:, C.WI_X:C.WI_Y + 1], qqt[:, C.WO_X:C.WO_Y + 1])
-                gain = (tables[axis][index] * weight.double()[:, :, None]).sum(1)
-                ratios[axis] = float(((raw * gain).numpy() @ lum).mean() / known[light, phi])
-                logs[axis].append(abs(math.log(ratios[axis])))
-            print(f"  level {level} {light:5s} phi {phi:5.1f}: " + "  ".join(f"{ratios[x]:.3f}" for x in AXES), flush=True)
-        for axis in AXES:
+                gain = (tables[name][index] * weight.double()[:, :, None]).sum(1)
+                ratios[name] = float(((raw * gain).numpy() @ lum).mean() / known[light, phi])
+                logs[name].append(abs(math.log(ratios[name])))
+            print(f"  level {level} {light:5s} phi {phi:5.1f}: " + "  ".join(f"{ratios[x]:.3f}" for x in tables), flush=True)
+        for axis in tables:
             print(f"  level {level}, {axis}: mean |log(answer / estimator)| {np.mean(logs[axis]):.4f}, "
                   f"largest {np.max(logs[axis]):.4f}")
 
