@@ -191,6 +191,10 @@ class MaterialConfig:
     brighter along others; the 3-axis table pools them, so its gain is right on average and wrong along the axis a
     view happens to look (experiments/energy). The cells nearest the normal (the half vector's first angle bin) are
     one gain for every azimuth, so the gain stays continuous where the azimuth is undefined. Needs `energy_bins`."""
+    energy_luminance: bool = False
+    """One gain a cell of the energy table for the three channels (the ratio of the luminances' sums) instead of one
+    a channel: a third of the table's reads a light, the costliest stage of a render with `energy_azimuths` (three
+    lights a shading point, each reading its own 16 cells; benchmarks/README.md). Needs `energy_bins`."""
     coarse_decoder: int = 0
     """The level of detail K from which a second decoder, of the same shape and inputs, answers; 0: one decoder for
     every level. The answer is the first decoder's output blended into the second's by w = clamp(lod - K, 0, 1) (lod
@@ -239,6 +243,8 @@ class MaterialConfig:
         if self.energy_azimuths < 0 or self.energy_azimuths == 1 or (self.energy_azimuths and not self.energy_bins):
             raise ValueError(f"energy_azimuths must be 0 (none) or at least 2, with energy_bins, got "
                              f"{self.energy_azimuths} with energy_bins {self.energy_bins}")
+        if self.energy_luminance and not self.energy_bins:
+            raise ValueError("energy_luminance needs an energy table (energy_bins)")
         if not (isinstance(self.coarse_decoder, int) and (self.coarse_decoder == 0 or 0 < self.coarse_decoder < self.levels)):
             raise ValueError(f"coarse_decoder must be 0 (one decoder) or a level of detail below the coarsest "
                              f"({self.levels}), got {self.coarse_decoder!r}")
@@ -296,7 +302,7 @@ class MaterialConfig:
 
     def to_json(self) -> str:
         """The fields as JSON; each decoder input's switch, `base`, the relief's, `lod_bias`, `offset_mip`, `energy_bins`,
-        `energy_azimuths`, `coarse_decoder` and `ceiling` only when on, and `terminator` only when not "all", so that models made before each existed read as they did."""
+        `energy_azimuths`, `energy_luminance`, `coarse_decoder` and `ceiling` only when on, and `terminator` only when not "all", so that models made before each existed read as they did."""
         fields_ = asdict(self)
         for row in DECODER_INPUTS:
             if not getattr(self, row.switch):
@@ -317,6 +323,8 @@ class MaterialConfig:
             del fields_["energy_bins"]
         if not self.energy_azimuths:
             del fields_["energy_azimuths"]
+        if not self.energy_luminance:
+            del fields_["energy_luminance"]
         if not self.coarse_decoder:
             del fields_["coarse_decoder"]
         return json.dumps(fields_, sort_keys=True)

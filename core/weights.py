@@ -36,7 +36,8 @@ OFFSET_TEXTURE = "offset_texture"
 """The neural offset texture: one level at the finest resolution, or with `MaterialConfig.offset_mip` the rows of
 every level of its mip pyramid, finest first (the coarser levels derived from the finest, `pyramid.mip_levels`)."""
 ENERGY = "energy"
-"""The answers' energy table (`MaterialConfig.energy_bins` B, `energy_azimuths` A): a texture of RGB gains, row
+"""The answers' energy table (`MaterialConfig.energy_bins` B, `energy_azimuths` A): a texture of RGB gains (one gain
+with `energy_luminance`), row
 ``((B l + b) B + e) A + a`` for level of detail l, bin b of the half vector's angle, bin e of the light's elevation and
 bin a of the half vector's azimuth (A = 1 and a = 0 without that axis); 1 where the model needs none."""
 DECODER = "decoder"
@@ -146,9 +147,14 @@ def tie_normal_cells(table, config: MaterialConfig) -> None:
 
 
 def energy_shape(config: MaterialConfig) -> dict[str, tuple[int, int]]:
-    """The energy table's shape by name (`ENERGY`: (`energy_rows`, 3), every level's cells, a trimmed model's too),
+    """The energy table's shape by name (`ENERGY`: (`energy_rows`, `energy_channels`), every level's cells, a trimmed model's too),
     or nothing without one."""
-    return {ENERGY: (energy_rows(config), C.RGB_DIM)} if config.energy_bins else {}
+    return {ENERGY: (energy_rows(config), energy_channels(config))} if config.energy_bins else {}
+
+
+def energy_channels(config: MaterialConfig) -> int:
+    """The energy table's gains a cell: 3 (RGB), or 1 with `MaterialConfig.energy_luminance`."""
+    return 1 if config.energy_luminance else C.RGB_DIM
 
 
 def weight_shapes(config: MaterialConfig) -> dict[str, tuple[int, ...]]:

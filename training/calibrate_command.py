@@ -23,6 +23,9 @@ def register(sub: argparse._SubParsersAction) -> None:
                    "light's elevation (default: the model's, else 6)")
     p.add_argument("--azimuths", type=int, help="bins of the half vector's azimuth, the table's fourth axis "
                    "(MaterialConfig.energy_azimuths; 0: none; default: the model's where it has a table, else 16)")
+    p.add_argument("--luminance", action=argparse.BooleanOptionalAction, default=None,
+                   help="one gain a cell for the three channels, the luminances' ratio (MaterialConfig.energy_luminance: "
+                   "a third of the table's reads; default: the model's own)")
     p.add_argument("--seed", type=int, default=0, help="the training seed whose split the model was trained on")
     p.add_argument("--force", action="store_true", help="replace the output if it exists")
     p.set_defaults(func=_calibrate)
@@ -39,7 +42,8 @@ def _calibrate(args: argparse.Namespace) -> int:
     if args.output.exists() and not args.force:
         raise CommandError(f"{args.output} exists: pass --force to replace it, or choose another --output")
     try:
-        validation = calibrate_file(args.model, args.data, args.output, args.bins, args.seed, args.azimuths)
+        validation = calibrate_file(args.model, args.data, args.output, args.bins, args.seed, args.azimuths,
+                                    args.luminance)
     except (OSError, ValueError) as exc:  # a trimmed or unreadable model, a broken data set
         raise CommandError(f"cannot calibrate {args.model}: {exc}") from exc
     overall = validation["overall"]

@@ -97,6 +97,8 @@ def layouts(tmp_path_factory):
                                          offset_mip=True, energy_bins=6, coarse_decoder=2),
         "energy-azimuths": MaterialConfig(resolution=16, base=32, relief=32, lod_bias=1, half_textures=True,
                                           offset_mip=True, energy_bins=6, energy_azimuths=8),
+        "energy-luminance": MaterialConfig(resolution=16, base=32, relief=32, lod_bias=1, half_textures=True,
+                                           offset_mip=True, energy_bins=6, energy_azimuths=8, energy_luminance=True),
     }
     for seed, (name, cfg) in enumerate(configs.items()):
         save_onnx(build_onnx(cfg, random_weights(cfg, seed=seed)), folder / f"{name}.onnx")

@@ -2,7 +2,7 @@
 computes it: the table is a 3-D texture of RGB gains (level of detail, half-vector angle, light elevation; with
 `energy_azimuths` a 4-D one, the half vector's azimuth fourth), read per light as a texture is, its 8 (16) corner
 cells Gathered in one call and weighted multilinearly (the taps summed by a 0/1 MatMul: one order per row). The
-table is the initializer ``energy`` (`weights.energy_rows`, 3), every level's cells (a trimmed model keeps them all:
+table is the initializer ``energy`` (`weights.energy_rows`, 3, or 1 with `energy_luminance`), every level's cells (a trimmed model keeps them all:
 its level of detail is clamped at its finest level, so the answers above the cut keep their bits)."""
 
 from __future__ import annotations
@@ -64,7 +64,8 @@ def group_lod(g: GraphWriter, config: MaterialConfig, sigma: str, finest_level: 
 
 def energy_gain(g: GraphWriter, config: MaterialConfig, table: np.ndarray, sigma: str, wi: str, wo: str,
                 each_light, finest_level: int = 0, lod: str | None = None) -> str:
-    """The groups' sigma (N, 1), each light's wi and wo (K N, 2) -> the gains (K N, 3); `each_light` repeats a
+    """The groups' sigma (N, 1), each light's wi and wo (K N, 2) -> the gains (K N, 3), or (K N, 1) for a table of one
+    gain a cell (`MaterialConfig.energy_luminance`); `each_light` repeats a
     group's rows per light (`graph.material_graph`); ``lod``: the groups' `group_lod`, where the graph has it."""
     bins, top = config.energy_bins, float(config.energy_bins - 1)
     lod = each_light(lod or group_lod(g, config, sigma, finest_level))  # (K N, 1) in [K, L]
@@ -93,9 +94,11 @@ def energy_gain(g: GraphWriter, config: MaterialConfig, table: np.ndarray, sigma
     weight = g.op("MatMul", axes[0][1], g.const(pick[0]))
     for (_, w), p in zip(axes[1:], pick[1:]):
         weight = g.op("Mul", weight, g.op("MatMul", w, g.const(p)))  # (K N, corners)
-    n = len(corners)
+    n, c = len(corners), np.shape(table)[1]  # c: 3 gains a cell, or 1 (`MaterialConfig.energy_luminance`)
     cells = g.shape(g.op("Gather", g.const(np.asarray(table, np.float32), name=W.ENERGY), index, axis=0),
-                    [0, n * 3])  # (K N, 3 corners): corner-major, RGB
-    spread = np.kron(np.eye(n, dtype=np.float32), np.ones((1, 3), np.float32))  # (corners, 3 corners)
-    total = np.tile(np.eye(3, dtype=np.float32), (n, 1))  # (3 corners, 3)
-    return g.op("MatMul", g.op("Mul", cells, g.op("MatMul", weight, g.const(spread))), g.const(total))  # (K N, 3)
+                    [0, n * c])  # (K N, c corners): corner-major, RGB
+    if c == 1:
+        return g.op("MatMul", g.op("Mul", cells, weight), g.const(np.ones((n, 1), np.float32)))  # (K N, 1)
+    spread = np.kron(np.eye(n, dtype=np.float32), np.ones((1, c), np.float32))  # (corners, c corners)
+    total = np.tile(np.eye(c, dtype=np.float32), (n, 1))  # (c corners, c)
+    return g.op("MatMul", g.op("Mul", cells, g.op("MatMul", weight, g.const(spread))), g.const(total))  # (K N, c)

@@ -32,12 +32,13 @@ ENERGY_AZIMUTHS = RECIPES["maps"].material["energy_azimuths"]
 
 
 def calibrate_file(model_path: str | Path, data_path: str | Path, out: str | Path, bins: int | None = None,
-                   seed: int = 0, azimuths: int | None = None) -> dict:
+                   seed: int = 0, azimuths: int | None = None, luminance: bool | None = None) -> dict:
     """Write the model at `model_path` with its energy table fitted on the training split of the data set at
     `data_path` (`train.split_indices` with training seed `seed`, as `neumip train` split it) and its validation
     table recomputed on the held-out split. `bins`: the table's bins (default: the model's own, else `ENERGY_BINS`);
     `azimuths`: its azimuth bins (`MaterialConfig.energy_azimuths`, 0: none; default: the model's own where it has a
-    table, else `ENERGY_AZIMUTHS`). Returns
+    table, else `ENERGY_AZIMUTHS`); `luminance`: one gain a cell for the three channels
+    (`MaterialConfig.energy_luminance`; default: the model's own). Returns
     the new validation table. ValueError for a trimmed model (its fine levels are gone) or one whose config cannot
     take a table."""
     config, weights, meta, finest = read_model(onnx.load(str(model_path)), str(model_path))
@@ -45,7 +46,8 @@ def calibrate_file(model_path: str | Path, data_path: str | Path, out: str | Pat
         raise ValueError(f"{model_path} is trimmed (finest level {finest}): calibrate the whole model, then trim it")
     if azimuths is None:
         azimuths = config.energy_azimuths if config.energy_bins else ENERGY_AZIMUTHS
-    config = replace(config, energy_bins=bins or config.energy_bins or ENERGY_BINS, energy_azimuths=azimuths)
+    config = replace(config, energy_bins=bins or config.energy_bins or ENERGY_BINS, energy_azimuths=azimuths,
+                     energy_luminance=config.energy_luminance if luminance is None else luminance)
     data = open_dataset(data_path)
     train_idx, held_idx = split_indices(len(data), TrainConfig(seed=seed))
     rows = fit_rows(train_idx, seed)

@@ -33,7 +33,7 @@ import numpy as np
 import torch
 
 from neumip.core.config import MaterialConfig
-from neumip.core.weights import energy_rows
+from neumip.core.weights import energy_channels, energy_rows
 from neumip.training.model.base import half_direction, lift
 from neumip.training.model.pyramid import level_of_detail
 
@@ -41,6 +41,8 @@ ENERGY_PRIOR = 256.0
 """Queries' worth of answers that are right (gain 1) added to every cell of the ratio (`fit_energy`)."""
 FIT_CHUNK = 1 << 17
 """Queries a fit spreads over their cells at a time (`energy_sums`: up to 16 cells x 6 sums each, float64)."""
+LUMINANCE = (0.2126, 0.7152, 0.0722)
+"""Rec. 709 luminance weights: the one gain of `MaterialConfig.energy_luminance` is the ratio of the luminances."""
 ENERGY_RANGE = (0.25, 4.0)
 """The gains a fit may give (a cell the data barely reach cannot swing an answer further)."""
 
@@ -101,7 +103,8 @@ def corners(config: MaterialConfig, sigma: torch.Tensor, wi: torch.Tensor, wo: t
 
 def energy_gain(table: torch.Tensor, config: MaterialConfig, sigma: torch.Tensor, wi: torch.Tensor,
                 wo: torch.Tensor) -> torch.Tensor:
-    """The table (`weights.energy_rows`, 3) at the queries (sigma (N,), wi, wo (N, 2)) -> (N, 3) gains."""
+    """The table (`weights.energy_rows`, K) at the queries (sigma (N,), wi, wo (N, 2)) -> (N, K) gains (K = 1: one for
+    the three channels, `MaterialConfig.energy_luminance`)."""
     index, weight = corners(config, sigma, wi, wo)
     return (table[index] * weight[:, :, None]).sum(1)
 
@@ -116,29 +119,34 @@ def fit_energy(config: MaterialConfig, queries: torch.Tensor, answers: torch.Ten
     out."""
     keep = torch.isfinite(targets).all(1) & torch.isfinite(answers).all(1)
     queries, answers, targets = queries[keep], answers[keep].double(), targets[keep].double()
+    if config.energy_luminance:  # one gain a cell: the luminances' ratio
+        lum = torch.tensor(LUMINANCE, dtype=torch.float64)
+        answers, targets = (answers @ lum)[:, None], (targets @ lum)[:, None]
+    n = energy_channels(config)
     sums = energy_sums(config, queries, answers, targets)
     sums[:, 0] = sums[:, 0].sum(2, keepdim=True)  # the normal's bin: one sum for every azimuth
-    mean = answers.mean(0) if len(answers) else torch.ones(3, dtype=torch.float64)
-    table = (sums[..., 0:3] + prior * mean) / (sums[..., 3:6] + prior * mean)
-    return torch.nan_to_num(table.reshape(-1, 3), nan=1.0).clamp(*ENERGY_RANGE).float()
+    mean = answers.mean(0) if len(answers) else torch.ones(n, dtype=torch.float64)
+    table = (sums[..., :n] + prior * mean) / (sums[..., n:] + prior * mean)
+    return torch.nan_to_num(table.reshape(-1, n), nan=1.0).clamp(*ENERGY_RANGE).float()
 
 
 def energy_sums(config: MaterialConfig, queries: torch.Tensor, answers: torch.Tensor, targets: torch.Tensor,
                 ) -> torch.Tensor:
-    """Each cell's sums over the (N, 7) queries, float64 (L + 1, B, B, A, 6) (A = 1 without the azimuth axis): sum w t
-    and sum w a per channel, w a query's weight in the cell (`corners`). In chunks of `FIT_CHUNK` queries (a query
-    spreads over up to 16 cells)."""
+    """Each cell's sums over the (N, 7) queries, float64 (L + 1, B, B, A, 2 K) (A = 1 without the azimuth axis): sum w t
+    and sum w a per channel of the (N, K) targets and answers, w a query's weight in the cell (`corners`). In chunks
+    of `FIT_CHUNK` queries (a query spreads over up to 16 cells)."""
     from neumip.core import contract as C
 
-    sums = torch.zeros(energy_rows(config), 6, dtype=torch.float64)
+    width = 2 * targets.shape[1]
+    sums = torch.zeros(energy_rows(config), width, dtype=torch.float64)
     for lo in range(0, len(queries), FIT_CHUNK):
         part = queries[lo:lo + FIT_CHUNK]
         index, weight = corners(config, part[:, C.SIGMA], part[:, C.WI_X : C.WI_Y + 1], part[:, C.WO_X : C.WO_Y + 1])
         values = torch.cat([targets[lo:lo + FIT_CHUNK], answers[lo:lo + FIT_CHUNK]], 1).double()
-        sums.index_add_(0, index.reshape(-1), (weight.double()[:, :, None] * values[:, None, :]).reshape(-1, 6))
-    return sums.reshape(config.levels + 1, config.energy_bins, config.energy_bins, max(config.energy_azimuths, 1), 6)
+        sums.index_add_(0, index.reshape(-1), (weight.double()[:, :, None] * values[:, None, :]).reshape(-1, width))
+    return sums.reshape(config.levels + 1, config.energy_bins, config.energy_bins, max(config.energy_azimuths, 1), width)
 
 
 def ones_table(config: MaterialConfig) -> np.ndarray:
-    """The table of a model that needs no gain (`weights.energy_rows`, 3): every gain 1."""
-    return np.ones((energy_rows(config), 3), np.float32)
+    """The table of a model that needs no gain (`weights.energy_rows`, `weights.energy_channels`): every gain 1."""
+    return np.ones((energy_rows(config), energy_channels(config)), np.float32)

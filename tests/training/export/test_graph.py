@@ -47,6 +47,8 @@ PARITY_CASES = {
     "energy-azimuths": dict(base=64, relief=64, local_frame=True, terminator="none", lod_bias=1, half_textures=True,
                             offset_mip=True, energy_bins=6, energy_azimuths=8),
     "energy-azimuths-alone": dict(energy_bins=2, energy_azimuths=3),
+    "energy-luminance": dict(base=64, relief=64, local_frame=True, terminator="none", lod_bias=1, half_textures=True,
+                             offset_mip=True, energy_bins=6, energy_azimuths=8, energy_luminance=True),
     "coarse-decoder": dict(base=64, relief=64, local_frame=True, terminator="none", lod_bias=1, half_textures=True,
                            offset_mip=True, energy_bins=6, coarse_decoder=2),
     "coarse-decoder-alone": dict(coarse_decoder=3),

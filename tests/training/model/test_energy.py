@@ -10,7 +10,8 @@ from neumip.core import contract as C
 from neumip.core.config import MaterialConfig
 from neumip.core.contract import random_queries
 from neumip.training.model.base import half_direction, lift
-from neumip.training.model.energy import ENERGY_RANGE, azimuth_coordinate, corners, energy_gain, fit_energy
+from neumip.core.weights import energy_rows
+from neumip.training.model.energy import ENERGY_RANGE, LUMINANCE, azimuth_coordinate, corners, energy_gain, fit_energy
 
 CFG = MaterialConfig(resolution=16, lod_bias=1, energy_bins=5)
 
@@ -140,3 +141,20 @@ def test_a_fit_in_chunks_gives_the_table_of_one_pass(monkeypatch):
     whole = fit_energy(AZ, q, answers, targets)
     monkeypatch.setattr(energy, "FIT_CHUNK", 999)
     assert torch.allclose(fit_energy(AZ, q, answers, targets), whole, rtol=1e-6)
+
+
+def test_a_luminance_table_holds_one_gain_a_cell_the_luminances_ratio():
+    lum_cfg = MaterialConfig(resolution=16, lod_bias=1, energy_bins=5, energy_azimuths=8, energy_luminance=True)
+    q = torch.from_numpy(random_queries(20000, seed=8))
+    answers = torch.rand(20000, 3, dtype=torch.float64) + 0.1
+    gain = torch.tensor([1.5, 1.0, 0.5], dtype=torch.float64)  # the channels' gains differ; their luminance is one
+    table = fit_energy(lum_cfg, q, answers, answers * gain, prior=0.0)
+    assert table.shape == (energy_rows(lum_cfg), 1)
+    lum = torch.tensor(LUMINANCE, dtype=torch.float64)
+    want = (answers * gain) @ lum / (answers @ lum)  # each query's luminance ratio: the cells' lie between its extremes
+    reached = table[:, 0] != 1
+    assert reached.sum() > 10 and bool(((table[reached, 0] >= want.min() - 1e-5) & (table[reached, 0] <= want.max() + 1e-5)).all())
+    assert energy_gain(table, lum_cfg, *columns(q.numpy())).shape == (20000, 1)
+    with pytest.raises(ValueError, match="energy_luminance"):
+        MaterialConfig(energy_luminance=True)
+    assert '"energy_luminance": true' in lum_cfg.to_json() and "energy_luminance" not in AZ.to_json()
