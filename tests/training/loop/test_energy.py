@@ -120,3 +120,27 @@ def test_calibrating_with_azimuths_adds_the_fourth_axis_and_the_files_answers_fo
     table3 = next(onnx.numpy_helper.to_array(t) for t in onnx.load(tmp_path / "plain.onnx").graph.initializer
                   if t.name == W.ENERGY)
     assert table3.shape == (5 * 9, 3) and plain["overall"]["n"] == len(split_indices(len(data), TEST)[1])
+
+
+def test_calibrating_with_luminance_keeps_one_gain_a_cell_and_the_files_answers_stay_grey_scaled(data, plain_model,
+                                                                                                tmp_path):
+    """`--luminance`: one gain a cell; the file's answers are its answers without a table times one number each."""
+    from neumip.client.cli import main
+    from neumip.engines.local import load_material
+
+    out = tmp_path / "luminance.onnx"
+    assert main(["calibrate", str(plain_model), "--data", str(data.path), "-o", str(out), "--bins", "3",
+                 "--azimuths", "4", "--luminance"]) == 0
+    model = onnx.load(out)
+    config = json.loads({p.key: p.value for p in model.metadata_props}[C.META_CONFIG])
+    assert config["energy_luminance"] is True
+    table = next(onnx.numpy_helper.to_array(t) for t in model.graph.initializer if t.name == W.ENERGY)
+    assert table.shape == (5 * 9 * 4, 1) and not np.allclose(table, 1.0)
+    calibrate_file(out, data.path, tmp_path / "again.onnx")  # calibrated again: the model's own option kept
+    again = onnx.load(tmp_path / "again.onnx")
+    assert json.loads({p.key: p.value for p in again.metadata_props}[C.META_CONFIG])["energy_luminance"] is True
+    queries = np.asarray(data.queries[:2000], np.float32)
+    with_table = load_material(out).run(queries)
+    ratio = with_table / np.maximum(load_material(plain_model).run(queries), 1e-12)
+    lit = (with_table > 1e-4).all(1)
+    assert lit.sum() > 100 and np.allclose(ratio[lit], ratio[lit][:, :1], rtol=1e-4)  # one gain for the three
