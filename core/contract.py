@@ -61,6 +61,8 @@ RGB_FIELDS = ("r", "g", "b")
 
 QUERY_DIM = len(QUERY_FIELDS)
 RGB_DIM = len(RGB_FIELDS)
+LUMINANCE = (0.2126, 0.7152, 0.0722)
+"""Rec. 709 luminance of linear RGB answers: the weights of R, G, B."""
 DTYPE = np.dtype("<f4")
 """Little-endian float32: the wire and in-memory type of queries and answers."""
 

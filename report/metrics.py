@@ -10,13 +10,16 @@ from dataclasses import asdict, dataclass
 
 import numpy as np
 
+from neumip.core import contract as C
+
 MIDDLE_GREY = 0.25
 """Linear value the reference's mean luminance is mapped to before the sRGB curve."""
 
 
 def luminance(img: np.ndarray) -> np.ndarray:
     """(H, W, 3) linear RGB -> (H, W) luminance (Rec. 709)."""
-    return img[..., 0] * 0.2126 + img[..., 1] * 0.7152 + img[..., 2] * 0.0722
+    r, g, b = C.LUMINANCE
+    return img[..., 0] * r + img[..., 1] * g + img[..., 2] * b
 
 
 def exposure_for(reference: np.ndarray) -> float:

@@ -32,7 +32,7 @@ def _queries(uv: np.ndarray, sigma, wi: tuple[float, float], wo) -> np.ndarray:
 
 
 def _mean_lum(rgb: np.ndarray) -> np.ndarray:
-    return rgb @ np.array([0.2126, 0.7152, 0.0722])
+    return rgb @ np.array(C.LUMINANCE)
 
 
 def grazing_sweep(evaluate, points: int) -> dict:
@@ -143,7 +143,7 @@ def horizon_scene(mi, film, material_bsdf, integrator: str, theta: float = 80.0,
 def row_banding(image: np.ndarray) -> dict:
     """Bands or pops between levels show as jumps in the rows' mean luminance: the largest relative
     jump between neighbouring rows (over the plane's rows), against the median jump."""
-    lum = image[..., :3] @ np.array([0.2126, 0.7152, 0.0722])
+    lum = image[..., :3] @ np.array(C.LUMINANCE)
     rows = lum.mean(axis=1)
     keep = rows > 0.05 * np.median(rows)
     rows = rows[keep] if keep.sum() > 4 else rows

@@ -29,7 +29,6 @@ import torch
 sys.path.insert(0, str(Path(__file__).parent))
 
 AXES = ("none", "half", "light", "view")
-LUMINANCE = (0.2126, 0.7152, 0.0722)
 
 
 def corners_of(config, axis: str, sigma, wi, wo):
@@ -65,6 +64,8 @@ def fit(config, axis, queries, answers, targets, prior=256.0, scalar=False):
 
     a, t = torch.as_tensor(answers, dtype=torch.float64), torch.as_tensor(targets, dtype=torch.float64)
     if scalar:  # the luminance in every channel: the three gains come out equal
+        from neumip.core.contract import LUMINANCE
+
         lum = torch.tensor(LUMINANCE, dtype=torch.float64)
         a, t = (a @ lum)[:, None].expand(-1, 3), (t @ lum)[:, None].expand(-1, 3)
     rows = (config.levels + 1) * config.energy_bins**2 * (config.energy_azimuths if axis != "none" else 1)

@@ -42,6 +42,7 @@ import math
 import numpy as np
 import torch
 
+from neumip.core import contract as C
 from neumip.core.config import (BASE_ALPHA2_FLOOR, BASE_AZIMUTH_FLOOR, BASE_AZIMUTH_KERNEL, BASE_AZIMUTHS,
                                 BASE_CHANNELS, BASE_COS_FLOOR, BASE_HORIZONS, BASE_LOG_CEILING, BASE_SHADOW_SOFTNESS,
                                 BASE_WI_FLOOR, HALF_FLOOR, MaterialConfig)
@@ -110,7 +111,7 @@ def keep_energy(levels: list[np.ndarray], pairs: int = ENERGY_PAIRS, seed: int =
     answer keeps their mean energy. Scaling F0 scales the specular term but for Schlick's grazing part."""
     res = levels[0].shape[0]
     wi, wo = energy_pairs(res * res * pairs, seed)
-    luminance = torch.tensor([0.2126, 0.7152, 0.0722], dtype=torch.float64)
+    luminance = torch.tensor(C.LUMINANCE, dtype=torch.float64)
 
     def answers(level: np.ndarray) -> torch.Tensor:
         """(res, res) sums of each finest texel's pairs, answered by `level`'s texel that covers it."""

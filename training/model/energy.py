@@ -32,6 +32,7 @@ import math
 import numpy as np
 import torch
 
+from neumip.core import contract as C
 from neumip.core.config import MaterialConfig
 from neumip.core.weights import energy_channels, energy_rows
 from neumip.training.model.base import half_direction, lift
@@ -41,8 +42,6 @@ ENERGY_PRIOR = 256.0
 """Queries' worth of answers that are right (gain 1) added to every cell of the ratio (`fit_energy`)."""
 FIT_CHUNK = 1 << 17
 """Queries a fit spreads over their cells at a time (`energy_sums`: up to 16 cells x 6 sums each, float64)."""
-LUMINANCE = (0.2126, 0.7152, 0.0722)
-"""Rec. 709 luminance weights: the one gain of `MaterialConfig.energy_luminance` is the ratio of the luminances."""
 ENERGY_RANGE = (0.25, 4.0)
 """The gains a fit may give (a cell the data barely reach cannot swing an answer further)."""
 
@@ -113,14 +112,15 @@ def energy_gain(table: torch.Tensor, config: MaterialConfig, sigma: torch.Tensor
 def fit_energy(config: MaterialConfig, queries: torch.Tensor, answers: torch.Tensor, targets: torch.Tensor,
                prior: float = ENERGY_PRIOR) -> torch.Tensor:
     """(N, 7) single queries, the model's answers without a table (N, 3) and the data's targets (N, 3) -> the table
-    (`weights.energy_rows`, 3) whose cell holds, per channel, (sum w t + prior m) / (sum w a + prior m): w a query's
+    (`weights.energy_rows`, `weights.energy_channels`) whose cell holds, per channel (or for the luminances, with
+    `energy_luminance`), (sum w t + prior m) / (sum w a + prior m): w a query's
     weight in the cell (`corners`), m the answers' mean (float64 sums, `energy_sums`); with the azimuth axis, the
     sums of the first half-vector bin's cells are pooled over the azimuths. Rows with a non-finite value are left
     out."""
     keep = torch.isfinite(targets).all(1) & torch.isfinite(answers).all(1)
     queries, answers, targets = queries[keep], answers[keep].double(), targets[keep].double()
     if config.energy_luminance:  # one gain a cell: the luminances' ratio
-        lum = torch.tensor(LUMINANCE, dtype=torch.float64)
+        lum = torch.tensor(C.LUMINANCE, dtype=torch.float64)
         answers, targets = (answers @ lum)[:, None], (targets @ lum)[:, None]
     n = energy_channels(config)
     sums = energy_sums(config, queries, answers, targets)
@@ -135,8 +135,6 @@ def energy_sums(config: MaterialConfig, queries: torch.Tensor, answers: torch.Te
     """Each cell's sums over the (N, 7) queries, float64 (L + 1, B, B, A, 2 K) (A = 1 without the azimuth axis): sum w t
     and sum w a per channel of the (N, K) targets and answers, w a query's weight in the cell (`corners`). In chunks
     of `FIT_CHUNK` queries (a query spreads over up to 16 cells)."""
-    from neumip.core import contract as C
-
     width = 2 * targets.shape[1]
     sums = torch.zeros(energy_rows(config), width, dtype=torch.float64)
     for lo in range(0, len(queries), FIT_CHUNK):

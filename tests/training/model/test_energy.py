@@ -11,7 +11,7 @@ from neumip.core.config import MaterialConfig
 from neumip.core.contract import random_queries
 from neumip.training.model.base import half_direction, lift
 from neumip.core.weights import energy_rows
-from neumip.training.model.energy import ENERGY_RANGE, LUMINANCE, azimuth_coordinate, corners, energy_gain, fit_energy
+from neumip.training.model.energy import ENERGY_RANGE, azimuth_coordinate, corners, energy_gain, fit_energy
 
 CFG = MaterialConfig(resolution=16, lod_bias=1, energy_bins=5)
 
@@ -150,7 +150,7 @@ def test_a_luminance_table_holds_one_gain_a_cell_the_luminances_ratio():
     gain = torch.tensor([1.5, 1.0, 0.5], dtype=torch.float64)  # the channels' gains differ; their luminance is one
     table = fit_energy(lum_cfg, q, answers, answers * gain, prior=0.0)
     assert table.shape == (energy_rows(lum_cfg), 1)
-    lum = torch.tensor(LUMINANCE, dtype=torch.float64)
+    lum = torch.tensor(C.LUMINANCE, dtype=torch.float64)
     want = (answers * gain) @ lum / (answers @ lum)  # each query's luminance ratio: the cells' lie between its extremes
     reached = table[:, 0] != 1
     assert reached.sum() > 10 and bool(((table[reached, 0] >= want.min() - 1e-5) & (table[reached, 0] <= want.max() + 1e-5)).all())
