@@ -25,7 +25,7 @@ from onnx import TensorProto, numpy_helper
 
 from neumip.core import contract as C
 
-from neumip.engines.onnx_ops import OPERATORS, GraphError, Lanes, Ops, lift, objects
+from neumip.engines.onnx_ops import OPERATORS, GraphError, Lanes, Ops, lift, objects, packed_table
 
 log = logging.getLogger(__name__)
 
@@ -63,11 +63,9 @@ class LaneGraph:
             if constants[name].dtype not in (np.float32, np.float16):
                 raise GraphError(f"computed indices read the table {name!r} of {constants[name].dtype} "
                                  "(only float32 and float16 tables)")
-        # float16 tables (the export's with `half_textures`, whose reads are cast to float32) stay float16: a read
-        # converts its values to float32, exactly, so the answers are those of float32 tables, at half the memory
-        self.tables = [(backend.Float16 if constants[name].dtype == np.float16 else backend.Float)(
-                       np.ascontiguousarray(constants[name]).ravel()) for name in self.table_names]
-        """The constants that computed indices read (textures), flat: the frozen function's inputs."""
+        self.tables = [packed_table(backend, constants[name]) for name in self.table_names]
+        """The constants that computed indices read (textures), flat, their rows padded (`packed_table`): the frozen
+        function's inputs."""
         self.table_shapes = [constants[name].shape for name in self.table_names]
         other = {name for n in self.nodes for i, name in enumerate(n.input) if i or n.op_type != "Gather"}
         self.constants = {name: constants[name] for name in other | {C.ONNX_OUTPUT} if name in constants}

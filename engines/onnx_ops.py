@@ -280,13 +280,18 @@ class Ops:
             raise GraphError("computed indices must read a constant table along its first axis")
         table, shape = self.tables[node.input[0]]
         rows, width = shape[0], int(np.prod(shape[1:], dtype=np.int64))
+        stride = row_stride(width)  # the stored row (`packed_table`)
         jit = self.jit
+        row_type = jit.ArrayXf16 if type(table) is jit.Float16 else jit.ArrayXf
 
         def read(index):
             index = jit.Int32(index)
             index = dr.select(index < 0, index + rows, index)  # -1: the last row
-            start = jit.UInt32(dr.clip(index, 0, rows - 1)) * width  # out of range: ONNX Runtime refuses
-            return [jit.Float(dr.gather(type(table), table, start + i)) for i in range(width)]  # float16: exact
+            row = jit.UInt32(dr.clip(index, 0, rows - 1))  # out of range: ONNX Runtime refuses
+            if stride == 1:
+                return [jit.Float(dr.gather(type(table), table, row))]
+            values = dr.gather(row_type, table, row, shape=(stride, dr.width(row)))  # packet loads
+            return [jit.Float(values[i]) for i in range(width)]  # float16: exact
 
         values = [value for index in indices.cells.ravel() for value in read(index)]
         return Lanes(objects(indices.cells.shape + tuple(shape[1:]), values), indices.axis)
@@ -395,6 +400,22 @@ class Ops:
                 raise GraphError(f"a Squeeze of axis {a}, of length {shape[a]}")
         kept = [d for i, d in enumerate(shape) if i not in axes]
         return self.Reshape(node, x, objects((len(kept),), kept), allowzero=1)
+
+
+def row_stride(width: int) -> int:
+    """The stored length of a table's row of `width` values: the next power of two, so that a row is read by
+    drjit's packet gathers (a few vector loads a lane) instead of one gather a value."""
+    return 1 << max(int(width) - 1, 0).bit_length()
+
+
+def packed_table(backend: ModuleType, table: np.ndarray):
+    """A constant table (rows, ...) as a flat drjit array, each row padded with zeros to `row_stride` values.
+    float16 tables (the export's with `half_textures`, whose reads are cast to float32) stay float16: a read converts
+    its values to float32, exactly, so the answers are those of float32 tables, at half the memory."""
+    rows = np.ascontiguousarray(table).reshape(len(table), -1)
+    padded = np.zeros((len(rows), row_stride(rows.shape[1])), rows.dtype)
+    padded[:, :rows.shape[1]] = rows
+    return (backend.Float16 if table.dtype == np.float16 else backend.Float)(padded.ravel())
 
 
 def _product(a, b):

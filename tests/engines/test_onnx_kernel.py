@@ -15,12 +15,13 @@ import pytest
 
 pytest.importorskip("neumip.engines.kernel")  # drjit, after the libLLVM check
 
+import drjit as dr  # noqa: E402
 from drjit.llvm.ad import Float  # noqa: E402
 from onnx import TensorProto, helper, numpy_helper  # noqa: E402
 
 from neumip.engines.kernel import KernelMaterial  # noqa: E402
 from neumip.engines.local import ModelError  # noqa: E402
-from neumip.engines.onnx_ops import Dim, GraphError, Lanes, Ops, objects  # noqa: E402
+from neumip.engines.onnx_ops import Dim, GraphError, Lanes, Ops, objects, packed_table, row_stride  # noqa: E402
 from neumip.core import contract as C  # noqa: E402
 
 N = 3
@@ -173,6 +174,31 @@ def test_computed_negative_indices_count_from_the_table_s_end(tmp_path):
     got, want = against_onnx_runtime(tmp_path, nodes, table=table, zero=ints(0), one=ints(1), axes=ints(1),
                                      shape=ints(-1, 3))
     np.testing.assert_array_equal(got, want)
+
+
+@pytest.mark.parametrize("row", [(1,), (3,), (4,), (2, 3), (28,), (32,)])
+@pytest.mark.parametrize("dtype", [np.float32, np.float16])
+def test_a_table_s_rows_read_whole_are_onnx_runtime_s(tmp_path, row, dtype):
+    """A table's rows are stored padded to a power of two and read by packet gathers (`onnx_ops.packed_table`):
+    the first, a middle and the last value of each row read are ONNX Runtime's, in every width and type."""
+    width = int(np.prod(row))
+    nodes = [helper.make_node("Slice", ["queries", "zero", "one", "axes"], ["u"]),  # (N, 1) in [-3, 3]
+             helper.make_node("Add", ["u", "three"], ["shifted"]),
+             helper.make_node("Mul", ["shifted", "scale"], ["scaled"]),
+             helper.make_node("Cast", ["scaled"], ["index"], to=7),  # INT64 rows in [0, 299]
+             helper.make_node("Gather", ["table", "index"], ["rows"]),  # (N, 1, *row)
+             helper.make_node("Reshape", ["rows", "flat"], ["values"]),  # (N, width)
+             helper.make_node("Gather", ["values", "pick"], ["picked"], axis=1),  # (N, 3)
+             helper.make_node("Cast", ["picked"], ["rgb"], to=TensorProto.FLOAT)]
+    table = np.random.default_rng(1).standard_normal((300, *row)).astype(dtype)
+    got, want = against_onnx_runtime(tmp_path, nodes, table=table, zero=ints(0), one=ints(1), axes=ints(1),
+                                     three=np.float32(3.0), scale=np.float32(49.9), flat=ints(-1, width),
+                                     pick=ints(0, width // 2, width - 1))
+    np.testing.assert_array_equal(got, want)
+    assert len(np.unique(got[:, 0])) > 100  # many rows read
+    stored = np.asarray(packed_table(dr.llvm.ad, table)).reshape(300, -1)  # rows of 1, 4, 4, 8, 32, 32
+    assert stored.shape[1] == row_stride(width) == 2 ** int(np.ceil(np.log2(width)))
+    np.testing.assert_array_equal(stored[:, :width], table.reshape(300, width))
 
 
 def test_integer_lanes_divide_and_rectify_as_integers(tmp_path):
