@@ -175,9 +175,12 @@ class KernelMaterial:
             row = dr.arange(jit.UInt32, len(queries)) * width
             columns = [dr.gather(jit.Float, flat, row + i) for i in range(width)]
             rgb = [c for answer in self.answers(columns) for c in answer]
-            dr.eval(rgb)
-            answers = np.stack([np.asarray(c) for c in rgb], axis=1)
-            del flat, row, columns, rgb  # freed under the lock too
+            out = dr.zeros(jit.Float, len(queries) * len(rgb))  # the answers scattered row-major in the kernel
+            place = dr.arange(jit.UInt32, len(queries)) * len(rgb)
+            for j, c in enumerate(rgb):
+                dr.scatter(out, c, place + j)
+            answers = np.array(out).reshape(len(queries), len(rgb))  # one copy out of drjit memory
+            del flat, row, columns, rgb, out, place  # freed under the lock too
         return answers
 
     def _trace(self, tables: list[Float], columns: list[Float]) -> list[Float]:
