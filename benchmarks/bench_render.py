@@ -27,7 +27,8 @@ process's too.
 
 Both integrators run at the same spp, ``max_depth`` and ``rr_depth``. Section ``stages`` renders the same
 neural plane with the model as is and without each of its stages (the relief, half its steps, the neural
-offset, the local frame, the classical base: the same weights, the graph of the config without the stage), and with the same
+offset, the local frame, the classical base, the energy table's azimuth axis (its cells averaged over the azimuths), the
+energy table: the same weights, the graph of the config without the stage), and with the same
 material from the ``--compare`` folders (another export of it), interleaved with the reference geometry, each
 round in another order: what each stage costs, as a share of the geometry's time. Section ``demo`` renders the
 demo scene in-process (both engines; in the kernels also with one emitter chosen) and through a real `neumip serve` process and prints the HTTP /
@@ -310,6 +311,10 @@ def stage_variants(model_path: Path, folder: Path) -> dict[str, Path]:
         configs["no visibility input"] = replace(config, visibility_input=False)
     if config.base:  # the decoder's additive outputs answer alone
         configs["no classical base"] = replace(config, base=0, local_frame=False, terminator="all", visibility_input=False)
+    if config.energy_azimuths:  # the table's cells averaged over the azimuths
+        configs["energy table without azimuths"] = replace(config, energy_azimuths=0)
+    if config.energy_bins:
+        configs["no energy table"] = replace(config, energy_bins=0, energy_azimuths=0, energy_luminance=False)
     out = {}
     columns, first = {}, config.channels  # each optional input's first-layer columns of the decoder
     for row in config.decoder_inputs():
@@ -321,6 +326,11 @@ def stage_variants(model_path: Path, folder: Path) -> dict[str, Path]:
         if drop:
             keep = [i for i in range(weights[W.weight(W.DECODER, 0)].shape[1]) if i not in drop]
             w[W.weight(W.DECODER, 0)] = weights[W.weight(W.DECODER, 0)][:, keep]
+        if cfg.energy_bins < config.energy_bins:
+            del w[W.ENERGY]
+        elif cfg.energy_azimuths < config.energy_azimuths:
+            table = w[W.ENERGY]
+            w[W.ENERGY] = table.reshape(-1, config.energy_azimuths, table.shape[1]).mean(1).astype(np.float32)
         if config.base and not cfg.base:
             last = config.layers - 1
             w[W.weight(W.DECODER, last)] = w[W.weight(W.DECODER, last)][3:]

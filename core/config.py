@@ -193,8 +193,9 @@ class MaterialConfig:
     one gain for every azimuth, so the gain stays continuous where the azimuth is undefined. Needs `energy_bins`."""
     energy_luminance: bool = False
     """One gain a cell of the energy table for the three channels (the ratio of the luminances' sums) instead of one
-    a channel: a third of the table's reads a light, the costliest stage of a render with `energy_azimuths` (three
-    lights a shading point, each reading its own 16 cells; benchmarks/README.md). Needs `energy_bins`."""
+    a channel: a third of the table's values read a light (three lights a shading point, each reading its own 16
+    cells; benchmarks/README.md: since the kernel reads a cell's row whole, the table costs a render little either
+    way). Needs `energy_bins`."""
     coarse_decoder: int = 0
     """The level of detail K from which a second decoder, of the same shape and inputs, answers; 0: one decoder for
     every level. The answer is the first decoder's output blended into the second's by w = clamp(lod - K, 0, 1) (lod
