@@ -413,9 +413,24 @@ def packed_table(backend: ModuleType, table: np.ndarray):
     float16 tables (the export's with `half_textures`, whose reads are cast to float32) stay float16: a read converts
     its values to float32, exactly, so the answers are those of float32 tables, at half the memory."""
     rows = np.ascontiguousarray(table).reshape(len(table), -1)
-    padded = np.zeros((len(rows), row_stride(rows.shape[1])), rows.dtype)
+    padded = aligned_zeros((len(rows), row_stride(rows.shape[1])), rows.dtype)
     padded[:, :rows.shape[1]] = rows
     return (backend.Float16 if table.dtype == np.float16 else backend.Float)(padded.ravel())
+
+
+TABLE_ALIGNMENT = 64
+"""Bytes a table's first value is aligned to. drjit maps a numpy array's memory without copying it, and on the LLVM
+backend reads it with packet gathers only where it is aligned to a vector of lanes (16 x 4 bytes with AVX-512);
+numpy aligns to 16 bytes, so without this a table's rows were read whole or one value at a time by chance."""
+
+
+def aligned_zeros(shape: tuple, dtype) -> np.ndarray:
+    """np.zeros(shape, dtype) whose data start at a multiple of `TABLE_ALIGNMENT` bytes (a view of a larger buffer,
+    which it keeps alive)."""
+    size = int(np.prod(shape, dtype=np.int64)) * np.dtype(dtype).itemsize
+    raw = np.zeros(size + TABLE_ALIGNMENT, np.uint8)
+    start = -raw.ctypes.data % TABLE_ALIGNMENT
+    return raw[start:start + size].view(dtype).reshape(shape)
 
 
 def _product(a, b):

@@ -21,7 +21,8 @@ from onnx import TensorProto, helper, numpy_helper  # noqa: E402
 
 from neumip.engines.kernel import KernelMaterial  # noqa: E402
 from neumip.engines.local import ModelError  # noqa: E402
-from neumip.engines.onnx_ops import Dim, GraphError, Lanes, Ops, objects, packed_table, row_stride  # noqa: E402
+from neumip.engines.onnx_ops import (Dim, GraphError, Lanes, Ops, aligned_zeros, objects, packed_table,  # noqa: E402
+                                     row_stride)
 from neumip.core import contract as C  # noqa: E402
 
 N = 3
@@ -199,6 +200,34 @@ def test_a_table_s_rows_read_whole_are_onnx_runtime_s(tmp_path, row, dtype):
     stored = np.asarray(packed_table(dr.llvm.ad, table)).reshape(300, -1)  # rows of 1, 4, 4, 8, 32, 32
     assert stored.shape[1] == row_stride(width) == 2 ** int(np.ceil(np.log2(width)))
     np.testing.assert_array_equal(stored[:, :width], table.reshape(300, width))
+
+
+def test_every_table_read_is_a_packet_load():
+    """The tables are aligned (`onnx_ops.aligned_zeros`), so drjit reads every row whole: the kernel of a read of
+    tables of each width and type has packet loads and no per-value gather (drjit reads a table mapped from numpy
+    memory one value at a time where it is not aligned to a vector of lanes)."""
+    import re
+
+    rng = np.random.default_rng(2)
+    tables = [packed_table(dr.llvm.ad, rng.standard_normal((500, w)).astype(t))
+              for w in (2, 3, 4, 24, 28) for t in (np.float32, np.float16) for _ in range(3)]
+    assert all(aligned_zeros((7, w), t).ctypes.data % 64 == 0 for w in (1, 3, 28) for t in (np.float32, np.float16))
+    rows = dr.llvm.ad.UInt32(rng.integers(0, 500, 1000).astype(np.uint32))
+    dr.eval(tables, rows)
+    ops = Ops(dr.llvm.ad, {f"t{i}": (t, (500, w)) for i, (t, w) in
+                           enumerate(zip(tables, [w for w in (2, 3, 4, 24, 28) for _ in range(6)]))})
+    total = Float(0.0)
+    for i in range(len(tables)):
+        read = ops.Gather(helper.make_node("Gather", [f"t{i}", "index"], ["rows"]), f"table t{i}",
+                          Lanes(objects((1, 1, 1), [rows]), 0))
+        for value in read.cells.ravel():
+            total += value
+    with dr.scoped_set_flag(dr.JitFlag.KernelHistory, True):
+        dr.eval(total)
+        ir = "".join(str(k["ir"].getvalue() if hasattr(k["ir"], "getvalue") else k["ir"])
+                     for k in dr.kernel_history() if "ir" in k)
+    assert re.search(r"@gather_\d+xf(16|32)", ir), "no packet loads"
+    assert "llvm.masked.gather" not in ir, "a table read one value at a time"
 
 
 def test_integer_lanes_divide_and_rectify_as_integers(tmp_path):
