@@ -172,15 +172,14 @@ class KernelMaterial:
             # one upload, then the columns gathered in drjit memory (columns made from numpy arrays
             # each made the frozen trace record again, call after call)
             flat, width = jit.Float(queries.reshape(-1)), queries.shape[1]
-            row = dr.arange(jit.UInt32, len(queries)) * width
-            columns = [dr.gather(jit.Float, flat, row + i) for i in range(width)]
+            lane = dr.arange(jit.UInt32, len(queries))
+            columns = [dr.gather(jit.Float, flat, lane * width + i) for i in range(width)]
             rgb = [c for answer in self.answers(columns) for c in answer]
             out = dr.zeros(jit.Float, len(queries) * len(rgb))  # the answers scattered row-major in the kernel
-            place = dr.arange(jit.UInt32, len(queries)) * len(rgb)
             for j, c in enumerate(rgb):
-                dr.scatter(out, c, place + j)
+                dr.scatter(out, c, lane * len(rgb) + j)
             answers = np.array(out).reshape(len(queries), len(rgb))  # one copy out of drjit memory
-            del flat, row, columns, rgb, out, place  # freed under the lock too
+            del flat, lane, columns, rgb, out  # freed under the lock too
         return answers
 
     def _trace(self, tables: list[Float], columns: list[Float]) -> list[Float]:

@@ -37,8 +37,8 @@ with tempfile.TemporaryDirectory() as tmp:
     server = Server(args.models, Path(tmp) / "server.log", engine="auto")
     try:
         with MaterialClient(server.url, protocol="msgpack") as plain, Piped(server.url, protocol="msgpack") as piped:
-            scene = mi.load_dict(B.ratio_scenes(mi, args)["neural, server"][0])
-            ref = mi.load_dict(B.ratio_scenes(mi, args)["reference (path)"][0])
+            scenes = B.ratio_scenes(mi, args)
+            scene, ref = (mi.load_dict(scenes[name][0]) for name in ("neural, server", "reference (path)"))
             for c in (plain, piped):
                 B.time_render(mi, scene, c, 64, 0, args.max_lanes)
             B.time_render(mi, ref, None, 64, 0, args.max_lanes)

@@ -209,13 +209,13 @@ def test_every_table_read_is_a_packet_load():
     import re
 
     rng = np.random.default_rng(2)
-    tables = [packed_table(dr.llvm.ad, rng.standard_normal((500, w)).astype(t))
-              for w in (2, 3, 4, 24, 28) for t in (np.float32, np.float16) for _ in range(3)]
+    widths = [w for w in (2, 3, 4, 24, 28) for _ in range(3)]  # three tables of each: each aligned by chance or not
+    tables = {f"t{i}": (packed_table(dr.llvm.ad, rng.standard_normal((500, w)).astype(t)), (500, w))
+              for i, (w, t) in enumerate((w, t) for w in widths for t in (np.float32, np.float16))}
     assert all(aligned_zeros((7, w), t).ctypes.data % 64 == 0 for w in (1, 3, 28) for t in (np.float32, np.float16))
     rows = dr.llvm.ad.UInt32(rng.integers(0, 500, 1000).astype(np.uint32))
-    dr.eval(tables, rows)
-    ops = Ops(dr.llvm.ad, {f"t{i}": (t, (500, w)) for i, (t, w) in
-                           enumerate(zip(tables, [w for w in (2, 3, 4, 24, 28) for _ in range(6)]))})
+    dr.eval([t for t, _ in tables.values()], rows)
+    ops = Ops(dr.llvm.ad, tables)
     total = Float(0.0)
     for i in range(len(tables)):
         read = ops.Gather(helper.make_node("Gather", [f"t{i}", "index"], ["rows"]), f"table t{i}",
