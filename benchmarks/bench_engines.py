@@ -21,9 +21,11 @@ queries per call, in interleaved rounds (every model and engine once a round; me
   (ORT_PARALLEL, 2 inter-op threads), ``arena=0``, ``mempattern=0``, ``cfg:KEY=VALUE`` (a session config entry).
 
 ``--server``: also each engine behind a real `neumip serve` (`NEUMIP_ENGINE=onnxruntime` and ``kernel``, both
-running, default settings, serving these models), sent the same batches as msgpack by one `MaterialClient`;
-and, in process and through each server, the renderer's query groups of two lights (2^batch groups: twice
-the answers). Its ``CPU M/s`` counts the server's CPU time too. ``--server-env KEY=VALUE ...`` starts a second
+running, default settings but shared memory allowed, serving these models), sent the same batches as msgpack
+by one `MaterialClient`, and by another through shared memory (``, shm``: Triton's system shared-memory
+extension, the rows in ``/dev/shm``); and, in process and through each server, the renderer's query groups of
+two lights (2^batch groups: twice the answers). ``/in-proc``: a served engine's rate over the same engine's in
+process, on the same queries. Its ``CPU M/s`` counts the server's CPU time too. ``--server-env KEY=VALUE ...`` starts a second
 server of each engine with those environment variables, measured in the same interleaved rounds (an A/B of a
 setting, e.g. glibc's ``MALLOC_MMAP_THRESHOLD_``).
 
@@ -207,8 +209,9 @@ def pairs(queries: np.ndarray) -> np.ndarray:
 
 
 def start_servers(folder: Path, names: list[str], scratch: Path, env: dict[str, str] | None = None) -> dict:
-    """A `neumip serve` of each engine on a folder of the models `names`: {engine: (server, client)}; with `env`, a
-    second one of each engine with those environment variables, named "ENGINE KEY=VALUE"."""
+    """A `neumip serve` of each engine on a folder of the models `names`, shared memory allowed: {engine: (server,
+    {protocol: client})}, a msgpack client and one that passes the rows through shared memory (``shm``); with
+    `env`, a second one of each engine with those environment variables, named "ENGINE KEY=VALUE"."""
     from neumip.client.http import ClientConfig, MaterialClient
     from neumip.server.process import ServerProcess
 
@@ -222,8 +225,10 @@ def start_servers(folder: Path, names: list[str], scratch: Path, env: dict[str, 
         variants += [(engine, env) for engine in ("onnxruntime", "kernel")]
     for engine, extra in variants:
         name = " ".join([engine, *(f"{k}={v}" for k, v in extra.items())])
-        server = ServerProcess.start(served, scratch / f"{name.replace(' ', '_')}.log", env=extra, engine=engine)
-        servers[name] = (server, MaterialClient(server.url, ClientConfig(timeout_s=120)))
+        server = ServerProcess.start(served, scratch / f"{name.replace(' ', '_')}.log", env=extra, engine=engine,
+                                     allow_shared_memory="true")
+        servers[name] = (server, {protocol: MaterialClient(server.url, ClientConfig(timeout_s=120), protocol=protocol)
+                                  for protocol in ("msgpack", "shm")})
         print(f"# server {name} ready in {server.ready_s:.1f} s")
     return servers
 
@@ -325,6 +330,7 @@ class Bench:
         self.batches = Batches(self.rows)
         env = dict(kv.split("=", 1) for kv in args.server_env)
         self.servers = start_servers(args.folder, args.models, scratch, env) if args.server else {}
+        self.server_pids: dict[str, int] = {}  # served engine -> its server's pid (its CPU time counts)
         self.fns, self.answers, self.loads, self.info = {}, {}, {}, {}
         self.results = collections.defaultdict(list)
 
@@ -365,9 +371,12 @@ class Bench:
         if self.servers:
             engines["onnxruntime, groups of 2"] = lambda: self.local.evaluate(name, b.next((name, "ort2"), True))
             engines["kernel, groups of 2"] = lambda: self.kernel.evaluate(name, b.next((name, "kernel2"), True))
-        for engine, (_, client) in self.servers.items():
-            engines[f"server {engine}"] = lambda c=client: c.evaluate(name, b.next((name, c)))
-            engines[f"server {engine}, groups of 2"] = lambda c=client: c.evaluate(name, b.next((name, c, 2), True))
+        for engine, (server, clients) in self.servers.items():
+            for protocol, client in clients.items():
+                label = f"server {engine}" + ("" if protocol == "msgpack" else f", {protocol}")
+                engines[label] = lambda c=client: c.evaluate(name, b.next((name, c)))
+                engines[f"{label}, groups of 2"] = lambda c=client: c.evaluate(name, b.next((name, c, 2), True))
+                self.server_pids[label] = self.server_pids[f"{label}, groups of 2"] = server.process.pid
         return engines
 
     def variant(self, data: bytes, spec: str):
@@ -385,8 +394,7 @@ class Bench:
         for _ in range(self.args.rounds):
             for key, fn in self.fns.items():
                 time.sleep(SETTLE_S)
-                server = next((s.process.pid for e, (s, _) in self.servers.items()
-                               if key[1].removesuffix(", groups of 2") == f"server {e}"), None)
+                server = self.server_pids.get(key[1])
                 self.results[key].append(throughput(fn, self.answers[key], self.args.seconds, server))
 
     def ratio(self, name: str, engine: str, other: str) -> float:
@@ -397,13 +405,15 @@ class Bench:
         print(f"\n## {name}: {self.info[name]['MB']:.1f} MB (ONNX Runtime's constants after folding: "
               f"{self.info[name]['folded']:.1f} MiB); load s: " +
               ", ".join(f"{e} {s:.3f}" for e, s in self.loads[name].items()))
-        print(f"  {'engine':34s} {'M q/s':>7s} {'CPU M/s':>8s} {'/mlp':>6s} {'/kernel':>8s}  bits")
+        print(f"  {'engine':40s} {'M q/s':>7s} {'CPU M/s':>8s} {'/mlp':>6s} {'/kernel':>8s} {'/in-proc':>9s}  bits")
         for engine in [e for (n, e) in self.fns if n == name]:
-            like = ("server " if engine.startswith("server") else "") + "kernel" + (
-                ", groups of 2" if engine.endswith("groups of 2") else "")
+            groups = ", groups of 2" if engine.endswith("groups of 2") else ""
+            like = ("server " if engine.startswith("server") else "") + "kernel" + groups
             wall, cpu = (statistics.median(r[i] for r in self.results[name, engine]) / 1e6 for i in (0, 1))
-            print(f"  {engine:34s} {wall:7.2f} {cpu:8.2f} {self.ratio(name, engine, 'mlp-only'):6.2f} "
-                  f"{self.ratio(name, engine, like):8.2f}  {self.info[name]['bits'].get(engine, '')}")
+            served = engine.startswith("server")  # against the same engine in process, on the same kind of queries
+            in_process = f"{self.ratio(name, engine, engine.split()[1].rstrip(',') + groups):9.2f}" if served else " " * 9
+            print(f"  {engine:40s} {wall:7.2f} {cpu:8.2f} {self.ratio(name, engine, 'mlp-only'):6.2f} "
+                  f"{self.ratio(name, engine, like):8.2f} {in_process}  {self.info[name]['bits'].get(engine, '')}")
         model_ops, mlp_ops = self.info[name]["ops"]
         share = mlp_ops / model_ops
         print(f"  bound: the model's graph is ~{model_ops} operations a query, the MLP-only graph's {mlp_ops}: at the "
@@ -412,8 +422,9 @@ class Bench:
               f"{self.ratio(name, 'onnxruntime', 'mlp-only') / share:.2f}x")
 
     def close(self) -> None:
-        for server, client in self.servers.values():
-            client.close()
+        for server, clients in self.servers.values():
+            for client in clients.values():
+                client.close()
             server.stop()
 
 

@@ -20,10 +20,10 @@ render's own kernels, `KernelMaterials`, the default; and its ONNX graph in ONNX
   <= 1.5. Also with one emitter chosen: the stock `path`'s one shadow ray per shading point, so the ratio is the
   integrator's own cost without the shadow ray per emitter that `all_emitters` adds.
 
-``--server`` adds the neural plane rendered through a real `neumip serve` process on loopback (msgpack, the
-integrator's buffered path, as a renderer talking to the service does) of the server's default engine (``auto``:
-the kernel engine where it runs) or the one named, and its ratio to the geometry; its CPU seconds count the server
-process's too.
+``--server`` adds the neural plane rendered through a real `neumip serve` process on loopback (the integrator's
+buffered path, as a renderer talking to the service does: msgpack bodies, and shared memory, `SERVER_PROTOCOLS`)
+of the server's default engine (``auto``: the kernel engine where it runs) or the one named, and its ratio to the
+geometry; its CPU seconds count the server process's too.
 
 Both integrators run at the same spp, ``max_depth`` and ``rr_depth``. Section ``stages`` renders the same
 neural plane with the model as is and without each of its stages (the relief, half its steps, the neural
@@ -156,6 +156,11 @@ def geometry_resolution(args) -> int:
     return args.geometry_resolution or find_description(args.material).resolution
 
 
+SERVER_PROTOCOLS = ("msgpack", "shm")
+"""How the renders through a server (``--server``) send their queries: msgpack bodies, and shared memory
+(`neumip.client.shared_memory`; the server is started with it allowed)."""
+
+
 def ratio_scenes(mi, args) -> dict:
     """name -> (scene, evaluator key or None) of the renders the ratios section times."""
     from neumip.groundtruth import mesh
@@ -175,7 +180,7 @@ def ratio_scenes(mi, args) -> dict:
     one_emitter = view(mi, plane(neural_bsdf), {"type": "neumip_path", "all_emitters": False, **depth}, args.size,
                        args.spp)
     before = {"neural, kernel before": (neural, "kernel before")} if args.kernel_before else {}
-    served = {"neural, server": (neural, "server")} if args.server else {}
+    served = {f"neural, server {p}": (neural, f"server {p}") for p in SERVER_PROTOCOLS} if args.server else {}
     return {
         "reference (path)": (view(mi, reference, {"type": "path", **depth}, args.size, args.spp), None),
         "neural (neumip_path)": (neural, "kernel"),
@@ -216,16 +221,19 @@ def ratios(args) -> None:
     from bench_server import Server  # this folder is on sys.path when run as a script
 
     with tempfile.TemporaryDirectory() as tmp:
-        server = Server(Path(args.models), Path(tmp) / "server.log", engine=args.server)
+        server = Server(Path(args.models), Path(tmp) / "server.log", engine=args.server, shared_memory=True)
+        clients = {p: MaterialClient(server.url, protocol=p) for p in SERVER_PROTOCOLS}
         try:
-            with MaterialClient(server.url, protocol="msgpack") as client:
-                ratios_with(args, (client, server.process.pid))
+            ratios_with(args, (clients, server.process.pid))
         finally:
+            for client in clients.values():
+                client.close()
             server.stop()
 
 
 def ratios_with(args, served: tuple | None) -> None:
-    """The ratios section; ``served``: (a client of a `neumip serve` process, its pid), rendered through too."""
+    """The ratios section; ``served``: ({protocol: a client of a `neumip serve` process}, its pid), rendered
+    through each too."""
     from neumip.engines.local import LocalMaterials
     from neumip.engines.kernel import KernelMaterials, namespace_of
     from neumip.client.mitsuba.render import mi
@@ -236,7 +244,8 @@ def ratios_with(args, served: tuple | None) -> None:
                   "constant kernel": ConstantKernel(material), None: None}
     server_pid = None
     if served is not None:
-        evaluators["server"], server_pid = served
+        clients, server_pid = served
+        evaluators.update({f"server {p}": client for p, client in clients.items()})
     if args.kernel_before:  # another checkout's in-kernel engine, for before/after runs
         from kernel_before import Before  # this folder is on sys.path when run as a script
 
@@ -247,11 +256,12 @@ def ratios_with(args, served: tuple | None) -> None:
           f"{args.size}^2 px, {args.spp} spp, max_depth {args.max_depth}, rr_depth {args.rr_depth}, "
           f"geometry {geometry_resolution(args)}^2 per tile, model {local.get(material).config['resolution']}^2; "
           f"median of {args.rounds} interleaved rounds   [{load_avg()}]", flush=True)
-    pids = {name: server_pid if name == "neural, server" else None for name in scenes}  # whose CPU counts too
+    pids = {name: server_pid if name.startswith("neural, server") else None for name in scenes}  # whose CPU counts too
     for name, (scene, evaluator) in scenes.items():  # warm-up: compile (or load cached) kernels
         time_render(mi, scene, evaluator, args.spp, 0, args.max_lanes, pids[name])
     times = {name: [] for name in scenes}  # (wall, CPU) per round
-    evaluation = {key: [] for key in ("kernel", "local", "kernel before", "server") if key in evaluators}
+    evaluation = {key: [] for key in ("kernel", "local", "kernel before", *(f"server {p}" for p in SERVER_PROTOCOLS))
+                  if key in evaluators}
     for r in range(args.rounds):
         for name, (scene, evaluator) in scenes.items():
             wall, cpu, inside = time_render(mi, scene, evaluator, args.spp, r + 1, args.max_lanes, pids[name])
@@ -265,8 +275,8 @@ def ratios_with(args, served: tuple | None) -> None:
         print(f"  {name:<24} {wall[name]:7.3f} s wall   {cpu[name]:7.3f} CPU s")
     print("  (neural evaluation inside the neural renders, wall: "
           + ", ".join(f"{key} {statistics.median(values):.3f} s" for key, values in evaluation.items()) + ")")
-    served_rows = [(f"through a server (NEUMIP_ENGINE={args.server}, msgpack): neural / reference", "neural, server",
-                    "reference (path)", 1.0)] if served is not None else []
+    served_rows = [(f"through a server (NEUMIP_ENGINE={args.server}, {p}): neural / reference", f"neural, server {p}",
+                    "reference (path)", 1.0) for p in SERVER_PROTOCOLS] if served is not None else []
     before = [("kernel before: neural / reference", "neural, kernel before", "reference (path)", 1.0),
               ("in-kernel after / before", "neural (neumip_path)", "neural, kernel before", 1.05)] if args.kernel_before else []
     for label, a, b, target in (("neural / reference", "neural (neumip_path)", "reference (path)", 1.0),

@@ -112,15 +112,17 @@ class Server:
     """A `neumip serve` process on a free loopback port."""
 
     def __init__(self, folder: Path, log: Path, engine: str = "onnxruntime", cores: set[int] | None = None,
-                 bare: bool = False) -> None:
-        """`bare`: not `neumip serve` but the HTTP floor, `bare_server` (evaluates nothing)."""
+                 bare: bool = False, shared_memory: bool = False) -> None:
+        """`bare`: not `neumip serve` but the HTTP floor, `bare_server` (evaluates nothing); `shared_memory`: clients
+        may pass their rows through shared memory (``NEUMIP_ALLOW_SHARED_MEMORY``)."""
         command = None
         if bare:
             command = [sys.executable, "-m", "uvicorn", "bare_server:app", "--app-dir", str(Path(__file__).parent),
                        "--port", "{port}", "--loop", "uvloop", "--http", "httptools", "--log-level", "warning",
                        "--no-access-log"]
         try:
-            self.server = ServerProcess.start(folder, log, command=command, cores=cores, engine=engine)
+            self.server = ServerProcess.start(folder, log, command=command, cores=cores, engine=engine,
+                                              **({"allow_shared_memory": "true"} if shared_memory else {}))
         except ServeError as exc:
             sys.exit(str(exc))
         self.url, self.process = self.server.url, self.server.process

@@ -13,7 +13,8 @@ refused before anything is sent.
 
 How queries and answers travel is a `Codec` (`PROTOCOLS`): the msgpack ``/v1`` format by default, or
 the Open Inference Protocol's ``/v2`` binary tensors (``protocol="v2"``), both laid out in
-`neumip.core.wire`; the retries and the transport are the same for both. Tests inject an httpx transport (``httpx.MockTransport``) into the same
+`neumip.core.wire`, or ``/v2`` with the rows in shared memory (``protocol="shm"``, a server on the same
+machine: `neumip.client.shared_memory`); the retries and the transport are the same for all. Tests inject an httpx transport (``httpx.MockTransport``) into the same
 ``httpx.Client`` path, and run against a real server process.
 """
 
@@ -21,6 +22,7 @@ from __future__ import annotations
 
 import logging
 import time
+from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Protocol
 
@@ -124,16 +126,28 @@ class InferCodec:
         return C.as_rgb(rgb, rows, lights)
 
 
-PROTOCOLS: dict[str, Codec] = {"msgpack": MsgpackCodec(), "v2": InferCodec()}
-"""How `MaterialClient` can talk to the server: ``/v1`` msgpack (the default) or ``/v2`` binary tensors."""
+def _shared_memory(client: "MaterialClient") -> Codec:
+    from neumip.client.shared_memory import SharedMemoryCodec
+
+    return SharedMemoryCodec(client)
+
+
+PROTOCOLS: dict[str, Callable[["MaterialClient"], Codec]] = {
+    "msgpack": lambda client: MsgpackCodec(),
+    "v2": lambda client: InferCodec(),
+    "shm": _shared_memory,
+}
+"""How `MaterialClient` can talk to the server (the codec each client gets): ``/v1`` msgpack (the default),
+``/v2`` binary tensors, or ``/v2`` with the rows in shared memory (a server on the same machine that allows
+it: `neumip.client.shared_memory`)."""
 
 
 class MaterialClient:
     """Evaluate named materials on a remote server: ``MaterialClient("http://127.0.0.1:8000")``.
 
     `transport` replaces httpx's network transport (tests: ``httpx.MockTransport``); `protocol` says
-    how queries and answers travel: ``"msgpack"`` (``/v1``, the default) or ``"v2"`` (the Open Inference
-    Protocol with binary tensors), see `PROTOCOLS`.
+    how queries and answers travel: ``"msgpack"`` (``/v1``, the default), ``"v2"`` (the Open Inference
+    Protocol with binary tensors) or ``"shm"`` (``/v2`` with the rows in shared memory), see `PROTOCOLS`.
     """
 
     def __init__(
@@ -147,7 +161,6 @@ class MaterialClient:
             raise ValueError("ClientConfig: max_rows must be >= 1 and retries >= 0")
         if protocol not in PROTOCOLS:
             raise ValueError(f"protocol must be one of {', '.join(PROTOCOLS)}, got {protocol!r}")
-        self.codec = PROTOCOLS[protocol]
         httpx = self._httpx = _httpx()
         self._http = httpx.Client(
             base_url=self.url,
@@ -156,6 +169,7 @@ class MaterialClient:
             transport=transport,
             trust_env=False,  # no proxies from the environment: the server is named by its URL
         )
+        self.codec = PROTOCOLS[protocol](self)
         self._names: list[str] | None = None
         self._lobes: dict[str, C.SamplingLobe | None] = {}
         self.server_timing: dict[str, float] = {}
@@ -222,6 +236,8 @@ class MaterialClient:
         self._names = None
 
     def close(self) -> None:
+        if hasattr(self.codec, "close"):  # the shared-memory codec's regions
+            self.codec.close()
         self._http.close()
 
     def __enter__(self) -> "MaterialClient":

@@ -248,6 +248,34 @@ def encode_infer_request(queries: np.ndarray, binary_output: bool = True) -> tup
     return headers, [header, memoryview(q.reshape(-1)).cast("B")]
 
 
+def encode_shared_infer_request(shape: tuple[int, int], queries_at: SharedMemoryRef,
+                                answers_at: SharedMemoryRef) -> tuple[dict[str, str], list]:
+    """A v2 infer request of (N, 5 + 2 K) queries already in shared memory at `queries_at`, asking for the
+    answers at `answers_at` -> (headers, body parts): a JSON body of a few hundred bytes."""
+    tensor = {"name": ONNX_INPUT, "datatype": INFER_DATATYPE, "shape": list(shape), "parameters": queries_at.parameters()}
+    head = {"inputs": [tensor], "outputs": [{"name": ONNX_OUTPUT, "parameters": answers_at.parameters()}]}
+    body = json.dumps(head, separators=(",", ":")).encode()
+    return {"Content-Type": "application/json", "Content-Length": str(len(body))}, [body]
+
+
+def decode_shared_infer_response(body) -> tuple[tuple[int, int], SharedMemoryRef]:
+    """A v2 infer answer whose ``rgb`` went to shared memory -> (its shape (N, 3 K), where it lies). Raises
+    QueryError."""
+    try:
+        head = json.loads(bytes(body))
+        [output] = [o for o in head["outputs"] if o["name"] == ONNX_OUTPUT]
+        shape, where = output["shape"], _shared_memory_ref(output["parameters"], "output ")
+    except (ValueError, KeyError, TypeError) as exc:
+        raise QueryError(f"v2 answer is not an infer response with '{ONNX_OUTPUT}' in shared memory: {exc}") from None
+    if (where is None or output.get("datatype") != INFER_DATATYPE or len(shape) != 2
+            or not all(isinstance(d, int) and d >= 0 for d in shape) or not shape[1] or shape[1] % RGB_DIM):
+        raise QueryError(f"v2 answer '{ONNX_OUTPUT}' is {output.get('datatype')} {shape}, not {INFER_DATATYPE} "
+                         "[N, 3 K] in shared memory")
+    if where.byte_size != shape[0] * shape[1] * DTYPE.itemsize:
+        raise QueryError(f"v2 answer '{ONNX_OUTPUT}' of shape {shape} says it takes {where.byte_size} bytes")
+    return (shape[0], shape[1]), where
+
+
 def decode_infer_response(body, header_length: str | None) -> np.ndarray:
     """A v2 infer answer with a binary ``rgb`` output (and `header_length`, its
     Inference-Header-Content-Length) -> (N, 3) float32 RGB, or (N, 3 K) answers of query groups, a view
@@ -272,13 +300,34 @@ def decode_infer_response(body, header_length: str | None) -> np.ndarray:
 
 # --- the Open Inference Protocol's infer request and response, server side ---------------------
 
+@dataclass(frozen=True)
+class SharedMemoryRef:
+    """Where a tensor lies in shared memory (Triton's system shared-memory extension): `byte_size` bytes
+    from `offset` of the registered region `region` (`neumip.server.shared_memory`)."""
+
+    region: str
+    byte_size: int
+    offset: int = 0
+
+    def parameters(self) -> dict:
+        """The tensor's ``parameters`` that point here."""
+        return {"shared_memory_region": self.region, "shared_memory_byte_size": self.byte_size,
+                "shared_memory_offset": self.offset}
+
+
 @dataclass
 class InferRequest:
     """A decoded v2 infer request: its id, its queries and how the output goes back."""
 
     id: str | None
-    queries: np.ndarray  # (N, 5 + 2 K) float32, validated; K = 1: (N, 7)
+    queries: np.ndarray | None  # (N, 5 + 2 K) float32, validated; K = 1: (N, 7); None: in `input_region`
     binary_output: bool
+    shape: tuple[int, int] = (0, QUERY_DIM)
+    """The queries' shape, (N, 5 + 2 K)."""
+    input_region: SharedMemoryRef | None = None
+    """Where the queries lie in shared memory (then `queries` is None until the server reads them)."""
+    output_region: SharedMemoryRef | None = None
+    """Where the answers go in shared memory (None: in the response)."""
 
 
 def _parse_json(raw: bytes | memoryview, what: str = "body") -> object:
@@ -308,8 +357,26 @@ def _parameters(obj: dict, where: str) -> dict:
     return params
 
 
-def _input_tensor(inputs: object, binary: memoryview) -> np.ndarray:
-    """The one input tensor -> (N, 5 + 2 K) float32 (unvalidated values). Raises QueryError."""
+def _shared_memory_ref(params: dict, where: str) -> SharedMemoryRef | None:
+    """A tensor's shared-memory parameters -> where it lies (None: not in shared memory). Raises QueryError
+    if only one of the region and its byte size is given, as Triton does."""
+    region, size = params.get("shared_memory_region"), params.get("shared_memory_byte_size")
+    offset = params.get("shared_memory_offset", 0)
+    if region is None and size is None:
+        if "shared_memory_offset" in params:
+            raise QueryError(f"{where}'shared_memory_offset' needs 'shared_memory_region' and 'shared_memory_byte_size'")
+        return None
+    if not isinstance(region, str) or not region:
+        raise QueryError(f"{where}'shared_memory_region' must name a registered region, got {str(region)[:40]!r}")
+    for key, value in (("shared_memory_byte_size", size), ("shared_memory_offset", offset)):
+        if isinstance(value, bool) or not isinstance(value, int) or value < 0:
+            raise QueryError(f"{where}'{key}' must be a non-negative integer, got {str(value)[:40]!r}")
+    return SharedMemoryRef(region, size, offset)
+
+
+def _input_tensor(inputs: object, binary: memoryview) -> tuple[np.ndarray | SharedMemoryRef, tuple[int, int]]:
+    """The one input tensor -> ((N, 5 + 2 K) float32 (unvalidated values), or where it lies in shared
+    memory; its shape). Raises QueryError."""
     if not isinstance(inputs, list) or len(inputs) != 1 or not isinstance(inputs[0], dict):
         raise QueryError(f"'inputs' must be a list holding exactly one tensor, '{ONNX_INPUT}'")
     tensor = inputs[0]
@@ -330,17 +397,28 @@ def _input_tensor(inputs: object, binary: memoryview) -> np.ndarray:
         group_lights(width)
     except QueryError as exc:
         raise QueryError(f"input '{ONNX_INPUT}' has shape {shape}: {exc}") from None
-    size = _parameters(tensor, "input ").get("binary_data_size")
+    params = _parameters(tensor, "input ")
+    shared = _shared_memory_ref(params, "input ")
+    if shared is not None:
+        if "data" in tensor or "binary_data_size" in params:
+            raise QueryError(f"input '{ONNX_INPUT}' in shared memory can have neither 'data' nor binary_data_size")
+        if shared.byte_size != n * width * DTYPE.itemsize:
+            raise QueryError(f"shared_memory_byte_size is {shared.byte_size} but shape {shape} of FP32 needs "
+                             f"{n * width * DTYPE.itemsize} bytes")
+        if len(binary):
+            raise QueryError(f"{len(binary)} bytes follow the JSON header but the input is in shared memory")
+        return shared, (n, width)
+    size = params.get("binary_data_size")
     if size is not None:
         expected = n * width * DTYPE.itemsize
         if not isinstance(size, int) or size != expected:
             raise QueryError(f"binary_data_size is {size!r} but shape {shape} of FP32 needs {expected} bytes")
         if len(binary) != size:
             raise QueryError(f"binary part holds {len(binary)} bytes, binary_data_size says {size}")
-        return np.frombuffer(binary, dtype=DTYPE).reshape(n, width)
+        return np.frombuffer(binary, dtype=DTYPE).reshape(n, width), (n, width)
     if len(binary):
         raise QueryError(f"{len(binary)} bytes follow the JSON header but no input has binary_data_size")
-    return _json_data(tensor.get("data"), n, width)
+    return _json_data(tensor.get("data"), n, width), (n, width)
 
 
 def _json_data(data: object, n: int, width: int) -> np.ndarray:
@@ -360,19 +438,22 @@ def _json_data(data: object, n: int, width: int) -> np.ndarray:
         return arr.astype(DTYPE).reshape(n, width)
 
 
-def _binary_output(msg: dict) -> bool:
-    """Whether 'rgb' goes back as binary; 400 for unknown requested outputs."""
-    binary = _flag(_parameters(msg, ""), "binary_data_output", False)
+def _output(msg: dict) -> tuple[bool, SharedMemoryRef | None]:
+    """Whether 'rgb' goes back as binary, and where in shared memory it goes instead (None: in the
+    response); 400 for unknown requested outputs."""
+    binary, shared = _flag(_parameters(msg, ""), "binary_data_output", False), None
     outputs = msg.get("outputs")
     if outputs is None:
-        return binary
+        return binary, shared
     if not isinstance(outputs, list) or not all(isinstance(o, dict) for o in outputs):
         raise QueryError("'outputs' must be a list of objects")
     for out in outputs:
         if out.get("name") != ONNX_OUTPUT:
             raise QueryError(f"unknown output {str(out.get('name'))[:40]!r}: the model's output is '{ONNX_OUTPUT}'")
-        binary = _flag(_parameters(out, "output "), "binary_data", binary)
-    return binary
+        params = _parameters(out, "output ")
+        binary = _flag(params, "binary_data", binary)
+        shared = _shared_memory_ref(params, "output ") or shared
+    return binary, shared
 
 
 def _flag(params: dict, key: str, default: bool) -> bool:
@@ -392,8 +473,11 @@ def decode_infer_request(body: bytes, header_length: int | None) -> InferRequest
     request_id = msg.get("id")
     if request_id is not None and not isinstance(request_id, str):
         raise QueryError("'id' must be a string")
-    raw = _input_tensor(msg.get("inputs"), binary)
-    return InferRequest(request_id, as_queries(raw, groups=True), _binary_output(msg))
+    raw, shape = _input_tensor(msg.get("inputs"), binary)
+    binary_output, output_region = _output(msg)
+    if isinstance(raw, SharedMemoryRef):
+        return InferRequest(request_id, None, binary_output, shape, raw, output_region)
+    return InferRequest(request_id, as_queries(raw, groups=True), binary_output, shape, None, output_region)
 
 
 def infer_response_head(model: str, version: str, request: InferRequest, rgb: np.ndarray) -> dict:
@@ -405,7 +489,10 @@ def infer_response_head(model: str, version: str, request: InferRequest, rgb: np
         head["id"] = request.id  # before the outputs: a JSON answer's data is cut in after the last "@"
     output = {"name": ONNX_OUTPUT, "datatype": INFER_DATATYPE, "shape": list(rgb.shape)}
     head["outputs"] = [output]
-    if request.binary_output:
+    if request.output_region is not None:  # the answers are in shared memory: no data here
+        output["parameters"] = SharedMemoryRef(request.output_region.region, rgb.nbytes,
+                                               request.output_region.offset).parameters()
+    elif request.binary_output:
         output["parameters"] = {"binary_data_size": rgb.nbytes}
     else:
         output["data"] = "@"

@@ -26,6 +26,7 @@ from neumip.server.logs import RequestLogMiddleware
 from neumip.server.metrics import Metrics, MetricsMiddleware
 from neumip.server.registry import Registry
 from neumip.server.settings import Settings
+from neumip.server.shared_memory import SharedMemory
 from neumip.server.state import ServerState, get_state
 from neumip.server import v1, v2, v2_repository
 
@@ -55,6 +56,7 @@ async def lifespan(app: FastAPI):
         if state.batcher is not None:
             await state.batcher.close()
             log.info("batcher stopped")
+        state.shared_memory.close()
 
 
 async def start_serving(state: ServerState, tasks: list[asyncio.Task]) -> None:
@@ -115,7 +117,7 @@ def create_app(settings: Settings | None = None, load_in_background: bool = Fals
         redirect_slashes=False,  # a trailing slash is 404, not a 307 to the path without it
     )
     app.state.neumip = ServerState(settings, metrics, Admission(settings, metrics), engine,
-                                   load_in_background=load_in_background)
+                                   SharedMemory(settings.allow_shared_memory), load_in_background=load_in_background)
     install_error_handlers(app)
     app.add_middleware(MetricsMiddleware, metrics=metrics)
     app.add_middleware(RequestLogMiddleware, access_log=settings.access_log)

@@ -44,10 +44,10 @@ def parse_json(raw: bytes | memoryview, what: str = "body") -> object:
         raise ApiError(400, f"{what} nests too deep to be a query request") from None
 
 
-def check_rows(queries: np.ndarray, limit: int) -> int:
-    """The answers (N K) a request of queries or query groups asks for; 413 over the limit (N = 0 is
-    valid: it answers nothing)."""
-    answers = queries.shape[0] * C.group_lights(queries.shape[1])
+def check_rows(shape: tuple[int, int], limit: int) -> int:
+    """The answers (N K) a request of queries or query groups of `shape` (N, 5 + 2 K) asks for; 413 over the
+    limit (N = 0 is valid: it answers nothing)."""
+    answers = shape[0] * C.group_lights(shape[1])
     if answers > limit:
         raise ApiError(413, f"{answers} queries (a group of K lights counts K) is more than the limit of "
                             f"{limit} per request")

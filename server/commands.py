@@ -19,6 +19,9 @@ def register(sub: argparse._SubParsersAction) -> None:
                    help="what evaluates the materials (NEUMIP_ENGINE, default auto: kernel where it can run, else "
                    "onnxruntime): the file's graph interpreted as drjit LLVM kernels, the renderer's in-process "
                    "engine (pip install 'neumip[kernel]'), or in ONNX Runtime")
+    p.add_argument("--allow-shared-memory", action="store_true", default=None,
+                   help="let clients on this machine pass queries and answers through shared memory (Triton's "
+                   "system shared-memory extension; NEUMIP_ALLOW_SHARED_MEMORY, default off)")
     p.add_argument("--list-settings", action="store_true", help="print every NEUMIP_* setting and exit")
     p.set_defaults(func=serve)
     register_export_repository(sub)
@@ -32,7 +35,8 @@ def serve(args: argparse.Namespace) -> int:
 
         print(Settings.describe())
         return 0
-    overrides = {"host": args.host, "port": args.port, "model_dir": args.model_dir, "engine": args.engine}
+    overrides = {"host": args.host, "port": args.port, "model_dir": args.model_dir, "engine": args.engine,
+                 "allow_shared_memory": args.allow_shared_memory}
     return run({k: v for k, v in overrides.items() if v is not None})
 
 

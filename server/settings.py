@@ -106,6 +106,11 @@ class Settings(BaseSettings):
     unload models (Triton's ``--model-control-mode``)."""
     model_control_token: SecretStr | None = None
     """With model_control=explicit: load and unload need ``Authorization: Bearer <token>`` (unset: none)."""
+    allow_shared_memory: bool = False
+    """Clients on this machine may register shared-memory regions and pass queries and answers through them
+    instead of the bodies (Triton's system shared-memory extension, its ``--allow-client-shm``;
+    `server.shared_memory`). Off: such a client makes the server read, and write into, any shared-memory
+    object the server's user can open."""
     graceful_shutdown_s: float = Field(10.0, ge=0)
     """Seconds uvicorn lets running requests finish after SIGTERM."""
 

@@ -6,7 +6,7 @@ One `ServerState` lives in ``app.state.neumip``; handlers get it through the `ge
 from __future__ import annotations
 
 from collections.abc import Callable
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 from fastapi import Request, Response
 from fastapi.responses import JSONResponse
@@ -18,6 +18,7 @@ from neumip.server.errors import ApiError
 from neumip.server.metrics import Metrics
 from neumip.server.registry import Registry
 from neumip.server.settings import Settings
+from neumip.server.shared_memory import SharedMemory
 
 
 @dataclass
@@ -32,6 +33,8 @@ class ServerState:
     """The budgets of body memory and queued rows that requests reserve from."""
     engine: Engine
     """What loads and evaluates the materials (``NEUMIP_ENGINE``)."""
+    shared_memory: SharedMemory = field(default_factory=lambda: SharedMemory(False))
+    """The registered shared-memory regions (`Settings.allow_shared_memory`)."""
     registry: Registry | None = None
     """Loaded materials; None until start-up has loaded them."""
     batcher: Batcher | None = None

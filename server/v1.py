@@ -110,7 +110,7 @@ async def evaluate(name: str, request: Request, state: ServerState = Depends(ser
             timer.mark("read")
             with state.batcher.receiving() as arrival:  # batches not yet full wait for this request's rows
                 queries = await decode(body, kind)  # (N, 5 + 2 K) float32, K = 1: (N, 7)
-                answers = check_rows(queries, state.settings.max_rows)
+                answers = check_rows(queries.shape, state.settings.max_rows)
                 state.admission.resize(ticket, ticket.memory, answers)
                 state.admission.reserve_answer(ticket, answers)  # 503 if the answers' budget is spent
                 timer.mark("decode")

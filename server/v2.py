@@ -21,7 +21,7 @@ from neumip.core import wire
 
 from neumip.server.admission import plan, read_body
 from neumip.server.answer import Answer, BufferAnswer, JsonAnswer, freed_on_failure
-from neumip.server.body import JSON_TYPE, check_rows, header_int, media_type
+from neumip.server.body import JSON_TYPE, check_rows, header_int, media_type, parse_json
 from neumip.server.errors import ApiError
 from neumip.server.metrics import StageTimer
 from neumip.server.openapi import ERROR_RESPONSES, INFER_BODY
@@ -33,6 +33,8 @@ router = APIRouter(prefix="/v2", tags=["v2 (Open Inference Protocol)"])
 
 HEADER_LENGTH = wire.INFER_HEADER_LENGTH
 DATATYPE = wire.INFER_DATATYPE
+REGISTER_BYTES = 4096
+"""Largest shared-memory register request body."""
 INFER_TYPES = (None, JSON_TYPE, "application/octet-stream")
 """Content types an infer request may carry (tritonclient sends none)."""
 
@@ -65,6 +67,8 @@ def json_length(request: Request) -> int | None:
 def infer_response(name: str, request: wire.InferRequest, rgb: np.ndarray, on_sent: Callable[[], None]) -> Answer:
     """(N, 3 K) RGB -> the infer response, JSON (streamed when large) or JSON + binary tail."""
     head = wire.infer_response_head(name, MODEL_VERSION, request, rgb)
+    if request.output_region is not None:  # the answers went to shared memory
+        return BufferAnswer([json.dumps(head, separators=(",", ":")).encode()], JSON_TYPE, on_sent)
     if not request.binary_output:
         prefix, suffix = json.dumps(head, separators=(",", ":")).rsplit('"@"', 1)
         return JsonAnswer(prefix, rgb.reshape(-1), suffix, on_sent)
@@ -74,14 +78,43 @@ def infer_response(name: str, request: wire.InferRequest, rgb: np.ndarray, on_se
 
 # --- routes -----------------------------------------------------------------------------------
 @router.get("", summary="Server metadata")
-async def server_metadata() -> dict:
+async def server_metadata(state: ServerState = Depends(get_state)) -> dict:
     from importlib.metadata import PackageNotFoundError, version
 
     try:
         ours = version("neumip")
     except PackageNotFoundError:  # pragma: no cover - running from a source tree
         ours = "0"
-    return {"name": "neumip", "version": ours, "extensions": ["binary_tensor_data"]}
+    extensions = ["binary_tensor_data"] + ["system_shared_memory"] * state.shared_memory.allowed
+    return {"name": "neumip", "version": ours, "extensions": extensions}
+
+
+# --- Triton's system shared-memory extension (`shared_memory`) --------------------------------
+@router.get("/systemsharedmemory/status", summary="Shared memory: every registered region")
+@router.get("/systemsharedmemory/region/{region}/status", summary="Shared memory: one registered region")
+async def shared_memory_status(region: str | None = None, state: ServerState = Depends(get_state)) -> list[dict]:
+    return state.shared_memory.status(region)
+
+
+@router.post("/systemsharedmemory/region/{region}/register", summary="Shared memory: register a region",
+             responses=ERROR_RESPONSES)
+async def shared_memory_register(region: str, request: Request, state: ServerState = Depends(get_state)) -> Response:
+    state.shared_memory.check_allowed()
+    body = bytearray()
+    async with asyncio.timeout(state.settings.body_timeout_s):
+        async for chunk in request.stream():
+            body += chunk
+            if len(body) > REGISTER_BYTES:
+                raise ApiError(413, f"a register request is a JSON object of at most {REGISTER_BYTES} bytes")
+    state.shared_memory.register(region, parse_json(body))
+    return Response(status_code=200)
+
+
+@router.post("/systemsharedmemory/unregister", summary="Shared memory: unregister every region")
+@router.post("/systemsharedmemory/region/{region}/unregister", summary="Shared memory: unregister a region")
+async def shared_memory_unregister(region: str | None = None, state: ServerState = Depends(get_state)) -> Response:
+    state.shared_memory.unregister(region)
+    return Response(status_code=200)
 
 
 @router.get("/health/live", summary="Liveness (200, empty body)")
@@ -139,13 +172,21 @@ async def infer(name: str, request: Request, version: str | None = None, state: 
                     parsed = await asyncio.to_thread(wire.decode_infer_request, body, header_length)
                 else:
                     parsed = wire.decode_infer_request(body, header_length)
-                answers = check_rows(parsed.queries, state.settings.max_rows)
-                state.admission.resize(ticket, ticket.memory, answers)
+                answers = check_rows(parsed.shape, state.settings.max_rows)
+                if parsed.output_region is not None:
+                    state.shared_memory.check_answer(parsed.output_region, answers * C.RGB_DIM * C.DTYPE.itemsize)
+                if parsed.input_region is None:
+                    state.admission.resize(ticket, ticket.memory, answers)
+                else:  # the queries, read from shared memory, take memory as a body does
+                    state.admission.resize(ticket, ticket.memory + parsed.input_region.byte_size, answers)
+                    parsed.queries = await state.shared_memory.read_queries(parsed.input_region, parsed.shape)
                 state.admission.reserve_answer(ticket, answers)  # 503 if the answers' budget is spent
                 timer.mark("decode")
                 ticket.until = arrival.submit(name, parsed.queries, material=material)
             rgb = await asyncio.shield(ticket.until)  # (N, 3 K) float32
             timer.mark("evaluate")
+            if parsed.output_region is not None:
+                await state.shared_memory.write_answer(parsed.output_region, rgb)
             sent = state.admission.hand_answer(ticket)  # the response frees the answer once sent
         with freed_on_failure(sent):
             response = infer_response(name, parsed, rgb, sent)

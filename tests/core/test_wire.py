@@ -163,3 +163,29 @@ def test_the_v2_infer_halves_are_inverse_pairs():
     np.testing.assert_array_equal(wire.decode_infer_response(header + rgb.tobytes(), str(len(header))), rgb)
     with pytest.raises(C.QueryError, match="not valid JSON"):
         wire.decode_infer_request(b"{" + body, int(headers[wire.INFER_HEADER_LENGTH]) + 1)
+
+
+def test_shared_memory_infer_request_and_answer_round_trip():
+    """A request whose rows lie in shared memory decodes to where they lie (no queries yet), and the answer's
+    head, which says where the answers went, decodes on the client side; half a reference is refused."""
+    import json
+
+    queries_at, answers_at = wire.SharedMemoryRef("in", 9 * 4 * 10, 64), wire.SharedMemoryRef("out", 6 * 4 * 10)
+    headers, parts = wire.encode_shared_infer_request((10, 9), queries_at, answers_at)
+    request = wire.decode_infer_request(b"".join(parts), None)
+    assert request.queries is None and request.shape == (10, 9)
+    assert (request.input_region, request.output_region) == (queries_at, answers_at)
+    head = wire.infer_response_head("m", "1", request, np.zeros((10, 6), np.float32))
+    assert "data" not in head["outputs"][0]
+    assert wire.decode_shared_infer_response(json.dumps(head).encode()) == ((10, 6), answers_at)
+    head["outputs"][0]["parameters"]["shared_memory_byte_size"] = 4
+    with pytest.raises(C.QueryError, match="says it takes 4 bytes"):
+        wire.decode_shared_infer_response(json.dumps(head).encode())
+    half = json.loads(b"".join(parts))
+    del half["inputs"][0]["parameters"]["shared_memory_region"]
+    with pytest.raises(C.QueryError, match="must name a registered region"):
+        wire.decode_infer_request(json.dumps(half).encode(), None)
+    wrong = json.loads(b"".join(parts))
+    wrong["inputs"][0]["shape"] = [11, 9]
+    with pytest.raises(C.QueryError, match="FP32 needs"):
+        wire.decode_infer_request(json.dumps(wrong).encode(), None)

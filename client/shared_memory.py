@@ -1,0 +1,136 @@
+"""`SharedMemoryCodec`: a `MaterialClient` on the server's machine passes queries and answers through
+shared memory (Triton's system shared-memory extension, `neumip.server.shared_memory`).
+
+The client makes two POSIX shared-memory objects of its own (``/dev/shm/neumip-PID-...``, mode 0600),
+registers them with the server as regions, copies each request's queries into one and reads the answers
+from the other; the request and the answer are then a few hundred bytes of JSON. The regions grow (a new
+object, registered anew) when a request needs more, and are unregistered and removed when the client
+closes, or when the process exits. The server must allow it (``NEUMIP_ALLOW_SHARED_MEMORY=true``) and be
+able to open the objects: the same machine, and a user that may read and write them.
+"""
+
+from __future__ import annotations
+
+import json
+import mmap
+import os
+import secrets
+import weakref
+from pathlib import Path
+
+import numpy as np
+
+from neumip.core import contract as C
+from neumip.core import wire
+
+SHM_DIR = Path("/dev/shm")
+"""Where Linux keeps POSIX shared-memory objects (key ``/obj`` is ``/dev/shm/obj``)."""
+MIN_BYTES = 1 << 20
+"""Smallest region made; a region grows to the next power of two a request needs."""
+REGIONS_PATH = "/v2/systemsharedmemory/region/{name}"
+
+
+class SharedBuffer:
+    """A shared-memory object of this process, mapped: ``/dev/shm/<name>`` of `size` bytes. Removed by
+    `close`, or when the process exits."""
+
+    def __init__(self, size: int) -> None:
+        if not SHM_DIR.is_dir():
+            raise OSError(f"shared memory needs {SHM_DIR} (Linux)")
+        self.name = f"neumip-{os.getpid()}-{secrets.token_hex(6)}"
+        self.size = size
+        path = SHM_DIR / self.name
+        fd = os.open(path, os.O_CREAT | os.O_EXCL | os.O_RDWR | os.O_CLOEXEC, 0o600)
+        try:
+            os.ftruncate(fd, size)
+            self.map = mmap.mmap(fd, size)
+        except BaseException:
+            os.unlink(path)
+            raise
+        finally:
+            os.close(fd)
+        self._remove = weakref.finalize(self, _remove, self.map, path)
+
+    @property
+    def key(self) -> str:
+        return "/" + self.name
+
+    def floats(self, count: int) -> np.ndarray:
+        """The first `count` float32 values, a view of the mapping."""
+        return np.frombuffer(self.map, C.DTYPE, count)
+
+    def close(self) -> None:
+        self._remove()
+
+
+def _remove(mapping: mmap.mmap, path: Path) -> None:
+    try:
+        mapping.close()
+    except BufferError:  # a view still holds it: the mapping goes with the view
+        pass
+    path.unlink(missing_ok=True)
+
+
+class SharedMemoryCodec:
+    """A `client.http.Codec` whose rows travel through shared memory; `client` is the `MaterialClient`
+    whose requests register and unregister the regions."""
+
+    def __init__(self, client) -> None:
+        self.client = client
+        self.buffers: dict[str, SharedBuffer] = {}  # "queries", "answers" -> its region's buffer
+
+    def path(self, material: str) -> str:
+        return wire.INFER_PATH.format(name=material)
+
+    def encode(self, queries: np.ndarray) -> tuple[dict[str, str], list]:
+        n, width = queries.shape
+        lights = C.group_lights(width)
+        into = self._buffer("queries", queries.nbytes).floats(queries.size)
+        into[...] = queries.reshape(-1)
+        answers = self._buffer("answers", n * lights * C.RGB_DIM * C.DTYPE.itemsize)
+        return wire.encode_shared_infer_request(
+            (n, width), wire.SharedMemoryRef(self.buffers["queries"].name, queries.nbytes),
+            wire.SharedMemoryRef(answers.name, n * lights * C.RGB_DIM * C.DTYPE.itemsize))
+
+    def decode(self, response, rows: int, lights: int) -> np.ndarray:
+        shape, where = wire.decode_shared_infer_response(response.content)
+        answers = self.buffers["answers"]
+        if where.region != answers.name or where.offset:
+            raise C.QueryError(f"the answers went to region {where.region!r}, not to this client's {answers.name!r}")
+        rgb = answers.floats(shape[0] * shape[1]).reshape(shape).copy()  # the region takes the next answers
+        return C.as_rgb(rgb, rows, lights)
+
+    def _buffer(self, role: str, nbytes: int) -> SharedBuffer:
+        """The buffer of `role`, made or grown (and registered) to hold `nbytes`."""
+        buffer = self.buffers.get(role)
+        if buffer is not None and buffer.size >= nbytes:
+            return buffer
+        grown = SharedBuffer(max(MIN_BYTES, 1 << (max(nbytes, 1) - 1).bit_length()))
+        body = json.dumps({"key": grown.key, "offset": 0, "byte_size": grown.size}).encode()
+        try:
+            self.client._request("POST", REGIONS_PATH.format(name=grown.name) + "/register",
+                                 what=f"register shared-memory region {grown.name}", body=[body],
+                                 headers={"Content-Type": "application/json"})
+        except BaseException:
+            grown.close()
+            raise
+        self.buffers[role] = grown
+        if buffer is not None:
+            self._drop(buffer)
+        return grown
+
+    def _drop(self, buffer: SharedBuffer) -> None:
+        try:
+            self.client._request("POST", REGIONS_PATH.format(name=buffer.name) + "/unregister",
+                                 what=f"unregister shared-memory region {buffer.name}")
+        finally:
+            buffer.close()
+
+    def close(self) -> None:
+        """Unregister and remove the regions (the objects are removed even where the server is gone)."""
+        buffers, self.buffers = list(self.buffers.values()), {}
+        for buffer in buffers:
+            try:
+                self._drop(buffer)
+            except Exception:  # the server may be gone: the object is removed all the same
+                pass
