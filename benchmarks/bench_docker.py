@@ -12,9 +12,12 @@ Needs a Docker engine and the image (`docker/smoke.sh` builds it as ``neumip-ser
   msgpack; every fourth as v2 asking for a JSON answer), read each answer and send again: the body, queue and answer
   budgets stay spent. Printed: answers by status, the cgroup's peak memory against the limit, whether the kernel
   killed anything (OOM), restarts, and the memory after.
+- ``speed``: queries/s through a container of each image (``--image A,B``), beside the in-process engines
+  (`speed`). Not in the default sections.
 
     .venv/bin/python benchmarks/bench_docker.py --rounds 3
     .venv/bin/python benchmarks/bench_docker.py --sections load --clients 16 --seconds 60
+    .venv/bin/python benchmarks/bench_docker.py --sections speed --image neumip-server:ort,neumip-server:local --rounds 5
 """
 
 from __future__ import annotations
@@ -180,6 +183,50 @@ def load(args) -> None:
           f"limit hits {failcnt}), {after:.0f} after; OOM-killed {oom}, restarts {restarts}")
 
 
+def speed(args) -> None:
+    """Queries/s through a container of each image (``--image A,B``: msgpack requests of 2^``--batch`` random
+    queries to ``--material``, one client), in interleaved rounds beside the in-process kernel engine and ONNX
+    Runtime on the same queries and the image's models (``models/``); medians of the rounds, and each one's ratio
+    to the in-process kernel engine, per round."""
+    import statistics
+
+    from neumip.client.http import ClientConfig, MaterialClient
+    from neumip.engines.kernel import KernelMaterials
+    from neumip.engines.local import LocalMaterials
+
+    q, material = random_queries(1 << args.batch, seed=3), args.material
+    kernel, local = KernelMaterials(ROOT / "models"), LocalMaterials(ROOT / "models")
+    fns = {"in process, kernel": lambda: kernel.evaluate(material, q),
+           "in process, onnxruntime": lambda: local.evaluate(material, q)}
+    boxes, clients = [], []
+    try:
+        for i, name in enumerate(args.image.split(",")):
+            boxes.append(Container(name, f"speed{i}", args.limit))
+            clients.append(MaterialClient(boxes[-1].url, ClientConfig(timeout_s=300)))
+            platform = httpx.get(f"{boxes[-1].url}/v2/models/{material}").json()["platform"]
+            fns[f"{name} ({platform})"] = lambda c=clients[-1]: c.evaluate(material, q)
+        rates = {key: [] for key in fns}
+        for fn in fns.values():
+            fn()  # warm
+        for _ in range(args.rounds):
+            for key, fn in fns.items():
+                calls, start = 0, time.perf_counter()
+                while time.perf_counter() - start < args.seconds_a_round:
+                    fn()
+                    calls += 1
+                rates[key].append(calls * len(q) / (time.perf_counter() - start))
+    finally:
+        for client in clients:
+            client.close()
+        for box in boxes:
+            box.stop()
+    base = rates["in process, kernel"]
+    print(f"speed: {material}, {len(q):,} single queries a call, {args.rounds} interleaved rounds")
+    for key, values in rates.items():
+        ratio = statistics.median(v / b for v, b in zip(values, base))
+        print(f"  {key:58s} {statistics.median(values) / 1e6:6.2f} M q/s  {ratio:5.2f}x the in-process kernel engine")
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--sections", default="image,start,load")
@@ -188,10 +235,13 @@ def main() -> None:
                         help="the container's memory limit (compose.yaml's default)")
     parser.add_argument("--clients", type=int, default=16)
     parser.add_argument("--seconds", type=float, default=45.0)
-    parser.add_argument("--image", default=IMAGE)
+    parser.add_argument("--image", default=IMAGE, help="the image; for --sections speed, several as A,B")
+    parser.add_argument("--material", default="rock", help="the material --sections speed asks")
+    parser.add_argument("--batch", type=int, default=17, help="--sections speed: 2^batch queries a request")
+    parser.add_argument("--seconds-a-round", type=float, default=2.0, help="--sections speed: seconds per engine a round")
     args = parser.parse_args()
     for section in args.sections.split(","):
-        {"image": image, "start": start, "load": load}[section](args)
+        {"image": image, "start": start, "load": load, "speed": speed}[section](args)
 
 
 if __name__ == "__main__":

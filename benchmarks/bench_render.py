@@ -23,7 +23,8 @@ render's own kernels, `KernelMaterials`, the default; and its ONNX graph in ONNX
 ``--server`` adds the neural plane rendered through a real `neumip serve` process on loopback (the integrator's
 buffered path, as a renderer talking to the service does: msgpack bodies, and shared memory, `SERVER_PROTOCOLS`)
 of the server's default engine (``auto``: the kernel engine where it runs) or the one named, and its ratio to the
-geometry; its CPU seconds count the server process's too.
+geometry; its CPU seconds count the server process's too. ``--server-url URL`` renders through a server already
+running instead (a container), msgpack, its CPU not counted.
 
 Both integrators run at the same spp, ``max_depth`` and ``rr_depth``. Section ``stages`` renders the same
 neural plane with the model as is and without each of its stages (the relief, half its steps, the neural
@@ -180,7 +181,7 @@ def ratio_scenes(mi, args) -> dict:
     one_emitter = view(mi, plane(neural_bsdf), {"type": "neumip_path", "all_emitters": False, **depth}, args.size,
                        args.spp)
     before = {"neural, kernel before": (neural, "kernel before")} if args.kernel_before else {}
-    served = {f"neural, server {p}": (neural, f"server {p}") for p in SERVER_PROTOCOLS} if args.server else {}
+    served = {f"neural, server {p}": (neural, f"server {p}") for p in args.protocols}
     return {
         "reference (path)": (view(mi, reference, {"type": "path", **depth}, args.size, args.spp), None),
         "neural (neumip_path)": (neural, "kernel"),
@@ -215,9 +216,14 @@ def time_render(mi, scene, evaluator, spp: int, seed: int, max_lanes: int,
 
 
 def ratios(args) -> None:
+    from neumip.client.http import MaterialClient
+
+    args.protocols = SERVER_PROTOCOLS if args.server else ("msgpack",) if args.server_url else ()
+    if args.server_url:  # a server already running (a container): its CPU is not counted
+        with MaterialClient(args.server_url, protocol="msgpack") as client:
+            return ratios_with(args, ({"msgpack": client}, None))
     if not args.server:
         return ratios_with(args, None)
-    from neumip.client.http import MaterialClient
     from bench_server import Server  # this folder is on sys.path when run as a script
 
     with tempfile.TemporaryDirectory() as tmp:
@@ -260,7 +266,7 @@ def ratios_with(args, served: tuple | None) -> None:
     for name, (scene, evaluator) in scenes.items():  # warm-up: compile (or load cached) kernels
         time_render(mi, scene, evaluator, args.spp, 0, args.max_lanes, pids[name])
     times = {name: [] for name in scenes}  # (wall, CPU) per round
-    evaluation = {key: [] for key in ("kernel", "local", "kernel before", *(f"server {p}" for p in SERVER_PROTOCOLS))
+    evaluation = {key: [] for key in ("kernel", "local", "kernel before", *(f"server {p}" for p in args.protocols))
                   if key in evaluators}
     for r in range(args.rounds):
         for name, (scene, evaluator) in scenes.items():
@@ -275,8 +281,9 @@ def ratios_with(args, served: tuple | None) -> None:
         print(f"  {name:<24} {wall[name]:7.3f} s wall   {cpu[name]:7.3f} CPU s")
     print("  (neural evaluation inside the neural renders, wall: "
           + ", ".join(f"{key} {statistics.median(values):.3f} s" for key, values in evaluation.items()) + ")")
-    served_rows = [(f"through a server (NEUMIP_ENGINE={args.server}, {p}): neural / reference", f"neural, server {p}",
-                    "reference (path)", 1.0) for p in SERVER_PROTOCOLS] if served is not None else []
+    which = f"{args.server_url}" if args.server_url else f"NEUMIP_ENGINE={args.server}"
+    served_rows = [(f"through a server ({which}, {p}): neural / reference", f"neural, server {p}",
+                    "reference (path)", 1.0) for p in args.protocols]
     before = [("kernel before: neural / reference", "neural, kernel before", "reference (path)", 1.0),
               ("in-kernel after / before", "neural (neumip_path)", "neural, kernel before", 1.05)] if args.kernel_before else []
     for label, a, b, target in (("neural / reference", "neural (neumip_path)", "reference (path)", 1.0),
@@ -544,8 +551,11 @@ def main() -> int:
                         help="stages: also render the material's file in these folders (another export of it)")
     parser.add_argument("--server", nargs="?", const="auto", metavar="ENGINE",
                         help="ratios: also render through a real `neumip serve` of this engine (default: auto, the "
-                        "server's default: the kernel engine where it runs), msgpack on loopback; CPU seconds count "
+                        "server's default: the kernel engine where it runs), msgpack and shared memory on loopback; CPU seconds count "
                         "the server process too")
+    parser.add_argument("--server-url", metavar="URL",
+                        help="the ratios: also render through a server already running at URL (a container: "
+                        "`docker compose up`), msgpack; its CPU is not counted")
     parser.add_argument("--variant", help="Mitsuba variant of every render (default: the renderer's, llvm_ad_rgb; "
                         "cuda_ad_rgb on an NVIDIA GPU)")
     args = parser.parse_args()

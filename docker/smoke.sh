@@ -1,6 +1,6 @@
 #!/usr/bin/env bash
 # Docker smoke test: build the image with compose (the v2 plugin `docker compose` or the v1
-# `docker-compose`, whichever exists), start it, wait for its healthcheck, send real queries (msgpack and Open Inference Protocol, compared bit for bit with in-process ONNX
+# `docker-compose`, whichever exists), start it, wait for its healthcheck, send real queries (msgpack and Open Inference Protocol, compared bit for bit with the same engine in process: the kernel engine, or ONNX
 # Runtime), check it runs as non-root without torch/mitsuba, then stop it and check the shutdown
 # was graceful (exit status 0 after SIGTERM).
 #

@@ -1,5 +1,5 @@
 #!/usr/bin/env bash
-# Fill docker/wheels/ with every wheel `pip install '.[serve]'` needs (plus the build backend), so that
+# Fill docker/wheels/ with every wheel `pip install '.[serve,kernel]'` needs (plus the build backend), so that
 # `docker build` installs with no network. Run on a host with the same Python minor version and
 # architecture as the base image (bookworm: Python 3.11, x86-64).
 #
@@ -12,9 +12,9 @@ if [ -z "$PY" ]; then
 fi
 OUT="$ROOT/docker/wheels"
 mkdir -p "$OUT"
-# Dependencies of the server extra (neumip itself is built inside the image from the source tree).
+# Dependencies of the server and kernel extras (neumip itself is built inside the image from the source tree).
 "$PY" -m pip download --quiet --only-binary=:all: --dest "$OUT" \
     "setuptools>=77" wheel pip
-"$PY" -m pip wheel --quiet --wheel-dir "$OUT" "$ROOT[serve]"
+"$PY" -m pip wheel --quiet --wheel-dir "$OUT" "$ROOT[serve,kernel]"
 rm -f "$OUT"/neumip-*.whl
 echo "wheelhouse: $(ls "$OUT"/*.whl | wc -l) wheels in $OUT"

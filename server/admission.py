@@ -11,6 +11,11 @@ grow with; a group takes at least 8 bytes a light, so the true count can exceed 
 length, and the server refuses it then); it is released when the answer is complete (or, for a handler cancelled
 by a client that went away, when its queued rows have run).
 
+When no request has been in flight for `TRIM_AFTER_S`, the server hands the C heap's free pages back to the
+system (glibc's ``malloc_trim``): large buffers can then come from the heap while requests stream (the Docker
+image's ``MALLOC_MMAP_THRESHOLD_`` of 4 MiB: no page faults for each request's body and answers), and the
+memory a burst took still comes back once it is over.
+
 A third budget bounds the way out: a request's **answer** (12 bytes an answer, ``answer_budget_bytes``)
 is reserved once its rows are known, before they are evaluated (503 past the budget), and freed when the
 response has been handed to the connection - or, for a client that does not read it, when the connection
@@ -24,6 +29,8 @@ memory.
 from __future__ import annotations
 
 import asyncio
+import ctypes
+import time
 from collections.abc import Callable, Iterator
 from contextlib import contextmanager
 from dataclasses import dataclass
@@ -40,6 +47,21 @@ from neumip.server.settings import ANSWER_BYTES, JSON_MEMORY_FACTOR, Settings
 
 MIN_JSON_ROW_BYTES = 14
 """Fewest bytes a query row takes in JSON (``0,0,0,0,0,0,0,`` in v2's flat data): rows <= length / 14."""
+
+
+TRIM_AFTER_S = 1.0
+"""Seconds without a request in flight after which the heap's free pages go back to the system."""
+
+
+def _malloc_trim() -> Callable[[int], int] | None:
+    """glibc's ``malloc_trim`` of this process's C library; None where there is none (musl, macOS)."""
+    try:
+        return ctypes.CDLL(None).malloc_trim
+    except (OSError, AttributeError):
+        return None
+
+
+MALLOC_TRIM = _malloc_trim()
 
 
 @dataclass
@@ -118,6 +140,9 @@ class Admission:
         metrics.queue_rows.set_function(lambda: self.rows)
         metrics.queue_requests.set_function(lambda: self.requests)
         metrics.answer_bytes.set_function(lambda: self.answers)
+        self.last_busy = time.monotonic()  # when a request last arrived or finished
+        self.trims = 0
+        self._trim: asyncio.TimerHandle | None = None
 
     @contextmanager
     def admit(self, plan: BodyPlan) -> Iterator[Ticket]:
@@ -126,6 +151,7 @@ class Admission:
         ticket = Ticket(0, 0)
         self.resize(ticket, plan.memory(), plan.rows)
         self.requests += 1
+        self.last_busy = time.monotonic()
         try:
             yield ticket
         finally:
@@ -178,6 +204,32 @@ class Admission:
             self.requests -= 1
             if not ticket.answer_handed:
                 self._free_answer(ticket)
+            self.last_busy = time.monotonic()
+            if not self.requests:
+                self._trim_when_idle()
+
+    def _trim_when_idle(self) -> None:
+        """Trim the heap once no request has been in flight for `TRIM_AFTER_S` (checked again when the timer
+        fires: a stream of requests keeps putting it off)."""
+        if MALLOC_TRIM is None or self._trim is not None:
+            return
+        try:
+            loop = asyncio.get_running_loop()
+        except RuntimeError:  # not on an event loop (a unit test's books): nothing to trim for
+            return
+
+        def fire() -> None:
+            self._trim = None
+            if self.requests:
+                return  # busy again: the last release schedules the next
+            idle = time.monotonic() - self.last_busy
+            if idle < TRIM_AFTER_S:
+                self._trim = loop.call_later(TRIM_AFTER_S - idle, fire)
+                return
+            MALLOC_TRIM(0)
+            self.trims += 1
+
+        self._trim = loop.call_later(TRIM_AFTER_S, fire)
 
 
 async def read_body(request: Request, plan: BodyPlan, ticket: Ticket, admission: Admission) -> bytearray:

@@ -77,3 +77,35 @@ def test_budgets_refuse_at_once_and_release_when_the_answer_is_done():
     asyncio.run(scenario())
     assert metrics.registry.get_sample_value("neumip_queue_rejected_total") == 2
     assert metrics.registry.get_sample_value("neumip_body_bytes") == 0
+
+
+def test_the_heap_is_trimmed_once_the_server_is_idle(monkeypatch):
+    """glibc's malloc_trim runs once no request has been in flight for TRIM_AFTER_S, not while requests keep
+    arriving; and the real one is found on this (glibc) system."""
+    from neumip.server import admission as A
+
+    assert A._malloc_trim() is not None  # Debian's glibc
+    calls = []
+    monkeypatch.setattr(A, "MALLOC_TRIM", lambda pad: calls.append(pad) or 1)
+    monkeypatch.setattr(A, "TRIM_AFTER_S", 0.05)
+    settings = Settings()
+    admission = Admission(settings, Metrics())
+    one = plan(request(content_length=str(28 * 10)), settings, json=False)
+
+    async def scenario():
+        for _ in range(6):  # a stream of requests 0.02 s apart: never idle for 0.05 s
+            with admission.admit(one):
+                pass
+            await asyncio.sleep(0.02)
+        assert calls == []
+        await asyncio.sleep(0.1)
+        assert calls == [0] and admission.trims == 1
+        await asyncio.sleep(0.1)  # idle on: no second trim until a request comes and goes
+        assert calls == [0]
+        with admission.admit(one):
+            await asyncio.sleep(0.1)  # in flight: no trim
+        assert calls == [0]
+        await asyncio.sleep(0.1)
+        assert calls == [0, 0]
+
+    asyncio.run(scenario())
