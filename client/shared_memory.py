@@ -120,9 +120,10 @@ class SharedMemoryCodec:
         return grown
 
     def _drop(self, buffer: SharedBuffer) -> None:
+        """Unregister `buffer`'s region (one exchange, no retries: a server that is gone has forgotten it) and
+        remove its object."""
         try:
-            self.client._request("POST", REGIONS_PATH.format(name=buffer.name) + "/unregister",
-                                 what=f"unregister shared-memory region {buffer.name}")
+            self.client._send("POST", REGIONS_PATH.format(name=buffer.name) + "/unregister", None, None)
         finally:
             buffer.close()
 

@@ -101,11 +101,15 @@ async def shared_memory_status(region: str | None = None, state: ServerState = D
 async def shared_memory_register(region: str, request: Request, state: ServerState = Depends(get_state)) -> Response:
     state.shared_memory.check_allowed()
     body = bytearray()
-    async with asyncio.timeout(state.settings.body_timeout_s):
-        async for chunk in request.stream():
-            body += chunk
-            if len(body) > REGISTER_BYTES:
-                raise ApiError(413, f"a register request is a JSON object of at most {REGISTER_BYTES} bytes")
+    try:
+        async with asyncio.timeout(state.settings.body_timeout_s):
+            async for chunk in request.stream():
+                body += chunk
+                if len(body) > REGISTER_BYTES:
+                    raise ApiError(413, f"a register request is a JSON object of at most {REGISTER_BYTES} bytes")
+    except TimeoutError:
+        raise ApiError(408, f"register request body not complete after {state.settings.body_timeout_s:g} s",
+                       {"Connection": "close"}) from None
     state.shared_memory.register(region, parse_json(body))
     return Response(status_code=200)
 

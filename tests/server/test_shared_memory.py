@@ -278,3 +278,19 @@ def test_tritonclient_shared_memory_against_a_real_server(serve, reference):
     finally:
         for handle in handles:
             shm.destroy_shared_memory_region(handle)
+
+
+def test_a_stalled_register_is_408(serve, shm_object):
+    """A client that states a register body and never sends it is cut off after the body timeout."""
+    import socket
+
+    server = serve(allow_shared_memory="true", body_timeout_s="1")
+    host, port = server.host_port.split(":")
+    with socket.create_connection((host, int(port)), timeout=10) as sock:
+        sock.sendall(b"POST /v2/systemsharedmemory/region/r/register HTTP/1.1\r\nHost: x\r\n"
+                     b"Content-Type: application/json\r\nContent-Length: 100\r\n\r\n{")
+        reply = b""
+        while chunk := sock.recv(4096):  # until the server closes the connection
+            reply += chunk
+    reply = reply.decode()
+    assert reply.startswith("HTTP/1.1 408") and "not complete after 1 s" in reply
