@@ -49,7 +49,7 @@ class SharedBuffer:
             raise
         finally:
             os.close(fd)
-        self._remove = weakref.finalize(self, _remove, self.map, path)
+        self._remove = weakref.finalize(self, _remove, self.map, path, os.getpid())
 
     @property
     def key(self) -> str:
@@ -63,12 +63,13 @@ class SharedBuffer:
         self._remove()
 
 
-def _remove(mapping: mmap.mmap, path: Path) -> None:
+def _remove(mapping: mmap.mmap, path: Path, owner: int) -> None:
     try:
         mapping.close()
     except BufferError:  # a view still holds it: the mapping goes with the view
         pass
-    path.unlink(missing_ok=True)
+    if os.getpid() == owner:  # a forked child exiting leaves its parent's object alone
+        path.unlink(missing_ok=True)
 
 
 class SharedMemoryCodec:

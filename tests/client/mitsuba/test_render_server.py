@@ -31,13 +31,13 @@ def one_drjit_thread():
 
 @pytest.fixture
 def server(serve):
-    """A real `neumip serve` process serving the test materials (stopped after the test)."""
-    return serve()
+    """A real `neumip serve` process serving the test materials, shared memory allowed (stopped after the test)."""
+    return serve(allow_shared_memory="true")
 
 
-@pytest.mark.parametrize("protocol", ["msgpack", "v2"])
+@pytest.mark.parametrize("protocol", ["msgpack", "v2", "shm"])
 def test_server_render_equals_in_process(model_dir, server, tmp_path, one_drjit_thread, protocol):
-    """Through msgpack /v1 and the Open Inference Protocol's binary tensors alike: the same bits."""
+    """Through msgpack /v1, the Open Inference Protocol's binary tensors and shared memory alike: the same bits."""
     path = write_xml(tmp_path)
     config = RenderConfig(spp=16, seed=5, max_lanes=32 * 32 * 8, threads=one_drjit_thread)  # two passes
     local = render_scene(load_scene(path), LocalMaterials(model_dir), config)
@@ -49,7 +49,7 @@ def test_server_render_equals_in_process(model_dir, server, tmp_path, one_drjit_
 
 
 def test_render_command_over_v2_equals_msgpack(model_dir, server, tmp_path, caplog):
-    """`neumip render --protocol v2` writes the image `--protocol msgpack` writes (up to the film's
+    """`neumip render --protocol v2` and `--protocol shm` write the image `--protocol msgpack` writes (up to the film's
     thread-dependent summation order; bit for bit on one thread: test_server_render_equals_in_process).
     Its HTTP requests are logged only with -v (DEBUG), not one INFO line per request."""
     import logging
@@ -59,12 +59,13 @@ def test_render_command_over_v2_equals_msgpack(model_dir, server, tmp_path, capl
     caplog.set_level(logging.DEBUG)
     scene = write_xml(tmp_path)
     images = {}
-    for protocol in ("msgpack", "v2"):
+    for protocol in ("msgpack", "v2", "shm"):
         out = tmp_path / f"{protocol}.exr"
         assert cli.main(["render", scene, "-o", str(out), "--server", server.url, "--protocol", protocol]) == 0
         images[protocol] = np.array(mi.Bitmap(str(out)))
     assert images["v2"].mean() > 0.01
     np.testing.assert_allclose(images["v2"], images["msgpack"], rtol=1e-5, atol=1e-6)
+    np.testing.assert_allclose(images["shm"], images["msgpack"], rtol=1e-5, atol=1e-6)
     assert "HTTP Request" not in caplog.text
     assert cli.main(["render", scene, "-o", str(out), "--server", server.url, "--spp", "1", "-v"]) == 0
     assert "HTTP Request: POST" in caplog.text
