@@ -32,6 +32,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
+
 from neumip.core import contract as C
 from neumip.core.wire import SharedMemoryRef
 
@@ -205,8 +206,9 @@ class SharedMemory:
 
 def _open(path: Path, key: str) -> tuple[int, bool]:
     """(descriptor, writable) of the object at `path`: read-write where allowed, else read-only; 400 if
-    it cannot be opened. No symbolic links are followed."""
-    flags = os.O_NOFOLLOW | os.O_CLOEXEC
+    it cannot be opened. No symbolic links are followed, and nothing blocks (a FIFO put there is refused as
+    no regular file once open)."""
+    flags = os.O_NOFOLLOW | os.O_CLOEXEC | os.O_NONBLOCK
     try:
         return os.open(path, os.O_RDWR | flags), True
     except PermissionError:

@@ -137,6 +137,13 @@ def test_bad_registrations_say_what_is_wrong(shm_client, shm_object, tmp_path):
         assert resp.status_code == 400 and "symbolic link" in resp.json()["error"]
     finally:
         link.unlink()
+    fifo = SHM / f"neumip-test-fifo-{secrets.token_hex(4)}"
+    os.mkfifo(fifo)
+    try:  # opened without blocking, then refused
+        resp = shm_client.post(f"{REGIONS}/region/r1/register", json={"key": "/" + fifo.name, "byte_size": 8})
+        assert resp.status_code == 400 and "is not a shared-memory object" in resp.json()["error"]
+    finally:
+        fifo.unlink()
     assert shm_client.post(f"{REGIONS}/region/r1/register", content=b"{").status_code == 400
     assert shm_client.post(f"{REGIONS}/region/r1/register", content=b" " * 5000).status_code == 413
     assert register(shm_client, "r1", key, 8).status_code == 200
