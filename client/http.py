@@ -132,14 +132,21 @@ def _shared_memory(client: "MaterialClient") -> Codec:
     return SharedMemoryCodec(client)
 
 
+def _auto(client: "MaterialClient") -> Codec:
+    from neumip.client.shared_memory import AutoCodec
+
+    return AutoCodec(client)
+
+
 PROTOCOLS: dict[str, Callable[["MaterialClient"], Codec]] = {
     "msgpack": lambda client: MsgpackCodec(),
     "v2": lambda client: InferCodec(),
     "shm": _shared_memory,
+    "auto": _auto,
 }
 """How `MaterialClient` can talk to the server (the codec each client gets): ``/v1`` msgpack (the default),
-``/v2`` binary tensors, or ``/v2`` with the rows in shared memory (a server on the same machine that allows
-it: `neumip.client.shared_memory`)."""
+``/v2`` binary tensors, ``/v2`` with the rows in shared memory (a server on the same machine that allows it:
+`neumip.client.shared_memory`), or ``auto``: shared memory where the server offers it on this machine, else msgpack."""
 
 
 class MaterialClient:
@@ -147,7 +154,8 @@ class MaterialClient:
 
     `transport` replaces httpx's network transport (tests: ``httpx.MockTransport``); `protocol` says
     how queries and answers travel: ``"msgpack"`` (``/v1``, the default), ``"v2"`` (the Open Inference
-    Protocol with binary tensors) or ``"shm"`` (``/v2`` with the rows in shared memory), see `PROTOCOLS`.
+    Protocol with binary tensors), ``"shm"`` (``/v2`` with the rows in shared memory) or ``"auto"`` (``shm`` where
+    the server offers it on this machine, else msgpack), see `PROTOCOLS`.
     """
 
     def __init__(

@@ -23,10 +23,11 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("-o", "--output", type=Path, required=True, help="image to write (.png or .exr)")
     p.add_argument("--spp", type=int, default=None, help="samples per pixel (default: the scene's)")
     p.add_argument("--server", default=None, help="evaluate on this server (e.g. http://127.0.0.1:8000)")
-    p.add_argument("--protocol", choices=("msgpack", "v2", "shm"), default="msgpack",
+    p.add_argument("--protocol", choices=("auto", "msgpack", "v2", "shm"), default="auto",
                    help="with --server: msgpack /v1, the Open Inference Protocol's binary tensors (v2: "
-                   "neumip serve, Triton, KServe), or v2 with the rows in shared memory (shm: a server on this "
-                   "machine started with --allow-shared-memory, or Triton with --allow-client-shm)")
+                   "neumip serve, Triton, KServe), v2 with the rows in shared memory (shm: a server on this "
+                   "machine started with --allow-shared-memory, or Triton with --allow-client-shm), or auto: shm "
+                   "where the server offers it on this machine, else msgpack")
     p.add_argument("--models", type=Path, default=Path(DEFAULT_MODELS),
                    help="folder of .onnx materials (in-process); several as DIR1:DIR2, the first holding a "
                         "name serves it (e.g. mine:models: your materials beside the shipped ones)")

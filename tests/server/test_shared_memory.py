@@ -301,3 +301,36 @@ def test_a_stalled_register_is_408(serve, shm_object):
             reply += chunk
     reply = reply.decode()
     assert reply.startswith("HTTP/1.1 408") and "not complete after 1 s" in reply
+
+
+def test_auto_takes_shared_memory_where_the_server_offers_it_on_this_machine(serve, reference, monkeypatch):
+    """`protocol="auto"` (`neumip render`'s default): shared memory from a loopback server that lists the extension,
+    msgpack from one that does not, from a host elsewhere (no question asked), and from one that cannot open the
+    client's objects (here: made outside /dev/shm); the same bits every way."""
+    import httpx
+
+    from neumip.client import shared_memory as S
+    from neumip.client.http import MaterialClient, MsgpackCodec
+
+    q = C.random_queries(2000, seed=5)
+    expected = reference.evaluate("rand16", q)
+    allowed, refused = serve(allow_shared_memory="true"), serve()
+    for server, chosen in ((allowed, S.SharedMemoryCodec), (refused, MsgpackCodec)):
+        with MaterialClient(server.url, protocol="auto") as client:
+            np.testing.assert_array_equal(client.evaluate("rand16", q), expected)
+            assert type(client.codec.chosen) is chosen
+    asked = []
+
+    def elsewhere(request):
+        asked.append(request.url.path)
+        body = np.abs(np.asarray(q[:, :3]))  # any answer of the right shape
+        from neumip.core import wire
+        return httpx.Response(200, content=wire.encode_response(body.astype(np.float32)))
+
+    with MaterialClient("http://10.1.2.3:8000", protocol="auto", transport=httpx.MockTransport(elsewhere)) as client:
+        client.evaluate("rand16", q)
+        assert type(client.codec.chosen) is MsgpackCodec and asked == ["/v1/materials/rand16/evaluate"]
+    monkeypatch.setattr(S, "SHM_DIR", Path(os.environ.get("TMPDIR", "/tmp")))  # objects the server cannot find
+    with MaterialClient(allowed.url, protocol="auto") as client:
+        np.testing.assert_array_equal(client.evaluate("rand16", q), expected)
+        assert type(client.codec.chosen) is MsgpackCodec
