@@ -23,6 +23,7 @@ from __future__ import annotations
 import logging
 import time
 from collections.abc import Callable
+from urllib.parse import urlsplit
 from dataclasses import dataclass
 from typing import Protocol
 
@@ -126,23 +127,67 @@ class InferCodec:
         return C.as_rgb(rgb, rows, lights)
 
 
+class AutoCodec:
+    """Shared memory where the server is on this machine and offers it (`client.shared_memory`), else msgpack:
+    decided at the first evaluation, from the URL's host and the server's ``GET /v2`` extensions. A region the server
+    cannot open (another user, another machine's ``/dev/shm``: a container's port on loopback) falls back to msgpack
+    for good, with one log line."""
+
+    def __init__(self, client) -> None:
+        self.client = client
+        self.chosen = None
+
+    def _choose(self) -> Codec:
+        from neumip.client.shared_memory import EXTENSION, LOOPBACK, SHM_DIR, SharedMemoryCodec
+
+        if self.chosen is None:
+            self.chosen = MsgpackCodec()
+            if urlsplit(self.client.url).hostname in LOOPBACK and SHM_DIR.is_dir():
+                try:
+                    listed = self.client._request("GET", "/v2", what="read the server's metadata").json()
+                except (ServerError, ValueError):
+                    listed = {}
+                if EXTENSION in (listed.get("extensions") or [] if isinstance(listed, dict) else []):
+                    self.chosen = SharedMemoryCodec(self.client)
+        return self.chosen
+
+    def path(self, material: str) -> str:
+        return self._choose().path(material)
+
+    def encode(self, queries: np.ndarray) -> tuple[dict[str, str], list]:
+        from neumip.client.shared_memory import SharedMemoryCodec
+
+        codec = self._choose()
+        if isinstance(codec, SharedMemoryCodec):
+            try:
+                return codec.encode(queries)
+            except (ServerError, OSError) as exc:
+                if isinstance(exc, ServerError) and exc.status not in (400, 403):  # unreachable, busy: not the region
+                    raise
+                log.info("shared memory with %s is not possible (%s): msgpack bodies instead", self.client.url, exc)
+                codec.close()
+                self.chosen = MsgpackCodec()
+        return self.chosen.encode(queries)
+
+    def decode(self, response, rows: int, lights: int) -> np.ndarray:
+        return self.chosen.decode(response, rows, lights)
+
+    def close(self) -> None:
+        if hasattr(self.chosen, "close"):
+            self.chosen.close()
+
+
 def _shared_memory(client: "MaterialClient") -> Codec:
     from neumip.client.shared_memory import SharedMemoryCodec
 
     return SharedMemoryCodec(client)
 
 
-def _auto(client: "MaterialClient") -> Codec:
-    from neumip.client.shared_memory import AutoCodec
-
-    return AutoCodec(client)
-
-
 PROTOCOLS: dict[str, Callable[["MaterialClient"], Codec]] = {
     "msgpack": lambda client: MsgpackCodec(),
     "v2": lambda client: InferCodec(),
     "shm": _shared_memory,
-    "auto": _auto,
+    "auto": AutoCodec,
 }
 """How `MaterialClient` can talk to the server (the codec each client gets): ``/v1`` msgpack (the default),
 ``/v2`` binary tensors, ``/v2`` with the rows in shared memory (a server on the same machine that allows it:

@@ -12,20 +12,16 @@ able to open the objects: the same machine, and a user that may read and write t
 from __future__ import annotations
 
 import json
-import logging
 import mmap
 import os
 import secrets
 import weakref
 from pathlib import Path
-from urllib.parse import urlsplit
 
 import numpy as np
 
 from neumip.core import contract as C
 from neumip.core import wire
-
-log = logging.getLogger(__name__)
 
 SHM_DIR = Path("/dev/shm")
 """Where Linux keeps POSIX shared-memory objects (key ``/obj`` is ``/dev/shm/obj``)."""
@@ -35,6 +31,7 @@ REGIONS_PATH = "/v2/systemsharedmemory/region/{name}"
 EXTENSION = "system_shared_memory"
 """What a server that allows it lists among its extensions (``GET /v2``)."""
 LOOPBACK = ("127.0.0.1", "localhost", "::1")
+"""URL hosts of this machine (`client.http.AutoCodec` takes shared memory only there)."""
 
 
 class SharedBuffer:
@@ -143,54 +140,3 @@ class SharedMemoryCodec:
                 self._drop(buffer)
             except Exception:  # the server may be gone: the object is removed all the same
                 pass
-
-
-class AutoCodec:
-    """Shared memory where the server is on this machine and offers it, else msgpack (`client.http.MsgpackCodec`):
-    decided at the first evaluation, from the URL's host and the server's ``GET /v2`` extensions. A region the server
-    cannot open (another user, another machine's ``/dev/shm``: a container's port on loopback) falls back to msgpack
-    for good, with one log line."""
-
-    def __init__(self, client) -> None:
-        self.client = client
-        self.chosen = None
-
-    def _choose(self):
-        from neumip.client.http import MsgpackCodec, ServerError
-
-        if self.chosen is None:
-            self.chosen = MsgpackCodec()
-            if urlsplit(self.client.url).hostname in LOOPBACK and SHM_DIR.is_dir():
-                try:
-                    listed = self.client._request("GET", "/v2", what="read the server's metadata").json()
-                except (ServerError, ValueError):
-                    listed = {}
-                if EXTENSION in (listed.get("extensions") or [] if isinstance(listed, dict) else []):
-                    self.chosen = SharedMemoryCodec(self.client)
-        return self.chosen
-
-    def path(self, material: str) -> str:
-        return self._choose().path(material)
-
-    def encode(self, queries: np.ndarray) -> tuple[dict[str, str], list]:
-        from neumip.client.http import MsgpackCodec, ServerError
-
-        codec = self._choose()
-        if isinstance(codec, SharedMemoryCodec):
-            try:
-                return codec.encode(queries)
-            except (ServerError, OSError) as exc:
-                if isinstance(exc, ServerError) and exc.status not in (400, 403):  # unreachable, busy: not the region
-                    raise
-                log.info("shared memory with %s is not possible (%s): msgpack bodies instead", self.client.url, exc)
-                codec.close()
-                self.chosen = MsgpackCodec()
-        return self.chosen.encode(queries)
-
-    def decode(self, response, rows: int, lights: int) -> np.ndarray:
-        return self.chosen.decode(response, rows, lights)
-
-    def close(self) -> None:
-        if isinstance(self.chosen, SharedMemoryCodec):
-            self.chosen.close()
-
