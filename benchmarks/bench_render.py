@@ -218,7 +218,7 @@ def time_render(mi, scene, evaluator, spp: int, seed: int, max_lanes: int,
 def ratios(args) -> None:
     from neumip.client.http import MaterialClient
 
-    args.protocols = SERVER_PROTOCOLS if args.server else ("msgpack",) if args.server_url else ()
+    args.protocols = ("msgpack",) if args.server_url else SERVER_PROTOCOLS if args.server else ()
     if args.server_url:  # a server already running (a container): its CPU is not counted
         with MaterialClient(args.server_url, protocol="msgpack") as client:
             return ratios_with(args, ({"msgpack": client}, None))

@@ -5,7 +5,8 @@ The client makes two POSIX shared-memory objects of its own (``/dev/shm/neumip-P
 registers them with the server as regions, copies each request's queries into one and reads the answers
 from the other; the request and the answer are then a few hundred bytes of JSON. The regions grow (a new
 object, registered anew) when a request needs more, and are unregistered and removed when the client
-closes, or when the process exits. The server must allow it (``NEUMIP_ALLOW_SHARED_MEMORY=true``) and be
+closes; at exit without a close the objects are removed, and the server forgets their regions when it needs
+the room (`neumip.server.shared_memory`). The server must allow it (``NEUMIP_ALLOW_SHARED_MEMORY=true``) and be
 able to open the objects: the same machine, and a user that may read and write them.
 """
 
@@ -100,8 +101,9 @@ class SharedMemoryCodec:
     def decode(self, response, rows: int, lights: int) -> np.ndarray:
         shape, where = wire.decode_shared_infer_response(response.content)
         answers = self.buffers["answers"]
-        if where.region != answers.name or where.offset:
-            raise C.QueryError(f"the answers went to region {where.region!r}, not to this client's {answers.name!r}")
+        if where.region != answers.name or where.offset or where.byte_size > answers.size:
+            raise C.QueryError(f"the answers went to {where.byte_size} bytes of region {where.region!r} from "
+                               f"{where.offset}, not to this client's {answers.name!r} ({answers.size} bytes)")
         rgb = answers.floats(shape[0] * shape[1]).reshape(shape).copy()  # the region takes the next answers
         return C.as_rgb(rgb, rows, lights)
 

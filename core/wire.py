@@ -265,9 +265,9 @@ def decode_shared_infer_response(body) -> tuple[tuple[int, int], SharedMemoryRef
         head = json.loads(bytes(body))
         [output] = [o for o in head["outputs"] if o["name"] == ONNX_OUTPUT]
         shape, where = output["shape"], _shared_memory_ref(output["parameters"], "output ")
-    except (ValueError, KeyError, TypeError) as exc:
+    except (ValueError, KeyError, TypeError, AttributeError) as exc:
         raise QueryError(f"v2 answer is not an infer response with '{ONNX_OUTPUT}' in shared memory: {exc}") from None
-    if (where is None or output.get("datatype") != INFER_DATATYPE or len(shape) != 2
+    if (where is None or output.get("datatype") != INFER_DATATYPE or not isinstance(shape, list) or len(shape) != 2
             or not all(isinstance(d, int) and d >= 0 for d in shape) or not shape[1] or shape[1] % RGB_DIM):
         raise QueryError(f"v2 answer '{ONNX_OUTPUT}' is {output.get('datatype')} {shape}, not {INFER_DATATYPE} "
                          "[N, 3 K] in shared memory")

@@ -123,7 +123,9 @@ class SharedMemory:
     def unregister(self, name: str | None = None) -> None:
         """Forget region `name`, or every region; a region in use closes when its requests are done."""
         self.check_allowed()
-        names = list(self.regions) if name is None else [name]
+        if name is None:
+            return self.unregister_all()
+        names = [name]
         for each in names:
             region = self.regions.pop(each, None)
             if region is not None:
@@ -139,9 +141,14 @@ class SharedMemory:
                 self.unregister(region.name)
 
     def close(self) -> None:
-        """At shutdown: close every region."""
-        for region in self.regions.values():
-            os.close(region.fd)
+        """At shutdown: forget every region (one in use closes when its request is done)."""
+        self.unregister_all()
+
+    def unregister_all(self) -> None:
+        for region in list(self.regions.values()):
+            region.gone = True
+            if not region.users:
+                os.close(region.fd)
         self.regions.clear()
 
     def status(self, name: str | None = None) -> list[dict]:
@@ -176,7 +183,7 @@ class SharedMemory:
         no longer holds them."""
         out = np.empty(shape, C.DTYPE)
         with self.using(ref) as region:
-            got = await _io(os.preadv, region.fd, [out], region.offset + ref.offset, out.nbytes)
+            got = await _io(os.preadv, region, [out], region.offset + ref.offset, out.nbytes)
         if got != out.nbytes:
             raise ApiError(400, f"shared-memory region {ref.region!r} holds {got} of the {out.nbytes} bytes of "
                                 f"the queries: its object {region.key!r} was truncated")
@@ -195,11 +202,14 @@ class SharedMemory:
     async def write_answer(self, ref: SharedMemoryRef, rgb: np.ndarray) -> None:
         """Write (N, 3 K) answers where `ref` points; 400 if the object was truncated below them."""
         rgb = np.ascontiguousarray(rgb, C.DTYPE)
-        with self.using(ref) as region:
+        with self.using(ref) as region:  # registered anew meanwhile, it may be another object: check again
+            if not region.writable:
+                raise ApiError(400, f"shared-memory object {region.key!r} is read-only to the server: "
+                                    "it cannot take the answers")
             start = region.offset + ref.offset
             if os.fstat(region.fd).st_size < start + rgb.nbytes:  # writing would grow it, not fill it
                 raise ApiError(400, f"shared-memory object {region.key!r} was truncated below the answers")
-            put = await _io(os.pwritev, region.fd, [rgb], start, rgb.nbytes)
+            put = await _io(os.pwritev, region, [rgb], start, rgb.nbytes)
         if put != rgb.nbytes:
             raise ApiError(500, f"wrote {put} of {rgb.nbytes} bytes of answers to shared-memory region {ref.region!r}")
 
@@ -226,8 +236,22 @@ def _why(exc: OSError) -> str:
             errno.ELOOP: "it is a symbolic link"}.get(exc.errno, exc.strerror or str(exc))
 
 
-async def _io(call, fd: int, buffers: list, offset: int, nbytes: int) -> int:
-    """``preadv``/``pwritev``, in a thread when large."""
-    if nbytes > OFFLOAD_BYTES:
-        return await asyncio.to_thread(call, fd, buffers, offset)
-    return call(fd, buffers, offset)
+async def _io(call, region: Region, buffers: list, offset: int, nbytes: int) -> int:
+    """``preadv``/``pwritev`` on the region's object, in a thread when large (on a descriptor of its own, which the
+    thread closes: a handler cancelled meanwhile may close the region's); 400 with the system's reason if it fails
+    (507 for a full ``/dev/shm``)."""
+    try:
+        if nbytes <= OFFLOAD_BYTES:
+            return call(region.fd, buffers, offset)
+        fd = os.dup(region.fd)
+
+        def run() -> int:
+            try:
+                return call(fd, buffers, offset)
+            finally:
+                os.close(fd)
+
+        return await asyncio.to_thread(run)
+    except OSError as exc:
+        status = 507 if exc.errno == errno.ENOSPC else 400
+        raise ApiError(status, f"shared-memory object {region.key!r}: {exc.strerror or exc}") from None

@@ -15,6 +15,7 @@ from collections.abc import Callable
 
 import numpy as np
 from fastapi import APIRouter, Depends, Request, Response
+from starlette.requests import ClientDisconnect
 
 from neumip.core import contract as C
 from neumip.core import wire
@@ -110,6 +111,8 @@ async def shared_memory_register(region: str, request: Request, state: ServerSta
     except TimeoutError:
         raise ApiError(408, f"register request body not complete after {state.settings.body_timeout_s:g} s",
                        {"Connection": "close"}) from None
+    except ClientDisconnect:  # nobody is left to read the answer; a 4xx keeps the logs straight
+        raise ApiError(400, f"client disconnected after {len(body)} bytes of the register request") from None
     state.shared_memory.register(region, parse_json(body))
     return Response(status_code=200)
 

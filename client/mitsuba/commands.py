@@ -182,6 +182,9 @@ def _render(args: argparse.Namespace) -> int:
     finally:
         for bar in bars:
             bar.close()
+        client = getattr(evaluator, "primary", evaluator)  # a FallbackEvaluator's client
+        if hasattr(client, "close"):  # a MaterialClient: its connection, its shared-memory regions unregistered
+            client.close()
     path = R.write_image(result.image, args.output)
     s = result.stats
     if getattr(evaluator, "switched", None):

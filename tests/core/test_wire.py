@@ -181,6 +181,9 @@ def test_shared_memory_infer_request_and_answer_round_trip():
     head["outputs"][0]["parameters"]["shared_memory_byte_size"] = 4
     with pytest.raises(C.QueryError, match="says it takes 4 bytes"):
         wire.decode_shared_infer_response(json.dumps(head).encode())
+    for broken in ({"parameters": ["in"]}, {"shape": 10}):  # malformed answers: a QueryError, nothing else
+        with pytest.raises(C.QueryError):
+            wire.decode_shared_infer_response(json.dumps({**head, "outputs": [{**head["outputs"][0], **broken}]}).encode())
     half = json.loads(b"".join(parts))
     del half["inputs"][0]["parameters"]["shared_memory_region"]
     with pytest.raises(C.QueryError, match="must name a registered region"):

@@ -66,6 +66,9 @@ def test_render_command_over_v2_equals_msgpack(model_dir, server, tmp_path, capl
     assert images["v2"].mean() > 0.01
     np.testing.assert_allclose(images["v2"], images["msgpack"], rtol=1e-5, atol=1e-6)
     np.testing.assert_allclose(images["shm"], images["msgpack"], rtol=1e-5, atol=1e-6)
+    import httpx
+
+    assert httpx.get(server.url + "/v2/systemsharedmemory/status").json() == []  # the render closed its client
     assert "HTTP Request" not in caplog.text
     assert cli.main(["render", scene, "-o", str(out), "--server", server.url, "--spp", "1", "-v"]) == 0
     assert "HTTP Request: POST" in caplog.text
