@@ -52,7 +52,7 @@ class Settings(BaseSettings):
     """What evaluates the materials: kernel (the file's graph as drjit LLVM kernels, the renderer's in-process
     engine: one call at a time over every core; needs pip install 'neumip[kernel]' and a libLLVM >= 16),
     onnxruntime (the file's graph in ONNX Runtime sessions), or auto: kernel where it can run, else onnxruntime
-    (the kernel engine answered 3.4-3.6x ONNX Runtime's queries through the server: benchmarks/README.md)."""
+    (the faster through the server by several times: server/README.md, Engines)."""
     ort_workers: int = Field(0, ge=0)
     """Concurrent ONNX Runtime calls (threads of the dedicated executor); 0 = one per core."""
     ort_threads: int = Field(1, ge=0)

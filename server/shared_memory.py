@@ -124,7 +124,7 @@ class SharedMemory:
         """Forget region `name`, or every region; a region in use closes when its requests are done."""
         self.check_allowed()
         if name is None:
-            return self.unregister_all()
+            return self.close()
         names = [name]
         for each in names:
             region = self.regions.pop(each, None)
@@ -141,10 +141,7 @@ class SharedMemory:
                 self.unregister(region.name)
 
     def close(self) -> None:
-        """At shutdown: forget every region (one in use closes when its request is done)."""
-        self.unregister_all()
-
-    def unregister_all(self) -> None:
+        """Forget every region (at shutdown, or unregistering all); one in use closes when its request is done."""
         for region in list(self.regions.values()):
             region.gone = True
             if not region.users:
@@ -192,9 +189,7 @@ class SharedMemory:
     def check_answer(self, ref: SharedMemoryRef, nbytes: int) -> None:
         """Before evaluating: 400 unless `ref` can take `nbytes` of answers."""
         with self.using(ref) as region:
-            if not region.writable:
-                raise ApiError(400, f"shared-memory object {region.key!r} is read-only to the server: "
-                                    "it cannot take the answers")
+            _check_writable(region)
         if ref.byte_size < nbytes:
             raise ApiError(400, f"the answers take {nbytes} bytes; shared_memory_byte_size of '{C.ONNX_OUTPUT}' "
                                 f"is {ref.byte_size}")
@@ -202,16 +197,19 @@ class SharedMemory:
     async def write_answer(self, ref: SharedMemoryRef, rgb: np.ndarray) -> None:
         """Write (N, 3 K) answers where `ref` points; 400 if the object was truncated below them."""
         rgb = np.ascontiguousarray(rgb, C.DTYPE)
-        with self.using(ref) as region:  # registered anew meanwhile, it may be another object: check again
-            if not region.writable:
-                raise ApiError(400, f"shared-memory object {region.key!r} is read-only to the server: "
-                                    "it cannot take the answers")
+        with self.using(ref) as region:
+            _check_writable(region)  # again: registered anew meanwhile, the name may be another object's
             start = region.offset + ref.offset
             if os.fstat(region.fd).st_size < start + rgb.nbytes:  # writing would grow it, not fill it
                 raise ApiError(400, f"shared-memory object {region.key!r} was truncated below the answers")
             put = await _io(os.pwritev, region, [rgb], start, rgb.nbytes)
         if put != rgb.nbytes:
             raise ApiError(500, f"wrote {put} of {rgb.nbytes} bytes of answers to shared-memory region {ref.region!r}")
+
+
+def _check_writable(region: Region) -> None:
+    if not region.writable:
+        raise ApiError(400, f"shared-memory object {region.key!r} is read-only to the server: it cannot take the answers")
 
 
 def _open(path: Path, key: str) -> tuple[int, bool]:

@@ -15,7 +15,6 @@ from collections.abc import Callable
 
 import numpy as np
 from fastapi import APIRouter, Depends, Request, Response
-from starlette.requests import ClientDisconnect
 
 from neumip.core import contract as C
 from neumip.core import wire
@@ -101,18 +100,13 @@ async def shared_memory_status(region: str | None = None, state: ServerState = D
              responses=ERROR_RESPONSES)
 async def shared_memory_register(region: str, request: Request, state: ServerState = Depends(get_state)) -> Response:
     state.shared_memory.check_allowed()
-    body = bytearray()
-    try:
-        async with asyncio.timeout(state.settings.body_timeout_s):
-            async for chunk in request.stream():
-                body += chunk
-                if len(body) > REGISTER_BYTES:
-                    raise ApiError(413, f"a register request is a JSON object of at most {REGISTER_BYTES} bytes")
-    except TimeoutError:
-        raise ApiError(408, f"register request body not complete after {state.settings.body_timeout_s:g} s",
-                       {"Connection": "close"}) from None
-    except ClientDisconnect:  # nobody is left to read the answer; a 4xx keeps the logs straight
-        raise ApiError(400, f"client disconnected after {len(body)} bytes of the register request") from None
+    body_plan = plan(request, state.settings, json=True)  # read as any body is: its timeout, a client gone
+    if (body_plan.declared or 0) > REGISTER_BYTES:
+        raise ApiError(413, f"a register request is a JSON object of at most {REGISTER_BYTES} bytes")
+    with state.admission.admit(body_plan) as ticket:
+        body = await read_body(request, body_plan, ticket, state.admission)
+    if len(body) > REGISTER_BYTES:  # a chunked one
+        raise ApiError(413, f"a register request is a JSON object of at most {REGISTER_BYTES} bytes")
     state.shared_memory.register(region, parse_json(body))
     return Response(status_code=200)
 
