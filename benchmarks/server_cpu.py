@@ -16,7 +16,9 @@ server thread, read from
 workers: the upload to the engine, the engine's share of the work, the copies back) and drjit's pool workers
 (the rest of the kernel's work, and their spinning between calls). With ``--clients N`` > 1, N client processes
 send at once (each its own requests): the sum of their answers a second against one in-process caller's, the
-most that keeping the server busy gives. ``--server-env KEY=VALUE``: settings of the server.
+most that keeping the server busy gives. ``--server-env KEY=VALUE``: settings of the server. ``--copy-mb M``:
+also the median in-process call made right after copying M MB (untimed), as the server's requests copy their rows
+between its calls.
 """
 
 from __future__ import annotations
@@ -48,6 +50,9 @@ def parse_args() -> argparse.Namespace:
     p.add_argument("--seconds", type=float, default=1.0, help="each timing's length")
     p.add_argument("--clients", type=int, default=1, help="client processes sending at once")
     p.add_argument("--server-env", nargs="*", default=[], metavar="KEY=VALUE")
+    p.add_argument("--copy-mb", type=float, default=0.0,
+                   help="also time in-process calls each after copying this many MB (the server's copies between "
+                        "calls evict the engine's data from cache)")
     return p.parse_args()
 
 
@@ -119,6 +124,21 @@ def timed(fn, seconds: float) -> tuple[int, float, float]:
     return calls, time.perf_counter() - began, time.process_time() - cpu
 
 
+def after_copies(fn, megabytes: float, seconds: float) -> float:
+    """Median seconds of `fn()` each run right after copying `megabytes` MB from one buffer to another (untimed)."""
+    import numpy as np
+
+    source = np.ones(int(megabytes * 2**20) // 8)
+    target = np.empty_like(source)
+    times, began = [], time.perf_counter()
+    while time.perf_counter() - began < seconds:
+        np.copyto(target, source)
+        start = time.perf_counter()
+        fn()
+        times.append(time.perf_counter() - start)
+    return statistics.median(times)
+
+
 def main() -> None:
     args = parse_args()
     from neumip.core import contract as C
@@ -153,12 +173,15 @@ def main() -> None:
                 local.evaluate(args.model, queries)
                 for protocol in args.protocols.split(","):
                     rows = {k: [] for k in ("server", "local", "local cpu", "client", "event loop",
-                                            "engine callers", "drjit workers")}
+                                            "engine callers", "drjit workers", "after copies")}
                     for _ in range(args.rounds):
                         time.sleep(PAUSE_S)
                         calls, wall, cpu = timed(lambda: local.evaluate(args.model, queries), args.seconds)
                         rows["local"].append(wall / calls)
                         rows["local cpu"].append(cpu / calls)
+                        if args.copy_mb:
+                            rows["after copies"].append(after_copies(lambda: local.evaluate(args.model, queries),
+                                                                     args.copy_mb, args.seconds))
                         requests, wall, client_cpu, (before, after) = run_clients(
                             server.url, args.model, 1 << b, protocol, args.clients, args.seconds,
                             lambda: thread_cpu_s(pid))
@@ -169,12 +192,15 @@ def main() -> None:
                             spent[kind(pid, tid, name)] += cpu - before.get(tid, (name, 0.0))[1]
                         for key, value in spent.items():
                             rows[key].append(value / requests)
-                    ms = {k: statistics.median(v) * 1e3 for k, v in rows.items()}
+                    ms = {k: statistics.median(v) * 1e3 for k, v in rows.items() if v}
                     ratio = statistics.median(a / s for a, s in zip(rows["local"], rows["server"]))
                     server_cpu = ms["event loop"] + ms["engine callers"] + ms["drjit workers"]
+                    copies = f"   in process after {args.copy_mb:g} MB of copies: {ms['after copies']:.3f} ms" \
+                        if args.copy_mb else ""
                     print(f"2^{b:<6d} {protocol:9s} {ms['server']:9.3f} {ms['local']:14.3f} {ratio:6.3f} | "
                           f"{ms['local cpu']:28.3f} {ms['client']:7.3f} {ms['event loop']:11.3f} "
-                          f"{ms['engine callers']:15.3f} {ms['drjit workers']:14.3f} {server_cpu:7.3f}", flush=True)
+                          f"{ms['engine callers']:15.3f} {ms['drjit workers']:14.3f} {server_cpu:7.3f}{copies}",
+                          flush=True)
         finally:
             server.stop()
     print(f"# load avg {os.getloadavg()[0]:.2f}", file=sys.stderr)
