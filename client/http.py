@@ -57,6 +57,14 @@ class ServerUnavailable(ServerError):
     """No answer from the server (connection refused/reset, timeout, or 503 past the retries)."""
 
 
+class UnknownServedMaterial(ServerError, UnknownMaterial):
+    """The server serves no material of that name (404 to an evaluation): an `UnknownMaterial`, as in process
+    (`LocalMaterials` raises one), and a `ServerError`."""
+
+    def __str__(self) -> str:
+        return str(self.args[0])
+
+
 @dataclass
 class ClientConfig:
     """How `MaterialClient` talks to a server."""
@@ -172,6 +180,22 @@ class AutoCodec:
     def decode(self, response, rows: int, lights: int) -> np.ndarray:
         return self.chosen.decode(response, rows, lights)
 
+    def recover(self) -> bool:
+        """`SharedMemoryCodec.recover` while shared memory is chosen; msgpack from now on where its regions cannot be
+        registered anew (the server restarted without shared memory): True either way, the request goes again."""
+        recover = getattr(self.chosen, "recover", None)
+        if recover is None:
+            return False
+        try:
+            return recover()
+        except (ServerError, OSError) as exc:
+            if isinstance(exc, ServerError) and exc.status not in (400, 403):
+                raise
+            log.info("shared memory with %s is no longer possible (%s): msgpack bodies instead", self.client.url, exc)
+            self.chosen.close()
+            self.chosen = MsgpackCodec()
+            return True
+
     def close(self) -> None:
         if hasattr(self.chosen, "close"):
             self.chosen.close()
@@ -276,10 +300,18 @@ class MaterialClient:
         """One request: validated (n, 7) queries or (n, 5 + 2 K) groups -> (n, 3 K) RGB (a view of the
         answer's body)."""
         n, lights = queries.shape[0], C.group_lights(queries.shape[1])
-        headers, body = self.codec.encode(queries)
-        response = self._request(
-            "POST", self.codec.path(material), what=f"evaluate {n} queries on {material!r}", body=body, headers=headers
-        )
+        for again in (False, True):
+            headers, body = self.codec.encode(queries)
+            try:
+                response = self._request("POST", self.codec.path(material), what=f"evaluate {n} queries on {material!r}",
+                                         body=body, headers=headers)
+                break
+            except ServerError as exc:  # a 400 may be the server having forgotten this client's shared memory
+                if exc.status == 404:
+                    raise UnknownServedMaterial(str(exc), 404) from None
+                recover = getattr(self.codec, "recover", None)
+                if again or exc.status != 400 or recover is None or not recover():
+                    raise
         self.server_timing = _server_timing(response.headers.get("Server-Timing", ""))
         return self.codec.decode(response, n, lights)
 

@@ -13,6 +13,7 @@ able to open the objects: the same machine, and a user that may read and write t
 from __future__ import annotations
 
 import json
+import logging
 import mmap
 import os
 import secrets
@@ -23,12 +24,16 @@ import numpy as np
 
 from neumip.core import contract as C
 from neumip.core import wire
+from neumip.core.errors import NeumipError
+
+log = logging.getLogger(__name__)
 
 SHM_DIR = Path("/dev/shm")
 """Where Linux keeps POSIX shared-memory objects (key ``/obj`` is ``/dev/shm/obj``)."""
 MIN_BYTES = 1 << 20
 """Smallest region made; a region grows to the next power of two a request needs."""
 REGIONS_PATH = "/v2/systemsharedmemory/region/{name}"
+STATUS_PATH = "/v2/systemsharedmemory/status"
 EXTENSION = "system_shared_memory"
 """What a server that allows it lists among its extensions (``GET /v2``)."""
 LOOPBACK = ("127.0.0.1", "localhost", "::1")
@@ -47,7 +52,11 @@ class SharedBuffer:
         path = SHM_DIR / self.name
         fd = os.open(path, os.O_CREAT | os.O_EXCL | os.O_RDWR | os.O_CLOEXEC, 0o600)
         try:
-            os.ftruncate(fd, size)
+            try:  # the pages taken now: a full /dev/shm is an OSError here, not a SIGBUS at the first copy
+                os.posix_fallocate(fd, 0, size)
+            except OSError as exc:
+                raise OSError(exc.errno, f"{size} bytes of shared memory do not fit in {SHM_DIR}: {exc.strerror}") \
+                    from None
             self.map = mmap.mmap(fd, size)
         except BaseException:
             os.unlink(path)
@@ -113,11 +122,8 @@ class SharedMemoryCodec:
         if buffer is not None and buffer.size >= nbytes:
             return buffer
         grown = SharedBuffer(max(MIN_BYTES, 1 << (max(nbytes, 1) - 1).bit_length()))
-        body = json.dumps({"key": grown.key, "offset": 0, "byte_size": grown.size}).encode()
         try:
-            self.client._request("POST", REGIONS_PATH.format(name=grown.name) + "/register",
-                                 what=f"register shared-memory region {grown.name}", body=[body],
-                                 headers={"Content-Type": "application/json"})
+            self._register(grown)
         except BaseException:
             grown.close()
             raise
@@ -126,11 +132,34 @@ class SharedMemoryCodec:
             self._drop(buffer)
         return grown
 
+    def _register(self, buffer: SharedBuffer) -> None:
+        body = json.dumps({"key": buffer.key, "offset": 0, "byte_size": buffer.size}).encode()
+        self.client._request("POST", REGIONS_PATH.format(name=buffer.name) + "/register",
+                             what=f"register shared-memory region {buffer.name}", body=[body],
+                             headers={"Content-Type": "application/json"})
+
+    def recover(self) -> bool:
+        """After an infer answered 400: register anew the regions the server no longer holds (it restarted, or a
+        client unregistered every region, as Triton's examples do at start); True if there were any, so that the
+        request is worth sending again."""
+        try:
+            listed = self.client._request("GET", STATUS_PATH, what="read the shared-memory regions").json()
+        except (NeumipError, ValueError):
+            return False
+        held = {(r.get("name"), r.get("key"), r.get("byte_size")) for r in listed if isinstance(r, dict)} \
+            if isinstance(listed, list) else set()
+        missing = [b for b in self.buffers.values() if (b.name, b.key, b.size) not in held]
+        for buffer in missing:
+            self._register(buffer)
+        return bool(missing)
+
     def _drop(self, buffer: SharedBuffer) -> None:
-        """Unregister `buffer`'s region (one exchange, no retries: a server that is gone has forgotten it) and
-        remove its object."""
+        """Unregister `buffer`'s region (one exchange, no retries) and remove its object. A server that cannot be
+        told (gone, or failing) forgets the region once it needs the room: regions of removed objects go first."""
         try:
             self.client._send("POST", REGIONS_PATH.format(name=buffer.name) + "/unregister", None, None)
+        except Exception as exc:
+            log.debug("unregistering shared-memory region %s: %s", buffer.name, exc)
         finally:
             buffer.close()
 
@@ -138,7 +167,4 @@ class SharedMemoryCodec:
         """Unregister and remove the regions (the objects are removed even where the server is gone)."""
         buffers, self.buffers = list(self.buffers.values()), {}
         for buffer in buffers:
-            try:
-                self._drop(buffer)
-            except Exception:  # the server may be gone: the object is removed all the same
-                pass
+            self._drop(buffer)

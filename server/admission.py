@@ -232,14 +232,18 @@ class Admission:
         self._trim = loop.call_later(TRIM_AFTER_S, fire)
 
 
-async def read_body(request: Request, plan: BodyPlan, ticket: Ticket, admission: Admission) -> bytearray:
+async def read_body(request: Request, plan: BodyPlan, ticket: Ticket, admission: Admission,
+                    limit: int | None = None) -> bytearray:
     """The whole body, grown with the bytes that arrive (nothing is reserved in memory up front).
 
     408 (and the connection closed) if it takes longer than ``body_timeout_s``; 400 if the client goes
     away; a chunked upload grows its reservation as it comes (413 past the limits, 503 past the budget).
+    `limit`: the body's most bytes where a route allows fewer than the settings (a shared-memory register
+    request's 4 kB), so that a chunked upload is refused there, not reserved up to the settings' limit.
     """
     settings, body = admission.settings, bytearray()
-    limit = settings.max_json_body_bytes if plan.all_json else settings.max_body_bytes
+    most = settings.max_json_body_bytes if plan.all_json else settings.max_body_bytes
+    limit = most if limit is None else min(limit, most)
     factor = JSON_MEMORY_FACTOR if plan.all_json else 1
     try:
         async with asyncio.timeout(settings.body_timeout_s):

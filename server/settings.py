@@ -14,6 +14,8 @@ from typing import Literal
 from pydantic import Field, SecretStr, model_validator
 from pydantic_settings import BaseSettings, SettingsConfigDict
 
+from neumip.core.wire import ROW_BYTES  # a single query's bytes: the most a row of answers reads from shared memory
+
 
 ANSWER_BYTES = 12
 """Bytes of memory one answer (3 float32) holds until it is sent, whatever the format: msgpack and
@@ -121,11 +123,14 @@ class Settings(BaseSettings):
                 f"max_queue_rows ({self.max_queue_rows}) must be >= max_rows ({self.max_rows}):"
                 " otherwise the largest allowed request could never be admitted"
             )
-        largest = self.max_body_bytes + JSON_MEMORY_FACTOR * self.max_json_body_bytes  # a v2 body: both parts
+        # a v2 body: both parts; with shared memory, its queries read from a region take memory as a body's do
+        rows_bytes = max(self.max_body_bytes, ROW_BYTES * self.max_rows if self.allow_shared_memory else 0)
+        largest = rows_bytes + JSON_MEMORY_FACTOR * self.max_json_body_bytes
         if self.body_budget_bytes < largest:
             raise ValueError(
-                f"body_budget_bytes ({self.body_budget_bytes}) must be >= max_body_bytes ({self.max_body_bytes}) + "
-                f"{JSON_MEMORY_FACTOR} x max_json_body_bytes ({self.max_json_body_bytes}): otherwise the largest "
+                f"body_budget_bytes ({self.body_budget_bytes}) must be >= max(max_body_bytes ({self.max_body_bytes})"
+                f"{f', {ROW_BYTES} x max_rows ({self.max_rows}) with shared memory' if self.allow_shared_memory else ''}"
+                f") + {JSON_MEMORY_FACTOR} x max_json_body_bytes ({self.max_json_body_bytes}): otherwise the largest "
                 "allowed request could never be admitted"
             )
         if self.answer_budget_bytes < ANSWER_BYTES * self.max_rows:

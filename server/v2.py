@@ -35,6 +35,10 @@ HEADER_LENGTH = wire.INFER_HEADER_LENGTH
 DATATYPE = wire.INFER_DATATYPE
 REGISTER_BYTES = 4096
 """Largest shared-memory register request body."""
+EXTENSIONS = ("binary_tensor_data", "model_repository", "model_configuration", "statistics")
+"""Triton's protocol extensions the server speaks, as ``GET /v2`` lists them (by Triton's names): binary tensors
+(here), the model repository, configuration and statistics (`v2_repository`); and ``system_shared_memory`` where
+allowed (`shared_memory`)."""
 INFER_TYPES = (None, JSON_TYPE, "application/octet-stream")
 """Content types an infer request may carry (tritonclient sends none)."""
 
@@ -85,7 +89,7 @@ async def server_metadata(state: ServerState = Depends(get_state)) -> dict:
         ours = version("neumip")
     except PackageNotFoundError:  # pragma: no cover - running from a source tree
         ours = "0"
-    extensions = ["binary_tensor_data"] + ["system_shared_memory"] * state.shared_memory.allowed
+    extensions = list(EXTENSIONS) + ["system_shared_memory"] * state.shared_memory.allowed
     return {"name": "neumip", "version": ours, "extensions": extensions}
 
 
@@ -103,10 +107,8 @@ async def shared_memory_register(region: str, request: Request, state: ServerSta
     body_plan = plan(request, state.settings, json=True)  # read as any body is: its timeout, a client gone
     if (body_plan.declared or 0) > REGISTER_BYTES:
         raise ApiError(413, f"a register request is a JSON object of at most {REGISTER_BYTES} bytes")
-    with state.admission.admit(body_plan) as ticket:
-        body = await read_body(request, body_plan, ticket, state.admission)
-    if len(body) > REGISTER_BYTES:  # a chunked one
-        raise ApiError(413, f"a register request is a JSON object of at most {REGISTER_BYTES} bytes")
+    with state.admission.admit(body_plan) as ticket:  # a chunked one: 413 past REGISTER_BYTES as it arrives
+        body = await read_body(request, body_plan, ticket, state.admission, limit=REGISTER_BYTES)
     state.shared_memory.register(region, parse_json(body))
     return Response(status_code=200)
 

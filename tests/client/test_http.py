@@ -139,13 +139,14 @@ def test_groups_go_whole_in_either_protocol(model_dir, protocol):
 
 
 def test_an_unknown_material_is_the_server_error_each_time(model_dir):
+    """...and an `UnknownMaterial`, as `LocalMaterials` raises for it, so that a renderer takes either."""
     server = FakeServer(model_dir)
     groups = np.hstack([random_queries(4), random_queries(4, seed=1)[:, 3:5]])
     client = client_for(server)
     for _ in range(2):
         with pytest.raises(ServerError, match="evaluate 4 queries on 'nope': server answered 404: unknown material") as info:
             client.evaluate("nope", groups)
-        assert info.value.status == 404
+        assert info.value.status == 404 and isinstance(info.value, UnknownMaterial)
     assert len(server.requests) == 2
 
 

@@ -42,7 +42,7 @@ def numbers(text: str) -> np.ndarray:
 
 
 def test_readme_has_the_examples_and_their_outputs():
-    assert set(EXAMPLES) == {"curl", "python-msgpack", "python-client"}
+    assert set(EXAMPLES) == {"curl", "curl-v2", "python-msgpack", "python-client"}
     assert set(blocks("expected")) == set(EXAMPLES)
     for lang, code in EXAMPLES.values():
         assert lang in RUNNERS and README_URL in code

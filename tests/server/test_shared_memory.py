@@ -334,3 +334,68 @@ def test_auto_takes_shared_memory_where_the_server_offers_it_on_this_machine(ser
     with MaterialClient(allowed.url, protocol="auto") as client:
         np.testing.assert_array_equal(client.evaluate("rand16", q), expected)
         assert type(client.codec.chosen) is MsgpackCodec
+
+
+def test_a_chunked_register_body_is_refused_as_it_passes_its_limit(serve):
+    """A register body sent chunked, without a length, gets its 413 once it passes 4 kB, not after the body
+    timeout or the JSON limit (16 MB reserved 16 times over)."""
+    import socket
+
+    server = serve(allow_shared_memory="true", body_timeout_s="60")
+    host, port = server.host_port.split(":")
+    with socket.create_connection((host, int(port)), timeout=10) as sock:
+        sock.sendall(b"POST /v2/systemsharedmemory/region/r/register HTTP/1.1\r\nHost: x\r\n"
+                     b"Content-Type: application/json\r\nTransfer-Encoding: chunked\r\n\r\n"
+                     + b"%x\r\n" % 5000 + b"{" + b" " * 4999 + b"\r\n")  # never the last chunk
+        reply = b""
+        while b"}" not in reply.partition(b"\r\n\r\n")[2]:  # the status line, the headers, the JSON error
+            reply += sock.recv(4096) or b"}"
+    assert reply.startswith(b"HTTP/1.1 413") and b"4096" in reply
+
+
+def test_a_client_registers_its_regions_again_once_the_server_forgot_them(serve, reference, monkeypatch):
+    """Another client unregistering every region (as Triton's examples do at start), or a server restarted: the
+    next evaluation registers the client's regions anew and answers; `auto` takes msgpack where they cannot be."""
+    import httpx
+
+    from neumip.client import shared_memory as S
+    from neumip.client.http import MaterialClient, MsgpackCodec, ServerError
+
+    server = serve(allow_shared_memory="true")
+    q = C.random_queries(3000, seed=8)
+    expected = reference.evaluate("rand16", q)
+    for protocol in ("shm", "auto"):
+        with MaterialClient(server.url, protocol=protocol) as client:
+            np.testing.assert_array_equal(client.evaluate("rand16", q), expected)
+            assert httpx.post(f"{server.url}{REGIONS}/unregister").status_code == 200
+            np.testing.assert_array_equal(client.evaluate("rand16", q), expected)
+            listed = httpx.get(f"{server.url}{REGIONS}/status").json()
+            assert len(listed) == 2 and all(r["name"].startswith(f"neumip-{os.getpid()}-") for r in listed)
+    with MaterialClient(server.url, protocol="auto") as client:
+        client.evaluate("rand16", q)
+        assert httpx.post(f"{server.url}{REGIONS}/unregister").status_code == 200
+
+        def refused(self, buffer):  # as a server restarted without shared memory answers
+            raise ServerError("shared memory is off: NEUMIP_ALLOW_SHARED_MEMORY", 403)
+
+        monkeypatch.setattr(S.SharedMemoryCodec, "_register", refused)
+        np.testing.assert_array_equal(client.evaluate("rand16", q), expected)
+        assert type(client.codec.chosen) is MsgpackCodec
+    assert not list(SHM.glob(f"neumip-{os.getpid()}-*"))
+
+
+def test_a_full_dev_shm_is_an_error_not_a_crash(monkeypatch):
+    """The client takes its objects' pages when it makes them: a full /dev/shm is an OSError saying so (and the
+    object is removed), never a SIGBUS at the first copy into the mapping."""
+    import errno
+
+    from neumip.client import shared_memory as S
+
+    def full(fd, offset, length):
+        raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC))
+
+    monkeypatch.setattr(S.os, "posix_fallocate", full)
+    with pytest.raises(OSError, match="do not fit in /dev/shm") as raised:
+        S.SharedBuffer(1 << 20)
+    assert raised.value.errno == errno.ENOSPC
+    assert not list(SHM.glob(f"neumip-{os.getpid()}-*"))

@@ -41,7 +41,8 @@ def read_output(resp) -> np.ndarray:
 
 def test_server_and_model_metadata(client):
     meta = client.get("/v2").json()
-    assert meta["name"] == "neumip" and "binary_tensor_data" in meta["extensions"]
+    assert meta["name"] == "neumip" and meta["extensions"] == [
+        "binary_tensor_data", "model_repository", "model_configuration", "statistics"]
     model = client.get("/v2/models/rand16").json()
     assert model["platform"] == "onnxruntime_onnx"  # the default engine
     assert model["inputs"] == [{"name": "queries", "datatype": "FP32", "shape": [-1, -1]}]  # (N, 5 + 2 K)
