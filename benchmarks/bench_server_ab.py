@@ -49,8 +49,8 @@ AREAS = {name.removeprefix("neumip."): folder for name, folder in
          tomllib.loads((ROOT / "pyproject.toml").read_text())["tool"]["setuptools"]["package-dir"].items()}
 """`neumip.<area>` -> the folder it maps onto (pyproject's package-dir)."""
 IDLE_S = 0.05
-"""Pause before each timing: the kernel engine's drjit workers spin for 20 ms after a call (nanothread), on the
-cores the next one measured needs."""
+"""Pause before each timing with the kernel engine: its drjit workers spin for 20 ms after a call (nanothread), on
+the cores the next one measured needs (so time several calls a round: ``--calls``)."""
 
 
 def parse_args() -> argparse.Namespace:
@@ -138,7 +138,8 @@ def main() -> None:
                 times = {k: [] for k in kinds}
                 for _ in range(args.big_rounds):
                     for kind, fn in kinds.items():
-                        time.sleep(IDLE_S)
+                        if args.engine == "kernel":
+                            time.sleep(IDLE_S)
                         if args.clients > 1:  # seconds a request, all clients' counted; in process, one caller's
                             requests, wall = (run_clients(servers[kind].url, name, rows, args.protocol,
                                                           args.clients, args.seconds)
