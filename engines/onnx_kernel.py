@@ -127,6 +127,10 @@ def fold_constants(nodes, inits: dict) -> tuple[dict, list]:
 def run_node(ops: Ops, node, env: dict) -> None:
     """Evaluate `node` on its inputs in `env` (by name), writing its outputs there; any failure is a
     GraphError naming the node."""
+    missing = [name for name in node.input if name and name not in env]
+    if missing:  # a name no earlier node, input or initializer gives: a graph written wrong, or damaged on disk
+        raise GraphError(f"{node.op_type} node {node.name or node.output[0]!r} reads {missing[0]!r}, which nothing "
+                         "before it produces (a damaged file?)")
     try:
         out = ops.run(node, [env[name] if name else None for name in node.input])
     except (GraphError, ValueError, IndexError, TypeError, KeyError, ArithmeticError, RuntimeError) as exc:

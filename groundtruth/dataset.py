@@ -68,6 +68,37 @@ def _write_json(path: Path, data: dict) -> None:
     write_text_atomic(path, json.dumps(data, indent=2, sort_keys=True))
 
 
+def _read_json(path: Path) -> dict:
+    """A data set's JSON file; DatasetError naming it if it is not a JSON object."""
+    try:
+        data = json.loads(path.read_text())
+    except (ValueError, UnicodeDecodeError) as exc:
+        raise DatasetError(f"{path} is damaged ({exc}): remove the data set folder and generate it again") from None
+    if not isinstance(data, dict):
+        raise DatasetError(f"{path} is damaged (not a JSON object): remove the data set folder and generate it again")
+    return data
+
+
+def _check_npy(path: Path, shape: tuple[int, int]) -> None:
+    """DatasetError naming `path` unless it is a little-endian float32 ``.npy`` file of `shape` and of the full length
+    that shape needs (a truncated file would otherwise be grown with zeros when resumed, or fail to map)."""
+    try:
+        with path.open("rb") as f:
+            version = np.lib.format.read_magic(f)
+            read_header = np.lib.format.read_array_header_1_0 if version == (1, 0) else np.lib.format.read_array_header_2_0
+            stored, fortran, dtype = read_header(f)
+            offset = f.tell()
+    except (OSError, ValueError) as exc:
+        raise DatasetError(f"{path} is damaged ({exc}): remove the data set folder and generate it again") from None
+    if tuple(stored) != shape or fortran or dtype != C.DTYPE:
+        raise DatasetError(f"{path} holds a {'Fortran-ordered ' if fortran else ''}{dtype} array of shape {tuple(stored)}, "
+                           f"not {shape} little-endian float32: remove the data set folder and generate it again")
+    expected = offset + int(np.prod(shape)) * C.DTYPE.itemsize
+    if path.stat().st_size != expected:
+        raise DatasetError(f"{path} is damaged: it holds {path.stat().st_size} bytes of the {expected} its header "
+                           "says (a truncated copy?): remove the data set folder and generate it again")
+
+
 @dataclass
 class Dataset:
     """A complete data set, memory-mapped."""
@@ -89,18 +120,18 @@ def open_dataset(path: str | Path) -> Dataset:
         if (path / "progress.json").exists():
             raise DatasetError(f"{path} is incomplete (interrupted run?): re-run the generator to resume")
         raise DatasetError(f"{path} is not a data set (no meta.json)")
-    meta = json.loads(meta_path.read_text())
+    meta = _read_json(meta_path)
     if meta.get("format") != FORMAT:
         raise DatasetError(f"{path}: format {meta.get('format')!r}, expected {FORMAT!r}")
     if not meta.get("complete"):
         raise DatasetError(f"{path} is incomplete (interrupted run?): re-run the generator to resume")
+    n = meta.get("n")
+    if isinstance(n, bool) or not isinstance(n, int) or n < 0:
+        raise DatasetError(f"{meta_path} is damaged (n = {str(n)[:40]}): remove the data set folder and generate it again")
+    for name, width in (("queries.npy", C.QUERY_DIM), ("rgb.npy", C.RGB_DIM)):
+        _check_npy(path / name, (n, width))
     queries = np.load(path / "queries.npy", mmap_mode="r")
     rgb = np.load(path / "rgb.npy", mmap_mode="r")
-    n = meta["n"]
-    if queries.shape != (n, C.QUERY_DIM) or rgb.shape != (n, C.RGB_DIM):
-        raise DatasetError(f"{path}: arrays {queries.shape}, {rgb.shape} do not match n={n}")
-    if queries.dtype != C.DTYPE or rgb.dtype != C.DTYPE:
-        raise DatasetError(f"{path}: arrays must be little-endian float32")
     return Dataset(path, queries, rgb, meta)
 
 
@@ -119,7 +150,7 @@ class DatasetWriter:
         self.path.mkdir(parents=True, exist_ok=True)
         self._progress = self.path / "progress.json"
         meta_path = self.path / "meta.json"
-        saved = json.loads(meta_path.read_text()) if meta_path.exists() else {}
+        saved = _read_json(meta_path) if meta_path.exists() else {}
         self.complete = bool(saved.get("complete"))
         if self.complete:  # the same data set again: nothing to write; another one: refused
             if _identity(saved) != _identity(self.meta):
@@ -132,13 +163,17 @@ class DatasetWriter:
             self.done = self.chunks
             return
         if self._progress.exists():
-            state = json.loads(self._progress.read_text())
+            state = _read_json(self._progress)
+            if not isinstance(state.get("meta"), dict) or not isinstance(state.get("done"), int):
+                raise DatasetError(f"{self._progress} is damaged: remove the data set folder and generate it again")
             if _identity(state["meta"]) != _identity(self.meta):
                 raise DatasetError(
                     f"{self.path} holds a partial data set made with other settings "
                     f"({_other_settings(state['meta'], self.meta)}); remove it or use the same settings to resume"
                 )
             self.done = int(state["done"])
+            for name, width in (("queries.npy", C.QUERY_DIM), ("rgb.npy", C.RGB_DIM)):  # before r+ would grow them
+                _check_npy(self.path / name, (n, width))
             mode = "r+"
         else:
             self.done = 0

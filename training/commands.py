@@ -254,15 +254,16 @@ def print_finished(table: dict, paths: dict, kept: str) -> None:
 def _train(args: argparse.Namespace) -> int:
     from neumip.core.errors import CommandError
 
-    from neumip.training.loop.fit import work_folder
+    from neumip.training.loop.paths import cut_short, work_folder
 
-    output = output_path(args, Path(args.output).exists())
+    output = output_path(args, Path(args.output).exists() and not cut_short(args.output))
     import_torch(args.threads)
     from tqdm import tqdm
 
     from neumip.training.loop.checkpoint import CheckpointError
     from neumip.groundtruth.dataset import DatasetError
-    from neumip.training.loop.outputs import install_outputs, progress_path, write_progress
+    from neumip.training.loop.outputs import install_outputs, write_progress
+    from neumip.training.loop.paths import progress_path
     from neumip.training.loop.train import Trainer, TrainingDiverged, TrainingError
     from neumip.training.loop.views import ViewGrid, trace_views
 

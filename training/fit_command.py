@@ -114,7 +114,7 @@ class StageBar:
 
 
 def _fit(args: argparse.Namespace) -> int:
-    from neumip.training.loop.fit import fitted
+    from neumip.training.loop.paths import fitted
 
     output = commands.output_path(args, fitted(args.output))
     commands.import_torch(args.threads)  # first: its OpenMP threads read OMP_WAIT_POLICY once, at import
@@ -123,11 +123,11 @@ def _fit(args: argparse.Namespace) -> int:
 
     from neumip.training.loop.checkpoint import CheckpointError
     from neumip.groundtruth.dataset import DatasetError
-    from neumip.training.loop.fit import FitSettings, fit, work_folder
+    from neumip.training.loop.fit import FitSettings, fit
     from neumip.groundtruth.description import DescriptionError, find_description, resolve
     from neumip.groundtruth.generate import GenerateSettings
     from neumip.groundtruth.sampling import QuerySampling
-    from neumip.training.loop.outputs import progress_path
+    from neumip.training.loop.paths import progress_path, work_folder
     from neumip.training.loop.train import TrainingDiverged, TrainingError
     from tqdm import tqdm
 

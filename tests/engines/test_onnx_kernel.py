@@ -261,6 +261,15 @@ def test_a_cast_to_a_type_the_lanes_cannot_hold_is_refused(tmp_path, to):
         against_onnx_runtime(tmp_path, nodes, zero=ints(0), three=ints(3), axes=ints(1))
 
 
+def test_a_node_reading_a_name_nothing_produces_is_a_damaged_file(tmp_path):
+    """A graph whose node reads a tensor no input, initializer or earlier node gives (a name damaged on disk):
+    refused at load, naming the node and the name."""
+    nodes = [helper.make_node("Slice", ["queries", "zero", "three", "axes"], ["uvs"]),
+             helper.make_node("Mul", ["uvs", "u\u00e0s"], ["rgb"])]
+    with pytest.raises(ModelError, match="Mul node .* reads 'u\u00e0s', which nothing before it produces"):
+        against_onnx_runtime(tmp_path, nodes, zero=ints(0), three=ints(3), axes=ints(1))
+
+
 def test_a_table_of_integers_read_with_computed_indices_is_refused(tmp_path):
     nodes = [helper.make_node("Slice", ["queries", "zero", "one", "axes"], ["u"]),
              helper.make_node("Cast", ["u"], ["index"], to=7),

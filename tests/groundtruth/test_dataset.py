@@ -37,3 +37,32 @@ def test_write_dataset_validates_rows(tmp_path):
         write_dataset(tmp_path / "x", q, np.zeros((5, 3)), {})
     with pytest.raises(ValueError, match="shape"):
         write_dataset(tmp_path / "y", random_queries(5), np.zeros((4, 3)), {})
+
+
+def test_a_damaged_data_set_is_an_error_naming_its_file(tmp_path):
+    """A truncated array is refused, never grown with zeros when a partial data set resumes (numpy's r+ memmap
+    would), nor mapped when a complete one opens; a damaged meta.json or progress.json names itself."""
+    q, rgb = random_queries(1000, seed=2), np.random.default_rng(1).random((1000, 3), np.float32)
+    writer = DatasetWriter(tmp_path / "partial", 1000, 400, {"seed": 1})
+    writer.write_chunk(0, q[:400], rgb[:400])
+    del writer  # "interrupted"
+    queries = tmp_path / "partial" / "queries.npy"
+    size = queries.stat().st_size
+    with queries.open("r+b") as f:
+        f.truncate(size // 2)
+    with pytest.raises(DatasetError, match=r"queries\.npy is damaged: it holds .* bytes of the"):
+        DatasetWriter(tmp_path / "partial", 1000, 400, {"seed": 1})
+    assert queries.stat().st_size == size // 2  # not grown back
+
+    write_dataset(tmp_path / "whole", q, rgb, {"seed": 1})
+    (tmp_path / "whole" / "rgb.npy").write_bytes((tmp_path / "whole" / "rgb.npy").read_bytes()[:90])
+    with pytest.raises(DatasetError, match=r"rgb\.npy is damaged"):
+        open_dataset(tmp_path / "whole")
+    (tmp_path / "whole" / "meta.json").write_text('{"format": "neumip-mbtf-1", "n": ')
+    with pytest.raises(DatasetError, match=r"meta\.json is damaged"):
+        open_dataset(tmp_path / "whole")
+    with pytest.raises(DatasetError, match=r"meta\.json is damaged"):
+        DatasetWriter(tmp_path / "whole", 1000, 400, {"seed": 1})
+    (tmp_path / "partial" / "progress.json").write_text("[1, 2]")
+    with pytest.raises(DatasetError, match=r"progress\.json is damaged"):
+        DatasetWriter(tmp_path / "partial", 1000, 400, {"seed": 1})

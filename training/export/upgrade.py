@@ -25,7 +25,7 @@ import onnx
 from neumip.core import contract as C
 from neumip.core import weights as W
 from neumip.core.config import MaterialConfig
-from neumip.core.modelfile import read_model_file
+from neumip.core.modelfile import ModelError, read_model_file
 
 from neumip.training.export.graph import build_onnx, save_onnx
 from neumip.training.export.read import (NEEDS_CONFIG, ModelLayoutError, metadata, model_file, read_model, read_weights,
@@ -129,4 +129,9 @@ def reexport_file(source: str | Path, out: str | Path, description: str = "",
             meta[C.META_SAMPLING] = sampling.to_json()
     del new.metadata_props[:]
     onnx.helper.set_model_props(new, meta)
-    return save_onnx(new, out), answer_difference(old, new)
+    try:  # before writing: a file whose graph cannot run leaves nothing at `out`
+        difference = answer_difference(old, new)
+    except Exception as exc:  # ONNX Runtime's own error types (InvalidArgument, Fail, ...) and a name not UTF-8
+        raise ModelError(f"{source}: its graph does not run in ONNX Runtime: a damaged file? "
+                         f"({str(exc)[:300]})") from None
+    return save_onnx(new, out), difference

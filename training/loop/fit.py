@@ -24,6 +24,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Callable
 
 from neumip.core.config import MaterialConfig
+from neumip.training.loop.paths import work_folder
 
 from neumip.training.model.maps import MapConfig
 from neumip.training.loop.config import SHIP, TrainConfig
@@ -116,16 +117,12 @@ def reference_error(material, data) -> float:
     return errors(predict(material, np.asarray(data.queries)), np.asarray(data.rgb, np.float64))["log_mse"]
 
 
-def work_folder(output: str | Path, work: str | Path | None = None) -> Path:
-    """models/NAME.onnx -> models/NAME.run (or `work` when given)."""
-    output = Path(output)
-    return Path(work) if work is not None else output.with_name(output.stem + ".run")
 
 
-def fitted(output: str | Path) -> bool:
-    """Whether the model at `output` and its record (NAME.json, moved in last) are both in place."""
-    output = Path(output)
-    return output.exists() and output.with_suffix(".json").exists()
+
+
+
+
 
 
 def fit(description, output: str | Path, settings: FitSettings, report: Report | None = None,
@@ -137,7 +134,8 @@ def fit(description, output: str | Path, settings: FitSettings, report: Report |
     progress validation (the progress grid is redrawn before it).
     """
     from neumip.groundtruth.generate import GenerateSettings, generate
-    from neumip.training.loop.outputs import install_outputs, progress_path, write_progress
+    from neumip.training.loop.outputs import install_outputs, write_progress
+    from neumip.training.loop.paths import progress_path
     from neumip.groundtruth.description import resolve
     from neumip.training.loop.train import Trainer
     from neumip.training.loop.views import ViewGrid, trace_views

@@ -21,6 +21,7 @@ import numpy as np
 from neumip.core import contract as C
 from neumip.core.files import atomic_write
 from neumip.training.export.graph import export_material
+from neumip.training.loop.paths import progress_path, sidecar_paths, staging_folder
 from neumip.training.loop.train import Trainer
 from neumip.training.loop.validation import predict
 from neumip.training.loop.views import ViewGrid, grid_levels, images, view_queries
@@ -28,16 +29,6 @@ from neumip.training.loop.views import ViewGrid, grid_levels, images, view_queri
 log = logging.getLogger(__name__)
 
 
-def sidecar_paths(output: str | Path) -> tuple[Path, Path]:
-    """models/NAME.onnx -> (models/NAME.json, models/NAME.loss.png)."""
-    output = Path(output)
-    return output.with_suffix(".json"), output.with_name(output.stem + ".loss.png")
-
-
-def progress_path(output: str | Path) -> Path:
-    """models/NAME.onnx -> models/NAME.progress.png."""
-    output = Path(output)
-    return output.with_name(output.stem + ".progress.png")
 
 
 def _tonemap(x: np.ndarray, white: float) -> np.ndarray:
@@ -155,7 +146,7 @@ def install_outputs(trainer: Trainer, table: dict, output: str | Path, views=Non
     ``NAME.json`` last: a model whose record exists is whole, and an interrupted export leaves no
     half-written file under the model's name."""
     output = Path(output)
-    staging = output.with_name(f".{output.stem}.partial")
+    staging = staging_folder(output)
     shutil.rmtree(staging, ignore_errors=True)  # left by an interrupted export
     staging.mkdir(parents=True)
     paths = write_outputs(trainer, table, staging / output.name, views)

@@ -11,6 +11,8 @@ from __future__ import annotations
 
 import logging
 import math
+import signal
+import threading
 import time
 from dataclasses import asdict, dataclass, field, fields, replace
 from pathlib import Path
@@ -209,6 +211,38 @@ def _maps_dict(source: NeuMIPMaterial | MapConfig | None) -> dict:
 
 def _finite(material: NeuMIPMaterial) -> bool:
     return all(bool(torch.isfinite(p).all()) for p in material.parameters())
+
+
+class StepBoundary:
+    """Ctrl-C (SIGINT) while training ends the run after the step under way, not inside it: a checkpoint written
+    inside a step would hold its batch drawn but its update not made, which a resumed run replays differently.
+    A second Ctrl-C stops at once (the last checkpoint then stands). Only in the main thread, and only where SIGINT
+    has Python's default handler; elsewhere a KeyboardInterrupt arrives as it comes."""
+
+    def __init__(self) -> None:
+        self.pending = False
+        self._previous = None
+
+    def __enter__(self) -> "StepBoundary":
+        if threading.current_thread() is threading.main_thread() and \
+                signal.getsignal(signal.SIGINT) is signal.default_int_handler:
+            self._previous = signal.signal(signal.SIGINT, self._interrupted)
+        return self
+
+    def _interrupted(self, signum, frame) -> None:
+        if self.pending:
+            raise KeyboardInterrupt
+        self.pending = True
+        log.warning("interrupted: stopping after this step (Ctrl-C again to stop at once)")
+
+    def check(self) -> None:
+        """Between steps: KeyboardInterrupt if a Ctrl-C came."""
+        if self.pending:
+            raise KeyboardInterrupt
+
+    def __exit__(self, *exc) -> None:
+        if self._previous is not None:
+            signal.signal(signal.SIGINT, self._previous)
 
 
 class Trainer:
@@ -547,20 +581,27 @@ class Trainer:
             with torch.no_grad():
                 getattr(self.material, W.ENERGY).fill_(1.0)
             state.energy_fitted = False
+        in_step = False
         try:
-            while state.step < cfg.steps:
-                loss = self.step()
-                state.seconds = done_before + time.perf_counter() - started
-                if cfg.validate_every and state.step % cfg.validate_every == 0:
-                    self.check_progress()
-                    if on_progress is not None:
-                        on_progress(self)
-                if state.step % cfg.checkpoint_every == 0:
-                    self.save_checkpoint()
-                if callback is not None:
-                    callback(self.steps_done, loss)
+            with StepBoundary() as boundary:
+                while state.step < cfg.steps:
+                    boundary.check()
+                    in_step = True
+                    loss = self.step()
+                    in_step = False
+                    state.seconds = done_before + time.perf_counter() - started
+                    if cfg.validate_every and state.step % cfg.validate_every == 0:
+                        self.check_progress()
+                        if on_progress is not None:
+                            on_progress(self)
+                    if state.step % cfg.checkpoint_every == 0:
+                        self.save_checkpoint()
+                    if callback is not None:
+                        callback(self.steps_done, loss)
         except KeyboardInterrupt:
-            if state.step > 0:  # keep the steps done since the last periodic checkpoint
+            if in_step:  # half a step (its batch drawn, its update perhaps made): the last checkpoint stands
+                log.info("interrupted inside step %d: the last checkpoint stands", state.step + 1)
+            elif state.step > 0:  # keep the steps done since the last periodic checkpoint
                 self.save_checkpoint()
                 log.info("interrupted at step %d: checkpoint %s written", state.step, self.checkpoint_path)
             raise

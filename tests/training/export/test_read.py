@@ -115,6 +115,13 @@ def test_cli_rewrites_a_model_and_refuses_bad_input(tmp_path, capsys):
     assert main(["export", str(broken), "-o", str(tmp_path / "x.onnx")]) != 0
     assert "cannot re-export" in capsys.readouterr().err
     assert not (tmp_path / "x.onnx").exists()
+    flipped = tmp_path / "flipped.onnx"  # whole, but a node's name is no longer UTF-8: its graph cannot run
+    data = source.read_bytes()
+    assert b"matmul" in data
+    flipped.write_bytes(data.replace(b"matmul", b"m\xa0tmul", 1))
+    assert main(["export", str(flipped), "-o", str(tmp_path / "y.onnx")]) != 0
+    assert "cannot re-export" in capsys.readouterr().err
+    assert not (tmp_path / "y.onnx").exists()  # nothing written, so the same command may run again
 
 
 LAYOUTS = {

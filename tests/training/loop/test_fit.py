@@ -100,7 +100,8 @@ def test_interrupted_fit_resumes_to_the_same_model(material, tmp_path):
     and the same call then finishes the model an uninterrupted fit makes."""
     from neumip.engines.local import LocalMaterials
     from neumip.core.contract import random_queries
-    from neumip.training.loop.fit import FitSettings, fit, fitted
+    from neumip.training.loop.fit import FitSettings, fit
+    from neumip.training.loop.paths import fitted
     from neumip.groundtruth.description import load_description
     from neumip.groundtruth.generate import GenerateSettings
 
@@ -131,13 +132,14 @@ def test_interrupted_fit_resumes_to_the_same_model(material, tmp_path):
 
 
 def test_fit_command_imports_torch_only_after_setting_its_threads():
-    """`neumip fit` checks its output before importing torch: torch's OpenMP threads read
+    """`neumip fit` and `neumip train` check their output before importing torch: torch's OpenMP threads read
     OMP_WAIT_POLICY once, and spinning threads made training ~20x slower on a busy machine."""
     import subprocess
     import sys
 
     code = ("import sys; from neumip.client.cli import build_parser; build_parser(); "
-            "from neumip.training.loop.fit import fitted, work_folder; fitted('m.onnx'); work_folder('m.onnx'); "
+            "from neumip.training.loop.paths import cut_short, fitted, work_folder; fitted('m.onnx'); "
+            "cut_short('m.onnx'); work_folder('m.onnx'); import neumip.training.loop.fit; "
             "sys.exit('torch' in sys.modules)")
     assert subprocess.run([sys.executable, "-c", code], timeout=120).returncode == 0
 

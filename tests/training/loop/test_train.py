@@ -162,6 +162,35 @@ def test_ctrl_c_writes_a_checkpoint_of_the_steps_done(data, tmp_path):
     assert Trainer(data.path, tmp_path / "k.pt", TINY, FAST).state.step == 27
 
 
+def test_ctrl_c_inside_a_step_ends_the_run_after_it_and_resumes_exactly(data, tmp_path):
+    """A SIGINT that arrives while a step runs (here: its batch just drawn) ends the run once that step is done:
+    the checkpoint holds whole steps, and the resumed run ends with an uninterrupted run's weights."""
+    import os
+    import signal
+
+    whole = Trainer(data.path, tmp_path / "whole.pt", TINY, FAST)
+    whole.run()
+    part = Trainer(data.path, tmp_path / "part.pt", TINY, FAST)
+    draw = part.sampler.draw
+
+    def draw_then_ctrl_c(*args, **kwargs):
+        batch = draw(*args, **kwargs)
+        if part.state.step == 33:  # inside step 34
+            os.kill(os.getpid(), signal.SIGINT)
+        return batch
+
+    part.sampler.draw = draw_then_ctrl_c
+    with pytest.raises(KeyboardInterrupt):
+        part.run()
+    resumed = Trainer(data.path, tmp_path / "part.pt", TINY, FAST)
+    assert resumed.state.step == 34
+    resumed.run()
+    want, got = whole.material.state_dict(), resumed.material.state_dict()
+    diffs = {name: float((got[name] - w).abs().max()) for name, w in want.items()}
+    assert max(diffs.values()) < 1e-6, diffs
+    assert signal.getsignal(signal.SIGINT) is signal.default_int_handler  # put back
+
+
 def test_export_of_a_mid_run_checkpoint_computes_what_training_computed(data, tmp_path, assert_parity):
     """A checkpoint inside the blur schedule stores raw textures; its export must use the blurred ones."""
     from neumip.training.loop.outputs import export_checkpoint
@@ -325,6 +354,13 @@ def test_cli_train_writes_model_table_and_curve(data, tmp_path, capsys):
     assert out.read_bytes() == model
     assert main([*argv, "--force", "--description", "again"]) == 0
     assert out.read_bytes() != model  # rewritten with the new description
+    # killed as the files were moved into place (the model in, its record not): the same command finishes it
+    record = out.with_suffix(".json")
+    staging = out.with_name(".plane.partial")
+    staging.mkdir()
+    record.rename(staging / record.name)
+    assert main(argv) == 0
+    assert record.exists() and not staging.exists()
     assert main(["export", str(tmp_path / "ck.pt"), "-o", str(out)]) == 2
     assert main(["export", str(tmp_path / "ck.pt"), "-o", str(out), "--force"]) == 0
 
