@@ -306,11 +306,11 @@ class MaterialClient:
                 response = self._request("POST", self.codec.path(material), what=f"evaluate {n} queries on {material!r}",
                                          body=body, headers=headers)
                 break
-            except ServerError as exc:  # a 400 may be the server having forgotten this client's shared memory
-                if exc.status == 404:
+            except ServerError as exc:  # a 400 or 403: perhaps a server that forgot this client's shared memory
+                if exc.status == 404 and "unknown material" in str(exc):
                     raise UnknownServedMaterial(str(exc), 404) from None
                 recover = getattr(self.codec, "recover", None)
-                if again or exc.status != 400 or recover is None or not recover():
+                if again or exc.status not in (400, 403) or recover is None or not recover():
                     raise
         self.server_timing = _server_timing(response.headers.get("Server-Timing", ""))
         return self.codec.decode(response, n, lights)

@@ -24,7 +24,6 @@ import numpy as np
 
 from neumip.core import contract as C
 from neumip.core import wire
-from neumip.core.errors import NeumipError
 
 log = logging.getLogger(__name__)
 
@@ -139,12 +138,12 @@ class SharedMemoryCodec:
                              headers={"Content-Type": "application/json"})
 
     def recover(self) -> bool:
-        """After an infer answered 400: register anew the regions the server no longer holds (it restarted, or a
-        client unregistered every region, as Triton's examples do at start); True if there were any, so that the
-        request is worth sending again."""
+        """After an infer answered 400 or 403: register anew the regions the server no longer holds (it restarted, or
+        a client unregistered every region, as Triton's examples do at start); True if there were any, so that the
+        request is worth sending again. A server that no longer allows shared memory raises its ServerError (403)."""
         try:
             listed = self.client._request("GET", STATUS_PATH, what="read the shared-memory regions").json()
-        except (NeumipError, ValueError):
+        except ValueError:
             return False
         held = {(r.get("name"), r.get("key"), r.get("byte_size")) for r in listed if isinstance(r, dict)} \
             if isinstance(listed, list) else set()

@@ -68,8 +68,8 @@ def _write_json(path: Path, data: dict) -> None:
     write_text_atomic(path, json.dumps(data, indent=2, sort_keys=True))
 
 
-def _read_json(path: Path) -> dict:
-    """A data set's JSON file; DatasetError naming it if it is not a JSON object."""
+def read_meta(path: Path) -> dict:
+    """A data set's JSON file (meta.json, progress.json); DatasetError naming it if it is not a JSON object."""
     try:
         data = json.loads(path.read_text())
     except (ValueError, UnicodeDecodeError) as exc:
@@ -85,6 +85,8 @@ def _check_npy(path: Path, shape: tuple[int, int]) -> None:
     try:
         with path.open("rb") as f:
             version = np.lib.format.read_magic(f)
+            if version not in ((1, 0), (2, 0), (3, 0)):
+                raise ValueError(f"unknown .npy format version {version}")
             read_header = np.lib.format.read_array_header_1_0 if version == (1, 0) else np.lib.format.read_array_header_2_0
             stored, fortran, dtype = read_header(f)
             offset = f.tell()
@@ -120,7 +122,7 @@ def open_dataset(path: str | Path) -> Dataset:
         if (path / "progress.json").exists():
             raise DatasetError(f"{path} is incomplete (interrupted run?): re-run the generator to resume")
         raise DatasetError(f"{path} is not a data set (no meta.json)")
-    meta = _read_json(meta_path)
+    meta = read_meta(meta_path)
     if meta.get("format") != FORMAT:
         raise DatasetError(f"{path}: format {meta.get('format')!r}, expected {FORMAT!r}")
     if not meta.get("complete"):
@@ -150,7 +152,7 @@ class DatasetWriter:
         self.path.mkdir(parents=True, exist_ok=True)
         self._progress = self.path / "progress.json"
         meta_path = self.path / "meta.json"
-        saved = _read_json(meta_path) if meta_path.exists() else {}
+        saved = read_meta(meta_path) if meta_path.exists() else {}
         self.complete = bool(saved.get("complete"))
         if self.complete:  # the same data set again: nothing to write; another one: refused
             if _identity(saved) != _identity(self.meta):
@@ -163,7 +165,7 @@ class DatasetWriter:
             self.done = self.chunks
             return
         if self._progress.exists():
-            state = _read_json(self._progress)
+            state = read_meta(self._progress)
             if not isinstance(state.get("meta"), dict) or not isinstance(state.get("done"), int):
                 raise DatasetError(f"{self._progress} is damaged: remove the data set folder and generate it again")
             if _identity(state["meta"]) != _identity(self.meta):

@@ -164,12 +164,12 @@ def map_config(args: argparse.Namespace, maps: bool):
 
 def _data_resolution(data: str, default: int = 128) -> int:
     """The finest resolution the data set was sampled for (its generator's), else `default`."""
-    import json
+    from neumip.groundtruth.dataset import read_meta
 
     meta = Path(data) / "meta.json"
     if not meta.exists():
         return default  # open_dataset reports the real problem
-    generator = json.loads(meta.read_text()).get("generator")
+    generator = read_meta(meta).get("generator")
     return int(generator.get("resolution", default)) if isinstance(generator, dict) else default
 
 

@@ -63,6 +63,12 @@ def test_a_damaged_data_set_is_an_error_naming_its_file(tmp_path):
         open_dataset(tmp_path / "whole")
     with pytest.raises(DatasetError, match=r"meta\.json is damaged"):
         DatasetWriter(tmp_path / "whole", 1000, 400, {"seed": 1})
+    write_dataset(tmp_path / "version", q, rgb, {"seed": 1})
+    data = bytearray((tmp_path / "version" / "queries.npy").read_bytes())
+    data[6] = 9  # the format's major version
+    (tmp_path / "version" / "queries.npy").write_bytes(bytes(data))
+    with pytest.raises(DatasetError, match=r"queries\.npy is damaged .*version"):
+        open_dataset(tmp_path / "version")
     (tmp_path / "partial" / "progress.json").write_text("[1, 2]")
     with pytest.raises(DatasetError, match=r"progress\.json is damaged"):
         DatasetWriter(tmp_path / "partial", 1000, 400, {"seed": 1})

@@ -358,7 +358,6 @@ def test_a_client_registers_its_regions_again_once_the_server_forgot_them(serve,
     next evaluation registers the client's regions anew and answers; `auto` takes msgpack where they cannot be."""
     import httpx
 
-    from neumip.client import shared_memory as S
     from neumip.client.http import MaterialClient, MsgpackCodec, ServerError
 
     server = serve(allow_shared_memory="true")
@@ -375,10 +374,14 @@ def test_a_client_registers_its_regions_again_once_the_server_forgot_them(serve,
         client.evaluate("rand16", q)
         assert httpx.post(f"{server.url}{REGIONS}/unregister").status_code == 200
 
-        def refused(self, buffer):  # as a server restarted without shared memory answers
-            raise ServerError("shared memory is off: NEUMIP_ALLOW_SHARED_MEMORY", 403)
+        request = MaterialClient._request
 
-        monkeypatch.setattr(S.SharedMemoryCodec, "_register", refused)
+        def restarted_without_shared_memory(self, method, path, *args, **kwargs):  # as such a server answers
+            if path.startswith(REGIONS):
+                raise ServerError("shared memory is off: NEUMIP_ALLOW_SHARED_MEMORY", 403)
+            return request(self, method, path, *args, **kwargs)
+
+        monkeypatch.setattr(MaterialClient, "_request", restarted_without_shared_memory)
         np.testing.assert_array_equal(client.evaluate("rand16", q), expected)
         assert type(client.codec.chosen) is MsgpackCodec
     assert not list(SHM.glob(f"neumip-{os.getpid()}-*"))

@@ -131,7 +131,9 @@ def reexport_file(source: str | Path, out: str | Path, description: str = "",
     onnx.helper.set_model_props(new, meta)
     try:  # before writing: a file whose graph cannot run leaves nothing at `out`
         difference = answer_difference(old, new)
+    except MemoryError:
+        raise
     except Exception as exc:  # ONNX Runtime's own error types (InvalidArgument, Fail, ...) and a name not UTF-8
-        raise ModelError(f"{source}: its graph does not run in ONNX Runtime: a damaged file? "
+        raise ModelError(f"{source}: its graph, or its rewrite, does not run in ONNX Runtime: a damaged file? "
                          f"({str(exc)[:300]})") from None
     return save_onnx(new, out), difference

@@ -47,6 +47,10 @@ def fitted(output: str | Path) -> bool:
 
 
 def cut_short(output: str | Path) -> bool:
-    """Whether the model at `output` is one whose install was interrupted (its staging folder left, its record not
-    moved in yet): the same command may finish it. Any other file at `output` is someone's model."""
-    return Path(output).exists() and not fitted(output) and staging_folder(output).is_dir()
+    """Whether the model at `output` is one whose install was interrupted after it was moved into place: its record
+    (``NAME.json``, moved last) still waits in the staging folder, the model no longer does. The same command may
+    finish it. Any other file at `output` is someone's model."""
+    output = Path(output)
+    staging = staging_folder(output)
+    return (output.exists() and not fitted(output) and (staging / output.with_suffix(".json").name).is_file()
+            and not (staging / output.name).exists())

@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import logging
 import math
+import os
 import signal
 import threading
 import time
@@ -233,7 +234,9 @@ class StepBoundary:
         if self.pending:
             raise KeyboardInterrupt
         self.pending = True
-        log.warning("interrupted: stopping after this step (Ctrl-C again to stop at once)")
+        # straight to the descriptor: the handler may run inside a write to sys.stderr (a progress bar's), and
+        # writing there again would raise
+        os.write(2, b"\ninterrupted: stopping after this step (Ctrl-C again to stop at once)\n")
 
     def check(self) -> None:
         """Between steps: KeyboardInterrupt if a Ctrl-C came."""
@@ -598,6 +601,7 @@ class Trainer:
                         self.save_checkpoint()
                     if callback is not None:
                         callback(self.steps_done, loss)
+                boundary.check()  # a Ctrl-C inside the last step ends the run here too
         except KeyboardInterrupt:
             if in_step:  # half a step (its batch drawn, its update perhaps made): the last checkpoint stands
                 log.info("interrupted inside step %d: the last checkpoint stands", state.step + 1)

@@ -1,6 +1,7 @@
 """Training: a tiny material learns the analytic plane, resumes exactly, stops on NaN, exports with parity."""
 
 import json
+import shutil
 from dataclasses import replace
 
 import numpy as np
@@ -162,24 +163,31 @@ def test_ctrl_c_writes_a_checkpoint_of_the_steps_done(data, tmp_path):
     assert Trainer(data.path, tmp_path / "k.pt", TINY, FAST).state.step == 27
 
 
+def ctrl_c_inside_step(trainer: Trainer, step: int) -> Trainer:
+    """`trainer`, sent a SIGINT (a Ctrl-C) inside step `step` (1-based), just after it draws its batch."""
+    import os
+    import signal
+
+    draw = trainer.sampler.draw
+
+    def draw_then_ctrl_c(*args, **kwargs):
+        batch = draw(*args, **kwargs)
+        if trainer.state.step == step - 1:
+            os.kill(os.getpid(), signal.SIGINT)
+        return batch
+
+    trainer.sampler.draw = draw_then_ctrl_c
+    return trainer
+
+
 def test_ctrl_c_inside_a_step_ends_the_run_after_it_and_resumes_exactly(data, tmp_path):
     """A SIGINT that arrives while a step runs (here: its batch just drawn) ends the run once that step is done:
     the checkpoint holds whole steps, and the resumed run ends with an uninterrupted run's weights."""
-    import os
     import signal
 
     whole = Trainer(data.path, tmp_path / "whole.pt", TINY, FAST)
     whole.run()
-    part = Trainer(data.path, tmp_path / "part.pt", TINY, FAST)
-    draw = part.sampler.draw
-
-    def draw_then_ctrl_c(*args, **kwargs):
-        batch = draw(*args, **kwargs)
-        if part.state.step == 33:  # inside step 34
-            os.kill(os.getpid(), signal.SIGINT)
-        return batch
-
-    part.sampler.draw = draw_then_ctrl_c
+    part = ctrl_c_inside_step(Trainer(data.path, tmp_path / "part.pt", TINY, FAST), 34)
     with pytest.raises(KeyboardInterrupt):
         part.run()
     resumed = Trainer(data.path, tmp_path / "part.pt", TINY, FAST)
@@ -189,6 +197,17 @@ def test_ctrl_c_inside_a_step_ends_the_run_after_it_and_resumes_exactly(data, tm
     diffs = {name: float((got[name] - w).abs().max()) for name, w in want.items()}
     assert max(diffs.values()) < 1e-6, diffs
     assert signal.getsignal(signal.SIGINT) is signal.default_int_handler  # put back
+
+
+def test_ctrl_c_inside_the_last_step_still_ends_the_run(data, tmp_path):
+    """...and is not lost when that step was the last: no export follows, the checkpoint holds every step, and the
+    same run resumed finishes."""
+    part = ctrl_c_inside_step(Trainer(data.path, tmp_path / "last.pt", TINY, FAST), FAST.steps)
+    with pytest.raises(KeyboardInterrupt):
+        part.run()
+    resumed = Trainer(data.path, tmp_path / "last.pt", TINY, FAST)
+    assert resumed.state.step == FAST.steps
+    assert resumed.run()["steps"] == FAST.steps
 
 
 def test_export_of_a_mid_run_checkpoint_computes_what_training_computed(data, tmp_path, assert_parity):
@@ -361,6 +380,12 @@ def test_cli_train_writes_model_table_and_curve(data, tmp_path, capsys):
     record.rename(staging / record.name)
     assert main(argv) == 0
     assert record.exists() and not staging.exists()
+    # killed while writing (nothing moved in yet), then another model put there: it is someone's, kept
+    staging.mkdir()
+    (staging / "plane.onnx").write_bytes(b"half")
+    record.unlink()
+    assert main(argv) == 2 and "pass --force" in capsys.readouterr().err
+    shutil.rmtree(staging)
     assert main(["export", str(tmp_path / "ck.pt"), "-o", str(out)]) == 2
     assert main(["export", str(tmp_path / "ck.pt"), "-o", str(out), "--force"]) == 0
 
