@@ -11,12 +11,18 @@ the largest resident model bytes seen on /metrics (sampled every 20 ms) against 
 ``folders``: `neumip serve` over each of ``--folders`` as it is, with its default settings, in ``--rounds``
 interleaved rounds: the folder's bytes, ready seconds and resident memory when ready and after a request to each
 material (median and range of the rounds). Section ``arena``: ONNX Runtime's sessions over the first of
-``--folders`` with an arena each, one shared arena, or none (`arena_worker`): resident memory and speed.
+``--folders`` with an arena each, one shared arena, or none (`arena_worker`): resident memory and speed. Section
+``fullload``: `neumip serve` over the first of ``--folders`` (its default engine; ``--server-env KEY=VALUE``, e.g.
+the Docker image's ``MALLOC_MMAP_THRESHOLD_=4194304``) under ``--clients`` threads sending requests of 2M queries
+(msgpack, each to one of the folder's materials in turn) for ``--seconds``: resident memory when ready, its peak
+(sampled every 0.5 s), and 1, 3 and 6 s after the clients stop (the server trims its heap after 1 s idle).
 
     .venv/bin/python benchmarks/bench_loading.py                   # startup and lru
     .venv/bin/python benchmarks/bench_loading.py --sections lru --clients 8
     .venv/bin/python benchmarks/bench_loading.py --sections folders --folders OLD_MODELS,models --rounds 3
     .venv/bin/python benchmarks/bench_loading.py --sections arena --folders models --rounds 3
+    .venv/bin/python benchmarks/bench_loading.py --sections fullload --clients 6 --seconds 25 \
+        --server-env MALLOC_MMAP_THRESHOLD_=4194304
 """
 
 from __future__ import annotations
@@ -234,6 +240,47 @@ def lru(args, tmp: Path) -> None:
     server.stop()
 
 
+def fullload(args, tmp: Path) -> None:
+    folder = Path(args.folders.split(",")[0])
+    names = sorted(p.stem for p in folder.glob("*.onnx"))
+    env = dict(kv.split("=", 1) for kv in args.server_env)
+    server = ServerProcess.start(folder, tmp / "fullload.log", env=env)
+    try:
+        time.sleep(2.0)
+        ready = server.rss_bytes() / 2**20
+        queries = random_queries(2_000_000, seed=1)
+        body = wire.encode_request(queries)
+        stop = time.monotonic() + args.seconds
+        answered, refused = [0], [0]
+
+        def client(i: int) -> None:
+            with httpx.Client(timeout=300) as http:
+                k = i
+                while time.monotonic() < stop:
+                    reply = http.post(server.url + wire.EVALUATE_PATH.format(name=names[k % len(names)]), content=body,
+                                      headers={"content-type": wire.MSGPACK_MEDIA_TYPE})
+                    (answered if reply.status_code == 200 else refused)[0] += 1
+                    k += 1
+
+        threads = [threading.Thread(target=client, args=(i,)) for i in range(args.clients)]
+        for thread in threads:
+            thread.start()
+        peak = ready
+        while any(thread.is_alive() for thread in threads):
+            peak = max(peak, server.rss_bytes() / 2**20)
+            time.sleep(0.5)
+        after = []
+        for wait in (1, 2, 3):  # 1, 3 and 6 s after
+            time.sleep(wait)
+            after.append(server.rss_bytes() / 2**20)
+        print(f"fullload: {folder} ({len(names)} materials), {args.clients} clients of 2M-query requests for "
+              f"{args.seconds:g} s ({answered[0]} answered, {refused[0]} refused), server env {env or 'none'}: "
+              f"RSS ready {ready:.0f} MiB, peak {peak:.0f}, after 1 / 3 / 6 s "
+              f"{' / '.join(f'{a:.0f}' for a in after)} MiB")
+    finally:
+        server.stop(30)
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--sections", default="startup,lru")
@@ -245,13 +292,16 @@ def main() -> None:
     parser.add_argument("--budget-models", type=int, default=4)
     parser.add_argument("--clients", type=int, default=8)
     parser.add_argument("--requests", type=int, default=25)
+    parser.add_argument("--seconds", type=float, default=25.0, help="fullload: how long the clients send")
+    parser.add_argument("--server-env", nargs="*", default=[], metavar="KEY=VALUE", help="fullload: server settings")
     parser.add_argument("--arena-worker", choices=ARENAS, help=argparse.SUPPRESS)
     args = parser.parse_args()
     if args.arena_worker:
         return arena_worker(args.arena_worker, Path(args.folders.split(",")[0]), 3)
     with tempfile.TemporaryDirectory() as tmp:
         for section in args.sections.split(","):
-            {"startup": startup, "lru": lru, "folders": folders, "arena": arena}[section](args, Path(tmp))
+            sections = {"startup": startup, "lru": lru, "folders": folders, "arena": arena, "fullload": fullload}
+            sections[section](args, Path(tmp))
 
 
 if __name__ == "__main__":
