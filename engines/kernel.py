@@ -76,6 +76,20 @@ hung or crashed in 2 runs of 3, and a server thread loading a material while its
 answered hung in 1 run of 3 (`tests/server/test_engine.py`). Re-entrant: `answers` runs inside `run`."""
 
 
+def release_cached_memory() -> bool:
+    """Hand drjit's cache of freed blocks back to the C heap (``drjit.flush_malloc_cache``), unless a drjit
+    operation is under way (then nothing waits: False). drjit keeps the blocks of a call's arrays for the next
+    call; after a server's largest calls they hold tens of MB that the heap's trim cannot return while drjit
+    holds them."""
+    if not DRJIT_LOCK.acquire(blocking=False):
+        return False
+    try:
+        dr.flush_malloc_cache()
+    finally:
+        DRJIT_LOCK.release()
+    return True
+
+
 class KernelMaterial:
     """One material's graph, ready to be traced: `answers` writes its arithmetic on drjit arrays."""
 

@@ -12,9 +12,10 @@ length, and the server refuses it then); it is released when the answer is compl
 by a client that went away, when its queued rows have run).
 
 When no request has been in flight for `TRIM_AFTER_S`, the server hands the C heap's free pages back to the
-system (glibc's ``malloc_trim``): large buffers can then come from the heap while requests stream (the Docker
-image's ``MALLOC_MMAP_THRESHOLD_`` of 4 MiB: no page faults for each request's body and answers), and the
-memory a burst took still comes back once it is over.
+system (glibc's ``malloc_trim``), after the engine's own tidy-up (`Engine.idle`: the kernel engine hands drjit's
+cache of freed blocks back to the heap first): large buffers can then come from the heap while requests stream
+(the Docker image's ``MALLOC_MMAP_THRESHOLD_`` of 4 MiB: no page faults for each request's body and answers), and
+the memory a burst took still comes back once it is over.
 
 A third budget bounds the way out: a request's **answer** (12 bytes an answer, ``answer_budget_bytes``)
 is reserved once its rows are known, before they are evaluated (503 past the budget), and freed when the
@@ -128,9 +129,10 @@ class Ticket:
 class Admission:
     """The server's two budgets, body bytes and queued rows (see the module docstring)."""
 
-    def __init__(self, settings: Settings, metrics: Metrics) -> None:
+    def __init__(self, settings: Settings, metrics: Metrics, idle: Callable[[], object] = lambda: None) -> None:
         self.settings = settings
         self.metrics = metrics
+        self.idle = idle  # the engine's tidy-up before the trim (`Engine.idle`)
         self.memory = 0  # touched on the event loop only, like everything here
         self.rows = 0
         self.requests = 0
@@ -226,6 +228,7 @@ class Admission:
             if idle < TRIM_AFTER_S:
                 self._trim = loop.call_later(TRIM_AFTER_S - idle, fire)
                 return
+            self.idle()
             MALLOC_TRIM(0)
             self.trims += 1
 

@@ -116,7 +116,7 @@ def create_app(settings: Settings | None = None, load_in_background: bool = Fals
         lifespan=lifespan,
         redirect_slashes=False,  # a trailing slash is 404, not a 307 to the path without it
     )
-    app.state.neumip = ServerState(settings, metrics, Admission(settings, metrics), engine,
+    app.state.neumip = ServerState(settings, metrics, Admission(settings, metrics, engine.idle), engine,
                                    SharedMemory(settings.allow_shared_memory), load_in_background=load_in_background)
     install_error_handlers(app)
     app.add_middleware(MetricsMiddleware, metrics=metrics)

@@ -317,27 +317,31 @@ class Batcher:
                 work = self._next_batch()
             if work is None:
                 return
-            material, batch = work
-            start = time.perf_counter()
-            error = None
-            try:
-                rows = run_batch(material, batch)
-            except Exception as exc:  # a model fault: every request in the batch fails with it
-                log.exception("%s failed on material %s", self.engine.name, material.name)
-                error = ApiError(500, f"evaluating material {material.name!r} failed: {exc}")
-            else:
-                self.metrics.predict_seconds.observe(time.perf_counter() - start)
-                self.metrics.batch_rows.observe(rows)
-                self.metrics.batch_requests.observe(len(batch))
-                self.metrics.rows.labels(material.name).inc(rows)
-                self.stats.executed(material.name, rows, time.perf_counter() - start, [p.arrived for p in batch])
-            finished = []
-            with self._cond:
-                for piece in batch:
-                    job = piece.job
-                    job.error = job.error or error or self._nonfinite(material.name, piece)
-                    job.rows_left -= piece.rows
-                    if job.rows_left == 0:
-                        finished.append(job)
-            for job in finished:
-                self._loop.call_soon_threadsafe(self._finish, job)
+            self._run(*work)
+            del work  # nothing of the batch (a request's body, its answers) is kept while the worker waits
+
+    def _run(self, material: Material, batch: list[_Piece]) -> None:
+        """Run one batch and hand its finished jobs to the event loop."""
+        start = time.perf_counter()
+        error = None
+        try:
+            rows = run_batch(material, batch)
+        except Exception as exc:  # a model fault: every request in the batch fails with it
+            log.exception("%s failed on material %s", self.engine.name, material.name)
+            error = ApiError(500, f"evaluating material {material.name!r} failed: {exc}")
+        else:
+            self.metrics.predict_seconds.observe(time.perf_counter() - start)
+            self.metrics.batch_rows.observe(rows)
+            self.metrics.batch_requests.observe(len(batch))
+            self.metrics.rows.labels(material.name).inc(rows)
+            self.stats.executed(material.name, rows, time.perf_counter() - start, [p.arrived for p in batch])
+        finished = []
+        with self._cond:
+            for piece in batch:
+                job = piece.job
+                job.error = job.error or error or self._nonfinite(material.name, piece)
+                job.rows_left -= piece.rows
+                if job.rows_left == 0:
+                    finished.append(job)
+        for job in finished:
+            self._loop.call_soon_threadsafe(self._finish, job)

@@ -118,6 +118,9 @@ class Engine:
     start: Callable[[], None] = lambda: None
     """Process-wide set-up before the first call, run once by the batcher when it starts (the kernel
     engine: drjit's pool size). Building an engine changes nothing else in the process."""
+    idle: Callable[[], object] = lambda: None
+    """Process-wide tidy-up once no request has been in flight for a second, before the heap is trimmed
+    (`admission`; the kernel engine: drjit's cache of freed blocks, `release_cached_memory`)."""
     platform: str = ONNX_PLATFORM
     """What runs the model files, as the Open Inference Protocol's model metadata names it (``platform``;
     ``onnxruntime_onnx`` is Triton's name for ONNX files run by ONNX Runtime)."""
@@ -141,7 +144,7 @@ class Engine:
         turns, and each spins for 20 ms after a call (nanothread's ``NANOTHREAD_MAX_IDLE_MS``) on the
         cores the event loop needs."""
         try:
-            from neumip.engines.kernel import KernelMaterial
+            from neumip.engines.kernel import KernelMaterial, release_cached_memory
         except ImportError as exc:  # drjit or onnx missing, or only a libLLVM < 16: the message says which
             raise EngineUnavailable(f"NEUMIP_ENGINE=kernel cannot run: {exc}") from None
         import drjit as dr
@@ -155,7 +158,7 @@ class Engine:
             return KernelModel(path.stem, path, kernel, kernel.file)
 
         return cls("kernel", load, 1, chunk_rows, lambda: dr.set_thread_count(available_cores()),
-                   platform=KERNEL_PLATFORM)
+                   idle=release_cached_memory, platform=KERNEL_PLATFORM)
 
     @classmethod
     def from_settings(cls, settings: Settings) -> "Engine":
