@@ -61,9 +61,6 @@ class UnknownServedMaterial(ServerError, UnknownMaterial):
     """The server serves no material of that name (404 to an evaluation): an `UnknownMaterial`, as in process
     (`LocalMaterials` raises one), and a `ServerError`."""
 
-    def __str__(self) -> str:
-        return str(self.args[0])
-
 
 @dataclass
 class ClientConfig:

@@ -101,6 +101,12 @@ def _check_npy(path: Path, shape: tuple[int, int]) -> None:
                            "says (a truncated copy?): remove the data set folder and generate it again")
 
 
+def _check_arrays(folder: Path, n: int) -> None:
+    """`_check_npy` of both arrays of a data set of `n` rows."""
+    _check_npy(folder / "queries.npy", (n, C.QUERY_DIM))
+    _check_npy(folder / "rgb.npy", (n, C.RGB_DIM))
+
+
 @dataclass
 class Dataset:
     """A complete data set, memory-mapped."""
@@ -130,8 +136,7 @@ def open_dataset(path: str | Path) -> Dataset:
     n = meta.get("n")
     if isinstance(n, bool) or not isinstance(n, int) or n < 0:
         raise DatasetError(f"{meta_path} is damaged (n = {str(n)[:40]}): remove the data set folder and generate it again")
-    for name, width in (("queries.npy", C.QUERY_DIM), ("rgb.npy", C.RGB_DIM)):
-        _check_npy(path / name, (n, width))
+    _check_arrays(path, n)
     queries = np.load(path / "queries.npy", mmap_mode="r")
     rgb = np.load(path / "rgb.npy", mmap_mode="r")
     return Dataset(path, queries, rgb, meta)
@@ -174,8 +179,7 @@ class DatasetWriter:
                     f"({_other_settings(state['meta'], self.meta)}); remove it or use the same settings to resume"
                 )
             self.done = int(state["done"])
-            for name, width in (("queries.npy", C.QUERY_DIM), ("rgb.npy", C.RGB_DIM)):  # before r+ would grow them
-                _check_npy(self.path / name, (n, width))
+            _check_arrays(self.path, n)  # before r+ would grow a truncated one
             mode = "r+"
         else:
             self.done = 0

@@ -254,9 +254,9 @@ def print_finished(table: dict, paths: dict, kept: str) -> None:
 def _train(args: argparse.Namespace) -> int:
     from neumip.core.errors import CommandError
 
-    from neumip.training.loop.paths import cut_short, work_folder
+    from neumip.training.loop.paths import occupied, work_folder
 
-    output = output_path(args, Path(args.output).exists() and not cut_short(args.output))
+    output = output_path(args, occupied(args.output))
     import_torch(args.threads)
     from tqdm import tqdm
 

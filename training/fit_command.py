@@ -114,9 +114,9 @@ class StageBar:
 
 
 def _fit(args: argparse.Namespace) -> int:
-    from neumip.training.loop.paths import cut_short
+    from neumip.training.loop.paths import occupied
 
-    output = commands.output_path(args, Path(args.output).exists() and not cut_short(args.output))
+    output = commands.output_path(args, occupied(args.output))
     commands.import_torch(args.threads)  # first: its OpenMP threads read OMP_WAIT_POLICY once, at import
     from neumip.core.errors import CommandError
     from neumip.client.mitsuba.runtime import MitsubaUnavailable

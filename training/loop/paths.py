@@ -54,3 +54,9 @@ def cut_short(output: str | Path) -> bool:
     staging = staging_folder(output)
     return (output.exists() and not fitted(output) and (staging / output.with_suffix(".json").name).is_file()
             and not (staging / output.name).exists())
+
+
+def occupied(output: str | Path) -> bool:
+    """Whether a file at `output` may be replaced only with ``--force``: any but a model whose install was cut
+    short (`cut_short`), which the same command finishes."""
+    return Path(output).exists() and not cut_short(output)
