@@ -20,6 +20,9 @@ render's own kernels, `KernelMaterials`, the default; and its ONNX graph in ONNX
   <= 1.5. Also with one emitter chosen: the stock `path`'s one shadow ray per shading point, so the ratio is the
   integrator's own cost without the shadow ray per emitter that `all_emitters` adds.
 
+``--floor`` also prints the in-kernel render as it would be if its evaluation ran at this machine's peak rate of
+vector instructions (`kernel_ops.py`): where even that misses a target, the model's arithmetic does.
+
 ``--server`` adds the neural plane rendered through a real `neumip serve` process on loopback (the integrator's
 buffered path, as a renderer talking to the service does: msgpack bodies, and shared memory, `SERVER_PROTOCOLS`)
 of the server's default engine (``auto``: the kernel engine where it runs) or the one named, and its ratio to the
@@ -198,9 +201,9 @@ def ratio_scenes(mi, args) -> dict:
 
 
 def time_render(mi, scene, evaluator, spp: int, seed: int, max_lanes: int,
-                server_pid: int | None = None) -> tuple[float, float, float]:
+                server_pid: int | None = None) -> tuple[float, float, float, int]:
     """(wall seconds, CPU seconds of this process (and of the server process ``server_pid``), seconds inside
-    neural evaluation) of one render."""
+    neural evaluation, the answers evaluated: a query group of K lights counting K) of one render."""
     from neumip.client.mitsuba.render import RenderConfig, render_scene
 
     def cpu_now() -> float:
@@ -209,10 +212,11 @@ def time_render(mi, scene, evaluator, spp: int, seed: int, max_lanes: int,
     start, cpu = time.perf_counter(), cpu_now()
     if evaluator is None:
         np.array(mi.render(scene, spp=spp, seed=seed))
-        inside = 0.0
+        inside, answers = 0.0, 0
     else:
-        inside = render_scene(scene, evaluator, RenderConfig(spp=spp, seed=seed, max_lanes=max_lanes)).stats.seconds
-    return time.perf_counter() - start, cpu_now() - cpu, inside
+        stats = render_scene(scene, evaluator, RenderConfig(spp=spp, seed=seed, max_lanes=max_lanes)).stats
+        inside, answers = stats.seconds, stats.queries
+    return time.perf_counter() - start, cpu_now() - cpu, inside, answers
 
 
 def ratios(args) -> None:
@@ -266,21 +270,28 @@ def ratios_with(args, served: tuple | None) -> None:
     for name, (scene, evaluator) in scenes.items():  # warm-up: compile (or load cached) kernels
         time_render(mi, scene, evaluator, args.spp, 0, args.max_lanes, pids[name])
     times = {name: [] for name in scenes}  # (wall, CPU) per round
-    evaluation = {key: [] for key in ("kernel", "local", "kernel before", *(f"server {p}" for p in args.protocols))
-                  if key in evaluators}
+    # the evaluation's seconds and answers of the every-emitter neural render of each evaluator (the one-emitter
+    # render shares the kernel's evaluator but not its work)
+    timed = {"kernel": "neural (neumip_path)", "local": "neural, ONNX Runtime", "kernel before": "neural, kernel before",
+             **{f"server {p}": f"neural, server {p}" for p in args.protocols}}
+    timed = {key: name for key, name in timed.items() if name in scenes}
+    evaluation = {key: [] for key in timed}
+    counts = {}  # answers a render evaluates (the same in every round but for the noise's paths)
     for r in range(args.rounds):
         for name, (scene, evaluator) in scenes.items():
-            wall, cpu, inside = time_render(mi, scene, evaluator, args.spp, r + 1, args.max_lanes, pids[name])
+            wall, cpu, inside, answers = time_render(mi, scene, evaluator, args.spp, r + 1, args.max_lanes, pids[name])
             times[name].append((wall, cpu))
-            for key, values in evaluation.items():
-                if evaluator is evaluators[key]:
-                    values.append(inside)
+            for key, timed_name in timed.items():
+                if name == timed_name:
+                    evaluation[key].append(inside)
+                    counts[key] = answers
     wall = {name: statistics.median(t[0] for t in v) for name, v in times.items()}
     cpu = {name: statistics.median(t[1] for t in v) for name, v in times.items()}
     for name in scenes:
         print(f"  {name:<24} {wall[name]:7.3f} s wall   {cpu[name]:7.3f} CPU s")
     print("  (neural evaluation inside the neural renders, wall: "
-          + ", ".join(f"{key} {statistics.median(values):.3f} s" for key, values in evaluation.items()) + ")")
+          + ", ".join(f"{key} {statistics.median(values):.3f} s" for key, values in evaluation.items())
+          + f"; {max(counts.values(), default=0) / 1e6:.2f} M answers a render)")
     which = f"{args.server_url}" if args.server_url else f"NEUMIP_ENGINE={args.server}"
     served_rows = [(f"through a server ({which}, {p}): neural / reference", f"neural, server {p}",
                     "reference (path)", 1.0) for p in args.protocols]
@@ -296,7 +307,30 @@ def ratios_with(args, served: tuple | None) -> None:
                                 ("ONNX Runtime: overhead / diffuse", "constant, buffered", "diffuse (path)", 1.5),
                                 *served_rows):
         print(f"{label}: {wall[a] / wall[b]:.2f}x wall, {cpu[a] / cpu[b]:.2f}x CPU (target <= {target})")
+    if args.floor and counts.get("kernel"):
+        floor(args, wall, statistics.median(evaluation["kernel"]), counts["kernel"])
     print(f"[{load_avg()}]", flush=True)
+
+
+def floor(args, wall: dict, evaluation: float, answers: int) -> None:
+    """``--floor``: the in-kernel render if its evaluation ran at this machine's peak rate of vector instructions
+    (`kernel_ops.py`: the kernel's instructions a lane for a group of three lights, an fma one; the peak from its
+    kernel of interleaved fmas, measured now), against the geometry. Where even that misses a target, the model's
+    arithmetic does, whatever the engine."""
+    from kernel_ops import count, fma_rate, kernel_ir  # this folder is on sys.path when run as a script
+
+    figures = count(kernel_ir(Path(args.models) / f"{material_name(args)}.onnx", 3)[1])
+    instructions = figures["arithmetic"] - figures["fma"]  # an fma one instruction
+    peak = fma_rate(4, 25, 4) / 2  # vector instructions a second, lanes counted (each of its fmas one)
+    groups = answers / 3
+    at_peak = groups * instructions / peak
+    render = wall["neural (neumip_path)"] - evaluation + at_peak
+    print(f"floor: {groups / 1e6:.2f} M groups of 3 lights, {instructions} instructions a lane a group "
+          f"({figures['arithmetic']} operations, an fma two); the machine's peak {peak / 1e9:.0f} G lane-instructions "
+          f"a second; the evaluation {groups * instructions / evaluation / 1e9:.0f} G a second, "
+          f"{groups * instructions / evaluation / peak:.2f}x the peak: {evaluation:.3f} s, {at_peak:.3f} s at the "
+          f"peak; the neural render at the peak {render:.3f} s, {render / wall['reference (path)']:.2f}x the "
+          f"geometry's time (the rest of the render, {wall['neural (neumip_path)'] - evaluation:.3f} s, as measured)")
 
 
 # --- stages: what each stage of the model costs in the render -------------------------------------------
@@ -385,7 +419,7 @@ def stages(args) -> None:
         for r in range(args.rounds):  # each round in another order: the render after the reference's runs slower
             for name in names[r % len(names):] + names[:r % len(names)]:
                 scene, evaluator = runs[name]
-                w, _, e = time_render(mi, scene, evaluator, args.spp, r + 1, args.max_lanes)
+                w, _, e, _ = time_render(mi, scene, evaluator, args.spp, r + 1, args.max_lanes)
                 wall[name].append(w)
                 inside[name].append(e)
     med = {name: statistics.median(v) for name, v in wall.items()}
@@ -549,6 +583,9 @@ def main() -> int:
                         "engines/kernel.py (git show 906263c:engines/kernel.py > FILE), interleaved")
     parser.add_argument("--compare", type=Path, nargs="*", default=[], metavar="DIR",
                         help="stages: also render the material's file in these folders (another export of it)")
+    parser.add_argument("--floor", action="store_true",
+                        help="ratios: also the in-kernel render if its evaluation ran at this machine's peak rate of "
+                        "vector instructions (`kernel_ops.py`)")
     parser.add_argument("--server", nargs="?", const="auto", metavar="ENGINE",
                         help="ratios: also render through a real `neumip serve` of this engine (default: auto, the "
                         "server's default: the kernel engine where it runs), msgpack and shared memory on loopback; CPU seconds count "

@@ -8,13 +8,22 @@ product's FLOPs; register moves, addressing, loads and packet gathers not counte
 loads and its per-value gathers (a table read one value at a time: 0 is what the kernel engine is built for,
 `engines/onnx_ops.py`'s `aligned_zeros`). `graph_cost.py` estimates from the graph's shapes, counting layout nodes
 that cost the kernel nothing; this is the count of what runs. Needs drjit (the LLVM backend) and onnx.
+
+``--peak`` also measures what this machine's drjit kernels can do (the bound of the arithmetic): kernels of
+nothing but fmas, 2^20 lanes, best of five. Four interleaved chains of 25 fmas on a few weights (what the
+CPU's pipelines sustain), one chain of 2,400 fmas (each waiting for the one before: the floor), and four chains
+of 600 on 97 distinct weights, which LLVM compiles one chain after another once the weights no longer fit in
+registers, as in a model's kernel. Then, per model, the kernel engine's rate on 2^17 random single queries
+and groups of three lights, and its arithmetic a second (the count above times the rate) against the peak.
 """
 
 from __future__ import annotations
 
 import argparse
+import os
 import re
 import sys
+import time
 from collections import Counter
 from pathlib import Path
 
@@ -71,18 +80,81 @@ def count(ir: str) -> dict:
     return {"arithmetic": arithmetic, "fma": fmas, "packet loads": packets, "per-value gathers": gathers}
 
 
+def fma_rate(chains: int, length: int, weights: int, lanes: int = 1 << 20) -> float:
+    """Arithmetic a second (an fma two) of a drjit kernel of `chains` independent fma chains of `length`, over
+    `lanes` lanes, its coefficients `weights` distinct literals: the best of five timed runs."""
+    import drjit as dr
+    from drjit.llvm import Float
+
+    x = dr.arange(Float, lanes) * 1e-7
+    dr.eval(x)
+
+    def kernel():
+        accs = [x + i for i in range(chains)]
+        for k in range(length):
+            accs = [dr.fma(a, 0.999 + 1e-6 * ((k * chains + i) % weights), 1e-3 * (i + 1)) for i, a in enumerate(accs)]
+        return sum(accs[1:], accs[0])
+
+    dr.eval(kernel())  # compiles
+    best = float("inf")
+    for _ in range(5):
+        time.sleep(0.05)  # past drjit's worker spin
+        out = kernel()
+        start = time.perf_counter()
+        dr.eval(out)
+        dr.sync_thread()
+        best = min(best, time.perf_counter() - start)
+    return lanes * chains * length * 2 / best
+
+
+def engine_rate(path: Path, lights: int, rows: int = 1 << 17) -> float:
+    """The kernel engine's answers a second (query groups of `lights` a second where more than one) on random
+    queries: the best of five calls after one untimed."""
+    from neumip.core import contract as C
+    from neumip.engines.kernel import KernelMaterial
+
+    material = KernelMaterial(path)
+    q = C.random_queries(rows, seed=9)
+    if lights > 1:
+        more = np.random.default_rng(2).uniform(-0.6, 0.6, (rows, 2 * (lights - 1))).astype(np.float32)
+        q = np.ascontiguousarray(np.concatenate([q, more], 1))
+    material.evaluate(q)
+    best = float("inf")
+    for _ in range(5):
+        time.sleep(0.05)
+        start = time.perf_counter()
+        material.evaluate(q)
+        best = min(best, time.perf_counter() - start)
+    return rows / best
+
+
 def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("models", type=Path, nargs="+")
+    parser.add_argument("--peak", action="store_true", help="also the machine's fma rate and each model's share")
     args = parser.parse_args()
+    peak = None
+    if args.peak:
+        rates = {"4 chains x 25, 4 weights": fma_rate(4, 25, 4), "1 chain x 2400, 97 weights": fma_rate(1, 2400, 97),
+                 "4 chains x 600, 97 weights": fma_rate(4, 600, 97)}
+        peak = rates["4 chains x 25, 4 weights"]
+        print("fma kernels, G operations a second (an fma two): "
+              + ", ".join(f"{k} {v / 1e9:.0f}" for k, v in rates.items()) + f"  [load {os.getloadavg()[0]:.2f}]",
+              flush=True)
     for path in args.models:
         for lights in (1, 3):
             entry, ir = kernel_ir(path, lights)
             figures = count(ir)
-            print(f"{path.stem} {'single queries' if lights == 1 else 'groups of 3 lights'}: drjit operations "
-                  f"{entry['operation_count']}, arithmetic {figures['arithmetic']} a lane ({figures['fma']} fmas), "
-                  f"packet loads {figures['packet loads']}, per-value gathers {figures['per-value gathers']}",
-                  flush=True)
+            kind = "single queries" if lights == 1 else "groups of 3 lights"
+            line = (f"{path.stem} {kind}: drjit operations {entry['operation_count']}, arithmetic "
+                    f"{figures['arithmetic']} a lane ({figures['fma']} fmas), packet loads {figures['packet loads']}, "
+                    f"per-value gathers {figures['per-value gathers']}")
+            if peak:
+                rate = engine_rate(path, lights)
+                ops = rate * figures["arithmetic"]
+                line += (f"; {rate / 1e6:.2f} M a second, {ops / 1e9:.0f} G operations a second, {ops / peak:.2f}x "
+                         f"the peak (at the peak: {peak / figures['arithmetic'] / 1e6:.1f} M a second)")
+            print(line, flush=True)
     return 0
 
 
