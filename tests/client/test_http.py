@@ -13,6 +13,7 @@ import pytest
 
 from neumip.core import contract as C
 from neumip.core import wire
+from neumip.client import http
 from neumip.client.http import ClientConfig, MaterialClient, ServerError, ServerUnavailable
 from neumip.engines.local import LocalMaterials, UnknownMaterial
 
@@ -65,6 +66,21 @@ def test_evaluate_matches_in_process_and_splits_large_buffers(model_dir):
     assert posts == server.requests  # no look-up of the material
     assert [wire.decode_request(r.content).shape[0] for r in posts] == [1000, 1000, 500, 10]
     assert posts[0].headers["content-type"] == wire.MSGPACK_MEDIA_TYPE
+
+
+def test_a_large_body_goes_out_in_parts_that_are_views_of_the_rows(model_dir, monkeypatch):
+    """Bodies are sent in parts of at most SEND_PART_BYTES (httpcore copies the rest of a part at every send),
+    each a view of the caller's buffer, and the server reads the same rows."""
+    rows = np.arange(3000, dtype=np.uint8)
+    parts = http._in_parts([b"head", memoryview(rows)], size=1024)
+    assert [len(p) for p in parts] == [4, 1024, 1024, 952]
+    assert b"".join(parts) == b"head" + rows.tobytes()
+    assert all(np.shares_memory(np.frombuffer(p, np.uint8), rows) for p in parts[1:])
+    monkeypatch.setattr(http, "SEND_PART_BYTES", 1000)
+    server = FakeServer(model_dir)
+    queries = random_queries(2500, seed=4)  # 70 kB of rows: 71 parts
+    with client_for(server) as client:
+        np.testing.assert_array_equal(client.evaluate("rand16", queries), server.local.evaluate("rand16", queries))
 
 
 def test_query_groups_are_sent_whole_and_answer_three_values_a_light(model_dir):
