@@ -1,0 +1,93 @@
+"""The energy table's coarse cells fitted to the model's own finest level, averaged over the footprint, instead of to
+the data: a target without the coarse data's noise.
+
+    .venv/bin/python experiments/energy/teacher_table.py MODEL OUT [--from-level 3] [--queries 400000] [--samples 32]
+
+A query at footprint sigma answers the material filtered by a Gaussian of std sigma. Gaussians compose, so that is
+also the mean of its answers at the finest footprint sigma' over aim points jittered by sqrt(sigma^2 - sigma'^2)
+(`training/loop/distil.py`'s `distilled_targets`, here with the model file's own answers through ONNX Runtime,
+its table included). The finest level is fitted to most of the data, whose targets there are quiet, and averaged so
+it was closer to a 256-sample reference than the coarse levels' own answers ([distil](../distil/)). Here the table's
+cells from level `--from-level` up are refitted (`model.energy.fit_energy`, the product's fit, on random queries at
+those levels: u, v uniform over the tile, directions uniform on the projected disc to 85 degrees) with that mean as
+the target; the cells below keep the file's table, so close-ups read the same gains. The model at OUT is reported as
+its control was (`neumip report --materials M --models DIR --skip stability tradeoff`).
+"""
+
+from __future__ import annotations
+
+import argparse
+import math
+
+import numpy as np
+import onnx
+import torch
+
+from neumip.core import contract as C
+from neumip.core import weights as W
+from neumip.engines.local import load_material, run_chunked
+from neumip.training.export.graph import build_onnx, save_onnx
+from neumip.training.export.read import read_model
+from neumip.training.loop.distil import distilled_targets
+from neumip.training.loop.energy import fit_table
+from neumip.training.model.energy import ones_table
+
+
+def coarse_queries(n: int, resolution: int, lod_bias: int, from_level: float, seed: int) -> np.ndarray:
+    """(n, 7) queries with u, v uniform over the tile, the level of detail uniform in [from_level - 0.5, log2 R]
+    (so the cells at `from_level` get their share of the trilinear weights) and wi, wo uniform on the projected
+    disc up to 85 degrees."""
+    q = C.random_queries(n, seed=seed, u_range=(0.0, 1.0))
+    rng = np.random.default_rng([seed, 1])
+    lod = rng.uniform(max(from_level - 0.5, 0.0), math.log2(resolution), n)
+    q[:, C.SIGMA] = (2.0 ** lod / (resolution * 2.0 ** lod_bias)).astype(np.float32)
+    return q
+
+
+def main() -> int:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("model")
+    parser.add_argument("out")
+    parser.add_argument("--from-level", type=int, default=3, help="the first level whose cells are refitted")
+    parser.add_argument("--queries", type=int, default=400_000)
+    parser.add_argument("--samples", type=int, default=32, help="finest-level answers averaged a query (even)")
+    parser.add_argument("--seed", type=int, default=0)
+    args = parser.parse_args()
+    config, weights, meta, finest = read_model(onnx.load(args.model), args.model)
+    if not config.energy_bins:
+        raise SystemExit(f"{args.model} has no energy table")
+    owned = {C.META_CONTRACT, C.META_CONFIG, C.META_DESCRIPTION}
+    rest = {k: v for k, v in meta.items() if k not in owned}
+
+    def model(table: np.ndarray) -> onnx.ModelProto:
+        return build_onnx(config, {**weights, W.ENERGY: table}, meta.get(C.META_DESCRIPTION, ""), rest)
+
+    def answers(graph: onnx.ModelProto, queries: np.ndarray) -> np.ndarray:
+        material = load_material(args.model, data=graph.SerializeToString())
+        return run_chunked(material.run, np.ascontiguousarray(queries, np.float32))
+
+    shipped = weights[W.ENERGY]
+    q = coarse_queries(args.queries, config.resolution, config.lod_bias, args.from_level, args.seed)
+    finer = 1.0 / (config.resolution * 2.0 ** config.lod_bias)  # the finest level's footprint
+    as_is = model(shipped)
+    teacher = distilled_targets(lambda x: torch.from_numpy(answers(as_is, x.numpy())), torch.from_numpy(q),
+                                args.samples, torch.Generator().manual_seed(args.seed), finer).numpy()
+    plain = answers(model(ones_table(config)), q)
+    fitted = fit_table(config, q, plain, teacher)
+    rows_a_level = len(shipped) // (config.levels + 1)
+    table = shipped.copy()
+    table[args.from_level * rows_a_level:] = fitted[args.from_level * rows_a_level:]
+    direct = answers(as_is, q)
+    lum = np.asarray(C.LUMINANCE)
+    print(f"{args.model}: {args.queries} queries at levels {max(args.from_level - 0.5, 0):g}-{config.levels}, "
+          f"{args.samples} finest answers each; the teacher's mean luminance / the model's as is "
+          f"{float((teacher @ lum).mean() / (direct @ lum).mean()):.4f}; refitted cells' gains "
+          f"{fitted[args.from_level * rows_a_level:].min():.3f}-{fitted[args.from_level * rows_a_level:].max():.3f}, "
+          f"the file's {shipped[args.from_level * rows_a_level:].min():.3f}-{shipped[args.from_level * rows_a_level:].max():.3f}")
+    save_onnx(model(table), args.out)
+    print(f"wrote {args.out}")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
