@@ -21,7 +21,7 @@ render's own kernels, `KernelMaterials`, the default; and its ONNX graph in ONNX
   integrator's own cost without the shadow ray per emitter that `all_emitters` adds.
 
 ``--floor`` also prints the in-kernel render as it would be if its evaluation ran at this machine's peak rate of
-vector instructions (`kernel_ops.py`): where even that misses a target, the model's arithmetic does.
+vector instructions (`kernel_ops.py`'s kernel of fmas): an estimate of what the engine's code could give.
 
 ``--server`` adds the neural plane rendered through a real `neumip serve` process on loopback (the integrator's
 buffered path, as a renderer talking to the service does: msgpack bodies, and shared memory, `SERVER_PROTOCOLS`)
@@ -315,8 +315,10 @@ def ratios_with(args, served: tuple | None) -> None:
 def floor(args, wall: dict, evaluation: float, answers: int) -> None:
     """``--floor``: the in-kernel render if its evaluation ran at this machine's peak rate of vector instructions
     (`kernel_ops.py`: the kernel's instructions a lane for a group of three lights, an fma one; the peak from its
-    kernel of interleaved fmas, measured now), against the geometry. Where even that misses a target, the model's
-    arithmetic does, whatever the engine."""
+    kernel of interleaved fmas, measured now), against the geometry. An estimate, not a proof: the peak is of fmas
+    alone (adds and compares may issue beside them), and the count is of this engine's LLVM IR for the model, not
+    the least the model needs. The evaluation's time also holds the gathers and scatters around the kernel, so its
+    share of the peak understates the model's own."""
     from kernel_ops import count, fma_rate, kernel_ir  # this folder is on sys.path when run as a script
 
     figures = count(kernel_ir(Path(args.models) / f"{material_name(args)}.onnx", 3)[1])

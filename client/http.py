@@ -38,8 +38,9 @@ log = logging.getLogger(__name__)
 
 SEND_PART_BYTES = 1 << 20
 """A request body goes out in parts of at most this many bytes (views of the caller's buffers, no copies).
-httpcore sends a part by slicing off what each ``send`` took, a copy of the rest every time: a 29 MB body (2^20
-queries) cost the client 28 ms of CPU a request, 16.6 ms in parts of 1 MiB (`benchmarks/server_cpu.py`)."""
+httpcore sends a part by slicing off what each ``send`` took, a copy of the rest every time: 2^20 single queries
+(a 28 MB request and a 1.4 MB one, `ClientConfig.max_rows`) cost the client 21-31 ms of CPU sent whole, 16-17 ms in
+parts of 1 MiB (`experiments/server_overhead/send_parts.py`, `benchmarks/server_cpu.py`)."""
 
 
 def _in_parts(body: list | None, size: int | None = None) -> list | None:

@@ -5,8 +5,8 @@ the best of five calls of 2^17 random single queries each, after one untimed):
 
 - **stages**: the model's graph without each of its stages (`benchmarks/bench_render.py`'s `stage_variants`: the
   same weights, the graph of the config without the stage; its answers are wrong, its cost is the rest's).
-- **tables**: the same queries with u, v squeezed into 1 % of the tile, sorted by u, and all at the coarsest
-  footprint (sigma 1): how much of a call is waiting for table rows.
+- **tables**: the same queries with u, v in a square of 1 % of the tile's area (0.1 x 0.1), sorted by u, and all at
+  the coarsest footprint (sigma 1): how much of a call is waiting for table rows.
 - **vector width**: drjit's LLVM backend compiling the same kernel for 32 or 8 lanes a packet instead of its default
   (16 with AVX-512), through libdrjit-core's `jit_llvm_set_target`, which the Python API does not expose.
 - **mlp**: a multilayer perceptron of the paper's shapes (7, 25, 25, 25, 3; ReLU) written as the kernel writes a
@@ -28,6 +28,8 @@ from pathlib import Path
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[2] / "benchmarks"))
+
+from kernel_ops import fma_rate  # noqa: E402
 
 
 def best_of(fns: dict, rounds: int = 5) -> dict:
@@ -68,8 +70,8 @@ def tables(path: Path, q: np.ndarray) -> None:
     material = KernelMaterial(path)
     sets = {"random": q}
     near = q.copy()
-    near[:, :2] *= 0.01
-    sets["u, v in 1 % of the tile"] = near
+    near[:, :2] = np.random.default_rng(3).uniform(0.0, 0.1, (len(q), 2))
+    sets["u, v in 1 % of the tile's area"] = near
     sets["sorted by u, then v"] = np.ascontiguousarray(q[np.lexsort((q[:, 1], q[:, 0]))])
     coarse = q.copy()
     coarse[:, 2] = 1.0
@@ -146,8 +148,15 @@ def mlp(lanes: int = 1 << 20) -> None:
                        "cooperative vectors (drjit.nn.matvec)": lambda: run(coop)})
     report(f"an MLP of {sizes}, {lanes} lanes", lanes, seconds)
     macs = sum(w.size for w in ws)
+    # the chains' instructions a lane: an output's product and bias add, its other fmas, its ReLU but the last layer's
+    instructions = sum(w.shape[0] * (w.shape[1] + 1) for w in ws) + sum(w.shape[0] for w in ws[:-1])
+    peak = fma_rate(4, 25, 4)  # operations a second (an fma two): kernel_ops.py's peak, measured now
+    chains = seconds["fma chains, literal weights"]
     print("  G operations a second (an fma two): "
-          + ", ".join(f"{k} {lanes * macs * 2 / s / 1e9:.0f}" for k, s in seconds.items()))
+          + ", ".join(f"{k} {lanes * macs * 2 / s / 1e9:.0f}" for k, s in seconds.items())
+          + f"; the peak {peak / 1e9:.0f}: the chains {lanes * macs * 2 / chains / peak:.2f}x; in instructions (an fma "
+          f"one, {instructions} a lane) {lanes * instructions / chains / 1e9:.0f} G a second, "
+          f"{2 * lanes * instructions / chains / peak:.2f}x the peak's {peak / 2e9:.0f}")
 
 
 def main() -> int:

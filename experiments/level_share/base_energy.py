@@ -17,7 +17,6 @@ import torch
 
 
 def main() -> None:
-    from neumip.core.config import MaterialConfig
     from neumip.groundtruth.description import find_description, resolve
     from neumip.training.model.base import base_answer, base_maps, base_resolution
 

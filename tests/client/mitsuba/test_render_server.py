@@ -134,6 +134,7 @@ def test_fallback_finishes_in_process_when_the_server_stops(model_dir, server, t
     rc = cli.main(["render", scene, "-o", str(out), "--server", server.url, "--fallback", "--models", str(model_dir)])
     assert rc == 0
     assert "evaluated in-process" in capsys.readouterr().out
+    assert calls["n"] >= 2  # the server was stopped mid-render, not before it
     assert cli.main(["render", scene, "-o", str(reference), "--models", str(model_dir)]) == 0
     from neumip.client.mitsuba.bsdf import mi
 
