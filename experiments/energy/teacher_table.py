@@ -1,7 +1,13 @@
-"""The energy table's coarse cells fitted to the model's own finest level, averaged over the footprint, instead of to
-the data: a target without the coarse data's noise.
+"""The energy table's coarse cells refitted: to the model's own finest level, averaged over the footprint (a target
+without the coarse data's noise), or with `--data` to a calibration data set of their own.
 
     .venv/bin/python experiments/energy/teacher_table.py MODEL OUT [--from-level 3] [--queries 400000] [--samples 32]
+    .venv/bin/python experiments/energy/teacher_table.py MODEL OUT --data DATA [--prior 256]
+
+With `--data`, the cells from `--from-level` up are fitted on the data set's queries at those levels and their
+targets (made apart from the training data: `neumip generate M -o DATA --queries 4000000 --spp 64
+--level-fraction 1.0 --heavy-fraction 0 --seed 11`, levels uniform, so about 770 queries a coarse cell against the
+training split's 100-300), with `--prior` queries' worth of right answers a cell (the product's 256).
 
 A query at footprint sigma answers the material filtered by a Gaussian of std sigma. Gaussians compose, so that is
 also the mean of its answers at the finest footprint sigma' over aim points jittered by sqrt(sigma^2 - sigma'^2)
@@ -29,8 +35,9 @@ from neumip.engines.local import load_material, run_chunked
 from neumip.training.export.graph import build_onnx, save_onnx
 from neumip.training.export.read import read_model
 from neumip.training.loop.distil import distilled_targets
-from neumip.training.loop.energy import fit_table
-from neumip.training.model.energy import ones_table
+from neumip.groundtruth.dataset import open_dataset
+from neumip.training.model.energy import ENERGY_PRIOR, fit_energy, ones_table
+from neumip.training.model.pyramid import level_of_detail
 
 
 def coarse_queries(n: int, resolution: int, lod_bias: int, from_level: float, seed: int) -> np.ndarray:
@@ -52,6 +59,8 @@ def main() -> int:
     parser.add_argument("--queries", type=int, default=400_000)
     parser.add_argument("--samples", type=int, default=32, help="finest-level answers averaged a query (even)")
     parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--data", help="a calibration data set: fit to its targets instead of the teacher")
+    parser.add_argument("--prior", type=float, default=None, help="the fit's prior (default: the product's)")
     args = parser.parse_args()
     config, weights, meta, finest = read_model(onnx.load(args.model), args.model)
     if not config.energy_bins:
@@ -67,20 +76,31 @@ def main() -> int:
         return run_chunked(material.run, np.ascontiguousarray(queries, np.float32))
 
     shipped = weights[W.ENERGY]
-    q = coarse_queries(args.queries, config.resolution, config.lod_bias, args.from_level, args.seed)
-    finer = 1.0 / (config.resolution * 2.0 ** config.lod_bias)  # the finest level's footprint
     as_is = model(shipped)
-    teacher = distilled_targets(lambda x: torch.from_numpy(answers(as_is, x.numpy())), torch.from_numpy(q),
-                                args.samples, torch.Generator().manual_seed(args.seed), finer).numpy()
+    if args.data:
+        data = open_dataset(args.data)
+        lod = level_of_detail(torch.from_numpy(np.asarray(data.queries[:, C.SIGMA])), config.resolution,
+                              config.lod_bias).numpy()
+        rows = np.flatnonzero(lod >= max(args.from_level - 0.5, 0.0))
+        q, teacher = np.asarray(data.queries[rows]), np.asarray(data.rgb[rows])
+        source = f"{args.data}'s {len(rows)} queries"
+    else:
+        q = coarse_queries(args.queries, config.resolution, config.lod_bias, args.from_level, args.seed)
+        finer = 1.0 / (config.resolution * 2.0 ** config.lod_bias)  # the finest level's footprint
+        teacher = distilled_targets(lambda x: torch.from_numpy(answers(as_is, x.numpy())), torch.from_numpy(q),
+                                    args.samples, torch.Generator().manual_seed(args.seed), finer).numpy()
+        source = f"{args.queries} queries, {args.samples} finest answers each"
     plain = answers(model(ones_table(config)), q)
-    fitted = fit_table(config, q, plain, teacher)
+    prior = ENERGY_PRIOR if args.prior is None else args.prior
+    fitted = fit_energy(config, torch.from_numpy(np.asarray(q, np.float32)), torch.from_numpy(plain),
+                        torch.from_numpy(np.asarray(teacher, np.float32)), prior=prior).numpy()
     rows_a_level = len(shipped) // (config.levels + 1)
     table = shipped.copy()
     table[args.from_level * rows_a_level:] = fitted[args.from_level * rows_a_level:]
     direct = answers(as_is, q)
     lum = np.asarray(C.LUMINANCE)
-    print(f"{args.model}: {args.queries} queries at levels {max(args.from_level - 0.5, 0):g}-{config.levels}, "
-          f"{args.samples} finest answers each; the teacher's mean luminance / the model's as is "
+    print(f"{args.model}: {source} at levels {max(args.from_level - 0.5, 0):g}-{config.levels}, prior {prior:g}; "
+          f"the targets' mean luminance / the model's as is "
           f"{float((teacher @ lum).mean() / (direct @ lum).mean()):.4f}; refitted cells' gains "
           f"{fitted[args.from_level * rows_a_level:].min():.3f}-{fitted[args.from_level * rows_a_level:].max():.3f}, "
           f"the file's {shipped[args.from_level * rows_a_level:].min():.3f}-{shipped[args.from_level * rows_a_level:].max():.3f}")
