@@ -6,8 +6,8 @@ without the coarse data's noise), or with `--data` to a calibration data set of 
 
 With `--data`, the cells from `--from-level` up are fitted on the data set's queries at those levels and their
 targets (made apart from the training data: `neumip generate M -o DATA --queries 4000000 --spp 64
---level-fraction 1.0 --heavy-fraction 0 --seed 11`, levels uniform, so about 770 queries a coarse cell against the
-training split's 100-300), with `--prior` queries' worth of right answers a cell (the product's 256).
+--level-fraction 1.0 --heavy-fraction 0 --seed 11`: levels uniform, where the training data put most queries at the
+finest level), with `--prior` queries' worth of right answers a cell (the product's 256).
 
 A query at footprint sigma answers the material filtered by a Gaussian of std sigma. Gaussians compose, so that is
 also the mean of its answers at the finest footprint sigma' over aim points jittered by sqrt(sigma^2 - sigma'^2)
