@@ -23,6 +23,7 @@ its control was (`neumip report --materials M --models DIR --skip stability trad
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import math
 
 import numpy as np
@@ -61,6 +62,9 @@ def main() -> int:
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--data", help="a calibration data set: fit to its targets instead of the teacher")
     parser.add_argument("--prior", type=float, default=None, help="the fit's prior (default: the product's)")
+    parser.add_argument("--bins", type=int, default=0,
+                        help="a table of B half-vector and elevation bins instead of the file's: every level refitted, "
+                             "the levels below --from-level to the file's own answers (its table), the rest to the teacher")
     args = parser.parse_args()
     config, weights, meta, finest = read_model(onnx.load(args.model), args.model)
     if not config.energy_bins:
@@ -77,6 +81,9 @@ def main() -> int:
 
     shipped = weights[W.ENERGY]
     as_is = model(shipped)
+    if args.bins:
+        return finer_table(args, config, as_is, answers, lambda c, t: build_onnx(
+            c, {**weights, W.ENERGY: t}, meta.get(C.META_DESCRIPTION, ""), rest))
     if args.data:
         data = open_dataset(args.data)
         lod = level_of_detail(torch.from_numpy(np.asarray(data.queries[:, C.SIGMA])), config.resolution,
@@ -105,6 +112,29 @@ def main() -> int:
           f"{fitted[args.from_level * rows_a_level:].min():.3f}-{fitted[args.from_level * rows_a_level:].max():.3f}, "
           f"the file's {shipped[args.from_level * rows_a_level:].min():.3f}-{shipped[args.from_level * rows_a_level:].max():.3f}")
     save_onnx(model(table), args.out)
+    print(f"wrote {args.out}")
+    return 0
+
+
+def finer_table(args, config, as_is, answers, model) -> int:
+    """`--bins`: the whole table at another number of bins, each query's target the file's own answer below
+    `--from-level` and the teacher's (its finest level averaged over the footprint) from there."""
+    config = dataclasses.replace(config, energy_bins=args.bins)
+    q = coarse_queries(args.queries, config.resolution, config.lod_bias, 0.5, args.seed)
+    lod = level_of_detail(torch.from_numpy(q[:, C.SIGMA].copy()), config.resolution, config.lod_bias).numpy()
+    coarse = lod >= args.from_level - 0.5
+    target = answers(as_is, q)
+    finer = 1.0 / (config.resolution * 2.0 ** config.lod_bias)
+    target[coarse] = distilled_targets(lambda x: torch.from_numpy(answers(as_is, x.numpy())),
+                                       torch.from_numpy(q[coarse]), args.samples,
+                                       torch.Generator().manual_seed(args.seed), finer).numpy()
+    plain = answers(model(config, ones_table(config)), q)
+    prior = ENERGY_PRIOR if args.prior is None else args.prior
+    table = fit_energy(config, torch.from_numpy(q), torch.from_numpy(plain), torch.from_numpy(target),
+                       prior=prior).numpy()
+    print(f"{args.model}: {args.bins} bins, {len(q)} queries ({int(coarse.sum())} from level {args.from_level - 0.5:g} "
+          f"to the teacher), prior {prior:g}; gains {table.min():.3f}-{table.max():.3f}")
+    save_onnx(model(config, table), args.out)
     print(f"wrote {args.out}")
     return 0
 
