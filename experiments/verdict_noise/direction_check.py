@@ -67,6 +67,13 @@ def queries(n: int, sigma: float, wi: np.ndarray, wo: np.ndarray, rng: np.random
     return q
 
 
+def view_queries(view, resolution: int, spp: int) -> tuple[float, np.ndarray, np.ndarray]:
+    """A report view's centre: the footprint (tile units) one of `spp` samples a pixel queries, (1, 3) wi and wo."""
+    sigma = view.footprint_texels / resolution * C.sample_footprint(spp)
+    origin = camera_origin(view, 1.0)
+    return sigma, light_direction(view)[None], (origin / np.linalg.norm(origin))[None]
+
+
 def compare(name: str, model, tracer, q: np.ndarray, spp: int, weight: float = 1.0) -> tuple[np.ndarray, np.ndarray]:
     m = model(q).astype(np.float64).mean(axis=0) * weight
     t = tracer.estimate(q, spp, 11).astype(np.float64).mean(axis=0) * weight
@@ -111,10 +118,7 @@ def main() -> int:
     by_name = {v.name: v for v in VIEWS}
     for view_name in args.views:
         view = by_name[view_name]
-        sigma = view.footprint_texels / desc.resolution * C.sample_footprint(args.spp_rule)
-        wi = light_direction(view)[None]
-        origin = camera_origin(view, 1.0)
-        wo = (origin / np.linalg.norm(origin))[None]
+        sigma, wi, wo = view_queries(view, desc.resolution, args.spp_rule)
         print(f"{name} {view.name}: sigma {sigma * desc.resolution:.1f} texels, wi {wi[0].round(3)}, wo {wo[0].round(3)}")
         n = args.queries
         md, td = compare("direct", model, tracer, queries(n, sigma, wi, wo, rng), args.spp)

@@ -21,12 +21,12 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from direction_check import LUM, hemisphere_cosine, queries  # this folder's
+from direction_check import LUM, hemisphere_cosine, queries, view_queries  # this folder's
 from neumip.core import contract as C
 from neumip.engines.kernel import KernelMaterials
 from neumip.groundtruth.description import find_description, resolve
 from neumip.groundtruth.tracer import QueryTracer
-from neumip.report.views import ENV_RADIANCE, VIEWS, camera_origin, light_direction
+from neumip.report.views import ENV_RADIANCE, VIEWS
 
 TEACHER_TEXELS = 0.25
 
@@ -67,9 +67,9 @@ def main() -> int:
     parser.add_argument("views", nargs="*")
     parser.add_argument("--models", type=Path, default=Path("models"))
     parser.add_argument("--pairs", type=int, default=16384)
-    parser.add_argument("--positions", type=int, default=256)
-    parser.add_argument("--hidden", type=int, default=32)
-    parser.add_argument("--steps", type=int, default=3000)
+    parser.add_argument("--positions", type=int, default=2048)
+    parser.add_argument("--hidden", type=int, default=64)
+    parser.add_argument("--steps", type=int, default=8000)
     parser.add_argument("--queries", type=int, default=16384)
     args = parser.parse_args()
     desc = find_description(args.material)
@@ -114,10 +114,7 @@ def main() -> int:
     by_name = {v.name: v for v in VIEWS}
     for view_name in args.views:
         view = by_name[view_name]
-        sigma = view.footprint_texels / resolution * C.sample_footprint(64)
-        vwi = light_direction(view)[None]
-        origin = camera_origin(view, 1.0)
-        vwo = (origin / np.linalg.norm(origin))[None]
+        sigma, vwi, vwo = view_queries(view, resolution, 64)
         n = args.queries
         direct = queries(n, sigma, vwi, vwo, rng)
         env = queries(n, sigma, hemisphere_cosine(n, rng), vwo, rng)
