@@ -46,16 +46,20 @@ def blend(log_texels: np.ndarray) -> np.ndarray:
     return np.clip(log_texels - 1.0, 0.0, 1.0)
 
 
-def tile_means(model, pairs: int, positions: int, resolution: int, rng) -> tuple:
-    """Random direction pairs and footprints -> (wi, wo, log2 texels, log(teacher mean / mean at the footprint))."""
+def tile_means(model, pairs: int, positions: int, resolution: int, rng, tracer=None) -> tuple:
+    """Random direction pairs and footprints -> (wi, wo, log2 texels, log(teacher mean / mean at the footprint)); with
+    `tracer`, the teacher is the tracer's mean at the footprint (one sample a position) instead of the finest level's."""
     q = C.random_queries(pairs, seed=int(rng.integers(1 << 30)), u_range=(0.0, 1.0))
     wi, wo = unit3(q[:, C.WI_X:C.WI_Y + 1].astype(np.float64)), unit3(q[:, C.WO_X:C.WO_Y + 1].astype(np.float64))
     log_texels = rng.uniform(1.0, 8.0, pairs)
     rows = np.repeat(q, positions, 0)
     rows[:, C.U], rows[:, C.V] = rng.random(len(rows)), rng.random(len(rows))
     rows[:, C.SIGMA] = TEACHER_TEXELS / resolution
-    teacher = model(rows).astype(np.float64).reshape(pairs, positions, 3).mean(1)
+    if tracer is None:
+        teacher = model(rows).astype(np.float64).reshape(pairs, positions, 3).mean(1)
     rows[:, C.SIGMA] = np.repeat(2.0**log_texels / resolution, positions)
+    if tracer is not None:
+        teacher = tracer.estimate(rows, 1, int(rng.integers(1 << 30))).astype(np.float64).reshape(pairs, positions, 3).mean(1)
     coarse = model(rows).astype(np.float64).reshape(pairs, positions, 3).mean(1)
     target = np.log(np.maximum(teacher, 1e-6) / np.maximum(coarse, 1e-6))
     return wi, wo, log_texels, target
@@ -71,6 +75,9 @@ def main() -> int:
     parser.add_argument("--hidden", type=int, default=64)
     parser.add_argument("--steps", type=int, default=8000)
     parser.add_argument("--queries", type=int, default=16384)
+    parser.add_argument("--seed", type=int, default=0, help="the pairs', positions' and fit's seed")
+    parser.add_argument("--tracer", action="store_true",
+                        help="fit to the ground-truth tracer's tile means (one sample a position) instead of the finest level's")
     args = parser.parse_args()
     desc = find_description(args.material)
     materials = KernelMaterials(args.models)
@@ -82,10 +89,12 @@ def main() -> int:
             out[lo:lo + (1 << 20)] = materials.evaluate(name, q[lo:lo + (1 << 20)])
         return out
 
-    rng = np.random.default_rng(0)
-    torch.manual_seed(0)
-    wi, wo, lt, target = tile_means(model, args.pairs, args.positions, resolution, rng)
-    hwi, hwo, hlt, htarget = tile_means(model, args.pairs // 4, args.positions, resolution, rng)
+    rng = np.random.default_rng(args.seed)
+    torch.manual_seed(args.seed)
+    tracer = QueryTracer(resolve(desc))
+    teacher = tracer if args.tracer else None
+    wi, wo, lt, target = tile_means(model, args.pairs, args.positions, resolution, rng, teacher)
+    hwi, hwo, hlt, htarget = tile_means(model, args.pairs // 4, args.positions, resolution, rng, teacher)
     g = torch.nn.Sequential(torch.nn.Linear(10, args.hidden), torch.nn.ReLU(), torch.nn.Linear(args.hidden, args.hidden),
                             torch.nn.ReLU(), torch.nn.Linear(args.hidden, 3))
     x, y = features(wi, wo, lt), torch.from_numpy(target.astype(np.float32))
@@ -100,7 +109,7 @@ def main() -> int:
     with torch.no_grad():
         held = g(hx)
     rms = lambda a: float(torch.sqrt((a**2).mean()))  # noqa: E731
-    print(f"{name}: {args.pairs} pairs x {args.positions} positions; log(teacher / coarse) rms {rms(hy):.4f} on held-out "
+    print(f"{name}: {args.pairs} pairs x {args.positions} positions, teacher: {'the tracer' if args.tracer else 'finest level'}; log(teacher / coarse) rms {rms(hy):.4f} on held-out "
           f"pairs, after the fit {rms(held - hy):.4f} (the positions' own noise included)")
 
     def corrected(q: np.ndarray) -> np.ndarray:
@@ -110,7 +119,6 @@ def main() -> int:
                                      unit3(q[:, C.WO_X:C.WO_Y + 1].astype(np.float64)), lt_q)).numpy())
         return model(q) * (1 + blend(lt_q)[:, None] * (gain - 1))
 
-    tracer = QueryTracer(resolve(desc))
     by_name = {v.name: v for v in VIEWS}
     for view_name in args.views:
         view = by_name[view_name]
