@@ -10,8 +10,8 @@ samples each). Printed per view: the model's mean over the tile against the trac
 for
 
 - the light's own direction ("direct", what the directional light contributes to the view's pixels), and
-- the directions of the table cell around it (`--cell`: wi and wo jittered over the half-vector angle's and light
-  elevation's bin widths of the file's energy table), whose mean the energy table was fitted to, and
+- directions near it ("cell": wi and wo each tilted by up to `--cell` degrees, 8 by default; the energy table's
+  cells are 16-18 degrees of half-vector angle wide), to see whether the error holds around the direction, and
 - the dim environment's light (wi cosine-distributed over the hemisphere), its share of the centre pixel.
 
 A model whose direct ratio is 1 while the rendered view is a few percent off puts the error outside the answers; one

@@ -109,7 +109,8 @@ def main() -> int:
     with torch.no_grad():
         held = g(hx)
     rms = lambda a: float(torch.sqrt((a**2).mean()))  # noqa: E731
-    print(f"{name}: {args.pairs} pairs x {args.positions} positions, teacher: {'the tracer' if args.tracer else 'finest level'}; log(teacher / coarse) rms {rms(hy):.4f} on held-out "
+    print(f"{name}: {args.pairs} pairs x {args.positions} positions, MLP {args.hidden} wide, seed {args.seed}, "
+          f"teacher: {'the tracer' if args.tracer else 'finest level'}; log(teacher / coarse) rms {rms(hy):.4f} on held-out "
           f"pairs, after the fit {rms(held - hy):.4f} (the positions' own noise included)")
 
     def corrected(q: np.ndarray) -> np.ndarray:
@@ -120,6 +121,7 @@ def main() -> int:
         return model(q) * (1 + blend(lt_q)[:, None] * (gain - 1))
 
     by_name = {v.name: v for v in VIEWS}
+    rng = np.random.default_rng(12345)  # the views' queries: the same whatever the fit's seed
     for view_name in args.views:
         view = by_name[view_name]
         sigma, vwi, vwo = view_queries(view, resolution, 64)
