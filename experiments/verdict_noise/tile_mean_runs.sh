@@ -1,5 +1,5 @@
 #!/usr/bin/env bash
-# Every run behind tile_mean_results.txt (about 12 minutes on 2 cores): the screen at two seeds on the four shipped
+# Every run behind tile_mean_results.txt (about 8 minutes on 2 cores): the screen at two seeds on the four shipped
 # materials and planks, narrower MLPs and the tracer as the teacher on turtle.
 #   bash experiments/verdict_noise/tile_mean_runs.sh > experiments/verdict_noise/tile_mean_results.txt
 set -euo pipefail
