@@ -3,7 +3,7 @@ the model's answers alone (nothing rendered, nothing in the product).
 
     .venv/bin/python experiments/verdict_noise/tile_mean_gain.py turtle level8_side level6_front level8_high
 
-A tile's mean answer is the same at every footprint, and the model's finest level gets it within 0.2-2.5 % of the
+A tile's mean answer is the same at every footprint, and the model's finest level gets it within 0.1-2.5 % of the
 tracer where its coarse levels are 1-9 % off (`direction_check.py`). Here a small MLP g(wi, wo, log2 footprint) -> RGB
 log-gain is fitted to log(finest tile mean / tile mean at the footprint) over random pairs of directions (uniform on
 the projected disc to 85 degrees) and footprints of 2-256 texels, each tile mean over `--positions` random
