@@ -72,8 +72,8 @@ def main() -> int:
     owned = {C.META_CONTRACT, C.META_CONFIG, C.META_DESCRIPTION}
     rest = {k: v for k, v in meta.items() if k not in owned}
 
-    def model(table: np.ndarray) -> onnx.ModelProto:
-        return build_onnx(config, {**weights, W.ENERGY: table}, meta.get(C.META_DESCRIPTION, ""), rest)
+    def model(table: np.ndarray, table_config=config) -> onnx.ModelProto:
+        return build_onnx(table_config, {**weights, W.ENERGY: table}, meta.get(C.META_DESCRIPTION, ""), rest)
 
     def answers(graph: onnx.ModelProto, queries: np.ndarray) -> np.ndarray:
         material = load_material(args.model, data=graph.SerializeToString())
@@ -82,8 +82,7 @@ def main() -> int:
     shipped = weights[W.ENERGY]
     as_is = model(shipped)
     if args.bins:
-        return finer_table(args, config, as_is, answers, lambda c, t: build_onnx(
-            c, {**weights, W.ENERGY: t}, meta.get(C.META_DESCRIPTION, ""), rest))
+        return finer_table(args, config, as_is, answers, model)
     if args.data:
         data = open_dataset(args.data)
         lod = level_of_detail(torch.from_numpy(np.asarray(data.queries[:, C.SIGMA])), config.resolution,
@@ -128,13 +127,13 @@ def finer_table(args, config, as_is, answers, model) -> int:
     target[coarse] = distilled_targets(lambda x: torch.from_numpy(answers(as_is, x.numpy())),
                                        torch.from_numpy(q[coarse]), args.samples,
                                        torch.Generator().manual_seed(args.seed), finer).numpy()
-    plain = answers(model(config, ones_table(config)), q)
+    plain = answers(model(ones_table(config), config), q)
     prior = ENERGY_PRIOR if args.prior is None else args.prior
     table = fit_energy(config, torch.from_numpy(q), torch.from_numpy(plain), torch.from_numpy(target),
                        prior=prior).numpy()
     print(f"{args.model}: {args.bins} bins, {len(q)} queries ({int(coarse.sum())} from level {args.from_level - 0.5:g} "
           f"to the teacher), prior {prior:g}; gains {table.min():.3f}-{table.max():.3f}")
-    save_onnx(model(config, table), args.out)
+    save_onnx(model(table, config), args.out)
     print(f"wrote {args.out}")
     return 0
 

@@ -41,6 +41,11 @@ from neumip.report.views import ENV_RADIANCE, VIEWS, camera_origin, light_direct
 LUM = np.array(C.LUMINANCE)
 
 
+def unit_directions(xy: np.ndarray) -> np.ndarray:
+    """(n, 2) query directions' x, y -> (n, 3) unit vectors (`contract.direction_z`)."""
+    return np.concatenate([xy, C.direction_z(xy[:, 0], xy[:, 1])[:, None]], 1)
+
+
 def hemisphere_cosine(n: int, rng: np.random.Generator) -> np.ndarray:
     """(n, 3) unit directions, cosine-distributed about +z."""
     r, phi = np.sqrt(rng.random(n)), 2 * math.pi * rng.random(n)

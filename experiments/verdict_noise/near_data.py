@@ -12,7 +12,7 @@ import sys
 
 import numpy as np
 
-from direction_check import LUM, view_queries  # this folder's
+from direction_check import LUM, unit_directions, view_queries  # this folder's
 from neumip.core import contract as C
 from neumip.engines.kernel import KernelMaterials
 from neumip.groundtruth.dataset import open_dataset
@@ -22,10 +22,6 @@ FOOTPRINTS = ((0, 2), (4, 16), (16, 64))
 """Footprint ranges (map texels) of the data's queries compared."""
 
 
-def unit(xy: np.ndarray) -> np.ndarray:
-    return np.concatenate([xy, np.sqrt(np.maximum(0, 1 - (xy**2).sum(1)))[:, None]], 1)
-
-
 def main() -> int:
     data, models, material, views = sys.argv[1], sys.argv[2], sys.argv[3], sys.argv[4:]
     d = open_dataset(data)
@@ -33,7 +29,7 @@ def main() -> int:
     evaluator = KernelMaterials(models)
     resolution = int(d.meta["generator"]["resolution"])
     texels = q[:, C.SIGMA] * resolution
-    wi, wo = unit(q[:, C.WI_X:C.WI_Y + 1]), unit(q[:, C.WO_X:C.WO_Y + 1])
+    wi, wo = unit_directions(q[:, C.WI_X:C.WI_Y + 1]), unit_directions(q[:, C.WO_X:C.WO_Y + 1])
     by_name = {v.name: v for v in VIEWS}
     for name in views:
         _, vwi, vwo = view_queries(by_name[name], resolution, 64)

@@ -21,18 +21,15 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from direction_check import LUM, hemisphere_cosine, queries, view_queries  # this folder's
+from direction_check import LUM, hemisphere_cosine, queries, unit_directions, view_queries  # this folder's
 from neumip.core import contract as C
 from neumip.engines.kernel import KernelMaterials
+from neumip.engines.local import run_chunked
 from neumip.groundtruth.description import find_description, resolve
 from neumip.groundtruth.tracer import QueryTracer
 from neumip.report.views import ENV_RADIANCE, VIEWS
 
 TEACHER_TEXELS = 0.25
-
-
-def unit3(xy: np.ndarray) -> np.ndarray:
-    return np.concatenate([xy, np.sqrt(np.maximum(0.0, 1 - (xy**2).sum(1, keepdims=True)))], 1)
 
 
 def features(wi: np.ndarray, wo: np.ndarray, log_texels: np.ndarray) -> torch.Tensor:
@@ -50,7 +47,8 @@ def tile_means(model, pairs: int, positions: int, resolution: int, rng, tracer=N
     """Random direction pairs and footprints -> (wi, wo, log2 texels, log(teacher mean / mean at the footprint)); with
     `tracer`, the teacher is the tracer's mean at the footprint (one sample a position) instead of the finest level's."""
     q = C.random_queries(pairs, seed=int(rng.integers(1 << 30)), u_range=(0.0, 1.0))
-    wi, wo = unit3(q[:, C.WI_X:C.WI_Y + 1].astype(np.float64)), unit3(q[:, C.WO_X:C.WO_Y + 1].astype(np.float64))
+    wi = unit_directions(q[:, C.WI_X:C.WI_Y + 1].astype(np.float64))
+    wo = unit_directions(q[:, C.WO_X:C.WO_Y + 1].astype(np.float64))
     log_texels = rng.uniform(1.0, 8.0, pairs)
     rows = np.repeat(q, positions, 0)
     rows[:, C.U], rows[:, C.V] = rng.random(len(rows)), rng.random(len(rows))
@@ -84,10 +82,7 @@ def main() -> int:
     name, resolution = desc.name, desc.resolution
 
     def model(q: np.ndarray) -> np.ndarray:
-        out = np.empty((len(q), 3), np.float32)
-        for lo in range(0, len(q), 1 << 20):
-            out[lo:lo + (1 << 20)] = materials.evaluate(name, q[lo:lo + (1 << 20)])
-        return out
+        return run_chunked(lambda rows: materials.evaluate(name, rows), q, 1 << 20)
 
     rng = np.random.default_rng(args.seed)
     torch.manual_seed(args.seed)
@@ -116,8 +111,8 @@ def main() -> int:
     def corrected(q: np.ndarray) -> np.ndarray:
         lt_q = np.log2(np.maximum(q[:, C.SIGMA] * resolution, 1e-6))
         with torch.no_grad():
-            gain = np.exp(g(features(unit3(q[:, C.WI_X:C.WI_Y + 1].astype(np.float64)),
-                                     unit3(q[:, C.WO_X:C.WO_Y + 1].astype(np.float64)), lt_q)).numpy())
+            gain = np.exp(g(features(unit_directions(q[:, C.WI_X:C.WI_Y + 1].astype(np.float64)),
+                                     unit_directions(q[:, C.WO_X:C.WO_Y + 1].astype(np.float64)), lt_q)).numpy())
         return model(q) * (1 + blend(lt_q)[:, None] * (gain - 1))
 
     by_name = {v.name: v for v in VIEWS}
