@@ -19,6 +19,19 @@ if [ ! -x .venv/bin/python ] && ! "$PY" -m venv .venv; then
   $SUDO apt-get install -y -q python3-venv >/dev/null
   "$PY" -m venv .venv
 fi
+# A fresh install puts about 2.1 GB in .venv; pip also unpacks each download in $TMPDIR first. Say so plainly
+# rather than fail half-way with pip's "No space left on device". Downloads are not cached: on a fresh
+# machine (CI) a cache only doubles the bytes written, and a set-up one installs nothing more.
+export PIP_NO_CACHE_DIR=${PIP_NO_CACHE_DIR:-1}
+if ! .venv/bin/python -c "import torch, neumip" 2>/dev/null; then
+  for dir in .venv "${TMPDIR:-/tmp}"; do
+    free_mb=$(df -Pm "$dir" | awk 'NR == 2 {print $4}')
+    if [ "${free_mb:-0}" -lt 3000 ]; then
+      echo "setup: only ${free_mb} MB free where $dir lies; a fresh install needs about 3000 MB" >&2
+      exit 1
+    fi
+  done
+fi
 .venv/bin/python -m pip install -q --upgrade pip
 # The pinned torch first, its CPU build: from PyPI it pulls several GB of CUDA packages. Where pip
 # finds a local CPU wheel (this project's CI machines) the pin alone does; elsewhere set
