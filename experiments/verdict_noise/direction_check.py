@@ -79,6 +79,18 @@ def view_queries(view, resolution: int, spp: int) -> tuple[float, np.ndarray, np
     return sigma, light_direction(view)[None], (origin / np.linalg.norm(origin))[None]
 
 
+def without_table(models: Path, name: str) -> Path:
+    """A temporary folder holding `models`/NAME.onnx with its energy table's gains set to 1."""
+    out = Path(tempfile.mkdtemp())
+    path = models / f"{name}.onnx"
+    config, weights, meta, _ = read_model(onnx.load(path), path)
+    owned = {C.META_CONTRACT, C.META_CONFIG, C.META_DESCRIPTION}
+    rest = {k: v for k, v in meta.items() if k not in owned}
+    save_onnx(build_onnx(config, {**weights, W.ENERGY: ones_table(config)}, meta.get(C.META_DESCRIPTION, ""), rest),
+              out / f"{name}.onnx")
+    return out
+
+
 def compare(name: str, model, tracer, q: np.ndarray, spp: int, weight: float = 1.0) -> tuple[np.ndarray, np.ndarray]:
     m = model(q).astype(np.float64).mean(axis=0) * weight
     t = tracer.estimate(q, spp, 11).astype(np.float64).mean(axis=0) * weight
@@ -105,16 +117,7 @@ def main() -> int:
     desc = find_description(args.material)
     tracer = QueryTracer(resolve(desc))
     name = desc.name
-    models = args.models
-    if args.no_table:
-        models = Path(tempfile.mkdtemp())
-        path = args.models / f"{name}.onnx"
-        config, weights, meta, _ = read_model(onnx.load(path), path)
-        owned = {C.META_CONTRACT, C.META_CONFIG, C.META_DESCRIPTION}
-        rest = {k: v for k, v in meta.items() if k not in owned}
-        save_onnx(build_onnx(config, {**weights, W.ENERGY: ones_table(config)}, meta.get(C.META_DESCRIPTION, ""), rest),
-                  models / f"{name}.onnx")
-    materials = KernelMaterials(models)
+    materials = KernelMaterials(without_table(args.models, name) if args.no_table else args.models)
 
     def model(q: np.ndarray) -> np.ndarray:
         return np.asarray(materials.evaluate(name, q))

@@ -10,10 +10,12 @@ and footprints of 2-256 texels (the samples of the 16-256-texel views read an ei
 log(finest level's tile mean / the tile mean at the footprint), in luminance, each tile mean over `--positions` random
 positions; the finest level reads a quarter texel. The truth it stands for: the same rms with the ground-truth
 tracer's tile mean (one sample a position) in place of the finest level's, and the named report views' pixel
-luminance against the tracer's (`tile_mean_gain.py`'s "as is"). Every model is scored on the same pairs, positions,
-and tracer samples. Printed: the truth's own noise (two tracer estimates' log ratio over the square root of 2); per model, judge,
-truth, the finest level's truth (its tile means against the tracer's: where coarse levels that followed it would
-score), and the views' mean |model / tracer - 1|.
+luminance against the tracer's (`tile_mean_gain.py`'s "as is"). Every model is scored on the same pairs, positions
+and tracer samples. Printed: the truth's own noise (two tracer estimates' log ratio over the square root of 2); per
+model, the judge, the truth, the finest level's truth (its tile means against the tracer's: what coarse levels that
+followed it would score), the close-ups' error (the MSE of log1p answers, as `fit --seeds` judges, against the
+tracer at 64 samples on `--queries` random queries at 0.5-4 texels), and the views' mean |model / tracer - 1|. `--no-table`: the models with their energy
+tables' gains set to 1.
 """
 
 from __future__ import annotations
@@ -24,7 +26,7 @@ from pathlib import Path
 
 import numpy as np
 
-from direction_check import LUM, hemisphere_cosine, queries, view_queries  # this folder's
+from direction_check import LUM, hemisphere_cosine, queries, view_queries, without_table  # this folder's
 from tile_mean_gain import TEACHER_TEXELS
 from neumip.core import contract as C
 from neumip.engines.kernel import KernelMaterials
@@ -51,6 +53,7 @@ def main() -> int:
     parser.add_argument("--positions", type=int, default=2048)
     parser.add_argument("--queries", type=int, default=16384, help="a view's queries, as direction_check.py")
     parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--no-table", action="store_true", help="the models without their energy tables (gains of 1)")
     args = parser.parse_args()
     desc = find_description(args.material)
     name, resolution = desc.name, desc.resolution
@@ -65,6 +68,9 @@ def main() -> int:
     coarse[:, C.SIGMA] = np.repeat(2.0**log_texels / resolution, args.positions)
     truth = tile(tracer.estimate(coarse, 1, int(rng.integers(1 << 30))))
     again = tile(tracer.estimate(coarse, 1, int(rng.integers(1 << 30))))  # the truth's own noise: a second estimate
+    near = C.random_queries(args.queries, seed=int(rng.integers(1 << 30)), u_range=(0.0, 1.0),
+                            log2_sigma_range=(math.log2(0.5 / resolution), math.log2(4.0 / resolution)))
+    near_truth = np.log1p(tracer.estimate(near, 64, int(rng.integers(1 << 30))).astype(np.float64))
     views = []
     by_name = {v.name: v for v in VIEWS}
     for view_name in args.views:
@@ -78,7 +84,7 @@ def main() -> int:
     print(f"{name}: {args.pairs} pairs x {args.positions} positions at 2-256 texels (far: 16-256), seed {args.seed}; "
           f"the truth's own noise rms {rms(noise):.4f} (far {rms(noise[far]):.4f})")
     for folder in args.models:
-        materials = KernelMaterials(folder)
+        materials = KernelMaterials(without_table(folder, name) if args.no_table else folder)
         model = lambda q: run_chunked(lambda r: materials.evaluate(name, r), q, 1 << 20)  # noqa: E731
         at = tile(model(coarse))
         finest = np.maximum(tile(model(fine)), 1e-9)
@@ -86,7 +92,8 @@ def main() -> int:
         error = np.log(np.maximum(truth, 1e-9) / np.maximum(at, 1e-9))
         floor = np.log(np.maximum(truth, 1e-9) / finest)  # what a model whose coarse levels follow its finest would score
         line = (f"  {str(folder):<28} judge rms {rms(judge):.4f} (far {rms(judge[far]):.4f})  "
-                f"truth rms {rms(error):.4f} (far {rms(error[far]):.4f}), finest level's {rms(floor):.4f}")
+                f"truth rms {rms(error):.4f} (far {rms(error[far]):.4f}), finest level's {rms(floor):.4f}  "
+                f"near log MSE {np.mean((np.log1p(model(near).astype(np.float64)) - near_truth) ** 2) * 1e3:.3f}e-3")
         if views:
             ratios = [float((model(d).astype(np.float64).mean(0) + ENV_RADIANCE * math.pi
                              * model(e).astype(np.float64).mean(0)) @ LUM / t) for _, d, e, t in views]

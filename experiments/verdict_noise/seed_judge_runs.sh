@@ -1,8 +1,9 @@
 #!/usr/bin/env bash
 # The trainings behind seed_judge_results.txt: the maps recipe at seeds 0 and 1 on one data set per material
-# (runs/cal/data_NAME: 16.8 M queries, seed 7, the coarse footprints at 64 spp; planks 4.2 M), two one-thread runs
+# (SEEDS; runs/cal/data_NAME: 16.8 M queries, seed 7, the coarse footprints at 64 spp; planks 4.2 M), two one-thread runs
 # side by side (about 35 minutes on 2 cores). Turtle's two runs are session 19's (runs/rs/ctl, runs/cd/ctl1).
 #   bash experiments/verdict_noise/seed_judge_runs.sh [MATERIAL...]   (default: rock yarn foam planks)
+#   SEEDS=2 bash experiments/verdict_noise/seed_judge_runs.sh turtle rock yarn foam planks   (a third seed)
 set -euo pipefail
 NEUMIP=${NEUMIP:-.venv/bin/neumip}
 OUT=${OUT:-runs/sj}
@@ -11,6 +12,8 @@ train() { local m=$1 s=$2
             > "$OUT/${m}_s$s.log" 2>&1 && echo "$m seed $s: $(tail -1 "$OUT/${m}_s$s.log")"; }
 mkdir -p "$OUT"
 [ $# -gt 0 ] || set -- rock yarn foam planks
-for m in "$@"; do
-  train "$m" 0 & train "$m" 1 & wait
+jobs=()
+for m in "$@"; do for s in ${SEEDS:-0 1}; do jobs+=("$m $s"); done; done
+for ((i = 0; i < ${#jobs[@]}; i += 2)); do  # two at a time
+  train ${jobs[i]} & { [ $((i + 1)) -lt ${#jobs[@]} ] && train ${jobs[i + 1]}; } & wait
 done
