@@ -163,6 +163,18 @@ def test_ctrl_c_writes_a_checkpoint_of_the_steps_done(data, tmp_path):
     assert Trainer(data.path, tmp_path / "k.pt", TINY, FAST).state.step == 27
 
 
+@pytest.fixture
+def ctrl_c_handled():
+    """Python's own Ctrl-C handler while the test runs. A process that a non-interactive shell starts in the
+    background inherits SIGINT ignored, and the trainer then rightly leaves SIGINT alone: a SIGINT these tests send
+    would be lost, and they would fail by how pytest was started."""
+    import signal
+
+    previous = signal.signal(signal.SIGINT, signal.default_int_handler)
+    yield
+    signal.signal(signal.SIGINT, previous)
+
+
 def ctrl_c_inside_step(trainer: Trainer, step: int) -> Trainer:
     """`trainer`, sent a SIGINT (a Ctrl-C) inside step `step` (1-based), just after it draws its batch."""
     import os
@@ -180,7 +192,7 @@ def ctrl_c_inside_step(trainer: Trainer, step: int) -> Trainer:
     return trainer
 
 
-def test_ctrl_c_inside_a_step_ends_the_run_after_it_and_resumes_exactly(data, tmp_path):
+def test_ctrl_c_inside_a_step_ends_the_run_after_it_and_resumes_exactly(data, tmp_path, ctrl_c_handled):
     """A SIGINT that arrives while a step runs (here: its batch just drawn) ends the run once that step is done:
     the checkpoint holds whole steps, and the resumed run ends with an uninterrupted run's weights."""
     import signal
@@ -199,7 +211,7 @@ def test_ctrl_c_inside_a_step_ends_the_run_after_it_and_resumes_exactly(data, tm
     assert signal.getsignal(signal.SIGINT) is signal.default_int_handler  # put back
 
 
-def test_ctrl_c_inside_the_last_step_still_ends_the_run(data, tmp_path):
+def test_ctrl_c_inside_the_last_step_still_ends_the_run(data, tmp_path, ctrl_c_handled):
     """...and is not lost when that step was the last: no export follows, the checkpoint holds every step, and the
     same run resumed finishes."""
     part = ctrl_c_inside_step(Trainer(data.path, tmp_path / "last.pt", TINY, FAST), FAST.steps)
