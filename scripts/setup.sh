@@ -19,15 +19,18 @@ if [ ! -x .venv/bin/python ] && ! "$PY" -m venv .venv; then
   $SUDO apt-get install -y -q python3-venv >/dev/null
   "$PY" -m venv .venv
 fi
-# A fresh install puts about 2.1 GB in .venv; pip also unpacks each download in $TMPDIR first. Say so plainly
-# rather than fail half-way with pip's "No space left on device". Downloads are not cached: on a fresh
+# A fresh install puts about 2.1 GB in .venv, and pip unpacks each download in $TMPDIR first (torch's is the largest).
+# Say so plainly rather than fail half-way with pip's "No space left on device". Downloads are not cached: on a fresh
 # machine (CI) a cache only doubles the bytes written, and a set-up one installs nothing more.
 export PIP_NO_CACHE_DIR=${PIP_NO_CACHE_DIR:-1}
+free_mb() { { df -Pm "$1" 2>/dev/null | awk 'NR == 2 {print $4}'; } || true; }
 if ! .venv/bin/python -c "import torch, neumip" 2>/dev/null; then
-  for dir in .venv "${TMPDIR:-/tmp}"; do
-    free_mb=$(df -Pm "$dir" | awk 'NR == 2 {print $4}')
-    if [ "${free_mb:-0}" -lt 3000 ]; then
-      echo "setup: only ${free_mb} MB free where $dir lies; a fresh install needs about 3000 MB" >&2
+  tmp=${TMPDIR:-/tmp}
+  need=1000; [ "$(stat -c %d .venv)" = "$(stat -c %d "$tmp" 2>/dev/null)" ] && need=3000  # one disk: both on it
+  for check in ".venv 2500" "$tmp $need"; do
+    dir=${check% *} mb=${check##* } free=$(free_mb "${check% *}")
+    if [ -n "$free" ] && [ "$free" -lt "$mb" ]; then
+      echo "setup: only $free MB free where $dir lies; a fresh install needs about $mb MB there" >&2
       exit 1
     fi
   done

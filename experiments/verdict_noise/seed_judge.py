@@ -5,7 +5,7 @@ a seed (`fit --seeds`) by a judge that needs no ground truth at fit time.
 
 Each run's coarse levels drift from its finest level in brightness, direction by direction, where the finest level is
 within 0.1-2.5 % of the tracer (`direction_check.py`); the drift swings from run to run (turtle's side view at 256
-texels: 1.090 and 1.025 at seeds 0 and 1). The judge: over random pairs of directions (uniform on the projected disc)
+texels, the model's brightness over the tracer's: 1.091 and 1.025 at seeds 0 and 1). The judge: over random pairs of directions (uniform on the projected disc)
 and footprints of 2-256 texels (the samples of the 16-256-texel views read an eighth of their pixel's), the rms of
 log(finest level's tile mean / the tile mean at the footprint), in luminance, each tile mean over `--positions` random
 positions; the finest level reads a quarter texel. The truth it stands for: the same rms with the ground-truth
@@ -51,7 +51,7 @@ def main() -> int:
     parser.add_argument("--views", nargs="*", default=[])
     parser.add_argument("--pairs", type=int, default=4096)
     parser.add_argument("--positions", type=int, default=2048)
-    parser.add_argument("--queries", type=int, default=16384, help="a view's queries, as direction_check.py")
+    parser.add_argument("--queries", type=int, default=16384, help="a view's queries (as direction_check.py), and the close-ups'")
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--no-table", action="store_true", help="the models without their energy tables (gains of 1)")
     args = parser.parse_args()
@@ -61,7 +61,7 @@ def main() -> int:
     rng = np.random.default_rng(args.seed)
     rows, log_texels = tile_rows(args.pairs, args.positions, rng)
     rms = lambda a: float(np.sqrt(np.mean(a**2)))  # noqa: E731
-    far = log_texels >= 4.0  # the samples of the 64-256-texel views, where the failing verdicts sit
+    far = log_texels >= 4.0  # footprints of 16-256 texels: the coarsest levels
     tile = lambda a: (a.astype(np.float64) @ LUM).reshape(args.pairs, args.positions).mean(1)  # noqa: E731
     fine, coarse = rows.copy(), rows.copy()
     fine[:, C.SIGMA] = TEACHER_TEXELS / resolution
