@@ -79,6 +79,21 @@ def view_queries(view, resolution: int, spp: int) -> tuple[float, np.ndarray, np
     return sigma, light_direction(view)[None], (origin / np.linalg.norm(origin))[None]
 
 
+def view_rows(view, resolution: int, n: int, rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
+    """A report view's centre pixel as queries a 64-spp sample makes: (n, 7) lit by the light's direction, and (n, 7) by
+    the dim environment (wi cosine-distributed), both at `n` random positions."""
+    sigma, wi, wo = view_queries(view, resolution, 64)
+    direct = queries(n, sigma, wi, wo, rng)
+    return direct, queries(n, sigma, hemisphere_cosine(n, rng), wo, rng)
+
+
+def pixel_luminance(answer, direct: np.ndarray, env: np.ndarray) -> float:
+    """The luminance of a view's centre pixel from `answer`'s (queries -> RGB) means over `view_rows`' two sets: the
+    light's part plus the environment's (radiance E over the hemisphere gives E * pi * the mean answer)."""
+    return float((answer(direct).astype(np.float64).mean(0)
+                  + ENV_RADIANCE * math.pi * answer(env).astype(np.float64).mean(0)) @ LUM)
+
+
 def without_table(models: Path, name: str) -> Path:
     """A temporary folder holding `models`/NAME.onnx with its energy table's gains set to 1."""
     out = Path(tempfile.mkdtemp())

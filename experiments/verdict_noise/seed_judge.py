@@ -26,14 +26,14 @@ from pathlib import Path
 
 import numpy as np
 
-from direction_check import LUM, hemisphere_cosine, queries, view_queries, without_table  # this folder's
+from direction_check import LUM, pixel_luminance, view_rows, without_table  # this folder's
 from tile_mean_gain import TEACHER_TEXELS
 from neumip.core import contract as C
 from neumip.engines.kernel import KernelMaterials
 from neumip.engines.local import run_chunked
 from neumip.groundtruth.description import find_description, resolve
 from neumip.groundtruth.tracer import QueryTracer
-from neumip.report.views import ENV_RADIANCE, VIEWS
+from neumip.report.views import VIEWS
 
 
 def tile_rows(pairs: int, positions: int, rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
@@ -74,12 +74,8 @@ def main() -> int:
     views = []
     by_name = {v.name: v for v in VIEWS}
     for view_name in args.views:
-        sigma, vwi, vwo = view_queries(by_name[view_name], resolution, 64)
-        direct = queries(args.queries, sigma, vwi, vwo, rng)
-        env = queries(args.queries, sigma, hemisphere_cosine(args.queries, rng), vwo, rng)
-        t = (tracer.estimate(direct, 64, 11).astype(np.float64).mean(0)
-             + ENV_RADIANCE * math.pi * tracer.estimate(env, 64, 11).astype(np.float64).mean(0)) @ LUM
-        views.append((view_name, direct, env, t))
+        direct, env = view_rows(by_name[view_name], resolution, args.queries, rng)
+        views.append((view_name, direct, env, pixel_luminance(lambda q: tracer.estimate(q, 64, 11), direct, env)))
     noise = np.log(np.maximum(truth, 1e-9) / np.maximum(again, 1e-9)) / math.sqrt(2)
     print(f"{name}: {args.pairs} pairs x {args.positions} positions at 2-256 texels (far: 16-256), seed {args.seed}; "
           f"the truth's own noise rms {rms(noise):.4f} (far {rms(noise[far]):.4f})")
@@ -95,8 +91,7 @@ def main() -> int:
                 f"truth rms {rms(error):.4f} (far {rms(error[far]):.4f}), finest level's {rms(floor):.4f}  "
                 f"near log MSE {np.mean((np.log1p(model(near).astype(np.float64)) - near_truth) ** 2) * 1e3:.3f}e-3")
         if views:
-            ratios = [float((model(d).astype(np.float64).mean(0) + ENV_RADIANCE * math.pi
-                             * model(e).astype(np.float64).mean(0)) @ LUM / t) for _, d, e, t in views]
+            ratios = [pixel_luminance(model, d, e) / t for _, d, e, t in views]
             line += f"  views |model/tracer - 1| mean {np.mean(np.abs(np.array(ratios) - 1)):.4f} ("
             line += ", ".join(f"{v} {r:.3f}" for (v, *_), r in zip(views, ratios)) + ")"
         print(line, flush=True)

@@ -15,19 +15,18 @@ lines of the model as it is and corrected.
 from __future__ import annotations
 
 import argparse
-import math
 from pathlib import Path
 
 import numpy as np
 import torch
 
-from direction_check import LUM, hemisphere_cosine, queries, unit_directions, view_queries  # this folder's
+from direction_check import pixel_luminance, unit_directions, view_rows  # this folder's
 from neumip.core import contract as C
 from neumip.engines.kernel import KernelMaterials
 from neumip.engines.local import run_chunked
 from neumip.groundtruth.description import find_description, resolve
 from neumip.groundtruth.tracer import QueryTracer
-from neumip.report.views import ENV_RADIANCE, VIEWS
+from neumip.report.views import VIEWS
 
 TEACHER_TEXELS = 0.25
 
@@ -118,17 +117,9 @@ def main() -> int:
     by_name = {v.name: v for v in VIEWS}
     rng = np.random.default_rng(12345)  # the views' queries: the same whatever the fit's seed
     for view_name in args.views:
-        view = by_name[view_name]
-        sigma, vwi, vwo = view_queries(view, resolution, 64)
-        n = args.queries
-        direct = queries(n, sigma, vwi, vwo, rng)
-        env = queries(n, sigma, hemisphere_cosine(n, rng), vwo, rng)
-        t = (tracer.estimate(direct, 64, 11).astype(np.float64).mean(0)
-             + ENV_RADIANCE * math.pi * tracer.estimate(env, 64, 11).astype(np.float64).mean(0)) @ LUM
-        line = []
-        for label, m in (("as is", model), ("corrected", corrected)):
-            v = (m(direct).astype(np.float64).mean(0) + ENV_RADIANCE * math.pi * m(env).astype(np.float64).mean(0)) @ LUM
-            line.append(f"{label} {float(v / t):.3f}")
+        direct, env = view_rows(by_name[view_name], resolution, args.queries, rng)
+        t = pixel_luminance(lambda q: tracer.estimate(q, 64, 11), direct, env)
+        line = [f"{label} {pixel_luminance(m, direct, env) / t:.3f}" for label, m in (("as is", model), ("corrected", corrected))]
         print(f"  {view_name}: pixel luminance model / tracer: " + ", ".join(line))
     return 0
 
