@@ -23,17 +23,18 @@ fi
 # Say so plainly rather than fail half-way with pip's "No space left on device". Downloads are not cached: on a fresh
 # machine (CI) a cache only doubles the bytes written, and a set-up one installs nothing more.
 export PIP_NO_CACHE_DIR=${PIP_NO_CACHE_DIR:-1}
-free_mb() { { df -Pm "$1" 2>/dev/null | awk 'NR == 2 {print $4}'; } || true; }
+need_mb() {  # DIR MB: stop with a plain message when the disk DIR lies on has less free (a disk df cannot read passes)
+  local free
+  free=$(df -Pm "$1" 2>/dev/null | awk 'NR == 2 {print $4}') || true
+  if [ -n "$free" ] && [ "$free" -lt "$2" ]; then
+    echo "setup: only $free MB free where $1 lies; a fresh install needs about $2 MB there" >&2
+    exit 1
+  fi
+}
 if ! .venv/bin/python -c "import torch, neumip" 2>/dev/null; then
   tmp=${TMPDIR:-/tmp}
-  need=1000; [ "$(stat -c %d .venv)" = "$(stat -c %d "$tmp" 2>/dev/null)" ] && need=3000  # one disk: both on it
-  for check in ".venv 2500" "$tmp $need"; do
-    dir=${check% *} mb=${check##* } free=$(free_mb "${check% *}")
-    if [ -n "$free" ] && [ "$free" -lt "$mb" ]; then
-      echo "setup: only $free MB free where $dir lies; a fresh install needs about $mb MB there" >&2
-      exit 1
-    fi
-  done
+  if [ "$(stat -c %d .venv)" = "$(stat -c %d "$tmp" 2>/dev/null)" ]; then need_mb .venv 3000  # one disk holds both
+  else need_mb .venv 2500; need_mb "$tmp" 1000; fi
 fi
 .venv/bin/python -m pip install -q --upgrade pip
 # The pinned torch first, its CPU build: from PyPI it pulls several GB of CUDA packages. Where pip
