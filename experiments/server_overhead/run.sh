@@ -1,7 +1,7 @@
 #!/usr/bin/env bash
 # Every measurement of experiments/server_overhead, appended to results.txt. Run from the repository root on a
 # clean working tree (each A/B applies a patch to the working tree, runs bench_server_ab.py against HEAD, and
-# takes the patch back out). About 6 minutes on 2 cores.
+# takes the patch back out). About 8 minutes on 2 cores.
 set -euo pipefail
 here=experiments/server_overhead
 out=$here/results.txt
@@ -26,4 +26,8 @@ ab() {  # PATCH ARGS...: the patched working tree against HEAD
   $py $here/kernel_chunks.py
   stamp "$py $here/huge_tables.py"
   $py $here/huge_tables.py
+  ab pool_shrink.patch --engine kernel --protocol shm --model models/rock.onnx --rows 131072,1048576 \
+     --big-rounds 7 --calls 5 --slow-runs 0
+  stamp "$py $here/idle_pool.py rock yarn"
+  $py $here/idle_pool.py rock yarn
 } | tee -a "$out"
