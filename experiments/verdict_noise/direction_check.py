@@ -21,7 +21,9 @@ whose direct ratio is off while the cell's is 1 shows a cell pooling directions 
 from __future__ import annotations
 
 import argparse
+import atexit
 import math
+import shutil
 import tempfile
 from pathlib import Path
 
@@ -95,8 +97,10 @@ def pixel_luminance(answer, direct: np.ndarray, env: np.ndarray) -> float:
 
 
 def without_table(models: Path, name: str) -> Path:
-    """A temporary folder holding `models`/NAME.onnx with its energy table's gains set to 1."""
+    """A temporary folder holding `models`/NAME.onnx with its energy table's gains set to 1 (removed when the
+    process exits)."""
     out = Path(tempfile.mkdtemp())
+    atexit.register(shutil.rmtree, out, True)
     path = models / f"{name}.onnx"
     config, weights, meta, _ = read_model(onnx.load(path), path)
     owned = {C.META_CONTRACT, C.META_CONFIG, C.META_DESCRIPTION}
