@@ -1,5 +1,6 @@
-"""What one kernel-engine call of N answers holds in memory: the process's RSS before, after the call, and after drjit's
-cache of freed blocks is handed back (`drjit.flush_malloc_cache`), for single queries and groups of three lights.
+"""What one kernel-engine call of N answers holds in memory: the process's RSS before, after the call, after its answer
+array is dropped, and after drjit's cache of freed blocks is handed back (`drjit.flush_malloc_cache`), for single
+queries and groups of three lights.
 
     .venv/bin/python experiments/server_overhead/call_memory.py [MODEL]     # rock (~40 s: a process per case)
 
@@ -26,9 +27,10 @@ answers, lights = 1 << int(sys.argv[2]), int(sys.argv[3])
 q = C.random_queries(answers // lights, seed=1)
 rows = np.ascontiguousarray(np.hstack([q] + [q[:, C.WI_X:C.WI_Y + 1]] * (lights - 1)))  # (n, 5 + 2 K): wi repeated
 dr.flush_malloc_cache()
-before = rss(); out = material.run(rows); after = rss(); del out; dr.flush_malloc_cache(); flushed = rss()
+before = rss(); out = material.run(rows); after = rss(); del out; dropped = rss(); dr.flush_malloc_cache(); flushed = rss()
 print(f"2^{sys.argv[2]} answers, {lights} light(s) a row ({rows.nbytes / 2**20:.0f} MiB of rows): RSS {before:.0f} -> "
-      f"{after:.0f} MiB after the call -> {flushed:.0f} MiB after drjit's cache is flushed")
+      f"{after:.0f} MiB after the call -> {dropped:.0f} MiB without its answer -> {flushed:.0f} MiB after drjit's cache "
+      "is flushed")
 """
 
 

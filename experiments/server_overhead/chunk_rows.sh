@@ -13,7 +13,7 @@ py=.venv/bin/python
       batches=17,20; [ "$clients" = 1 ] || batches=20
       echo "== NEUMIP_KERNEL_CHUNK_ROWS=$rows, $clients client(s): $py benchmarks/server_cpu.py --batches $batches --protocols shm,msgpack --rounds 3 --clients $clients --server-env NEUMIP_KERNEL_CHUNK_ROWS=$rows"
       $py benchmarks/server_cpu.py --batches $batches --protocols shm,msgpack --rounds 3 --clients $clients \
-        --server-env NEUMIP_KERNEL_CHUNK_ROWS=$rows | grep '^2^'
+        --server-env NEUMIP_KERNEL_CHUNK_ROWS=$rows | grep -v '^$'
     done
   done
   echo "# $py $here/call_memory.py rock"

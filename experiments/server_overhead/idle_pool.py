@@ -4,7 +4,8 @@
 
 For each gap (0, 5 and 30 ms of sleep after a call of 2^17 queries): the pool shrunk to the calling thread
 (`drjit.set_thread_count(1)`), 3 ms of sleep, the pool grown back to 2, then the next call, 10 times; prints the
-medians of the shrink, the grow and the call. The gaps bracket the pool's spin: its workers spin for about 20 ms
+medians of the shrink, the grow and the call. The process idles for the gap plus those 3 ms before the call. The gaps
+bracket the pool's spin: its workers spin for about 20 ms
 after a call before they sleep.
 """
 
