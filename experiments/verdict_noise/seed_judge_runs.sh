@@ -4,11 +4,12 @@
 # side by side (about 8 minutes a pair on 2 cores). Turtle's two runs are session 19's (runs/rs/ctl, runs/cd/ctl1).
 #   bash experiments/verdict_noise/seed_judge_runs.sh [MATERIAL...]   (default: rock yarn foam planks)
 #   SEEDS=2 bash experiments/verdict_noise/seed_judge_runs.sh turtle rock yarn foam planks   (a third seed)
+#   FLAGS="--residual 16 --coarse-decoder 4" OUT=runs/rc bash experiments/verdict_noise/seed_judge_runs.sh ...   (a lever)
 set -euo pipefail
 NEUMIP=${NEUMIP:-.venv/bin/neumip}
 OUT=${OUT:-runs/sj}
 train() { local m=$1 s=$2
-          "$NEUMIP" train "runs/cal/data_$m" -o "$OUT/${m}_s$s/$m.onnx" --recipe maps --threads 1 --seed "$s" \
+          "$NEUMIP" train "runs/cal/data_$m" -o "$OUT/${m}_s$s/$m.onnx" --recipe maps --threads 1 --seed "$s" ${FLAGS:-} \
             > "$OUT/${m}_s$s.log" 2>&1 || { echo "$m seed $s failed: see $OUT/${m}_s$s.log" >&2; return 1; }
           echo "$m seed $s: $(tail -1 "$OUT/${m}_s$s.log")"; }
 mkdir -p "$OUT"
