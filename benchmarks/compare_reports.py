@@ -41,10 +41,14 @@ def print_columns(reports: dict[str, dict], columns: list[str], judged: str) -> 
     rivals = [method for which, method in cells if which == "new" and method != judged]
     losing = 0
     for material, views in new["materials"].items():
-        level_views = [v for v in views if v.startswith("level") and "_" in v]
-        for light in dict.fromkeys(v.split("_", 1)[1] for v in level_views):
-            for view in sorted((v for v in level_views if v.endswith("_" + light)), key=lambda v: int(v[5:].split("_")[0])):
-                texels = 2 ** int(view[5:].split("_")[0])
+        levels = {}  # light -> {level: view}, from the view names levelK_LIGHT
+        for view in views:
+            level, _, light = view.removeprefix("level").partition("_")
+            if view.startswith("level") and light and level.isdigit():
+                levels.setdefault(light, {})[int(level)] = view
+        for light, by_level in levels.items():
+            for level, view in sorted(by_level.items()):
+                texels = 2 ** level
                 row = []
                 for which, method in cells:
                     entry = view_entry(reports[which], material, view, method)
